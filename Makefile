@@ -1,0 +1,42 @@
+# Two commands on a fresh machine: `make demo` and `make test`.
+# Both create (or reuse) .venv and install what they need.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+# torch first and pinned: on this machine torch==2.13.0 resolves to the CPU wheel on disk
+# (a bare `torch` would pull a multi-GB CUDA build).  The package itself states a range.
+TORCH_PIN ?= torch==2.13.0
+PIP := $(PY) -m pip --disable-pip-version-check
+PYTEST_ARGS ?=
+
+.PHONY: install demo test test-fast bench-layers clean
+
+install: $(STAMP)
+
+$(STAMP): setup.cfg pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip setuptools wheel
+	$(PIP) install -q "$(TORCH_PIN)"
+	$(PIP) install -q -e ".[dev]"
+	# torch-scatter compiles against the installed torch (~4 min once; pip caches the wheel)
+	$(PIP) install -q --no-build-isolation "torch-scatter>=2.1,<3"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) examples/layer_demo.py
+
+# The whole suite with torch-scatter, then the layer tests again with it hidden
+# (PyG's native scatter path).  Slow tests run too; `make test-fast` skips them.
+test: $(STAMP)
+	GARMENTGNN_EXPECT_SCATTER=1 $(PY) -m pytest $(PYTEST_ARGS)
+	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -m "not slow" tests/test_backend.py tests/test_sat_conv.py tests/test_layers_contract.py tests/test_baseline_layers.py $(PYTEST_ARGS)
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+
+bench-layers: $(STAMP)
+	$(PY) benchmarks/layers.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info src/*.egg-info

@@ -1,0 +1,161 @@
+"""GATv2 baseline behind the common layer contract."""
+from __future__ import annotations
+
+from typing import Optional, Tuple, Union
+
+from torch import Tensor
+from torch_geometric.nn.conv import GATv2Conv, MessagePassing
+from torch_geometric.nn.dense.linear import Linear
+from torch_geometric.typing import Adj, OptTensor, PairTensor
+
+from garmentgnn.nn._graph import prepare_graph
+
+
+class GATBaselineConv(MessagePassing):
+    r"""A graph attention baseline: PyG's
+    :class:`~torch_geometric.nn.conv.GATv2Conv` (Brody, Alon & Yahav, *How
+    Attentive are Graph Attention Networks?*, ICLR 2022) plus a residual
+    skip, behind the same contract as the transformer layers.
+
+    For every edge :math:`j \to i` and head :math:`h`:
+
+    .. math::
+        \alpha_{ij} = \operatorname{softmax}_{j \in \mathcal{N}(i)}
+        \mathbf{a}^\top \mathrm{LeakyReLU}\big(\mathbf{W}_s \mathbf{x}_i
+        + \mathbf{W}_t \mathbf{x}_j + \mathbf{W}_e \mathbf{e}_{ij}\big),\qquad
+        \mathbf{x}'_i = \big\Vert_h \sum_{j \in \mathcal{N}(i)}
+        \alpha_{ij} \mathbf{W}_t \mathbf{x}_j + \mathbf{b}
+        + \mathrm{skip}(\mathbf{x}_i)
+
+    where :math:`\Vert_h` concatenates the heads (or averages them when
+    ``concat=False``), the edge term appears only when ``edge_dim`` is set,
+    and the skip is the identity when the widths match and a linear map
+    (``lin_skip``) otherwise, so stacks stay residual like the other layers.
+    Edge features only enter the scores and are returned unchanged.  The
+    activation is left to the caller.
+
+    Self-loops are **not** added by default (``add_self_loops=False``, unlike
+    PyG's default): mesh vertices always have neighbours, the skip already
+    carries :math:`\mathbf{x}_i`, and the contract returns attention weights
+    (and edge features) aligned with the *input* edges.  With
+    ``add_self_loops=True`` the returned ``(edge_index, alpha)`` covers the
+    augmented edge set built by ``GATv2Conv``.
+
+    Args:
+        in_channels (int or tuple): input width, or ``(src, dst)`` widths for
+            bipartite graphs.
+        out_channels (int): channels per head.
+        edge_dim (int, optional): edge feature width; when set, edge features
+            are required and enter the attention scores.
+        heads (int): number of heads :math:`H`.
+        concat (bool): concatenate heads (output ``H * C``) or average them
+            (output ``C``).
+        dropout (float): dropout on the attention coefficients (training).
+        bias (bool): learn additive biases.
+        validate (bool): check inputs (shapes, index range, NaN/inf) and raise
+            ``ValueError``; costs O(N + E) per call.
+        add_self_loops (bool): let ``GATv2Conv`` add self-loops.
+        **kwargs: passed to ``GATv2Conv`` (e.g. ``negative_slope``,
+            ``share_weights``); ``residual`` is rejected since the layer has
+            its own skip.
+
+    Shapes:
+        - **input:** ``x`` :math:`(|V|, F_{in})` or a pair,
+          ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
+          ``edge_attr`` :math:`(|E|, D)` or ``None``
+        - **output:** ``(x_out, edge_attr)`` with ``x_out`` of shape
+          :math:`(|V|, H C)` (or :math:`(|V|, C)`) and ``edge_attr`` the
+          input object (the values of a hybrid sparse ``adj_t`` when
+          ``edge_attr`` is ``None``); with ``return_attention_weights=True`` a third item
+          ``(edge_index, alpha)`` with ``alpha`` :math:`(|E|, H)`.
+    """
+
+    def __init__(
+        self,
+        in_channels: Union[int, Tuple[int, int]],
+        out_channels: int,
+        edge_dim: Optional[int] = None,
+        heads: int = 1,
+        concat: bool = True,
+        dropout: float = 0.0,
+        bias: bool = True,
+        validate: bool = True,
+        add_self_loops: bool = False,
+        **kwargs,
+    ) -> None:
+        super().__init__(node_dim=0)
+        if isinstance(in_channels, int):
+            in_src = in_dst = in_channels
+        else:
+            in_src, in_dst = in_channels
+        for name, val in (("in_channels", in_src), ("in_channels", in_dst),
+                          ("out_channels", out_channels), ("heads", heads)):
+            if not isinstance(val, int) or val <= 0:
+                raise ValueError(f"`{name}` must be a positive int, got {val!r}")
+        if edge_dim is not None and (not isinstance(edge_dim, int) or edge_dim <= 0):
+            raise ValueError(f"`edge_dim` must be a positive int or None, got {edge_dim!r}")
+        if not 0.0 <= dropout < 1.0:
+            raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
+        if kwargs.get("residual"):
+            raise ValueError("`residual`: GATBaselineConv adds its own skip (lin_skip); "
+                             "do not ask GATv2Conv for another one")
+        kwargs.pop("residual", None)
+
+        self.in_channels = in_channels
+        self.out_channels = out_channels
+        self.edge_dim = edge_dim
+        self.heads = heads
+        self.concat = concat
+        self.dropout = dropout
+        self.validate = validate
+        self.add_self_loops = add_self_loops
+
+        out_width = heads * out_channels if concat else out_channels
+        self.gat = GATv2Conv(in_channels, out_channels, heads=heads, concat=concat,
+                             dropout=dropout, edge_dim=edge_dim, bias=bias,
+                             add_self_loops=add_self_loops, **kwargs)
+        self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        super().reset_parameters()
+        self.gat.reset_parameters()
+        if self.lin_skip is not None:
+            self.lin_skip.reset_parameters()
+
+    def forward(
+        self,
+        x: Union[Tensor, PairTensor],
+        edge_index: Adj,
+        edge_attr: OptTensor = None,
+        return_attention_weights: Optional[bool] = None,
+    ):
+        """Run the layer.
+
+        Args:
+            x: node features ``[N, F_in]`` or ``(x_src, x_dst)``.
+            edge_index: ``[2, E]`` (source, target) indices or sparse ``adj_t``.
+            edge_attr: ``[E, edge_dim]`` edge features (required iff ``edge_dim``
+                is set); returned as is.
+            return_attention_weights: also return ``(edge_index, alpha)``.
+
+        Returns:
+            ``(x_out, edge_attr)``, plus ``(edge_index, alpha)`` when asked.
+        """
+        g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
+                          require_edge_attr=self.edge_dim is not None, validate=self.validate)
+        x_dst = x if isinstance(x, Tensor) else x[1]
+        e = g.edge_attr if self.edge_dim is not None else None
+
+        out, (ei, alpha) = self.gat(x, g.edge_index, e, return_attention_weights=True)
+        out = out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
+
+        # the caller's edge features as given; those a hybrid sparse adj_t carries otherwise
+        e_out = edge_attr if edge_attr is not None else g.edge_attr
+        if return_attention_weights:
+            return out, e_out, (ei, alpha)
+        return out, e_out
+
+    def __repr__(self) -> str:
+        return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
+                f"heads={self.heads}, edge_dim={self.edge_dim}, concat={self.concat})")

@@ -1,0 +1,189 @@
+"""Plain graph transformer convolution (GarTrans, Eqs. 3-4; "w/o edge processing")."""
+from __future__ import annotations
+
+import math
+from typing import Optional, Tuple, Union
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch_geometric.nn.conv import MessagePassing
+from torch_geometric.nn.dense.linear import Linear
+from torch_geometric.typing import Adj, OptTensor, PairTensor
+from torch_geometric.utils import softmax
+
+from garmentgnn.nn._graph import prepare_graph, segment_sum
+
+
+class GraphTransformerConv(MessagePassing):
+    r"""The plain graph transformer layer of GarTrans, Eqs. (3)-(4)
+    (Dwivedi & Bresson, 2020, without edge features), used as the
+    "w/o edge processing" ablation.
+
+    For every edge :math:`j \to i` and head :math:`h` with :math:`C` channels:
+
+    .. math::
+        \mathbf{q}_i = \mathbf{W}_q \mathbf{x}_i,\quad
+        \mathbf{k}_j = \mathbf{W}_k \mathbf{x}_j,\quad
+        \mathbf{v}_j = \mathbf{W}_v \mathbf{x}_j,\quad
+        h_{ij} = \frac{\mathbf{q}_i^\top \mathbf{k}_j}{\sqrt{C}},\quad
+        \alpha_{ij} = \operatorname{softmax}_{j \in \mathcal{N}(i)} h_{ij}
+
+    .. math::
+        \mathbf{x}'_i = \mathbf{W}_o\,\big\Vert_h
+        \sum_{j \in \mathcal{N}(i)} \alpha_{ij} \mathbf{v}_j
+        + \mathrm{skip}(\mathbf{x}_i)
+
+    where :math:`\Vert_h` concatenates the heads (or averages them when
+    ``concat=False``) and the skip is the identity when the widths match and
+    a linear map (``lin_skip``) otherwise.  Edge features take no part:
+    ``edge_dim`` is accepted (so the layer is a drop-in replacement in a
+    registry) and only used to check the shape of ``edge_attr``, which is
+    returned unchanged.  The activation is left to the caller.
+
+    With ``lin_out`` set to the identity this is PyG's
+    :class:`~torch_geometric.nn.conv.TransformerConv` with
+    ``root_weight=True`` and no ``edge_dim``.
+
+    Args:
+        in_channels (int or tuple): input width, or ``(src, dst)`` widths for
+            bipartite graphs.
+        out_channels (int): channels per head, :math:`C`.
+        edge_dim (int, optional): declared edge feature width; ignored apart
+            from the shape check of ``edge_attr``.
+        heads (int): number of heads :math:`H`.
+        concat (bool): concatenate heads (output ``H * C``) or average them
+            (output ``C``).
+        dropout (float): dropout on the attention coefficients (training).
+        bias (bool): learn additive biases.
+        validate (bool): check inputs (shapes, index range, NaN/inf) and raise
+            ``ValueError``; costs O(N + E) per call.
+
+    Shapes:
+        - **input:** ``x`` :math:`(|V|, F_{in})` or a pair,
+          ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
+          ``edge_attr`` :math:`(|E|, D)` or ``None``
+        - **output:** ``(x_out, edge_attr)`` with ``x_out`` of shape
+          :math:`(|V|, H C)` (or :math:`(|V|, C)`) and ``edge_attr`` the
+          input object (the values of a hybrid sparse ``adj_t`` when
+          ``edge_attr`` is ``None``); with ``return_attention_weights=True`` a third item
+          ``(edge_index, alpha)`` with ``alpha`` :math:`(|E|, H)`.
+    """
+
+    def __init__(
+        self,
+        in_channels: Union[int, Tuple[int, int]],
+        out_channels: int,
+        edge_dim: Optional[int] = None,
+        heads: int = 1,
+        concat: bool = True,
+        dropout: float = 0.0,
+        bias: bool = True,
+        validate: bool = True,
+        **kwargs,
+    ) -> None:
+        kwargs.setdefault("aggr", "add")
+        super().__init__(node_dim=0, **kwargs)
+        if isinstance(in_channels, int):
+            in_src = in_dst = in_channels
+        else:
+            in_src, in_dst = in_channels
+        for name, val in (("in_channels", in_src), ("in_channels", in_dst),
+                          ("out_channels", out_channels), ("heads", heads)):
+            if not isinstance(val, int) or val <= 0:
+                raise ValueError(f"`{name}` must be a positive int, got {val!r}")
+        if edge_dim is not None and (not isinstance(edge_dim, int) or edge_dim <= 0):
+            raise ValueError(f"`edge_dim` must be a positive int or None, got {edge_dim!r}")
+        if not 0.0 <= dropout < 1.0:
+            raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
+
+        self.in_channels = in_channels
+        self.out_channels = out_channels
+        self.edge_dim = edge_dim
+        self.heads = heads
+        self.concat = concat
+        self.dropout = dropout
+        self.validate = validate
+
+        H, C = heads, out_channels
+        out_width = H * C if concat else C
+        self.lin_query = Linear(in_dst, H * C, bias=bias)
+        self.lin_key = Linear(in_src, H * C, bias=bias)
+        self.lin_value = Linear(in_src, H * C, bias=bias)
+        self.lin_out = Linear(out_width, out_width, bias=bias)  # W_o
+        self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        super().reset_parameters()
+        for lin in (self.lin_query, self.lin_key, self.lin_value, self.lin_out, self.lin_skip):
+            if lin is not None:
+                lin.reset_parameters()
+
+    def _project_nodes(self, x: Union[Tensor, PairTensor]) -> Tuple[Tensor, Tensor, Tensor]:
+        """q, k, v of shape [N, H, C]; one fused matmul when x is shared."""
+        H, C = self.heads, self.out_channels
+        if isinstance(x, Tensor):
+            lins = (self.lin_query, self.lin_key, self.lin_value)
+            weight = torch.cat([lin.weight for lin in lins], 0)
+            bias = (torch.cat([lin.bias for lin in lins], 0)
+                    if self.lin_query.bias is not None else None)
+            q, k, v = F.linear(x, weight, bias).view(-1, 3, H, C).unbind(1)
+            return q, k, v
+        x_src, x_dst = x
+        return (self.lin_query(x_dst).view(-1, H, C), self.lin_key(x_src).view(-1, H, C),
+                self.lin_value(x_src).view(-1, H, C))
+
+    def forward(
+        self,
+        x: Union[Tensor, PairTensor],
+        edge_index: Adj,
+        edge_attr: OptTensor = None,
+        return_attention_weights: Optional[bool] = None,
+    ):
+        """Run the layer.
+
+        Args:
+            x: node features ``[N, F_in]`` or ``(x_src, x_dst)``.
+            edge_index: ``[2, E]`` (source, target) indices or sparse ``adj_t``.
+            edge_attr: optional ``[E, edge_dim]`` edge features; not used, returned as is.
+            return_attention_weights: also return ``(edge_index, alpha)``.
+
+        Returns:
+            ``(x_out, edge_attr)``, plus ``(edge_index, alpha)`` when asked.
+        """
+        g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
+                          require_edge_attr=False, validate=self.validate)
+        src, dst = g.edge_index[0], g.edge_index[1]
+        H, C = self.heads, self.out_channels
+        x_dst = x if isinstance(x, Tensor) else x[1]
+
+        q, k, v = self._project_nodes(x)
+        # Eq. (3): scaled dot-product scores, one per edge and head.
+        score = (q.index_select(0, dst) * k.index_select(0, src)).sum(-1) / math.sqrt(C)
+        alpha = softmax(score, dst, g.ptr, g.num_dst)  # [E, H]
+        alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
+
+        # Eq. (4): x_i' = W_o heads(sum_j alpha_ij v_j) + skip(x_i)
+        out = self.propagate(g.edge_index, v=v, alpha=alpha_used, ptr_=g.ptr,
+                             size=(g.num_src, g.num_dst))  # [N, H, C]
+        out = out.reshape(-1, H * C) if self.concat else out.mean(1)
+        out = self.lin_out(out)
+        out = out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
+
+        # the caller's edge features as given; those a hybrid sparse adj_t carries otherwise
+        e_out = edge_attr if edge_attr is not None else g.edge_attr
+        if return_attention_weights:
+            return out, e_out, (g.edge_index, alpha)
+        return out, e_out
+
+    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:
+        return v_j * alpha.unsqueeze(-1)
+
+    def aggregate(self, inputs: Tensor, index: Tensor, ptr_: Optional[Tensor] = None,
+                  dim_size: Optional[int] = None) -> Tensor:
+        return segment_sum(inputs, index, ptr_, int(dim_size))
+
+    def __repr__(self) -> str:
+        return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
+                f"heads={self.heads}, edge_dim={self.edge_dim}, concat={self.concat})")

@@ -1,0 +1,36 @@
+"""Shared fixtures.  ``GARMENTGNN_NO_SCATTER=1`` hides torch-scatter so the
+suite exercises PyG's native-scatter path even where torch-scatter is installed."""
+import os
+import sys
+
+if os.environ.get("GARMENTGNN_NO_SCATTER") == "1":
+    sys.modules["torch_scatter"] = None  # makes `import torch_scatter` raise ImportError
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh  # noqa: E402
+
+
+def random_graph(num_nodes: int, num_edges: int, seed: int = 0, sort: bool = False):
+    """A random directed graph in which every node has at least one incoming edge."""
+    g = torch.Generator().manual_seed(seed)
+    src = torch.randint(0, num_nodes, (num_edges,), generator=g)
+    dst = torch.randint(0, num_nodes, (num_edges,), generator=g)
+    src = torch.cat([src, torch.roll(torch.arange(num_nodes), 1)])
+    dst = torch.cat([dst, torch.arange(num_nodes)])
+    ei = torch.stack([src, dst])
+    if sort:
+        ei = ei[:, torch.argsort(ei[1] * num_nodes + ei[0])]
+    else:
+        ei = ei[:, torch.randperm(ei.size(1), generator=g)]
+    return ei
+
+
+@pytest.fixture
+def mesh_graph():
+    """A small garment-like sheet: positions, faces, sorted edge_index, edge features."""
+    pos, faces = grid_mesh(7, 6)
+    pos = pos + 0.02 * torch.randn(pos.shape, generator=torch.Generator().manual_seed(1))
+    ei = faces_to_edge_index(faces, pos.size(0))
+    return pos, faces, ei, edge_features(pos, ei)

@@ -1,0 +1,183 @@
+"""The common layer contract, checked for every registry entry."""
+import pytest
+import torch
+from torch_geometric import EdgeIndex
+from torch_geometric.data import Batch, Data
+
+from conftest import random_graph
+from garmentgnn.nn import LAYERS, make_layer
+
+NAMES = sorted(LAYERS)
+EDGE_DIM = 4
+USES_EDGES = {"sat", "gt_edge", "structure_aware", "gat"}
+
+
+def build(name, in_ch=6, out_ch=4, heads=2, concat=True, **kw):
+    torch.manual_seed(0)
+    return make_layer(name, in_ch, out_ch, edge_dim=EDGE_DIM, heads=heads, concat=concat, **kw)
+
+
+def run(layer, x, ei, e):
+    out, e_out = layer(x, ei, e)
+    return out, e_out
+
+
+def test_registry_lists_the_five_layers():
+    assert set(NAMES) == {"sat", "gt", "gt_edge", "structure_aware", "gat"}
+    with pytest.raises(ValueError, match="name"):
+        make_layer("nope", 4, 4)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_batched_mesh_graph_equals_separate_graphs(name, mesh_graph):
+    pos, _, ei, e = mesh_graph
+    layer = build(name).eval()
+    graphs = []
+    for s in range(3):
+        gen = torch.Generator().manual_seed(s)
+        x = torch.cat([pos, torch.randn(pos.size(0), 3, generator=gen)], -1)
+        graphs.append(Data(x=x, edge_index=ei, edge_attr=e + 0.1 * s))
+    batch = Batch.from_data_list(graphs)
+    out, e_out = run(layer, batch.x, batch.edge_index, batch.edge_attr)
+    assert out.shape == (batch.num_nodes, 8)
+    assert torch.isfinite(out).all()
+    for s, g in enumerate(graphs):
+        o, eo = run(layer, g.x, g.edge_index, g.edge_attr)
+        torch.testing.assert_close(out[batch.ptr[s]:batch.ptr[s + 1]], o, atol=1e-5, rtol=1e-5)
+        if eo is not None:
+            m = batch.batch[batch.edge_index[0]] == s
+            torch.testing.assert_close(e_out[m], eo, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_permutation_equivariance(name):
+    N = 10
+    ei = random_graph(N, 30, seed=7)
+    x, e = torch.randn(N, 6), torch.randn(ei.size(1), EDGE_DIM)
+    layer = build(name).eval()
+    out, e_out = run(layer, x, ei, e)
+    perm, eperm = torch.randperm(N), torch.randperm(ei.size(1))
+    inv = torch.empty_like(perm)
+    inv[perm] = torch.arange(N)
+    ei_p = inv[ei][:, eperm]  # node i becomes inv[i]; edges shuffled
+    out_p, e_out_p = run(layer, x[perm], ei_p, e[eperm])
+    torch.testing.assert_close(out_p, out[perm], atol=1e-5, rtol=1e-5)
+    if e_out is not None:
+        torch.testing.assert_close(e_out_p, e_out[eperm], atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("form", ["coo_hybrid", "csr", "edge_index_obj"])
+def test_sparse_adjacency_matches_edge_index(name, form):
+    N = 9
+    ei = random_graph(N, 25, seed=8)
+    ei = torch.unique(ei, dim=1)  # sparse adjacency cannot hold duplicate edges
+    x, e = torch.randn(N, 6), torch.randn(ei.size(1), EDGE_DIM)
+    layer = build(name).eval()
+    out, e_out = run(layer, x, ei, e)
+    # row-major order of adj_t: sorted by (target, source)
+    order = torch.argsort(ei[1] * N + ei[0])
+    if form == "coo_hybrid":
+        adj_t = torch.sparse_coo_tensor(ei.flip(0), e, (N, N, EDGE_DIM))
+        out_s, e_out_s = layer(x, adj_t)
+    elif form == "csr":
+        adj_t = torch.sparse_coo_tensor(ei.flip(0), torch.ones(ei.size(1)), (N, N)).to_sparse_csr()
+        out_s, e_out_s = layer(x, adj_t, e[order])
+    else:
+        eidx = EdgeIndex(ei[:, order], sparse_size=(N, N), sort_order="col")
+        out_s, e_out_s = layer(x, eidx, e[order])
+    torch.testing.assert_close(out_s, out, atol=1e-5, rtol=1e-5)
+    if e_out is not None:
+        torch.testing.assert_close(e_out_s, e_out[order], atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gradcheck(name):
+    N = 5
+    ei = random_graph(N, 8, seed=9)
+    layer = build(name, in_ch=3, out_ch=2).double().eval()
+    x = torch.randn(N, 3, dtype=torch.float64, requires_grad=True)
+    e = torch.randn(ei.size(1), EDGE_DIM, dtype=torch.float64, requires_grad=name in USES_EDGES)
+
+    def f(a, b):
+        out, e_out = layer(a, ei, b)
+        return out if e_out is None or not e_out.requires_grad else (out, e_out)
+
+    assert torch.autograd.gradcheck(f, (x, e))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_torch_compile_matches_eager(name, mesh_graph):
+    pos, _, ei, e = mesh_graph
+    x = torch.cat([pos, pos.flip(-1)], -1)
+    layer = build(name).eval()
+    ref, e_ref = run(layer, x, ei, e)
+    compiled = torch.compile(layer, backend="aot_eager")
+    out, e_out = compiled(x, ei, e)
+    torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_sat_inductor_compile(mesh_graph):
+    pos, _, ei, e = mesh_graph
+    x = torch.cat([pos, pos.flip(-1)], -1)
+    layer = build("sat").eval()
+    ref, e_ref = layer(x, ei, e)
+    out, e_out = torch.compile(layer)(x, ei, e)
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(e_out, e_ref, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_bad_input_raises_value_error_naming_argument(name):
+    N = 6
+    ei = random_graph(N, 10, seed=10)
+    x, e = torch.randn(N, 6), torch.randn(ei.size(1), EDGE_DIM)
+    layer = build(name)
+    bad_x = x.clone()
+    bad_x[2, 1] = float("nan")
+    with pytest.raises(ValueError, match="`x`"):
+        layer(bad_x, ei, e)
+    with pytest.raises(ValueError, match="`edge_index`"):
+        layer(x, torch.cat([ei, torch.tensor([[0], [N]])], 1), torch.randn(ei.size(1) + 1, EDGE_DIM))
+    with pytest.raises(ValueError, match="`edge_index`"):
+        layer(x, torch.cat([ei, torch.tensor([[-1], [0]])], 1), torch.randn(ei.size(1) + 1, EDGE_DIM))
+    with pytest.raises(ValueError, match="`edge_index`"):
+        layer(x, ei[0], e)
+    if name in USES_EDGES:
+        with pytest.raises(ValueError, match="`edge_attr`"):
+            layer(x, ei, e[:-1])  # one row short
+        with pytest.raises(ValueError, match="`edge_attr`"):
+            layer(x, ei, torch.randn(ei.size(1), EDGE_DIM + 1))  # wrong edge_dim
+        bad_e = e.clone()
+        bad_e[0, 0] = float("inf")
+        with pytest.raises(ValueError, match="`edge_attr`"):
+            layer(x, ei, bad_e)
+    with pytest.raises(TypeError, match="`edge_index`"):
+        layer(x, ei.float(), e)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_validate_false_skips_checks(name):
+    N = 6
+    ei = random_graph(N, 10, seed=11)
+    x, e = torch.randn(N, 6), torch.randn(ei.size(1), EDGE_DIM)
+    x[0, 0] = float("nan")
+    layer = build(name, validate=False).eval()
+    out, _ = layer(x, ei, e)  # no error: the caller opted out of the O(N+E) checks
+    assert out.shape[0] == N
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("concat", [True, False])
+def test_widths_and_reset(name, concat):
+    layer = build(name, in_ch=5, out_ch=3, heads=2, concat=concat)
+    N = 6
+    ei = random_graph(N, 12, seed=12)
+    out, _ = layer(torch.randn(N, 5), ei, torch.randn(ei.size(1), EDGE_DIM))
+    assert out.shape == (N, 6 if concat else 3)
+    before = [p.detach().clone() for p in layer.parameters()]
+    layer.reset_parameters()
+    after = list(layer.parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(before, after))
+    assert type(layer).__name__ in repr(layer)
