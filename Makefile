@@ -26,11 +26,11 @@ $(STAMP): setup.cfg pyproject.toml
 demo: $(STAMP)
 	$(PY) examples/layer_demo.py
 
-# The whole suite with torch-scatter, then the layer tests again with it hidden
+# The whole suite with torch-scatter, then the fast suite again with it hidden
 # (PyG's native scatter path).  Slow tests run too; `make test-fast` skips them.
 test: $(STAMP)
 	GARMENTGNN_EXPECT_SCATTER=1 $(PY) -m pytest $(PYTEST_ARGS)
-	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -m "not slow" tests/test_backend.py tests/test_sat_conv.py tests/test_layers_contract.py tests/test_baseline_layers.py $(PYTEST_ARGS)
+	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 test-fast: $(STAMP)
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)

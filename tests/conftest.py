@@ -20,8 +20,9 @@ def random_graph(num_nodes: int, num_edges: int, seed: int = 0, sort: bool = Fal
     src = torch.cat([src, torch.roll(torch.arange(num_nodes), 1)])
     dst = torch.cat([dst, torch.arange(num_nodes)])
     ei = torch.stack([src, dst])
-    if sort:
-        ei = ei[:, torch.argsort(ei[1] * num_nodes + ei[0])]
+    if sort:  # CSR order of adj_t: by (target, source), duplicates removed
+        key = torch.unique(ei[1] * num_nodes + ei[0])
+        ei = torch.stack([key % num_nodes, key // num_nodes])
     else:
         ei = ei[:, torch.randperm(ei.size(1), generator=g)]
     return ei

@@ -14,8 +14,14 @@ import pytest
 import torch
 from torch_geometric.nn.conv import GATv2Conv, TransformerConv
 
-from garmentgnn.nn import (LAYERS, EdgeTransformerConv, GATBaselineConv, GraphTransformerConv,
-                           StructureAwareTransformerConv, make_layer)
+from garmentgnn.nn import (
+    LAYERS,
+    EdgeTransformerConv,
+    GATBaselineConv,
+    GraphTransformerConv,
+    StructureAwareTransformerConv,
+    make_layer,
+)
 
 ATOL = 1e-5
 

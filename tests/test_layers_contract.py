@@ -1,10 +1,10 @@
 """The common layer contract, checked for every registry entry."""
 import pytest
 import torch
+from conftest import random_graph
 from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch, Data
 
-from conftest import random_graph
 from garmentgnn.nn import LAYERS, make_layer
 
 NAMES = sorted(LAYERS)
@@ -68,7 +68,10 @@ def test_permutation_equivariance(name):
 
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("form", ["coo_hybrid", "csr", "edge_index_obj"])
-def test_sparse_adjacency_matches_edge_index(name, form):
+@pytest.mark.parametrize("grad", [True, False])
+def test_sparse_adjacency_matches_edge_index(name, form, grad):
+    """Sparse adj_t (CSR order) equals unsorted edge_index; without autograd the CSR
+    order also switches on the sparse-kernel path, which must agree too."""
     N = 9
     ei = random_graph(N, 25, seed=8)
     ei = torch.unique(ei, dim=1)  # sparse adjacency cannot hold duplicate edges
@@ -77,15 +80,17 @@ def test_sparse_adjacency_matches_edge_index(name, form):
     out, e_out = run(layer, x, ei, e)
     # row-major order of adj_t: sorted by (target, source)
     order = torch.argsort(ei[1] * N + ei[0])
-    if form == "coo_hybrid":
-        adj_t = torch.sparse_coo_tensor(ei.flip(0), e, (N, N, EDGE_DIM))
-        out_s, e_out_s = layer(x, adj_t)
-    elif form == "csr":
-        adj_t = torch.sparse_coo_tensor(ei.flip(0), torch.ones(ei.size(1)), (N, N)).to_sparse_csr()
-        out_s, e_out_s = layer(x, adj_t, e[order])
-    else:
-        eidx = EdgeIndex(ei[:, order], sparse_size=(N, N), sort_order="col")
-        out_s, e_out_s = layer(x, eidx, e[order])
+    with torch.set_grad_enabled(grad):
+        if form == "coo_hybrid":
+            adj_t = torch.sparse_coo_tensor(ei.flip(0), e, (N, N, EDGE_DIM))
+            out_s, e_out_s = layer(x, adj_t)
+        elif form == "csr":
+            adj_t = torch.sparse_coo_tensor(ei.flip(0), torch.ones(ei.size(1)),
+                                            (N, N)).to_sparse_csr()
+            out_s, e_out_s = layer(x, adj_t, e[order])
+        else:
+            eidx = EdgeIndex(ei[:, order], sparse_size=(N, N), sort_order="col")
+            out_s, e_out_s = layer(x, eidx, e[order])
     torch.testing.assert_close(out_s, out, atol=1e-5, rtol=1e-5)
     if e_out is not None:
         torch.testing.assert_close(e_out_s, e_out[order], atol=1e-5, rtol=1e-5)

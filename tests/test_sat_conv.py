@@ -3,9 +3,10 @@ import math
 
 import pytest
 import torch
-
 from conftest import random_graph
+
 from garmentgnn.nn import SATConv
+from garmentgnn.nn._graph import prepare_graph, use_csr_kernels
 
 
 def reference_sat(conv: SATConv, x, edge_index, e):
@@ -45,8 +46,10 @@ def reference_sat(conv: SATConv, x, edge_index, e):
 
 @pytest.mark.parametrize("concat", [True, False])
 @pytest.mark.parametrize("in_ch,edge_out", [(8, None), (5, 6)])
-@pytest.mark.parametrize("sort", [False, True])
-def test_matches_dense_reference(concat, in_ch, edge_out, sort):
+@pytest.mark.parametrize("sort,grad", [(False, True), (True, True), (True, False)])
+def test_matches_dense_reference(concat, in_ch, edge_out, sort, grad):
+    """Unsorted edges (scatter), CSR-sorted edges (segment reductions) and CSR-sorted
+    edges without autograd (sparse SDDMM/SpMM kernels) all match the reference."""
     torch.manual_seed(0)
     N, H, C, D = 9, 2, 4, 3
     if concat is False and in_ch == 8:
@@ -57,7 +60,10 @@ def test_matches_dense_reference(concat, in_ch, edge_out, sort):
     width = H * C if concat else C
     assert (conv.lin_skip is None) == (in_ch == width)
     assert (conv.lin_edge_skip is None) == (edge_out in (None, D))
-    out, e_out, (ei_ret, alpha) = conv(x, ei, e, return_attention_weights=True)
+    g = prepare_graph(x, ei, e, D, require_edge_attr=True, validate=True)
+    with torch.set_grad_enabled(grad):
+        assert use_csr_kernels(g) == (sort and not grad)
+        out, e_out, (ei_ret, alpha) = conv(x, ei, e, return_attention_weights=True)
     ref_out, ref_e, ref_h = reference_sat(conv, x, ei, e)
     torch.testing.assert_close(out.double(), ref_out, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(e_out.double(), ref_e, atol=1e-5, rtol=1e-5)

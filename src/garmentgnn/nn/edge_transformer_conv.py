@@ -1,21 +1,19 @@
 """Graph transformer with edge features, no gating (Dwivedi & Bresson, 2020)."""
 from __future__ import annotations
 
-import math
 from typing import Optional, Tuple, Union
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor
-from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 from torch_geometric.utils import softmax
 
-from garmentgnn.nn._graph import prepare_graph, segment_sum
+from garmentgnn.nn._base import AttentionConv
+from garmentgnn.nn._graph import prepare_graph
 
 
-class EdgeTransformerConv(MessagePassing):
+class EdgeTransformerConv(AttentionConv):
     r"""The graph transformer layer with edge features of Dwivedi & Bresson,
     *A Generalization of Transformer Networks to Graphs*, AAAI-DLG 2021
     (arXiv:2012.09699), GarTrans reference [53]; the "w/o edge gating"
@@ -90,8 +88,7 @@ class EdgeTransformerConv(MessagePassing):
         validate: bool = True,
         **kwargs,
     ) -> None:
-        kwargs.setdefault("aggr", "add")
-        super().__init__(node_dim=0, **kwargs)
+        super().__init__(**kwargs)
         if isinstance(in_channels, int):
             in_src = in_dst = in_channels
         else:
@@ -140,20 +137,6 @@ class EdgeTransformerConv(MessagePassing):
             if lin is not None:
                 lin.reset_parameters()
 
-    def _project_nodes(self, x: Union[Tensor, PairTensor]) -> Tuple[Tensor, Tensor, Tensor]:
-        """q, k, v of shape [N, H, C]; one fused matmul when x is shared."""
-        H, C = self.heads, self.out_channels
-        if isinstance(x, Tensor):
-            lins = (self.lin_query, self.lin_key, self.lin_value)
-            weight = torch.cat([lin.weight for lin in lins], 0)
-            bias = (torch.cat([lin.bias for lin in lins], 0)
-                    if self.lin_query.bias is not None else None)
-            q, k, v = F.linear(x, weight, bias).view(-1, 3, H, C).unbind(1)
-            return q, k, v
-        x_src, x_dst = x
-        return (self.lin_query(x_dst).view(-1, H, C), self.lin_key(x_src).view(-1, H, C),
-                self.lin_value(x_src).view(-1, H, C))
-
     def forward(
         self,
         x: Union[Tensor, PairTensor],
@@ -176,22 +159,23 @@ class EdgeTransformerConv(MessagePassing):
                           require_edge_attr=True, validate=self.validate)
         src, dst = g.edge_index[0], g.edge_index[1]
         e = g.edge_attr
+        assert e is not None
         H, C = self.heads, self.out_channels
-        x_dst = x if isinstance(x, Tensor) else x[1]
+        if isinstance(x, Tensor):
+            x_dst = x
+            q, k, v = self.project(x, (self.lin_query, self.lin_key, self.lin_value), True)
+        else:
+            x_dst = x[1]
+            (q,) = self.project(x[1], (self.lin_query,), True)
+            k, v = self.project(x[0], (self.lin_key, self.lin_value))
 
-        q, k, v = self._project_nodes(x)
         # w_hat_ij = (q_i * k_j / sqrt(C)) * W_E e_ij, per channel: [E, H, C]
-        w_hat = (q.index_select(0, dst) * k.index_select(0, src)) * (
-            self.lin_edge(e).view(-1, H, C) / math.sqrt(C))
+        # (the per-channel edge product needs the [E, H, C] tensor; it is also the new edge state)
+        w_hat = (q.index_select(0, dst) * k.index_select(0, src)) * self.lin_edge(e).view(-1, H, C)
         score = w_hat.sum(-1)  # [E, H]
         alpha = softmax(score, dst, g.ptr, g.num_dst)  # [E, H]
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-
-        out = self.propagate(g.edge_index, v=v, alpha=alpha_used, ptr_=g.ptr,
-                             size=(g.num_src, g.num_dst))  # [N, H, C]
-        out = out.reshape(-1, H * C) if self.concat else out.mean(1)
-        out = self.lin_out(out)
-        out = out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
+        out = self.merge_heads(self.aggregate_values(alpha_used, v, g), x_dst)
 
         w_hat = w_hat.reshape(-1, H * C) if self.concat else w_hat.mean(1)
         e_out = self.lin_edge_out(w_hat)
@@ -200,13 +184,6 @@ class EdgeTransformerConv(MessagePassing):
         if return_attention_weights:
             return out, e_out, (g.edge_index, alpha)
         return out, e_out
-
-    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:
-        return v_j * alpha.unsqueeze(-1)
-
-    def aggregate(self, inputs: Tensor, index: Tensor, ptr_: Optional[Tensor] = None,
-                  dim_size: Optional[int] = None) -> Tensor:
-        return segment_sum(inputs, index, ptr_, int(dim_size))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

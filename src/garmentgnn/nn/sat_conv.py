@@ -1,21 +1,20 @@
 """Structure-augmented transformer convolution (GarTrans, Eqs. 5-6)."""
 from __future__ import annotations
 
-import math
 from typing import Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 from torch_geometric.utils import softmax
 
-from garmentgnn.nn._graph import keep_one_mask, prepare_graph, segment_sum
+from garmentgnn.nn._base import AttentionConv
+from garmentgnn.nn._graph import keep_one_mask, prepare_graph
 
 
-class SATConv(MessagePassing):
+class SATConv(AttentionConv):
     r"""The structure-augmented transformer (SAT) layer of GarTrans
     (Li et al., *GarTrans*, Eqs. (5)-(6)).
 
@@ -52,7 +51,9 @@ class SATConv(MessagePassing):
     \mathbf{W}_{q'} \sum_j \alpha_{ij}\mathbf{e}_{ij}`, so the per-head edge
     values are never materialised per edge; only the narrow edge features
     are aggregated.  When ``edge_index`` is sorted by target (or given as a
-    sparse ``adj_t``) softmax and aggregation use CSR segment reductions.
+    sparse ``adj_t``) softmax and aggregation use CSR segment reductions, and
+    in inference (no autograd) with edges in CSR order the scores and sums run
+    as sparse SDDMM/SpMM kernels over all heads at once.
 
     Args:
         in_channels (int or tuple): input width, or ``(src, dst)`` widths for
@@ -97,8 +98,7 @@ class SATConv(MessagePassing):
         validate: bool = True,
         **kwargs,
     ) -> None:
-        kwargs.setdefault("aggr", "add")
-        super().__init__(node_dim=0, **kwargs)
+        super().__init__(**kwargs)
         if isinstance(in_channels, int):
             in_src = in_dst = in_channels
         else:
@@ -144,20 +144,6 @@ class SATConv(MessagePassing):
             if lin is not None:
                 lin.reset_parameters()
 
-    def _project_nodes(self, x: Union[Tensor, PairTensor]) -> Tuple[Tensor, Tensor, Tensor]:
-        """q, k, v of shape [N, H, C]; one fused matmul when x is shared."""
-        H, C = self.heads, self.out_channels
-        if isinstance(x, Tensor):
-            lins = (self.lin_query, self.lin_key, self.lin_value)
-            weight = torch.cat([lin.weight for lin in lins], 0)
-            bias = (torch.cat([lin.bias for lin in lins], 0)
-                    if self.lin_query.bias is not None else None)
-            q, k, v = F.linear(x, weight, bias).view(-1, 3, H, C).unbind(1)
-            return q, k, v
-        x_src, x_dst = x
-        return (self.lin_query(x_dst).view(-1, H, C), self.lin_key(x_src).view(-1, H, C),
-                self.lin_value(x_src).view(-1, H, C))
-
     def forward(
         self,
         x: Union[Tensor, PairTensor],
@@ -178,57 +164,44 @@ class SATConv(MessagePassing):
         """
         g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
                           require_edge_attr=True, validate=self.validate)
-        src, dst = g.edge_index[0], g.edge_index[1]
         e = g.edge_attr
+        assert e is not None
         H, C = self.heads, self.out_channels
-        x_dst = x if isinstance(x, Tensor) else x[1]
+        if isinstance(x, Tensor):
+            x_dst = x
+            q, k, v = self.project(x, (self.lin_query, self.lin_key, self.lin_value), True)
+        else:
+            x_dst = x[1]
+            (q,) = self.project(x[1], (self.lin_query,), True)
+            k, v = self.project(x[0], (self.lin_key, self.lin_value))
 
-        q, k, v = self._project_nodes(x)
-        # Eq. (5): gated scaled dot-product scores, one per edge and head.
-        score = (q.index_select(0, dst) * k.index_select(0, src)).sum(-1) / math.sqrt(C)
-        h = score * torch.sigmoid(self.lin_edge_gate(e))  # [E, H]
-
+        # Eq. (5): h_ij = (q_i . k_j / sqrt(C)) * sigmoid(W_p e_ij), one per edge and head
+        h = self.edge_scores(q, k, g) * torch.sigmoid(self.lin_edge_gate(e))  # [E, H]
         logits = h
         if self.training and self.attn_mask_p > 0:
             drop = torch.rand_like(h) < self.attn_mask_p
-            drop = keep_one_mask(drop, dst, g.num_dst)
-            logits = h.masked_fill(drop, float("-inf"))
-        alpha = softmax(logits, dst, g.ptr, g.num_dst)  # [E, H]
+            logits = h.masked_fill(keep_one_mask(drop, g.edge_index[1], g.num_dst), float("-inf"))
+        alpha = softmax(logits, g.edge_index[1], g.ptr, g.num_dst)  # [E, H]
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
 
-        # Eq. (6): sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j
-        #          + W_q' (sum_j alpha e_ij) + b * sum_j alpha
-        msg_v = self.propagate(g.edge_index, v=v, alpha=alpha_used, ptr_=g.ptr,
-                               size=(g.num_src, g.num_dst))  # [N, H, C]
-        e_aug = F.pad(e, (0, 1), value=1.0)  # [E, D+1]
-        agg_e = self._aggregate(alpha_used.unsqueeze(-1) * e_aug.unsqueeze(1), dst, g.ptr,
-                                g.num_dst)  # [N, H, D+1]
-        w_qe = self.lin_edge_value.weight.view(H, C, self.edge_dim)
-        b_qe = (self.lin_edge_value.bias.view(H, C, 1) if self.lin_edge_value.bias is not None
-                else w_qe.new_zeros(H, C, 1))
-        msg_e = torch.einsum("nhd,hcd->nhc", agg_e, torch.cat([w_qe, b_qe], -1))
-        out = msg_v + msg_e
-        out = out.reshape(-1, H * C) if self.concat else out.mean(1)
-        out = self.lin_out(out)
-        out = out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
+        # Eq. (6), by linearity of W_q':
+        #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + [W_q' | b] sum_j alpha [e_ij | 1]
+        # so only the narrow [E, D+1] edge features are aggregated, never [E, H, C] values.
+        out = self.aggregate_values(alpha_used, v, g)  # [N, H, C]
+        agg_e = self.aggregate_edges(alpha_used, F.pad(e, (0, 1), value=1.0), g)  # [N, H, D+1]
+        w = self.lin_edge_value.weight.view(H, C, self.edge_dim)
+        b = (self.lin_edge_value.bias.view(H, C, 1) if self.lin_edge_value.bias is not None
+             else w.new_zeros(H, C, 1))
+        out = out + torch.einsum("nhd,hcd->nhc", agg_e, torch.cat([w, b], -1))
+        out = self.merge_heads(out, x_dst)
 
+        # e_ij' = W_e h_ij + skip(e_ij), from the unmasked scores
         e_out = self.lin_edge_out(h)
         e_out = e_out + (e if self.lin_edge_skip is None else self.lin_edge_skip(e))
 
         if return_attention_weights:
             return out, e_out, (g.edge_index, alpha)
         return out, e_out
-
-    @staticmethod
-    def _aggregate(src: Tensor, index: Tensor, ptr: Optional[Tensor], dim_size: int) -> Tensor:
-        return segment_sum(src, index, ptr, dim_size)
-
-    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:
-        return v_j * alpha.unsqueeze(-1)
-
-    def aggregate(self, inputs: Tensor, index: Tensor, ptr_: Optional[Tensor] = None,
-                  dim_size: Optional[int] = None) -> Tensor:
-        return segment_sum(inputs, index, ptr_, int(dim_size))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

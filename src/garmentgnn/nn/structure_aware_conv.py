@@ -1,21 +1,20 @@
 """Structure-aware transformer convolution (Chen, O'Bray & Borgwardt, ICML 2022)."""
 from __future__ import annotations
 
-import math
 from typing import Optional, Tuple, Union
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torch_geometric.nn.conv import GINConv, GINEConv, MessagePassing
+from torch_geometric.nn.conv import GINConv, GINEConv
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 from torch_geometric.utils import softmax
 
-from garmentgnn.nn._graph import prepare_graph, segment_sum
+from garmentgnn.nn._base import AttentionConv
+from garmentgnn.nn._graph import prepare_graph
 
 
-class StructureAwareTransformerConv(MessagePassing):
+class StructureAwareTransformerConv(AttentionConv):
     r"""The structure-aware transformer (SAT) attention of Chen, O'Bray &
     Borgwardt, *Structure-Aware Transformer for Graph Representation
     Learning*, ICML 2022 (GarTrans reference [59]), with the k-subtree
@@ -92,8 +91,7 @@ class StructureAwareTransformerConv(MessagePassing):
         k_hops: int = 2,
         **kwargs,
     ) -> None:
-        kwargs.setdefault("aggr", "add")
-        super().__init__(node_dim=0, **kwargs)
+        super().__init__(**kwargs)
         if isinstance(in_channels, int):
             in_src = in_dst = in_channels
         else:
@@ -156,15 +154,6 @@ class StructureAwareTransformerConv(MessagePassing):
             h = conv(h, edge_index) if self.edge_dim is None else conv(h, edge_index, edge_attr)
         return h
 
-    def _project_nodes(self, x: Tensor, phi: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """q, k (from phi) and v (from x) of shape [N, H, C]; q and k in one matmul."""
-        H, C = self.heads, self.out_channels
-        weight = torch.cat([self.lin_query.weight, self.lin_key.weight], 0)
-        bias = (torch.cat([self.lin_query.bias, self.lin_key.bias], 0)
-                if self.lin_query.bias is not None else None)
-        q, k = F.linear(phi, weight, bias).view(-1, 2, H, C).unbind(1)
-        return q, k, self.lin_value(x).view(-1, H, C)
-
     def forward(
         self,
         x: Union[Tensor, PairTensor],
@@ -189,33 +178,20 @@ class StructureAwareTransformerConv(MessagePassing):
         if not isinstance(x, Tensor):
             raise ValueError("`x`: StructureAwareTransformerConv runs its structure extractor on "
                              "a single node set; pass one [N, F] tensor, not a bipartite pair")
-        src, dst = g.edge_index[0], g.edge_index[1]
-        H, C = self.heads, self.out_channels
-
         phi = self.extract(x, g.edge_index, g.edge_attr)
-        q, k, v = self._project_nodes(x, phi)
-        score = (q.index_select(0, dst) * k.index_select(0, src)).sum(-1) / math.sqrt(C)
-        alpha = softmax(score, dst, g.ptr, g.num_dst)  # [E, H]
+        # queries and keys see the k-hop structure (phi); values are the plain features
+        q, k = self.project(phi, (self.lin_query, self.lin_key), True)
+        (v,) = self.project(x, (self.lin_value,))
+        score = self.edge_scores(q, k, g)  # [E, H]
+        alpha = softmax(score, g.edge_index[1], g.ptr, g.num_dst)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-
-        out = self.propagate(g.edge_index, v=v, alpha=alpha_used, ptr_=g.ptr,
-                             size=(g.num_src, g.num_dst))  # [N, H, C]
-        out = out.reshape(-1, H * C) if self.concat else out.mean(1)
-        out = self.lin_out(out)
-        out = out + (x if self.lin_skip is None else self.lin_skip(x))
+        out = self.merge_heads(self.aggregate_values(alpha_used, v, g), x)
 
         # the caller's edge features as given; those a hybrid sparse adj_t carries otherwise
         e_out = edge_attr if edge_attr is not None else g.edge_attr
         if return_attention_weights:
             return out, e_out, (g.edge_index, alpha)
         return out, e_out
-
-    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:
-        return v_j * alpha.unsqueeze(-1)
-
-    def aggregate(self, inputs: Tensor, index: Tensor, ptr_: Optional[Tensor] = None,
-                  dim_size: Optional[int] = None) -> Tensor:
-        return segment_sum(inputs, index, ptr_, int(dim_size))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -1,0 +1,87 @@
+"""Shared machinery of the dot-product attention layers in :mod:`garmentgnn.nn`."""
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch_geometric.nn.conv import MessagePassing
+from torch_geometric.nn.dense.linear import Linear
+
+from garmentgnn.nn._graph import Graph, csr_sddmm, csr_spmm, segment_sum, use_csr_kernels
+
+
+class AttentionConv(MessagePassing):
+    """Base class: fused projections, edge scores, value aggregation, head merge.
+
+    Subclasses set ``heads``, ``out_channels``, ``concat``, ``lin_out`` and
+    ``lin_skip`` and call the helpers from ``forward``.  Every helper picks
+    the CSR sparse-kernel path in inference (see
+    :func:`garmentgnn.nn._graph.use_csr_kernels`) and gathers/segment
+    reductions otherwise; both compute the same numbers.
+    """
+
+    heads: int
+    out_channels: int
+    concat: bool
+    lin_out: Linear
+    lin_skip: Optional[Linear]
+
+    def __init__(self, **kwargs) -> None:
+        kwargs.setdefault("aggr", "add")
+        super().__init__(node_dim=0, **kwargs)
+
+    def project(self, x: Tensor, lins: Sequence[Linear], scale_first: bool = False) -> Tuple[Tensor, ...]:
+        """Apply several linear maps to the same ``x`` in one matmul.
+
+        Returns one contiguous ``[N, H, C]`` tensor per map; with
+        ``scale_first`` the first (the queries) is scaled by ``1/sqrt(C)``,
+        which folds the attention temperature into an N-sized tensor instead
+        of an E-sized one.
+        """
+        H, C = self.heads, self.out_channels
+        weight = torch.cat([lin.weight for lin in lins], 0)
+        bias = torch.cat([lin.bias for lin in lins], 0) if lins[0].bias is not None else None
+        if scale_first:
+            s = torch.ones(weight.size(0), 1, dtype=weight.dtype, device=weight.device)
+            s[: H * C] = 1.0 / math.sqrt(C)
+            weight = weight * s
+            bias = bias * s.squeeze(1) if bias is not None else None
+        out = F.linear(x, weight, bias).view(x.size(0), len(lins), H, C)
+        return tuple(t.contiguous() for t in out.unbind(1))
+
+    @staticmethod
+    def edge_scores(q: Tensor, k: Tensor, g: Graph) -> Tensor:
+        """``q_i . k_j`` per edge ``j -> i`` and head, ``[E, H]``."""
+        if use_csr_kernels(g):
+            return csr_sddmm(q, k, g)
+        return (q.index_select(0, g.edge_index[1]) * k.index_select(0, g.edge_index[0])).sum(-1)
+
+    def aggregate_values(self, alpha: Tensor, v: Tensor, g: Graph) -> Tensor:
+        """``sum_j alpha_ij v_j`` per head, ``[N_dst, H, C]``."""
+        if use_csr_kernels(g):
+            return csr_spmm(alpha, v, g)
+        return self.propagate(g.edge_index, v=v, alpha=alpha, ptr_=g.ptr,
+                              size=(g.num_src, g.num_dst))
+
+    @staticmethod
+    def aggregate_edges(alpha: Tensor, e: Tensor, g: Graph) -> Tensor:
+        """``sum_j alpha_ij e_ij`` per head for edge values ``[E, D]``: ``[N_dst, H, D]``."""
+        if use_csr_kernels(g):
+            return csr_spmm(alpha, e, g, per_edge=True)
+        return segment_sum(alpha.unsqueeze(-1) * e.unsqueeze(1), g.edge_index[1], g.ptr, g.num_dst)
+
+    def merge_heads(self, out: Tensor, x_dst: Tensor) -> Tensor:
+        """``W_o heads(out) + skip(x_dst)``: concatenate or average the heads."""
+        out = out.reshape(out.size(0), -1) if self.concat else out.mean(1)
+        out = self.lin_out(out)
+        return out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
+
+    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:
+        return v_j * alpha.unsqueeze(-1)
+
+    def aggregate(self, inputs: Tensor, index: Tensor, ptr_: Optional[Tensor] = None,
+                  dim_size: Optional[int] = None) -> Tensor:
+        return segment_sum(inputs, index, ptr_, int(dim_size))
