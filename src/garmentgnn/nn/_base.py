@@ -10,17 +10,18 @@ from torch import Tensor
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.nn.dense.linear import Linear
 
-from garmentgnn.nn._graph import Graph, csr_sddmm, csr_spmm, segment_sum, use_csr_kernels
+from garmentgnn.nn._graph import Graph, segment_sum
+from garmentgnn.nn._sparse import csr_edge_spmm, csr_sddmm, csr_spmm, use_csr_kernels
 
 
 class AttentionConv(MessagePassing):
     """Base class: fused projections, edge scores, value aggregation, head merge.
 
     Subclasses set ``heads``, ``out_channels``, ``concat``, ``lin_out`` and
-    ``lin_skip`` and call the helpers from ``forward``.  Every helper picks
-    the CSR sparse-kernel path in inference (see
-    :func:`garmentgnn.nn._graph.use_csr_kernels`) and gathers/segment
-    reductions otherwise; both compute the same numbers.
+    ``lin_skip`` and call the helpers from ``forward``.  Scores and value
+    sums use the CSR sparse kernels of :mod:`garmentgnn.nn._sparse` when the
+    edges are in CSR order (eager mode), and gathers plus segment/scatter
+    reductions otherwise; both compute the same numbers and gradients.
     """
 
     heads: int
@@ -36,7 +37,8 @@ class AttentionConv(MessagePassing):
     def project(self, x: Tensor, lins: Sequence[Linear], scale_first: bool = False) -> Tuple[Tensor, ...]:
         """Apply several linear maps to the same ``x`` in one matmul.
 
-        Returns one contiguous ``[N, H, C]`` tensor per map; with
+        Returns one ``[N, H, C]`` view per map (no copy: the sparse kernels
+        re-lay them out head-major, the gather path reads them strided); with
         ``scale_first`` the first (the queries) is scaled by ``1/sqrt(C)``,
         which folds the attention temperature into an N-sized tensor instead
         of an E-sized one.
@@ -50,27 +52,29 @@ class AttentionConv(MessagePassing):
             weight = weight * s
             bias = bias * s.squeeze(1) if bias is not None else None
         out = F.linear(x, weight, bias).view(x.size(0), len(lins), H, C)
-        return tuple(t.contiguous() for t in out.unbind(1))
+        return out.unbind(1)
 
     @staticmethod
     def edge_scores(q: Tensor, k: Tensor, g: Graph) -> Tensor:
         """``q_i . k_j`` per edge ``j -> i`` and head, ``[E, H]``."""
         if use_csr_kernels(g):
             return csr_sddmm(q, k, g)
-        return (q.index_select(0, g.edge_index[1]) * k.index_select(0, g.edge_index[0])).sum(-1)
+        # contiguous first: gathering rows of a strided [N, H, C] view is several times slower
+        q_i = q.contiguous().index_select(0, g.edge_index[1])
+        return (q_i * k.contiguous().index_select(0, g.edge_index[0])).sum(-1)
 
     def aggregate_values(self, alpha: Tensor, v: Tensor, g: Graph) -> Tensor:
         """``sum_j alpha_ij v_j`` per head, ``[N_dst, H, C]``."""
         if use_csr_kernels(g):
             return csr_spmm(alpha, v, g)
-        return self.propagate(g.edge_index, v=v, alpha=alpha, ptr_=g.ptr,
+        return self.propagate(g.edge_index, v=v.contiguous(), alpha=alpha, ptr_=g.ptr,
                               size=(g.num_src, g.num_dst))
 
     @staticmethod
     def aggregate_edges(alpha: Tensor, e: Tensor, g: Graph) -> Tensor:
         """``sum_j alpha_ij e_ij`` per head for edge values ``[E, D]``: ``[N_dst, H, D]``."""
         if use_csr_kernels(g):
-            return csr_spmm(alpha, e, g, per_edge=True)
+            return csr_edge_spmm(alpha, e, g)
         return segment_sum(alpha.unsqueeze(-1) * e.unsqueeze(1), g.edge_index[1], g.ptr, g.num_dst)
 
     def merge_heads(self, out: Tensor, x_dst: Tensor) -> Tensor:

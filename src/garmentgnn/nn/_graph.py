@@ -19,12 +19,11 @@ use segment reductions instead of scatters.
 """
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
-from torch_geometric import EdgeIndex, is_compiling
+from torch_geometric import EdgeIndex
 from torch_geometric.index import index2ptr
 from torch_geometric.typing import SparseTensor
 from torch_geometric.utils import is_sparse, scatter, segment, to_edge_index
@@ -41,6 +40,7 @@ class Graph(NamedTuple):
     num_src: int
     num_dst: int
     csr: bool = False  # sorted by (target, source) without duplicates: valid CSR of adj_t
+    cache: dict = {}  # per-call scratch (sparse patterns); prepare_graph gives each a new dict
 
 
 def _fail(arg: str, msg: str) -> None:
@@ -134,13 +134,13 @@ def prepare_graph(
         csr = num_edges == 0 or bool((key[1:] > key[:-1]).all())
 
     if edge_dim is None:
-        return Graph(edge_index, edge_attr, ptr, num_src, num_dst, csr)
+        return Graph(edge_index, edge_attr, ptr, num_src, num_dst, csr, {})
 
     if edge_attr is None:
         if require_edge_attr:
             _fail("edge_attr", f"this layer was built with edge_dim={edge_dim} and needs edge "
                                f"features of shape [num_edges, {edge_dim}]; got None")
-        return Graph(edge_index, None, ptr, num_src, num_dst, csr)
+        return Graph(edge_index, None, ptr, num_src, num_dst, csr, {})
     if not isinstance(edge_attr, Tensor):
         raise TypeError(f"`edge_attr`: expected a Tensor, got {type(edge_attr).__name__}")
     if edge_attr.dim() == 1 and edge_dim == 1:
@@ -153,7 +153,7 @@ def prepare_graph(
                            "one feature row per edge, in edge_index order")
     if validate:
         check_finite("edge_attr", edge_attr)
-    return Graph(edge_index, edge_attr, ptr, num_src, num_dst, csr)
+    return Graph(edge_index, edge_attr, ptr, num_src, num_dst, csr, {})
 
 
 def segment_sum(src: Tensor, index: Tensor, ptr: Optional[Tensor], dim_size: int) -> Tensor:
@@ -175,59 +175,3 @@ def keep_one_mask(mask: Tensor, index: Tensor, num_nodes: int) -> Tensor:
     keep = r == r_max.index_select(0, index)
     return mask & ~keep
 
-
-# CSR kernels for inference ####################################################
-# With the edges in CSR order, the per-edge work of dot-product attention maps
-# onto two sparse kernels: SDDMM (scores q_i . k_j sampled on the graph) and
-# SpMM (sum_j alpha_ij v_j).  All heads run in one call on a block-diagonal
-# [H*N_dst, H*N_src] pattern, so no [E, H, C] tensor is ever materialised.
-# PyTorch's CPU backward of these kernels is far slower than gather/scatter, so
-# layers use them only when no gradient is recorded (see `use_csr_kernels`).
-
-warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-
-
-def use_csr_kernels(g: Graph) -> bool:
-    """True when the sparse-kernel path applies: CSR-ordered edges, no autograd, eager."""
-    return g.csr and g.ptr is not None and not torch.is_grad_enabled() and not is_compiling()
-
-
-def _head_csr(g: Graph, heads: int, num_cols: int, col: Tensor) -> Tuple[Tensor, Tensor]:
-    """Block-diagonal CSR structure repeating the graph once per head."""
-    assert g.ptr is not None
-    E = g.edge_index.size(1)
-    offsets = torch.arange(heads, device=col.device)
-    ptr = torch.cat([(g.ptr[:-1].unsqueeze(0) + offsets.unsqueeze(1) * E).reshape(-1),
-                     g.ptr.new_full((1,), heads * E)])
-    col = (col.unsqueeze(0) + offsets.unsqueeze(1) * num_cols).reshape(-1)
-    return ptr, col
-
-
-def csr_sddmm(q: Tensor, k: Tensor, g: Graph) -> Tensor:
-    """``(q_i . k_j)`` for every edge ``j -> i`` and head: ``[E, H]`` from ``[N, H, C]``."""
-    H, C = q.size(1), q.size(2)
-    ptr, col = _head_csr(g, H, g.num_src, g.edge_index[0])
-    pattern = torch.sparse_csr_tensor(ptr, col, q.new_empty(col.numel()),
-                                      (H * g.num_dst, H * g.num_src), check_invariants=False)
-    qs = q.transpose(0, 1).reshape(H * g.num_dst, C)
-    ks = k.transpose(0, 1).reshape(H * g.num_src, C)
-    return torch.sparse.sampled_addmm(pattern, qs, ks.t(), beta=0.0).values().view(H, -1).t()
-
-
-def csr_spmm(alpha: Tensor, v: Tensor, g: Graph, per_edge: bool = False) -> Tensor:
-    """``sum_j alpha_ij v_j`` per head.
-
-    ``alpha`` is ``[E, H]``.  With ``per_edge=False`` ``v`` holds node values
-    ``[N_src, H, C]``; with ``per_edge=True`` it holds edge values ``[E, C]``
-    shared by all heads.  Returns ``[N_dst, H, C]``.
-    """
-    H = alpha.size(1)
-    if per_edge:
-        E = v.size(0)
-        ptr, col = _head_csr(g, H, 0, torch.arange(E, device=v.device))
-        shape, dense = (H * g.num_dst, E), v
-    else:
-        ptr, col = _head_csr(g, H, g.num_src, g.edge_index[0])
-        shape, dense = (H * g.num_dst, H * g.num_src), v.transpose(0, 1).reshape(-1, v.size(-1))
-    adj = torch.sparse_csr_tensor(ptr, col, alpha.t().reshape(-1), shape, check_invariants=False)
-    return torch.sparse.mm(adj, dense).view(H, g.num_dst, -1).transpose(0, 1)

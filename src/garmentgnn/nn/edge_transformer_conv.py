@@ -171,7 +171,8 @@ class EdgeTransformerConv(AttentionConv):
 
         # w_hat_ij = (q_i * k_j / sqrt(C)) * W_E e_ij, per channel: [E, H, C]
         # (the per-channel edge product needs the [E, H, C] tensor; it is also the new edge state)
-        w_hat = (q.index_select(0, dst) * k.index_select(0, src)) * self.lin_edge(e).view(-1, H, C)
+        q_i, k_j = q.contiguous().index_select(0, dst), k.contiguous().index_select(0, src)
+        w_hat = q_i * k_j * self.lin_edge(e).view(-1, H, C)
         score = w_hat.sum(-1)  # [E, H]
         alpha = softmax(score, dst, g.ptr, g.num_dst)  # [E, H]
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
