@@ -192,6 +192,10 @@ def run_backend(args) -> dict:
     )
 
 
+def _mb(v) -> str:
+    return "-" if v is None else f"{v:.0f}"
+
+
 def markdown(results: list) -> str:
     lines = []
     for res in results:
@@ -207,8 +211,7 @@ def markdown(results: list) -> str:
             lines.append(
                 f"| {r['layer']} | {r['fwd_ms']:.1f} | {r['fwd_bwd_ms']:.1f} | "
                 f"{r['fwd_ratio']:.2f} | {r['fwd_bwd_ratio']:.2f} | "
-                f"{r.get('peak_fwd_mb', float('nan')):.0f} | "
-                f"{r.get('peak_fwd_bwd_mb', float('nan')):.0f} | {r['params']} |")
+                f"{_mb(r.get('peak_fwd_mb'))} | {_mb(r.get('peak_fwd_bwd_mb'))} | {r['params']} |")
         lines.append("")
     return "\n".join(lines)
 

@@ -83,10 +83,11 @@ def test_isolated_node_gets_only_skip():
     torch.testing.assert_close(out[2], conv.lin_out.bias + x[2])
 
 
-def test_attention_mask_never_nan_and_keeps_one_edge():
+@pytest.mark.parametrize("sort", [False, True])
+def test_attention_mask_never_nan_and_keeps_one_edge(sort):
     torch.manual_seed(0)
     N = 12
-    ei = random_graph(N, 60, seed=1)
+    ei = random_graph(N, 60, seed=1, sort=sort)
     x, e = torch.randn(N, 8), torch.randn(ei.size(1), 3)
     conv = SATConv(8, 4, edge_dim=3, heads=2, attn_mask_p=1.0).train()
     out, e_out, (_, alpha) = conv(x, ei, e, return_attention_weights=True)

@@ -7,10 +7,9 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
-from torch_geometric.utils import softmax
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import prepare_graph
+from garmentgnn.nn._graph import edge_softmax, prepare_graph
 
 
 class EdgeTransformerConv(AttentionConv):
@@ -174,7 +173,7 @@ class EdgeTransformerConv(AttentionConv):
         q_i, k_j = q.contiguous().index_select(0, dst), k.contiguous().index_select(0, src)
         w_hat = q_i * k_j * self.lin_edge(e).view(-1, H, C)
         score = w_hat.sum(-1)  # [E, H]
-        alpha = softmax(score, dst, g.ptr, g.num_dst)  # [E, H]
+        alpha = edge_softmax(score, g)  # [E, H]
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
         out = self.merge_heads(self.aggregate_values(alpha_used, v, g), x_dst)
 

@@ -7,10 +7,9 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
-from torch_geometric.utils import softmax
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import prepare_graph
+from garmentgnn.nn._graph import edge_softmax, prepare_graph
 
 
 class GraphTransformerConv(AttentionConv):
@@ -147,7 +146,7 @@ class GraphTransformerConv(AttentionConv):
 
         # Eq. (3): scaled dot-product scores, one per edge and head.
         score = self.edge_scores(q, k, g)  # [E, H]
-        alpha = softmax(score, g.edge_index[1], g.ptr, g.num_dst)
+        alpha = edge_softmax(score, g)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
 
         # Eq. (4): x_i' = W_o heads(sum_j alpha_ij v_j) + skip(x_i)

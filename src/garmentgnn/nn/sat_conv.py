@@ -8,10 +8,9 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
-from torch_geometric.utils import softmax
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import keep_one_mask, prepare_graph
+from garmentgnn.nn._graph import edge_softmax, keep_one_mask, prepare_graph
 
 
 class SATConv(AttentionConv):
@@ -181,7 +180,7 @@ class SATConv(AttentionConv):
         if self.training and self.attn_mask_p > 0:
             drop = torch.rand_like(h) < self.attn_mask_p
             logits = h.masked_fill(keep_one_mask(drop, g.edge_index[1], g.num_dst), float("-inf"))
-        alpha = softmax(logits, g.edge_index[1], g.ptr, g.num_dst)  # [E, H]
+        alpha = edge_softmax(logits, g)  # [E, H]
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
 
         # Eq. (6), by linearity of W_q':

@@ -8,10 +8,9 @@ from torch import Tensor, nn
 from torch_geometric.nn.conv import GINConv, GINEConv
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
-from torch_geometric.utils import softmax
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import prepare_graph
+from garmentgnn.nn._graph import edge_softmax, prepare_graph
 
 
 class StructureAwareTransformerConv(AttentionConv):
@@ -183,7 +182,7 @@ class StructureAwareTransformerConv(AttentionConv):
         q, k = self.project(phi, (self.lin_query, self.lin_key), True)
         (v,) = self.project(x, (self.lin_value,))
         score = self.edge_scores(q, k, g)  # [E, H]
-        alpha = softmax(score, g.edge_index[1], g.ptr, g.num_dst)
+        alpha = edge_softmax(score, g)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
         out = self.merge_heads(self.aggregate_values(alpha_used, v, g), x)
 
