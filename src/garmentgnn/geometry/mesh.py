@@ -1,11 +1,13 @@
 """Mesh connectivity and a procedural sheet mesh."""
 from __future__ import annotations
 
-from typing import Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
 from torch_geometric.utils import sort_edge_index, to_undirected
+
+from ._validate import check_faces
 
 
 def faces_to_edge_index(faces: Tensor, num_nodes: int) -> Tensor:
@@ -55,3 +57,110 @@ def edge_features(pos: Tensor, edge_index: Tensor) -> Tensor:
     d = pos.index_select(0, edge_index[1]) - pos.index_select(0, edge_index[0])
     length = d.norm(dim=-1, keepdim=True)
     return torch.cat([length, d / length.clamp_min(1e-12)], -1)
+
+
+# ---------------------------------------------------------------------------
+# Connectivity (pure torch, no python loops over faces)
+# ---------------------------------------------------------------------------
+class EdgeTopology(NamedTuple):
+    """Unique undirected edges of a triangle mesh.
+
+    Attributes:
+        edges: ``[E, 2]`` long, each row ``(i, j)`` with ``i < j``, rows sorted
+            lexicographically.
+        face_edges: ``[F, 3]`` long; column ``k`` is the index into ``edges`` of the
+            face edge ``(f[k], f[(k+1) % 3])`` (the edge opposite ``f[(k+2) % 3]``).
+        counts: ``[E]`` long, number of faces using each edge (1 = boundary edge,
+            2 = interior manifold edge, >2 = non-manifold edge).
+    """
+    edges: Tensor
+    face_edges: Tensor
+    counts: Tensor
+
+
+class FaceAdjacency(NamedTuple):
+    """Pairs of faces sharing an edge.
+
+    Attributes:
+        faces: ``[A, 2]`` long, the two face indices ``(f1, f2)``.
+        edges: ``[A, 2]`` long, the shared edge ``(a, b)`` oriented as face ``f1``
+            traverses it (``f1`` contains the directed edge ``a -> b``).
+        opposite: ``[A, 2]`` long, the vertex of ``f1`` and of ``f2`` that is not on
+            the shared edge.
+    """
+    faces: Tensor
+    edges: Tensor
+    opposite: Tensor
+
+
+def _half_edges(faces: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+    """Directed face edges ``[3F, 2]``, owning face ``[3F]`` and opposite vertex ``[3F]``.
+
+    Half-edge ``k * F + f`` is the edge ``(faces[f, k], faces[f, (k+1) % 3])``.
+    """
+    f = faces.long()
+    he = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 0)
+    owner = torch.arange(f.size(0), device=f.device).repeat(3)
+    opp = torch.cat([f[:, 2], f[:, 0], f[:, 1]], 0)
+    return he, owner, opp
+
+
+def _check_topology(faces: Tensor, num_vertices: Optional[int]) -> Tuple[Tensor, int]:
+    if not isinstance(faces, Tensor):
+        raise TypeError(f"`faces`: expected a torch.Tensor of shape [F, 3], got "
+                        f"{type(faces).__name__}")
+    n = int(faces.max()) + 1 if (num_vertices is None and faces.numel()) else (num_vertices or 0)
+    return check_faces(faces, n), n
+
+
+def unique_edges(faces: Tensor, num_vertices: Optional[int] = None) -> EdgeTopology:
+    """Unique undirected edges, the face-to-edge map and per-edge face counts.
+
+    Computed with a sort + ``torch.unique`` over the integer keys ``min * V + max`` of
+    the ``3F`` half-edges.
+
+    Args:
+        faces: ``[F, 3]`` integer tensor.
+        num_vertices: vertex count ``V`` (defaults to ``faces.max() + 1``).
+    """
+    faces, n = _check_topology(faces, num_vertices)
+    he, _, _ = _half_edges(faces)
+    lo, hi = he.min(1).values, he.max(1).values
+    key = lo * n + hi
+    uniq, inverse, counts = torch.unique(key, sorted=True, return_inverse=True,
+                                         return_counts=True)
+    edges = torch.stack([uniq // n, uniq % n], 1)
+    face_edges = inverse.view(3, -1).t().contiguous()
+    return EdgeTopology(edges, face_edges, counts)
+
+
+def face_adjacency(faces: Tensor, num_vertices: Optional[int] = None) -> FaceAdjacency:
+    """Pairs of faces that share an edge (the hinges used by dihedral angles / bending).
+
+    The ``3F`` half-edges are stably sorted by their undirected key; every two
+    consecutive half-edges with the same key form one pair.  An interior manifold
+    edge yields exactly one pair, a boundary edge none, and a non-manifold edge used
+    by ``m > 2`` faces a chain of ``m - 1`` pairs.
+
+    Args:
+        faces: ``[F, 3]`` integer tensor.
+        num_vertices: vertex count (defaults to ``faces.max() + 1``).
+    """
+    faces, n = _check_topology(faces, num_vertices)
+    he, owner, opp = _half_edges(faces)
+    key = he.min(1).values * n + he.max(1).values
+    key_sorted, order = torch.sort(key, stable=True)
+    same = key_sorted[1:] == key_sorted[:-1]
+    i1, i2 = order[:-1][same], order[1:][same]
+    return FaceAdjacency(torch.stack([owner[i1], owner[i2]], 1), he[i1],
+                         torch.stack([opp[i1], opp[i2]], 1))
+
+
+def boundary_vertex_mask(faces: Tensor, num_vertices: Optional[int] = None) -> Tensor:
+    """``[V]`` bool, ``True`` for vertices on a boundary edge (an edge used by one face)."""
+    topo = unique_edges(faces, num_vertices)
+    n = int(num_vertices) if num_vertices is not None else int(faces.max()) + 1
+    mask = torch.zeros(n, dtype=torch.bool, device=faces.device)
+    b = topo.edges[topo.counts == 1].reshape(-1)
+    mask[b] = True
+    return mask
