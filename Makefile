@@ -18,7 +18,7 @@ $(STAMP): setup.cfg pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip setuptools wheel
 	$(PIP) install -q "$(TORCH_PIN)"
-	$(PIP) install -q -e ".[dev,human]"
+	$(PIP) install -q -e ".[dev,human,smpl]"
 	# torch-scatter compiles against the installed torch (~4 min once; pip caches the wheel)
 	$(PIP) install -q --no-build-isolation "torch-scatter>=2.1,<3"
 	touch $(STAMP)

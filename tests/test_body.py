@@ -160,3 +160,52 @@ def test_anny_rejects_bad_shape():
         AnnyBodyModel.phenotype({"wingspan": 0.5})
     with pytest.raises(ValueError, match="shape"):
         AnnyBodyModel.phenotype("giant")
+
+
+# --- SMPL through smplx, with a tiny SMPL-format file the test writes itself ---------
+
+def tiny_smpl_file(path, num_verts=60, seed=0):
+    import pickle
+    rng = np.random.default_rng(seed)
+    J = 24
+    parents = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21]
+    kintree = np.stack([np.array(parents, dtype=np.int64) % (2**32), np.arange(J)])
+    reg = np.abs(rng.normal(size=(J, num_verts)))
+    w = np.abs(rng.normal(size=(num_verts, J)))
+    data = dict(v_template=rng.normal(size=(num_verts, 3)),
+                shapedirs=0.05 * rng.normal(size=(num_verts, 3, 10)),
+                posedirs=np.zeros((num_verts, 3, 207)),
+                J_regressor=reg / reg.sum(1, keepdims=True),
+                weights=w / w.sum(1, keepdims=True),
+                kintree_table=kintree, f=rng.integers(0, num_verts, size=(80, 3)))
+    with open(path, "wb") as f:
+        pickle.dump(data, f)
+    return data
+
+
+def test_smpl_adapter_matches_smplx(tmp_path):
+    smplx = pytest.importorskip("smplx")
+    from garmentgnn.body.smpl_body import Y_UP_TO_Z_UP, SMPLBodyModel, landmark_ids
+    path = tmp_path / "SMPL_NEUTRAL.pkl"
+    tiny_smpl_file(path)
+    model = SMPLBodyModel(path, dtype=torch.float64)
+    beta = torch.linspace(-1, 1, 10)
+    body = model(beta)
+    assert body.skeleton.index("l_knee") == 4
+    ref_model = smplx.SMPL(model_path=str(path), num_betas=10,
+                           vertex_ids=landmark_ids(60)).double()
+    g = torch.Generator().manual_seed(0)
+    aa = 0.3 * torch.randn(2, 24, 3, generator=g, dtype=torch.float64)
+    transl = 0.1 * torch.randn(2, 3, generator=g, dtype=torch.float64)
+    ref = ref_model(betas=beta.double().expand(2, -1), global_orient=aa[:, 0],
+                    body_pose=aa[:, 1:].reshape(2, -1), transl=transl)
+    C = Y_UP_TO_Z_UP.double()
+    # rotations and translation expressed in the Z-up frame: R' = C R C^T
+    R = axis_angle_to_matrix(aa)
+    verts, _ = body.pose(C @ R @ C.T, transl @ C.T)
+    # smplx stores its buffers in float32: agreement to float32 round-off
+    torch.testing.assert_close(verts, ref.vertices @ C.T, atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="shape"):
+        model(torch.zeros(3))
+    with pytest.raises(ValueError, match="model_path"):
+        SMPLBodyModel(tmp_path / "missing.pkl")

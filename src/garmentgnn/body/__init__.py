@@ -4,6 +4,7 @@ from garmentgnn.body.body import Body, BodyModel
 from garmentgnn.body.capsule import CapsuleBodyModel
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.body.skeleton import ROLES, Skeleton
+from garmentgnn.body.smpl_body import SMPLBodyModel
 
-__all__ = ["AnnyBodyModel", "Body", "BodyModel", "CapsuleBodyModel", "ROLES", "Skeleton", "forward_kinematics",
+__all__ = ["AnnyBodyModel", "Body", "BodyModel", "CapsuleBodyModel", "SMPLBodyModel", "ROLES", "Skeleton", "forward_kinematics",
            "linear_blend_skinning"]
