@@ -7,6 +7,8 @@ from typing import List
 import torch
 from torch import Tensor
 
+from garmentgnn.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
 
 @dataclass
 class Motion:
@@ -46,3 +48,31 @@ class Motion:
 
     def __len__(self) -> int:
         return self.num_frames
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the first to the last frame."""
+        return (self.num_frames - 1) / self.fps if self.num_frames else 0.0
+
+    def resample(self, fps: float) -> "Motion":
+        """The motion at another frame rate (e.g. 120 fps mocap -> the paper's 30):
+        rotations by slerp between neighbouring frames, translation linearly,
+        covering the same duration."""
+        if not isinstance(fps, (int, float)) or not fps > 0 or fps == float("inf"):
+            raise ValueError(f"`fps`: expected a positive finite frame rate, got {fps!r}")
+        T = self.num_frames
+        if T < 2:
+            return Motion(self.rotations.clone(), self.translation.clone(),
+                          list(self.joint_names), float(fps))
+        n = int(round(self.duration * fps + 1e-9)) + 1
+        pos = torch.arange(n, dtype=torch.float64) * (self.fps / fps)
+        pos = pos.clamp(max=T - 1)
+        i0 = pos.floor().long().clamp(max=T - 2)
+        w = (pos - i0).to(self.rotations.dtype)
+        R0 = axis_angle_to_matrix(self.rotations[i0])
+        R1 = axis_angle_to_matrix(self.rotations[i0 + 1])
+        delta = matrix_to_axis_angle(R0.transpose(-1, -2) @ R1)
+        rot = matrix_to_axis_angle(R0 @ axis_angle_to_matrix(delta * w.view(-1, 1, 1)))
+        wt = w.to(self.translation.dtype).view(-1, 1)
+        tr = self.translation[i0] * (1 - wt) + self.translation[i0 + 1] * wt
+        return Motion(rot, tr, list(self.joint_names), float(fps))
