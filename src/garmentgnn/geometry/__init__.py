@@ -1,4 +1,47 @@
-"""Pure, batched tensor mesh operations (no knowledge of bodies, garments or models)."""
-from garmentgnn.geometry.mesh import edge_features, faces_to_edge_index, grid_mesh
+"""Pure, batched tensor mesh operations (no knowledge of bodies, garments or models).
 
-__all__ = ["edge_features", "faces_to_edge_index", "grid_mesh"]
+Positions are ``[V, 3]`` or ``[..., V, 3]``; faces one ``[F, 3]`` long tensor shared by
+the batch.  Torch functions are differentiable in the positions; the geodesic /
+Nystroem functions are numpy/scipy pre-processing on a single rest mesh.
+"""
+from garmentgnn.geometry.distance import (SignedDistance, closest_point_on_triangle,
+                                          signed_distance, vertex_joint_distances)
+from garmentgnn.geometry.geodesic import (HeatGeodesicSolver, NystromFeatures,
+                                          cotan_laplacian, farthest_point_sampling,
+                                          geodesic_nystrom_features,
+                                          graph_geodesic_distances, heat_geodesic_distances,
+                                          mesh_edge_graph, nystrom_eigenvectors)
+from garmentgnn.geometry.measures import (angle_defect, dihedral_angles, edge_lengths,
+                                          face_cotangents, gaussian_curvature,
+                                          mixed_voronoi_areas)
+from garmentgnn.geometry.mesh import (EdgeTopology, FaceAdjacency, boundary_vertex_mask,
+                                      edge_features, face_adjacency, faces_to_edge_index,
+                                      grid_mesh, unique_edges)
+from garmentgnn.geometry.normals import (face_angles, face_areas, face_normals,
+                                         scatter_faces_to_vertices, vertex_normals)
+from garmentgnn.geometry.rotations import (axis_angle_to_matrix, euler_to_matrix,
+                                           matrix_to_axis_angle, matrix_to_euler)
+from garmentgnn.geometry.uv import (DeformationGradient, UVFrame, deformation_gradient,
+                                    uv_deformation_gradient, uv_rest_frame)
+
+__all__ = [
+    # mesh connectivity
+    "edge_features", "faces_to_edge_index", "grid_mesh", "unique_edges", "face_adjacency",
+    "boundary_vertex_mask", "EdgeTopology", "FaceAdjacency",
+    # normals / measures
+    "face_normals", "face_areas", "face_angles", "vertex_normals",
+    "scatter_faces_to_vertices", "edge_lengths", "dihedral_angles", "face_cotangents",
+    "mixed_voronoi_areas", "angle_defect", "gaussian_curvature",
+    # UV deformation gradient (Eq. 14)
+    "uv_deformation_gradient", "uv_rest_frame", "deformation_gradient",
+    "DeformationGradient", "UVFrame",
+    # geodesics and Nystroem features (§3.1)
+    "mesh_edge_graph", "graph_geodesic_distances", "cotan_laplacian",
+    "HeatGeodesicSolver", "heat_geodesic_distances", "farthest_point_sampling",
+    "nystrom_eigenvectors", "geodesic_nystrom_features", "NystromFeatures",
+    # body distances (Eq. 10)
+    "closest_point_on_triangle", "signed_distance", "SignedDistance",
+    "vertex_joint_distances",
+    # rotations
+    "axis_angle_to_matrix", "matrix_to_axis_angle", "euler_to_matrix", "matrix_to_euler",
+]

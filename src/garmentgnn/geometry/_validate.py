@@ -16,7 +16,8 @@ def check_points(x: Any, name: str, dim: int = 3, allow_empty: bool = False) -> 
     """``x`` must be a floating tensor ``[..., N, dim]`` with finite entries."""
     if not isinstance(x, Tensor):
         raise TypeError(f"`{name}`: expected a torch.Tensor of shape [..., N, {dim}], got "
-                        f"{type(x).__name__}; wrap it with torch.as_tensor(..., dtype=torch.float32)")
+                        f"{type(x).__name__}; wrap it with "
+                        f"torch.as_tensor(..., dtype=torch.float32)")
     if not x.is_floating_point():
         raise TypeError(f"`{name}`: expected a floating-point tensor, got dtype {x.dtype}; "
                         f"convert it with `.float()` or `.double()`")
@@ -35,7 +36,8 @@ def check_faces(faces: Any, num_vertices: int, name: str = "faces",
     """``faces`` must be an integer tensor ``[F, 3]`` with indices in ``[0, num_vertices)``."""
     if not isinstance(faces, Tensor):
         raise TypeError(f"`{name}`: expected a torch.Tensor of shape [F, 3], got "
-                        f"{type(faces).__name__}; wrap it with torch.as_tensor(..., dtype=torch.long)")
+                        f"{type(faces).__name__}; wrap it with "
+                        f"torch.as_tensor(..., dtype=torch.long)")
     if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
         raise TypeError(f"`{name}`: expected an integer tensor, got dtype {faces.dtype}; "
                         f"convert it with `.long()`")

@@ -28,9 +28,9 @@ def edge_lengths(pos: Tensor, edges: Tensor) -> Tensor:
     """
     pos = check_points(pos, "pos")
     if not isinstance(edges, Tensor) or edges.dim() != 2 or edges.size(1) != 2:
+        got = tuple(edges.shape) if isinstance(edges, Tensor) else type(edges).__name__
         raise ValueError(f"`edges`: expected a [E, 2] integer tensor (use edge_index.t() "
-                         f"for a [2, E] edge_index), got "
-                         f"{tuple(edges.shape) if isinstance(edges, Tensor) else type(edges).__name__}")
+                         f"for a [2, E] edge_index), got {got}")
     if edges.numel() and (int(edges.min()) < 0 or int(edges.max()) >= pos.size(-2)):
         raise ValueError(f"`edges`: indices must lie in [0, {pos.size(-2)}), got "
                          f"[{int(edges.min())}, {int(edges.max())}]")
@@ -121,7 +121,7 @@ def mixed_voronoi_areas(pos: Tensor, faces: Tensor) -> Tensor:
     any_obtuse = obtuse.any(-1, keepdim=True)
     a = area.unsqueeze(-1)
     corner = torch.where(any_obtuse, torch.where(obtuse, a / 2, a / 4), vor)
-    return scatter_faces_to_vertices(corner, faces, pos.size(-2))
+    return scatter_faces_to_vertices(corner.unsqueeze(-1), faces, pos.size(-2)).squeeze(-1)
 
 
 def angle_defect(pos: Tensor, faces: Tensor, boundary: str = "turning") -> Tensor:
@@ -140,7 +140,8 @@ def angle_defect(pos: Tensor, faces: Tensor, boundary: str = "turning") -> Tenso
     """
     pos, faces = check_mesh(pos, faces)
     nv = pos.size(-2)
-    ang_sum = scatter_faces_to_vertices(_face_angles(pos, faces), faces, nv)
+    ang_sum = scatter_faces_to_vertices(_face_angles(pos, faces).unsqueeze(-1), faces,
+                                        nv).squeeze(-1)
     used = torch.zeros(nv, dtype=torch.bool, device=faces.device)
     used[faces.reshape(-1)] = True
     defect = 2 * math.pi - ang_sum

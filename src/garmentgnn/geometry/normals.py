@@ -79,19 +79,18 @@ def _face_angles(pos: Tensor, faces: Tensor) -> Tensor:
 
 
 def scatter_faces_to_vertices(values: Tensor, faces: Tensor, num_vertices: int) -> Tensor:
-    """Sum per-corner values ``[..., F, 3, C]`` (or ``[..., F, 3]``) onto vertices.
+    """Sum per-corner values ``[..., F, 3, C]`` onto the vertices: ``[..., V, C]``.
 
-    Returns ``[..., V, C]`` (or ``[..., V]``): ``out[v] = sum over corners c with
-    faces[c] == v of values[c]``.
+    ``out[..., v, :] = sum over (f, k) with faces[f, k] == v of values[..., f, k, :]``
+    (for per-corner scalars pass ``values.unsqueeze(-1)``).
     """
-    squeeze = values.dim() == faces.dim()  # [..., F, 3] without channel
-    if squeeze:
-        values = values.unsqueeze(-1)
+    if values.dim() < 3 or values.shape[-3:-1] != (faces.size(0), 3):
+        raise ValueError(f"`values`: expected shape [..., {faces.size(0)}, 3, C] (one "
+                         f"entry per face corner), got {tuple(values.shape)}")
     batch = values.shape[:-3]
     flat = values.reshape(*batch, -1, values.size(-1))  # [..., 3F, C] in (f, k) order
     out = values.new_zeros(*batch, num_vertices, values.size(-1))
-    out = out.index_add(len(batch), faces.reshape(-1), flat)
-    return out.squeeze(-1) if squeeze else out
+    return out.index_add(len(batch), faces.reshape(-1), flat)
 
 
 def vertex_normals(pos: Tensor, faces: Tensor, weighting: str = "area") -> Tensor:

@@ -25,24 +25,34 @@ def axis_angle_to_matrix(aa: Tensor) -> Tensor:
 
 
 def matrix_to_axis_angle(R: Tensor) -> Tensor:
-    """Inverse of :func:`axis_angle_to_matrix` (angle in [0, pi])."""
-    cos = ((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0).clamp(-1.0, 1.0)
-    angle = torch.acos(cos)
+    """Inverse of axis_angle_to_matrix (angle in [0, pi]), accurate near 0 and pi in float32.
+
+    angle = atan2(|w| / 2, (tr R - 1) / 2) with w = vee(R - R^T) = 2 sin(angle) a;
+    axis = w / |w| for angle <= pi/2; for angle > pi/2 it is read from the symmetric
+    part (R + R^T)/2 - cos(angle) I = (1 - cos) a a^T (largest column), its sign taken
+    from w.  Near 0, rotvec = w * angle / (2 sin angle) with the Taylor series.
+    """
     w = torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
                      R[..., 1, 0] - R[..., 0, 1]], -1)
-    sin = torch.sin(angle)
-    small = sin.abs() < 1e-6
-    axis_generic = w / (2.0 * sin.clamp_min(1e-12)).unsqueeze(-1)
-    # near pi: axis from the diagonal of (R + I) / 2 = a a^T
-    B = (R + torch.eye(3, dtype=R.dtype, device=R.device)) / 2.0
-    diag = torch.diagonal(B, dim1=-2, dim2=-1).clamp_min(0.0)
-    k = diag.argmax(-1, keepdim=True)
-    col = torch.gather(B, -1, k.unsqueeze(-2).expand(*B.shape[:-1], 1)).squeeze(-1)
-    axis_pi = col / col.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    near_zero = small & (cos > 0)
-    axis = torch.where((small & ~near_zero).unsqueeze(-1), axis_pi, axis_generic)
-    out = axis * angle.unsqueeze(-1)
-    return torch.where(near_zero.unsqueeze(-1), w / 2.0, out)
+    cos = (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0
+    s2 = (w * w).sum(-1)
+    sin = 0.5 * s2.clamp_min(1e-30).sqrt()
+    angle = torch.atan2(sin, cos)
+    # small / moderate angles: w * angle / (2 sin)
+    small = angle < 1e-3
+    ratio = torch.where(small, 0.5 + angle * angle / 12.0,
+                        angle / (2.0 * torch.where(small, torch.ones_like(sin), sin)))
+    out_generic = w * ratio.unsqueeze(-1)
+    # obtuse angles: axis from the symmetric part
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    S = 0.5 * (R + R.transpose(-1, -2)) - cos[..., None, None] * eye
+    k = torch.diagonal(S, dim1=-2, dim2=-1).argmax(-1, keepdim=True)
+    col = torch.gather(S, -1, k.unsqueeze(-2).expand(*S.shape[:-1], 1)).squeeze(-1)
+    axis = col / col.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    flip = (axis * w).sum(-1, keepdim=True) < 0
+    axis = torch.where(flip, -axis, axis)
+    out_obtuse = axis * angle.unsqueeze(-1)
+    return torch.where((cos < 0).unsqueeze(-1), out_obtuse, out_generic)
 
 
 def _elementary(axis: str, angle: Tensor) -> Tensor:
@@ -70,14 +80,18 @@ def euler_to_matrix(angles: Tensor, order: str) -> Tensor:
 
 
 def matrix_to_euler(R: Tensor, order: str) -> Tensor:
-    """Inverse of :func:`euler_to_matrix` for Tait-Bryan orders (all three axes differ)."""
+    """Inverse of euler_to_matrix for Tait-Bryan orders; at gimbal lock the last angle is 0."""
     order = order.upper()
     if len(order) != 3 or len(set(order)) != 3 or set(order) - set(_AXES):
         raise ValueError(f"`order`: expected a permutation of 'XYZ' such as 'ZXY', got {order!r}")
     i, j, k = (_AXES[c] for c in order)
-    # sign of the permutation (i, j, k): +1 for cyclic orders
     sign = 1.0 if (j - i) % 3 == 1 else -1.0
-    middle = torch.asin((sign * R[..., i, k]).clamp(-1.0, 1.0))
+    cos_mid = torch.sqrt(R[..., i, i] ** 2 + R[..., i, j] ** 2)
+    middle = torch.atan2(sign * R[..., i, k], cos_mid)  # accurate also near +-pi/2
     first = torch.atan2(-sign * R[..., j, k], R[..., k, k])
     last = torch.atan2(-sign * R[..., i, j], R[..., i, i])
+    lock = cos_mid < (1e-6 if R.dtype == torch.float64 else 1e-4)
+    first_lock = torch.atan2(sign * R[..., k, j], R[..., j, j])
+    first = torch.where(lock, first_lock, first)
+    last = torch.where(lock, torch.zeros_like(last), last)
     return torch.stack([first, middle, last], -1)

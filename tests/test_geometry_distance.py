@@ -1,0 +1,217 @@
+"""Signed distance to a body mesh (GarTrans Eq. 10) and vertex-to-joint distances.
+
+Oracles: trimesh's per-triangle closest point (``trimesh.triangles.closest_point``,
+brute force over all faces: ``trimesh.proximity`` needs rtree, which is not installed),
+a generalised winding number written here in numpy for inside/outside, and analytic
+distances of a box and a sphere.
+"""
+import numpy as np
+import pytest
+import scipy.spatial.distance
+import torch
+import trimesh
+
+from garmentgnn import geometry as G
+
+D = torch.float64
+
+
+def _brute_unsigned(m: trimesh.Trimesh, pts: np.ndarray):
+    """Exact closest point on the mesh: trimesh per-triangle closest point, min over faces."""
+    P, F = len(pts), len(m.faces)
+    tri = np.tile(m.triangles, (P, 1, 1))
+    q = trimesh.triangles.closest_point(tri, np.repeat(pts, F, 0)).reshape(P, F, 3)
+    d = np.linalg.norm(q - pts[:, None], axis=-1)
+    i = d.argmin(1)
+    return d[np.arange(P), i], q[np.arange(P), i]
+
+
+def _winding_number(m: trimesh.Trimesh, pts: np.ndarray) -> np.ndarray:
+    """Generalised winding number (Van Oosterom & Strackee solid angles), ~1 inside."""
+    a = m.triangles[None, :, 0] - pts[:, None]
+    b = m.triangles[None, :, 1] - pts[:, None]
+    c = m.triangles[None, :, 2] - pts[:, None]
+    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+    num = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc
+           + np.einsum("pfi,pfi->pf", b, c) * la + np.einsum("pfi,pfi->pf", c, a) * lb)
+    return (2 * np.arctan2(num, den)).sum(1) / (4 * np.pi)
+
+
+def _points_around(m: trimesh.Trimesh, n: int, seed: int, spread: float) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    lo, hi = m.bounds
+    c, ext = (lo + hi) / 2, (hi - lo) / 2
+    return c + rng.uniform(-1, 1, size=(n, 3)) * ext * spread
+
+
+SEEDS = {"icosphere": 11, "capsule": 12, "torus": 13}
+MESHES = {
+    "icosphere": lambda: trimesh.creation.icosphere(subdivisions=2, radius=0.8),
+    "capsule": lambda: trimesh.creation.capsule(height=1.0, radius=0.3, count=[16, 16]),
+    "torus": lambda: trimesh.creation.torus(major_radius=1.0, minor_radius=0.3,
+                                            major_sections=24, minor_sections=12),
+}
+
+
+def test_closest_point_on_triangle_matches_trimesh_all_regions():
+    rng = np.random.default_rng(0)
+    n = 4000
+    tri = rng.normal(size=(n, 3, 3))
+    pts = rng.normal(size=(n, 3)) * 2.0
+    q, bary, region = G.closest_point_on_triangle(
+        torch.tensor(pts), *(torch.tensor(tri[:, k]) for k in range(3)))
+    ref = trimesh.triangles.closest_point(tri, pts)
+    np.testing.assert_allclose(q.numpy(), ref, atol=1e-9)
+    assert set(region.tolist()) == set(range(7))  # face, 3 vertices, 3 edges all visited
+    assert bool((bary >= -1e-12).all()) and torch.allclose(bary.sum(-1), torch.ones(n, dtype=D))
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+def test_signed_distance_matches_oracles(name):
+    m = MESHES[name]()
+    pts = _points_around(m, 60, seed=SEEDS[name], spread=1.4)
+    d_ref, q_ref = _brute_unsigned(m, pts)
+    w = _winding_number(m, pts)
+    inside = w > 0.5
+    assert inside.any() and (~inside).any()
+    sd = G.signed_distance(torch.tensor(pts), torch.tensor(m.vertices), torch.tensor(m.faces))
+    np.testing.assert_allclose(np.abs(sd.distance.numpy()), d_ref, atol=1e-10)
+    np.testing.assert_allclose(sd.closest.numpy(), q_ref, atol=1e-8)
+    np.testing.assert_array_equal(sd.distance.numpy() < 0, inside)
+    np.testing.assert_allclose(sd.normal.norm(dim=-1).numpy(), 1.0, atol=1e-12)
+    # the sign is that of (p - q) . n at the returned normal
+    dots = ((torch.tensor(pts) - sd.closest) * sd.normal).sum(-1)
+    assert bool(((dots >= 0) == (sd.distance >= 0)).all())
+
+
+def test_signed_distance_box_edges_and_corners_analytic():
+    """Points near edges and corners (where the closest face's normal gives wrong signs)."""
+    h = np.array([1.0, 0.5, 0.75])
+    m = trimesh.creation.box(extents=2 * h)
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(-1.4, 1.4, size=(400, 3)) * h
+    q = np.abs(pts) - h
+    ref = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+    sd = G.signed_distance(torch.tensor(pts), torch.tensor(m.vertices), torch.tensor(m.faces))
+    np.testing.assert_allclose(sd.distance.numpy(), ref, atol=1e-12)
+    corner = torch.tensor([[1.2, 0.7, 0.95]], dtype=D)  # closest point is a corner
+    out = G.signed_distance(corner, torch.tensor(m.vertices), torch.tensor(m.faces))
+    torch.testing.assert_close(out.closest, torch.tensor([h.tolist()], dtype=D))
+    assert out.distance.item() == pytest.approx(np.sqrt(3 * 0.2 ** 2))
+    # vertex pseudo-normal of a cube corner: all three faces get angle pi/2
+    torch.testing.assert_close(out.normal, torch.ones(1, 3, dtype=D) / np.sqrt(3))
+
+
+def test_signed_distance_sphere_analytic_and_float32():
+    m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    rng = np.random.default_rng(3)
+    dirs = rng.normal(size=(50, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    r = rng.uniform(0.3, 1.7, size=(50, 1))
+    pts = torch.tensor(dirs * r, dtype=torch.float32)
+    sd = G.signed_distance(pts, torch.tensor(m.vertices, dtype=torch.float32),
+                           torch.tensor(m.faces))
+    assert sd.distance.dtype == torch.float32
+    np.testing.assert_allclose(sd.distance.numpy(), r[:, 0] - 1.0, atol=5e-3)  # tessellation
+
+
+def test_chunking_candidates_and_batching_agree():
+    m = MESHES["capsule"]()
+    body = torch.tensor(m.vertices)
+    faces = torch.tensor(m.faces)
+    pts = torch.tensor(_points_around(m, 50, seed=5, spread=1.3))
+    ref = G.signed_distance(pts, body, faces)
+    for kw in ({"chunk_size": 1}, {"chunk_size": 7}, {"candidates": 16},
+               {"candidates": 16, "chunk_size": 3}, {"body_edges": G.unique_edges(faces)}):
+        out = G.signed_distance(pts, body, faces, **kw)
+        torch.testing.assert_close(out.distance, ref.distance, rtol=0, atol=1e-12)
+        torch.testing.assert_close(out.closest, ref.closest, rtol=0, atol=1e-12)
+    # batched garment and body: [B, V, 3] with [B, Vb, 3]
+    shift = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.2, 0.1]], dtype=D)
+    bb = body.unsqueeze(0) + shift[:, None]
+    pb = torch.stack([pts, pts + 0.05])
+    out = G.signed_distance(pb, bb, faces, chunk_size=11)
+    assert out.distance.shape == (2, 50) and out.closest.shape == (2, 50, 3)
+    for i in range(2):
+        one = G.signed_distance(pb[i], bb[i], faces)
+        torch.testing.assert_close(out.distance[i], one.distance)
+        torch.testing.assert_close(out.normal[i], one.normal)
+        assert torch.equal(out.face[i], one.face)
+    # one garment against a batch of bodies broadcasts
+    out = G.signed_distance(pts, bb, faces)
+    assert out.distance.shape == (2, 50)
+    torch.testing.assert_close(out.distance[0], ref.distance)
+
+
+def test_candidate_search_is_an_approximation_for_large_triangles():
+    """Documented failure mode: a point above the middle of a huge triangle."""
+    big = torch.tensor([[-10.0, -10, 0], [10, -10, 0], [0, 10, 0], [5, 5, 0.5], [6, 5, 0.5],
+                        [5, 6, 0.5]], dtype=D)
+    faces = torch.tensor([[0, 1, 2], [3, 4, 5]])
+    p = torch.tensor([[0.0, 0.0, 0.1]], dtype=D)
+    exact = G.signed_distance(p, big, faces)
+    assert exact.distance.item() == pytest.approx(0.1)
+    approx = G.signed_distance(p, big, faces, candidates=1)
+    assert approx.distance.abs().item() > 0.1
+
+
+def test_signed_distance_gradcheck_and_gradient_is_normal():
+    m = trimesh.creation.icosphere(subdivisions=1)
+    body = torch.tensor(m.vertices)
+    faces = torch.tensor(m.faces)
+    rng = np.random.default_rng(4)
+    dirs = rng.normal(size=(12, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pts = torch.tensor(dirs * np.r_[np.full(6, 0.6), np.full(6, 1.4)][:, None])
+    x = pts.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: G.signed_distance(p, body, faces).distance, (x,))
+    # wrt the body as well (fixed sign, smooth region)
+    b = body.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda y: G.signed_distance(pts, y, faces).distance, (b,))
+    # grad s = (p - q) / s: equals the normal where the closest point is inside a face
+    out = G.signed_distance(x, body, faces)
+    out.distance.sum().backward()
+    unit = (pts - out.closest.detach()) / out.distance.detach().unsqueeze(-1)
+    torch.testing.assert_close(x.grad, unit)
+
+
+def test_vertex_joint_distances():
+    g = torch.Generator().manual_seed(0)
+    pos = torch.randn(2, 30, 3, generator=g, dtype=D)
+    joints = torch.randn(2, 5, 3, generator=g, dtype=D)
+    d = G.vertex_joint_distances(pos, joints)
+    assert d.shape == (2, 30, 5)
+    for i in range(2):
+        np.testing.assert_allclose(d[i].numpy(),
+                                   scipy.spatial.distance.cdist(pos[i].numpy(), joints[i].numpy()))
+    # one vertex set against a batch of skeletons broadcasts
+    np.testing.assert_allclose(G.vertex_joint_distances(pos[0], joints).numpy()[1],
+                               scipy.spatial.distance.cdist(pos[0].numpy(), joints[1].numpy()))
+    x = pos[0].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: G.vertex_joint_distances(p, joints[0]), (x,))
+    same = torch.cat([joints[0, :1], pos[0, 1:]]).requires_grad_(True)  # zero distance
+    G.vertex_joint_distances(same, joints[0]).sum().backward()
+    assert torch.isfinite(same.grad).all()
+
+
+def test_distance_bad_input():
+    m = trimesh.creation.icosphere(1)
+    body, faces = torch.tensor(m.vertices), torch.tensor(m.faces)
+    pts = torch.zeros(4, 3, dtype=D)
+    bad = pts.clone()
+    bad[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="`points`.*NaN"):
+        G.signed_distance(bad, body, faces)
+    with pytest.raises(ValueError, match="`body_faces`.*42"):
+        G.signed_distance(pts, body, faces + 1)
+    with pytest.raises(ValueError, match="`body_pos`.*empty"):
+        G.signed_distance(pts, body[:0], faces)
+    with pytest.raises(ValueError, match="`body_pos`.*broadcast"):
+        G.signed_distance(pts.expand(3, 4, 3), body.expand(2, 42, 3), faces)
+    with pytest.raises(TypeError, match="`body_pos`.*dtype"):
+        G.signed_distance(pts, body.float(), faces)
+    with pytest.raises(ValueError, match="`chunk_size`"):
+        G.signed_distance(pts, body, faces, chunk_size=0)
+    with pytest.raises(ValueError, match="`joints`.*shape"):
+        G.vertex_joint_distances(pts, torch.zeros(5, 2, dtype=D))
