@@ -2,15 +2,16 @@
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.nn.dense.linear import Linear
+from torch_geometric.nn.inits import reset
 
-from garmentgnn.nn._graph import Graph, segment_sum
+from garmentgnn.nn._graph import Graph, PairTensor, segment_sum
 from garmentgnn.nn._sparse import csr_edge_spmm, csr_sddmm, csr_spmm, use_csr_kernels
 
 
@@ -18,7 +19,9 @@ class AttentionConv(MessagePassing):
     """Base class: fused projections, edge scores, value aggregation, head merge.
 
     Subclasses set ``heads``, ``out_channels``, ``concat``, ``lin_out`` and
-    ``lin_skip`` and call the helpers from ``forward``.  Scores and value
+    ``lin_skip`` (plus ``lin_query``, ``lin_key``, ``lin_value`` to use
+    :meth:`project_qkv`) and call the helpers from ``forward``.  Every child
+    module is re-initialised by :meth:`reset_parameters`.  Scores and value
     sums use the CSR sparse kernels of :mod:`garmentgnn.nn._sparse` when the
     edges are in CSR order (eager mode), and gathers plus segment/scatter
     reductions otherwise; both compute the same numbers and gradients.
@@ -29,10 +32,19 @@ class AttentionConv(MessagePassing):
     concat: bool
     lin_out: Linear
     lin_skip: Optional[Linear]
+    lin_query: Linear
+    lin_key: Linear
+    lin_value: Linear
 
     def __init__(self, **kwargs) -> None:
         kwargs.setdefault("aggr", "add")
         super().__init__(node_dim=0, **kwargs)
+
+    def reset_parameters(self) -> None:
+        """Re-initialise every child module, in registration order (recursing into containers)."""
+        super().reset_parameters()
+        for child in self.children():
+            reset(child)
 
     def project(self, x: Tensor, lins: Sequence[Linear], scale_first: bool = False) -> Tuple[Tensor, ...]:
         """Apply several linear maps to the same ``x`` in one matmul.
@@ -53,6 +65,20 @@ class AttentionConv(MessagePassing):
             bias = bias * s.squeeze(1) if bias is not None else None
         out = F.linear(x, weight, bias).view(x.size(0), len(lins), H, C)
         return out.unbind(1)
+
+    def project_qkv(self, x: Union[Tensor, PairTensor]) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Queries (scaled by ``1/sqrt(C)``) from the targets, keys and values from the sources.
+
+        Returns ``(q, k, v, x_dst)``: for a single tensor all three in one
+        fused matmul, for a bipartite pair ``(x_src, x_dst)`` one for ``q`` and
+        one for ``k, v``.
+        """
+        if isinstance(x, Tensor):
+            q, k, v = self.project(x, (self.lin_query, self.lin_key, self.lin_value), True)
+            return q, k, v, x
+        (q,) = self.project(x[1], (self.lin_query,), True)
+        k, v = self.project(x[0], (self.lin_key, self.lin_value))
+        return q, k, v, x[1]
 
     @staticmethod
     def edge_scores(q: Tensor, k: Tensor, g: Graph) -> Tensor:

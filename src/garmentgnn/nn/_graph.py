@@ -47,6 +47,39 @@ def _fail(arg: str, msg: str) -> None:
     raise ValueError(f"`{arg}`: {msg}")
 
 
+def check_layer_args(
+    in_channels: Union[int, Tuple[int, int]],
+    out_channels: int,
+    heads: int,
+    edge_dim: Optional[int],
+    dropout: float,
+    *,
+    edge_dim_required: bool,
+) -> Tuple[int, int]:
+    """Check the constructor arguments every layer shares; return ``(in_src, in_dst)``.
+
+    ``in_channels`` is an int or a ``(src, dst)`` pair; it, ``out_channels``
+    and ``heads`` must be positive ints, ``edge_dim`` a positive int (or
+    ``None`` unless ``edge_dim_required``), and ``dropout`` lie in ``[0, 1)``.
+    """
+    if isinstance(in_channels, int):
+        in_src = in_dst = in_channels
+    else:
+        in_src, in_dst = in_channels
+    checks = [("in_channels", in_src), ("in_channels", in_dst), ("out_channels", out_channels),
+              ("heads", heads)]
+    if edge_dim_required:
+        checks.append(("edge_dim", edge_dim))
+    for name, val in checks:
+        if not isinstance(val, int) or val <= 0:
+            raise ValueError(f"`{name}` must be a positive int, got {val!r}")
+    if edge_dim is not None and (not isinstance(edge_dim, int) or edge_dim <= 0):
+        raise ValueError(f"`edge_dim` must be a positive int or None, got {edge_dim!r}")
+    if not 0.0 <= dropout < 1.0:
+        raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
+    return in_src, in_dst
+
+
 def check_finite(name: str, t: Optional[Tensor]) -> None:
     """Raise a ``ValueError`` naming ``name`` if ``t`` holds NaN or inf."""
     if t is not None and t.is_floating_point() and not bool(torch.isfinite(t).all()):

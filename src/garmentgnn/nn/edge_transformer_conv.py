@@ -9,7 +9,7 @@ from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import edge_softmax, prepare_graph
+from garmentgnn.nn._graph import check_layer_args, edge_softmax, prepare_graph
 
 
 class EdgeTransformerConv(AttentionConv):
@@ -88,24 +88,15 @@ class EdgeTransformerConv(AttentionConv):
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
-        if isinstance(in_channels, int):
-            in_src = in_dst = in_channels
-        else:
-            in_src, in_dst = in_channels
         if edge_dim is None:
             raise ValueError("`edge_dim`: EdgeTransformerConv needs edge features; "
                              "pass their width (use GraphTransformerConv to ignore edges)")
-        for name, val in (("in_channels", in_src), ("in_channels", in_dst),
-                          ("out_channels", out_channels), ("heads", heads),
-                          ("edge_dim", edge_dim)):
-            if not isinstance(val, int) or val <= 0:
-                raise ValueError(f"`{name}` must be a positive int, got {val!r}")
+        in_src, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
+                                          edge_dim_required=True)
         if edge_out_channels is not None and (not isinstance(edge_out_channels, int)
                                               or edge_out_channels <= 0):
             raise ValueError(f"`edge_out_channels` must be a positive int or None, "
                              f"got {edge_out_channels!r}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
 
         self.in_channels = in_channels
         self.out_channels = out_channels
@@ -128,13 +119,6 @@ class EdgeTransformerConv(AttentionConv):
         self.lin_edge_skip = (None if edge_dim == self.edge_out_channels
                               else Linear(edge_dim, self.edge_out_channels, bias=bias))
         self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        super().reset_parameters()
-        for lin in (self.lin_query, self.lin_key, self.lin_value, self.lin_edge, self.lin_out,
-                    self.lin_edge_out, self.lin_skip, self.lin_edge_skip):
-            if lin is not None:
-                lin.reset_parameters()
 
     def forward(
         self,
@@ -160,13 +144,7 @@ class EdgeTransformerConv(AttentionConv):
         e = g.edge_attr
         assert e is not None
         H, C = self.heads, self.out_channels
-        if isinstance(x, Tensor):
-            x_dst = x
-            q, k, v = self.project(x, (self.lin_query, self.lin_key, self.lin_value), True)
-        else:
-            x_dst = x[1]
-            (q,) = self.project(x[1], (self.lin_query,), True)
-            k, v = self.project(x[0], (self.lin_key, self.lin_value))
+        q, k, v, x_dst = self.project_qkv(x)
 
         # w_hat_ij = (q_i * k_j / sqrt(C)) * W_E e_ij, per channel: [E, H, C]
         # (the per-channel edge product needs the [E, H, C] tensor; it is also the new edge state)

@@ -8,7 +8,7 @@ from torch_geometric.nn.conv import GATv2Conv, MessagePassing
 from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 
-from garmentgnn.nn._graph import prepare_graph
+from garmentgnn.nn._graph import check_layer_args, prepare_graph
 
 
 class GATBaselineConv(MessagePassing):
@@ -84,18 +84,8 @@ class GATBaselineConv(MessagePassing):
         **kwargs,
     ) -> None:
         super().__init__(node_dim=0)
-        if isinstance(in_channels, int):
-            in_src = in_dst = in_channels
-        else:
-            in_src, in_dst = in_channels
-        for name, val in (("in_channels", in_src), ("in_channels", in_dst),
-                          ("out_channels", out_channels), ("heads", heads)):
-            if not isinstance(val, int) or val <= 0:
-                raise ValueError(f"`{name}` must be a positive int, got {val!r}")
-        if edge_dim is not None and (not isinstance(edge_dim, int) or edge_dim <= 0):
-            raise ValueError(f"`edge_dim` must be a positive int or None, got {edge_dim!r}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
+        _, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
+                                     edge_dim_required=False)
         if kwargs.get("residual"):
             raise ValueError("`residual`: GATBaselineConv adds its own skip (lin_skip); "
                              "do not ask GATv2Conv for another one")

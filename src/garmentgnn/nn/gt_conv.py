@@ -9,7 +9,7 @@ from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import edge_softmax, prepare_graph
+from garmentgnn.nn._graph import check_layer_args, edge_softmax, prepare_graph
 
 
 class GraphTransformerConv(AttentionConv):
@@ -80,18 +80,8 @@ class GraphTransformerConv(AttentionConv):
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
-        if isinstance(in_channels, int):
-            in_src = in_dst = in_channels
-        else:
-            in_src, in_dst = in_channels
-        for name, val in (("in_channels", in_src), ("in_channels", in_dst),
-                          ("out_channels", out_channels), ("heads", heads)):
-            if not isinstance(val, int) or val <= 0:
-                raise ValueError(f"`{name}` must be a positive int, got {val!r}")
-        if edge_dim is not None and (not isinstance(edge_dim, int) or edge_dim <= 0):
-            raise ValueError(f"`edge_dim` must be a positive int or None, got {edge_dim!r}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
+        in_src, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
+                                          edge_dim_required=False)
 
         self.in_channels = in_channels
         self.out_channels = out_channels
@@ -109,12 +99,6 @@ class GraphTransformerConv(AttentionConv):
         self.lin_out = Linear(out_width, out_width, bias=bias)  # W_o
         self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
         self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        super().reset_parameters()
-        for lin in (self.lin_query, self.lin_key, self.lin_value, self.lin_out, self.lin_skip):
-            if lin is not None:
-                lin.reset_parameters()
 
     def forward(
         self,
@@ -136,13 +120,7 @@ class GraphTransformerConv(AttentionConv):
         """
         g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
                           require_edge_attr=False, validate=self.validate)
-        if isinstance(x, Tensor):
-            x_dst = x
-            q, k, v = self.project(x, (self.lin_query, self.lin_key, self.lin_value), True)
-        else:
-            x_dst = x[1]
-            (q,) = self.project(x[1], (self.lin_query,), True)
-            k, v = self.project(x[0], (self.lin_key, self.lin_value))
+        q, k, v, x_dst = self.project_qkv(x)
 
         # Eq. (3): scaled dot-product scores, one per edge and head.
         score = self.edge_scores(q, k, g)  # [E, H]

@@ -10,7 +10,7 @@ from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import edge_softmax, keep_one_mask, prepare_graph
+from garmentgnn.nn._graph import check_layer_args, edge_softmax, keep_one_mask, prepare_graph
 
 
 class SATConv(AttentionConv):
@@ -98,18 +98,10 @@ class SATConv(AttentionConv):
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
-        if isinstance(in_channels, int):
-            in_src = in_dst = in_channels
-        else:
-            in_src, in_dst = in_channels
-        for name, val in (("in_channels", min(in_src, in_dst)), ("out_channels", out_channels),
-                          ("heads", heads), ("edge_dim", edge_dim)):
-            if not isinstance(val, int) or val <= 0:
-                raise ValueError(f"`{name}` must be a positive int, got {val!r}")
+        in_src, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
+                                          edge_dim_required=True)
         if not 0.0 <= attn_mask_p <= 1.0:
             raise ValueError(f"`attn_mask_p` must lie in [0, 1], got {attn_mask_p}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
 
         self.in_channels = in_channels
         self.out_channels = out_channels
@@ -135,14 +127,6 @@ class SATConv(AttentionConv):
                               else Linear(edge_dim, self.edge_out_channels, bias=bias))
         self.reset_parameters()
 
-    def reset_parameters(self) -> None:
-        super().reset_parameters()
-        for lin in (self.lin_query, self.lin_key, self.lin_value, self.lin_edge_gate,
-                    self.lin_edge_value, self.lin_out, self.lin_edge_out, self.lin_skip,
-                    self.lin_edge_skip):
-            if lin is not None:
-                lin.reset_parameters()
-
     def forward(
         self,
         x: Union[Tensor, PairTensor],
@@ -166,13 +150,7 @@ class SATConv(AttentionConv):
         e = g.edge_attr
         assert e is not None
         H, C = self.heads, self.out_channels
-        if isinstance(x, Tensor):
-            x_dst = x
-            q, k, v = self.project(x, (self.lin_query, self.lin_key, self.lin_value), True)
-        else:
-            x_dst = x[1]
-            (q,) = self.project(x[1], (self.lin_query,), True)
-            k, v = self.project(x[0], (self.lin_key, self.lin_value))
+        q, k, v, x_dst = self.project_qkv(x)
 
         # Eq. (5): h_ij = (q_i . k_j / sqrt(C)) * sigmoid(W_p e_ij), one per edge and head
         h = self.edge_scores(q, k, g) * torch.sigmoid(self.lin_edge_gate(e))  # [E, H]

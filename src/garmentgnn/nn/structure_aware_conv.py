@@ -10,7 +10,7 @@ from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import Adj, OptTensor, PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import edge_softmax, prepare_graph
+from garmentgnn.nn._graph import check_layer_args, edge_softmax, prepare_graph
 
 
 class StructureAwareTransformerConv(AttentionConv):
@@ -91,21 +91,13 @@ class StructureAwareTransformerConv(AttentionConv):
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
-        if isinstance(in_channels, int):
-            in_src = in_dst = in_channels
-        else:
-            in_src, in_dst = in_channels
-        for name, val in (("in_channels", in_src), ("in_channels", in_dst),
-                          ("out_channels", out_channels), ("heads", heads), ("k_hops", k_hops)):
-            if not isinstance(val, int) or val <= 0:
-                raise ValueError(f"`{name}` must be a positive int, got {val!r}")
+        in_src, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
+                                          edge_dim_required=False)
+        if not isinstance(k_hops, int) or k_hops <= 0:
+            raise ValueError(f"`k_hops` must be a positive int, got {k_hops!r}")
         if in_src != in_dst:
             raise ValueError(f"`in_channels`: the structure extractor runs on a single node set; "
                              f"got different source/target widths {in_channels!r}")
-        if edge_dim is not None and (not isinstance(edge_dim, int) or edge_dim <= 0):
-            raise ValueError(f"`edge_dim` must be a positive int or None, got {edge_dim!r}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"`dropout` must lie in [0, 1), got {dropout}")
 
         self.in_channels = in_channels
         self.out_channels = out_channels
@@ -131,14 +123,6 @@ class StructureAwareTransformerConv(AttentionConv):
         self.lin_out = Linear(out_width, out_width, bias=bias)  # W_o
         self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
         self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        super().reset_parameters()
-        for conv in self.extractor:
-            conv.reset_parameters()
-        for lin in (self.lin_query, self.lin_key, self.lin_value, self.lin_out, self.lin_skip):
-            if lin is not None:
-                lin.reset_parameters()
 
     def extract(self, x: Tensor, edge_index: Adj, edge_attr: OptTensor = None) -> Tensor:
         """The k-subtree structure embedding :math:`\\varphi` ``[N, in_channels]``.
