@@ -1,0 +1,9 @@
+"""Cloth energies and materials: one definition shared by ``sim/`` and ``losses/``."""
+from garmentgnn.physics.energies import (GRAVITY, ClothRest, bending_energy, collision_energy,
+                                         gravity_energy, inertia_energy, shear_energy,
+                                         stretch_energy, stvk_energy)
+from garmentgnn.physics.materials import MATERIALS, Material, material
+
+__all__ = ["GRAVITY", "MATERIALS", "ClothRest", "Material", "bending_energy", "collision_energy",
+           "gravity_energy", "inertia_energy", "material", "shear_energy", "stretch_energy",
+           "stvk_energy"]
