@@ -26,6 +26,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from garmentgnn.geometry.uv import deformation_gradient as geometry_deformation_gradient
+from garmentgnn.geometry.uv import uv_rest_frame
+
 KINDS = ("skirt", "dress", "tshirt", "trousers", "jumpsuit", "other")
 
 
@@ -126,22 +129,18 @@ class Garment:
 
     def rest_frame(self) -> Tuple[Tensor, Tensor]:
         """Eq. 14's rest quantities from ``face_uv``: ``(Dm_inv [F, 2, 2], uv_area [F])``
-        with ``Dm = [[du1, du2], [dv1, dv2]]``, so ``(W^u W^v) = (dp1 dp2) @ Dm_inv``."""
-        d1 = self.face_uv[:, 1] - self.face_uv[:, 0]
-        d2 = self.face_uv[:, 2] - self.face_uv[:, 0]
-        Dm = torch.stack([d1, d2], -1)  # [F, 2, 2], columns = edges
-        det = torch.linalg.det(Dm)
-        return torch.linalg.inv(Dm), 0.5 * det.abs()
+        with ``Dm = [[du1, du2], [dv1, dv2]]``, so ``(W^u W^v) = (dp1 dp2) @ Dm_inv``
+        (:func:`garmentgnn.geometry.uv_rest_frame`; zero-area UV faces get 0, not inf)."""
+        F = self.faces.shape[0]
+        frame = uv_rest_frame(self.face_uv.reshape(-1, 2), torch.arange(3 * F).view(F, 3))
+        return frame.inverse, frame.area
 
     def deformation_gradient(self, positions: Optional[Tensor] = None) -> Tensor:
         """``[..., F, 3, 2]`` = ``(W^u W^v)`` of Eq. 14 for ``positions [..., V, 3]``
         (default: the rest vertices, where it is a rotation for the templates)."""
         p = self.vertices if positions is None else positions
-        f = self.faces
-        ds = torch.stack([p[..., f[:, 1], :] - p[..., f[:, 0], :],
-                          p[..., f[:, 2], :] - p[..., f[:, 0], :]], -1)
         inv, _ = self.rest_frame()
-        return ds @ inv.to(ds.dtype)
+        return geometry_deformation_gradient(p, self.faces, inv.to(p.dtype))
 
     def to_trimesh(self):
         import trimesh
