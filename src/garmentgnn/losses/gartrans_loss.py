@@ -1,0 +1,172 @@
+"""GarTrans's unified objective (paper §3.4).
+
+Supervised terms, per batch element, mean over frames:
+
+* Eq. 7  ``L_vert = k_v / N sum_i |p_i - p_i^GT|``
+* Eq. 8  ``L_edge = k_e |E - E^GT|^2`` (squared L2 norm over the unique edges; with
+  ``edge_reduction="mean"`` divided by the edge count, which keeps the weight
+  meaningful across mesh resolutions -- the paper does not say which it used)
+* Eq. 9  ``L_norm = k_n / N sum_i (1 - n_i . n_i^GT)`` (vertex normals)
+
+Physics terms reuse :mod:`garmentgnn.physics` (one definition shared with the
+simulator) with the paper's weights as stiffnesses:
+
+* Eq. 10 collision ``k_c sum_i |min(s(p_i) - eps, 0)|``
+* Eq. 11 gravity ``-k_g sum_i m_i p_i . g``
+* Eq. 12 stretch, Eq. 13 shear (``k_s``, ``k_h``)
+* extra, off by default: bending and inertia.
+
+Paper weights: k_v 100, k_e 15, k_n 50; k_c 1.5, k_g 0.1, k_s 5, k_h 2.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Dict, Iterable, Optional
+
+import torch
+from torch import Tensor, nn
+
+from garmentgnn.geometry import edge_lengths, unique_edges, vertex_normals
+from garmentgnn.physics import (ClothRest, bending_energy, collision_energy, gravity_energy,
+                                inertia_energy, shear_energy, stretch_energy)
+
+PAPER_WEIGHTS: Dict[str, float] = {
+    "vert": 100.0, "edge": 15.0, "norm": 50.0,
+    "collision": 1.5, "gravity": 0.1, "stretch": 5.0, "shear": 2.0,
+    "bending": 0.0, "inertia": 0.0,
+}
+SUPERVISED = ("vert", "edge", "norm")
+PHYSICS = ("collision", "gravity", "stretch", "shear", "bending", "inertia")
+
+
+class NonFiniteLossError(FloatingPointError):
+    """A loss term became NaN/inf; the message names the term."""
+
+
+def vertex_loss(pred: Tensor, gt: Tensor) -> Tensor:
+    """Eq. 7 without its weight: mean vertex distance, ``[...]``."""
+    return (pred - gt).norm(dim=-1).mean(-1)
+
+
+def edge_loss(pred: Tensor, gt: Tensor, edges: Tensor, reduction: str = "sum") -> Tensor:
+    """Eq. 8 without its weight: squared L2 norm of the edge-length differences."""
+    d2 = (edge_lengths(pred, edges) - edge_lengths(gt, edges)) ** 2
+    if reduction == "sum":
+        return d2.sum(-1)
+    if reduction == "mean":
+        return d2.mean(-1)
+    raise ValueError(f"`edge_reduction`: expected 'sum' or 'mean', got {reduction!r}")
+
+
+def normal_loss(pred: Tensor, gt: Tensor, faces: Tensor) -> Tensor:
+    """Eq. 9 without its weight: mean ``1 - cos`` between vertex normals."""
+    return (1.0 - (vertex_normals(pred, faces) * vertex_normals(gt, faces)).sum(-1)).mean(-1)
+
+
+@dataclass
+class LossInputs:
+    """What one batch of frames of one garment provides.
+
+    ``pred``/``gt`` ``[T, V, 3]``; ``body_pos`` ``[T, Vb, 3]`` with ``body_faces``
+    (``None`` for scenes without a body: collision is skipped); ``mass`` ``[V]``;
+    ``rest`` from :meth:`ClothRest.from_mesh` (``None`` when the garment has no
+    material coordinates: stretch/shear/bending are skipped); ``predicted`` the
+    inertial prediction ``p_prev + dt v_prev`` for the inertia term.
+    """
+
+    pred: Tensor
+    faces: Tensor
+    gt: Optional[Tensor] = None
+    body_pos: Optional[Tensor] = None
+    body_faces: Optional[Tensor] = None
+    mass: Optional[Tensor] = None
+    rest: Optional[ClothRest] = None
+    predicted: Optional[Tensor] = None
+    dt: float = 1.0 / 30.0
+
+
+class GarTransLoss(nn.Module):
+    """Weighted sum of the enabled terms; returns ``(total, {term: value})``.
+
+    Args:
+        weights: per-term weights (defaults: :data:`PAPER_WEIGHTS`).
+        enabled: the active terms (the training schedule switches these).
+        supervised_scale: multiplies the supervised terms (0.05 in the paper's
+            second phase).
+        collision_margin: ``epsilon`` of Eq. 10 in metres.
+        edge_reduction: ``"sum"`` (the paper's Eq. 8 literally) or ``"mean"``.
+    """
+
+    def __init__(self, weights: Optional[Dict[str, float]] = None,
+                 enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
+                 collision_margin: float = 2e-3, edge_reduction: str = "sum") -> None:
+        super().__init__()
+        self.weights = dict(PAPER_WEIGHTS)
+        if weights:
+            unknown = set(weights) - set(PAPER_WEIGHTS)
+            if unknown:
+                raise ValueError(f"`weights`: unknown term(s) {sorted(unknown)}; known: "
+                                 f"{sorted(PAPER_WEIGHTS)}")
+            self.weights.update(weights)
+        self.enabled = set()
+        self.set_enabled(enabled)
+        self.supervised_scale = supervised_scale
+        self.collision_margin = collision_margin
+        self.edge_reduction = edge_reduction
+        self._edges: Dict[int, Tensor] = {}
+
+    def set_enabled(self, terms: Iterable[str]) -> None:
+        terms = set(terms)
+        unknown = terms - set(PAPER_WEIGHTS)
+        if unknown:
+            raise ValueError(f"`enabled`: unknown term(s) {sorted(unknown)}; known: "
+                             f"{sorted(PAPER_WEIGHTS)}")
+        self.enabled = terms
+
+    def _unique_edges(self, faces: Tensor, num_vertices: int) -> Tensor:
+        key = id(faces)
+        if key not in self._edges:
+            self._edges = {key: unique_edges(faces, num_vertices).edges}
+        return self._edges[key]
+
+    def forward(self, inp: LossInputs):
+        terms: Dict[str, Tensor] = {}
+        w = self.weights
+        pred = inp.pred
+        need_gt = self.enabled & set(SUPERVISED)
+        if need_gt and inp.gt is None:
+            raise ValueError(f"`gt`: supervised term(s) {sorted(need_gt)} need ground truth")
+        s = self.supervised_scale
+        if "vert" in self.enabled:
+            terms["vert"] = s * w["vert"] * vertex_loss(pred, inp.gt).mean()
+        if "edge" in self.enabled:
+            edges = self._unique_edges(inp.faces, pred.shape[-2])
+            terms["edge"] = s * w["edge"] * edge_loss(pred, inp.gt, edges,
+                                                      self.edge_reduction).mean()
+        if "norm" in self.enabled:
+            terms["norm"] = s * w["norm"] * normal_loss(pred, inp.gt, inp.faces).mean()
+        if "collision" in self.enabled and inp.body_pos is not None:
+            terms["collision"] = collision_energy(pred, inp.body_pos, inp.body_faces,
+                                                  self.collision_margin, w["collision"],
+                                                  power=1).mean()
+        if "gravity" in self.enabled:
+            if inp.mass is None:
+                raise ValueError("`mass`: the gravity term (Eq. 11) needs vertex masses")
+            terms["gravity"] = w["gravity"] * gravity_energy(pred, inp.mass).mean()
+        if inp.rest is not None:
+            if "stretch" in self.enabled:
+                terms["stretch"] = stretch_energy(pred, inp.rest, w["stretch"]).mean()
+            if "shear" in self.enabled:
+                terms["shear"] = shear_energy(pred, inp.rest, w["shear"]).mean()
+            if "bending" in self.enabled:
+                terms["bending"] = bending_energy(pred, inp.rest, w["bending"]).mean()
+        if "inertia" in self.enabled and inp.predicted is not None and inp.mass is not None:
+            terms["inertia"] = w["inertia"] * inertia_energy(pred, inp.predicted, inp.mass,
+                                                             inp.dt).mean()
+        for name, value in terms.items():
+            if not math.isfinite(float(value.detach())):
+                raise NonFiniteLossError(f"loss term {name!r} is {float(value.detach())}; "
+                                         "check the prediction and inputs of this term")
+        total = sum(terms.values()) if terms else pred.sum() * 0.0
+        return total, terms

@@ -1,0 +1,121 @@
+"""Losses (Eqs. 7-13) and table metrics on hand-computed cases."""
+import math
+
+import pytest
+import torch
+
+from garmentgnn.geometry import grid_mesh, unique_edges
+from garmentgnn.losses import (PAPER_WEIGHTS, GarTransLoss, LossInputs, NonFiniteLossError,
+                               edge_loss, normal_loss, vertex_loss)
+from garmentgnn.metrics import (collision_rate, curvature_error, edge_length_error, evaluate,
+                                face_normal_error, vertex_distance, vertex_normal_error)
+from garmentgnn.physics import ClothRest, gravity_energy, stretch_energy
+
+D = torch.float64
+
+
+def sheet(n=4):
+    pos, faces = grid_mesh(n, n, dtype=D)
+    return pos, faces
+
+
+def tilt(pos, angle):
+    """Rotate about the x axis (a rigid motion)."""
+    c, s = math.cos(angle), math.sin(angle)
+    R = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=D)
+    return pos @ R.T
+
+
+def test_vertex_metrics_and_losses_on_a_translation():
+    pos, faces = sheet()
+    moved = pos + torch.tensor([0.03, 0.0, 0.04], dtype=D)  # 5 cm everywhere
+    assert float(vertex_distance(moved, pos)) == pytest.approx(5.0)
+    assert float(vertex_loss(moved, pos)) == pytest.approx(0.05)
+    # translation keeps normals, lengths and curvature
+    assert float(vertex_normal_error(moved, pos, faces)) == pytest.approx(0.0, abs=1e-6)
+    assert float(face_normal_error(moved, pos, faces)) == pytest.approx(0.0, abs=1e-6)
+    assert float(edge_length_error(moved, pos, faces)) == pytest.approx(0.0, abs=1e-9)
+    assert float(curvature_error(moved, pos, faces)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_normal_metrics_on_a_rotation():
+    pos, faces = sheet()
+    rot = tilt(pos, math.radians(30))
+    assert float(face_normal_error(rot, pos, faces)) == pytest.approx(30.0, abs=1e-6)
+    assert float(vertex_normal_error(rot, pos, faces)) == pytest.approx(30.0, abs=1e-6)
+    assert float(normal_loss(rot, pos, faces)) == pytest.approx(1 - math.cos(math.radians(30)))
+
+
+def test_edge_metrics_on_a_uniform_scale():
+    pos, faces = sheet()
+    scaled = 1.1 * pos
+    assert float(edge_length_error(scaled, pos, faces)) == pytest.approx(10.0)
+    edges = unique_edges(faces, pos.shape[0]).edges
+    lengths = (pos[edges[:, 1]] - pos[edges[:, 0]]).norm(dim=-1)
+    expected = float(((0.1 * lengths) ** 2).sum())
+    assert float(edge_loss(scaled, pos, edges)) == pytest.approx(expected)
+    assert float(edge_loss(scaled, pos, edges, "mean")) == pytest.approx(expected / len(edges))
+
+
+def test_curvature_error_of_a_raised_vertex():
+    pos, faces = sheet(3)  # 3x3 grid: vertex 4 is the only interior vertex
+    bumped = pos.clone()
+    bumped[4, 2] = 0.2
+    # interior defect: 2 pi - sum of angles at vertex 4, computed here directly
+    tri = bumped[faces]
+    total = 0.0
+    for f, t in zip(faces.tolist(), tri):
+        if 4 in f:
+            k = f.index(4)
+            a, b = t[(k + 1) % 3] - t[k], t[(k + 2) % 3] - t[k]
+            total += math.acos(float((a @ b) / (a.norm() * b.norm())))
+    assert float(curvature_error(bumped, pos, faces)) == pytest.approx(2 * math.pi - total)
+
+
+def test_collision_rate_and_evaluate():
+    body = torch.tensor([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [5.0, 5.0, 0.0], [-5.0, 5.0, 0.0],
+                         [0.0, 0.0, -3.0]], dtype=D)
+    body_faces = torch.tensor([[0, 1, 2], [0, 2, 3], [0, 4, 1], [1, 4, 2], [2, 4, 3], [3, 4, 0]])
+    pos, faces = sheet()
+    z = torch.zeros(pos.shape[0], dtype=D)
+    z[:4] = -0.01  # 4 of 16 vertices below the surface
+    p = pos + torch.stack([torch.zeros_like(z), torch.zeros_like(z), z + 0.0], -1) - \
+        torch.tensor([0.5, 0.5, 0.0], dtype=D)
+    assert float(collision_rate(p, body, body_faces)) == pytest.approx(25.0)
+    res = evaluate(p.expand(3, -1, -1), p.expand(3, -1, -1), faces, body.expand(3, -1, -1),
+                   body_faces)
+    assert res["E_dist"] == pytest.approx(0.0) and res["collision"] == pytest.approx(25.0)
+    with pytest.raises(ValueError, match="NaN|non-finite"):
+        evaluate(p * float("nan"), p, faces)
+
+
+def test_gartrans_loss_weights_phases_and_nan():
+    pos, faces = sheet()
+    rest = ClothRest.from_mesh(pos, faces, pos[faces][..., :2])
+    mass = rest.vertex_masses(0.2, pos.shape[0])
+    gt = pos.expand(2, -1, -1)
+    pred = (1.1 * pos).expand(2, -1, -1).clone().requires_grad_(True)
+    loss = GarTransLoss(enabled=["vert", "stretch", "gravity"])
+    total, terms = loss(LossInputs(pred=pred, faces=faces, gt=gt, mass=mass, rest=rest))
+    assert set(terms) == {"vert", "stretch", "gravity"}
+    assert float(terms["vert"]) == pytest.approx(100 * float(vertex_loss(1.1 * pos, pos)))
+    assert float(terms["stretch"]) == pytest.approx(float(stretch_energy(1.1 * pos, rest, 5.0)))
+    assert float(terms["gravity"]) == pytest.approx(0.1 * float(gravity_energy(1.1 * pos, mass)))
+    total.backward()
+    assert torch.isfinite(pred.grad).all()
+    # the paper's second phase scales the supervised terms by 0.05
+    loss.supervised_scale = 0.05
+    _, terms2 = loss(LossInputs(pred=pred, faces=faces, gt=gt, mass=mass, rest=rest))
+    assert float(terms2["vert"]) == pytest.approx(0.05 * float(terms["vert"]))
+    # no material coordinates -> stretch/shear left out; no body -> no collision
+    loss.set_enabled(["stretch", "shear", "collision"])
+    _, terms3 = loss(LossInputs(pred=pred, faces=faces))
+    assert terms3 == {}
+    bad = pred.detach().clone()
+    bad[0, 0, 0] = float("nan")
+    loss.set_enabled(["vert"])
+    with pytest.raises(NonFiniteLossError, match="vert"):
+        loss(LossInputs(pred=bad, faces=faces, gt=gt))
+    with pytest.raises(ValueError, match="weights"):
+        GarTransLoss(weights={"wrinkles": 1.0})
+    assert PAPER_WEIGHTS["edge"] == 15.0 and PAPER_WEIGHTS["shear"] == 2.0
