@@ -176,6 +176,68 @@ def test_signed_distance_gradcheck_and_gradient_is_normal():
     torch.testing.assert_close(x.grad, unit)
 
 
+def test_winding_number_box_and_sphere_analytic():
+    # axis-aligned box: grid-aligned vertices and edges (the rays must miss them)
+    h = np.array([1.0, 0.5, 0.75])
+    m = trimesh.creation.box(extents=2 * h)
+    rng = np.random.default_rng(21)
+    pts = rng.uniform(-1.3, 1.3, size=(3000, 3)) * h
+    pts = pts[np.abs(np.abs(pts) - h).min(1) > 1e-6]
+    ref = (np.abs(pts) < h).all(1)
+    assert ref.any() and (~ref).any()
+    for cell in (None, 0.1, 5.0):
+        wn = G.WindingNumber(m.vertices, m.faces, cell=cell)
+        w = wn(pts)
+        assert w.dtype == np.int64 and set(np.unique(w)) == {0, 1}
+        np.testing.assert_array_equal(w == 1, ref)
+        np.testing.assert_array_equal(wn.inside(pts), ref)
+    # rays along vertical edges and through vertices and face diagonals of the box
+    out = np.stack(np.meshgrid([-1.0, 0.0, 1.0], [-0.5, 0.0, 0.5], [-2.0, 2.0],
+                               indexing="ij"), -1).reshape(-1, 3)
+    inn = np.array([[0.0, 0.0, 0.2], [0.5, 0.25, -0.3], [-0.5, 0.25, 0.0], [0.0, 0.0, -0.7]])
+    assert not wn.inside(out).any() and wn.inside(inn).all()
+    # sphere: the icosphere lies between radius ~0.997 (face planes) and 1 (vertices)
+    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    dirs = rng.normal(size=(2000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    r = rng.uniform(0.0, 2.0, size=2000)
+    keep = (r < 0.99) | (r > 1.0)
+    p = torch.tensor(dirs[keep] * r[keep, None], dtype=torch.float32)
+    wn = G.WindingNumber(torch.tensor(s.vertices), torch.tensor(s.faces))
+    ins = wn.inside(p)  # a tensor in, a tensor out
+    assert isinstance(ins, torch.Tensor) and ins.dtype == torch.bool
+    np.testing.assert_array_equal(ins.numpy(), r[keep] < 0.99)
+    assert wn(p.view(2, -1, 3)).shape == (2, p.size(0) // 2)
+
+
+def test_winding_number_overlapping_pieces_and_orientation():
+    """Two overlapping closed boxes (like a capsule body): 2 in the overlap, inside the
+    union; reversed faces count -1 and are still inside."""
+    a = trimesh.creation.box(extents=[2.0, 2.0, 2.0])
+    b = trimesh.creation.box(extents=[2.0, 2.0, 2.0])
+    V = np.concatenate([a.vertices, b.vertices + [1.0, 0.5, 0.25]])
+    F = np.concatenate([a.faces, b.faces + len(a.vertices)])
+    rng = np.random.default_rng(22)
+    pts = rng.uniform(-1.5, 2.5, size=(3000, 3))
+    in_a = (np.abs(pts) < 1).all(1)
+    in_b = (np.abs(pts - [1.0, 0.5, 0.25]) < 1).all(1)
+    wn = G.WindingNumber(V, F, cell=0.3)
+    np.testing.assert_array_equal(wn(pts), in_a.astype(int) + in_b)
+    np.testing.assert_array_equal(wn.inside(pts), in_a | in_b)
+    flipped = G.WindingNumber(V, F[:, ::-1].copy())
+    np.testing.assert_array_equal(flipped(pts), -(in_a.astype(int) + in_b))
+    np.testing.assert_array_equal(flipped.inside(pts), in_a | in_b)
+    # the torus oracle (generalised winding number) agrees on a non-convex mesh
+    t = MESHES["torus"]()
+    q = _points_around(t, 400, seed=23, spread=1.2)
+    np.testing.assert_array_equal(G.WindingNumber(t.vertices, t.faces).inside(q),
+                                  _winding_number(t, q) > 0.5)
+    with pytest.raises(ValueError, match="`cell`"):
+        G.WindingNumber(V, F, cell=0.0)
+    with pytest.raises(ValueError, match="winding numbers.*one rest mesh"):
+        G.WindingNumber(torch.tensor(V)[None], torch.tensor(F))
+
+
 def test_vertex_joint_distances():
     g = torch.Generator().manual_seed(0)
     pos = torch.randn(2, 30, 3, generator=g, dtype=D)

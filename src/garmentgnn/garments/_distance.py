@@ -10,24 +10,29 @@ grids) whose covering radius is at most ``h``.  For a query ``p`` with nearest s
 ``d_s``, the true distance ``d`` satisfies ``d_s - h <= d <= d_s``; points with
 ``d_s - h`` above the threshold of interest are *certified* far without further work.
 For the others, the exact closest triangle is among the faces owning a sample within
-``d_s + h`` of ``p`` (its nearest sample is within ``h`` of the closest point), and an
-exact point-triangle test (Ericson) on those candidates gives the distance.
+``d_s + h`` of ``p`` (its nearest sample is within ``h`` of the closest point), and the
+exact point-triangle test of :func:`garmentgnn.geometry.closest_point_on_triangle`
+(Ericson) on those candidates gives the distance.
 
 The sign: when every edge of the body mesh has exactly two faces (closed pieces, possibly
 overlapping like the capsule body's), a point is inside when the winding number of the
-mesh around it is non-zero (counted along a vertical ray, faces bucketed on an xy grid)
--- exact also in the overlaps, where the nearest face can be a hidden one.  For open
-meshes the normal of the closest face decides (ties at shared edges/vertices broken by
-the face whose normal is best aligned with ``p - q``).  Outside, the unsigned distance
-to the triangle soup is a lower bound of the distance to the union of the pieces, so a
-clearance test against it is conservative.
+mesh around it is non-zero (:class:`garmentgnn.geometry.WindingNumber`, counted along a
+vertical ray) -- exact also in the overlaps, where the nearest face can be a hidden one.
+For open meshes the normal of the closest face decides (ties at shared edges/vertices
+broken by the face whose normal is best aligned with ``p - q``).  Outside, the unsigned
+distance to the triangle soup is a lower bound of the distance to the union of the
+pieces, so a clearance test against it is conservative.
 """
 from __future__ import annotations
 
 from typing import Tuple
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
+
+from garmentgnn.geometry import (WindingNumber, closest_point_on_triangle, face_normals,
+                                 unique_edges)
 
 
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, h: float
@@ -65,41 +70,12 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, h: float
     return np.concatenate(pts), np.concatenate(fid)
 
 
-def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
-                               ) -> np.ndarray:
-    """Exact closest points (Ericson 2005, 5.1.5), all arrays ``[n, 3]``."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-
-    def div(n, d):
-        return n / np.where(np.abs(d) > 1e-300, d, 1.0)
-
-    den = va + vb + vc
-    v, w = div(vb, den), div(vc, den)
-    q = a + ab * v[:, None] + ac * w[:, None]
-    t = div(d4 - d3, (d4 - d3) + (d5 - d6))
-    m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-    q[m] = (b + (c - b) * t[:, None])[m]
-    t = div(d2, d2 - d6)
-    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    q[m] = (a + ac * t[:, None])[m]
-    m = (d6 >= 0) & (d5 <= d6)
-    q[m] = c[m]
-    t = div(d1, d1 - d3)
-    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    q[m] = (a + ab * t[:, None])[m]
-    m = (d3 >= 0) & (d4 <= d3)
-    q[m] = b[m]
-    m = (d1 <= 0) & (d2 <= 0)
-    q[m] = a[m]
-    return q
+def _closest_points(p: np.ndarray, vertices: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Exact closest points ``[n, 3]`` of points ``p [n, 3]`` on triangles ``tri [n, 3]``
+    (vertex indices), float64 numpy in and out."""
+    t = torch.from_numpy
+    q, _, _ = closest_point_on_triangle(t(p), *(t(vertices[tri[:, k]]) for k in range(3)))
+    return q.numpy()
 
 
 class BodyDistance:
@@ -114,76 +90,18 @@ class BodyDistance:
                                                                       self.faces, self.h)
         self.samples, self.sample_face = pts, fid
         self.tree = cKDTree(pts)
-        a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
-        n = np.cross(b - a, c - a)
-        self.face_normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-        e = np.sort(np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]],
-                                    self.faces[:, [2, 0]]]), axis=1)
-        _, cnt = np.unique(e, axis=0, return_counts=True)
+        V, F = torch.from_numpy(self.vertices), torch.from_numpy(self.faces)
+        self.face_normals = face_normals(V, F).numpy()
         #: closed (every edge in exactly two faces): inside/outside from winding numbers,
         #: exact also where closed pieces overlap (capsule bodies)
-        self.closed = bool((cnt == 2).all())
+        self.closed = bool((unique_edges(F, len(V)).counts == 2).all())
         self._exposed_state = None
-        if self.closed:
-            self._build_ray_grid()
-
-    # -- inside test: winding number along a vertical ray -----------------------------
-    def _build_ray_grid(self, cell: float = 0.01) -> None:
-        tri = self.vertices[self.faces]
-        lo = tri[:, :, :2].min(1)
-        hi = tri[:, :, :2].max(1)
-        self._cell = cell
-        self._origin = lo.min(0) - cell
-        i0 = np.floor((lo - self._origin) / cell).astype(np.int64)
-        i1 = np.floor((hi - self._origin) / cell).astype(np.int64)
-        self._ny = int(i1[:, 1].max()) + 2
-        cells, faces = [], []
-        span = i1 - i0 + 1
-        for sx in np.unique(span[:, 0]):
-            for sy in np.unique(span[span[:, 0] == sx, 1]):
-                sel = np.nonzero((span[:, 0] == sx) & (span[:, 1] == sy))[0]
-                gx, gy = np.meshgrid(np.arange(sx), np.arange(sy), indexing="ij")
-                cx = i0[sel, 0][:, None] + gx.ravel()[None]
-                cy = i0[sel, 1][:, None] + gy.ravel()[None]
-                cells.append((cx * self._ny + cy).ravel())
-                faces.append(np.repeat(sel, sx * sy))
-        cells, faces = np.concatenate(cells), np.concatenate(faces)
-        order = np.argsort(cells, kind="stable")
-        self._grid_cells, self._grid_faces = cells[order], faces[order]
+        self._winding = WindingNumber(V, F, cell=0.01) if self.closed else None
 
     def inside(self, points: np.ndarray) -> np.ndarray:
         """True where the winding number of the (closed) body around the point is
         non-zero, i.e. inside at least one closed piece."""
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        # a tiny fixed offset keeps rays off edges and vertices of grid-aligned meshes
-        q = p[:, :2] + np.array([1.234567e-9, 2.345678e-9])
-        c = np.floor((q - self._origin) / self._cell).astype(np.int64)
-        key = c[:, 0] * self._ny + c[:, 1]
-        lo = np.searchsorted(self._grid_cells, key, side="left")
-        hi = np.searchsorted(self._grid_cells, key, side="right")
-        cnt = hi - lo
-        pi = np.repeat(np.arange(len(p)), cnt)
-        if len(pi) == 0:
-            return np.zeros(len(p), bool)
-        start = np.repeat(lo - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt)
-        fi = self._grid_faces[start + np.arange(len(pi))]
-        tri = self.vertices[self.faces[fi]]
-        a, b, cc = tri[:, 0], tri[:, 1], tri[:, 2]
-        x, y = q[pi, 0], q[pi, 1]
-
-        def edge(u, v):
-            return (v[:, 0] - u[:, 0]) * (y - u[:, 1]) - (v[:, 1] - u[:, 1]) * (x - u[:, 0])
-
-        w0, w1, w2 = edge(b, cc), edge(cc, a), edge(a, b)
-        area = w0 + w1 + w2
-        hit = ((w0 > 0) & (w1 > 0) & (w2 > 0)) | ((w0 < 0) & (w1 < 0) & (w2 < 0))
-        safe = np.where(area != 0, area, 1.0)
-        z = (w0 * a[:, 2] + w1 * b[:, 2] + w2 * cc[:, 2]) / safe
-        hit &= z > p[pi, 2]
-        sign = np.sign(self.face_normals[fi, 2])
-        wind = np.zeros(len(p))
-        np.add.at(wind, pi[hit], sign[hit])
-        return np.abs(wind) > 0.5
+        return self._winding.inside(np.asarray(points, dtype=np.float64).reshape(-1, 3))
 
     def query(self, points: np.ndarray, max_distance: float = np.inf
               ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -222,9 +140,7 @@ class BodyDistance:
             pi.append(np.full(len(f), near[k]))
             fi.append(f)
         pi, fi = np.concatenate(pi), np.concatenate(fi)
-        tri = self.faces[fi]
-        q = closest_point_on_triangles(p[pi], self.vertices[tri[:, 0]], self.vertices[tri[:, 1]],
-                                       self.vertices[tri[:, 2]])
+        q = _closest_points(p[pi], self.vertices, self.faces[fi])
         diff = p[pi] - q
         dd = np.linalg.norm(diff, axis=1)
         cos = np.einsum("ij,ij->i", diff, self.face_normals[fi]) / np.maximum(dd, 1e-300)
@@ -285,9 +201,7 @@ class BodyDistance:
                 fi.append(f)
             if pi:
                 pi, fi = np.concatenate(pi), np.concatenate(fi)
-                tri = self.faces[fi]
-                q = closest_point_on_triangles(p[pi], self.vertices[tri[:, 0]],
-                                               self.vertices[tri[:, 1]], self.vertices[tri[:, 2]])
+                q = _closest_points(p[pi], self.vertices, self.faces[fi])
                 dd = np.linalg.norm(p[pi] - q, axis=1)
                 order = np.lexsort((dd, pi))
                 first = np.ones(len(order), bool)

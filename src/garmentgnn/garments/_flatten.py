@@ -24,7 +24,10 @@ from typing import Tuple
 
 import numpy as np
 import scipy.sparse as sp
+import torch
 from scipy.sparse.linalg import splu
+
+from garmentgnn.geometry import face_cotangents
 
 
 def flat_triangles(tri: np.ndarray) -> np.ndarray:
@@ -56,17 +59,6 @@ def rigid_align(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.stack([rx, ry], -1) + cd
 
 
-def _cotangents(flat: np.ndarray) -> np.ndarray:
-    """Cotangent of the angle at each corner ``[F, 3]`` of 2D triangles."""
-    out = np.zeros(flat.shape[:2])
-    for k in range(3):
-        u = flat[:, (k + 1) % 3] - flat[:, k]
-        v = flat[:, (k + 2) % 3] - flat[:, k]
-        cr = np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
-        out[:, k] = (u * v).sum(1) / np.maximum(cr, 1e-300)
-    return out
-
-
 def pattern_vertices(faces: np.ndarray, panel: np.ndarray, init_uv: np.ndarray,
                      decimals: int = 9) -> Tuple[np.ndarray, int]:
     """Group face corners into pattern vertices.  Returns ``(corner_to_pattern [F, 3],
@@ -96,7 +88,11 @@ def arap_flatten(tri3d: np.ndarray, corner: np.ndarray, n: int, init: np.ndarray
     """
     F = len(tri3d)
     flat = flat_triangles(tri3d)
-    cot = np.clip(_cotangents(flat), 1e-3, 1e3)  # weights of the edge opposite each corner
+    # corner cotangents of the rest triangles (= of their flat copies): weights of the
+    # edge opposite each corner
+    cot = face_cotangents(torch.from_numpy(np.ascontiguousarray(tri3d, dtype=np.float64)
+                                           ).reshape(-1, 3), torch.arange(3 * F).view(F, 3))
+    cot = np.clip(cot.numpy(), 1e-3, 1e3)
     I = np.stack([corner[:, 1], corner[:, 2], corner[:, 0]], 1)  # edge k = (k+1 -> k+2)
     J = np.stack([corner[:, 2], corner[:, 0], corner[:, 1]], 1)
     W = 0.5 * cot

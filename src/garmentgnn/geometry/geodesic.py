@@ -41,8 +41,10 @@ ArrayLike = Union[Tensor, np.ndarray]
 # ---------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------
-def _numpy_mesh(pos: Any, faces: Any) -> Tuple[np.ndarray, np.ndarray]:
-    """Validate a single mesh and return float64 / int64 numpy copies."""
+def _numpy_mesh(pos: Any, faces: Any, what: str = "geodesics are computed"
+                ) -> Tuple[np.ndarray, np.ndarray]:
+    """Validate a single mesh and return float64 / int64 numpy copies (``what`` names
+    the computation in the error for a batched ``pos``)."""
     if isinstance(pos, np.ndarray):
         if not np.issubdtype(pos.dtype, np.floating):
             raise TypeError(f"`pos`: expected floating-point positions, got dtype {pos.dtype}")
@@ -51,7 +53,7 @@ def _numpy_mesh(pos: Any, faces: Any) -> Tuple[np.ndarray, np.ndarray]:
         faces = torch.from_numpy(faces)
     pos = check_points(pos, "pos")
     if pos.dim() != 2:
-        raise ValueError(f"`pos`: geodesics are computed on one rest mesh, expected shape "
+        raise ValueError(f"`pos`: {what} on one rest mesh, expected shape "
                          f"[V, 3], got {tuple(pos.shape)}; loop over the batch")
     faces = check_faces(faces, pos.size(0), "faces")
     return (pos.detach().cpu().double().numpy(), faces.detach().cpu().numpy().astype(np.int64))
