@@ -1,0 +1,239 @@
+"""GarTrans (paper §3.1, §4.1): dynamic-aware graph construction + SAT deformation.
+
+Pipeline for a garment ``T`` (``V`` vertices) on a body with ``S`` joints:
+
+1. Static branch (depends only on garment and body shape; computed once by
+   :meth:`GarTrans.encode_static` and reused for every frame):
+   rest features ``x̄ = [p, n, d(p, J)]`` -> FC [128,128,128] tanh -> transformer
+   layers [64,64,128] (4 heads, tanh) = ``x̄^[1]``; Nyström geodesic eigenvectors
+   -> FC = ``u^[1]``; ``x' = x̄^[1] ⊙ u^[1]``; body-vertex-to-joint distances, one
+   column per joint -> FC [512,256,128] = ``b^[1] in R^{128 x S}``;
+   ``x'' = x' b^[1]`` (``V x S``, per-vertex x per-joint).
+2. Dynamic branch: a 2-layer GRU (128) over the pose history -> ``Θ^[1] in R^S``;
+   ``x''' = x'' ⊙ Θ^[1]``; skinning weights ``W^t = softmax(x''')`` and a blend
+   shape ``B^t`` from transformer layers [32,32,32,3] (4 heads, ELU); coarse mesh
+   ``M^{t,c} = LBS(T + B^t, J, W^t)`` (Eqs. 1-2).
+3. Deformation: graph on ``M^{t,c}`` with vertex features (velocity
+   ``(M^{t,c} - M^{t-1,c}) / dt``, normal, joint distances) and edge features
+   (length, direction) -> 6 layers [32,64,64,64,32,3], 4 heads, ELU, heads averaged
+   at the output = acceleration ``a``; ``M^{t,d} = M^{t,c} + a dt^2``.
+
+Choices where the paper is vague (see docs/model.md): Nyström features are per
+vertex (``V x k`` eigenvector coordinates through FC layers), not one global
+vector; ``Θ^[1]`` is the GRU's last hidden state mapped to ``S`` by a linear
+layer; the acceleration is integrated as a displacement ``a dt^2`` on the coarse
+mesh (frame-parallel); every attention slot takes any registry layer name.
+
+Leaving out what a scene does not need: ``body_joint_dists=None`` skips the body
+branch (a learned per-joint code replaces ``b^[1]``), a pose history whose frames
+are all equal skips the GRU (``Θ^[1] = 1``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from garmentgnn.geometry import edge_features, vertex_normals
+from garmentgnn.nn import make_layer
+
+
+def mlp(sizes: Sequence[int], act: nn.Module, last_act: bool = True) -> nn.Sequential:
+    layers: List[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b))
+        if last_act or i < len(sizes) - 2:
+            layers.append(act)
+    return nn.Sequential(*layers)
+
+
+def geometric_init_(module: nn.Module) -> None:
+    """Geometric initialisation of linear layers (Atzmon & Lipman, SAL, the paper's
+    [56]): weights ~ N(0, sqrt(2 / fan_out)), zero bias."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.normal_(m.weight, 0.0, (2.0 / m.out_features) ** 0.5)
+            nn.init.zeros_(m.bias)
+
+
+def batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
+    """``copies`` disjoint copies of one graph (frames of a garment), like a PyG
+    ``Batch``; a target-sorted ``edge_index`` stays target-sorted (fast layer path)."""
+    offsets = torch.arange(copies, device=edge_index.device) * num_nodes
+    return (edge_index.unsqueeze(1) + offsets.view(1, -1, 1)).reshape(2, -1)
+
+
+class AttentionStack(nn.Module):
+    """Registry layers in series; hidden layers concatenate heads, the last averages."""
+
+    def __init__(self, layer: str, in_channels: int, widths: Sequence[int], heads: int,
+                 edge_dim: int, act: str, last_act: bool) -> None:
+        super().__init__()
+        self.layers = nn.ModuleList()
+        c = in_channels
+        for i, w in enumerate(widths):
+            last = i == len(widths) - 1
+            per_head = w if last else max(1, w // heads)
+            self.layers.append(make_layer(layer, c, per_head, edge_dim=edge_dim, heads=heads,
+                                          concat=not last, validate=False))
+            c = w if last else per_head * heads
+        self.out_channels = c
+        self.act = {"elu": F.elu, "tanh": torch.tanh}[act]
+        self.last_act = last_act
+
+    def reset_parameters(self) -> None:
+        for layer in self.layers:
+            layer.reset_parameters()
+            for m in layer.modules():
+                if isinstance(m, nn.Linear):
+                    nn.init.kaiming_uniform_(m.weight, a=5 ** 0.5)
+
+    def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
+        e = edge_attr
+        for i, layer in enumerate(self.layers):
+            x, e_new = layer(x, edge_index, e)
+            e = e if e_new is None else e_new
+            if i < len(self.layers) - 1 or self.last_act:
+                x = self.act(x)
+        return x
+
+
+@dataclass
+class StaticFeatures:
+    """The static branch's output for one garment on one body shape."""
+
+    x2: Tensor  # [V, S]  x'' = (x̄^[1] ⊙ u^[1]) b^[1]
+
+
+class GarTrans(nn.Module):
+    """The full model.  Layer slots take registry names (``sat``, ``gt``, ``gt_edge``,
+    ``structure_aware``, ``gat``), so the paper's ablations are one argument.
+
+    Args:
+        num_joints: ``S``.
+        num_body_vertices: body vertex count (input width of the body FC branch).
+        nystrom_dim: number of Nyström eigenvector features per vertex.
+        rest_layer, blend_layer, dynamic_layer: registry names of the three slots.
+        heads: attention heads (4 in the paper).
+        fps: frame rate (for velocities and ``dt^2``).
+    """
+
+    def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
+                 rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
+                 heads: int = 4, fps: float = 30.0, edge_dim: int = 4) -> None:
+        super().__init__()
+        S = num_joints
+        self.num_joints, self.fps, self.edge_dim = S, fps, edge_dim
+        self.rest_fc = mlp([6 + S, 128, 128, 128], nn.Tanh())
+        self.rest_attn = AttentionStack(rest_layer, 128, [64, 64, 128], heads, edge_dim, "tanh",
+                                        last_act=True)
+        # the paper's 128 is the last rest layer's width; make concat widths line up
+        d = self.rest_attn.out_channels
+        self.nystrom_fc = mlp([nystrom_dim, 64, d], nn.Tanh())
+        self.body_fc = mlp([num_body_vertices, 512, 256, d], nn.Tanh())
+        self.body_default = nn.Parameter(torch.randn(d, S) / d ** 0.5)
+        self.gru = nn.GRU(3 * S + 3, 128, num_layers=2, batch_first=True)
+        self.gru_out = nn.Linear(128, S)
+        self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
+                                    last_act=False)
+        self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S, [32, 64, 64, 64, 32, 3], heads,
+                                      edge_dim, "elu", last_act=False)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """§4.1: geometric init for the FC layers, Kaiming for the GRU and transformers."""
+        for m in (self.rest_fc, self.nystrom_fc, self.body_fc, self.gru_out):
+            geometric_init_(m)
+        for name, p in self.gru.named_parameters():
+            if "weight" in name:
+                nn.init.kaiming_uniform_(p, a=5 ** 0.5)
+            else:
+                nn.init.zeros_(p)
+        for stack in (self.rest_attn, self.blend, self.dynamic):
+            stack.reset_parameters()
+
+    # -- static branch --------------------------------------------------------
+    def encode_static(self, rest_pos: Tensor, faces: Tensor, edge_index: Tensor,
+                      rest_joints: Tensor, nystrom: Tensor,
+                      body_joint_dists: Optional[Tensor] = None) -> StaticFeatures:
+        """Once per garment and body shape.
+
+        Args:
+            rest_pos: ``[V, 3]`` garment on the rest body; ``faces [F, 3]``;
+            edge_index: ``[2, E]`` garment graph (sorted by target for speed).
+            rest_joints: ``[S, 3]``; nystrom: ``[V, k]`` eigenvector features;
+            body_joint_dists: ``[Vb, S]`` body-vertex-to-joint distances, or ``None``
+                for a scene without a body.
+        """
+        n = vertex_normals(rest_pos, faces)
+        dj = torch.cdist(rest_pos, rest_joints)
+        x = self.rest_fc(torch.cat([rest_pos, n, dj], -1))
+        x = self.rest_attn(x, edge_index, edge_features(rest_pos, edge_index))
+        x1 = x * self.nystrom_fc(nystrom)  # x' = x̄^[1] ⊙ u^[1]
+        b = self.body_default if body_joint_dists is None else self.body_fc(body_joint_dists.t()).t()
+        return StaticFeatures(x2=x1 @ b)  # x'' = x' ⊗ b^[1]: [V, S]
+
+    # -- dynamic branch -------------------------------------------------------
+    def motion_code(self, rotations: Tensor, translation: Tensor) -> Tensor:
+        """``Θ^[1]`` ``[B, S]`` from a pose history ``[B, H, S, 3]``, ``[B, H, 3]``;
+        ones (no modulation) when every frame of every history is the same pose."""
+        if bool((rotations == rotations[:, :1]).all()) and bool(
+                (translation == translation[:, :1]).all()):
+            return rotations.new_ones(rotations.shape[0], self.num_joints)
+        vel = torch.diff(translation, dim=1, prepend=translation[:, :1]) * self.fps
+        seq = torch.cat([rotations.flatten(2), vel], -1)
+        h, _ = self.gru(seq)
+        return self.gru_out(h[:, -1])
+
+    def coarse(self, static: StaticFeatures, rest_pos: Tensor, edge_index: Tensor,
+               rest_joints: Tensor, parents: Tensor, rotations: Tensor, translation: Tensor):
+        """Coarse meshes ``M^{t,c}`` for the last two frames of each history:
+        ``[B, 2, V, 3]`` (previous, current), plus the skinning weights ``[B, V, S]``."""
+        B, H = rotations.shape[:2]
+        V = rest_pos.shape[0]
+        x3 = static.x2.unsqueeze(0) * self.motion_code(rotations, translation).unsqueeze(1)
+        W = torch.softmax(x3, -1)  # W^t
+        e = edge_features(rest_pos, edge_index).repeat(B, 1)
+        blend = self.blend(x3.reshape(B * V, -1), batch_edges(edge_index, B, V), e)
+        template = rest_pos.unsqueeze(0) + blend.view(B, V, 3)  # T^t = T + B^t (Eq. 2)
+        rot2 = rotations[:, -2:].reshape(B * 2, *rotations.shape[2:])
+        tr2 = translation[:, -2:].reshape(B * 2, 3)
+        A, joints = forward_kinematics(rot2, rest_joints, parents, tr2)
+        # Eq. 1 with the frame's own template and weights, for frames t-1 and t
+        verts = linear_blend_skinning(template.repeat_interleave(2, 0),
+                                      W.repeat_interleave(2, 0), A)
+        return verts.view(B, 2, V, 3), W, joints.view(B, 2, -1, 3)[:, 1]
+
+    def forward(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
+                edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
+                translation: Tensor):
+        """Predict ``M^{t,d}`` for a batch of frames (frame-parallel).
+
+        Args:
+            rotations: ``[B, H, S, 3]`` pose histories (last = frame t, H >= 2).
+            translation: ``[B, H, 3]`` root translations.
+
+        Returns:
+            dict with ``final [B, V, 3]``, ``coarse [B, V, 3]``, ``accel [B, V, 3]``,
+            ``weights [B, V, S]``.
+        """
+        if rotations.dim() != 4 or rotations.shape[1] < 2:
+            raise ValueError(f"`rotations`: expected [B, H>=2, S, 3], got {tuple(rotations.shape)}")
+        B = rotations.shape[0]
+        V = rest_pos.shape[0]
+        coarse2, W, joints = self.coarse(static, rest_pos, edge_index, rest_joints, parents,
+                                         rotations, translation)
+        prev, cur = coarse2[:, 0], coarse2[:, 1]
+        vel = (cur - prev) * self.fps
+        n = vertex_normals(cur, faces)
+        dj = torch.cdist(cur, joints)
+        x = torch.cat([vel, n, dj], -1).reshape(B * V, -1)
+        ei = batch_edges(edge_index, B, V)
+        e = edge_features(cur.reshape(B * V, 3), ei)
+        accel = self.dynamic(x, ei, e).view(B, V, 3)
+        final = cur + accel / self.fps ** 2
+        return {"final": final, "coarse": cur, "accel": accel, "weights": W}
