@@ -1,0 +1,266 @@
+"""On-disk layout of a generated dataset: sequence files, the manifest, PC2/OBJ export.
+
+Layout of an output folder ``OUT``::
+
+    OUT/spec.json              the full item list (written once, checked on resume)
+    OUT/manifest.json          one record per item: status pending/ok/failed, ...
+    OUT/sequences/<id>.npz     one simulated sequence per item (ok items only)
+
+Every file is written to a temporary name in the same folder, flushed, fsynced and
+then moved into place with :func:`os.replace`, so a reader (or a resumed run) never
+sees a half-written file.  Sequence files are zip archives of ``.npy`` members written
+with a fixed timestamp, so the same content gives byte-identical files.
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+import struct
+import subprocess
+import zipfile
+from pathlib import Path
+from typing import Any, Dict, Iterable, List, Optional, Union
+
+import numpy as np
+
+PathLike = Union[str, os.PathLike]
+
+FORMAT_VERSION = 1
+SEQUENCES = "sequences"
+MANIFEST = "manifest.json"
+SPEC = "spec.json"
+#: arrays every sequence file holds (besides ``meta_json``)
+SEQUENCE_KEYS = ("garment_vertices", "garment_faces", "garment_uv", "garment_face_uv",
+                 "garment_pinned", "body_shape", "motion_rotations", "motion_translation",
+                 "positions", "converged", "newton_iterations", "residual")
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+# --------------------------------------------------------------------------- atomic writes
+def _tmp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+
+
+def atomic_write_bytes(path: PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` via a temporary file + ``os.replace``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_name(path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def atomic_write_json(path: PathLike, obj: Any) -> Path:
+    return atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode())
+
+
+def remove_stale_temporaries(folder: PathLike) -> int:
+    """Delete leftovers ``.<name>.tmp-<pid>`` of an interrupted run; returns how many."""
+    n = 0
+    folder = Path(folder)
+    if folder.is_dir():
+        for p in folder.glob(".*.tmp-*"):
+            p.unlink(missing_ok=True)
+            n += 1
+    return n
+
+
+# --------------------------------------------------------------------------- sequence files
+def _npz_bytes(arrays: Dict[str, np.ndarray]) -> bytes:
+    """A deterministic ``.npz`` (fixed member order and timestamps, stored uncompressed)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        for key in sorted(arrays):
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.ascontiguousarray(arrays[key]),
+                                      allow_pickle=False)
+            info = zipfile.ZipInfo(key + ".npy", date_time=_ZIP_DATE)
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, member.getvalue())
+    return buf.getvalue()
+
+
+def write_sequence(path: PathLike, arrays: Dict[str, np.ndarray], meta: Dict[str, Any]) -> Path:
+    """Atomically write one sequence file (``arrays`` + JSON ``meta``)."""
+    missing = [k for k in SEQUENCE_KEYS if k not in arrays]
+    if missing:
+        raise ValueError(f"write_sequence: missing arrays {missing}")
+    data = dict(arrays)
+    data["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+    return atomic_write_bytes(path, _npz_bytes(data))
+
+
+def read_meta(path: PathLike) -> Dict[str, Any]:
+    """Only the JSON metadata of a sequence file (does not read the positions)."""
+    with np.load(path, allow_pickle=False) as z:
+        return json.loads(z["meta_json"].tobytes().decode())
+
+
+def load_sequence(path: PathLike, keys: Optional[Iterable[str]] = None) -> Dict[str, Any]:
+    """All arrays (or ``keys``) of a sequence file as numpy arrays plus ``meta`` (dict)."""
+    with np.load(path, allow_pickle=False) as z:
+        names = list(z.files) if keys is None else [k for k in keys]
+        out: Dict[str, Any] = {k: z[k] for k in names if k != "meta_json"}
+        out["meta"] = json.loads(z["meta_json"].tobytes().decode())
+    return out
+
+
+def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional[str]:
+    """``None`` if ``path`` is a complete, loadable sequence file (of ``item_id``),
+    otherwise a message saying what is wrong."""
+    try:
+        seq = load_sequence(path)
+    except Exception as e:  # corrupt zip, truncated member, bad JSON, ...
+        return f"unreadable: {type(e).__name__}: {e}"
+    missing = [k for k in SEQUENCE_KEYS if k not in seq]
+    if missing:
+        return f"missing arrays {missing}"
+    meta = seq["meta"]
+    if item_id is not None and meta.get("id") != item_id:
+        return f"holds item {meta.get('id')!r}, expected {item_id!r}"
+    P, V = seq["positions"], seq["garment_vertices"]
+    if P.ndim != 3 or P.shape[1:] != V.shape or P.shape[0] != meta.get("num_frames"):
+        return f"positions have shape {P.shape}, expected [{meta.get('num_frames')}, {V.shape}]"
+    if not np.isfinite(P).all():
+        return "positions contain NaN/inf"
+    return None
+
+
+# --------------------------------------------------------------------------- manifest
+_GIT: Optional[Dict[str, Optional[str]]] = None
+
+
+def code_version() -> Dict[str, Optional[str]]:
+    """``garmentgnn.__version__`` and, where available, ``git rev-parse HEAD``."""
+    global _GIT
+    if _GIT is None:
+        import garmentgnn
+        commit = None
+        try:
+            r = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                               timeout=10, cwd=Path(garmentgnn.__file__).resolve().parent)
+            if r.returncode == 0:
+                commit = r.stdout.strip() or None
+        except (OSError, subprocess.SubprocessError):
+            pass
+        _GIT = {"version": garmentgnn.__version__, "git_commit": commit}
+    return dict(_GIT)
+
+
+def write_manifest(out: PathLike, records: List[Dict[str, Any]], header: Dict[str, Any]) -> Path:
+    """Atomically (re)write ``OUT/manifest.json``."""
+    counts: Dict[str, int] = {}
+    for r in records:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    doc = dict(header)
+    doc.update(format_version=FORMAT_VERSION, counts=counts, items=records)
+    return atomic_write_json(Path(out) / MANIFEST, doc)
+
+
+def read_manifest(out: PathLike) -> Dict[str, Any]:
+    with open(Path(out) / MANIFEST) as f:
+        return json.load(f)
+
+
+def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> Dict[str, Any]:
+    """The manifest record of an ok item, from a sequence file's metadata."""
+    keys = ("id", "garment", "body", "motion", "material", "settings", "seed", "split",
+            "num_frames", "num_vertices", "code", "nonconverged_frames")
+    rec = {k: meta.get(k) for k in keys}
+    rec.update(status="ok", message="", seconds=seconds if seconds is not None
+               else meta.get("seconds"), file=f"{SEQUENCES}/{meta['id']}.npz")
+    return rec
+
+
+def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
+    """Recreate the manifest from ``OUT/sequences/*.npz`` (and ``OUT/spec.json`` when it
+    exists, so items without a file are listed as ``pending``; failure messages are not
+    recoverable from the sequence files, so failed items come back as pending).
+
+    Unreadable sequence files are skipped (and listed under ``invalid``)."""
+    out = Path(out)
+    found: Dict[str, Dict[str, Any]] = {}
+    invalid = []
+    for p in sorted((out / SEQUENCES).glob("*.npz")):
+        msg = validate_sequence(p, p.stem)
+        if msg is not None:
+            invalid.append(f"{p.name}: {msg}")
+            continue
+        found[p.stem] = record_from_meta(read_meta(p))
+    header: Dict[str, Any] = {"rebuilt": True}
+    records: List[Dict[str, Any]] = []
+    spec_path = out / SPEC
+    if spec_path.exists():
+        with open(spec_path) as f:
+            spec = json.load(f)
+        header.update({k: v for k, v in spec.items() if k != "items"})
+        for it in spec["items"]:
+            records.append(found.pop(it["id"], None) or pending_record(it))
+    records.extend(found[k] for k in sorted(found))  # files outside the spec
+    header["invalid"] = invalid
+    header["code"] = code_version()
+    if write:
+        write_manifest(out, records, header)
+    return read_manifest(out) if write else dict(header, items=records)
+
+
+def pending_record(item: Dict[str, Any]) -> Dict[str, Any]:
+    rec = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
+                                 "seed", "split")}
+    rec.update(status="pending", message="", seconds=None, file=None)
+    return rec
+
+
+# --------------------------------------------------------------------------- export
+PC2_HEADER = struct.Struct("<12siiffi")
+
+
+def write_pc2(path: PathLike, positions: np.ndarray, start_frame: float = 0.0,
+              sample_rate: float = 1.0) -> Path:
+    """Blender/3ds Max point cache: header ``POINTCACHE2\\0``, version 1, number of
+    points, start frame, sample rate (frames between samples), number of samples, then
+    ``float32`` xyz for every point of every sample."""
+    P = np.asarray(positions, dtype="<f4")
+    if P.ndim != 3 or P.shape[2] != 3:
+        raise ValueError(f"`positions`: expected [T, V, 3], got {P.shape}")
+    head = PC2_HEADER.pack(b"POINTCACHE2\0", 1, P.shape[1], float(start_frame),
+                           float(sample_rate), P.shape[0])
+    return atomic_write_bytes(path, head + np.ascontiguousarray(P).tobytes())
+
+
+def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarray,
+                       stem: str = "frame") -> List[Path]:
+    """One OBJ per frame, ``folder/<stem>_<t:04d>.obj``, same vertex order in every file."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    F = np.asarray(faces, dtype=np.int64) + 1
+    flines = "".join(f"f {a} {b} {c}\n" for a, b, c in F)
+    paths = []
+    for t, X in enumerate(np.asarray(positions, dtype=np.float64)):
+        vlines = "".join(f"v {x:.7g} {y:.7g} {z:.7g}\n" for x, y, z in X)
+        p = folder / f"{stem}_{t:04d}.obj"
+        atomic_write_bytes(p, (f"# garmentgnn frame {t}\n" + vlines + flines).encode())
+        paths.append(p)
+    return paths
+
+
+def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: float = 0.0
+                    ) -> List[Path]:
+    """Export a sequence file's simulated positions as ``pc2`` (one file) or ``obj``
+    (a folder of per-frame OBJs)."""
+    seq = load_sequence(seq_path, ["positions", "garment_faces", "meta_json"])
+    if fmt == "pc2":
+        return [write_pc2(out, seq["positions"], start_frame=start_frame)]
+    if fmt == "obj":
+        return write_obj_sequence(out, seq["positions"], seq["garment_faces"],
+                                  stem=Path(seq_path).stem)
+    raise ValueError(f"`fmt`: expected 'pc2' or 'obj', got {fmt!r}")

@@ -1,0 +1,222 @@
+"""Validation of the reference implicit cloth simulator (garmentgnn.sim)."""
+import math
+import time
+
+import pytest
+import torch
+import trimesh
+
+from garmentgnn.body.body import Body
+from garmentgnn.body.skeleton import Skeleton
+from garmentgnn.garments.garment import Garment
+from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
+from garmentgnn.motion.sequence import Motion
+from garmentgnn.physics import Material, gravity_energy, material
+from garmentgnn.sim import ClothSystem, SimSettings, simulate, step
+
+G = 9.81
+
+
+def still_motion(T, fps=30.0):
+    return Motion(torch.zeros(T, 1, 3), torch.zeros(T, 3), ["root"], fps)
+
+
+def sheet(n=6, size=0.3, vertical=False, z=1.0, pin_top=False):
+    pos, faces = grid_mesh(n, n, (size, size), dtype=torch.float32)
+    uv = pos[:, :2].clone()
+    if vertical:  # hang in the xz plane
+        pos = torch.stack([pos[:, 0], torch.zeros_like(pos[:, 0]), pos[:, 1]], 1)
+    pos = pos + torch.tensor([0.0, 0.0, z])
+    pinned = None
+    if pin_top:
+        pinned = pos[:, 2] > pos[:, 2].max() - 1e-6 if vertical else pos[:, 0] < 1e-6
+    return Garment(pos, faces, uv, pinned=pinned)
+
+
+def max_stretch(pos, faces):
+    e = unique_edges(faces).edges
+    return float(((pos[:, e[:, 1]] - pos[:, e[:, 0]]).norm(dim=-1)).max())
+
+
+SOFT = Material(density=0.2, stretch=20.0, shear=10.0, bending=1e-6, lame_mu=20.0,
+                lame_lambda=30.0)
+
+
+# 1 -------------------------------------------------------------------------
+def test_free_fall_matches_backward_euler():
+    g = sheet(4, 0.2, z=1.0)
+    st = SimSettings(substeps=2)
+    T = 8
+    res = simulate(g, None, still_motion(T), material("silk"), st)
+    assert res.ok and res.converged.all()
+    h = 1.0 / (30.0 * 2)
+    z = res.positions[..., 2].double().mean(-1)
+    n = torch.arange(T, dtype=torch.float64) * 2  # substeps taken
+    be = 1.0 - G * h * h * n * (n + 1) / 2  # v_{k+1} = v_k - g h, x_{k+1} = x_k + h v_{k+1}
+    assert torch.allclose(z, be, atol=1e-6, rtol=0)
+    t = n * h
+    exact = 1.0 - 0.5 * G * t * t
+    dev = exact - z  # backward Euler falls faster by g h t / 2
+    assert torch.allclose(dev, 0.5 * G * h * t, atol=1e-6, rtol=0)
+    # rigid: no deformation
+    assert torch.allclose(res.positions[-1, :, :2], res.positions[0, :, :2], atol=1e-6)
+
+
+# 2 -------------------------------------------------------------------------
+def test_pinned_hanging_cloth_comes_to_rest():
+    g = sheet(10, 0.3, vertical=True, pin_top=True)
+    T = 30
+    res = simulate(g, None, still_motion(T), SOFT, SimSettings(substeps=2, tol=1e-7))
+    assert res.ok, res.message
+    P = res.positions.double()
+    assert torch.isfinite(P).all()
+    pinned = g.pinned
+    assert torch.allclose(P[-1, pinned], g.vertices[pinned].double(), atol=1e-6)
+    sysm = ClothSystem(g.vertices, g.faces, SOFT)
+    v = (P[-1] - P[-2]) * 30.0
+    ke = 0.5 * float((sysm.mass.unsqueeze(-1) * v * v).sum())
+    assert ke < 1e-7
+    assert float(res.residual[-1]) < 1e-6
+    bottom = g.vertices[:, 2] < g.vertices[:, 2].min() + 1e-6
+    assert float((P[-1, bottom, 2] - g.vertices[bottom, 2].double()).max()) < -1e-3  # sags
+
+
+# 3 -------------------------------------------------------------------------
+def sphere_body(radius=0.15):
+    ico = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    v = torch.tensor(ico.vertices, dtype=torch.float32)
+    f = torch.tensor(ico.faces, dtype=torch.long)
+    return Body(v, f, Skeleton(["root"], torch.tensor([-1])), torch.zeros(1, 3),
+                torch.ones(v.shape[0], 1))
+
+
+def test_cloth_dropped_on_sphere_rests_outside():
+    body = sphere_body(0.15)
+    g = sheet(6, 0.3, z=0.16)
+    g.vertices[:, :2] -= 0.15  # centred over the sphere
+    mat = material("silk")
+    T = 10
+    res = simulate(g, body, still_motion(T), mat, SimSettings(substeps=2))
+    assert res.ok, res.message
+    assert torch.isfinite(res.positions).all()
+    s = signed_distance(res.positions.double(), body.vertices.double(), body.faces).distance
+    assert float(s.min()) >= -0.1 * mat.collision_margin
+    assert float(res.positions[-1, :, 2].max()) > 0.14  # held up by the sphere
+    assert float(res.positions[-1, :, 2].min()) < 0.12  # and draped down its sides
+
+
+# 4 -------------------------------------------------------------------------
+def test_strain_decreases_with_stiffness_and_stiff_is_finite():
+    g = sheet(6, 0.3, vertical=True, pin_top=True)
+    rest = max_stretch(g.vertices.unsqueeze(0), g.faces)
+    strains = []
+    for k in (1.0, 10.0, 100.0, 1000.0):
+        res = simulate(g, None, still_motion(10), SOFT.scaled(k), SimSettings(substeps=2))
+        assert res.ok, res.message
+        strains.append(max_stretch(res.positions[-1:].double(), g.faces) / rest - 1.0)
+    assert all(a > b for a, b in zip(strains, strains[1:])), strains
+    assert strains[0] > 1e-3
+    res = simulate(g, None, still_motion(6), material("silk").scaled(1000.0), SimSettings())
+    assert res.ok and torch.isfinite(res.positions).all()
+
+
+# 5 -------------------------------------------------------------------------
+def test_swing_energy_does_not_grow():
+    g = sheet(6, 0.3, z=1.0, pin_top=True)  # horizontal, pinned along x = 0: swings down
+    sysm = ClothSystem(g.vertices, g.faces, SOFT.scaled(10.0), pinned=g.pinned)
+    T = 20
+    res = simulate(g, None, still_motion(T), SOFT.scaled(10.0), SimSettings(substeps=1))
+    assert res.ok, res.message
+    P = res.positions.double()
+    v = torch.cat([torch.zeros_like(P[:1]), (P[1:] - P[:-1]) * 30.0])
+    ke = 0.5 * (sysm.mass.unsqueeze(-1) * v * v).sum((-1, -2))
+    pot = torch.stack([sysm.internal_energy(p) for p in P])
+    total = ke + pot
+    assert float(P[-1, :, 2].min()) < 0.95  # it did swing down
+    assert float(total.max() - total[0]) <= 1e-9
+    assert float(total[-1]) < float(total[0])
+
+
+# 6 -------------------------------------------------------------------------
+def test_bad_input_raises_named_errors():
+    g = sheet(4, 0.2)
+    with pytest.raises(ValueError, match="fps"):
+        simulate(g, None, still_motion(3), SOFT, SimSettings(fps=0.0))
+    with pytest.raises(ValueError, match="fps"):
+        simulate(g, None, still_motion(3), SOFT, SimSettings(fps=-30.0))
+    with pytest.raises(ValueError, match="fps"):
+        simulate(g, None, still_motion(3, fps=60.0), SOFT, SimSettings(fps=30.0))
+    bad = sheet(4, 0.2)
+    bad.vertices[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="garment.vertices"):
+        simulate(bad, None, still_motion(3), SOFT)
+    body = sphere_body()
+    with pytest.raises(ValueError, match="body_frames"):
+        simulate(g, body, still_motion(3), SOFT, body_frames=body.vertices.expand(5, -1, -1))
+    with pytest.raises(ValueError, match="h"):
+        sysm = ClothSystem(g.vertices, g.faces, SOFT)
+        step(sysm, g.vertices, torch.zeros_like(g.vertices), 0.0)
+
+
+def test_hessian_matches_autograd():
+    g = sheet(5, 0.2, vertical=True, pin_top=True)
+    sysm = ClothSystem(g.vertices, g.faces, material("silk"), pinned=g.pinned)
+    x = g.vertices.double() + 1e-3 * torch.randn(25, 3, generator=torch.Generator().manual_seed(0),
+                                                  dtype=torch.float64)
+    import garmentgnn.sim.simulator as S
+    proj = S._project_psd
+    try:
+        S._project_psd = lambda H: H
+        H = torch.tensor(sysm.hessian(x, 0.01, None).toarray())
+    finally:
+        S._project_psd = proj
+    from garmentgnn.physics import inertia_energy
+    f = lambda y: (sysm.internal_energy(y.view(-1, 3))  # noqa: E731
+                   + inertia_energy(y.view(-1, 3), x, sysm.mass, 0.01))
+    Hd = torch.autograd.functional.hessian(f, x.reshape(-1))
+    assert torch.allclose(H, Hd, atol=1e-6 * float(Hd.abs().max()))
+
+
+@pytest.mark.xfail(reason="known issue: Newton converges slowly from perturbed stiff states "
+                          "(see docs/simulator.md, 'Known problems')", strict=False)
+def test_step_converges_from_perturbed_state():
+    g = sheet(5, 0.2, vertical=True, pin_top=True)
+    sysm = ClothSystem(g.vertices, g.faces, material("silk"), pinned=g.pinned)
+    x = g.vertices.double() + 1e-4 * torch.randn(25, 3, generator=torch.Generator().manual_seed(0),
+                                                  dtype=torch.float64)
+    r = step(sysm, x, torch.zeros_like(x), 1 / 120)
+    assert r.ok and r.converged and r.iterations <= 10 and torch.isfinite(r.x).all()
+    import garmentgnn.sim.simulator as S
+    proj = S._project_psd
+    try:
+        S._project_psd = lambda H: H
+        H = torch.tensor(sysm.hessian(x, 0.01, None).toarray())
+    finally:
+        S._project_psd = proj
+    from garmentgnn.physics import inertia_energy
+    f = lambda y: (sysm.internal_energy(y.view(-1, 3))  # noqa: E731
+                   + inertia_energy(y.view(-1, 3), x, sysm.mass, 0.01))
+    Hd = torch.autograd.functional.hessian(f, x.reshape(-1))
+    assert torch.allclose(H, Hd, atol=1e-6 * float(Hd.abs().max()))
+
+
+# end to end ------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.xfail(run=False, strict=True, reason="known: projected Newton converges linearly "
+                   "on buckling garments (~30 iterations per substep, ~5 min for 10 skirt "
+                   "frames, some frames unconverged); not run in CI until fixed, see "
+                   "docs/simulator.md 'Known problems'")
+def test_skirt_walk_end_to_end():
+    from garmentgnn.body.capsule import CapsuleBodyModel
+    from garmentgnn.garments import make_garment
+    from garmentgnn.motion import make_motion
+    body = CapsuleBodyModel()("regular")
+    g = make_garment("skirt", body, resolution="low")
+    m = make_motion("walk", body.skeleton, num_frames=10, rest_joints=body.joints)
+    res = simulate(g, body, m, material("silk"), SimSettings())
+    print(f"\nskirt V={g.num_vertices}: {res.seconds / (len(m) - 1):.2f} s/frame, "
+          f"iterations {res.newton_iterations.tolist()}")
+    assert res.ok, res.message
+    assert res.positions.shape == (10, g.num_vertices, 3)
+    assert torch.isfinite(res.positions).all()
+    assert res.converged.all()
