@@ -1,6 +1,4 @@
 """Validation of the reference implicit cloth simulator (garmentgnn.sim)."""
-import math
-import time
 
 import pytest
 import torch
@@ -11,7 +9,7 @@ from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.garments.garment import Garment
 from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
 from garmentgnn.motion.sequence import Motion
-from garmentgnn.physics import Material, gravity_energy, material
+from garmentgnn.physics import Material, material
 from garmentgnn.sim import ClothSystem, SimSettings, simulate, step
 
 G = 9.81

@@ -24,7 +24,6 @@ import math
 from dataclasses import dataclass
 from typing import Dict, Iterable, Optional
 
-import torch
 from torch import Tensor, nn
 
 from garmentgnn.geometry import edge_lengths, unique_edges, vertex_normals

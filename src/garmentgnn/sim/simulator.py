@@ -208,7 +208,6 @@ class ClothSystem:
                                      uv_inverse=r.uv_inverse.to(DTYPE).unsqueeze(1),
                                      uv_area=r.uv_area.to(DTYPE).unsqueeze(1))
         adj = r.adjacency
-        A = adj.faces.shape[0]
         a, b = adj.edges[:, 0], adj.edges[:, 1]
         o1, o2 = adj.opposite[:, 0], adj.opposite[:, 1]
         self.hinge_verts = torch.stack([a, b, o1, o2], 1)  # [A, 4]
