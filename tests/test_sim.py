@@ -184,18 +184,6 @@ def test_step_converges_from_perturbed_state():
                                                   dtype=torch.float64)
     r = step(sysm, x, torch.zeros_like(x), 1 / 120)
     assert r.ok and r.converged and r.iterations <= 10 and torch.isfinite(r.x).all()
-    import garmentgnn.sim.simulator as S
-    proj = S._project_psd
-    try:
-        S._project_psd = lambda H: H
-        H = torch.tensor(sysm.hessian(x, 0.01, None).toarray())
-    finally:
-        S._project_psd = proj
-    from garmentgnn.physics import inertia_energy
-    f = lambda y: (sysm.internal_energy(y.view(-1, 3))  # noqa: E731
-                   + inertia_energy(y.view(-1, 3), x, sysm.mass, 0.01))
-    Hd = torch.autograd.functional.hessian(f, x.reshape(-1))
-    assert torch.allclose(H, Hd, atol=1e-6 * float(Hd.abs().max()))
 
 
 # end to end ------------------------------------------------------------------
