@@ -40,7 +40,7 @@ class Graph(NamedTuple):
     num_src: int
     num_dst: int
     csr: bool = False  # sorted by (target, source) without duplicates: valid CSR of adj_t
-    cache: dict = {}  # per-call scratch (sparse patterns); prepare_graph gives each a new dict
+    cache: Optional[dict] = None  # per-call scratch for sparse patterns (prepare_graph sets one)
 
 
 def _fail(arg: str, msg: str) -> None:

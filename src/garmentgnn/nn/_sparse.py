@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from typing import Dict, Iterator, Tuple
+from typing import Iterator, Tuple
 
 import torch
 from torch import Tensor
@@ -133,11 +133,13 @@ class IncidencePattern:
 
 def head_pattern(g: Graph, heads: int, incidence: bool = False):
     """The per-head (node or incidence) pattern of ``g``, built once per graph and head count."""
-    cache: Dict[tuple, object] = g.cache
+    build = IncidencePattern if incidence else HeadPattern
+    if g.cache is None:
+        return build(g, heads)
     key = (heads, incidence)
-    if key not in cache:
-        cache[key] = (IncidencePattern if incidence else HeadPattern)(g, heads)
-    return cache[key]
+    if key not in g.cache:
+        g.cache[key] = build(g, heads)
+    return g.cache[key]
 
 
 class _SDDMM(torch.autograd.Function):
