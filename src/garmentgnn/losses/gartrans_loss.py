@@ -27,8 +27,15 @@ from typing import Dict, Iterable, Optional
 from torch import Tensor, nn
 
 from garmentgnn.geometry import edge_lengths, unique_edges, vertex_normals
-from garmentgnn.physics import (ClothRest, bending_energy, collision_energy, gravity_energy,
-                                inertia_energy, shear_energy, stretch_energy)
+from garmentgnn.physics import (
+    ClothRest,
+    bending_energy,
+    collision_energy,
+    gravity_energy,
+    inertia_energy,
+    shear_energy,
+    stretch_energy,
+)
 
 PAPER_WEIGHTS: Dict[str, float] = {
     "vert": 100.0, "edge": 15.0, "norm": 50.0,
@@ -130,42 +137,55 @@ class GarTransLoss(nn.Module):
         return self._edges[key]
 
     def forward(self, inp: LossInputs):
-        terms: Dict[str, Tensor] = {}
         w = self.weights
         pred = inp.pred
         need_gt = self.enabled & set(SUPERVISED)
         if need_gt and inp.gt is None:
             raise ValueError(f"`gt`: supervised term(s) {sorted(need_gt)} need ground truth")
+        if "gravity" in self.enabled and inp.mass is None:
+            raise ValueError("`mass`: the gravity term (Eq. 11) needs vertex masses")
         s = self.supervised_scale
-        if "vert" in self.enabled:
-            terms["vert"] = s * w["vert"] * vertex_loss(pred, inp.gt).mean()
-        if "edge" in self.enabled:
-            edges = self._unique_edges(inp.faces, pred.shape[-2])
-            terms["edge"] = s * w["edge"] * edge_loss(pred, inp.gt, edges,
-                                                      self.edge_reduction).mean()
-        if "norm" in self.enabled:
-            terms["norm"] = s * w["norm"] * normal_loss(pred, inp.gt, inp.faces).mean()
-        if "collision" in self.enabled and inp.body_pos is not None:
-            terms["collision"] = collision_energy(pred, inp.body_pos, inp.body_faces,
+        fns = {
+            "vert": lambda: s * w["vert"] * vertex_loss(pred, inp.gt).mean(),
+            "edge": lambda: s * w["edge"] * edge_loss(
+                pred, inp.gt, self._unique_edges(inp.faces, pred.shape[-2]),
+                self.edge_reduction).mean(),
+            "norm": lambda: s * w["norm"] * normal_loss(pred, inp.gt, inp.faces).mean(),
+            "collision": lambda: collision_energy(pred, inp.body_pos, inp.body_faces,
                                                   self.collision_margin, w["collision"],
-                                                  power=1).mean()
-        if "gravity" in self.enabled:
-            if inp.mass is None:
-                raise ValueError("`mass`: the gravity term (Eq. 11) needs vertex masses")
-            terms["gravity"] = w["gravity"] * gravity_energy(pred, inp.mass).mean()
-        if inp.rest is not None:
-            if "stretch" in self.enabled:
-                terms["stretch"] = stretch_energy(pred, inp.rest, w["stretch"]).mean()
-            if "shear" in self.enabled:
-                terms["shear"] = shear_energy(pred, inp.rest, w["shear"]).mean()
-            if "bending" in self.enabled:
-                terms["bending"] = bending_energy(pred, inp.rest, w["bending"]).mean()
-        if "inertia" in self.enabled and inp.predicted is not None and inp.mass is not None:
-            terms["inertia"] = w["inertia"] * inertia_energy(pred, inp.predicted, inp.mass,
-                                                             inp.dt).mean()
-        for name, value in terms.items():
-            if not math.isfinite(float(value.detach())):
-                raise NonFiniteLossError(f"loss term {name!r} is {float(value.detach())}; "
-                                         "check the prediction and inputs of this term")
+                                                  power=1).mean(),
+            "gravity": lambda: w["gravity"] * gravity_energy(pred, inp.mass).mean(),
+            "stretch": lambda: stretch_energy(pred, inp.rest, w["stretch"]).mean(),
+            "shear": lambda: shear_energy(pred, inp.rest, w["shear"]).mean(),
+            "bending": lambda: bending_energy(pred, inp.rest, w["bending"]).mean(),
+            "inertia": lambda: w["inertia"] * inertia_energy(pred, inp.predicted, inp.mass,
+                                                             inp.dt).mean(),
+        }
+        skip = set()
+        if inp.body_pos is None:
+            skip.add("collision")  # no body in the scene
+        if inp.rest is None:
+            skip |= {"stretch", "shear", "bending"}  # no material coordinates
+        if inp.predicted is None or inp.mass is None:
+            skip.add("inertia")
+        terms: Dict[str, Tensor] = {}
+        for name in PAPER_WEIGHTS:  # fixed order: the first bad term is the one named
+            if name in self.enabled and name not in skip:
+                terms[name] = self._term(name, fns[name])
         total = sum(terms.values()) if terms else pred.sum() * 0.0
         return total, terms
+
+    @staticmethod
+    def _term(name: str, fn) -> Tensor:
+        """Evaluate one term; NaN/inf (or geometry refusing NaN input) names the term."""
+        try:
+            value = fn()
+        except ValueError as err:
+            if "nan" in str(err).lower() or "inf" in str(err).lower():
+                raise NonFiniteLossError(f"loss term {name!r} is non-finite ({err}); check "
+                                         "the prediction and inputs of this term") from err
+            raise
+        if not math.isfinite(float(value.detach())):
+            raise NonFiniteLossError(f"loss term {name!r} is {float(value.detach())}; "
+                                     "check the prediction and inputs of this term")
+        return value

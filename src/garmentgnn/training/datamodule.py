@@ -1,0 +1,252 @@
+"""Chunks of consecutive frames for GarTrans training, and the Lightning data module.
+
+A *chunk* is one garment on one body over ``B`` consecutive frames of one generated
+sequence (the ``.npz`` files written by ``garmentgnn generate``, loaded with
+:func:`garmentgnn.data.store.load_sequence`).  GarTrans predicts the frames of a
+chunk in parallel and shares one static encoding (``encode_static``) between them.
+
+Each item (a plain ``dict``; the data loader runs with ``batch_size=None``, one
+chunk per step) holds
+
+* ``rest_pos [V, 3]``, ``faces [F, 3]``, ``face_uv [F, 3, 2]``, ``edge_index [2, E]``
+  (:func:`faces_to_edge_index`, target-sorted), ``nystrom [V, k]``
+  (:func:`geodesic_nystrom_features`), ``rest`` (:class:`ClothRest`), ``mass [V]``;
+* ``rest_joints [S, 3]``, ``parents [S]``, ``body_joint_dists [Vb, S]`` (rest body
+  vertex-to-joint distances), ``body_faces [Fb, 3]``;
+* ``rotations [B, H, S, 3]`` and ``translation [B, H, 3]``: for each frame ``t`` of
+  the chunk the poses of frames ``t-history .. t`` (``H = history + 1``, the same
+  convention as :class:`~garmentgnn.data.GarmentSequenceDataset`; frame 0 repeated
+  before the start);
+* ``gt [B, V, 3]`` the stored (simulated) garment, ``body_pos [B, Vb, 3]`` the posed
+  body of the same frames;
+* ``seq_id`` (str), ``frames [B]``.
+
+The static inputs (edge index, Nyström features, ClothRest, masses, rest body) are
+computed once per sequence and cached (``static_cache`` entries, LRU); positions and
+motion are cached per sequence file (``cache_size`` files, LRU).
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from garmentgnn.data import store
+from garmentgnn.data.generate import body_key, build_body
+from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
+from garmentgnn.physics import ClothRest
+
+#: surface density used when a sequence file carries no material parameters (kg/m^2)
+DEFAULT_DENSITY = 0.15
+
+
+class SequenceChunks(Dataset):
+    """Chunks of ``chunk`` consecutive frames of every ok sequence of ``split``.
+
+    Args:
+        root: generation output folder (``manifest.json`` + ``sequences/``).
+        split: ``"train" | "val" | "test"`` or ``None`` for all.
+        chunk: frames per chunk ``B``; a sequence is cut into ``ceil(T / chunk)``
+            chunks (the last may be shorter) -- ``drop_last=True`` drops a short one.
+        history: previous frames per pose history (``H = history + 1 >= 2``).
+        nystrom_dim, num_landmarks: Nyström features (``k`` must equal the model's
+            ``nystrom_dim``).
+        cache_size, static_cache: sequence files / static inputs kept (LRU).
+    """
+
+    def __init__(self, root, split: str | None = "train", chunk: int = 8, history: int = 3,
+                 nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
+                 cache_size: int = 4, static_cache: int = 64) -> None:
+        if chunk < 1:
+            raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
+        if history < 1:
+            raise ValueError(f"`history`: expected >= 1 (GarTrans needs H >= 2), got {history}")
+        self.root = Path(root)
+        self.split, self.chunk, self.history = split, chunk, history
+        self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
+        self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
+        manifest = store.read_manifest(self.root)
+        self.records = [r for r in manifest["items"] if r["status"] == "ok"
+                        and (split is None or r["split"] == split)]
+        self.index: list[tuple[int, int, int]] = []  # (record, first frame, frames)
+        for i, r in enumerate(self.records):
+            T = int(r["num_frames"])
+            for t0 in range(0, T, chunk):
+                n = min(chunk, T - t0)
+                if n == chunk or not drop_last:
+                    self.index.append((i, t0, n))
+        self._seqs: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self._static: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self.num_file_loads = 0
+        self.num_static_builds = 0
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    # -- caches -----------------------------------------------------------------
+    def _path(self, rec: dict[str, Any]) -> Path:
+        return self.root / (rec.get("file") or f"{store.SEQUENCES}/{rec['id']}.npz")
+
+    def sequence(self, i: int) -> dict[str, Any]:
+        rec = self.records[i]
+        sid = rec["id"]
+        if sid in self._seqs:
+            self._seqs.move_to_end(sid)
+            return self._seqs[sid]
+        seq = store.load_sequence(self._path(rec))
+        self.num_file_loads += 1
+        self._seqs[sid] = seq
+        while len(self._seqs) > self.cache_size:
+            self._seqs.popitem(last=False)
+        return seq
+
+    def static(self, i: int) -> dict[str, Any]:
+        """The per-sequence static inputs (cached)."""
+        sid = self.records[i]["id"]
+        if sid in self._static:
+            self._static.move_to_end(sid)
+            return self._static[sid]
+        seq = self.sequence(i)
+        meta = seq["meta"]
+        rest_pos = torch.from_numpy(np.asarray(seq["garment_vertices"], np.float32))
+        faces = torch.from_numpy(np.asarray(seq["garment_faces"])).long()
+        face_uv = torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32))
+        V = rest_pos.shape[0]
+        ei = faces_to_edge_index(faces, V)
+        ny = geodesic_nystrom_features(rest_pos.double(), faces, k=self.nystrom_dim,
+                                       num_landmarks=self.num_landmarks).float()
+        if ny.shape[1] < self.nystrom_dim:  # tiny meshes: fewer landmarks than k
+            ny = torch.cat([ny, ny.new_zeros(V, self.nystrom_dim - ny.shape[1])], 1)
+        rest = ClothRest.from_mesh(rest_pos, faces, face_uv)
+        density = float((meta.get("material_params") or {}).get("density", DEFAULT_DENSITY))
+        body = build_body(meta["body"])
+        bverts = body.vertices.float()
+        joints = body.joints.float()
+        st = {
+            "rest_pos": rest_pos, "faces": faces, "face_uv": face_uv, "edge_index": ei,
+            "nystrom": ny, "rest": rest, "mass": rest.vertex_masses(density, V).float(),
+            "rest_joints": joints, "parents": body.skeleton.parents.long(),
+            "body_joint_dists": torch.cdist(bverts, joints), "body_faces": body.faces.long(),
+            "_body": body, "_body_key": body_key(meta["body"]),
+        }
+        self.num_static_builds += 1
+        self._static[sid] = st
+        while len(self._static) > self.static_cache:
+            self._static.popitem(last=False)
+        return st
+
+    # -- items --------------------------------------------------------------------
+    def __getitem__(self, idx: int) -> dict[str, Any]:
+        if not 0 <= idx < len(self):
+            raise IndexError(f"chunk index {idx} out of range [0, {len(self)})")
+        i, t0, n = self.index[idx]
+        seq, st = self.sequence(i), self.static(i)
+        frames = torch.arange(t0, t0 + n)
+        rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
+        tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
+        offs = torch.arange(-self.history, 1)
+        hist = (frames.view(-1, 1) + offs.view(1, -1)).clamp_min(0)  # [B, H]
+        gt = torch.from_numpy(np.asarray(seq["positions"][t0:t0 + n], np.float32))
+        body = st["_body"]
+        with torch.no_grad():
+            bpos, _ = body.pose(rot[frames].to(body.vertices.dtype),
+                                tr[frames].to(body.vertices.dtype))
+        item = {k: v for k, v in st.items() if not k.startswith("_")}
+        item.update(rotations=rot[hist], translation=tr[hist], gt=gt,
+                    body_pos=bpos.float(), seq_id=self.records[i]["id"], frames=frames)
+        return item
+
+
+class EpochShuffleSampler(Sampler):
+    """A permutation seeded by ``(seed, epoch)``: the order of an epoch does not depend
+    on what ran before it, so a run resumed from a checkpoint sees the same batches as
+    an uninterrupted one (Lightning calls :meth:`set_epoch` every epoch)."""
+
+    def __init__(self, n: int, seed: int = 0, shuffle: bool = True) -> None:
+        self.n, self.seed, self.shuffle, self.epoch = n, seed, shuffle, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __iter__(self) -> Iterator[int]:
+        if not self.shuffle:
+            return iter(range(self.n))
+        g = torch.Generator().manual_seed(self.seed * 100003 + self.epoch)
+        return iter(torch.randperm(self.n, generator=g).tolist())
+
+    def __len__(self) -> int:
+        return self.n
+
+
+def _identity(x):
+    return x
+
+
+try:
+    import lightning as L
+
+    class GarmentDataModule(L.LightningDataModule):
+        """Train/val chunks from the manifest's splits (one chunk per step).
+
+        ``num_joints`` / ``num_body_vertices`` (for building the model) are read from
+        the first training chunk.
+        """
+
+        def __init__(self, root, chunk: int = 8, history: int = 3, num_workers: int = 0,
+                     nystrom_dim: int = 16, num_landmarks: int = 64, train_split: str = "train",
+                     val_split: str | None = "val", shuffle: bool = True, seed: int = 0,
+                     drop_last: bool = False) -> None:
+            super().__init__()
+            self.root, self.chunk, self.history = Path(root), chunk, history
+            self.num_workers, self.nystrom_dim, self.num_landmarks = num_workers, nystrom_dim, \
+                num_landmarks
+            self.train_split, self.val_split = train_split, val_split
+            self.shuffle, self.seed, self.drop_last = shuffle, seed, drop_last
+            self.train_set: SequenceChunks | None = None
+            self.val_set: SequenceChunks | None = None
+
+        def _make(self, split) -> SequenceChunks:
+            return SequenceChunks(self.root, split, self.chunk, self.history, self.nystrom_dim,
+                                  self.num_landmarks, drop_last=self.drop_last)
+
+        def setup(self, stage: str | None = None) -> None:
+            if self.train_set is None:
+                self.train_set = self._make(self.train_split)
+            if self.val_set is None and self.val_split is not None:
+                self.val_set = self._make(self.val_split)
+
+        @property
+        def dims(self) -> dict[str, int]:
+            self.setup()
+            if not len(self.train_set):
+                raise ValueError(f"no {self.train_split!r} chunks under {self.root}")
+            st = self.train_set.static(self.train_set.index[0][0])
+            return {"num_joints": st["rest_joints"].shape[0],
+                    "num_body_vertices": st["body_joint_dists"].shape[0],
+                    "nystrom_dim": self.nystrom_dim}
+
+        def _loader(self, ds: SequenceChunks, shuffle: bool) -> DataLoader:
+            return DataLoader(ds, batch_size=None, sampler=EpochShuffleSampler(len(ds), self.seed,
+                                                                               shuffle),
+                              num_workers=self.num_workers, collate_fn=_identity,
+                              persistent_workers=self.num_workers > 0)
+
+        def train_dataloader(self) -> DataLoader:
+            self.setup()
+            return self._loader(self.train_set, self.shuffle)
+
+        def val_dataloader(self):
+            self.setup()
+            if self.val_set is None:
+                return []
+            return self._loader(self.val_set, False)
+except ImportError:  # pragma: no cover - lightning is optional for the dataset itself
+    GarmentDataModule = None  # type: ignore
+
+
+__all__ = ["EpochShuffleSampler", "GarmentDataModule", "SequenceChunks"]

@@ -1,0 +1,124 @@
+"""GarTrans as a LightningModule (paper §4.1: Adamax, lr 0.003, cosine annealing).
+
+One training step = one chunk (one garment on one body, ``B`` frames, see
+:mod:`garmentgnn.training.datamodule`): ``encode_static`` once, ``forward`` on the
+``B`` frames in parallel, then :class:`GarTransLoss`.  Which loss terms are active,
+the supervised scale and whether the rest-pose branch is frozen are switched by
+:class:`garmentgnn.training.ProgressiveSchedule`.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+import lightning as L
+import torch
+
+from garmentgnn.losses.gartrans_loss import (
+    SUPERVISED,
+    GarTransLoss,
+    LossInputs,
+    NonFiniteLossError,
+    vertex_loss,
+)
+from garmentgnn.metrics.garment_metrics import evaluate
+from garmentgnn.models import GarTrans
+
+#: the rest-pose processing submodule frozen in the third phase (§4.1)
+REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
+
+
+class GarTransModule(L.LightningModule):
+    """Args:
+        num_joints, num_body_vertices, nystrom_dim: model sizes (see
+            :attr:`GarmentDataModule.dims`).
+        rest_layer, blend_layer, dynamic_layer: registry names of the attention slots.
+        heads, fps: model settings.
+        lr: Adamax learning rate; ``t_max``: CosineAnnealingLR period in epochs
+            (default: the trainer's ``max_epochs``); ``eta_min``.
+        loss_weights, edge_reduction, collision_margin: :class:`GarTransLoss` settings.
+        enabled, supervised_scale: initial loss terms / scale (phase 1).
+        use_body: feed the body-vertex-to-joint distances (else the learned code).
+    """
+
+    def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
+                 rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
+                 heads: int = 4, fps: float = 30.0, lr: float = 3e-3, t_max: int | None = None,
+                 eta_min: float = 0.0, loss_weights: dict[str, float] | None = None,
+                 edge_reduction: str = "sum", collision_margin: float = 2e-3,
+                 enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
+                 use_body: bool = True) -> None:
+        super().__init__()
+        enabled = sorted(enabled)
+        self.save_hyperparameters()
+        self.model = GarTrans(num_joints, num_body_vertices, nystrom_dim=nystrom_dim,
+                              rest_layer=rest_layer, blend_layer=blend_layer,
+                              dynamic_layer=dynamic_layer, heads=heads, fps=fps)
+        self.loss_fn = GarTransLoss(loss_weights, enabled=enabled,
+                                    supervised_scale=supervised_scale,
+                                    collision_margin=collision_margin,
+                                    edge_reduction=edge_reduction)
+
+    # -- phase controls (used by ProgressiveSchedule) ---------------------------------
+    def set_rest_branch_frozen(self, frozen: bool) -> None:
+        for name in REST_BRANCH:
+            for p in getattr(self.model, name).parameters():
+                p.requires_grad_(not frozen)
+                if frozen:
+                    p.grad = None
+
+    def rest_branch_parameters(self):
+        for name in REST_BRANCH:
+            yield from getattr(self.model, name).parameters()
+
+    # -- forward ------------------------------------------------------------------
+    def forward(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
+        m = self.model
+        static = m.encode_static(batch["rest_pos"], batch["faces"], batch["edge_index"],
+                                 batch["rest_joints"], batch["nystrom"],
+                                 batch["body_joint_dists"] if self.hparams.use_body else None)
+        return m(static, batch["rest_pos"], batch["faces"], batch["edge_index"],
+                 batch["rest_joints"], batch["parents"], batch["rotations"],
+                 batch["translation"])
+
+    def compute_loss(self, batch: dict[str, Any], out: dict[str, torch.Tensor]):
+        pred = out["final"]
+        inp = LossInputs(pred=pred, faces=batch["faces"], gt=batch["gt"],
+                         body_pos=batch["body_pos"], body_faces=batch["body_faces"],
+                         mass=batch["mass"], rest=batch["rest"], dt=1.0 / self.hparams.fps)
+        return self.loss_fn(inp)  # NaN/inf raises NonFiniteLossError naming the term
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int):
+        out = self(batch)
+        B = out["final"].shape[0]
+        # raises NonFiniteLossError naming the term; Trainer.fit re-raises it (stops)
+        total, terms = self.compute_loss(batch, out)
+        with torch.no_grad():
+            vert_err = vertex_loss(out["final"], batch["gt"]).mean()  # metres, unscaled
+        if not torch.isfinite(total):
+            raise NonFiniteLossError(f"loss 'total' is {float(total)}")
+        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B)
+        self.log("train/vert_err", vert_err, on_step=False, on_epoch=True, batch_size=B)
+        for k, v in terms.items():
+            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B)
+        return {"loss": total, "vert_err": vert_err.detach(),
+                "terms": {k: v.detach() for k, v in terms.items()}}
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int):
+        out = self(batch)
+        B = out["final"].shape[0]
+        metrics = evaluate(out["final"], batch["gt"], batch["faces"], batch["body_pos"],
+                           batch["body_faces"])
+        for k, v in metrics.items():
+            self.log(f"val/{k}", v, on_epoch=True, batch_size=B)
+        return metrics
+
+    def configure_optimizers(self):
+        opt = torch.optim.Adamax(self.parameters(), lr=self.hparams.lr)
+        t_max = self.hparams.t_max
+        if t_max is None:
+            me = getattr(self.trainer, "max_epochs", None) if self._trainer is not None else None
+            t_max = me if me and me > 0 else 100
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(t_max),
+                                                           eta_min=self.hparams.eta_min)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}

@@ -1,0 +1,119 @@
+"""The progressive training schedule of GarTrans (paper §4.1) as a Lightning callback.
+
+* phase 1: supervised terms (vert, edge, norm);
+* phase 2, once the relative reduction of the epoch-mean vertex error over the last
+  ``window`` epochs falls below ``threshold`` (3% over 50 epochs in the paper):
+  collision + gravity on, supervised terms scaled by ``supervised_scale`` (0.05);
+* phase 3, once the collision term's relative change over ``window`` epochs falls
+  below ``threshold``: the rest-pose branch (rest_fc, rest_attn, nystrom_fc, body_fc)
+  is frozen and stretch + shear are switched on.
+
+The monitored values are epoch means accumulated by the callback itself from the
+training step outputs (``vert_err``: unscaled mean vertex distance; ``terms``), and
+the phase, the histories and the transition epochs are part of :meth:`state_dict`, so a
+run resumed from a checkpoint continues in exactly the same phase.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+
+from garmentgnn.losses.gartrans_loss import SUPERVISED
+
+PHASE_TERMS = {
+    1: tuple(SUPERVISED),
+    2: tuple(SUPERVISED) + ("collision", "gravity"),
+    3: tuple(SUPERVISED) + ("collision", "gravity", "stretch", "shear"),
+}
+
+
+class ProgressiveSchedule(L.Callback):
+    """Args:
+        window: epochs over which the relative change is measured (50 in the paper).
+        threshold: relative change below which a phase ends (0.03).
+        window2, threshold2: the same for the collision plateau (default: as above).
+        supervised_scale: scale of the supervised terms from phase 2 on (0.05).
+        start_phase: the phase of a fresh run (1).
+        max_phase: stop advancing after this phase.
+    """
+
+    def __init__(self, window: int = 50, threshold: float = 0.03,
+                 window2: int | None = None, threshold2: float | None = None,
+                 supervised_scale: float = 0.05, start_phase: int = 1, max_phase: int = 3) -> None:
+        if window < 1:
+            raise ValueError(f"`window`: expected >= 1, got {window}")
+        if start_phase not in PHASE_TERMS:
+            raise ValueError(f"`start_phase`: expected 1, 2 or 3, got {start_phase}")
+        self.window, self.threshold = window, threshold
+        self.window2 = window if window2 is None else window2
+        self.threshold2 = threshold if threshold2 is None else threshold2
+        self.supervised_scale = supervised_scale
+        self.max_phase = max_phase
+        self.phase = start_phase
+        self.history: list[float] = []  # epoch means of the monitored value of this phase
+        self.transitions: dict[int, int] = {}  # phase -> epoch at whose end it began
+        self._sum, self._n = 0.0, 0
+
+    # -- state ------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {"phase": self.phase, "history": list(self.history),
+                "transitions": {str(k): v for k, v in self.transitions.items()}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.phase = int(state["phase"])
+        self.history = [float(x) for x in state["history"]]
+        self.transitions = {int(k): int(v) for k, v in state.get("transitions", {}).items()}
+
+    # -- applying a phase -------------------------------------------------------------
+    def apply(self, pl_module) -> None:
+        loss = pl_module.loss_fn
+        loss.set_enabled(PHASE_TERMS[self.phase])
+        loss.supervised_scale = 1.0 if self.phase == 1 else self.supervised_scale
+        pl_module.set_rest_branch_frozen(self.phase >= 3)
+
+    def on_fit_start(self, trainer, pl_module) -> None:  # after a checkpoint is restored
+        self.apply(pl_module)
+
+    # -- monitoring -------------------------------------------------------------------
+    def on_train_epoch_start(self, trainer, pl_module) -> None:
+        self._sum, self._n = 0.0, 0
+
+    def _monitored(self, outputs) -> float | None:
+        if not isinstance(outputs, dict):
+            return None
+        if self.phase == 1:
+            v = outputs.get("vert_err")
+        else:
+            v = outputs.get("terms", {}).get("collision")
+        return None if v is None else float(torch.as_tensor(v).detach())
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        v = self._monitored(outputs)
+        if v is not None:
+            self._sum += v
+            self._n += 1
+
+    @staticmethod
+    def relative_change(old: float, new: float) -> float:
+        return (old - new) / max(abs(old), 1e-12)
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        if self._n:
+            self.history.append(self._sum / self._n)
+        pl_module.log("schedule/phase", float(self.phase))
+        if self.phase >= self.max_phase or len(self.history) <= (self.window if self.phase == 1
+                                                                  else self.window2):
+            return
+        if self.phase == 1:
+            old = self.history[-1 - self.window]
+            plateau = self.relative_change(old, self.history[-1]) < self.threshold
+        else:
+            old = self.history[-1 - self.window2]
+            plateau = abs(self.relative_change(old, self.history[-1])) < self.threshold2
+        if plateau:
+            self.phase += 1
+            self.history = []
+            self.transitions[self.phase] = int(trainer.current_epoch)
+            self.apply(pl_module)

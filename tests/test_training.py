@@ -1,0 +1,179 @@
+"""Lightning training of GarTrans on a tiny generated dataset (no simulator: the
+"simulation" is the garment skinned by LBS plus a small smooth offset)."""
+import math
+from types import SimpleNamespace
+
+import lightning as L
+import pytest
+import torch
+
+from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from garmentgnn.data import Spec, generate, motion_key
+from garmentgnn.garments.skinning import transfer_skinning_weights
+from garmentgnn.losses.gartrans_loss import NonFiniteLossError
+from garmentgnn.training import (
+    PHASE_TERMS,
+    REST_BRANCH,
+    GarmentDataModule,
+    GarTransModule,
+    ProgressiveSchedule,
+    SequenceChunks,
+)
+
+NY = 8
+
+
+def lbs_simulate(garment, body, motion, material, settings=None, progress=None):
+    """Test double of the simulator: LBS-skinned garment + a deterministic smooth wobble."""
+    W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
+    A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
+                              body.skeleton.parents, motion.translation.to(body.vertices.dtype))
+    P = linear_blend_skinning(garment.vertices.to(A.dtype), W.to(A.dtype), A)
+    T = motion.num_frames
+    t = torch.arange(T, dtype=P.dtype).view(T, 1, 1)
+    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * garment.vertices[None, :, :1].to(P.dtype))
+    return SimpleNamespace(positions=P.float(), converged=torch.ones(T, dtype=torch.bool),
+                           newton_iterations=torch.full((T,), 1), residual=torch.zeros(T),
+                           ok=True, message="", seconds=0.0)
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    out = tmp_path_factory.mktemp("chunks")
+    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
+    b = [{"model": "capsule", "shape": "regular"}]
+    m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
+    spec = Spec("t", g, b, m, ["silk"], held_out={"val": {"motions": [motion_key(m[1])]}})
+    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    assert s.done == 2 and s.failed == 0
+    return out
+
+
+def make(root, **kw):
+    dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16, seed=0)
+    L.seed_everything(0, workers=True)
+    module = GarTransModule(**dm.dims, **kw)
+    return dm, module
+
+
+def trainer(max_epochs, callbacks=(), **kw):
+    return L.Trainer(max_epochs=max_epochs, accelerator="cpu", devices=1, logger=False,
+                     enable_checkpointing=False, enable_progress_bar=False,
+                     enable_model_summary=False, callbacks=list(callbacks),
+                     deterministic=True, **kw)
+
+
+def test_chunks_shapes_and_static_cache(root):
+    ds = SequenceChunks(root, "train", chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
+    assert len(ds) == 2  # 8 frames / 4
+    a, b = ds[0], ds[1]
+    B, V, S = 4, a["rest_pos"].shape[0], a["rest_joints"].shape[0]
+    assert a["rotations"].shape == (B, 3, S, 3) and a["translation"].shape == (B, 3, 3)
+    assert a["gt"].shape == (B, V, 3) and a["body_pos"].shape[0] == B
+    assert a["nystrom"].shape == (V, NY) and a["mass"].shape == (V,) and a["mass"].min() > 0
+    assert a["body_joint_dists"].shape == (a["body_pos"].shape[1], S)
+    # frame 0's history repeats frame 0; frame 5's is frames 3, 4, 5
+    torch.testing.assert_close(a["rotations"][0, 0], a["rotations"][0, 2])
+    torch.testing.assert_close(b["rotations"][1, :2], torch.stack([a["rotations"][3, 2],
+                                                                   b["rotations"][0, 2]]))
+    assert ds.num_static_builds == 1 and ds.num_file_loads == 1  # cached per sequence
+    assert b["nystrom"] is a["nystrom"]
+    assert len(SequenceChunks(root, "val", chunk=4, history=2, nystrom_dim=NY)) == 2
+
+
+def test_training_reduces_loss(root):
+    dm, module = make(root)
+    batch = dm.train_set[0]
+    module.eval()
+    with torch.no_grad():
+        before = float(module.compute_loss(batch, module(batch))[0])
+    module.train()
+    tr = trainer(2, limit_val_batches=1)
+    tr.fit(module, dm)
+    module.eval()
+    with torch.no_grad():
+        after = float(module.compute_loss(batch, module(batch))[0])
+    assert math.isfinite(after) and after < before
+    m = tr.callback_metrics
+    for k in ("train/vert", "train/edge", "train/norm", "val/E_dist", "val/collision"):
+        assert k in m and math.isfinite(float(m[k])), k
+    assert isinstance(tr.optimizers[0], torch.optim.Adamax)
+    assert tr.optimizers[0].defaults["lr"] == pytest.approx(3e-3)
+    assert isinstance(tr.lr_scheduler_configs[0].scheduler,
+                      torch.optim.lr_scheduler.CosineAnnealingLR)
+
+
+def test_schedule_passes_all_three_phases(root):
+    dm, module = make(root)
+    seen = {}
+
+    class Record(L.Callback):
+        def on_train_epoch_end(self, trainer, pl_module):  # runs before the schedule's
+            seen[trainer.current_epoch] = (sched.phase, set(pl_module.loss_fn.enabled),
+                                           pl_module.loss_fn.supervised_scale,
+                                           set(trainer.callback_metrics))
+
+    sched = ProgressiveSchedule(window=1, threshold=10.0)
+    tr = trainer(5, callbacks=[Record(), sched], limit_train_batches=1, limit_val_batches=0)
+    tr.fit(module, dm)
+    phases = [seen[e][0] for e in range(5)]
+    assert phases == [1, 1, 2, 2, 3]
+    assert sched.transitions == {2: 1, 3: 3}
+    assert seen[0][1] == {"vert", "edge", "norm"} and seen[0][2] == 1.0
+    assert seen[2][1] == {"vert", "edge", "norm", "collision", "gravity"}
+    assert seen[2][2] == pytest.approx(0.05)
+    assert seen[4][1] == set(PHASE_TERMS[3]) and "train/stretch" in seen[4][3]
+    assert "train/shear" in seen[4][3] and "train/collision" in seen[2][3]
+    for name in REST_BRANCH:
+        assert all(not p.requires_grad for p in getattr(module.model, name).parameters())
+    assert all(p.requires_grad for p in module.model.dynamic.parameters())
+    assert sched.state_dict()["phase"] == 3
+
+
+def test_frozen_rest_branch_does_not_change(root):
+    dm, module = make(root)
+    sched = ProgressiveSchedule(start_phase=3)
+    before = [p.detach().clone() for p in module.rest_branch_parameters()]
+    dyn = [p.detach().clone() for p in module.model.dynamic.parameters()]
+    trainer(1, callbacks=[sched], limit_train_batches=1, limit_val_batches=0).fit(module, dm)
+    assert all(torch.equal(a, p) for a, p in zip(before, module.rest_branch_parameters()))
+    assert any(not torch.equal(a, p) for a, p in zip(dyn, module.model.dynamic.parameters()))
+
+
+@pytest.mark.slow
+def test_checkpoint_resume_is_exact(root, tmp_path):
+    kw = {"limit_val_batches": 0}
+    # uninterrupted: 4 epochs x 2 chunks, phase changes at the end of epochs 1 and 3
+    dm, full = make(root, t_max=4)
+    s_full = ProgressiveSchedule(window=1, threshold=10.0)
+    trainer(4, callbacks=[s_full], **kw).fit(full, dm)
+    # interrupted after 2 epochs (in phase 2), resumed to 4
+    dm, part = make(root, t_max=4)
+    s1 = ProgressiveSchedule(window=1, threshold=10.0)
+    t1 = trainer(2, callbacks=[s1], **kw)
+    t1.fit(part, dm)
+    assert s1.phase == 2
+    ckpt = tmp_path / "mid.ckpt"
+    t1.save_checkpoint(ckpt)
+    dm, resumed = make(root, t_max=4)  # fresh weights, overwritten by the checkpoint
+    s2 = ProgressiveSchedule(window=1, threshold=10.0)
+    trainer(4, callbacks=[s2], **kw).fit(resumed, dm, ckpt_path=str(ckpt))
+    assert s2.phase == s_full.phase == 3 and s2.transitions == s_full.transitions
+    for (n, a), b in zip(full.named_parameters(), resumed.parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, msg=n)
+        assert a.requires_grad == b.requires_grad, n
+
+
+def test_nan_prediction_stops_training_naming_the_term(root):
+    dm, module = make(root)
+    inner = module.model.forward
+
+    def poisoned(*a, **k):
+        out = dict(inner(*a, **k))
+        out["final"] = out["final"].clone()
+        out["final"][0, 0, 0] = float("nan")
+        return out
+
+    module.model.forward = poisoned
+    with pytest.raises(NonFiniteLossError, match="'vert'"):
+        trainer(1, limit_val_batches=0).fit(module, dm)
