@@ -3,11 +3,27 @@ the on-disk store (sequence files, manifest, PC2/OBJ export) and a lazy PyG data
 
 The PyG dataset classes are imported on first use so that the CLI and the generator
 do not pay for importing torch_geometric."""
-from garmentgnn.data.generate import (PRESETS, Spec, SpecMismatch, Summary, body_key,
-                                      garment_key, generate, motion_key, preset, run_item)
-from garmentgnn.data.store import (export_sequence, load_sequence, read_manifest,
-                                   rebuild_manifest, validate_sequence, write_obj_sequence,
-                                   write_pc2)
+from garmentgnn.data.generate import (
+    PRESETS,
+    Spec,
+    SpecMismatch,
+    Summary,
+    body_key,
+    garment_key,
+    generate,
+    motion_key,
+    preset,
+    run_item,
+)
+from garmentgnn.data.store import (
+    export_sequence,
+    load_sequence,
+    read_manifest,
+    rebuild_manifest,
+    validate_sequence,
+    write_obj_sequence,
+    write_pc2,
+)
 
 __all__ = ["GarmentFrame", "GarmentSequenceDataset", "PRESETS", "Spec", "SpecMismatch",
            "Summary", "body_key", "export_sequence", "garment_key", "generate",

@@ -9,7 +9,6 @@ used evicted), so positions occupy about
 from __future__ import annotations
 
 import bisect
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -18,7 +17,7 @@ import torch
 from torch_geometric.data import Data, Dataset
 
 from garmentgnn.data import store
-from garmentgnn.data.generate import build_body, body_key, body_model
+from garmentgnn.data.generate import body_key, body_model, build_body
 from garmentgnn.geometry.mesh import edge_features, faces_to_edge_index
 
 
@@ -83,7 +82,7 @@ class GarmentSequenceDataset(Dataset):
         # frames t = 0..T-2 of each sequence (t+1 must exist)
         counts = [max(0, int(r["num_frames"]) - 1) for r in self.records]
         self._offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._cache: "OrderedDict[str, Dict[str, Any]]" = OrderedDict()
+        self._cache = store.LRUCache(self.cache_size)
         self._bodies: Dict[str, Any] = {}
         self.num_file_loads = 0
 
@@ -108,21 +107,16 @@ class GarmentSequenceDataset(Dataset):
 
     def _sequence(self, s: int) -> Dict[str, Any]:
         rec = self.records[s]
-        sid = rec["id"]
-        if sid in self._cache:
-            self._cache.move_to_end(sid)
-            return self._cache[sid]
-        seq = store.load_sequence(self._root / (rec.get("file") or
-                                                f"{store.SEQUENCES}/{sid}.npz"))
-        self.num_file_loads += 1
-        V = seq["garment_vertices"].shape[0]
-        faces = torch.from_numpy(seq["garment_faces"]).long()
-        seq["edge_index"] = faces_to_edge_index(faces, V)
-        seq["faces_t"] = faces
-        self._cache[sid] = seq
-        while len(self._cache) > self.cache_size:
-            self._cache.popitem(last=False)
-        return seq
+
+        def load() -> Dict[str, Any]:
+            seq = store.load_sequence(store.sequence_path(self._root, rec))
+            self.num_file_loads += 1
+            faces = torch.from_numpy(seq["garment_faces"]).long()
+            seq["edge_index"] = faces_to_edge_index(faces, seq["garment_vertices"].shape[0])
+            seq["faces_t"] = faces
+            return seq
+
+        return self._cache.get_or_build(rec["id"], load)
 
     def _body(self, spec: Dict[str, Any]):
         key = body_key(spec)

@@ -221,6 +221,7 @@ def build_body(spec: Dict[str, Any]):
 def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
     """``(garment, body, motion, material, settings_dict)`` of an item."""
     import torch
+
     from garmentgnn.garments import make_garment
     from garmentgnn.motion import make_motion
     from garmentgnn.physics.materials import MATERIALS
@@ -342,6 +343,7 @@ def estimate_seconds(items: Sequence[Dict[str, Any]], workers: int,
     seconds_per_frame)``.  Ignores per-item setup and worker start-up; over-estimates for
     garments smaller than the calibration one."""
     import torch
+
     from garmentgnn.garments import RESOLUTIONS
     if not items:
         return 0.0, 0.0

@@ -19,8 +19,9 @@ import os
 import struct
 import subprocess
 import zipfile
+from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Dict, Iterable, List, Optional, Union
+from typing import Any, Callable, Dict, Iterable, List, Optional, Union
 
 import numpy as np
 
@@ -38,6 +39,28 @@ _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
 # --------------------------------------------------------------------------- atomic writes
+def sequence_path(root: PathLike, record: Dict[str, Any]) -> Path:
+    """Where a manifest record's sequence file lives under ``root``."""
+    return Path(root) / (record.get("file") or f"{SEQUENCES}/{record['id']}.npz")
+
+
+class LRUCache(OrderedDict):
+    """At most ``capacity`` entries; :meth:`get_or_build` evicts the least recently used."""
+
+    def __init__(self, capacity: int) -> None:
+        super().__init__()
+        self.capacity = max(1, capacity)
+
+    def get_or_build(self, key, build: Callable[[], Any]) -> Any:
+        if key in self:
+            self.move_to_end(key)
+            return self[key]
+        value = self[key] = build()
+        while len(self) > self.capacity:
+            self.popitem(last=False)
+        return value
+
+
 def _tmp_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 

@@ -27,7 +27,6 @@ motion are cached per sequence file (``cache_size`` files, LRU).
 """
 from __future__ import annotations
 
-from collections import OrderedDict
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -80,8 +79,8 @@ class SequenceChunks(Dataset):
                 n = min(chunk, T - t0)
                 if n == chunk or not drop_last:
                     self.index.append((i, t0, n))
-        self._seqs: OrderedDict[str, dict[str, Any]] = OrderedDict()
-        self._static: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self._seqs = store.LRUCache(self.cache_size)
+        self._static = store.LRUCache(self.static_cache)
         self.num_file_loads = 0
         self.num_static_builds = 0
 
@@ -89,28 +88,20 @@ class SequenceChunks(Dataset):
         return len(self.index)
 
     # -- caches -----------------------------------------------------------------
-    def _path(self, rec: dict[str, Any]) -> Path:
-        return self.root / (rec.get("file") or f"{store.SEQUENCES}/{rec['id']}.npz")
-
     def sequence(self, i: int) -> dict[str, Any]:
         rec = self.records[i]
-        sid = rec["id"]
-        if sid in self._seqs:
-            self._seqs.move_to_end(sid)
-            return self._seqs[sid]
-        seq = store.load_sequence(self._path(rec))
-        self.num_file_loads += 1
-        self._seqs[sid] = seq
-        while len(self._seqs) > self.cache_size:
-            self._seqs.popitem(last=False)
-        return seq
+
+        def load() -> dict[str, Any]:
+            self.num_file_loads += 1
+            return store.load_sequence(store.sequence_path(self.root, rec))
+
+        return self._seqs.get_or_build(rec["id"], load)
 
     def static(self, i: int) -> dict[str, Any]:
         """The per-sequence static inputs (cached)."""
-        sid = self.records[i]["id"]
-        if sid in self._static:
-            self._static.move_to_end(sid)
-            return self._static[sid]
+        return self._static.get_or_build(self.records[i]["id"], lambda: self._build_static(i))
+
+    def _build_static(self, i: int) -> dict[str, Any]:
         seq = self.sequence(i)
         meta = seq["meta"]
         rest_pos = torch.from_numpy(np.asarray(seq["garment_vertices"], np.float32))
@@ -135,9 +126,6 @@ class SequenceChunks(Dataset):
             "_body": body, "_body_key": body_key(meta["body"]),
         }
         self.num_static_builds += 1
-        self._static[sid] = st
-        while len(self._static) > self.static_cache:
-            self._static.popitem(last=False)
         return st
 
     # -- items --------------------------------------------------------------------
