@@ -127,3 +127,14 @@ def test_uv_bad_input():
         G.uv_deformation_gradient(pos, faces, uv, uv_faces=faces + 100)
     with pytest.raises(ValueError, match="`inverse`"):
         G.deformation_gradient(pos, faces, torch.zeros(3, 2, 2, dtype=D))
+
+
+def test_flat_triangles_are_isometric_and_counter_clockwise():
+    from garmentgnn.geometry import flat_triangles
+    tri = torch.randn(50, 3, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    flat = flat_triangles(tri)
+    for a, b in [(0, 1), (1, 2), (2, 0)]:
+        torch.testing.assert_close((flat[:, a] - flat[:, b]).norm(dim=-1),
+                                   (tri[:, a] - tri[:, b]).norm(dim=-1))
+    e1, e2 = flat[:, 1] - flat[:, 0], flat[:, 2] - flat[:, 0]
+    assert (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] > 0).all()

@@ -28,21 +28,12 @@ import torch
 from scipy.sparse.linalg import splu
 
 from garmentgnn.geometry import face_cotangents
+from garmentgnn.geometry import flat_triangles as _geometry_flat_triangles
 
 
 def flat_triangles(tri: np.ndarray) -> np.ndarray:
-    """Isometric 2D copies ``[F, 3, 2]`` of 3D triangles ``[F, 3, 3]`` (corner 0 at the
-    origin, corner 1 on +x, corner 2 above: counter-clockwise for the face normal)."""
-    e1 = tri[:, 1] - tri[:, 0]
-    e2 = tri[:, 2] - tri[:, 0]
-    l1 = np.linalg.norm(e1, axis=1)
-    x2 = np.einsum("ij,ij->i", e1, e2) / np.maximum(l1, 1e-300)
-    y2 = np.linalg.norm(np.cross(e1, e2), axis=1) / np.maximum(l1, 1e-300)
-    out = np.zeros((len(tri), 3, 2))
-    out[:, 1, 0] = l1
-    out[:, 2, 0] = x2
-    out[:, 2, 1] = y2
-    return out
+    """:func:`garmentgnn.geometry.flat_triangles` on numpy float64 ``[F, 3, 3]``."""
+    return _geometry_flat_triangles(torch.as_tensor(np.asarray(tri, np.float64))).numpy()
 
 
 def rigid_align(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ from garmentgnn.geometry.normals import (face_angles, face_areas, face_normals,
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, euler_to_matrix,
                                            matrix_to_axis_angle, matrix_to_euler)
 from garmentgnn.geometry.uv import (DeformationGradient, UVFrame, deformation_gradient,
-                                    uv_deformation_gradient, uv_rest_frame)
+                                    flat_triangles, uv_deformation_gradient, uv_rest_frame)
 
 __all__ = [
     # mesh connectivity
@@ -34,7 +34,7 @@ __all__ = [
     "scatter_faces_to_vertices", "edge_lengths", "dihedral_angles", "face_cotangents",
     "mixed_voronoi_areas", "angle_defect", "gaussian_curvature",
     # UV deformation gradient (Eq. 14)
-    "uv_deformation_gradient", "uv_rest_frame", "deformation_gradient",
+    "uv_deformation_gradient", "uv_rest_frame", "deformation_gradient", "flat_triangles",
     "DeformationGradient", "UVFrame",
     # geodesics and Nystroem features (§3.1)
     "mesh_edge_graph", "graph_geodesic_distances", "cotan_laplacian",

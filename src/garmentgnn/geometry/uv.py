@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ._validate import check_faces, check_mesh, check_points
 
-__all__ = ["UVFrame", "DeformationGradient", "uv_rest_frame", "uv_deformation_gradient",
+__all__ = ["flat_triangles", "UVFrame", "DeformationGradient", "uv_rest_frame", "uv_deformation_gradient",
            "deformation_gradient"]
 
 
@@ -133,3 +133,18 @@ def uv_deformation_gradient(pos: Tensor, faces: Tensor, uv: Tensor,
     grad = deformation_gradient(pos, faces, frame.inverse)
     valid = frame.valid
     return DeformationGradient(grad, frame.area.to(grad.dtype), valid)
+
+
+def flat_triangles(tri: Tensor) -> Tensor:
+    """Isometric 2D copies ``[..., F, 3, 2]`` of 3D triangles ``[..., F, 3, 3]``: corner 0
+    at the origin, corner 1 on +u, corner 2 above (counter-clockwise w.r.t. the face
+    normal).  Used as stress-free material coordinates when a mesh has no pattern."""
+    e1 = tri[..., 1, :] - tri[..., 0, :]
+    e2 = tri[..., 2, :] - tri[..., 0, :]
+    l1 = (e1 * e1).sum(-1).sqrt().clamp_min(torch.finfo(tri.dtype).tiny)
+    x2 = (e1 * e2).sum(-1) / l1
+    cr = torch.linalg.cross(e1, e2, dim=-1)
+    y2 = (cr * cr).sum(-1).clamp_min(0.0).sqrt() / l1
+    zero = torch.zeros_like(l1)
+    return torch.stack([torch.stack([zero, zero], -1), torch.stack([l1, zero], -1),
+                        torch.stack([x2, y2], -1)], -2)

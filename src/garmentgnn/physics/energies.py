@@ -35,7 +35,8 @@ from torch import Tensor
 from torch_geometric.utils import scatter
 
 from garmentgnn.geometry import (FaceAdjacency, deformation_gradient, dihedral_angles,
-                                 face_adjacency, signed_distance, uv_rest_frame)
+                                 face_adjacency, flat_triangles, signed_distance,
+                                 uv_rest_frame)
 
 GRAVITY = (0.0, 0.0, -9.81)
 
@@ -89,7 +90,7 @@ class ClothRest:
         faces = faces.long()
         F = faces.size(0)
         if face_uv is None:
-            face_uv = _flat_face_uv(rest_pos, faces)
+            face_uv = flat_triangles(rest_pos[faces])
         if face_uv.shape != (F, 3, 2):
             raise ValueError(f"`face_uv`: expected [{F}, 3, 2] per-corner coordinates, got "
                              f"{tuple(face_uv.shape)}")
@@ -108,19 +109,6 @@ class ClothRest:
         third = (self.uv_area / 3.0).repeat_interleave(3)
         return density * scatter(third, self.faces.reshape(-1), dim=0, dim_size=num_vertices,
                                  reduce="sum")
-
-
-def _flat_face_uv(pos: Tensor, faces: Tensor) -> Tensor:
-    """Each triangle laid flat in its own plane: corner 0 at the origin, edge 0->1 on u."""
-    p0, p1, p2 = pos[faces[:, 0]], pos[faces[:, 1]], pos[faces[:, 2]]
-    e1, e2 = p1 - p0, p2 - p0
-    l1 = _safe_norm(e1)
-    u_axis = e1 / l1.unsqueeze(-1)
-    x2 = (e2 * u_axis).sum(-1)
-    y2 = _safe_norm(e2 - x2.unsqueeze(-1) * u_axis)
-    zero = torch.zeros_like(l1)
-    return torch.stack([torch.stack([zero, zero], -1), torch.stack([l1, zero], -1),
-                        torch.stack([x2, y2], -1)], 1)
 
 
 def _grad(pos: Tensor, rest: ClothRest) -> Tensor:
