@@ -120,7 +120,7 @@ class GarTransLoss(nn.Module):
         self.supervised_scale = supervised_scale
         self.collision_margin = collision_margin
         self.edge_reduction = edge_reduction
-        self._edges: Dict[int, Tensor] = {}
+        self._edges: Optional[tuple] = None  # (faces tensor, its unique edges)
 
     def set_enabled(self, terms: Iterable[str]) -> None:
         terms = set(terms)
@@ -131,10 +131,10 @@ class GarTransLoss(nn.Module):
         self.enabled = terms
 
     def _unique_edges(self, faces: Tensor, num_vertices: int) -> Tensor:
-        key = id(faces)
-        if key not in self._edges:
-            self._edges = {key: unique_edges(faces, num_vertices).edges}
-        return self._edges[key]
+        # keyed by the faces object itself (holding it, so its id cannot be reused)
+        if self._edges is None or self._edges[0] is not faces:
+            self._edges = (faces, unique_edges(faces, num_vertices).edges)
+        return self._edges[1]
 
     def forward(self, inp: LossInputs):
         w = self.weights
