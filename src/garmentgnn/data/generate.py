@@ -74,7 +74,7 @@ class Spec:
     bodies: List[Dict[str, Any]]
     motions: List[Dict[str, Any]]
     materials: List[str]
-    settings: Dict[str, Any] = field(default_factory=lambda: {"fps": 30.0, "substeps": 4})
+    settings: Dict[str, Any] = field(default_factory=lambda: {"fps": 30.0, "substeps": 4, "preroll_frames": 6})
     held_out: Dict[str, Dict[str, List[str]]] = field(default_factory=dict)
     seed: int = 0
     sample: Optional[int] = None
