@@ -374,3 +374,16 @@ def test_cli_generate_tiny_real_simulator(tmp_path):
     # rerun: nothing simulated again
     r2 = _real_tiny(tmp_path, "--limit", "0", "--no-estimate")
     assert "0 simulated, 2 skipped" in r2.stdout, r2.stdout + r2.stderr[-2000:]
+
+
+def test_lru_cache_bound_and_pickles_empty():
+    import pickle
+
+    from garmentgnn.data.store import LRUCache
+    c = LRUCache(2)
+    built = []
+    for k in (1, 2, 1, 3):  # 1 is used again, so 2 is the least recent when 3 arrives
+        c.get_or_build(k, lambda k=k: built.append(k) or k * 10)
+    assert list(c) == [1, 3] and built == [1, 2, 3]
+    c2 = pickle.loads(pickle.dumps(c))  # DataLoader/DDP workers get a fresh, empty cache
+    assert isinstance(c2, LRUCache) and c2.capacity == 2 and len(c2) == 0

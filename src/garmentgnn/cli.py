@@ -1,5 +1,6 @@
 """Command line: ``garmentgnn generate ...``, ``garmentgnn export ...``,
-``garmentgnn manifest ...`` (also ``python -m garmentgnn.cli``)."""
+``garmentgnn manifest ...``, ``garmentgnn train ...`` (Lightning's CLI, see
+:mod:`garmentgnn.training.lightning_cli`) (also ``python -m garmentgnn.cli``)."""
 from __future__ import annotations
 
 import argparse
@@ -42,10 +43,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files")
     m.add_argument("--out", required=True)
+    t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
+                       "configs/gartrans.yaml --data.root DIR (see `garmentgnn train --help`)",
+                       add_help=False)
+    t.add_argument("lightning_args", nargs=argparse.REMAINDER)
     return p
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["train"]:  # everything after `train` belongs to LightningCLI
+        from garmentgnn.training.lightning_cli import main as train_main
+        train_main(argv[1:])
+        return 0
     args = build_parser().parse_args(argv)
     if args.command == "generate":
         from garmentgnn.data.generate import SpecMismatch, generate, preset

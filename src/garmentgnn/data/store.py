@@ -60,6 +60,11 @@ class LRUCache(OrderedDict):
             self.popitem(last=False)
         return value
 
+    def __reduce__(self):
+        # pickled empty: a cache need not travel to DataLoader / DDP worker processes
+        # (and OrderedDict's own reduce would call __init__ without `capacity`)
+        return (type(self), (self.capacity,))
+
 
 def _tmp_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")

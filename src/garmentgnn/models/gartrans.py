@@ -84,6 +84,21 @@ class AttentionStack(nn.Module):
         self.out_channels = c
         self.act = {"elu": F.elu, "tanh": torch.tanh}[act]
         self.last_act = last_act
+        self._freeze_dead_edge_output(in_channels, edge_dim)
+
+    def _freeze_dead_edge_output(self, in_channels: int, edge_dim: int) -> None:
+        """The stack returns node features only, so the last layer's edge-output weights
+        (``lin_edge_out`` etc. of edge-updating layers) never get a gradient; mark them
+        ``requires_grad=False`` -- found by one backward pass on a 3-node graph, so it
+        holds for any registry layer -- so that DDP (which insists that every trainable
+        parameter receives a gradient) works without ``find_unused_parameters``."""
+        x = torch.randn(3, in_channels)
+        ei = torch.tensor([[0, 1, 2, 1], [1, 2, 0, 0]])
+        self.forward(x, ei, torch.randn(4, edge_dim)).sum().backward()
+        for p in self.layers[-1].parameters():
+            if p.grad is None:
+                p.requires_grad_(False)
+        self.zero_grad(set_to_none=True)
 
     def reset_parameters(self) -> None:
         for layer in self.layers:

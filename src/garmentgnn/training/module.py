@@ -54,6 +54,10 @@ class GarTransModule(L.LightningModule):
         self.model = GarTrans(num_joints, num_body_vertices, nystrom_dim=nystrom_dim,
                               rest_layer=rest_layer, blend_layer=blend_layer,
                               dynamic_layer=dynamic_layer, heads=heads, fps=fps)
+        # only one of the body code paths is ever used; freeze the other (DDP requires
+        # every trainable parameter to receive a gradient)
+        unused = self.model.body_default if use_body else self.model.body_fc
+        unused.requires_grad_(False)
         self.loss_fn = GarTransLoss(loss_weights, enabled=enabled,
                                     supervised_scale=supervised_scale,
                                     collision_margin=collision_margin,
@@ -61,9 +65,12 @@ class GarTransModule(L.LightningModule):
 
     # -- phase controls (used by ProgressiveSchedule) ---------------------------------
     def set_rest_branch_frozen(self, frozen: bool) -> None:
+        unused = self.model.body_default if self.hparams.use_body else self.model.body_fc
+        never = {id(p) for p in unused.parameters()} if isinstance(unused, torch.nn.Module) \
+            else {id(unused)}
         for name in REST_BRANCH:
             for p in getattr(self.model, name).parameters():
-                p.requires_grad_(not frozen)
+                p.requires_grad_(not frozen and id(p) not in never)
                 if frozen:
                     p.grad = None
 
