@@ -96,3 +96,27 @@ def test_bad_pose_history(scene):
     model = build(body, ny)
     with pytest.raises(ValueError, match="rotations"):
         run(model, scene, rots=rots[:, :1], tr=tr[:, :1])
+
+
+def test_autoregressive_rollout_feeds_back_its_own_prediction(scene):
+    body, g, ei, ny, bd, rots, tr = scene
+    model = build(body, ny).eval()
+    static = model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd)
+    args = (static, g.vertices, g.faces, ei, body.joints, body.skeleton.parents)
+    with torch.no_grad():
+        par = model(*args, rots, tr)
+        ar = model.rollout(*args, rots, tr)
+        # frame 0 has no prediction before it: the coarse previous frame, as in parallel mode
+        torch.testing.assert_close(ar["final"][0], par["final"][0], atol=1e-5, rtol=1e-5)
+        # prev_final = the coarse previous frame reproduces the default exactly
+        coarse_prev = model.coarse(static, g.vertices, ei, body.joints, body.skeleton.parents,
+                                   rots[2:3], tr[2:3])[0][:, 0]
+        torch.testing.assert_close(model(*args, rots[2:3], tr[2:3], prev_final=coarse_prev)
+                                   ["final"], par["final"][2:3])
+        # frame t of the rollout = one step from frame t-1's prediction
+        for t in (1, 3):
+            step = model(*args, rots[t:t + 1], tr[t:t + 1], prev_final=ar["final"][t - 1:t])
+            torch.testing.assert_close(step["final"][0], ar["final"][t], atol=1e-5, rtol=1e-5)
+        assert not torch.allclose(ar["final"][1:], par["final"][1:], atol=1e-6)
+        with pytest.raises(ValueError, match="prev_final"):
+            model(*args, rots[:2], tr[:2], prev_final=ar["final"][:1])

@@ -180,3 +180,24 @@ def test_nan_prediction_stops_training_naming_the_term(root):
     module.model.forward = poisoned
     with pytest.raises(NonFiniteLossError, match="'vert'"):
         trainer(1, limit_val_batches=0).fit(module, dm)
+
+
+def test_evaluate_split_lbs_matches_the_known_wobble_and_modes_are_finite(root):
+    """The toy "simulation" is LBS + 0.003 sin(0.7 t + 8 x), so the LBS mode's E_dist must
+    equal the mean wobble amplitude exactly (same skinning weights)."""
+    from garmentgnn.training.evaluate import evaluate_split
+    dm, module = make(root)
+    res = evaluate_split(module, root, "val", history=2, num_landmarks=16)
+    ds = SequenceChunks(root, "val", chunk=100, history=2, nystrom_dim=NY, num_landmarks=16)
+    x = ds[0]["rest_pos"][:, 0].double()
+    T = ds[0]["gt"].shape[0]
+    t = torch.arange(T, dtype=torch.float64).view(T, 1)
+    wobble = 0.003 * torch.sin(0.7 * t + 8.0 * x).abs() * 3 ** 0.5  # |(w, w, w)|
+    assert res["lbs"]["frames"] == T
+    assert res["lbs"]["E_dist"] == pytest.approx(100 * float(wobble.mean()), rel=1e-3)
+    for mode in ("gartrans", "gartrans_ar", "lbs"):
+        assert set(res[mode]) >= {"E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv",
+                                  "collision", "ms_per_frame"}
+        assert all(math.isfinite(v) for v in res[mode].values())
+    with pytest.raises(ValueError, match="mode"):
+        evaluate_split(module, root, "val", modes=["nope"])

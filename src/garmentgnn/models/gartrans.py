@@ -225,12 +225,15 @@ class GarTrans(nn.Module):
 
     def forward(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
                 edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
-                translation: Tensor):
+                translation: Tensor, prev_final: Optional[Tensor] = None):
         """Predict ``M^{t,d}`` for a batch of frames (frame-parallel).
 
         Args:
             rotations: ``[B, H, S, 3]`` pose histories (last = frame t, H >= 2).
             translation: ``[B, H, 3]`` root translations.
+            prev_final: ``[B, V, 3]`` the garment at frame ``t-1`` (autoregressive use,
+                see :meth:`rollout`); default: the coarse mesh ``M^{t-1,c}`` (§3.1, the
+                frame-parallel mode the paper trains and batches).
 
         Returns:
             dict with ``final [B, V, 3]``, ``coarse [B, V, 3]``, ``accel [B, V, 3]``,
@@ -243,6 +246,11 @@ class GarTrans(nn.Module):
         coarse2, W, joints = self.coarse(static, rest_pos, edge_index, rest_joints, parents,
                                          rotations, translation)
         prev, cur = coarse2[:, 0], coarse2[:, 1]
+        if prev_final is not None:
+            if prev_final.shape != cur.shape:
+                raise ValueError(f"`prev_final`: expected {tuple(cur.shape)}, got "
+                                 f"{tuple(prev_final.shape)}")
+            prev = prev_final
         vel = (cur - prev) * self.fps
         n = vertex_normals(cur, faces)
         dj = torch.cdist(cur, joints)
@@ -252,3 +260,20 @@ class GarTrans(nn.Module):
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         final = cur + accel / self.fps ** 2
         return {"final": final, "coarse": cur, "accel": accel, "weights": W}
+
+    def rollout(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
+                edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
+                translation: Tensor, first: Optional[Tensor] = None):
+        """Autoregressive inference: the ``T`` frames one after another, the dynamic
+        graph's velocity taken from the model's own previous prediction (``first``
+        ``[V, 3]``: the garment before frame 0; default: the coarse mesh).  Same inputs
+        and outputs as :meth:`forward` with ``B = T`` consecutive frames; ``T`` times
+        the calls of the frame-parallel mode, and errors can accumulate."""
+        outs = []
+        prev = None if first is None else first.unsqueeze(0)
+        for t in range(rotations.shape[0]):
+            o = self.forward(static, rest_pos, faces, edge_index, rest_joints, parents,
+                             rotations[t:t + 1], translation[t:t + 1], prev_final=prev)
+            prev = o["final"]
+            outs.append(o)
+        return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}

@@ -10,7 +10,8 @@ chunk per step) holds
 
 * ``rest_pos [V, 3]``, ``faces [F, 3]``, ``face_uv [F, 3, 2]``, ``edge_index [2, E]``
   (:func:`faces_to_edge_index`, target-sorted), ``nystrom [V, k]``
-  (:func:`geodesic_nystrom_features`), ``rest`` (:class:`ClothRest`), ``mass [V]``;
+  (:func:`geodesic_nystrom_features`), ``rest`` (:class:`ClothRest`), ``mass [V]``,
+  ``skin_weights [V, S]`` (the simulator's transferred LBS weights);
 * ``rest_joints [S, 3]``, ``parents [S]``, ``body_joint_dists [Vb, S]`` (rest body
   vertex-to-joint distances), ``body_faces [Fb, 3]``;
 * ``rotations [B, H, S, 3]`` and ``translation [B, H, 3]``: for each frame ``t`` of
@@ -37,6 +38,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from garmentgnn.data import store
 from garmentgnn.data.generate import body_key, build_body
+from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
 from garmentgnn.physics import ClothRest
 
@@ -123,6 +125,9 @@ class SequenceChunks(Dataset):
             "nystrom": ny, "rest": rest, "mass": rest.vertex_masses(density, V).float(),
             "rest_joints": joints, "parents": body.skeleton.parents.long(),
             "body_joint_dists": torch.cdist(bverts, joints), "body_faces": body.faces.long(),
+            # the simulator's skinning weights: the "LBS only" coarse garment (evaluation)
+            "skin_weights": transfer_skinning_weights(rest_pos, faces, bverts,
+                                                      body.weights.float()),
             "_body": body, "_body_key": body_key(meta["body"]),
         }
         self.num_static_builds += 1

@@ -1,0 +1,93 @@
+"""Held-out evaluation of a trained GarTrans against the simulated ground truth and the
+"LBS only" coarse garment (the paper's Tables 1 and 3 metrics, :func:`garmentgnn.metrics.evaluate`).
+
+Modes, each over whole sequences of a split:
+
+* ``"gartrans"``: frame-parallel inference (one ``encode_static`` per sequence, every
+  frame in one batch -- the mode the paper trains and batches);
+* ``"gartrans_ar"``: autoregressive rollout (:meth:`GarTrans.rollout`), the dynamic
+  graph's velocity from the model's previous prediction;
+* ``"lbs"``: the rest garment skinned with the simulator's transferred weights (Eq. 1),
+  no learning.
+
+Metrics are frame-weighted means over the split; ``ms_per_frame`` is wall time per
+frame of each mode (static branch included), measured in the same loop.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from garmentgnn.metrics import evaluate
+from garmentgnn.training.datamodule import SequenceChunks
+
+MODES = ("gartrans", "gartrans_ar", "lbs")
+
+
+def lbs_coarse(item: dict[str, Any]) -> torch.Tensor:
+    """``[B, V, 3]``: the rest garment skinned to each frame of a chunk (Eq. 1)."""
+    A, _ = forward_kinematics(item["rotations"][:, -1], item["rest_joints"], item["parents"],
+                              item["translation"][:, -1])
+    return linear_blend_skinning(item["rest_pos"], item["skin_weights"], A)
+
+
+def predict(module, item: dict[str, Any], mode: str) -> torch.Tensor:
+    """``[B, V, 3]`` garment of every frame of ``item`` (a :class:`SequenceChunks` item)."""
+    if mode == "lbs":
+        return lbs_coarse(item)
+    m = module.model
+    static = m.encode_static(item["rest_pos"], item["faces"], item["edge_index"],
+                             item["rest_joints"], item["nystrom"],
+                             item["body_joint_dists"] if module.hparams.use_body else None)
+    args = (static, item["rest_pos"], item["faces"], item["edge_index"], item["rest_joints"],
+            item["parents"], item["rotations"], item["translation"])
+    if mode == "gartrans":
+        return m(*args)["final"]
+    if mode == "gartrans_ar":
+        return m.rollout(*args)["final"]
+    raise ValueError(f"`mode`: expected one of {MODES}, got {mode!r}")
+
+
+@torch.no_grad()
+def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MODES,
+                   history: int | None = None, nystrom_dim: int | None = None,
+                   num_landmarks: int = 64) -> dict[str, dict[str, float]]:
+    """``{mode: {metric: frame-weighted mean, ..., "frames": n, "ms_per_frame": t}}``
+    over every sequence of ``split`` under ``root``."""
+    for mode in modes:
+        if mode not in MODES:
+            raise ValueError(f"`modes`: unknown {mode!r}; choose from {MODES}")
+    hp = module.hparams
+    ds = SequenceChunks(root, split, chunk=10 ** 9,
+                        history=history or 3, nystrom_dim=nystrom_dim or hp.nystrom_dim,
+                        num_landmarks=num_landmarks)
+    if not len(ds):
+        raise ValueError(f"`split`: no {split!r} sequences under {root}")
+    was_training = module.training
+    module.eval()
+    sums: dict[str, dict[str, float]] = {m: {} for m in modes}
+    frames, seconds = 0, {m: 0.0 for m in modes}
+    try:
+        for idx in range(len(ds)):
+            item = ds[idx]
+            B = item["gt"].shape[0]
+            frames += B
+            for mode in modes:
+                t0 = time.perf_counter()
+                pred = predict(module, item, mode)
+                seconds[mode] += time.perf_counter() - t0
+                res = evaluate(pred.float(), item["gt"], item["faces"], item["body_pos"],
+                               item["body_faces"])
+                for k, v in res.items():
+                    sums[mode][k] = sums[mode].get(k, 0.0) + v * B
+    finally:
+        module.train(was_training)
+    out = {}
+    for mode in modes:
+        out[mode] = {k: v / frames for k, v in sums[mode].items()}
+        out[mode].update(frames=frames, ms_per_frame=1e3 * seconds[mode] / frames)
+    return out
