@@ -67,6 +67,9 @@ class SimSettings:
         contact_radius: vertices farther than ``margin + contact_radius`` from the body at
             the start of a substep skip the (expensive) distance query during Newton;
             the result is checked against the whole garment afterwards.
+        max_penetration: a substep that ends with a vertex deeper than this inside the
+            body (after the contact planes were refreshed) fails, so the frame is retried
+            with twice the substeps (m).
         distance_candidates: ``candidates`` of :func:`garmentgnn.geometry.signed_distance`
             (``None`` = exact brute force).
         gravity: gravity vector (Z up).
@@ -87,6 +90,7 @@ class SimSettings:
     max_refinements: int = 3
     retry_unconverged: bool = False
     contact_radius: float = 0.02
+    max_penetration: float = 1e-2
     distance_candidates: Optional[int] = 8
     gravity: Tuple[float, float, float] = GRAVITY
     flat_rest: bool = False
@@ -311,18 +315,19 @@ class ClothSystem:
                                candidates=self.settings.distance_candidates,
                                body_edges=self.body_edges).distance
 
-    def contact_planes(self, x: Tensor, body_pos: Tensor
+    def contact_planes(self, x: Tensor, body_pos: Tensor, radius: Optional[float] = None
                        ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Linearised contacts for the vertices of ``x`` within ``margin + contact_radius``
-        of the body: ``(idx [C], q [C, 3] closest body points, n [C, 3] unit gradients of
-        the signed distance, s [V] the true signed distances of all vertices)``, so
-        ``s(p) ~ (p - q) . n`` near ``x``."""
+        """Linearised contacts for the vertices of ``x`` within ``margin + radius``
+        (default ``settings.contact_radius``) of the body: ``(idx [C], q [C, 3] closest
+        body points, n [C, 3] unit gradients of the signed distance, s [V] the true
+        signed distances of all vertices)``, so ``s(p) ~ (p - q) . n`` near ``x``."""
+        radius = self.settings.contact_radius if radius is None else radius
         with torch.no_grad():
             sd = signed_distance(x, body_pos, self.body_faces,
                                  candidates=self.settings.distance_candidates,
                                  body_edges=self.body_edges)
         idx = torch.nonzero(sd.distance < self.material.collision_margin
-                            + self.settings.contact_radius).squeeze(1)
+                            + radius).squeeze(1)
         diff = x[idx] - sd.closest[idx]
         dist = diff.norm(dim=-1, keepdim=True)
         pseudo = sd.normal[idx]
@@ -639,23 +644,33 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     def run_frame(x, v, b0, b1, p0, p1, substeps):
         h = frame_dt / substeps
         iters, res, conv = 0, 0.0, True
+        # the body moves |b1 - b0| / substeps per substep: vertices that close must be in
+        # the contact set from the start, or a fast limb passes through them
+        radius = st.contact_radius if b0 is None else max(
+            st.contact_radius, 2.0 * float((b1 - b0).norm(dim=-1).max()) / substeps)
         for s in range(1, substeps + 1):
             w = s / substeps
             bp = None if b0 is None else (1 - w) * b0 + w * b1
             pp = (1 - w) * p0 + w * p1
-            contact = None if bp is None else system.contact_planes(x, bp)
+            contact = None if bp is None else system.contact_planes(x, bp, radius)
             for _ in range(3):
                 r = step(system, x, v, h, bp, pp, contact)
                 if not r.ok or bp is None:
                     break
                 # the planes are a linearisation: check the true distance, refresh if needed
-                new = system.contact_planes(r.x, bp)
+                new = system.contact_planes(r.x, bp, radius)
                 d = new[3]
                 known = torch.zeros(system.V, dtype=torch.bool)
                 known[contact[0]] = True
                 if not ((d < 0).any() or ((d < margin) & ~known).any()):
                     break
                 contact = new
+            if r.ok and bp is not None and float(d.min()) < -st.max_penetration:
+                # tunnelled (deeper than the linearised planes can repair): retry the frame
+                # with smaller substeps rather than let the cloth slip through the body
+                r = StepResult(x, v, False, r.iterations, r.residual, False,
+                               f"penetration {-float(d.min()) * 1e3:.1f} mm "
+                               f"> max_penetration {st.max_penetration * 1e3:.1f} mm")
             iters += r.iterations
             res = max(res, r.residual)
             conv = conv and r.converged
