@@ -1,6 +1,7 @@
 """Command line: ``garmentgnn generate ...``, ``garmentgnn export ...``,
 ``garmentgnn manifest ...``, ``garmentgnn train ...`` (Lightning's CLI, see
-:mod:`garmentgnn.training.lightning_cli`) (also ``python -m garmentgnn.cli``)."""
+:mod:`garmentgnn.training.lightning_cli`), ``garmentgnn bench ...`` (see
+:mod:`garmentgnn.bench`) (also ``python -m garmentgnn.cli``)."""
 from __future__ import annotations
 
 import argparse
@@ -43,6 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files")
     m.add_argument("--out", required=True)
+    from garmentgnn.bench.cli import add_parser as add_bench_parser
+    add_bench_parser(sub)
     t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
                        "configs/gartrans.yaml --data.root DIR (see `garmentgnn train --help`)",
                        add_help=False)
@@ -70,6 +73,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             return 2
         print(summary)
         return 1 if summary.failed else 0
+    if args.command == "bench":
+        from garmentgnn.bench.cli import main as bench_main
+        return bench_main(args)
     if args.command == "export":
         from garmentgnn.data.store import export_sequence
         paths = export_sequence(args.seq, args.format, args.out, start_frame=args.start_frame)

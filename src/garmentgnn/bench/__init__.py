@@ -1,0 +1,8 @@
+"""Benchmark harness (issue 6): accuracy against a reference simulation, run time and
+memory, and a stability suite; ``garmentgnn bench`` (see :mod:`garmentgnn.bench.cli`)."""
+from garmentgnn.bench.harness import (METHODS, PLANNED, PRESET_NAMES, Prediction, Preset,
+                                      SimBudget, preset, register, run)
+from garmentgnn.bench.report import write_report
+
+__all__ = ["METHODS", "PLANNED", "PRESET_NAMES", "Prediction", "Preset", "SimBudget", "preset",
+           "register", "run", "write_report"]

@@ -1,0 +1,37 @@
+"""``garmentgnn bench --preset tiny|small --out DIR [--seeds N]``.
+
+:mod:`garmentgnn.cli` adds it with ``add_parser(subparsers)`` and calls ``main(args)``
+for ``args.command == "bench"``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``bench`` sub-command to an ``argparse`` sub-parsers object."""
+    from garmentgnn.bench.harness import PRESET_NAMES
+    b = subparsers.add_parser(
+        "bench", help="benchmark: accuracy vs a reference simulation, run time, memory, "
+                      "stability (resumable; writes OUT/report.md)")
+    b.add_argument("--preset", choices=PRESET_NAMES, default="tiny")
+    b.add_argument("--out", required=True, help="output folder (rerun to resume)")
+    b.add_argument("--seeds", type=int, default=None,
+                   help="number of seeds (default: the preset's)")
+    b.add_argument("--retry-failed", action="store_true", help="rerun records marked failed")
+    b.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return b
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the bench sub-command; returns the exit status (0 when the run completed --
+    failed records are results and are listed in the report; 2 for bad arguments)."""
+    from garmentgnn.bench.harness import preset, run
+    if args.seeds is not None and args.seeds < 1:
+        print(f"error: --seeds must be positive, got {args.seeds}", file=sys.stderr)
+        return 2
+    summary = run(preset(args.preset), args.out, seeds=args.seeds,
+                  progress=not args.no_progress, retry_failed=args.retry_failed)
+    print(summary)
+    return 0

@@ -1,0 +1,438 @@
+"""The benchmark runner behind ``garmentgnn bench``: presets, an open method registry,
+resumable per-record output, and the report at the end.
+
+Layout of ``OUT``::
+
+    OUT/records/<kind>--<case>--<method>--s<seed>.json   one result each (atomic write)
+    OUT/cache/gt--<case>--s<seed>.pt                      reference simulation (atomic)
+    OUT/results.json, OUT/report.md, OUT/pareto.png       written at the end
+
+A rerun skips every task whose record file exists and is valid (failed records
+included, unless ``retry_failed``); temporaries of a killed run are deleted first.
+
+**Accuracy tasks** (method x case x seed): the method predicts the case's sequence;
+errors (:func:`garmentgnn.metrics.evaluate`) are against the reference simulator at the
+preset's finest budget, over frames ``1..T-1`` (frame 0 is the skinned initial state
+shared by every method).  **Stability tasks** (case x seed) run the reference
+simulator on :mod:`garmentgnn.bench.stability`'s cases.
+
+Methods are looked up by name in :data:`METHODS`; :func:`register` adds one (e.g. a
+trained GarTrans variant or learned baseline).  Names in :data:`PLANNED` that produce
+no record are listed as "not run" in the report -- no number is ever made up for them.
+"""
+from __future__ import annotations
+
+import io
+import json
+import platform
+import re
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+from garmentgnn.bench import stability as stab
+from garmentgnn.bench.report import STATUSES, check_record, write_report
+from garmentgnn.bench.sequences import BenchSequence, case_item, make_sequence
+from garmentgnn.bench.timing import batch_sweep, num_threads, peak_memory
+from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, code_version,
+                                   remove_stale_temporaries)
+from garmentgnn.metrics import evaluate
+from garmentgnn.models.baselines import LBSBaseline
+
+
+# --------------------------------------------------------------------------- presets
+@dataclass(frozen=True)
+class SimBudget:
+    """A reference-simulator setting: ``substeps`` per frame, ``max_newton`` per substep."""
+
+    substeps: int
+    max_newton: int
+
+    @property
+    def name(self) -> str:
+        return f"sim[sub={self.substeps},newton<={self.max_newton}]"
+
+
+@dataclass(frozen=True)
+class Preset:
+    """What one ``garmentgnn bench`` run does.
+
+    Attributes:
+        name: preset name.
+        cases: accuracy cases (:func:`garmentgnn.bench.sequences.case_item`).
+        seeds: default number of seeds (motion jitter seeds ``0..seeds-1``).
+        reference: the finest simulator budget, used as ground truth.
+        budgets: cheaper simulator budgets compared against it.
+        methods: further registered methods run on every accuracy case (``"lbs"``, ...).
+        stability_item: the small case the stability suite perturbs.
+        stability_cases: names from :data:`garmentgnn.bench.stability.CASES`.
+        stability_settings: simulator settings of the stability runs.
+        batches: batch sizes of the throughput sweep (batchable methods).
+        warmup, repeats: timing warm-up calls and timed calls (median reported).
+        threads: ``torch.set_num_threads`` during the run.
+    """
+
+    name: str
+    cases: Tuple[Dict[str, Any], ...]
+    seeds: int
+    reference: SimBudget
+    budgets: Tuple[SimBudget, ...]
+    methods: Tuple[str, ...] = ("lbs",)
+    stability_item: Optional[Dict[str, Any]] = None
+    stability_cases: Tuple[str, ...] = ()
+    stability_settings: Dict[str, Any] = field(default_factory=dict)
+    batches: Tuple[int, ...] = (1, 8, 32)
+    warmup: int = 2
+    repeats: int = 5
+    threads: int = 1
+
+    def method_names(self) -> List[str]:
+        return [self.reference.name] + [b.name for b in self.budgets] + list(self.methods)
+
+
+def preset(name: str) -> Preset:
+    """``tiny`` (a smoke test: well under a minute on 2 cores) or ``small`` (minutes)."""
+    if name == "tiny":
+        return Preset(
+            name="tiny",
+            cases=(case_item("skirt-walk", "skirt", 200, "walk", 4, {"length": "mini"}),),
+            seeds=1,
+            reference=SimBudget(8, 30),
+            budgets=(SimBudget(1, 30), SimBudget(4, 5)),
+            stability_item=case_item("stability", "skirt", 200, "walk", 3, {"length": "mini"}),
+            stability_cases=("stiff_x1000", "fast_x5", "zero_area_face"),
+            batches=(1, 8), warmup=1, repeats=3)
+    if name == "small":
+        return Preset(
+            name="small",
+            cases=(case_item("skirt-walk", "skirt", 300, "walk", 10, {"length": "knee"}),
+                   case_item("tank-arm_swing", "tshirt", 300, "arm_swing", 10,
+                             {"sleeves": "none"})),
+            seeds=2,
+            reference=SimBudget(8, 50),
+            budgets=(SimBudget(1, 30), SimBudget(2, 30), SimBudget(4, 30), SimBudget(4, 5),
+                     SimBudget(4, 10)),
+            stability_item=case_item("stability", "skirt", 200, "walk", 6, {"length": "mini"}),
+            stability_cases=tuple(stab.CASES),
+            batches=(1, 4, 16, 64))
+    raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
+
+
+PRESET_NAMES = ("tiny", "small")
+
+
+# --------------------------------------------------------------------------- methods
+@dataclass
+class Prediction:
+    """A method's output for one sequence: ``positions [T, V, 3]`` (``None`` when it
+    failed), ``ok``/``message``, and ``timing`` (``latency_ms``, ``throughput_fps``,
+    ``best_batch``, ``peak_mem_mb``, ...) measured by the method itself."""
+
+    positions: Optional[Tensor]
+    ok: bool = True
+    message: str = "ok"
+    timing: Dict[str, Any] = field(default_factory=dict)
+
+
+Method = Callable[[BenchSequence, Preset], Prediction]
+#: name -> factory(preset) -> method
+METHODS: Dict[str, Callable[[Preset], Method]] = {}
+
+#: The comparison this harness is for (paper Tables 1 and 3).  Entries without a
+#: registered factory (or not in the preset) show up as "not run".
+PLANNED: Tuple[str, ...] = (
+    "GarTrans (SAT)", "GarTrans w/o edge processing", "GarTrans w/o edge gating",
+    "GarTrans structure-aware transformer", "GarTrans w/o unsupervised loss",
+    "NCS-style", "HOOD-style", "DA-style")
+
+
+def register(name: str, factory: Callable[[Preset], Method], overwrite: bool = False) -> None:
+    """Make ``name`` runnable: ``factory(preset)`` returns ``method(sequence, preset) ->
+    Prediction``.  Add the name to a preset's ``methods`` to run it."""
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"`name`: expected a non-empty string, got {name!r}")
+    if not callable(factory):
+        raise ValueError(f"`factory`: expected a callable, got {type(factory).__name__}")
+    if name in METHODS and not overwrite:
+        raise ValueError(f"`name`: {name!r} is already registered (pass overwrite=True)")
+    METHODS[name] = factory
+
+
+def _lbs_factory(p: Preset) -> Method:
+    model = LBSBaseline()
+
+    def run(seq: BenchSequence, preset_: Preset) -> Prediction:
+        rot, tr = seq.motion.rotations, seq.motion.translation
+        with torch.inference_mode():
+            mem = peak_memory(lambda: model(seq.scene, rot, tr))
+            T = rot.shape[0]
+
+            def make(b: int):
+                idx = torch.arange(b) % T
+                r, t = rot[idx], tr[idx]
+                return lambda: model(seq.scene, r, t)
+            timing = batch_sweep(make, preset_.batches, preset_.warmup, preset_.repeats)
+        timing.update(peak_mem_mb=mem["peak_mb"], memory_method=mem["method"],
+                      note="median wall time of one call predicting `batch` frames")
+        return Prediction(mem["result"], timing=timing)
+
+    return run
+
+
+def simulator_method(budget: SimBudget) -> Callable[[Preset], Method]:
+    """Factory of the reference simulator at ``budget`` (not batchable: throughput is
+    one frame at a time; timing and memory of the one run that produced the result)."""
+    predict = stab.simulator_predictor(substeps=budget.substeps, max_newton=budget.max_newton)
+
+    def factory(p: Preset) -> Method:
+        def run(seq: BenchSequence, preset_: Preset) -> Prediction:
+            t0 = time.perf_counter()
+            mem = peak_memory(lambda: predict(seq))
+            wall = time.perf_counter() - t0
+            res = mem["result"]
+            frames = max(1, seq.num_frames - 1)
+            ms = 1e3 * wall / frames
+            timing = {"latency_ms": ms, "throughput_fps": 1e3 / ms, "best_batch": 1,
+                      "threads": torch.get_num_threads(), "peak_mem_mb": mem["peak_mb"],
+                      "memory_method": mem["method"],
+                      "note": f"one run: wall time / {frames} simulated frames (incl. setup)",
+                      "newton_iterations": int(res.newton_iterations.sum()),
+                      "nonconverged_frames": int((~res.converged).sum())}
+            if not res.ok:
+                return Prediction(None, False, res.message, timing)
+            return Prediction(res.positions, True, "ok", timing)
+        return run
+
+    return factory
+
+
+register("lbs", _lbs_factory)
+
+
+def _method(name: str, p: Preset) -> Method:
+    for b in (p.reference,) + p.budgets:
+        if b.name == name:
+            return simulator_method(b)(p)
+    if name not in METHODS:
+        raise ValueError(f"`methods`: {name!r} is not registered; known: {sorted(METHODS)}")
+    return METHODS[name](p)
+
+
+# --------------------------------------------------------------------------- records
+def _slug(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.=-]+", "_", s).strip("_")
+
+
+def record_path(out: Path, kind: str, method: str, case: str, seed: int) -> Path:
+    return out / "records" / f"{kind}--{_slug(case)}--{_slug(method)}--s{seed}.json"
+
+
+def load_record(path: Path, kind: str, method: str, case: str, seed: int
+                ) -> Optional[Dict[str, Any]]:
+    """The record at ``path`` if it is complete and is the one asked for, else ``None``."""
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(rec, dict) or rec.get("status") not in STATUSES:
+        return None
+    if (rec.get("kind"), rec.get("method"), rec.get("case"), rec.get("seed")) != \
+            (kind, method, case, seed):
+        return None
+    return rec
+
+
+def _save_tensor_dict(path: Path, obj: Dict[str, Any]) -> None:
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+# --------------------------------------------------------------------------- runner
+@dataclass
+class RunSummary:
+    ran: int
+    skipped: int
+    failed: int
+    seconds: float
+    paths: Dict[str, Path]
+
+    def __str__(self) -> str:
+        return (f"bench: ran {self.ran}, skipped {self.skipped} (already done), "
+                f"failed {self.failed}, {self.seconds:.1f} s; report: {self.paths.get('report')}")
+
+
+class _Context:
+    """Per-run caches: sequences and ground truths by (case, seed)."""
+
+    def __init__(self, preset_: Preset, out: Path) -> None:
+        self.p, self.out = preset_, out
+        self.seqs: Dict[Tuple[str, int], BenchSequence] = {}
+        self.gts: Dict[Tuple[str, int], Dict[str, Any]] = {}
+
+    def sequence(self, item: Dict[str, Any], seed: int) -> BenchSequence:
+        key = (item["name"], seed)
+        if key not in self.seqs:
+            self.seqs[key] = make_sequence(item, seed)
+        return self.seqs[key]
+
+    def ground_truth(self, item: Dict[str, Any], seed: int) -> Dict[str, Any]:
+        """``{"ok", "message", "positions", "timing"}`` of the reference run (cached on disk)."""
+        key = (item["name"], seed)
+        if key in self.gts:
+            return self.gts[key]
+        path = self.out / "cache" / f"gt--{_slug(item['name'])}--s{seed}.pt"
+        gt = None
+        if path.exists():
+            try:
+                gt = torch.load(path, weights_only=True)
+            except Exception:  # a damaged cache file is recomputed
+                gt = None
+        if gt is None:
+            seq = self.sequence(item, seed)
+            try:
+                pred = _method(self.p.reference.name, self.p)(seq, self.p)
+                gt = {"ok": pred.ok, "message": pred.message, "timing": pred.timing,
+                      "positions": pred.positions}
+            except Exception as err:
+                gt = {"ok": False, "message": f"{type(err).__name__}: {err}", "timing": {},
+                      "positions": None}
+            _save_tensor_dict(path, gt)
+        self.gts[key] = gt
+        return gt
+
+
+def _accuracy_record(ctx: _Context, method: str, item: Dict[str, Any], seed: int
+                     ) -> Dict[str, Any]:
+    p = ctx.p
+    rec: Dict[str, Any] = {"kind": "accuracy", "method": method, "case": item["name"],
+                           "seed": seed, "reference": method == p.reference.name}
+    t0 = time.perf_counter()
+    try:
+        seq = ctx.sequence(item, seed)
+        rec["num_vertices"] = seq.garment.num_vertices
+        rec["num_frames"] = seq.num_frames
+        gt = ctx.ground_truth(item, seed)
+        if not gt["ok"]:
+            raise RuntimeError(f"ground truth ({p.reference.name}) failed: {gt['message']}")
+        if rec["reference"]:
+            pred = Prediction(gt["positions"], True, "ok", dict(gt["timing"]))
+        else:
+            pred = _method(method, p)(seq, p)
+        rec["timing"] = pred.timing
+        if not pred.ok:
+            raise RuntimeError(pred.message)
+        pos = pred.positions.detach()
+        T, V = seq.num_frames, seq.garment.num_vertices
+        if pos.shape != (T, V, 3):
+            raise RuntimeError(f"predicted positions of shape {tuple(pos.shape)}, expected "
+                               f"{(T, V, 3)}")
+        if not torch.isfinite(pos).all():
+            raise RuntimeError(f"{int((~torch.isfinite(pos)).sum())} non-finite coordinates")
+        g = gt["positions"]
+        m = evaluate(pos[1:].double(), g[1:].double(), seq.garment.faces,
+                     seq.body_frames[1:].double(), seq.body.faces)
+        m["collision_rate"] = m.pop("collision")
+        rec.update(status="ok", message="ok", metrics=m)
+    except Exception as err:
+        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
+                   traceback=traceback.format_exc(limit=4))
+    rec["seconds"] = time.perf_counter() - t0
+    return rec
+
+
+def tasks(p: Preset, seeds: Sequence[int]) -> List[Tuple[str, str, Dict[str, Any], int]]:
+    """Every ``(kind, method, case item, seed)`` of a preset, in run order."""
+    out: List[Tuple[str, str, Dict[str, Any], int]] = []
+    for seed in seeds:
+        for item in p.cases:
+            for m in p.method_names():
+                out.append(("accuracy", m, item, seed))
+        for case in p.stability_cases:
+            out.append(("stability", "sim", dict(p.stability_item, name=case), seed))
+    return out
+
+
+def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
+        retry_failed: bool = False) -> RunSummary:
+    """Run (or resume) preset ``p`` into ``out`` and write the report."""
+    from tqdm.auto import tqdm
+
+    if not isinstance(p, Preset):
+        raise ValueError(f"`p`: expected a Preset, got {type(p).__name__}")
+    n = p.seeds if seeds is None else seeds
+    if not isinstance(n, int) or n < 1:
+        raise ValueError(f"`seeds`: expected a positive int, got {seeds!r}")
+    for m in p.methods:
+        if m not in METHODS:
+            raise ValueError(f"`p.methods`: {m!r} is not registered; known: {sorted(METHODS)}")
+    out = Path(out)
+    for sub in ("records", "cache"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(out / sub)
+    remove_stale_temporaries(out)
+    t0 = time.perf_counter()
+    todo = tasks(p, list(range(n)))
+    ctx = _Context(p, out)
+    records: List[Dict[str, Any]] = []
+    ran = skipped = 0
+    with num_threads(p.threads), tqdm(total=len(todo), desc=f"bench {p.name}",
+                                      disable=not progress) as bar:
+        for kind, method, item, seed in todo:
+            case = item["name"]
+            path = record_path(out, kind, method, case, seed)
+            rec = load_record(path, kind, method, case, seed)
+            if rec is not None and (rec["status"] == "ok" or not retry_failed):
+                skipped += 1
+            else:
+                bar.set_postfix_str(f"{kind} {method} {case} s{seed}", refresh=False)
+                if kind == "accuracy":
+                    rec = _accuracy_record(ctx, method, item, seed)
+                else:
+                    settings = dict(p.stability_settings)
+                    rec = stab.run_case(case, p.stability_item, seed,
+                                        stab.simulator_predictor(**settings), method)
+                rec = _json_safe(_finalize(rec))
+                atomic_write_json(path, rec)
+                ran += 1
+            records.append(rec)
+            bar.update(1)
+    planned = list(PLANNED) + [m for m in METHODS if m not in p.method_names()]
+    not_run = [m for m in planned if not any(r["method"] == m for r in records)]
+    meta = {"preset": p.name, "seeds": n, "threads": p.threads,
+            "torch": torch.__version__, "python": platform.python_version(),
+            "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+            "code": code_version(),
+            "reference": p.reference.name + " (ground truth)",
+            "preset_config": _json_safe(asdict(p))}
+    paths = write_report(records, out, not_run, meta)
+    failed = sum(r["status"] == "failed" for r in records)
+    return RunSummary(ran, skipped, failed, time.perf_counter() - t0, paths)
+
+
+def _finalize(rec: Dict[str, Any]) -> Dict[str, Any]:
+    """A record the report accepts: one with non-finite numbers is marked failed."""
+    try:
+        check_record(rec)
+    except ValueError as err:
+        rec = dict(rec, status="failed", message=f"refused by the report: {err}")
+    return rec
+
+
+def _json_safe(obj: Any) -> Any:
+    """Tuples to lists, non-finite floats to ``None`` (applied after :func:`_finalize`,
+    so only failed records still hold any), anything else JSON cannot hold to ``str``."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, float):
+        return obj if obj == obj and obj not in (float("inf"), float("-inf")) else None
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    return str(obj)

@@ -1,0 +1,307 @@
+"""Benchmark report: ``results.json``, ``report.md`` (tables shaped like the paper's
+Tables 1 and 3, mean +- std over seeds; a stability table) and ``pareto.png``.
+
+A **record** is a JSON-able dict:
+
+* common: ``kind`` (``"accuracy"`` or ``"stability"``), ``method``, ``case``, ``seed``,
+  ``status`` (``"ok"`` or ``"failed"``), ``message``.
+* accuracy: ``metrics`` with ``E_dist`` (cm), ``E_vnorm``, ``E_fnorm`` (deg), ``E_len``
+  (%), ``E_curv`` (rad), ``collision_rate`` (%); ``timing`` with ``latency_ms`` (one
+  frame at batch 1), ``throughput_fps`` (at ``best_batch``), ``peak_mem_mb``,
+  ``threads``; optionally ``reference: true`` (the ground truth's own run).
+* stability: ``verdict`` (stable / degraded / failed), ``reason``, ``metrics`` from
+  :func:`garmentgnn.bench.stability.stability_metrics`.
+
+Every number of a record must be finite unless its ``status`` is ``"failed"``;
+non-finite numbers of failed records are written as ``null`` and shown as failed.
+"""
+from __future__ import annotations
+
+import json
+import math
+import statistics
+from pathlib import Path
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
+
+from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
+
+METRICS: Tuple[str, ...] = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
+UNITS = {"E_dist": "cm", "E_vnorm": "deg", "E_fnorm": "deg", "E_len": "%", "E_curv": "rad",
+         "collision_rate": "%"}
+KINDS = ("accuracy", "stability")
+STATUSES = ("ok", "failed")
+
+
+# --------------------------------------------------------------------------- validation
+def _walk(obj: Any, path: str) -> Iterable[Tuple[str, Any]]:
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _walk(v, f"{path}.{k}")
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            yield from _walk(v, f"{path}[{i}]")
+    else:
+        yield path, obj
+
+
+def _nonfinite(obj: Any) -> List[str]:
+    return [p for p, v in _walk(obj, "") if isinstance(v, float) and not math.isfinite(v)]
+
+
+def _sanitize(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _sanitize(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_sanitize(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def check_record(rec: Dict[str, Any]) -> Dict[str, Any]:
+    """Validate one record (``ValueError`` naming ``records`` and the field); returns a
+    JSON-safe copy (non-finite numbers of failed records become ``None``)."""
+    if not isinstance(rec, dict):
+        raise ValueError(f"`records`: expected dicts, got {type(rec).__name__}")
+    for key in ("kind", "method", "case", "seed", "status"):
+        if key not in rec:
+            raise ValueError(f"`records`: a record lacks {key!r}: {sorted(rec)}")
+    if rec["kind"] not in KINDS:
+        raise ValueError(f"`records`: kind must be one of {KINDS}, got {rec['kind']!r}")
+    if rec["status"] not in STATUSES:
+        raise ValueError(f"`records`: status must be one of {STATUSES}, got {rec['status']!r}")
+    where = f"{rec['kind']}/{rec['method']}/{rec['case']}/seed {rec['seed']}"
+    bad = _nonfinite(rec)
+    if bad and rec["status"] != "failed":
+        raise ValueError(f"`records`: non-finite number(s) at {bad} in {where}; mark the "
+                         "record failed (status='failed') if the method produced them")
+    if rec["status"] == "ok" and rec["kind"] == "accuracy":
+        missing = [m for m in METRICS if m not in rec.get("metrics", {})]
+        if missing:
+            raise ValueError(f"`records`: accuracy record {where} lacks metric(s) {missing}")
+    if rec["status"] == "ok" and rec["kind"] == "stability" and "verdict" not in rec:
+        raise ValueError(f"`records`: stability record {where} lacks a verdict")
+    return _sanitize(rec)
+
+
+# --------------------------------------------------------------------------- aggregation
+def _mean_std(values: Sequence[float]) -> Tuple[float, float]:
+    m = statistics.fmean(values)
+    return m, (statistics.stdev(values) if len(values) > 1 else 0.0)
+
+
+def _fmt(values: Sequence[float], digits: int = 3) -> str:
+    m, s = _mean_std(values)
+    return f"{m:.{digits}g} ± {s:.2g}" if len(values) > 1 else f"{m:.{digits}g}"
+
+
+def _order(names: Iterable[str]) -> List[str]:
+    seen: List[str] = []
+    for n in names:
+        if n not in seen:
+            seen.append(n)
+    return seen
+
+
+def summarize(records: Sequence[Dict[str, Any]]) -> Dict[str, Any]:
+    """Per-method aggregates of the accuracy records (mean / std over seeds)."""
+    acc = [r for r in records if r["kind"] == "accuracy"]
+    out: Dict[str, Any] = {}
+    for method in _order(r["method"] for r in acc):
+        rs = [r for r in acc if r["method"] == method]
+        ok = [r for r in rs if r["status"] == "ok"]
+        entry: Dict[str, Any] = {"records": len(rs), "failed": len(rs) - len(ok),
+                                 "reference": any(r.get("reference") for r in rs)}
+        for m in METRICS:
+            # per seed: mean over cases, then mean/std over seeds
+            by_seed: Dict[Any, List[float]] = {}
+            for r in ok:
+                by_seed.setdefault(r["seed"], []).append(r["metrics"][m])
+            vals = [statistics.fmean(v) for v in by_seed.values()]
+            if vals:
+                entry[m] = dict(zip(("mean", "std"), _mean_std(vals)), n=len(vals))
+        for t in ("latency_ms", "throughput_fps", "peak_mem_mb"):
+            vals = [r["timing"][t] for r in ok if r.get("timing", {}).get(t) is not None]
+            if vals:
+                entry[t] = dict(zip(("mean", "std"), _mean_std(vals)), n=len(vals))
+        out[method] = entry
+    return out
+
+
+def pareto_front(points: Sequence[Tuple[str, float, float]]) -> List[str]:
+    """Names of the points not dominated in (latency, error), both lower-is-better."""
+    front = []
+    for name, x, y in points:
+        if not any((x2 <= x and y2 <= y) and (x2 < x or y2 < y) for _, x2, y2 in points):
+            front.append(name)
+    return front
+
+
+# --------------------------------------------------------------------------- markdown
+def _table(header: List[str], rows: List[List[str]]) -> List[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return lines
+
+
+def _cell(rs: List[Dict[str, Any]], metric: str, section: str = "metrics") -> str:
+    ok = [r for r in rs if r["status"] == "ok" and r.get(section, {}).get(metric) is not None]
+    failed = sum(r["status"] == "failed" for r in rs)
+    if not rs:
+        return "not run"
+    if not ok:
+        return "failed"
+    s = _fmt([r[section][metric] for r in ok])
+    return s + (f" ({failed}/{len(rs)} failed)" if failed else "")
+
+
+def _label(method: str, rs: List[Dict[str, Any]]) -> str:
+    return method + (" (reference = ground truth)" if any(r.get("reference") for r in rs) else "")
+
+
+def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = (),
+                    meta: Optional[Dict[str, Any]] = None, pareto_png: Optional[str] = None
+                    ) -> str:
+    """The ``report.md`` text."""
+    meta = meta or {}
+    lines = ["# Benchmark report", ""]
+    if meta:
+        lines += [f"- {k}: {json.dumps(v) if not isinstance(v, str) else v}"
+                  for k, v in meta.items()] + [""]
+    acc = [r for r in records if r["kind"] == "accuracy"]
+    methods = _order(r["method"] for r in acc)
+    cases = _order(r["case"] for r in acc)
+    metric_hdr = [f"{m} ({UNITS[m]})" for m in METRICS]
+    lines += ["## Accuracy per case (shaped like Table 1)", "",
+              "Mean ± std over seeds (frames 1..T-1; frame 0 is the shared initial state). "
+              "Errors are against the reference row of the same case.", ""]
+    if acc:
+        for case in cases:
+            lines += [f"### {case}", ""]
+            rows = []
+            for method in methods:
+                rs = [r for r in acc if r["method"] == method and r["case"] == case]
+                if rs:
+                    rows.append([_label(method, rs)] + [_cell(rs, m) for m in METRICS])
+            lines += _table(["method"] + metric_hdr, rows) + [""]
+        lines += ["## Accuracy and cost over all cases (shaped like Table 3)", "",
+                  "Metrics: per seed the mean over cases, then mean ± std over seeds. "
+                  "latency: ms per frame at batch 1; throughput: frames/s at the best batch; "
+                  "peak memory: RSS increase during one prediction (see "
+                  "`garmentgnn.bench.timing`).", ""]
+        summ = summarize(records)
+        rows = []
+        for method in methods:
+            rs = [r for r in acc if r["method"] == method]
+            e = summ[method]
+            row = [_label(method, rs)]
+            for m in METRICS:
+                row.append(f"{e[m]['mean']:.3g} ± {e[m]['std']:.2g}" if m in e else "failed")
+            for t in ("latency_ms", "throughput_fps", "peak_mem_mb"):
+                row.append(_cell(rs, t, "timing"))
+            if e["failed"]:
+                row[0] += f" ({e['failed']}/{e['records']} failed)"
+            rows.append(row)
+        lines += _table(["method"] + metric_hdr + ["latency (ms)", "throughput (fps)",
+                                                   "peak mem (MB)"], rows) + [""]
+    else:
+        lines += ["No accuracy records.", ""]
+    stab = [r for r in records if r["kind"] == "stability"]
+    lines += ["## Stability", ""]
+    if stab:
+        th = next((r.get("thresholds") for r in stab if r.get("thresholds")), None)
+        if th:
+            lines += ["Thresholds: " + ", ".join(f"{k}={v}" for k, v in th.items()) +
+                      " (see `garmentgnn.bench.stability.Thresholds`).", ""]
+        rows = []
+        for r in stab:
+            m = r.get("metrics", {})
+
+            def g(k: str, scale: float = 1.0, digits: int = 3) -> str:
+                v = m.get(k)
+                return "—" if v is None else f"{scale * v:.{digits}g}"
+            rows.append([r["method"], r["case"], str(r["seed"]), f"**{r.get('verdict', 'failed')}**",
+                         g("nonfinite"), g("max_speed"), g("body_max_speed"),
+                         g("energy_growth"), g("max_penetration_m", 1e3),
+                         g("nonconverged_frames"),
+                         (r.get("reason") or r.get("message") or "").replace("|", "/")[:160]])
+        lines += _table(["method", "case", "seed", "verdict", "non-finite", "max speed (m/s)",
+                         "body max speed (m/s)", "energy growth", "penetration (mm)",
+                         "unconverged frames", "reason"], rows) + [""]
+    else:
+        lines += ["No stability records.", ""]
+    failed = [r for r in records if r["status"] == "failed"]
+    if failed:
+        lines += ["## Failures", ""]
+        lines += [f"- {r['kind']} / {r['method']} / {r['case']} / seed {r['seed']}: "
+                  f"{str(r.get('message', ''))[:300]}" for r in failed] + [""]
+    lines += ["## Not run", ""]
+    if not_run:
+        lines += ["These methods are registered for this benchmark but produced no records "
+                  "(no trained model or not part of this preset); no numbers are shown for "
+                  "them.", ""]
+        lines += [f"- {m}: not run" for m in not_run] + [""]
+    else:
+        lines += ["(none)", ""]
+    if pareto_png:
+        lines += ["## Error against run time", "", f"![Pareto]({pareto_png})", ""]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- plots
+def plot_pareto(records: Sequence[Dict[str, Any]], path: Path) -> Optional[Path]:
+    """``log latency`` vs ``E_dist`` per method (Pareto front joined); ``None`` if no
+    method has both numbers."""
+    summ = summarize(records)
+    pts = [(m, e["latency_ms"]["mean"], e["E_dist"]["mean"]) for m, e in summ.items()
+           if "latency_ms" in e and "E_dist" in e and e["latency_ms"]["mean"] > 0]
+    if not pts:
+        return None
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    front = set(pareto_front(pts))
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    for name, x, y in pts:
+        ax.scatter([x], [y], color="C3" if name in front else "C0", zorder=3)
+        ax.annotate(name, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    fp = sorted((x, y) for n, x, y in pts if n in front)
+    if len(fp) > 1:
+        ax.step([p[0] for p in fp], [p[1] for p in fp], where="post", color="C3", alpha=0.5,
+                label="Pareto front")
+        ax.legend(fontsize=7)
+    ax.set_xscale("log")
+    ax.set_xlabel("latency per frame at batch 1 (ms, log)")
+    ax.set_ylabel("E_dist (cm)")
+    ax.set_title("Error against run time")
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+# --------------------------------------------------------------------------- entry point
+def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] = (),
+                 meta: Optional[Dict[str, Any]] = None) -> Dict[str, Path]:
+    """Validate ``records`` and write ``results.json``, ``report.md`` and ``pareto.png``
+    (when there is something to plot) into ``out``; returns their paths."""
+    if isinstance(records, dict):
+        raise ValueError("`records`: expected a list of records, got a dict")
+    clean = [check_record(r) for r in records]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: Dict[str, Path] = {}
+    png = plot_pareto(clean, out / "pareto.png")
+    if png is not None:
+        paths["pareto"] = png
+    results = {"meta": meta or {}, "summary": summarize(clean), "not_run": list(not_run),
+               "records": clean}
+    paths["results"] = atomic_write_json(out / "results.json", results)
+    text = render_markdown(clean, not_run, meta, "pareto.png" if png is not None else None)
+    paths["report"] = atomic_write_bytes(out / "report.md", text.encode())
+    return paths

@@ -1,0 +1,307 @@
+"""Stability suite: hard inputs for a garment predictor, each scored stable / degraded /
+failed.
+
+A predictor is any callable ``predict(sequence: BenchSequence) -> positions``, where
+``positions`` is a ``[T, V, 3]`` tensor or an object with ``.positions`` (and
+optionally ``.ok``, ``.message``, ``.converged [T]``) such as a
+:class:`garmentgnn.sim.SimResult`.  The reference simulator is wrapped by
+:func:`simulator_predictor`; a learned model is plugged in by wrapping its rollout the
+same way.
+
+Cases (all on a small garment on the capsule body, few frames):
+
+=================  ==============================================================
+``baseline``       the unmodified case (reference point for the others)
+``stiff_x1000``    material stiffness x1000 (``Material.scaled(1000)``)
+``extreme_pose``   every limited joint driven over the sequence to (beyond, then
+                   clamped back to) its limits of :mod:`garmentgnn.motion.limits`
+``fast_x5``        the motion at 5x speed
+``sliver_face``    one interior triangle squashed to 1/1000 of its area (a vertex
+                   moved 99.9% of the way to its opposite edge, in 3D and UV alike)
+``zero_area_face`` the same vertex moved onto the edge (3D), the face's UV collapsed to
+                   exactly zero area (``ClothRest.valid`` False)
+=================  ==============================================================
+
+Measured per case: non-finite coordinates, the largest vertex speed (finite
+differences between frames), energy growth, the deepest body penetration (from
+:func:`garmentgnn.geometry.signed_distance`), frames whose solve did not converge.
+The verdict thresholds are in :class:`Thresholds`.
+"""
+from __future__ import annotations
+
+import time
+import traceback
+from dataclasses import asdict, dataclass, replace
+from typing import Any, Callable, Dict, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from garmentgnn.bench.sequences import BenchSequence, make_sequence
+from garmentgnn.garments import Garment
+from garmentgnn.geometry import boundary_vertex_mask, signed_distance
+from garmentgnn.metrics import physics_energy
+from garmentgnn.geometry.rotations import euler_to_matrix, matrix_to_axis_angle
+from garmentgnn.motion import (Motion, clamp_to_limits, joint_limits, limit_violation,
+                              slerp_rotations)
+
+Predictor = Callable[[BenchSequence], Any]
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Verdict rules (``failed`` is checked first, then ``degraded``; else ``stable``).
+
+    failed when any of: the predictor raised or reported ``ok=False``; any non-finite
+    coordinate; max vertex speed > ``fail_speed`` (m/s); energy growth >
+    ``fail_growth``; penetration deeper than ``fail_penetration`` (m).
+
+    degraded when any of: max vertex speed > ``speed_factor`` x the body's max vertex
+    speed + ``speed_slack`` (m/s); energy growth > ``degrade_growth``; penetration
+    deeper than ``degrade_penetration`` (m); a frame's solve did not converge.
+
+    Energy growth is ``max_t E(t) / max(E(0), E(1), energy_floor)`` with ``E`` the
+    elastic (stretch + shear + bending) plus kinetic energy (gravity, whose zero is
+    arbitrary, is left out); the body does work on the garment, so moderate growth is
+    physical and only large factors count.
+    """
+
+    fail_speed: float = 50.0
+    fail_growth: float = 1e3
+    fail_penetration: float = 0.03
+    speed_factor: float = 2.0
+    speed_slack: float = 2.0
+    degrade_growth: float = 10.0
+    degrade_penetration: float = 0.005
+    energy_floor: float = 1e-6
+
+
+THRESHOLDS = Thresholds()
+
+
+# --------------------------------------------------------------------------- cases
+def _extreme_pose(seq: BenchSequence) -> Tuple[Motion, Dict[str, Any]]:
+    """Every limited joint driven from the motion's pose towards a target 10 deg beyond
+    its larger-magnitude bound on each Euler axis (slerp, smoothstep from 0 at frame 0
+    to 1 at the last frame), then clamped to the limits: the last frames hold every
+    joint at its limits."""
+    m = seq.motion
+    skel = seq.body.skeleton
+    lims = joint_limits(skel)
+    rot = m.rotations.double()
+    T = rot.shape[0]
+    target = rot[-1].clone()
+    for k, lim in enumerate(lims):
+        if lim is None:
+            continue
+        lo, hi = lim.in_order()
+        ang = [(h if abs(h) >= abs(lo_) else lo_) for lo_, h in zip(lo, hi)]
+        ang = [a + (10.0 if a > 0 else -10.0 if a < 0 else 0.0) for a in ang]
+        R = euler_to_matrix(torch.deg2rad(torch.tensor(ang, dtype=torch.float64)), lim.order)
+        target[k] = matrix_to_axis_angle(R)
+    u = torch.linspace(0.0, 1.0, T, dtype=torch.float64) if T > 1 else torch.ones(1).double()
+    w = (u * u * (3 - 2 * u)).view(T, 1, 1)
+    wild = slerp_rotations(rot, target.expand_as(rot), w)
+    clamped = int((limit_violation(wild, skel) > 1e-3).sum())
+    out = clamp_to_limits(wild, skel).to(m.rotations.dtype)
+    return Motion(out, m.translation, m.joint_names, m.fps), {"joint_frames_clamped": clamped}
+
+
+def _degenerate(seq: BenchSequence, fraction: float) -> Tuple[Garment, Dict[str, Any]]:
+    """Move an interior, unpinned vertex ``fraction`` of the way to the midpoint of the
+    opposite edge of one of its faces, in 3D and in every UV corner referencing it."""
+    g = seq.garment
+    V = g.num_vertices
+    free = ~boundary_vertex_mask(g.faces, V)
+    if g.pinned is not None:
+        free &= ~g.pinned
+    # vertices whose UV corners all agree (not on a UV seam), so one UV move fits all
+    dev = (g.face_uv.reshape(-1, 2) - g.uv[g.faces.flatten()]).abs().amax(-1)
+    seam = torch.zeros(V, dtype=torch.bool)
+    seam[g.faces.flatten()[dev > 1e-7]] = True
+    free &= ~seam
+    ok = free[g.faces]  # [F, 3]
+    cand = torch.nonzero(ok[:, 0], as_tuple=False).flatten()
+    if cand.numel() == 0:
+        raise ValueError("`garment`: no interior unpinned vertex to degrade")
+    f = int(cand[cand.numel() // 2])
+    v, a, b = (int(i) for i in g.faces[f])
+    verts = g.vertices.clone()
+    def move(p, q):  # exactly q at fraction 1 (no float round-off: a true zero area)
+        return q.clone() if fraction >= 1.0 else p + fraction * (q - p)
+
+    verts[v] = move(verts[v], 0.5 * (verts[a] + verts[b]))
+    uv = g.uv.clone()
+    uv[v] = move(uv[v], 0.5 * (uv[a] + uv[b]))
+    face_uv = g.face_uv.clone()
+    fu = face_uv.view(-1, 2)
+    corners = torch.nonzero(g.faces.flatten() == v, as_tuple=False).flatten()
+    tri = face_uv[f]
+    target = 0.5 * (tri[1] + tri[2])
+    fu[corners] = move(tri[0], target).expand(corners.numel(), 2)  # all equal tri[0]
+    if fraction >= 1.0:
+        # the float32 midpoint is collinear only up to round-off (ClothRest would still
+        # call the face valid): collapse this face's UV corner onto a neighbour instead,
+        # an exactly zero-area UV face (3D: the vertex lies on the edge)
+        face_uv[f, 0] = face_uv[f, 1]
+    new = Garment(verts, g.faces.clone(), uv, face_uv, name=g.name + "-degenerate", kind=g.kind,
+                  pinned=g.pinned, panel=g.panel, info=dict(g.info))
+    area = 0.5 * torch.linalg.det(torch.stack([face_uv[f, 1] - face_uv[f, 0],
+                                               face_uv[f, 2] - face_uv[f, 0]]).double()).abs()
+    return new, {"face": f, "vertex": v, "uv_area_m2": float(area)}
+
+
+def stability_sequence(case: str, item: Dict[str, Any], seed: int
+                       ) -> Tuple[BenchSequence, Dict[str, Any]]:
+    """The :class:`BenchSequence` of stability ``case`` built on ``item`` (a
+    :func:`garmentgnn.bench.sequences.case_item`), and facts about the perturbation."""
+    if case not in CASES:
+        raise ValueError(f"`case`: unknown stability case {case!r}; choose one of {sorted(CASES)}")
+    item = dict(item, name=case)
+    base = make_sequence(item, seed)
+    if case == "baseline":
+        return base, {}
+    if case == "stiff_x1000":
+        return make_sequence(item, seed, material=base.material.scaled(1000.0)), {"stiffness": 1000.0}
+    if case == "extreme_pose":
+        motion, info = _extreme_pose(base)
+        return make_sequence(item, seed, motion=motion), info
+    if case == "fast_x5":
+        it = dict(item, motion=dict(item["motion"], speed=5.0 * item["motion"]["speed"]))
+        return make_sequence(it, seed), {"speed": it["motion"]["speed"]}
+    garment, info = _degenerate(base, 0.999 if case == "sliver_face" else 1.0)
+    return make_sequence(item, seed, garment=garment), info
+
+
+CASES: Dict[str, str] = {
+    "baseline": "unmodified",
+    "stiff_x1000": "material stiffness x1000",
+    "extreme_pose": "joints driven to their limits (clamped)",
+    "fast_x5": "motion at 5x speed",
+    "sliver_face": "one face squashed to 1/1000 of its area (3D + UV)",
+    "zero_area_face": "one face of zero area (vertex on the edge in 3D, UV exactly 0)",
+}
+
+
+# --------------------------------------------------------------------------- predictors
+def simulator_predictor(**settings: Any) -> Predictor:
+    """The reference simulator as a predictor; ``settings`` are :class:`SimSettings`
+    keyword arguments (``fps`` is taken from the motion)."""
+    from garmentgnn.sim import SimSettings, simulate
+
+    def predict(seq: BenchSequence):
+        st = SimSettings(**dict(settings, fps=float(seq.motion.fps)))
+        return simulate(seq.garment, seq.body, seq.motion, seq.material, st,
+                        body_frames=seq.body_frames)
+
+    return predict
+
+
+# --------------------------------------------------------------------------- scoring
+def _unpack(out: Any) -> Tuple[Tensor, bool, str, Optional[Tensor]]:
+    if isinstance(out, Tensor):
+        return out, True, "ok", None
+    pos = getattr(out, "positions", None)
+    if not isinstance(pos, Tensor):
+        raise ValueError("`predict`: must return a [T, V, 3] tensor or an object with "
+                         f".positions, got {type(out).__name__}")
+    conv = getattr(out, "converged", None)
+    return pos, bool(getattr(out, "ok", True)), str(getattr(out, "message", "ok")), conv
+
+
+def stability_metrics(seq: BenchSequence, positions: Tensor,
+                      thresholds: Thresholds = THRESHOLDS) -> Dict[str, float]:
+    """Numbers of one predicted sequence ``[T', V, 3]`` (``T' <= T``: a predictor that
+    stopped early is scored on what it produced)."""
+    pos = positions.detach().double()
+    T = pos.shape[0]
+    nonfinite = int((~torch.isfinite(pos)).sum())
+    out: Dict[str, float] = {"frames": float(T), "nonfinite": float(nonfinite)}
+    body = seq.body_frames.detach().double()[:T]
+    fps = float(seq.motion.fps)
+    body_speed = float(((body[1:] - body[:-1]).norm(dim=-1) * fps).max()) if T > 1 else 0.0
+    out["body_max_speed"] = body_speed
+    if nonfinite:
+        return out
+    speed = (pos[1:] - pos[:-1]).norm(dim=-1) * fps  # [T-1, V]
+    out["max_speed"] = float(speed.max()) if T > 1 else 0.0
+    e = physics_energy(pos, seq.rest, seq.material, seq.mass)
+    elastic = e["stretch"] + e["shear"] + e["bending"]  # [T]
+    kinetic = torch.zeros(T, dtype=pos.dtype)
+    if T > 1:
+        kinetic[1:] = 0.5 * (seq.mass.double() * speed ** 2).sum(-1)
+    total = elastic + kinetic
+    ref = max(float(total[: min(T, 2)].max()), thresholds.energy_floor)
+    out["energy_growth"] = float(total.max()) / ref
+    out["max_energy_J"] = float(total.max())
+    sd = signed_distance(pos, body, seq.body.faces).distance  # [T, V]
+    out["max_penetration_m"] = max(0.0, float(-sd.min()))
+    return out
+
+
+def verdict(metrics: Dict[str, float], ok: bool, nonconverged: int,
+            thresholds: Thresholds = THRESHOLDS) -> Tuple[str, str]:
+    """``(verdict, reason)`` per :class:`Thresholds`."""
+    th = thresholds
+    if not ok:
+        return "failed", "predictor reported failure"
+    if metrics.get("nonfinite", 0) > 0:
+        return "failed", f"{int(metrics['nonfinite'])} non-finite coordinates"
+    fails = [(metrics["max_speed"] > th.fail_speed, f"max speed {metrics['max_speed']:.3g} m/s"),
+             (metrics["energy_growth"] > th.fail_growth,
+              f"energy growth x{metrics['energy_growth']:.3g}"),
+             (metrics["max_penetration_m"] > th.fail_penetration,
+              f"penetration {1e3 * metrics['max_penetration_m']:.3g} mm")]
+    bad = [r for c, r in fails if c]
+    if bad:
+        return "failed", "; ".join(bad)
+    speed_limit = th.speed_factor * metrics["body_max_speed"] + th.speed_slack
+    degr = [(metrics["max_speed"] > speed_limit,
+             f"max speed {metrics['max_speed']:.3g} > {speed_limit:.3g} m/s"),
+            (metrics["energy_growth"] > th.degrade_growth,
+             f"energy growth x{metrics['energy_growth']:.3g}"),
+            (metrics["max_penetration_m"] > th.degrade_penetration,
+             f"penetration {1e3 * metrics['max_penetration_m']:.3g} mm"),
+            (nonconverged > 0, f"{nonconverged} frame(s) not converged")]
+    bad = [r for c, r in degr if c]
+    if bad:
+        return "degraded", "; ".join(bad)
+    return "stable", ""
+
+
+def run_case(case: str, item: Dict[str, Any], seed: int, predict: Predictor,
+             method: str = "sim", thresholds: Thresholds = THRESHOLDS) -> Dict[str, Any]:
+    """Build stability ``case`` on ``item``, run ``predict`` and score it; a record for
+    :mod:`garmentgnn.bench.report` (``kind="stability"``).  Exceptions from the predictor
+    (or from building the case) give ``status="failed"`` with the message."""
+    rec: Dict[str, Any] = {"kind": "stability", "method": method, "case": case, "seed": seed,
+                           "description": CASES.get(case, ""),
+                           "thresholds": asdict(thresholds)}
+    t0 = time.perf_counter()
+    try:
+        seq, info = stability_sequence(case, item, seed)
+        rec["info"] = info
+        rec["num_vertices"] = seq.garment.num_vertices
+        positions, ok, message, conv = _unpack(predict(seq))
+        if positions.dim() != 3 or positions.shape[1:] != (seq.garment.num_vertices, 3):
+            raise ValueError(f"`predict`: returned positions of shape {tuple(positions.shape)}")
+        nonconv = 0 if conv is None else int((~conv.bool()).sum())
+        m = stability_metrics(seq, positions, thresholds)
+        m["nonconverged_frames"] = float(nonconv)
+        v, reason = verdict(m, ok, nonconv, thresholds)
+        rec.update(status="ok", metrics=m, verdict=v, reason=reason,
+                   message=message if not ok else "ok")
+    except Exception as err:  # a crash is a result of this suite, not an error of it
+        rec.update(status="failed", verdict="failed", metrics={}, reason=f"raised: {err}",
+                   message=f"{type(err).__name__}: {err}",
+                   traceback=traceback.format_exc(limit=4))
+    rec["seconds"] = time.perf_counter() - t0
+    return rec
+
+
+def with_thresholds(**changes: float) -> Thresholds:
+    """:data:`THRESHOLDS` with some fields changed (``ValueError`` for unknown names)."""
+    unknown = set(changes) - set(asdict(THRESHOLDS))
+    if unknown:
+        raise ValueError(f"`changes`: unknown threshold(s) {sorted(unknown)}")
+    return replace(THRESHOLDS, **changes)

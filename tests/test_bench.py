@@ -1,0 +1,208 @@
+"""The benchmark harness: tiny preset end to end, resume, atomic records, report rules."""
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from garmentgnn.bench import harness, report, stability, timing
+from garmentgnn.cli import main as cli_main
+
+
+def _numbers(obj):
+    if isinstance(obj, dict):
+        for v in obj.values():
+            yield from _numbers(v)
+    elif isinstance(obj, list):
+        for v in obj:
+            yield from _numbers(v)
+    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
+        yield obj
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    t0 = time.perf_counter()
+    summary = harness.run(harness.preset("tiny"), out, progress=False)
+    return out, summary, time.perf_counter() - t0
+
+
+def test_tiny_preset_report(tiny_run):
+    out, summary, seconds = tiny_run
+    p = harness.preset("tiny")
+    expected = len(harness.tasks(p, [0]))
+    assert summary.ran == expected and summary.skipped == 0
+    for name in ("results.json", "report.md", "pareto.png"):
+        assert (out / name).stat().st_size > 0
+    res = json.loads((out / "results.json").read_text())
+    assert set(res) == {"meta", "summary", "not_run", "records"}
+    recs = res["records"]
+    assert len(recs) == expected
+    assert len(list((out / "records").glob("*.json"))) == expected
+    for r in recs:  # every number finite (no NaN/None smuggled in as a number)
+        assert all(math.isfinite(x) for x in _numbers(r)), r
+    acc = [r for r in recs if r["kind"] == "accuracy"]
+    assert {r["method"] for r in acc} == set(p.method_names())
+    assert all(r["status"] == "ok" for r in acc), [r["message"] for r in acc]
+    for r in acc:
+        assert set(report.METRICS) <= set(r["metrics"])
+        assert r["timing"]["latency_ms"] > 0 and r["timing"]["throughput_fps"] > 0
+    ref = [r for r in acc if r["reference"]]
+    assert len(ref) == 1 and ref[0]["metrics"]["E_dist"] == 0.0
+    lbs = next(r for r in acc if r["method"] == "lbs")
+    assert lbs["metrics"]["E_dist"] > 0 and lbs["timing"]["best_batch"] in p.batches
+    stab = [r for r in recs if r["kind"] == "stability"]
+    assert {r["case"] for r in stab} == set(p.stability_cases)
+    assert all(r["verdict"] in ("stable", "degraded", "failed") for r in stab)
+    # nothing was run for the learned methods, and the report says so without numbers
+    assert set(harness.PLANNED) <= set(res["not_run"])
+    md = (out / "report.md").read_text()
+    assert "shaped like Table 1" in md and "shaped like Table 3" in md and "## Stability" in md
+    for name in harness.PLANNED:
+        assert f"- {name}: not run" in md
+
+
+def test_rerun_skips_finished_records(tiny_run):
+    out, _, _ = tiny_run
+    before = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
+    summary = harness.run(harness.preset("tiny"), out, progress=False)
+    assert summary.ran == 0 and summary.skipped == len(before)
+    after = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
+    assert after == before
+
+
+def test_deleted_record_is_rerun_and_leftovers_removed(tiny_run):
+    out, _, _ = tiny_run
+    rec = harness.record_path(out, "accuracy", "lbs", "skirt-walk", 0)
+    rec.unlink()
+    stale = rec.with_name(f".{rec.name}.tmp-99999")
+    stale.write_text('{"half": ')  # a killed writer's leftover
+    summary = harness.run(harness.preset("tiny"), out, progress=False)
+    assert summary.ran == 1
+    assert json.loads(rec.read_text())["status"] == "ok"
+    assert not stale.exists()
+
+
+def test_record_is_never_half_written(tmp_path, monkeypatch):
+    """A crash between writing and renaming leaves no record (and no temporary)."""
+    path = harness.record_path(tmp_path, "accuracy", "m", "c", 0)
+    from garmentgnn.data import store
+
+    def crash(src, dst):
+        raise OSError("killed before rename")
+    monkeypatch.setattr(store.os, "replace", crash)
+    with pytest.raises(OSError):
+        store.atomic_write_json(path, {"kind": "accuracy"})
+    assert not path.exists()
+    assert list(path.parent.iterdir()) == []
+    monkeypatch.undo()
+    # an existing but truncated/foreign file is not taken as a finished record
+    path.write_text('{"kind": "accuracy", "method": "m"')
+    assert harness.load_record(path, "accuracy", "m", "c", 0) is None
+    path.write_text(json.dumps({"kind": "accuracy", "method": "other", "case": "c", "seed": 0,
+                                "status": "ok"}))
+    assert harness.load_record(path, "accuracy", "m", "c", 0) is None
+
+
+def _acc(method="m", seed=0, status="ok", e=1.0, latency=2.0):
+    return {"kind": "accuracy", "method": method, "case": "c", "seed": seed, "status": status,
+            "message": "", "metrics": {m: e for m in report.METRICS},
+            "timing": {"latency_ms": latency, "throughput_fps": 1e3 / latency,
+                       "peak_mem_mb": 1.0}}
+
+
+def test_report_refuses_non_finite_unless_failed(tmp_path):
+    bad = _acc(e=float("nan"))
+    with pytest.raises(ValueError, match="records"):
+        report.write_report([bad], tmp_path)
+    failed = dict(_acc("f", e=float("inf")), status="failed", message="diverged")
+    paths = report.write_report([_acc("a", 0, e=1.0), _acc("a", 1, e=3.0), failed], tmp_path,
+                                not_run=["x"])
+    res = json.loads(paths["results"].read_text())
+    assert res["summary"]["a"]["E_dist"] == {"mean": 2.0, "std": pytest.approx(math.sqrt(2)),
+                                             "n": 2}
+    assert res["records"][2]["metrics"]["E_dist"] is None
+    md = paths["report"].read_text()
+    assert "2 ± 1.4" in md and "| f | failed" in md and "- x: not run" in md
+    with pytest.raises(ValueError, match="records"):
+        report.write_report([{"kind": "accuracy"}], tmp_path)
+
+
+def test_pareto_front():
+    pts = [("a", 1.0, 5.0), ("b", 10.0, 1.0), ("c", 10.0, 6.0), ("d", 0.5, 7.0)]
+    assert report.pareto_front(pts) == ["a", "b", "d"]
+
+
+def test_timing_helpers():
+    with timing.num_threads(1):
+        m = timing.side_by_side({"a": lambda: torch.ones(10).sum(),
+                                 "b": lambda: torch.ones(1000).sum()}, warmup=1, repeats=3)
+        assert set(m) == {"a", "b"} and m["a"]["threads"] == 1 and m["a"]["repeats"] == 3
+        sweep = timing.batch_sweep(lambda b: (lambda: torch.ones(b, 100).sum()), [1, 4],
+                                   warmup=0, repeats=2)
+        assert sweep["best_batch"] in (1, 4) and sweep["latency_ms"] > 0
+    mem = timing.peak_memory(lambda: torch.ones(8 << 20).sum())  # 32 MiB transient
+    assert mem["peak_mb"] >= 16 and float(mem["result"]) == 8 << 20
+    with pytest.raises(ValueError, match="batches"):
+        timing.batch_sweep(lambda b: (lambda: None), [2, 4])
+    with pytest.raises(ValueError, match="repeats"):
+        timing.measure(lambda: None, repeats=0)
+
+
+def test_stability_verdicts_and_plugged_predictor():
+    m = {"nonfinite": 0.0, "max_speed": 1.0, "body_max_speed": 1.0, "energy_growth": 2.0,
+         "max_penetration_m": 0.0}
+    assert stability.verdict(m, True, 0) == ("stable", "")
+    assert stability.verdict(dict(m, max_speed=100.0), True, 0)[0] == "failed"
+    assert stability.verdict(dict(m, energy_growth=20.0), True, 0)[0] == "degraded"
+    assert stability.verdict(m, True, 1)[0] == "degraded"
+    assert stability.verdict(m, False, 0)[0] == "failed"
+    assert stability.verdict(dict(m, nonfinite=3.0), True, 0)[0] == "failed"
+    item = harness.preset("tiny").stability_item
+
+    def exploding(seq):  # a learned method that blows up
+        from garmentgnn.models.baselines import LBSBaseline
+        pos = LBSBaseline()(seq.scene, seq.motion.rotations, seq.motion.translation)
+        pos[-1, 0, 0] = float("nan")
+        return pos
+
+    rec = stability.run_case("baseline", item, 0, exploding, method="nan-model")
+    assert rec["status"] == "ok" and rec["verdict"] == "failed" and rec["metrics"]["nonfinite"] == 1
+
+    def crashing(seq):
+        raise RuntimeError("boom")
+    rec = stability.run_case("baseline", item, 0, crashing)
+    assert rec["status"] == "failed" and "boom" in rec["message"]
+    with pytest.raises(ValueError, match="case"):
+        stability.stability_sequence("nope", item, 0)
+
+
+def test_degenerate_and_extreme_cases_are_what_they_claim():
+    item = harness.preset("tiny").stability_item
+    seq, info = stability.stability_sequence("zero_area_face", item, 0)
+    assert info["uv_area_m2"] == 0.0
+    assert not bool(seq.rest.valid[info["face"]])
+    seq, info = stability.stability_sequence("sliver_face", item, 0)
+    assert 0 < info["uv_area_m2"] and bool(seq.rest.valid[info["face"]])
+    seq, info = stability.stability_sequence("extreme_pose", item, 0)
+    from garmentgnn.motion import within_limits
+    assert info["joint_frames_clamped"] > 0
+    assert within_limits(seq.motion.rotations, seq.body.skeleton, tol_deg=1e-2)
+
+
+def test_register_and_cli_arguments(tmp_path):
+    with pytest.raises(ValueError, match="name"):
+        harness.register("lbs", lambda p: None)
+    with pytest.raises(ValueError, match="factory"):
+        harness.register("new", 3)
+    with pytest.raises(ValueError, match="preset"):
+        harness.preset("huge")
+    with pytest.raises(ValueError, match="seeds"):
+        harness.run(harness.preset("tiny"), tmp_path, seeds=0)
+    assert cli_main(["bench", "--out", str(tmp_path), "--seeds", "0"]) == 2
+    assert not os.listdir(tmp_path)
+    assert Path(harness.__file__).exists()
