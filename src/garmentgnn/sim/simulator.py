@@ -69,7 +69,8 @@ class SimSettings:
             the result is checked against the whole garment afterwards.
         max_penetration: a substep that ends with a vertex deeper than this inside the
             body (after the contact planes were refreshed) fails, so the frame is retried
-            with twice the substeps (m).
+            with twice the substeps (m); at the last refinement the frame is kept and
+            flagged unconverged (a pinch between body parts, not tunnelling).
         distance_candidates: ``candidates`` of :func:`garmentgnn.geometry.signed_distance`
             (``None`` = exact brute force).
         gravity: gravity vector (Z up).
@@ -641,9 +642,9 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     frame_dt = 1.0 / st.fps
     margin = material.collision_margin
 
-    def run_frame(x, v, b0, b1, p0, p1, substeps):
+    def run_frame(x, v, b0, b1, p0, p1, substeps, accept_penetration=False):
         h = frame_dt / substeps
-        iters, res, conv = 0, 0.0, True
+        iters, res, conv, note = 0, 0.0, True, ""
         # the body moves |b1 - b0| / substeps per substep: vertices that close must be in
         # the contact set from the start, or a fast limb passes through them
         radius = st.contact_radius if b0 is None else max(
@@ -666,24 +667,29 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
                     break
                 contact = new
             if r.ok and bp is not None and float(d.min()) < -st.max_penetration:
-                # tunnelled (deeper than the linearised planes can repair): retry the frame
-                # with smaller substeps rather than let the cloth slip through the body
-                r = StepResult(x, v, False, r.iterations, r.residual, False,
-                               f"penetration {-float(d.min()) * 1e3:.1f} mm "
-                               f"> max_penetration {st.max_penetration * 1e3:.1f} mm")
+                depth = (f"penetration {-float(d.min()) * 1e3:.1f} mm > max_penetration "
+                         f"{st.max_penetration * 1e3:.1f} mm")
+                if accept_penetration:
+                    # the finest substeps cannot resolve it either: a pinch between body
+                    # parts (arm against torso), not tunnelling -- keep it, flagged
+                    r = StepResult(r.x, r.v, False, r.iterations, r.residual, True, depth)
+                    note = depth
+                else:  # maybe tunnelled: retry the frame with smaller substeps
+                    r = StepResult(x, v, False, r.iterations, r.residual, False, depth)
             iters += r.iterations
             res = max(res, r.residual)
             conv = conv and r.converged
             if not r.ok:
                 return None, None, iters, res, False, r.message
             x, v = r.x, r.v
-        return x, v, iters, res, conv, ""
+        return x, v, iters, res, conv, note
 
     def advance(x, v, b0, b1, p0, p1, label):
         sub = st.substeps
         msg = ""
-        for _ in range(st.max_refinements + 1):
-            out = run_frame(x, v, b0, b1, p0, p1, sub)
+        for k in range(st.max_refinements + 1):
+            out = run_frame(x, v, b0, b1, p0, p1, sub,
+                            accept_penetration=k == st.max_refinements)
             if out[0] is not None and (out[4] or not st.retry_unconverged):
                 return out + (sub,)
             msg = out[5] or "Newton did not converge"
@@ -703,6 +709,7 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     positions: List[Tensor] = [x.float()]
     converged, iterations, residual, substeps = [True], [0], [0.0], [0]
     ok, message = True, "ok"
+    flagged: List[str] = []
     for t in range(1, T):
         out = advance(x, v, bf(P + t - 1), bf(P + t), skinned[P + t - 1], skinned[P + t],
                       f"frame {t}")
@@ -718,8 +725,12 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
         iterations.append(int(out[2]))
         residual.append(float(out[3]))
         substeps.append(int(out[6]))
+        if out[5]:
+            flagged.append(f"frame {t}: {out[5]}")
         if progress is not None:
             progress(t, T)
+    if ok and flagged:
+        message = f"ok; {len(flagged)} frame(s) kept with flags, first: {flagged[0]}"
     return SimResult(torch.stack(positions), torch.tensor(converged),
                      torch.tensor(iterations, dtype=torch.long),
                      torch.tensor(residual, dtype=torch.float32), ok, message, time.time() - t0,
