@@ -117,6 +117,29 @@ def test_autoregressive_rollout_feeds_back_its_own_prediction(scene):
         for t in (1, 3):
             step = model(*args, rots[t:t + 1], tr[t:t + 1], prev_final=ar["final"][t - 1:t])
             torch.testing.assert_close(step["final"][0], ar["final"][t], atol=1e-5, rtol=1e-5)
-        assert not torch.allclose(ar["final"][1:], par["final"][1:], atol=1e-6)
+        # the feedback path is live: a different garment before frame 0 changes frame 0
+        # and, through it, frame 1
+        first = coarse_prev[0] + 0.01
+        ar2 = model.rollout(*args, rots, tr, first=first)
+        assert not torch.allclose(ar2["final"][0], ar["final"][0], atol=1e-5)
+        assert not torch.allclose(ar2["final"][1], ar["final"][1], atol=1e-7)
         with pytest.raises(ValueError, match="prev_final"):
             model(*args, rots[:2], tr[:2], prev_final=ar["final"][:1])
+
+
+def test_skin_prior_is_the_starting_point_of_the_learned_weights(scene):
+    """W^t = softmax(x3 + log prior): with the learned features zeroed, W^t is the prior."""
+    from dataclasses import replace
+    body, g, ei, ny, bd, rots, tr = scene
+    model = build(body, ny).eval()
+    V, S = g.vertices.shape[0], body.skeleton.num_joints
+    prior = torch.softmax(3 * torch.randn(V, S, generator=torch.Generator().manual_seed(0)), -1)
+    static = model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd, skin_prior=prior)
+    with torch.no_grad():
+        W = run(model, scene, static=replace(static, x2=torch.zeros_like(static.x2)))["weights"]
+        expected = prior.clamp_min(1e-4) / prior.clamp_min(1e-4).sum(-1, keepdim=True)
+        torch.testing.assert_close(W, expected.expand_as(W), atol=1e-6, rtol=1e-5)
+        W_free = run(model, scene)["weights"]
+    assert not torch.allclose(W_free, W, atol=1e-2)
+    with pytest.raises(ValueError, match="skin_prior"):
+        model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd, skin_prior=prior[:, :3])

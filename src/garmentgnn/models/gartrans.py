@@ -67,6 +67,10 @@ def batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
     return (edge_index.unsqueeze(1) + offsets.view(1, -1, 1)).reshape(2, -1)
 
 
+#: metres per unit of the blend-shape stack's output (it predicts centimetres)
+BLEND_UNIT = 0.01
+
+
 class AttentionStack(nn.Module):
     """Registry layers in series; hidden layers concatenate heads, the last averages."""
 
@@ -122,6 +126,7 @@ class StaticFeatures:
     """The static branch's output for one garment on one body shape."""
 
     x2: Tensor  # [V, S]  x'' = (x̄^[1] ⊙ u^[1]) b^[1]
+    log_prior: Optional[Tensor] = None  # [V, S] log of prior skinning weights (or None)
 
 
 class GarTrans(nn.Module):
@@ -174,7 +179,8 @@ class GarTrans(nn.Module):
     # -- static branch --------------------------------------------------------
     def encode_static(self, rest_pos: Tensor, faces: Tensor, edge_index: Tensor,
                       rest_joints: Tensor, nystrom: Tensor,
-                      body_joint_dists: Optional[Tensor] = None) -> StaticFeatures:
+                      body_joint_dists: Optional[Tensor] = None,
+                      skin_prior: Optional[Tensor] = None) -> StaticFeatures:
         """Once per garment and body shape.
 
         Args:
@@ -183,6 +189,12 @@ class GarTrans(nn.Module):
             rest_joints: ``[S, 3]``; nystrom: ``[V, k]`` eigenvector features;
             body_joint_dists: ``[Vb, S]`` body-vertex-to-joint distances, or ``None``
                 for a scene without a body.
+            skin_prior: ``[V, S]`` skinning weights (rows summing to 1) that the learned
+                ``W^t`` starts from, ``W^t = softmax(x3 + log(prior))`` with ``x3`` the
+                motion-modulated features -- e.g. the body's weights transferred to the
+                garment.  ``None`` (the paper) learns ``W^t`` from scratch, which on
+                small datasets leaves the coarse mesh far from even plain LBS
+                (docs/model.md).
         """
         n = vertex_normals(rest_pos, faces)
         dj = torch.cdist(rest_pos, rest_joints)
@@ -190,7 +202,13 @@ class GarTrans(nn.Module):
         x = self.rest_attn(x, edge_index, edge_features(rest_pos, edge_index))
         x1 = x * self.nystrom_fc(nystrom)  # x' = x̄^[1] ⊙ u^[1]
         b = self.body_default if body_joint_dists is None else self.body_fc(body_joint_dists.t()).t()
-        return StaticFeatures(x2=x1 @ b)  # x'' = x' ⊗ b^[1]: [V, S]
+        log_prior = None
+        if skin_prior is not None:
+            if skin_prior.shape != (rest_pos.shape[0], self.num_joints):
+                raise ValueError(f"`skin_prior`: expected [{rest_pos.shape[0]}, "
+                                 f"{self.num_joints}], got {tuple(skin_prior.shape)}")
+            log_prior = skin_prior.to(x1.dtype).clamp_min(1e-4).log()
+        return StaticFeatures(x2=x1 @ b, log_prior=log_prior)  # x'' = x' ⊗ b^[1]: [V, S]
 
     # -- dynamic branch -------------------------------------------------------
     def motion_code(self, rotations: Tensor, translation: Tensor) -> Tensor:
@@ -211,10 +229,12 @@ class GarTrans(nn.Module):
         B, H = rotations.shape[:2]
         V = rest_pos.shape[0]
         x3 = static.x2.unsqueeze(0) * self.motion_code(rotations, translation).unsqueeze(1)
-        W = torch.softmax(x3, -1)  # W^t
+        W = torch.softmax(x3 if static.log_prior is None else x3 + static.log_prior, -1)  # W^t
         e = edge_features(rest_pos, edge_index).repeat(B, 1)
         blend = self.blend(x3.reshape(B * V, -1), batch_edges(edge_index, B, V), e)
-        template = rest_pos.unsqueeze(0) + blend.view(B, V, 3)  # T^t = T + B^t (Eq. 2)
+        # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so a
+        # freshly initialised model starts near its skinned rest garment, not ~30 cm off
+        template = rest_pos.unsqueeze(0) + BLEND_UNIT * blend.view(B, V, 3)
         rot2 = rotations[:, -2:].reshape(B * 2, *rotations.shape[2:])
         tr2 = translation[:, -2:].reshape(B * 2, 3)
         A, joints = forward_kinematics(rot2, rest_joints, parents, tr2)

@@ -40,9 +40,7 @@ def predict(module, item: dict[str, Any], mode: str) -> torch.Tensor:
     if mode == "lbs":
         return lbs_coarse(item)
     m = module.model
-    static = m.encode_static(item["rest_pos"], item["faces"], item["edge_index"],
-                             item["rest_joints"], item["nystrom"],
-                             item["body_joint_dists"] if module.hparams.use_body else None)
+    static = module.encode_static(item)
     args = (static, item["rest_pos"], item["faces"], item["edge_index"], item["rest_joints"],
             item["parents"], item["rotations"], item["translation"])
     if mode == "gartrans":

@@ -39,6 +39,9 @@ class GarTransModule(L.LightningModule):
         loss_weights, edge_reduction, collision_margin: :class:`GarTransLoss` settings.
         enabled, supervised_scale: initial loss terms / scale (phase 1).
         use_body: feed the body-vertex-to-joint distances (else the learned code).
+        skin_prior: start the learned skinning weights from the body's weights
+            transferred to the garment (``encode_static(skin_prior=...)``); ``False`` is
+            the paper's from-scratch ``W^t``.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -47,7 +50,7 @@ class GarTransModule(L.LightningModule):
                  eta_min: float = 0.0, loss_weights: dict[str, float] | None = None,
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 use_body: bool = True) -> None:
+                 use_body: bool = True, skin_prior: bool = True) -> None:
         super().__init__()
         enabled = sorted(enabled)
         self.save_hyperparameters()
@@ -79,11 +82,17 @@ class GarTransModule(L.LightningModule):
             yield from getattr(self.model, name).parameters()
 
     # -- forward ------------------------------------------------------------------
+    def encode_static(self, batch: dict[str, Any]):
+        """The static branch of one garment on one body (a data-module item)."""
+        hp = self.hparams
+        return self.model.encode_static(
+            batch["rest_pos"], batch["faces"], batch["edge_index"], batch["rest_joints"],
+            batch["nystrom"], batch["body_joint_dists"] if hp.use_body else None,
+            batch["skin_weights"] if hp.get("skin_prior", False) else None)
+
     def forward(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
         m = self.model
-        static = m.encode_static(batch["rest_pos"], batch["faces"], batch["edge_index"],
-                                 batch["rest_joints"], batch["nystrom"],
-                                 batch["body_joint_dists"] if self.hparams.use_body else None)
+        static = self.encode_static(batch)
         return m(static, batch["rest_pos"], batch["faces"], batch["edge_index"],
                  batch["rest_joints"], batch["parents"], batch["rotations"],
                  batch["translation"])

@@ -1,0 +1,91 @@
+"""The main demo: simulate a tiny dataset, train GarTrans on it, predict held-out frames.
+
+1. ``garmentgnn generate --preset tiny`` (the reference simulator; 8 sequences of a
+   skirt and a T-shirt on two capsule bodies, ~1 min on 2 cores, resumable: a rerun
+   reuses what is on disk);
+2. trains GarTrans (full model, progressive schedule with short windows) on the
+   training split with Lightning, on the CPU;
+3. predicts the held-out motion (arm swing) frame-parallel and autoregressively,
+   scores both and the LBS-only coarse garment against the simulation, and writes a
+   PNG strip: simulated / GarTrans / LBS only, over the frames of one sequence.
+
+    python examples/train_demo.py --out demo_out [--epochs 40]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+
+from garmentgnn.data import generate, preset
+from garmentgnn.metrics import METRIC_UNITS
+from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
+from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.training.evaluate import evaluate_split, predict
+from garmentgnn.viz import render_grid
+
+BODY_RGB, SIM_RGB, PRED_RGB, LBS_RGB = ((0.82, 0.70, 0.60), (0.30, 0.55, 0.35),
+                                        (0.25, 0.45, 0.80), (0.60, 0.60, 0.60))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="demo_out")
+    ap.add_argument("--epochs", type=int, default=40)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    out = Path(args.out)
+    t0 = time.time()
+
+    data = out / "data_tiny"
+    summary = generate(preset("tiny"), data, workers=args.workers, progress=True)
+    print(f"[1/3] dataset: {summary} ({time.time() - t0:.0f} s)")
+
+    t1 = time.time()
+    L.seed_everything(0, workers=True)
+    dm = GarmentDataModule(data, chunk=8, history=3, nystrom_dim=16, num_landmarks=64)
+    module = GarTransModule(**dm.dims)
+    sched = ProgressiveSchedule(window=4, threshold=0.05)
+    trainer = L.Trainer(max_epochs=args.epochs, accelerator="cpu", devices=1, logger=False,
+                        enable_checkpointing=False, enable_model_summary=False,
+                        callbacks=[sched], default_root_dir=str(out))
+    trainer.fit(module, dm)
+    ckpt = out / "gartrans_demo.ckpt"
+    trainer.save_checkpoint(ckpt)
+    print(f"[2/3] trained {args.epochs} epochs in {time.time() - t1:.0f} s; phases began at "
+          f"epochs {sched.transitions}; checkpoint {ckpt}")
+
+    module = GarTransModule.load_from_checkpoint(ckpt).eval()
+    res = evaluate_split(module, data, "test", history=3, num_landmarks=64)
+    metrics = ["E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision"]
+    print(f"[3/3] held-out test split ({res['lbs']['frames']} frames):")
+    print("| method | " + " | ".join(f"{m} ({METRIC_UNITS.get(m, '')})" for m in metrics)
+          + " | ms/frame |")
+    print("|---" * (len(metrics) + 2) + "|")
+    for mode in ("gartrans", "gartrans_ar", "lbs"):
+        print(f"| {mode} | " + " | ".join(f"{res[mode][m]:.3f}" for m in metrics)
+              + f" | {res[mode]['ms_per_frame']:.1f} |")
+
+    ds = SequenceChunks(data, "test", chunk=10 ** 9, history=3, nystrom_dim=16,
+                        num_landmarks=64)
+    item = ds[0]
+    with torch.no_grad():
+        pred = predict(module, item, "gartrans")
+        lbs = predict(module, item, "lbs")
+    T = item["gt"].shape[0]
+    frames = sorted({1, T // 3, (2 * T) // 3, T - 1})
+    bf = item["body_faces"]
+    rows = [("simulated", item["gt"], SIM_RGB), ("GarTrans", pred, PRED_RGB),
+            ("LBS only", lbs, LBS_RGB)]
+    cells = [[[(item["body_pos"][t], bf, BODY_RGB), (P[t], item["faces"], rgb)] for t in frames]
+             for _, P, rgb in rows]
+    titles = [[f"{name}, frame {t}" for t in frames] for name, _, _ in rows]
+    png = render_grid(cells, out / "gartrans_demo.png", titles=titles, elev=12, azim=-70)
+    print(f"wrote {png} ({item['seq_id']}); total {time.time() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
