@@ -119,3 +119,26 @@ def test_gartrans_loss_weights_phases_and_nan():
     with pytest.raises(ValueError, match="weights"):
         GarTransLoss(weights={"wrinkles": 1.0})
     assert PAPER_WEIGHTS["edge"] == 15.0 and PAPER_WEIGHTS["shear"] == 2.0
+
+
+def test_collision_term_with_candidate_faces_equals_the_exact_search():
+    """The loss searches only the faces around the nearest body vertices; for a cloth
+    close to a convex body that is the exact nearest face, so the term (and its
+    gradient) equals the brute-force one."""
+    import trimesh
+    ico = trimesh.creation.icosphere(subdivisions=3, radius=0.2)
+    bv = torch.tensor(ico.vertices, dtype=torch.float64)
+    bf = torch.tensor(ico.faces, dtype=torch.long)
+    pos, faces = grid_mesh(8, 8, (0.3, 0.3), dtype=torch.float64)
+    pos = pos - torch.tensor([0.15, 0.15, 0.0], dtype=torch.float64)
+    pos[:, 2] = 0.2 - 5 * (pos[:, 0] ** 2 + pos[:, 1] ** 2)  # a cap dipping into the sphere
+    pred = pos.unsqueeze(0).repeat(2, 1, 1).requires_grad_(True)
+    terms = {}
+    for cand in (8, None):
+        loss = GarTransLoss(enabled=["collision"], distance_candidates=cand)
+        total, t = loss(LossInputs(pred=pred, faces=faces, body_pos=bv.expand(2, -1, -1),
+                                   body_faces=bf))
+        terms[cand] = (t["collision"].detach(), torch.autograd.grad(total, pred)[0])
+    assert float(terms[None][0]) > 0  # some of the cap is inside: the term is active
+    torch.testing.assert_close(terms[8][0], terms[None][0], rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(terms[8][1], terms[None][1], rtol=1e-9, atol=1e-12)

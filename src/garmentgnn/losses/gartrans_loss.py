@@ -102,11 +102,16 @@ class GarTransLoss(nn.Module):
             second phase).
         collision_margin: ``epsilon`` of Eq. 10 in metres.
         edge_reduction: ``"sum"`` (the paper's Eq. 8 literally) or ``"mean"``.
+        distance_candidates: body faces searched per garment vertex for the collision
+            term (faces around the nearest body vertices, as in the simulator);
+            ``None`` is the exact brute force -- measured 2.4 s of a 3.6 s training step
+            at 280 garment x 2.5K body vertices x 8 frames.
     """
 
     def __init__(self, weights: Optional[Dict[str, float]] = None,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 collision_margin: float = 2e-3, edge_reduction: str = "sum") -> None:
+                 collision_margin: float = 2e-3, edge_reduction: str = "sum",
+                 distance_candidates: Optional[int] = 8) -> None:
         super().__init__()
         self.weights = dict(PAPER_WEIGHTS)
         if weights:
@@ -120,6 +125,7 @@ class GarTransLoss(nn.Module):
         self.supervised_scale = supervised_scale
         self.collision_margin = collision_margin
         self.edge_reduction = edge_reduction
+        self.distance_candidates = distance_candidates
         self._edges: Optional[tuple] = None  # (faces tensor, its unique edges)
 
     def set_enabled(self, terms: Iterable[str]) -> None:
@@ -153,7 +159,8 @@ class GarTransLoss(nn.Module):
             "norm": lambda: s * w["norm"] * normal_loss(pred, inp.gt, inp.faces).mean(),
             "collision": lambda: collision_energy(pred, inp.body_pos, inp.body_faces,
                                                   self.collision_margin, w["collision"],
-                                                  power=1).mean(),
+                                                  power=1,
+                                                  candidates=self.distance_candidates).mean(),
             "gravity": lambda: w["gravity"] * gravity_energy(pred, inp.mass).mean(),
             "stretch": lambda: stretch_energy(pred, inp.rest, w["stretch"]).mean(),
             "shear": lambda: shear_energy(pred, inp.rest, w["shear"]).mean(),
