@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 from typing import List, Optional
 
 
@@ -57,7 +58,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["train"]:  # everything after `train` belongs to LightningCLI
         from garmentgnn.training.lightning_cli import main as train_main
-        train_main(argv[1:])
+        saved = sys.argv
+        sys.argv = [f"{Path(saved[0]).name} train"] + argv[1:]  # LightningCLI reads argv
+        try:
+            train_main()
+        finally:
+            sys.argv = saved
         return 0
     args = build_parser().parse_args(argv)
     if args.command == "generate":

@@ -89,3 +89,41 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
         out[mode] = {k: v / frames for k, v in sums[mode].items()}
         out[mode].update(frames=frames, ms_per_frame=1e3 * seconds[mode] / frames)
     return out
+
+
+def markdown_table(results: dict[str, dict[str, float]]) -> str:
+    """The output of :func:`evaluate_split` as a markdown table (one row per mode)."""
+    from garmentgnn.metrics import METRIC_UNITS
+    metrics = ["E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision"]
+    lines = ["| method | " + " | ".join(f"{m} ({METRIC_UNITS.get(m, '')})" for m in metrics)
+             + " | ms/frame |", "|---" * (len(metrics) + 2) + "|"]
+    for mode, res in results.items():
+        lines.append(f"| {mode} | " + " | ".join(f"{res[m]:.3f}" for m in metrics if m in res)
+                     + f" | {res['ms_per_frame']:.1f} |")
+    return "\n".join(lines)
+
+
+@torch.no_grad()
+def render_strip(module, root, split: str, path, index: int = 0, history: int = 3,
+                 num_landmarks: int = 64, num_frames: int = 4):
+    """PNG: rows simulated / GarTrans / LBS only, columns evenly spaced frames of the
+    ``index``-th sequence of ``split``; returns ``(path, sequence id)``."""
+    from garmentgnn.viz import render_grid
+    ds = SequenceChunks(root, split, chunk=10 ** 9, history=history,
+                        nystrom_dim=module.hparams.nystrom_dim, num_landmarks=num_landmarks)
+    item = ds[index]
+    was_training = module.training
+    module.eval()
+    try:
+        rows = [("simulated", item["gt"], (0.30, 0.55, 0.35)),
+                ("GarTrans", predict(module, item, "gartrans"), (0.25, 0.45, 0.80)),
+                ("LBS only", predict(module, item, "lbs"), (0.60, 0.60, 0.60))]
+    finally:
+        module.train(was_training)
+    T = item["gt"].shape[0]
+    frames = sorted({round(1 + i * (T - 2) / max(1, num_frames - 1)) for i in range(num_frames)})
+    body_rgb = (0.82, 0.70, 0.60)
+    cells = [[[(item["body_pos"][t], item["body_faces"], body_rgb), (P[t], item["faces"], rgb)]
+              for t in frames] for _, P, rgb in rows]
+    titles = [[f"{name}, frame {t}" for t in frames] for name, _, _ in rows]
+    return render_grid(cells, path, titles=titles, elev=12, azim=-70), item["seq_id"]
