@@ -124,7 +124,7 @@ def test_generate_writes_files_and_manifest(clean_run):
         assert seq["positions"].dtype == np.float32
         assert seq["positions"].shape == (8, rec["num_vertices"], 3)
         assert seq["meta"]["split"] == rec["split"] and seq["meta"]["seed"] == rec["seed"]
-        assert seq["meta"]["settings"] == {"fps": 30.0, "substeps": 4}
+        assert seq["meta"]["settings"] == {"fps": 30.0, "substeps": 4, "preroll_frames": 6}
     assert not list(Path(clean_run).rglob(".*tmp*"))  # no temporaries left
 
 
