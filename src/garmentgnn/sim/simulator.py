@@ -311,11 +311,6 @@ class ClothSystem:
         return (self.membrane(x, self.rest) + self.bending(x, self.rest)
                 + gravity_energy(x, self.mass, self.settings.gravity))
 
-    def distance(self, points: Tensor, body_pos: Tensor) -> Tensor:
-        return signed_distance(points, body_pos, self.body_faces,
-                               candidates=self.settings.distance_candidates,
-                               body_edges=self.body_edges).distance
-
     def contact_planes(self, x: Tensor, body_pos: Tensor, radius: Optional[float] = None
                        ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """Linearised contacts for the vertices of ``x`` within ``margin + radius``
