@@ -143,3 +143,31 @@ def test_skin_prior_is_the_starting_point_of_the_learned_weights(scene):
     assert not torch.allclose(W_free, W, atol=1e-2)
     with pytest.raises(ValueError, match="skin_prior"):
         model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd, skin_prior=prior[:, :3])
+
+
+def test_lbs_start_is_exactly_lbs_until_the_gates_open(scene):
+    """``lbs_start``: the untrained model is LBS of the rest garment with the prior
+    weights (Eq. 1, no blend shape, no acceleration); the zero gates still get gradient,
+    and once open, every branch does."""
+    from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+    body, g, ei, ny, bd, rots, tr = scene
+    model = build(body, ny, lbs_start=True)
+    V, S = g.vertices.shape[0], body.skeleton.num_joints
+    prior = torch.softmax(3 * torch.randn(V, S, generator=torch.Generator().manual_seed(1)), -1)
+    static = model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd, skin_prior=prior)
+    out = run(model, scene, static=static)
+    A, _ = forward_kinematics(rots[:, -1], body.joints, body.skeleton.parents, tr[:, -1])
+    W = prior.clamp_min(1e-4) / prior.clamp_min(1e-4).sum(-1, keepdim=True)
+    torch.testing.assert_close(out["final"], linear_blend_skinning(g.vertices, W, A),
+                               atol=1e-5, rtol=1e-5)
+    out["final"].square().mean().backward()
+    assert (model.gates.grad.abs() > 0).all()
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.dynamic.parameters())
+    with torch.no_grad():
+        model.gates.fill_(0.5)
+    model.zero_grad()
+    run(model, scene, static=model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd,
+                                                 skin_prior=prior))["final"].square().mean().backward()
+    for name in ("rest_fc", "rest_attn", "nystrom_fc", "body_fc", "gru", "blend", "dynamic"):
+        grads = [p.grad for p in getattr(model, name).parameters() if p.grad is not None]
+        assert grads and any(gr.abs().sum() > 0 for gr in grads), name

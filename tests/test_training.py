@@ -136,6 +136,8 @@ def test_schedule_passes_all_three_phases(root):
 def test_frozen_rest_branch_does_not_change(root):
     dm, module = make(root)
     sched = ProgressiveSchedule(start_phase=3)
+    with torch.no_grad():  # open the lbs_start gates so every branch gets gradient at once
+        module.model.gates.fill_(0.5)
     before = [p.detach().clone() for p in module.rest_branch_parameters()]
     dyn = [p.detach().clone() for p in module.model.dynamic.parameters()]
     trainer(1, callbacks=[sched], limit_train_batches=1, limit_val_batches=0).fit(module, dm)

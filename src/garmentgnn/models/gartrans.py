@@ -140,11 +140,19 @@ class GarTrans(nn.Module):
         rest_layer, blend_layer, dynamic_layer: registry names of the three slots.
         heads: attention heads (4 in the paper).
         fps: frame rate (for velocities and ``dt^2``).
+        lbs_start: ReZero-style gates (Bachlechner et al., 2021), three learnable
+            scalars initialised to 0 that scale what each learned branch adds to plain
+            skinning: ``W^t = softmax(log W_prior + g_W x3)``,
+            ``T^t = T + g_B B^t``, ``M^{t,d} = M^{t,c} + g_a a dt^2``.  With a skinning
+            prior the untrained model is then exactly LBS with the prior weights, and
+            training moves away from it only as far as the losses ask (docs/model.md).
+            The layers keep the §4.1 initialisation.  ``False``: the paper's form.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
-                 heads: int = 4, fps: float = 30.0, edge_dim: int = 4) -> None:
+                 heads: int = 4, fps: float = 30.0, edge_dim: int = 4,
+                 lbs_start: bool = False) -> None:
         super().__init__()
         S = num_joints
         self.num_joints, self.fps, self.edge_dim = S, fps, edge_dim
@@ -162,6 +170,8 @@ class GarTrans(nn.Module):
                                     last_act=False)
         self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S, [32, 64, 64, 64, 32, 3], heads,
                                       edge_dim, "elu", last_act=False)
+        #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
+        self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -175,6 +185,11 @@ class GarTrans(nn.Module):
                 nn.init.zeros_(p)
         for stack in (self.rest_attn, self.blend, self.dynamic):
             stack.reset_parameters()
+        if self.gates is not None:
+            nn.init.zeros_(self.gates)
+
+    def _gate(self, i: int, x: Tensor) -> Tensor:
+        return x if self.gates is None else self.gates[i] * x
 
     # -- static branch --------------------------------------------------------
     def encode_static(self, rest_pos: Tensor, faces: Tensor, edge_index: Tensor,
@@ -229,12 +244,13 @@ class GarTrans(nn.Module):
         B, H = rotations.shape[:2]
         V = rest_pos.shape[0]
         x3 = static.x2.unsqueeze(0) * self.motion_code(rotations, translation).unsqueeze(1)
-        W = torch.softmax(x3 if static.log_prior is None else x3 + static.log_prior, -1)  # W^t
+        logits = x3 if static.log_prior is None else self._gate(0, x3) + static.log_prior
+        W = torch.softmax(logits, -1)  # W^t
         e = edge_features(rest_pos, edge_index).repeat(B, 1)
         blend = self.blend(x3.reshape(B * V, -1), batch_edges(edge_index, B, V), e)
         # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so a
         # freshly initialised model starts near its skinned rest garment, not ~30 cm off
-        template = rest_pos.unsqueeze(0) + BLEND_UNIT * blend.view(B, V, 3)
+        template = rest_pos.unsqueeze(0) + self._gate(1, BLEND_UNIT * blend.view(B, V, 3))
         rot2 = rotations[:, -2:].reshape(B * 2, *rotations.shape[2:])
         tr2 = translation[:, -2:].reshape(B * 2, 3)
         A, joints = forward_kinematics(rot2, rest_joints, parents, tr2)
@@ -278,7 +294,7 @@ class GarTrans(nn.Module):
         ei = batch_edges(edge_index, B, V)
         e = edge_features(cur.reshape(B * V, 3), ei)
         accel = self.dynamic(x, ei, e).view(B, V, 3)
-        final = cur + accel / self.fps ** 2
+        final = cur + self._gate(2, accel / self.fps ** 2)
         return {"final": final, "coarse": cur, "accel": accel, "weights": W}
 
     def rollout(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,

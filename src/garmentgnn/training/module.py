@@ -42,6 +42,9 @@ class GarTransModule(L.LightningModule):
         skin_prior: start the learned skinning weights from the body's weights
             transferred to the garment (``encode_static(skin_prior=...)``); ``False`` is
             the paper's from-scratch ``W^t``.
+        lbs_start: zero-initialised gates on what the learned branches add to LBS
+            (:class:`GarTrans`'s ``lbs_start``), so training starts from the "LBS only"
+            coarse garment; needs ``skin_prior``.  ``False``: the paper's form.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -50,13 +53,17 @@ class GarTransModule(L.LightningModule):
                  eta_min: float = 0.0, loss_weights: dict[str, float] | None = None,
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 use_body: bool = True, skin_prior: bool = True) -> None:
+                 use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True) -> None:
         super().__init__()
+        if lbs_start and not skin_prior:
+            raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
+                             "(or set `lbs_start=False`)")
         enabled = sorted(enabled)
         self.save_hyperparameters()
         self.model = GarTrans(num_joints, num_body_vertices, nystrom_dim=nystrom_dim,
                               rest_layer=rest_layer, blend_layer=blend_layer,
-                              dynamic_layer=dynamic_layer, heads=heads, fps=fps)
+                              dynamic_layer=dynamic_layer, heads=heads, fps=fps,
+                              lbs_start=lbs_start)
         # only one of the body code paths is ever used; freeze the other (DDP requires
         # every trainable parameter to receive a gradient)
         unused = self.model.body_default if use_body else self.model.body_fc
