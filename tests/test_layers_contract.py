@@ -186,3 +186,19 @@ def test_widths_and_reset(name, concat):
     after = list(layer.parameters())
     assert any(not torch.equal(a, b) for a, b in zip(before, after))
     assert type(layer).__name__ in repr(layer)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_cpu_autocast_low_precision(name, dtype, mesh_graph):
+    """CPU autocast works (the CSR kernels have no CPU half kernels, so low-precision
+    operands take the gather/scatter path) and stays near float32."""
+    pos, _, ei, e = mesh_graph
+    x = torch.cat([pos, pos.flip(-1)], -1)
+    layer = build(name).eval()
+    ref, _ = run(layer, x, ei, e)
+    with torch.no_grad(), torch.autocast("cpu", dtype=dtype):
+        out, _ = run(layer, x, ei, e)
+    assert torch.isfinite(out).all()
+    tol = 0.05 if dtype == torch.bfloat16 else 0.01
+    assert (out.float() - ref).abs().max() <= tol * (1 + ref.abs().max())

@@ -83,7 +83,7 @@ class AttentionConv(MessagePassing):
     @staticmethod
     def edge_scores(q: Tensor, k: Tensor, g: Graph) -> Tensor:
         """``q_i . k_j`` per edge ``j -> i`` and head, ``[E, H]``."""
-        if use_csr_kernels(g):
+        if use_csr_kernels(g, q, k):
             return csr_sddmm(q, k, g)
         # contiguous first: gathering rows of a strided [N, H, C] view is several times slower
         q_i = q.contiguous().index_select(0, g.edge_index[1])
@@ -91,7 +91,7 @@ class AttentionConv(MessagePassing):
 
     def aggregate_values(self, alpha: Tensor, v: Tensor, g: Graph) -> Tensor:
         """``sum_j alpha_ij v_j`` per head, ``[N_dst, H, C]``."""
-        if use_csr_kernels(g):
+        if use_csr_kernels(g, alpha, v):
             return csr_spmm(alpha, v, g)
         return self.propagate(g.edge_index, v=v.contiguous(), alpha=alpha, ptr_=g.ptr,
                               size=(g.num_src, g.num_dst))
@@ -99,7 +99,7 @@ class AttentionConv(MessagePassing):
     @staticmethod
     def aggregate_edges(alpha: Tensor, e: Tensor, g: Graph) -> Tensor:
         """``sum_j alpha_ij e_ij`` per head for edge values ``[E, D]``: ``[N_dst, H, D]``."""
-        if use_csr_kernels(g):
+        if use_csr_kernels(g, alpha, e):
             return csr_edge_spmm(alpha, e, g)
         return segment_sum(alpha.unsqueeze(-1) * e.unsqueeze(1), g.edge_index[1], g.ptr, g.num_dst)
 

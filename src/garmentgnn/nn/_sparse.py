@@ -54,9 +54,16 @@ def csr_kernels(enabled: bool) -> Iterator[None]:
         _ENABLED = before
 
 
-def use_csr_kernels(g: Graph) -> bool:
-    """True when the sparse-kernel path applies: CSR-ordered edges, eager mode, enabled."""
-    return _ENABLED and g.csr and g.ptr is not None and not is_compiling()
+#: dtypes PyTorch's sparse CSR kernels support on every device (no CPU half kernels)
+CSR_DTYPES = (torch.float32, torch.float64)
+
+
+def use_csr_kernels(g: Graph, *operands: Tensor) -> bool:
+    """True when the sparse-kernel path applies: CSR-ordered edges, eager mode, enabled,
+    and every operand in :data:`CSR_DTYPES` (bfloat16/float16 inputs, e.g. under
+    ``torch.autocast``, take the gather/scatter path)."""
+    return (_ENABLED and g.csr and g.ptr is not None and not is_compiling()
+            and all(t.dtype in CSR_DTYPES for t in operands))
 
 
 class HeadPattern:
