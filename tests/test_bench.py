@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from garmentgnn.bench import harness, report, stability, timing
+from garmentgnn.bench import harness, precision, report, stability, timing
 from garmentgnn.cli import main as cli_main
 
 
@@ -27,7 +27,7 @@ def _numbers(obj):
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     t0 = time.perf_counter()
-    summary = harness.run(harness.preset("tiny"), out, progress=False)
+    summary = harness.run(harness.preset("tiny"), out, progress=False, learned=False)
     return out, summary, time.perf_counter() - t0
 
 
@@ -36,7 +36,7 @@ def test_tiny_preset_report(tiny_run):
     p = harness.preset("tiny")
     expected = len(harness.tasks(p, [0]))
     assert summary.ran == expected and summary.skipped == 0
-    for name in ("results.json", "report.md", "pareto.png"):
+    for name in ("results.json", "report.md", "pareto.png", "scaling.png"):
         assert (out / name).stat().st_size > 0
     res = json.loads((out / "results.json").read_text())
     assert set(res) == {"meta", "summary", "not_run", "records"}
@@ -58,7 +58,8 @@ def test_tiny_preset_report(tiny_run):
     stab = [r for r in recs if r["kind"] == "stability"]
     assert {r["case"] for r in stab} == set(p.stability_cases)
     assert all(r["verdict"] in ("stable", "degraded", "failed") for r in stab)
-    # nothing was run for the learned methods, and the report says so without numbers
+    # nothing was run for the learned methods (learned=False; tests/test_bench_learned.py
+    # runs them), and the report says so without numbers
     assert set(harness.PLANNED) <= set(res["not_run"])
     md = (out / "report.md").read_text()
     assert "shaped like Table 1" in md and "shaped like Table 3" in md and "## Stability" in md
@@ -66,10 +67,45 @@ def test_tiny_preset_report(tiny_run):
         assert f"- {name}: not run" in md
 
 
+def test_tiny_preset_extra_reports(tiny_run):
+    """Scaling, leave-out, precision and long-sequence records and report sections."""
+    out, _, _ = tiny_run
+    p = harness.preset("tiny")
+    recs = json.loads((out / "results.json").read_text())["records"]
+    by_kind = {k: [r for r in recs if r["kind"] == k]
+               for k in ("scaling", "leaveout", "precision", "long_sequence")}
+    for kind, rs in by_kind.items():
+        assert rs and all(r["status"] == "ok" for r in rs), (kind, [r["message"] for r in rs])
+    sc = by_kind["scaling"]
+    assert sorted(r["resolution"] for r in sc) == sorted(p.scaling_resolutions)
+    for r in sc:
+        assert r["timing"]["cached"]["latency_ms"] > 0
+        assert r["max_abs_diff_cached_vs_uncached_m"] <= 1e-6
+    assert (out / "scaling.png").stat().st_size > 0
+    lo = by_kind["leaveout"][0]
+    assert lo["case"] == p.cases[0]["name"]
+    assert lo["scenes"]["full"]["branches"]["body_fc"] == 1
+    assert lo["scenes"]["no_body"]["branches"]["body_fc"] == 0
+    assert {r["method"] for r in by_kind["precision"]} == set(
+        precision.METHODS[m] for m in p.precision_methods)
+    for r in by_kind["precision"]:
+        f32 = next(w for w in r["rows"] if w["dtype"] == "float32")
+        assert f32["max_dev_m"] == 0.0
+        assert all(w["verdict"] in ("stable", "degraded", "failed") for w in r["rows"])
+    long_ = by_kind["long_sequence"][0]
+    assert long_["metrics"]["frames"] == p.long_item["motion"]["num_frames"]
+    assert long_["verdict"] in ("stable", "degraded", "failed")
+    md = (out / "report.md").read_text()
+    for title in ("## Scaling", "## Leave-out", "## Reduced precision", "## Long sequence"):
+        assert title in md
+    assert "![Scaling](scaling.png)" in md
+    assert "Reference simulator on the long sequence: **not run**" in md
+
+
 def test_rerun_skips_finished_records(tiny_run):
     out, _, _ = tiny_run
     before = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
-    summary = harness.run(harness.preset("tiny"), out, progress=False)
+    summary = harness.run(harness.preset("tiny"), out, progress=False, learned=False)
     assert summary.ran == 0 and summary.skipped == len(before)
     after = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
     assert after == before
@@ -81,7 +117,7 @@ def test_deleted_record_is_rerun_and_leftovers_removed(tiny_run):
     rec.unlink()
     stale = rec.with_name(f".{rec.name}.tmp-99999")
     stale.write_text('{"half": ')  # a killed writer's leftover
-    summary = harness.run(harness.preset("tiny"), out, progress=False)
+    summary = harness.run(harness.preset("tiny"), out, progress=False, learned=False)
     assert summary.ran == 1
     assert json.loads(rec.read_text())["status"] == "ok"
     assert not stale.exists()

@@ -1,5 +1,6 @@
 """Benchmark harness (issue 6): accuracy against a reference simulation, run time and
-memory, and a stability suite; ``garmentgnn bench`` (see :mod:`garmentgnn.bench.cli`)."""
+memory, a stability suite, and scaling / leave-out / reduced-precision / long-sequence
+reports; ``garmentgnn bench`` (see :mod:`garmentgnn.bench.cli`)."""
 from garmentgnn.bench.harness import (METHODS, PLANNED, PRESET_NAMES, Prediction, Preset,
                                       SimBudget, preset, register, run)
 from garmentgnn.bench.report import write_report

@@ -1,4 +1,4 @@
-"""``garmentgnn bench --preset tiny|small --out DIR [--seeds N]``.
+"""``garmentgnn bench --preset tiny|small --out DIR [--seeds N] [--data DATASET] [--no-learned]``.
 
 :mod:`garmentgnn.cli` adds it with ``add_parser(subparsers)`` and calls ``main(args)``
 for ``args.command == "bench"``.
@@ -18,7 +18,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--preset", choices=PRESET_NAMES, default="tiny")
     b.add_argument("--out", required=True, help="output folder (rerun to resume)")
     b.add_argument("--seeds", type=int, default=None,
-                   help="number of seeds (default: the preset's)")
+                   help="number of seeds, of the simulated cases and of the learned methods' "
+                        "training (default: the preset's)")
+    b.add_argument("--data", default=None,
+                   help="an existing generated dataset folder for the learned methods "
+                        "(default: generate the preset's dataset under OUT/data)")
+    b.add_argument("--no-learned", action="store_true",
+                   help="do not train/evaluate the learned methods (no dataset needed)")
     b.add_argument("--retry-failed", action="store_true", help="rerun records marked failed")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     return b
@@ -31,7 +37,16 @@ def main(args: argparse.Namespace) -> int:
     if args.seeds is not None and args.seeds < 1:
         print(f"error: --seeds must be positive, got {args.seeds}", file=sys.stderr)
         return 2
-    summary = run(preset(args.preset), args.out, seeds=args.seeds,
-                  progress=not args.no_progress, retry_failed=args.retry_failed)
+    if args.data is not None and args.no_learned:
+        print("error: --data and --no-learned exclude each other", file=sys.stderr)
+        return 2
+    from garmentgnn.data.generate import SpecMismatch
+    try:
+        summary = run(preset(args.preset), args.out, seeds=args.seeds,
+                      progress=not args.no_progress, retry_failed=args.retry_failed,
+                      data=args.data, learned=not args.no_learned)
+    except (ValueError, SpecMismatch) as err:  # bad arguments / a dataset folder of another spec
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     print(summary)
     return 0

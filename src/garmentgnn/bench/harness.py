@@ -6,6 +6,10 @@ Layout of ``OUT``::
     OUT/records/<kind>--<case>--<method>--s<seed>.json   one result each (atomic write)
     OUT/cache/gt--<case>--s<seed>.pt                      reference simulation (atomic)
     OUT/results.json, OUT/report.md, OUT/pareto.png       written at the end
+    OUT/scaling.png                                       when scaling records exist
+    OUT/data/                       the learned methods' generated dataset (unless --data)
+    OUT/models/<method>--s<seed>/   their checkpoints (resumed from), run.json
+    OUT/pareto_learned.png          when learned records exist
 
 A rerun skips every task whose record file exists and is valid (failed records
 included, unless ``retry_failed``); temporaries of a killed run are deleted first.
@@ -14,7 +18,13 @@ included, unless ``retry_failed``); temporaries of a killed run are deleted firs
 errors (:func:`garmentgnn.metrics.evaluate`) are against the reference simulator at the
 preset's finest budget, over frames ``1..T-1`` (frame 0 is the skinned initial state
 shared by every method).  **Stability tasks** (case x seed) run the reference
-simulator on :mod:`garmentgnn.bench.stability`'s cases.
+simulator on :mod:`garmentgnn.bench.stability`'s cases.  **Extra reports** (first
+seed only): :mod:`~garmentgnn.bench.scaling` (one record per garment size),
+:mod:`~garmentgnn.bench.leaveout`, :mod:`~garmentgnn.bench.precision` (per method, and
+the long autoregressive sequence).  **Learned tasks** (method x training seed,
+:mod:`garmentgnn.bench.learned`): GarTrans, its Table 1 variants and the DA / HOOD /
+NCS-style baselines trained on a generated dataset's train split and scored on its
+test split, with LBS as the reference row.
 
 Methods are looked up by name in :data:`METHODS`; :func:`register` adds one (e.g. a
 trained GarTrans variant or learned baseline).  Names in :data:`PLANNED` that produce
@@ -35,6 +45,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from garmentgnn.bench import leaveout, precision, scaling
+from garmentgnn.bench import learned as learned_mod
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.report import STATUSES, check_record, write_report
 from garmentgnn.bench.sequences import BenchSequence, case_item, make_sequence
@@ -75,6 +87,21 @@ class Preset:
         batches: batch sizes of the throughput sweep (batchable methods).
         warmup, repeats: timing warm-up calls and timed calls (median reported).
         threads: ``torch.set_num_threads`` during the run.
+        scaling_item, scaling_resolutions: :mod:`garmentgnn.bench.scaling`'s garment
+            (a case item; its resolution is replaced) and the requested resolutions.
+        leaveout: run :mod:`garmentgnn.bench.leaveout` on the first accuracy case
+            (supervised loss terms against its reference simulation).
+        precision_methods: :data:`garmentgnn.bench.precision.METHODS` keys run in
+            float32 / bfloat16 / float16 on the first accuracy case.
+        long_item: the case of :func:`garmentgnn.bench.precision.run_long`.
+        model_inputs: ``history``, ``nystrom_dim``, ``num_landmarks`` of the GarTrans
+            inputs (the data module's settings in ``configs/``).
+        dataset: the :func:`garmentgnn.data.generate.preset` the learned methods train
+            and are tested on (generated under ``OUT/data`` unless ``run(data=...)``).
+        learned: what :mod:`garmentgnn.bench.learned` trains (methods, seeds, epochs,
+            schedule window); ``None``: no learned methods.
+        data_workers: worker processes generating the dataset.
+        These extra reports run for the first seed only.
     """
 
     name: str
@@ -90,13 +117,24 @@ class Preset:
     warmup: int = 2
     repeats: int = 5
     threads: int = 1
+    scaling_item: Optional[Dict[str, Any]] = None
+    scaling_resolutions: Tuple[int, ...] = ()
+    leaveout: bool = False
+    precision_methods: Tuple[str, ...] = ()
+    long_item: Optional[Dict[str, Any]] = None
+    model_inputs: Dict[str, int] = field(default_factory=lambda: {
+        "history": 3, "nystrom_dim": 16, "num_landmarks": 64})
+    dataset: Optional[str] = None
+    learned: Optional[learned_mod.LearnedBudget] = None
+    data_workers: int = 1
 
     def method_names(self) -> List[str]:
         return [self.reference.name] + [b.name for b in self.budgets] + list(self.methods)
 
 
 def preset(name: str) -> Preset:
-    """``tiny`` (a smoke test: well under a minute on 2 cores) or ``small`` (minutes)."""
+    """``tiny`` (a smoke test: about 5 min on 2 cores, 2 of them generating its dataset)
+    or ``small`` (about 70 min, half of it generating its dataset; see docs/bench.md)."""
     if name == "tiny":
         return Preset(
             name="tiny",
@@ -106,7 +144,13 @@ def preset(name: str) -> Preset:
             budgets=(SimBudget(1, 30), SimBudget(4, 5)),
             stability_item=case_item("stability", "skirt", 200, "walk", 3, {"length": "mini"}),
             stability_cases=("stiff_x1000", "fast_x5", "zero_area_face"),
-            batches=(1, 8), warmup=1, repeats=3)
+            batches=(1, 8), warmup=1, repeats=3,
+            scaling_item=_SCALING_ITEM, scaling_resolutions=(300, 600), leaveout=True,
+            precision_methods=tuple(precision.METHODS),
+            long_item=case_item("long-skirt-walk", "skirt", 200, "walk", 100,
+                                {"length": "mini"}),
+            dataset="tiny", data_workers=1,
+            learned=learned_mod.LearnedBudget(seeds=1, epochs=1, window=1, ncs_epochs=1))
     if name == "small":
         return Preset(
             name="small",
@@ -119,11 +163,20 @@ def preset(name: str) -> Preset:
                      SimBudget(4, 10)),
             stability_item=case_item("stability", "skirt", 200, "walk", 6, {"length": "mini"}),
             stability_cases=tuple(stab.CASES),
-            batches=(1, 4, 16, 64))
+            batches=(1, 4, 16, 64),
+            scaling_item=_SCALING_ITEM, scaling_resolutions=(1000, 2000, 4000, 8000, 14000),
+            leaveout=True, precision_methods=tuple(precision.METHODS),
+            long_item=case_item("long-skirt-walk", "skirt", 200, "walk", 1000,
+                                {"length": "mini"}),
+            # sized in docs/bench.md ("Learned methods")
+            dataset="small", data_workers=2,
+            learned=learned_mod.LearnedBudget(seeds=3, epochs=4, window=1, ncs_epochs=8))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 
 PRESET_NAMES = ("tiny", "small")
+#: the scaling garment (its resolution is replaced per size): a knee skirt, walking
+_SCALING_ITEM = case_item("scaling-skirt-walk", "skirt", 1000, "walk", 8, {"length": "knee"})
 
 
 # --------------------------------------------------------------------------- methods
@@ -143,12 +196,10 @@ Method = Callable[[BenchSequence, Preset], Prediction]
 #: name -> factory(preset) -> method
 METHODS: Dict[str, Callable[[Preset], Method]] = {}
 
-#: The comparison this harness is for (paper Tables 1 and 3).  Entries without a
-#: registered factory (or not in the preset) show up as "not run".
-PLANNED: Tuple[str, ...] = (
-    "GarTrans (SAT)", "GarTrans w/o edge processing", "GarTrans w/o edge gating",
-    "GarTrans structure-aware transformer", "GarTrans w/o unsupervised loss",
-    "NCS-style", "HOOD-style", "DA-style")
+#: The comparison this harness is for (paper Tables 1 and 3): the learned methods of
+#: :mod:`garmentgnn.bench.learned`.  Those that produce no record (not in the preset's
+#: budget, or ``run(learned=False)``) show up as "not run".
+PLANNED: Tuple[str, ...] = learned_mod.METHOD_NAMES
 
 
 def register(name: str, factory: Callable[[Preset], Method], overwrite: bool = False) -> None:
@@ -346,8 +397,11 @@ def _accuracy_record(ctx: _Context, method: str, item: Dict[str, Any], seed: int
     return rec
 
 
-def tasks(p: Preset, seeds: Sequence[int]) -> List[Tuple[str, str, Dict[str, Any], int]]:
-    """Every ``(kind, method, case item, seed)`` of a preset, in run order."""
+def tasks(p: Preset, seeds: Sequence[int], learned_seeds: Sequence[int] = (),
+          data_case: Optional[str] = None) -> List[Tuple[str, str, Dict[str, Any], int]]:
+    """Every ``(kind, method, case item, seed)`` of a preset, in run order; the learned
+    methods (``p.learned``) for each of ``learned_seeds``, on the dataset ``data_case``
+    (:attr:`garmentgnn.bench.learned.DatasetInfo.case`)."""
     out: List[Tuple[str, str, Dict[str, Any], int]] = []
     for seed in seeds:
         for item in p.cases:
@@ -355,12 +409,61 @@ def tasks(p: Preset, seeds: Sequence[int]) -> List[Tuple[str, str, Dict[str, Any
                 out.append(("accuracy", m, item, seed))
         for case in p.stability_cases:
             out.append(("stability", "sim", dict(p.stability_item, name=case), seed))
+    if seeds:  # the extra reports: first seed only
+        s0 = seeds[0]
+        if p.scaling_item is not None:
+            for it in scaling.scaling_items(p.scaling_item, p.scaling_resolutions):
+                out.append(("scaling", scaling.METHOD, it, s0))
+        if p.leaveout and p.cases:
+            out.append(("leaveout", leaveout.METHOD, p.cases[0], s0))
+        for m in p.precision_methods:
+            if p.cases:
+                out.append(("precision", precision.METHODS[m], p.cases[0], s0))
+        if p.long_item is not None:
+            out.append(("long_sequence", precision.LONG_METHOD, p.long_item, s0))
+    if learned_seeds and p.learned is not None:
+        if not data_case:
+            raise ValueError("`data_case`: the learned tasks need the dataset's case name")
+        for i, seed in enumerate(learned_seeds):
+            for m in p.learned.methods:
+                if i == 0 or m not in learned_mod.SEED_FREE:
+                    out.append(("learned", m, {"name": data_case}, seed))
     return out
 
 
+def _extra_record(ctx: _Context, kind: str, method: str, item: Dict[str, Any], seed: int
+                  ) -> Dict[str, Any]:
+    """A scaling / leave-out / precision / long-sequence record (those modules turn
+    their own exceptions into failed records)."""
+    p = ctx.p
+    kw = dict(p.model_inputs, seed=seed)
+    if kind == "scaling":
+        return scaling.run_record(item, warmup=p.warmup, repeats=p.repeats, **kw)
+    if kind == "long_sequence":
+        return precision.run_long(item, **kw)
+    if kind == "precision":
+        key = {v: k for k, v in precision.METHODS.items()}[method]
+        return precision.run_record(ctx.sequence(item, seed), key, warmup=p.warmup,
+                                    repeats=p.repeats, **kw)
+    if kind == "leaveout":
+        gt = ctx.ground_truth(item, seed)
+        if not gt["ok"]:
+            return {"kind": kind, "method": method, "case": item["name"], "seed": seed,
+                    "status": "failed", "message": f"ground truth ({p.reference.name}) "
+                                                   f"failed: {gt['message']}"}
+        return leaveout.run_record(ctx.sequence(item, seed), gt["positions"],
+                                   warmup=p.warmup, repeats=p.repeats, **kw)
+    raise ValueError(f"`kind`: unknown task kind {kind!r}")
+
+
 def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
-        retry_failed: bool = False) -> RunSummary:
-    """Run (or resume) preset ``p`` into ``out`` and write the report."""
+        retry_failed: bool = False, data=None, learned: bool = True) -> RunSummary:
+    """Run (or resume) preset ``p`` into ``out`` and write the report.
+
+    ``seeds`` overrides both the preset's seeds and its learned methods' training seeds.
+    The learned methods (``p.learned``, unless ``learned=False``) train on the dataset
+    ``data`` (a generated dataset folder) or, by default, on ``p.dataset`` generated
+    (resumably) under ``OUT/data``."""
     from tqdm.auto import tqdm
 
     if not isinstance(p, Preset):
@@ -371,13 +474,26 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     for m in p.methods:
         if m not in METHODS:
             raise ValueError(f"`p.methods`: {m!r} is not registered; known: {sorted(METHODS)}")
+    if data is not None and (not learned or p.learned is None):
+        raise ValueError("`data`: given, but no learned methods run (learned=False or the "
+                         "preset has none)")
     out = Path(out)
     for sub in ("records", "cache"):
         (out / sub).mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(out / sub)
     remove_stale_temporaries(out)
     t0 = time.perf_counter()
-    todo = tasks(p, list(range(n)))
+    runner, lseeds, data_info = None, [], None
+    if learned and p.learned is not None:
+        if data is None and not p.dataset:
+            raise ValueError("`p.dataset`: the preset has learned methods but no dataset")
+        data_info = learned_mod.prepare_dataset(
+            out / "data" if data is None else data, p.dataset if data is None else None,
+            workers=p.data_workers, progress=progress)
+        runner = learned_mod.LearnedRunner(data_info, p.learned, out, p.batches, p.warmup,
+                                           p.repeats)
+        lseeds = list(range(p.learned.seeds if seeds is None else n))
+    todo = tasks(p, list(range(n)), lseeds, data_info.case if data_info else None)
     ctx = _Context(p, out)
     records: List[Dict[str, Any]] = []
     ran = skipped = 0
@@ -393,10 +509,14 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
                 bar.set_postfix_str(f"{kind} {method} {case} s{seed}", refresh=False)
                 if kind == "accuracy":
                     rec = _accuracy_record(ctx, method, item, seed)
-                else:
+                elif kind == "stability":
                     settings = dict(p.stability_settings)
                     rec = stab.run_case(case, p.stability_item, seed,
                                         stab.simulator_predictor(**settings), method)
+                elif kind == "learned":
+                    rec = runner.record(method, seed)
+                else:
+                    rec = _extra_record(ctx, kind, method, item, seed)
                 rec = _json_safe(_finalize(rec))
                 atomic_write_json(path, rec)
                 ran += 1
@@ -410,6 +530,8 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
             "code": code_version(),
             "reference": p.reference.name + " (ground truth)",
             "preset_config": _json_safe(asdict(p))}
+    if data_info is not None:
+        meta["dataset"] = data_info.to_json()
     paths = write_report(records, out, not_run, meta)
     failed = sum(r["status"] == "failed" for r in records)
     return RunSummary(ran, skipped, failed, time.perf_counter() - t0, paths)

@@ -1,9 +1,10 @@
 """Benchmark report: ``results.json``, ``report.md`` (tables shaped like the paper's
-Tables 1 and 3, mean +- std over seeds; a stability table) and ``pareto.png``.
+Tables 1 and 3, mean +- std over seeds; a stability table; scaling, leave-out,
+precision and long-sequence sections), ``pareto.png`` and ``scaling.png``.
 
 A **record** is a JSON-able dict:
 
-* common: ``kind`` (``"accuracy"`` or ``"stability"``), ``method``, ``case``, ``seed``,
+* common: ``kind`` (one of :data:`KINDS`), ``method``, ``case``, ``seed``,
   ``status`` (``"ok"`` or ``"failed"``), ``message``.
 * accuracy: ``metrics`` with ``E_dist`` (cm), ``E_vnorm``, ``E_fnorm`` (deg), ``E_len``
   (%), ``E_curv`` (rad), ``collision_rate`` (%); ``timing`` with ``latency_ms`` (one
@@ -11,6 +12,12 @@ A **record** is a JSON-able dict:
   ``threads``; optionally ``reference: true`` (the ground truth's own run).
 * stability: ``verdict`` (stable / degraded / failed), ``reason``, ``metrics`` from
   :func:`garmentgnn.bench.stability.stability_metrics`.
+* learned: a method trained and scored on a generated dataset's test split
+  (:mod:`garmentgnn.bench.learned`): ``metrics`` as accuracy, ``timing``,
+  ``train_seconds``, ``epochs``.
+* scaling / leaveout / precision / long_sequence: see :mod:`garmentgnn.bench.scaling`,
+  :mod:`~garmentgnn.bench.leaveout`, :mod:`~garmentgnn.bench.precision` (an ok record
+  holds the field :data:`EXTRA_REQUIRED` names).
 
 Every number of a record must be finite unless its ``status`` is ``"failed"``;
 non-finite numbers of failed records are written as ``null`` and shown as failed.
@@ -28,7 +35,11 @@ from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 METRICS: Tuple[str, ...] = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
 UNITS = {"E_dist": "cm", "E_vnorm": "deg", "E_fnorm": "deg", "E_len": "%", "E_curv": "rad",
          "collision_rate": "%"}
-KINDS = ("accuracy", "stability")
+KINDS = ("accuracy", "stability", "scaling", "leaveout", "precision", "long_sequence",
+         "learned")
+#: the field an ok record of each extra kind must hold (their modules document the rest)
+EXTRA_REQUIRED = {"scaling": "timing", "leaveout": "scenes", "precision": "rows",
+                  "long_sequence": "verdict"}
 STATUSES = ("ok", "failed")
 
 
@@ -75,12 +86,15 @@ def check_record(rec: Dict[str, Any]) -> Dict[str, Any]:
     if bad and rec["status"] != "failed":
         raise ValueError(f"`records`: non-finite number(s) at {bad} in {where}; mark the "
                          "record failed (status='failed') if the method produced them")
-    if rec["status"] == "ok" and rec["kind"] == "accuracy":
+    if rec["status"] == "ok" and rec["kind"] in ("accuracy", "learned"):
         missing = [m for m in METRICS if m not in rec.get("metrics", {})]
         if missing:
-            raise ValueError(f"`records`: accuracy record {where} lacks metric(s) {missing}")
+            raise ValueError(f"`records`: {rec['kind']} record {where} lacks metric(s) {missing}")
     if rec["status"] == "ok" and rec["kind"] == "stability" and "verdict" not in rec:
         raise ValueError(f"`records`: stability record {where} lacks a verdict")
+    need = EXTRA_REQUIRED.get(rec["kind"])
+    if rec["status"] == "ok" and need is not None and need not in rec:
+        raise ValueError(f"`records`: {rec['kind']} record {where} lacks {need!r}")
     return _sanitize(rec)
 
 
@@ -160,8 +174,9 @@ def _label(method: str, rs: List[Dict[str, Any]]) -> str:
 
 
 def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = (),
-                    meta: Optional[Dict[str, Any]] = None, pareto_png: Optional[str] = None
-                    ) -> str:
+                    meta: Optional[Dict[str, Any]] = None, pareto_png: Optional[str] = None,
+                    scaling_png: Optional[str] = None,
+                    learned_png: Optional[str] = None) -> str:
     """The ``report.md`` text."""
     meta = meta or {}
     lines = ["# Benchmark report", ""]
@@ -230,6 +245,13 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                          "unconverged frames", "reason"], rows) + [""]
     else:
         lines += ["No stability records.", ""]
+    # they import this module
+    from garmentgnn.bench import learned, leaveout, precision, scaling
+    lines += learned.markdown(records, learned_png)
+    lines += scaling.markdown(records, scaling_png)
+    lines += leaveout.markdown(records)
+    lines += precision.markdown(records)
+    lines += precision.long_markdown(records)
     failed = [r for r in records if r["status"] == "failed"]
     if failed:
         lines += ["## Failures", ""]
@@ -244,7 +266,10 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
     else:
         lines += ["(none)", ""]
     if pareto_png:
-        lines += ["## Error against run time", "", f"![Pareto]({pareto_png})", ""]
+        lines += ["## Error against run time", "", "The accuracy cases above (simulator "
+                  "budgets and registered methods); learned methods on the dataset's test "
+                  "split, if run, are plotted separately (`pareto_learned.png`, in their "
+                  "section).", "", f"![Pareto]({pareto_png})", ""]
     return "\n".join(lines)
 
 
@@ -257,6 +282,12 @@ def plot_pareto(records: Sequence[Dict[str, Any]], path: Path) -> Optional[Path]
            if "latency_ms" in e and "E_dist" in e and e["latency_ms"]["mean"] > 0]
     if not pts:
         return None
+    return plot_points(pts, path, "Error against run time")
+
+
+def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str) -> Path:
+    """Scatter ``(name, latency ms, E_dist cm)`` points on a log latency axis, the Pareto
+    front joined, into the PNG ``path``."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -274,9 +305,17 @@ def plot_pareto(records: Sequence[Dict[str, Any]], path: Path) -> Optional[Path]
     ax.set_xscale("log")
     ax.set_xlabel("latency per frame at batch 1 (ms, log)")
     ax.set_ylabel("E_dist (cm)")
-    ax.set_title("Error against run time")
+    ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def save_figure(fig, path) -> Path:
+    """Write a matplotlib figure to ``path`` (PNG, write-then-rename) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp.png")
     fig.savefig(tmp, dpi=120)
@@ -299,9 +338,19 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     png = plot_pareto(clean, out / "pareto.png")
     if png is not None:
         paths["pareto"] = png
+    from garmentgnn.bench import scaling
+    scaling_png = scaling.plot(clean, out / "scaling.png")
+    if scaling_png is not None:
+        paths["scaling"] = scaling_png
+    from garmentgnn.bench import learned
+    learned_png = learned.plot(clean, out / "pareto_learned.png")
+    if learned_png is not None:
+        paths["pareto_learned"] = learned_png
     results = {"meta": meta or {}, "summary": summarize(clean), "not_run": list(not_run),
                "records": clean}
     paths["results"] = atomic_write_json(out / "results.json", results)
-    text = render_markdown(clean, not_run, meta, "pareto.png" if png is not None else None)
+    text = render_markdown(clean, not_run, meta, "pareto.png" if png is not None else None,
+                           "scaling.png" if scaling_png is not None else None,
+                           "pareto_learned.png" if learned_png is not None else None)
     paths["report"] = atomic_write_bytes(out / "report.md", text.encode())
     return paths

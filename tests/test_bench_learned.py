@@ -1,0 +1,332 @@
+"""The learned methods inside ``garmentgnn bench`` (bench.learned): every method trained
+and scored on one generated dataset's split, records, report table, resume, failures.
+
+The dataset is a very small generated one (a mini skirt on one body, 3 motions of 4
+frames, arm_swing held out for test) whose "simulation" is a test double: the garment
+skinned by LBS plus a small smooth wobble (as in tests/test_training.py), so it takes
+seconds.  Oracles: :func:`garmentgnn.training.evaluate.evaluate_split` (an independent
+scoring path) for LBS and for the trained GarTrans checkpoint; an uninterrupted training
+for the resumed one; a copy of the dataset with altered test positions for NCS."""
+import dataclasses
+import inspect
+import json
+import math
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from garmentgnn.bench import harness, learned, report
+from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from garmentgnn.cli import main as cli_main
+from garmentgnn.data import Spec, generate, motion_key, store
+from garmentgnn.garments.skinning import transfer_skinning_weights
+from garmentgnn.training import GarTransModule, ProgressiveSchedule
+from garmentgnn.training.evaluate import evaluate_split
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def lbs_simulate(garment, body, motion, material, settings=None, progress=None):
+    """Test double of the simulator: LBS-skinned garment + a deterministic smooth wobble."""
+    W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
+    A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
+                              body.skeleton.parents, motion.translation.to(body.vertices.dtype))
+    P = linear_blend_skinning(garment.vertices.to(A.dtype), W.to(A.dtype), A)
+    T = motion.num_frames
+    t = torch.arange(T, dtype=P.dtype).view(T, 1, 1)
+    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * garment.vertices[None, :, :1].to(P.dtype))
+    return SimpleNamespace(positions=P.float(), converged=torch.ones(T, dtype=torch.bool),
+                           newton_iterations=torch.full((T,), 1), residual=torch.zeros(T),
+                           ok=True, message="", seconds=0.0)
+
+
+def _numbers(obj):
+    if isinstance(obj, dict):
+        for v in obj.values():
+            yield from _numbers(v)
+    elif isinstance(obj, list):
+        for v in obj:
+            yield from _numbers(v)
+    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
+        yield obj
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data")
+    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
+    b = [{"model": "capsule", "shape": "regular"}]
+    m = [{"name": n, "num_frames": 4, "speed": 1.0, "amplitude": 1.0}
+         for n in ("walk", "run", "arm_swing")]
+    spec = Spec("mini", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[2])]}})
+    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    assert s.done == 3 and s.failed == 0
+    return out
+
+
+def learned_only(**budget) -> harness.Preset:
+    """The tiny preset with its simulator parts removed (only the learned tasks run)."""
+    p = harness.preset("tiny")
+    p = dataclasses.replace(p, cases=(), budgets=(), stability_cases=(), scaling_item=None,
+                            leaveout=False, precision_methods=(), long_item=None)
+    if budget:
+        p = dataclasses.replace(p, learned=dataclasses.replace(p.learned, **budget))
+    return p
+
+
+def records_of(out):
+    return json.loads((Path(out) / "results.json").read_text())["records"]
+
+
+@pytest.fixture(scope="module")
+def flow(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    summary = harness.run(learned_only(), out, data=data, progress=False)
+    return out, summary
+
+
+def test_presets_budgets():
+    tiny, small = harness.preset("tiny"), harness.preset("small")
+    assert tiny.dataset == "tiny" and small.dataset == "small"
+    assert tiny.learned.seeds == 1 and small.learned.seeds >= 3
+    assert set(tiny.learned.methods) == set(small.learned.methods) == set(learned.METHOD_NAMES)
+    assert set(learned.METHOD_NAMES) >= set(harness.PLANNED)
+
+
+@pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
+def test_every_method_produces_a_finite_record(flow, data):
+    out, summary = flow
+    p = learned_only()
+    assert summary.failed == 0 and summary.skipped == 0
+    recs = records_of(out)
+    assert summary.ran == len(recs) == len(learned.METHOD_NAMES)  # one seed in tiny
+    assert {r["method"] for r in recs} == set(learned.METHOD_NAMES)
+    for r in recs:
+        assert r["kind"] == "learned" and r["status"] == "ok", (r["method"], r["message"])
+        assert all(math.isfinite(x) for x in _numbers(r)), r["method"]
+        assert set(r["metrics"]) == set(report.METRICS)
+        assert r["metrics"]["E_dist"] > 0
+        assert r["test_frames"] == 4  # 1 test sequence x 4 frames
+        t = r["timing"]
+        assert t["latency_ms"] > 0 and t["throughput_fps"] > 0 and t["peak_mem_mb"] >= 0
+        assert t["best_batch"] in p.batches and t["threads"] == p.threads
+        assert r["dataset"]["root"] == str(data) and r["dataset"]["sequences"]["test"] == 1
+        trained = r["method"] != learned.LBS
+        assert (r["train_seconds"] > 0) == trained
+        assert r["epochs"] == (1 if trained else 0) and r["resumed_from_epoch"] == 0
+    by = {r["method"]: r for r in recs}
+    for name, v in learned.GARTRANS.items():
+        assert by[name]["phase"] == 1  # 1 epoch: the window (1) never elapses
+        assert by[name]["config"]["model"]["dynamic_layer"] == \
+            v.model.get("dynamic_layer", "sat")
+        assert (out / "models" / f"{learned._slug(name)}--s0" / "last.ckpt").exists()
+    assert by["GarTrans w/o unsupervised loss"]["config"]["schedule"]["max_phase"] == 1
+    assert by[learned.NCS]["models"] == 1  # one per test garment
+    assert len(list((out / "models" / "NCS-style--s0").glob("garment*.pt"))) == 1
+    # the methods differ (they are not all LBS in disguise)
+    assert len({round(r["metrics"]["E_dist"], 9) for r in recs}) > 3
+
+
+@pytest.mark.slow
+def test_records_equal_evaluate_split(flow, data):
+    """LBS and a trained GarTrans scored by training.evaluate.evaluate_split (frame-batched,
+    its own loop) from the saved checkpoint give the records' numbers: the record scores
+    the final trained weights, and GarTrans moved away from LBS."""
+    out, _ = flow
+    recs = {r["method"]: r for r in records_of(out)}
+    rec = recs["GarTrans w/o edge gating"]
+    module = GarTransModule.load_from_checkpoint(rec["checkpoint"], map_location="cpu")
+    assert module.hparams.dynamic_layer == "gt_edge"
+    ref = evaluate_split(module, data, "test", modes=("gartrans", "lbs"), history=3,
+                         nystrom_dim=16, num_landmarks=64)
+    for mode, name in (("gartrans", rec["method"]), ("lbs", learned.LBS)):
+        r = ref[mode]
+        assert r["frames"] == recs[name]["test_frames"]
+        r["collision_rate"] = r.pop("collision")
+        for m in report.METRICS:
+            # float32 round-off: the records score frame by frame, evaluate_split per sequence
+            assert recs[name]["metrics"][m] == pytest.approx(r[m], rel=1e-4, abs=1e-8), (name, m)
+    assert rec["metrics"]["E_dist"] != pytest.approx(recs[learned.LBS]["metrics"]["E_dist"],
+                                                     rel=1e-7)
+
+
+@pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
+def test_report_has_the_held_out_table(flow):
+    out, _ = flow
+    md = (out / "report.md").read_text()
+    assert "## Held-out test split" in md and "![Pareto, learned](pareto_learned.png)" in md
+    assert (out / "pareto_learned.png").stat().st_size > 0
+    table = md.split("## Held-out test split")[1].split("\n## ")[0]
+    for name in learned.METHOD_NAMES:
+        assert f"\n| {name}" in table, name
+        assert f"- {name}: not run" not in md
+    res = json.loads((out / "results.json").read_text())
+    assert not set(learned.METHOD_NAMES) & set(res["not_run"])
+    assert res["meta"]["dataset"]["sequences"] == {"train": 2, "val": 0, "test": 1}
+    assert res["meta"]["preset_config"]["learned"]["epochs"] == 1
+
+
+@pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
+def test_second_run_is_a_no_op(flow, data):
+    out, first = flow
+    files = sorted((out / "records").glob("*.json")) + sorted((out / "models").rglob("*.*"))
+    before = {p: p.stat().st_mtime_ns for p in files}
+    again = harness.run(learned_only(), out, data=data, progress=False)
+    assert again.ran == 0 and again.skipped == first.ran
+    assert {p: p.stat().st_mtime_ns for p in files} == before
+
+
+def test_interrupted_gartrans_training_resumes_from_last_ckpt(data, tmp_path, monkeypatch):
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    p = learned_only(methods=("GarTrans (SAT)",), epochs=2)
+    straight = harness.run(p, tmp_path / "straight", data=data, progress=False)
+    assert straight.failed == 0
+    ref = records_of(tmp_path / "straight")[0]
+
+    save = ModelCheckpoint.on_train_epoch_end
+
+    def save_then_die(self, trainer, pl_module):  # killed right after epoch 0's checkpoint
+        save(self, trainer, pl_module)
+        if trainer.current_epoch == 0:
+            raise SystemExit("killed")
+    monkeypatch.setattr(ModelCheckpoint, "on_train_epoch_end", save_then_die)
+    out = tmp_path / "cut"
+    with pytest.raises(SystemExit):
+        harness.run(p, out, data=data, progress=False)
+    last = out / "models" / "GarTrans_SAT--s0" / "last.ckpt"
+    assert torch.load(last, weights_only=False)["epoch"] == 0
+    assert not list((out / "records").glob("*.json"))  # no record of a killed task
+    monkeypatch.undo()
+    summary = harness.run(p, out, data=data, progress=False)
+    rec = records_of(out)[0]
+    assert summary.ran == 1 and rec["status"] == "ok", rec["message"]
+    assert rec["resumed_from_epoch"] == 1 and rec["epochs"] == 2 == ref["epochs"]
+    assert torch.load(last, weights_only=False)["epoch"] == 1
+    assert rec["metrics"] == ref["metrics"]  # the same model as the uninterrupted training
+
+
+def test_nan_loss_gives_a_failed_record_then_retry(data, tmp_path, monkeypatch):
+    from garmentgnn.models import gartrans
+    from garmentgnn.models.baselines import DAStyle
+    p = learned_only(methods=("GarTrans (SAT)", learned.DA))
+    inner, da = gartrans.GarTrans.forward, DAStyle.forward
+
+    def nan_gartrans(self, *a, **k):
+        out = dict(inner(self, *a, **k))
+        out["final"] = out["final"] * float("nan")
+        return out
+
+    monkeypatch.setattr(gartrans.GarTrans, "forward", nan_gartrans)
+    monkeypatch.setattr(DAStyle, "forward", lambda self, *a, **k: da(self, *a, **k) * float("nan"))
+    out = tmp_path / "nan"
+    summary = harness.run(p, out, data=data, progress=False)
+    assert summary.failed == 2
+    for r in records_of(out):
+        assert r["status"] == "failed" and "NonFiniteLossError" in r["message"], r["message"]
+        assert "'vert'" in r["message"] and "metrics" not in r
+    md = (out / "report.md").read_text()
+    assert "## Failures" in md and "| GarTrans (SAT) (1/1 failed) | failed" in md
+    monkeypatch.undo()
+    assert harness.run(p, out, data=data, progress=False).ran == 0  # failed records are kept
+    summary = harness.run(p, out, data=data, progress=False, retry_failed=True)
+    assert summary.ran == 2 and summary.failed == 0
+
+
+@pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
+def test_ncs_never_reads_test_positions(flow, data, tmp_path):
+    """NCS trains on the test garments' poses only: moving the simulated test positions
+    changes its score but not one of its weights."""
+    out, _ = flow
+    moved = tmp_path / "moved"
+    shutil.copytree(data, moved)
+    man = store.read_manifest(moved)
+    for r in man["items"]:
+        if r["split"] == "test":
+            path = store.sequence_path(moved, r)
+            seq = store.load_sequence(path)
+            arrays = {k: seq[k] for k in store.SEQUENCE_KEYS}
+            arrays["positions"] = arrays["positions"] + np.float32(0.05)
+            store.write_sequence(path, arrays, seq["meta"])
+    summary = harness.run(learned_only(methods=(learned.NCS,)), tmp_path / "b", data=moved,
+                          progress=False)
+    assert summary.failed == 0
+    for g in (0,):
+        a = torch.load(out / "models" / "NCS-style--s0" / f"garment{g}.pt")["model"]
+        b = torch.load(tmp_path / "b" / "models" / "NCS-style--s0" / f"garment{g}.pt")["model"]
+        assert all(torch.equal(a[k], b[k]) for k in a)
+    e0 = next(r for r in records_of(out) if r["method"] == learned.NCS)["metrics"]["E_dist"]
+    assert records_of(tmp_path / "b")[0]["metrics"]["E_dist"] != pytest.approx(e0)
+
+
+def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
+    import importlib
+    gen = importlib.import_module("garmentgnn.data.generate")  # the module, not the function
+    monkeypatch.setattr(gen, "default_simulate", lambda: lbs_simulate)
+    p = dataclasses.replace(learned_only(methods=(learned.LBS,)), data_workers=0)
+    summary = harness.run(p, tmp_path, progress=False)
+    assert summary.failed == 0
+    man = store.read_manifest(tmp_path / "data")
+    assert man["name"] == "tiny" and man["counts"] == {"ok": 8}
+    rec = records_of(tmp_path)[0]
+    assert rec["dataset"]["root"] == str(tmp_path / "data")
+    assert rec["case"].startswith("tiny-") and rec["test_frames"] == 32
+
+
+def test_configs_are_mirrored():
+    """GARTRANS / DATA / SCHEDULE are configs/gartrans.yaml and configs/ablations/*.yaml."""
+    base = yaml.safe_load((ROOT / "configs" / "gartrans.yaml").read_text())
+    data = {k: v for k, v in base["data"].items() if k not in ("root", "num_workers")}
+    assert data == learned.DATA
+    defaults = {k: v.default for k, v in
+                inspect.signature(ProgressiveSchedule.__init__).parameters.items()
+                if k != "self"}
+
+    def schedule(cfg):
+        cbs = cfg.get("trainer", {}).get("callbacks")
+        if cbs is None:
+            cbs = base["trainer"]["callbacks"]
+        args = next(c["init_args"] for c in cbs if c["class_path"].endswith("ProgressiveSchedule"))
+        return {k: v for k, v in dict(defaults, **args).items() if k != "window"}
+
+    files = {p.stem for p in (ROOT / "configs" / "ablations").glob("*.yaml")}
+    assert files == {v.config for v in learned.GARTRANS.values() if v.config}
+    for name, v in learned.GARTRANS.items():
+        cfg = base if v.config is None else yaml.safe_load(
+            (ROOT / "configs" / "ablations" / f"{v.config}.yaml").read_text())
+        model = dict(base["model"], **cfg.get("model", {}))
+        assert dict(learned.GARTRANS_MODEL, **v.model) == model, name
+        mine = {k: x for k, x in dict(defaults, **learned.SCHEDULE, **v.schedule).items()
+                if k != "window"}
+        assert mine == schedule(cfg), name
+
+
+def test_bad_arguments(data, tmp_path):
+    with pytest.raises(ValueError, match="epochs"):
+        learned.LearnedBudget(epochs=0)
+    with pytest.raises(ValueError, match="methods"):
+        learned.LearnedBudget(methods=("nope",))
+    with pytest.raises(ValueError, match="data"):
+        learned.prepare_dataset(tmp_path / "empty")
+    with pytest.raises(ValueError, match="data"):
+        harness.run(learned_only(), tmp_path / "x", data=data, learned=False)
+    info = learned.prepare_dataset(data)
+    with pytest.raises(ValueError, match="method"):
+        learned.LearnedRunner(info, learned.LearnedBudget(), tmp_path, (1,), 0, 1).record("x", 0)
+    assert cli_main(["bench", "--out", str(tmp_path / "y"), "--data", str(data),
+                     "--no-learned"]) == 2
+    assert cli_main(["bench", "--out", str(tmp_path / "y"), "--no-progress",
+                     "--data", str(tmp_path / "empty")]) == 2  # not a dataset
+    # a checkpoint folder of another configuration is refused, not resumed
+    p = learned_only(methods=(learned.DA,))
+    harness.run(p, tmp_path / "z", data=data, progress=False)
+    (tmp_path / "z" / "records").joinpath(
+        next(f.name for f in (tmp_path / "z" / "records").glob("*.json"))).unlink()
+    p2 = learned_only(methods=(learned.DA,), epochs=2)
+    summary = harness.run(p2, tmp_path / "z", data=data, progress=False)
+    rec = records_of(tmp_path / "z")[0]
+    assert summary.failed == 1 and "another dataset or configuration" in rec["message"]
