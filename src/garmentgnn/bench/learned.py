@@ -83,9 +83,10 @@ GARTRANS_MODEL: Dict[str, Any] = {
     "use_body": True}
 #: ``configs/gartrans.yaml``'s ``data:`` section (without ``root`` and ``num_workers``)
 DATA: Dict[str, int] = {"chunk": 8, "history": 3, "nystrom_dim": 16, "num_landmarks": 64}
-#: the ``ProgressiveSchedule`` arguments of ``configs/gartrans.yaml`` except ``window``,
-#: which the budget scales (the config's 4 belongs to its 30 epochs)
-SCHEDULE: Dict[str, Any] = {"threshold": 0.03, "supervised_scale": 0.05}
+#: the ``ProgressiveSchedule`` arguments of ``configs/gartrans.yaml`` except the windows
+#: (``window``, ``window2``), which the budget scales (the config's 4 and 3 belong to its
+#: 30 epochs; ``window2`` defaults to ``window``)
+SCHEDULE: Dict[str, Any] = {"threshold": 0.03, "threshold2": 0.1, "supervised_scale": 0.05}
 
 
 @dataclass(frozen=True)
