@@ -98,7 +98,7 @@ def markdown_table(results: dict[str, dict[str, float]]) -> str:
     lines = ["| method | " + " | ".join(f"{m} ({METRIC_UNITS.get(m, '')})" for m in metrics)
              + " | ms/frame |", "|---" * (len(metrics) + 2) + "|"]
     for mode, res in results.items():
-        lines.append(f"| {mode} | " + " | ".join(f"{res[m]:.3f}" for m in metrics if m in res)
+        lines.append(f"| {mode} | " + " | ".join(f"{res[m]:.4g}" for m in metrics if m in res)
                      + f" | {res['ms_per_frame']:.1f} |")
     return "\n".join(lines)
 
