@@ -8,19 +8,12 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import numbers
 from garmentgnn.bench import harness, precision, report, stability, timing
 from garmentgnn.cli import main as cli_main
 
 
-def _numbers(obj):
-    if isinstance(obj, dict):
-        for v in obj.values():
-            yield from _numbers(v)
-    elif isinstance(obj, list):
-        for v in obj:
-            yield from _numbers(v)
-    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
-        yield obj
+
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +37,7 @@ def test_tiny_preset_report(tiny_run):
     assert len(recs) == expected
     assert len(list((out / "records").glob("*.json"))) == expected
     for r in recs:  # every number finite (no NaN/None smuggled in as a number)
-        assert all(math.isfinite(x) for x in _numbers(r)), r
+        assert all(math.isfinite(x) for x in numbers(r)), r
     acc = [r for r in recs if r["kind"] == "accuracy"]
     assert {r["method"] for r in acc} == set(p.method_names())
     assert all(r["status"] == "ok" for r in acc), [r["message"] for r in acc]

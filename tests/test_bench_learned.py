@@ -13,47 +13,24 @@ import json
 import math
 import shutil
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 import yaml
 
+from conftest import lbs_simulate, numbers
 from garmentgnn.bench import harness, learned, report
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, motion_key, store
-from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.training import GarTransModule, ProgressiveSchedule
 from garmentgnn.training.evaluate import evaluate_split
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def lbs_simulate(garment, body, motion, material, settings=None, progress=None):
-    """Test double of the simulator: LBS-skinned garment + a deterministic smooth wobble."""
-    W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
-    A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
-                              body.skeleton.parents, motion.translation.to(body.vertices.dtype))
-    P = linear_blend_skinning(garment.vertices.to(A.dtype), W.to(A.dtype), A)
-    T = motion.num_frames
-    t = torch.arange(T, dtype=P.dtype).view(T, 1, 1)
-    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * garment.vertices[None, :, :1].to(P.dtype))
-    return SimpleNamespace(positions=P.float(), converged=torch.ones(T, dtype=torch.bool),
-                           newton_iterations=torch.full((T,), 1), residual=torch.zeros(T),
-                           ok=True, message="", seconds=0.0)
 
 
-def _numbers(obj):
-    if isinstance(obj, dict):
-        for v in obj.values():
-            yield from _numbers(v)
-    elif isinstance(obj, list):
-        for v in obj:
-            yield from _numbers(v)
-    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
-        yield obj
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +85,7 @@ def test_every_method_produces_a_finite_record(flow, data):
     assert {r["method"] for r in recs} == set(learned.METHOD_NAMES)
     for r in recs:
         assert r["kind"] == "learned" and r["status"] == "ok", (r["method"], r["message"])
-        assert all(math.isfinite(x) for x in _numbers(r)), r["method"]
+        assert all(math.isfinite(x) for x in numbers(r)), r["method"]
         assert set(r["metrics"]) == set(report.METRICS)
         assert r["metrics"]["E_dist"] > 0
         assert r["test_frames"] == 4  # 1 test sequence x 4 frames

@@ -1,15 +1,13 @@
 """Lightning training of GarTrans on a tiny generated dataset (no simulator: the
 "simulation" is the garment skinned by LBS plus a small smooth offset)."""
 import math
-from types import SimpleNamespace
 
 import lightning as L
 import pytest
 import torch
 
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from conftest import lbs_simulate
 from garmentgnn.data import Spec, generate, motion_key
-from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.training import (
     PHASE_TERMS,
@@ -22,19 +20,6 @@ from garmentgnn.training import (
 
 NY = 8
 
-
-def lbs_simulate(garment, body, motion, material, settings=None, progress=None):
-    """Test double of the simulator: LBS-skinned garment + a deterministic smooth wobble."""
-    W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
-    A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
-                              body.skeleton.parents, motion.translation.to(body.vertices.dtype))
-    P = linear_blend_skinning(garment.vertices.to(A.dtype), W.to(A.dtype), A)
-    T = motion.num_frames
-    t = torch.arange(T, dtype=P.dtype).view(T, 1, 1)
-    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * garment.vertices[None, :, :1].to(P.dtype))
-    return SimpleNamespace(positions=P.float(), converged=torch.ones(T, dtype=torch.bool),
-                           newton_iterations=torch.full((T,), 1), residual=torch.zeros(T),
-                           ok=True, message="", seconds=0.0)
 
 
 @pytest.fixture(scope="module")
