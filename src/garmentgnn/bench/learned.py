@@ -61,7 +61,7 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
-from garmentgnn.bench.report import METRICS, UNITS, _fmt, _mean_std, _table, plot_points
+from garmentgnn.bench.report import METRICS, UNITS, _fmt, _mean_std, _table, plot_summary
 from garmentgnn.bench.timing import batch_sweep, peak_memory
 from garmentgnn.data import store
 from garmentgnn.data.generate import body_key, garment_key
@@ -765,12 +765,7 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
 def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
     """``pareto_learned.png``: log latency (batch 1) against E_dist of the learned
     methods' means; ``None`` without ok records."""
-    summ = summary(records)
-    pts = [(m, e["latency_ms"]["mean"], e["E_dist"]["mean"]) for m, e in summ.items()
-           if "latency_ms" in e and "E_dist" in e and e["latency_ms"]["mean"] > 0]
-    if not pts:
-        return None
-    return plot_points(pts, path, "Held-out test split: error against run time")
+    return plot_summary(summary(records), path, "Held-out test split: error against run time")
 
 
 __all__ = ["BASELINES", "DATA", "GARTRANS", "GARTRANS_MODEL", "KIND", "LBS", "METHOD_NAMES",

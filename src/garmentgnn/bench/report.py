@@ -274,15 +274,20 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
 
 
 # --------------------------------------------------------------------------- plots
-def plot_pareto(records: Sequence[Dict[str, Any]], path: Path) -> Optional[Path]:
-    """``log latency`` vs ``E_dist`` per method (Pareto front joined); ``None`` if no
+def plot_summary(summ: Dict[str, Dict[str, Any]], path, title: str) -> Optional[Path]:
+    """``log latency`` vs ``E_dist`` of per-method means ``{method: {"latency_ms":
+    {"mean": ...}, "E_dist": {"mean": ...}}}`` (Pareto front joined); ``None`` if no
     method has both numbers."""
-    summ = summarize(records)
     pts = [(m, e["latency_ms"]["mean"], e["E_dist"]["mean"]) for m, e in summ.items()
            if "latency_ms" in e and "E_dist" in e and e["latency_ms"]["mean"] > 0]
     if not pts:
         return None
-    return plot_points(pts, path, "Error against run time")
+    return plot_points(pts, path, title)
+
+
+def plot_pareto(records: Sequence[Dict[str, Any]], path: Path) -> Optional[Path]:
+    """:func:`plot_summary` of the accuracy records (:func:`summarize`)."""
+    return plot_summary(summarize(records), path, "Error against run time")
 
 
 def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str) -> Path:
