@@ -176,6 +176,53 @@ def test_signed_distance_gradcheck_and_gradient_is_normal():
     torch.testing.assert_close(x.grad, unit)
 
 
+def _box_sdf(pts: np.ndarray, h: np.ndarray) -> np.ndarray:
+    q = np.abs(pts) - h
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+
+
+def test_push_outside_box_analytic():
+    """Inside or within the margin -> exactly ``margin`` outside (analytic box SDF);
+    farther out -> unchanged; faces, edges and corners alike."""
+    h = np.array([1.0, 0.5, 0.75])
+    m = trimesh.creation.box(extents=2 * h)
+    rng = np.random.default_rng(5)
+    # shallow points (depth < 0.2, less than half the box's smallest half-extent)
+    pts = rng.uniform(-1.3, 1.3, size=(600, 3)) * h
+    pts = pts[_box_sdf(pts, h) > -0.2]
+    margin = 0.01
+    before = _box_sdf(pts, h)
+    out = G.push_outside(torch.tensor(pts), torch.tensor(m.vertices), torch.tensor(m.faces),
+                         margin, candidates=None).numpy()
+    after = _box_sdf(out, h)
+    moved = before < margin
+    assert moved.sum() > 100 and (~moved).sum() > 100
+    np.testing.assert_allclose(after[moved], margin, atol=1e-12)
+    np.testing.assert_array_equal(out[~moved], pts[~moved])
+    # the move is the shortest one: along the SDF gradient, by margin - s
+    np.testing.assert_allclose(np.linalg.norm(out - pts, axis=1)[moved],
+                               (margin - before)[moved], atol=1e-12)
+
+
+def test_push_outside_sphere_float32_and_gradient():
+    m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    X, F = torch.tensor(m.vertices), torch.tensor(m.faces)
+    rng = np.random.default_rng(6)
+    dirs = rng.normal(size=(40, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pts = torch.tensor(dirs * rng.uniform(0.7, 0.99, size=(40, 1)))  # all inside
+    out32 = G.push_outside(pts.float(), X.float(), F, 0.005)
+    assert out32.dtype == torch.float32 and torch.isfinite(out32).all()
+    s = G.signed_distance(out32.double(), X, F, candidates=None).distance
+    np.testing.assert_allclose(s.numpy(), 0.005, atol=1e-5)
+    # differentiable, finite differences (float64)
+    p = pts[:5].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda q: G.push_outside(q, X, F, 0.005, candidates=None),
+                                    (p,), atol=1e-6)
+    with pytest.raises(ValueError, match="margin"):
+        G.push_outside(pts, X, F, -0.1)
+
+
 def test_winding_number_box_and_sphere_analytic():
     # axis-aligned box: grid-aligned vertices and edges (the rays must miss them)
     h = np.array([1.0, 0.5, 0.75])

@@ -118,6 +118,41 @@ def test_schedule_passes_all_three_phases(root):
     assert sched.state_dict()["phase"] == 3
 
 
+def test_schedule_extra_terms_join_from_their_phase(root):
+    dm, module = make(root, loss_weights={"bending": 0.1})
+    seen = {}
+
+    class Record(L.Callback):
+        def on_train_epoch_end(self, trainer, pl_module):
+            seen[trainer.current_epoch] = (set(pl_module.loss_fn.enabled),
+                                           set(trainer.callback_metrics))
+
+    sched = ProgressiveSchedule(window=1, threshold=10.0, extra_terms=["bending"], extra_from=2)
+    trainer(3, callbacks=[Record(), sched], limit_train_batches=1, limit_val_batches=0).fit(
+        module, dm)
+    assert "bending" not in seen[0][0] and "train/bending" not in seen[0][1]
+    assert seen[2][0] == set(PHASE_TERMS[2]) | {"bending"} and "train/bending" in seen[2][1]
+    with pytest.raises(ValueError, match="extra_terms"):
+        ProgressiveSchedule(extra_terms=["bend"])
+    with pytest.raises(ValueError, match="extra_from"):
+        ProgressiveSchedule(extra_terms=["bending"], extra_from=4)
+
+
+def test_collision_projection_runs_in_training_and_keeps_the_garment_out(root):
+    """With ``collision_projection`` the module's prediction (what the losses see) is
+    the projected one: no vertex of a training batch closer than eps to the body."""
+    from garmentgnn.geometry import signed_distance
+    dm, module = make(root, collision_projection=0.003)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    with torch.no_grad():
+        module.model.gates.fill_(0.5)
+        out = module(batch)["final"]
+    s = signed_distance(out, batch["body_pos"], batch["body_faces"]).distance
+    assert s.min() > 0.003 - 1e-4
+    trainer(1, limit_train_batches=1, limit_val_batches=0).fit(module, dm)
+
+
 def test_frozen_rest_branch_does_not_change(root):
     dm, module = make(root)
     sched = ProgressiveSchedule(start_phase=3)

@@ -520,7 +520,8 @@ class LearnedRunner:
                 static = module.encode_static(it)
             args = (static, it["rest_pos"], it["faces"], it["edge_index"], it["rest_joints"],
                     it["parents"], it["rotations"], it["translation"])
-            return lambda: m(*args)["final"]
+            return lambda: m(*args, body_pos=it.get("body_pos"),
+                             body_faces=it.get("body_faces"))["final"]
 
         info = {"epochs": clock.epochs, "train_seconds": clock.seconds,
                 "resumed_from_epoch": clock.restored_epochs, "phase": sched.phase,

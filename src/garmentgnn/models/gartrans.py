@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
-from garmentgnn.geometry import edge_features, vertex_normals
+from garmentgnn.geometry import edge_features, push_outside, vertex_normals
 from garmentgnn.nn import make_layer
 
 
@@ -147,13 +147,22 @@ class GarTrans(nn.Module):
             prior the untrained model is then exactly LBS with the prior weights, and
             training moves away from it only as far as the losses ask (docs/model.md).
             The layers keep the §4.1 initialisation.  ``False``: the paper's form.
+        collision_projection: margin ``eps`` (metres) of a last, differentiable step that
+            moves the vertices of ``M^{t,d}`` closer than ``eps`` to the body (or inside
+            it) to ``eps`` outside (:func:`garmentgnn.geometry.push_outside`); applied
+            when :meth:`forward` gets the posed body.  ``None`` (the paper): no
+            projection; the collision loss (Eq. 10) alone keeps the garment out.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
                  heads: int = 4, fps: float = 30.0, edge_dim: int = 4,
-                 lbs_start: bool = False) -> None:
+                 lbs_start: bool = False, collision_projection: Optional[float] = None) -> None:
         super().__init__()
+        if collision_projection is not None and not collision_projection >= 0:
+            raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
+                             f"None, got {collision_projection}")
+        self.collision_projection = collision_projection
         S = num_joints
         self.num_joints, self.fps, self.edge_dim = S, fps, edge_dim
         self.rest_fc = mlp([6 + S, 128, 128, 128], nn.Tanh())
@@ -261,7 +270,8 @@ class GarTrans(nn.Module):
 
     def forward(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
                 edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
-                translation: Tensor, prev_final: Optional[Tensor] = None):
+                translation: Tensor, prev_final: Optional[Tensor] = None,
+                body_pos: Optional[Tensor] = None, body_faces: Optional[Tensor] = None):
         """Predict ``M^{t,d}`` for a batch of frames (frame-parallel).
 
         Args:
@@ -270,6 +280,9 @@ class GarTrans(nn.Module):
             prev_final: ``[B, V, 3]`` the garment at frame ``t-1`` (autoregressive use,
                 see :meth:`rollout`); default: the coarse mesh ``M^{t-1,c}`` (§3.1, the
                 frame-parallel mode the paper trains and batches).
+            body_pos: ``[B, Vb, 3]`` the posed body of each frame, with ``body_faces``
+                ``[Fb, 3]``: used by ``collision_projection`` only (ignored without it;
+                a scene without a body passes ``None``).
 
         Returns:
             dict with ``final [B, V, 3]``, ``coarse [B, V, 3]``, ``accel [B, V, 3]``,
@@ -295,11 +308,17 @@ class GarTrans(nn.Module):
         e = edge_features(cur.reshape(B * V, 3), ei)
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         final = cur + self._gate(2, accel / self.fps ** 2)
+        if self.collision_projection is not None and body_pos is not None:
+            if body_faces is None:
+                raise ValueError("`body_faces`: needed with `body_pos` for the collision "
+                                 "projection")
+            final = push_outside(final, body_pos, body_faces, self.collision_projection)
         return {"final": final, "coarse": cur, "accel": accel, "weights": W}
 
     def rollout(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
                 edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
-                translation: Tensor, first: Optional[Tensor] = None):
+                translation: Tensor, first: Optional[Tensor] = None,
+                body_pos: Optional[Tensor] = None, body_faces: Optional[Tensor] = None):
         """Autoregressive inference: the ``T`` frames one after another, the dynamic
         graph's velocity taken from the model's own previous prediction (``first``
         ``[V, 3]``: the garment before frame 0; default: the coarse mesh).  Same inputs
@@ -309,7 +328,9 @@ class GarTrans(nn.Module):
         prev = None if first is None else first.unsqueeze(0)
         for t in range(rotations.shape[0]):
             o = self.forward(static, rest_pos, faces, edge_index, rest_joints, parents,
-                             rotations[t:t + 1], translation[t:t + 1], prev_final=prev)
+                             rotations[t:t + 1], translation[t:t + 1], prev_final=prev,
+                             body_pos=None if body_pos is None else body_pos[t:t + 1],
+                             body_faces=body_faces)
             prev = o["final"]
             outs.append(o)
         return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}

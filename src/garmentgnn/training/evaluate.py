@@ -43,10 +43,11 @@ def predict(module, item: dict[str, Any], mode: str) -> torch.Tensor:
     static = module.encode_static(item)
     args = (static, item["rest_pos"], item["faces"], item["edge_index"], item["rest_joints"],
             item["parents"], item["rotations"], item["translation"])
+    body = {"body_pos": item.get("body_pos"), "body_faces": item.get("body_faces")}
     if mode == "gartrans":
-        return m(*args)["final"]
+        return m(*args, **body)["final"]
     if mode == "gartrans_ar":
-        return m.rollout(*args)["final"]
+        return m.rollout(*args, **body)["final"]
     raise ValueError(f"`mode`: expected one of {MODES}, got {mode!r}")
 
 

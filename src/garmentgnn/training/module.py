@@ -45,6 +45,9 @@ class GarTransModule(L.LightningModule):
         lbs_start: zero-initialised gates on what the learned branches add to LBS
             (:class:`GarTrans`'s ``lbs_start``), so training starts from the "LBS only"
             coarse garment; needs ``skin_prior``.  ``False``: the paper's form.
+        collision_projection: margin (metres) of GarTrans's last step that moves
+            garment vertices out of the body (:class:`GarTrans`); ``None``: off (the
+            paper).  Applied in training and inference alike.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -53,7 +56,8 @@ class GarTransModule(L.LightningModule):
                  eta_min: float = 0.0, loss_weights: dict[str, float] | None = None,
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True) -> None:
+                 use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True,
+                 collision_projection: float | None = None) -> None:
         super().__init__()
         if lbs_start and not skin_prior:
             raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
@@ -63,7 +67,7 @@ class GarTransModule(L.LightningModule):
         self.model = GarTrans(num_joints, num_body_vertices, nystrom_dim=nystrom_dim,
                               rest_layer=rest_layer, blend_layer=blend_layer,
                               dynamic_layer=dynamic_layer, heads=heads, fps=fps,
-                              lbs_start=lbs_start)
+                              lbs_start=lbs_start, collision_projection=collision_projection)
         # only one of the body code paths is ever used; freeze the other (DDP requires
         # every trainable parameter to receive a gradient)
         unused = self.model.body_default if use_body else self.model.body_fc
@@ -102,7 +106,8 @@ class GarTransModule(L.LightningModule):
         static = self.encode_static(batch)
         return m(static, batch["rest_pos"], batch["faces"], batch["edge_index"],
                  batch["rest_joints"], batch["parents"], batch["rotations"],
-                 batch["translation"])
+                 batch["translation"], body_pos=batch.get("body_pos"),
+                 body_faces=batch.get("body_faces"))
 
     def compute_loss(self, batch: dict[str, Any], out: dict[str, torch.Tensor]):
         pred = out["final"]

@@ -8,6 +8,9 @@
   below ``threshold``: the rest-pose branch (rest_fc, rest_attn, nystrom_fc, body_fc)
   is frozen and stretch + shear are switched on.
 
+``extra_terms`` (not in the paper, default none) switches further terms of
+:class:`GarTransLoss` -- e.g. ``bending`` -- on from phase ``extra_from`` on.
+
 The monitored values are epoch means accumulated by the callback itself from the
 training step outputs (``vert_err``: unscaled mean vertex distance; ``terms``), and
 the phase, the histories and the transition epochs are part of :meth:`state_dict`, so a
@@ -15,12 +18,13 @@ run resumed from a checkpoint continues in exactly the same phase.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import lightning as L
 import torch
 
-from garmentgnn.losses.gartrans_loss import SUPERVISED
+from garmentgnn.losses.gartrans_loss import PAPER_WEIGHTS, SUPERVISED
 
 PHASE_TERMS = {
     1: tuple(SUPERVISED),
@@ -37,15 +41,25 @@ class ProgressiveSchedule(L.Callback):
         supervised_scale: scale of the supervised terms from phase 2 on (0.05).
         start_phase: the phase of a fresh run (1).
         max_phase: stop advancing after this phase.
+        extra_terms: loss terms beyond the paper's, e.g. ``["bending"]`` (their weights
+            are the module's ``loss_weights``), active from phase ``extra_from`` on.
     """
 
     def __init__(self, window: int = 50, threshold: float = 0.03,
                  window2: int | None = None, threshold2: float | None = None,
-                 supervised_scale: float = 0.05, start_phase: int = 1, max_phase: int = 3) -> None:
+                 supervised_scale: float = 0.05, start_phase: int = 1, max_phase: int = 3,
+                 extra_terms: Sequence[str] = (), extra_from: int = 3) -> None:
         if window < 1:
             raise ValueError(f"`window`: expected >= 1, got {window}")
         if start_phase not in PHASE_TERMS:
             raise ValueError(f"`start_phase`: expected 1, 2 or 3, got {start_phase}")
+        if extra_from not in PHASE_TERMS:
+            raise ValueError(f"`extra_from`: expected 1, 2 or 3, got {extra_from}")
+        unknown = set(extra_terms) - set(PAPER_WEIGHTS)
+        if unknown:
+            raise ValueError(f"`extra_terms`: unknown term(s) {sorted(unknown)}; known: "
+                             f"{sorted(PAPER_WEIGHTS)}")
+        self.extra_terms, self.extra_from = tuple(extra_terms), extra_from
         self.window, self.threshold = window, threshold
         self.window2 = window if window2 is None else window2
         self.threshold2 = threshold if threshold2 is None else threshold2
@@ -69,7 +83,8 @@ class ProgressiveSchedule(L.Callback):
     # -- applying a phase -------------------------------------------------------------
     def apply(self, pl_module) -> None:
         loss = pl_module.loss_fn
-        loss.set_enabled(PHASE_TERMS[self.phase])
+        extra = self.extra_terms if self.phase >= self.extra_from else ()
+        loss.set_enabled(PHASE_TERMS[self.phase] + extra)
         loss.supervised_scale = 1.0 if self.phase == 1 else self.supervised_scale
         pl_module.set_rest_branch_frozen(self.phase >= 3)
 
