@@ -13,6 +13,7 @@ from garmentgnn.training import (
     PHASE_TERMS,
     REST_BRANCH,
     GarmentDataModule,
+    EpochShuffleSampler,
     GarTransModule,
     ProgressiveSchedule,
     SequenceChunks,
@@ -172,12 +173,17 @@ def test_checkpoint_resume_is_exact(root, tmp_path):
     dm, full = make(root, t_max=4)
     s_full = ProgressiveSchedule(window=1, threshold=10.0)
     trainer(4, callbacks=[s_full], **kw).fit(full, dm)
-    # interrupted after 2 epochs (in phase 2), resumed to 4
+    # interrupted after 1 epoch (phase 1, one epoch of history), resumed to 4; the chunk
+    # order of epoch 1 differs from epoch 0's, so replaying epoch 0's order would show
+    sampler = EpochShuffleSampler(len(dm.train_set), dm.seed)
+    epoch0 = list(sampler)
+    sampler.set_epoch(1)
+    assert list(sampler) != epoch0
     dm, part = make(root, t_max=4)
     s1 = ProgressiveSchedule(window=1, threshold=10.0)
-    t1 = trainer(2, callbacks=[s1], **kw)
+    t1 = trainer(1, callbacks=[s1], **kw)
     t1.fit(part, dm)
-    assert s1.phase == 2
+    assert s1.phase == 1 and len(s1.history) == 1
     ckpt = tmp_path / "mid.ckpt"
     t1.save_checkpoint(ckpt)
     dm, resumed = make(root, t_max=4)  # fresh weights, overwritten by the checkpoint

@@ -279,22 +279,6 @@ class TrainClock(L.Callback):
         self.epochs += 1
 
 
-class _ResumingData(GarmentDataModule):
-    """:class:`GarmentDataModule` whose training sampler starts at ``start_epoch``.
-
-    Resuming from a checkpoint, Lightning (2.6) creates the first epoch's data iterator
-    in ``FitLoop.setup_data`` *before* it calls the sampler's ``set_epoch``, so without
-    this the first resumed epoch would see epoch 0's chunk order instead of its own
-    (an uninterrupted run and a resumed one would then differ)."""
-
-    start_epoch: int = 0
-
-    def train_dataloader(self):
-        dl = super().train_dataloader()
-        dl.sampler.set_epoch(self.start_epoch)
-        return dl
-
-
 @dataclass
 class _Predictor:
     """A trained method: ``predict(i, item)`` the whole ``i``-th test sequence ``[T, V,
@@ -489,7 +473,7 @@ class LearnedRunner:
                   else "configs/gartrans.yaml"}
         folder = self._folder(method, seed, config)
         from lightning.pytorch.callbacks import ModelCheckpoint
-        dm = _ResumingData(self.data.root, val_split=None, seed=seed, **DATA)
+        dm = GarmentDataModule(self.data.root, val_split=None, seed=seed, **DATA)
         dm.train_set = self.train
         module = GarTransModule(**dm.dims, **hp)
         sched, clock = ProgressiveSchedule(**sched_kw), TrainClock()
@@ -500,8 +484,7 @@ class LearnedRunner:
         last = folder / "last.ckpt"
         if last.exists():
             try:  # a checkpoint cut off by a kill is set aside, not resumed
-                dm.start_epoch = int(torch.load(last, map_location="cpu",
-                                                weights_only=False)["epoch"]) + 1
+                torch.load(last, map_location="cpu", weights_only=False)
             except Exception:
                 last.replace(folder / "last.ckpt.unreadable")
         with _quiet_lightning():

@@ -188,6 +188,11 @@ try:
 
         ``num_joints`` / ``num_body_vertices`` (for building the model) are read from
         the first training chunk.
+
+        Resuming: the epoch to continue with is kept in the checkpoint
+        (:meth:`state_dict`) and the training sampler starts there, because Lightning
+        (2.6) builds a resumed fit's first data iterator *before* it calls the
+        sampler's ``set_epoch``, which would replay epoch 0's chunk order.
         """
 
         def __init__(self, root, chunk: int = 8, history: int = 3, num_workers: int = 0,
@@ -202,6 +207,18 @@ try:
             self.shuffle, self.seed, self.drop_last = shuffle, seed, drop_last
             self.train_set: SequenceChunks | None = None
             self.val_set: SequenceChunks | None = None
+            self.start_epoch = 0  # the epoch a resumed fit continues with
+
+        def state_dict(self) -> dict[str, int]:
+            trainer = getattr(self, "trainer", None)
+            if trainer is None:
+                return {}
+            # epochs whose training part ran to its end (a checkpoint written in
+            # on_train_epoch_end or after fit); a resumed fit starts with the next one
+            return {"next_epoch": int(trainer.fit_loop.epoch_progress.current.processed)}
+
+        def load_state_dict(self, state: dict[str, int]) -> None:
+            self.start_epoch = int(state.get("next_epoch", 0))
 
         def _make(self, split) -> SequenceChunks:
             return SequenceChunks(self.root, split, self.chunk, self.history, self.nystrom_dim,
@@ -231,7 +248,9 @@ try:
 
         def train_dataloader(self) -> DataLoader:
             self.setup()
-            return self._loader(self.train_set, self.shuffle)
+            dl = self._loader(self.train_set, self.shuffle)
+            dl.sampler.set_epoch(self.start_epoch)
+            return dl
 
         def val_dataloader(self):
             self.setup()
