@@ -206,3 +206,22 @@ def test_collision_projection_moves_only_what_is_inside_or_too_close(scene):
         build(body, ny, collision_projection=-1.0)
     with pytest.raises(ValueError, match="body_faces"):
         proj(*args, body_pos=bpos)
+
+
+def test_blend_shape_can_be_left_out(scene):
+    """``blend_shape=False``: no blend stack, the coarse mesh is LBS of the rest garment
+    with the learned weights ``W^t`` (Eq. 1 with ``T^t = T``)."""
+    from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+    body, g, ei, ny, bd, rots, tr = scene
+    model = build(body, ny, blend_shape=False).eval()
+    assert model.blend is None
+    with torch.no_grad():
+        out = run(model, scene)
+    A, _ = forward_kinematics(rots[:, -1], body.joints, body.skeleton.parents, tr[:, -1])
+    torch.testing.assert_close(out["coarse"], linear_blend_skinning(g.vertices, out["weights"], A),
+                               atol=1e-5, rtol=1e-5)
+    full = build(body, ny).eval()
+    with torch.no_grad():
+        assert not torch.allclose(run(full, scene)["coarse"],
+                                  linear_blend_skinning(g.vertices, run(full, scene)["weights"], A),
+                                  atol=1e-5)

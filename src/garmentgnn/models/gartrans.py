@@ -152,12 +152,15 @@ class GarTrans(nn.Module):
             it) to ``eps`` outside (:func:`garmentgnn.geometry.push_outside`); applied
             when :meth:`forward` gets the posed body.  ``None`` (the paper): no
             projection; the collision loss (Eq. 10) alone keeps the garment out.
+        blend_shape: ``False`` leaves out the blend shape ``B^t`` (``T^t = T``) and its
+            transformer stack; ``True`` is the paper.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
                  heads: int = 4, fps: float = 30.0, edge_dim: int = 4,
-                 lbs_start: bool = False, collision_projection: Optional[float] = None) -> None:
+                 lbs_start: bool = False, collision_projection: Optional[float] = None,
+                 blend_shape: bool = True) -> None:
         super().__init__()
         if collision_projection is not None and not collision_projection >= 0:
             raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
@@ -176,7 +179,7 @@ class GarTrans(nn.Module):
         self.gru = nn.GRU(3 * S + 3, 128, num_layers=2, batch_first=True)
         self.gru_out = nn.Linear(128, S)
         self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
-                                    last_act=False)
+                                    last_act=False) if blend_shape else None
         self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S, [32, 64, 64, 64, 32, 3], heads,
                                       edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
@@ -193,7 +196,8 @@ class GarTrans(nn.Module):
             else:
                 nn.init.zeros_(p)
         for stack in (self.rest_attn, self.blend, self.dynamic):
-            stack.reset_parameters()
+            if stack is not None:
+                stack.reset_parameters()
         if self.gates is not None:
             nn.init.zeros_(self.gates)
 
@@ -255,11 +259,13 @@ class GarTrans(nn.Module):
         x3 = static.x2.unsqueeze(0) * self.motion_code(rotations, translation).unsqueeze(1)
         logits = x3 if static.log_prior is None else self._gate(0, x3) + static.log_prior
         W = torch.softmax(logits, -1)  # W^t
-        e = edge_features(rest_pos, edge_index).repeat(B, 1)
-        blend = self.blend(x3.reshape(B * V, -1), batch_edges(edge_index, B, V), e)
-        # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so a
-        # freshly initialised model starts near its skinned rest garment, not ~30 cm off
-        template = rest_pos.unsqueeze(0) + self._gate(1, BLEND_UNIT * blend.view(B, V, 3))
+        template = rest_pos.unsqueeze(0).expand(B, V, 3)
+        if self.blend is not None:
+            e = edge_features(rest_pos, edge_index).repeat(B, 1)
+            blend = self.blend(x3.reshape(B * V, -1), batch_edges(edge_index, B, V), e)
+            # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so
+            # a freshly initialised model starts near its skinned rest garment, not ~30 cm off
+            template = template + self._gate(1, BLEND_UNIT * blend.view(B, V, 3))
         rot2 = rotations[:, -2:].reshape(B * 2, *rotations.shape[2:])
         tr2 = translation[:, -2:].reshape(B * 2, 3)
         A, joints = forward_kinematics(rot2, rest_joints, parents, tr2)
