@@ -270,7 +270,7 @@ def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: f
     already ``margin`` or farther outside are returned unchanged.
 
     This is the one-step collision projection used as post-processing by learned
-    garment models (e.g. TailorNet, SNUG); it lands exactly at ``margin`` when the
+    garment models (e.g. TailorNet); it lands exactly at ``margin`` when the
     closest point keeps its face, i.e. for depths below the body's local feature size.
     Differentiable in ``points`` and ``body_pos``.  ``candidates``: see
     :func:`signed_distance` (``None``: exact brute force).
