@@ -47,13 +47,17 @@ def data(tmp_path_factory):
 
 
 def learned_only(**budget) -> harness.Preset:
-    """The tiny preset with its simulator parts removed (only the learned tasks run)."""
+    """The tiny preset with its simulator parts removed (only the learned tasks run; the
+    learned stability suite only when ``stability_cases`` is given)."""
     p = harness.preset("tiny")
     p = dataclasses.replace(p, cases=(), budgets=(), stability_cases=(), scaling_item=None,
                             leaveout=False, precision_methods=(), long_item=None)
-    if budget:
-        p = dataclasses.replace(p, learned=dataclasses.replace(p.learned, **budget))
-    return p
+    budget.setdefault("stability_cases", ())
+    return dataclasses.replace(p, learned=dataclasses.replace(p.learned, **budget))
+
+
+#: the flow's budget: every method, and the stability suite on one case
+FLOW = {"stability_cases": ("zero_area_face",)}
 
 
 def records_of(out):
@@ -63,7 +67,7 @@ def records_of(out):
 @pytest.fixture(scope="module")
 def flow(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    summary = harness.run(learned_only(), out, data=data, progress=False)
+    summary = harness.run(learned_only(**FLOW), out, data=data, progress=False)
     return out, summary
 
 
@@ -80,8 +84,9 @@ def test_every_method_produces_a_finite_record(flow, data):
     out, summary = flow
     p = learned_only()
     assert summary.failed == 0 and summary.skipped == 0
-    recs = records_of(out)
-    assert summary.ran == len(recs) == len(learned.METHOD_NAMES)  # one seed in tiny
+    assert summary.ran == len(records_of(out))
+    recs = [r for r in records_of(out) if r["kind"] == learned.KIND]
+    assert len(recs) == len(learned.METHOD_NAMES)  # one seed in tiny
     assert {r["method"] for r in recs} == set(learned.METHOD_NAMES)
     for r in recs:
         assert r["kind"] == "learned" and r["status"] == "ok", (r["method"], r["message"])
@@ -115,7 +120,7 @@ def test_records_equal_evaluate_split(flow, data):
     its own loop) from the saved checkpoint give the records' numbers: the record scores
     the final trained weights, and GarTrans moved away from LBS."""
     out, _ = flow
-    recs = {r["method"]: r for r in records_of(out)}
+    recs = {r["method"]: r for r in records_of(out) if r["kind"] == learned.KIND}
     rec = recs["GarTrans w/o edge gating"]
     module = GarTransModule.load_from_checkpoint(rec["checkpoint"], map_location="cpu")
     assert module.hparams.dynamic_layer == "gt_edge"
@@ -153,7 +158,7 @@ def test_second_run_is_a_no_op(flow, data):
     out, first = flow
     files = sorted((out / "records").glob("*.json")) + sorted((out / "models").rglob("*.*"))
     before = {p: p.stat().st_mtime_ns for p in files}
-    again = harness.run(learned_only(), out, data=data, progress=False)
+    again = harness.run(learned_only(**FLOW), out, data=data, progress=False)
     assert again.ran == 0 and again.skipped == first.ran
     assert {p: p.stat().st_mtime_ns for p in files} == before
 
@@ -236,8 +241,55 @@ def test_ncs_never_reads_test_positions(flow, data, tmp_path):
         a = torch.load(out / "models" / "NCS-style--s0" / f"garment{g}.pt")["model"]
         b = torch.load(tmp_path / "b" / "models" / "NCS-style--s0" / f"garment{g}.pt")["model"]
         assert all(torch.equal(a[k], b[k]) for k in a)
-    e0 = next(r for r in records_of(out) if r["method"] == learned.NCS)["metrics"]["E_dist"]
+    e0 = next(r for r in records_of(out) if r["method"] == learned.NCS
+              and r["kind"] == learned.KIND)["metrics"]["E_dist"]
     assert records_of(tmp_path / "b")[0]["metrics"]["E_dist"] != pytest.approx(e0)
+
+
+@pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
+def test_learned_stability_records(flow, data):
+    """Every method's first-seed model and the simulator on the stability case, built on
+    the dataset's test sequence: a scored, finite record each, and a table in the report."""
+    out, _ = flow
+    recs = [r for r in records_of(out) if r["kind"] == learned.STABILITY_KIND]
+    test_id = store.read_manifest(data)["items"][2]["id"]
+    assert sorted(r["method"] for r in recs) == sorted(learned.METHOD_NAMES + (learned.SIMULATOR,))
+    for r in recs:
+        assert r["status"] == "ok" and r["case"] == "zero_area_face", (r["method"], r["message"])
+        assert r["verdict"] in ("stable", "degraded", "failed") and r["seed"] == 0
+        assert r["sequence"] == test_id and r["info"]["uv_area_m2"] == 0.0
+        assert r["metrics"]["frames"] == 4 and r["metrics"]["nonfinite"] == 0
+        assert all(math.isfinite(x) for x in numbers(r["metrics"])), r["method"]
+    md = (out / "report.md").read_text()
+    table = md.split("### Every method on a test sequence of the dataset")[1].split("\n## ")[0]
+    for name in learned.METHOD_NAMES + (learned.SIMULATOR,):
+        assert f"\n| {name} | zero_area_face | 0 |" in table, name
+
+
+@pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
+def test_stability_baseline_case_is_the_test_prediction(flow, data):
+    """The unmodified case, rebuilt from the test record's description and presented by
+    BenchChunks, gets exactly the prediction of the test set's own item (SequenceChunks
+    over the generated file): the suite tests the trained models on their own inputs."""
+    from garmentgnn.bench import stability
+    out, _ = flow
+    runner = learned.LearnedRunner(learned.prepare_dataset(data), learned_only().learned, out,
+                                   (1,), 0, 1)
+    base = runner.test.records[0]
+    seq, _ = stability.stability_sequence("baseline", dict(base, name="baseline"), base["seed"])
+    item = runner.test[0]
+    for method in ("GarTrans (SAT)", learned.HOOD, learned.NCS, learned.DA, learned.LBS):
+        pred, info = runner.trained(method, 0)
+        if method != learned.LBS:  # the flow's model, not retrained
+            assert info["resumed_from_epoch"] == info["epochs"] == 1, (method, info)
+        with torch.no_grad():
+            ref = stability.stability_metrics(seq, pred.predict(runner.test, 0, item))
+        rec = runner.stability_record(method, 0, "baseline")
+        assert rec["status"] == "ok", rec["message"]
+        for k, v in ref.items():
+            assert rec["metrics"][k] == pytest.approx(v, rel=1e-5, abs=1e-9), (method, k)
+    with pytest.raises(ValueError, match="method"):
+        runner.stability_record("nope", 0, "baseline")
 
 
 def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
@@ -287,6 +339,8 @@ def test_bad_arguments(data, tmp_path):
         learned.LearnedBudget(epochs=0)
     with pytest.raises(ValueError, match="methods"):
         learned.LearnedBudget(methods=("nope",))
+    with pytest.raises(ValueError, match="stability_cases"):
+        learned.LearnedBudget(stability_cases=("nope",))
     with pytest.raises(ValueError, match="data"):
         learned.prepare_dataset(tmp_path / "empty")
     with pytest.raises(ValueError, match="data"):

@@ -164,6 +164,66 @@ def test_edge_lengths_of_grid():
     torch.testing.assert_close(both[1], 2 * both[0])
 
 
+def test_project_edge_lengths_single_edge_exact_and_rigid_fixed_point(noisy_sphere):
+    """One sweep makes an isolated edge exactly its rest length, the midpoint kept; a
+    rigidly moved mesh (every edge at rest length) is a fixed point."""
+    pos = _t([[0.0, 0, 0], [2, 1, 2]])
+    out = G.project_edge_lengths(pos, _f([[0, 1]]), _t([1.5]), iterations=1)
+    assert float((out[1] - out[0]).norm()) == pytest.approx(1.5, abs=1e-12)
+    torch.testing.assert_close(out.mean(0), pos.mean(0))
+    v, faces = _t(noisy_sphere.vertices), _f(noisy_sphere.faces)
+    edges = G.unique_edges(faces, len(v)).edges
+    rest = G.edge_lengths(v, edges)
+    R = G.axis_angle_to_matrix(_t([0.3, -1.1, 0.7]))
+    moved = v @ R.T + _t([0.5, -2.0, 1.0])
+    torch.testing.assert_close(G.project_edge_lengths(moved, edges, rest, 20), moved)
+
+
+def test_project_edge_lengths_converges_and_stretch_only(noisy_sphere):
+    """A uniformly stretched mesh (5%) is pulled back to its rest lengths, the mean
+    error falling every sweep (Jacobi sweeps are slow: under 1% after 1000);
+    ``stretch_only`` leaves a uniformly compressed mesh as it is and only lowers the
+    stretched edges of a mixed one."""
+    v, faces = _t(noisy_sphere.vertices), _f(noisy_sphere.faces)
+    edges = G.unique_edges(faces, len(v)).edges
+    rest = G.edge_lengths(v, edges)
+
+    def err(p):
+        return ((G.edge_lengths(p, edges) - rest).abs() / rest)
+    p, errs = 1.05 * v, []
+    for _ in range(8):
+        p = G.project_edge_lengths(p, edges, rest, 1)
+        errs.append(float(err(p).mean()))
+    assert all(b < a for a, b in zip(errs, errs[1:])) and errs[0] < 0.05
+    assert float(err(G.project_edge_lengths(1.05 * v, edges, rest, 1000)).max()) < 0.01
+    small = 0.9 * v
+    torch.testing.assert_close(G.project_edge_lengths(small, edges, rest, 5, stretch_only=True),
+                               small)
+    g = torch.Generator().manual_seed(0)
+    mixed = v * (1 + 0.05 * torch.randn(v.shape[0], 1, generator=g, dtype=D))
+    ratio = G.edge_lengths(mixed, edges) / rest
+    after = G.edge_lengths(G.project_edge_lengths(mixed, edges, rest, 10, stretch_only=True),
+                           edges) / rest
+    assert float(after.max()) < float(ratio.max()) - 0.02
+    assert float(after.min()) < 1.0 and float(ratio.min()) < 1.0
+
+
+def test_project_edge_lengths_gradcheck_batched_and_errors(noisy_sheet):
+    pos, faces = noisy_sheet
+    edges = G.unique_edges(faces, pos.shape[0]).edges
+    rest = 0.97 * G.edge_lengths(pos, edges)
+    x = pos[:20].clone().requires_grad_(True)
+    sub = edges[(edges < 20).all(1)]
+    assert torch.autograd.gradcheck(
+        lambda p: G.project_edge_lengths(p, sub, rest[(edges < 20).all(1)], 3), (x,))
+    both = G.project_edge_lengths(torch.stack([pos, pos + 1.0]), edges, rest, 4)
+    torch.testing.assert_close(both[1], both[0] + 1.0)
+    with pytest.raises(ValueError, match="iterations"):
+        G.project_edge_lengths(pos, edges, rest, -1)
+    with pytest.raises(ValueError, match="rest_lengths"):
+        G.project_edge_lengths(pos, edges, rest[:-1], 1)
+
+
 def _hinge(alpha, up=False):
     """Faces (0,1,2) flat in z=0, normal +z, and (1,0,3) rotated about the x axis by
     ``alpha`` downwards (a ridge, convex) or upwards (a valley)."""

@@ -208,6 +208,29 @@ def test_collision_projection_moves_only_what_is_inside_or_too_close(scene):
         proj(*args, body_pos=bpos)
 
 
+def test_strain_limit_is_the_edge_projection_of_the_prediction(scene):
+    """``strain_limit=k``: the final mesh is the unlimited prediction after ``k``
+    stretch-only sweeps toward the rest garment's edge lengths (the geometry function
+    as the oracle)."""
+    from garmentgnn.geometry import edge_lengths, project_edge_lengths, unique_edges
+    body, g, ei, ny, bd, rots, tr = scene
+    plain, lim = build(body, ny, lbs_start=True), build(body, ny, lbs_start=True, strain_limit=4)
+    # the acceleration gate opened wide, so that the prediction has stretched edges
+    with torch.no_grad():
+        plain.gates.copy_(torch.tensor([1.0, 1.0, 100.0]))
+    lim.load_state_dict(plain.state_dict())
+    edges = unique_edges(g.faces, g.vertices.shape[0]).edges
+    rest = edge_lengths(g.vertices, edges)
+    with torch.no_grad():
+        ref = run(plain, scene)["final"]
+        out = run(lim, scene)["final"]
+    torch.testing.assert_close(out, project_edge_lengths(ref, edges, rest, 4, stretch_only=True))
+    over = lambda p: float((edge_lengths(p, edges) / rest - 1).clamp_min(0).mean())
+    assert over(out) < 0.7 * over(ref)
+    with pytest.raises(ValueError, match="strain_limit"):
+        build(body, ny, strain_limit=-2)
+
+
 def test_blend_shape_can_be_left_out(scene):
     """``blend_shape=False``: no blend stack, the coarse mesh is LBS of the rest garment
     with the learned weights ``W^t`` (Eq. 1 with ``T^t = T``)."""

@@ -150,7 +150,8 @@ def preset(name: str) -> Preset:
             long_item=case_item("long-skirt-walk", "skirt", 200, "walk", 100,
                                 {"length": "mini"}),
             dataset="tiny", data_workers=1,
-            learned=learned_mod.LearnedBudget(seeds=1, epochs=1, window=1, ncs_epochs=1))
+            learned=learned_mod.LearnedBudget(seeds=1, epochs=1, window=1, ncs_epochs=1,
+                                              stability_cases=("zero_area_face",)))
     if name == "small":
         return Preset(
             name="small",
@@ -162,7 +163,8 @@ def preset(name: str) -> Preset:
             budgets=(SimBudget(1, 30), SimBudget(2, 30), SimBudget(4, 30), SimBudget(4, 5),
                      SimBudget(4, 10)),
             stability_item=case_item("stability", "skirt", 200, "walk", 6, {"length": "mini"}),
-            stability_cases=tuple(stab.CASES),
+            stability_cases=("baseline", "stiff_x1000", "extreme_pose", "fast_x5",
+                             "sliver_face", "zero_area_face"),
             batches=(1, 4, 16, 64),
             scaling_item=_SCALING_ITEM, scaling_resolutions=(1000, 2000, 4000, 8000, 14000),
             leaveout=True, precision_methods=tuple(precision.METHODS),
@@ -170,7 +172,10 @@ def preset(name: str) -> Preset:
                                 {"length": "mini"}),
             # sized in docs/bench.md ("Learned methods")
             dataset="small", data_workers=2,
-            learned=learned_mod.LearnedBudget(seeds=3, epochs=4, window=1, ncs_epochs=8))
+            learned=learned_mod.LearnedBudget(
+                seeds=3, epochs=4, window=1, ncs_epochs=8,
+                stability_cases=("baseline", "stiff_x1000", "extreme_pose", "fast_x5",
+                                 "long_1000", "sliver_face", "zero_area_face")))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 
@@ -428,6 +433,11 @@ def tasks(p: Preset, seeds: Sequence[int], learned_seeds: Sequence[int] = (),
             for m in p.learned.methods:
                 if i == 0 or m not in learned_mod.SEED_FREE:
                     out.append(("learned", m, {"name": data_case}, seed))
+        # the stability suite on the dataset: each method's first-seed model, the simulator
+        for case in p.learned.stability_cases:
+            for m in p.learned.methods + (learned_mod.SIMULATOR,):
+                if not (m == learned_mod.SIMULATOR and case in learned_mod.SIMULATOR_SKIPS):
+                    out.append(("learned_stability", m, {"name": case}, learned_seeds[0]))
     return out
 
 
@@ -515,6 +525,8 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
                                         stab.simulator_predictor(**settings), method)
                 elif kind == "learned":
                     rec = runner.record(method, seed)
+                elif kind == "learned_stability":
+                    rec = runner.stability_record(method, seed, case)
                 else:
                     rec = _extra_record(ctx, kind, method, item, seed)
                 rec = _json_safe(_finalize(rec))

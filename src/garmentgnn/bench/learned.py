@@ -61,6 +61,8 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
+from garmentgnn.bench import stability as stab
+from garmentgnn.bench.model_inputs import BenchChunks
 from garmentgnn.bench.report import METRICS, UNITS, _fmt, _mean_std, _table, plot_summary
 from garmentgnn.bench.timing import batch_sweep, peak_memory
 from garmentgnn.data import store
@@ -74,6 +76,8 @@ from garmentgnn.training.evaluate import lbs_coarse
 from garmentgnn.training.evaluate import predict as gartrans_predict
 
 KIND = "learned"
+#: the record kind of :meth:`LearnedRunner.stability_record`
+STABILITY_KIND = "learned_stability"
 
 # --------------------------------------------------------------------------- methods
 #: ``configs/gartrans.yaml``'s ``model:`` section (a test compares them with the file)
@@ -81,7 +85,7 @@ GARTRANS_MODEL: Dict[str, Any] = {
     "rest_layer": "gt", "blend_layer": "gt", "dynamic_layer": "sat", "heads": 4,
     "fps": 30.0, "lr": 0.003, "edge_reduction": "sum", "collision_margin": 0.002,
     "collision_projection": 0.002, "loss_weights": {"edge": 150.0}, "blend_shape": False,
-    "use_body": True}
+    "strain_limit": 10, "use_body": True}
 #: ``configs/gartrans.yaml``'s ``data:`` section (without ``root`` and ``num_workers``)
 DATA: Dict[str, int] = {"chunk": 8, "history": 3, "nystrom_dim": 16, "num_landmarks": 64}
 #: the ``ProgressiveSchedule`` arguments of ``configs/gartrans.yaml`` except the windows
@@ -114,6 +118,10 @@ NCS, HOOD, DA, LBS = "NCS-style", "HOOD-style", "DA-style", "LBS only"
 METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, LBS)
 #: methods without training or randomness: run for the first seed only
 SEED_FREE: Tuple[str, ...] = (LBS,)
+#: the reference simulator, with the dataset's settings, in the learned stability suite
+SIMULATOR = "simulator (dataset settings)"
+#: stability cases the simulator leaves out there (``long_1000``: about 50 min)
+SIMULATOR_SKIPS: Tuple[str, ...] = ("long_1000",)
 
 #: the physics-only objective of HOOD and NCS (as ``tests/test_baselines.py`` trains HOOD)
 PHYSICS_LOSS: Dict[str, Any] = {"weights": {"inertia": 1.0, "bending": 1.0},
@@ -137,6 +145,9 @@ class LearnedBudget:
         window: :class:`ProgressiveSchedule` window in epochs.
         ncs_epochs: passes of each NCS model over its own garment's test poses.
         methods: the names of :data:`METHOD_NAMES` to run.
+        stability_cases: :data:`garmentgnn.bench.stability.CASES` run by each method
+            (first seed's model) and the simulator on the first test sequence
+            (:meth:`LearnedRunner.stability_record`).
     """
 
     seeds: int = 1
@@ -144,6 +155,7 @@ class LearnedBudget:
     window: int = 1
     ncs_epochs: int = 1
     methods: Tuple[str, ...] = METHOD_NAMES
+    stability_cases: Tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("seeds", "epochs", "window", "ncs_epochs"):
@@ -153,6 +165,9 @@ class LearnedBudget:
         unknown = [m for m in self.methods if m not in METHOD_NAMES]
         if unknown or not self.methods:
             raise ValueError(f"`methods`: unknown {unknown} or empty; choose from {METHOD_NAMES}")
+        unknown = [c for c in self.stability_cases if c not in stab.CASES]
+        if unknown:
+            raise ValueError(f"`stability_cases`: unknown {unknown}; choose from {list(stab.CASES)}")
 
 
 # --------------------------------------------------------------------------- dataset
@@ -282,11 +297,12 @@ class TrainClock(L.Callback):
 
 @dataclass
 class _Predictor:
-    """A trained method: ``predict(i, item)`` the whole ``i``-th test sequence ``[T, V,
-    3]``; ``make_batch(item, b)`` a function predicting ``b`` frames of ``item`` per call
-    (inputs prepared outside it) for the timing sweep."""
+    """A trained method: ``predict(ds, i, item)`` the garment ``[T, V, 3]`` of ``item``,
+    item ``i`` of ``ds`` (the whole-sequence test set, or the :class:`BenchChunks` of a
+    stability case); ``make_batch(item, b)`` a function predicting ``b`` frames of
+    ``item`` per call (inputs prepared outside it) for the timing sweep."""
 
-    predict: Callable[[int, Dict[str, Any]], Tensor]
+    predict: Callable[[SequenceChunks, int, Dict[str, Any]], Tensor]
     make_batch: Callable[[Dict[str, Any], int], Callable[[], Any]]
     note: str
 
@@ -320,6 +336,7 @@ class LearnedRunner:
         self.test = SequenceChunks(data.root, "test", chunk=10 ** 9, **kw)  # whole sequences
         self.test_chunks = SequenceChunks(data.root, "test", chunk=DATA["chunk"], **kw)  # NCS
         self._scenes: Dict[str, Tuple[GarmentScene, Optional[CoarseLevel]]] = {}
+        self._trained: Dict[Tuple[str, int], Tuple[_Predictor, Dict[str, Any]]] = {}
 
     # -- records ----------------------------------------------------------------------
     def record(self, method: str, seed: int) -> Dict[str, Any]:
@@ -331,17 +348,7 @@ class LearnedRunner:
                                "seed": seed, "dataset": self.data.to_json()}
         t0 = time.perf_counter()
         try:
-            L.seed_everything(seed, workers=True, verbose=False)
-            if method in GARTRANS:
-                pred, info = self._gartrans(method, seed)
-            elif method == DA:
-                pred, info = self._da(seed)
-            elif method == HOOD:
-                pred, info = self._hood(seed)
-            elif method == NCS:
-                pred, info = self._ncs(seed)
-            else:
-                pred, info = self._lbs()
+            pred, info = self.trained(method, seed)
             rec.update(info)
             rec["metrics"], rec["test_frames"] = self.evaluate(pred)
             rec["timing"] = self.timing(pred)
@@ -350,6 +357,52 @@ class LearnedRunner:
             rec.update(status="failed", message=f"{type(err).__name__}: {err}",
                        traceback=traceback.format_exc(limit=6))
         rec["seconds"] = time.perf_counter() - t0
+        return rec
+
+    def trained(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
+        """``method`` trained with ``seed`` (trained, or resumed from its checkpoint, on
+        the first call; kept for the next)."""
+        key = (method, seed)
+        if key not in self._trained:
+            L.seed_everything(seed, workers=True, verbose=False)
+            if method in GARTRANS:
+                self._trained[key] = self._gartrans(method, seed)
+            elif method == DA:
+                self._trained[key] = self._da(seed)
+            elif method == HOOD:
+                self._trained[key] = self._hood(seed)
+            elif method == NCS:
+                self._trained[key] = self._ncs(seed)
+            else:
+                self._trained[key] = self._lbs()
+        return self._trained[key]
+
+    def stability_record(self, method: str, seed: int, case: str) -> Dict[str, Any]:
+        """Stability ``case`` (:mod:`garmentgnn.bench.stability`) built on the first test
+        sequence of the dataset (its body, garment, motion and motion seed), predicted by
+        ``method`` trained with ``seed`` -- or by :data:`SIMULATOR` with the dataset's
+        simulator settings -- and scored like the simulator's cases.  The model sees the
+        case as the data module would present it (:class:`BenchChunks`); no learned
+        method takes the material as input, so ``stiff_x1000`` changes only how its
+        output is scored."""
+        if method not in METHOD_NAMES + (SIMULATOR,):
+            raise ValueError(f"`method`: unknown {method!r}; choose from "
+                             f"{METHOD_NAMES + (SIMULATOR,)}")
+        base = self.test.records[0]
+        item = {k: v for k, v in base.items() if k in ("garment", "body", "motion", "material",
+                                                        "settings")}
+        if method == SIMULATOR:
+            predict = stab.simulator_predictor(**item["settings"])
+        else:
+            def predict(seq) -> Tensor:
+                pred, _ = self.trained(method, seed)
+                ds = BenchChunks(seq, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
+                                 num_landmarks=DATA["num_landmarks"])
+                with torch.no_grad():
+                    return pred.predict(ds, 0, ds[0])
+        rec = stab.run_case(case, dict(item, name=case), int(base["seed"]), predict, method)
+        rec.update(kind=STABILITY_KIND, seed=seed, motion_seed=int(base["seed"]),
+                   sequence=base["id"])
         return rec
 
     def evaluate(self, pred: _Predictor) -> Tuple[Dict[str, float], int]:
@@ -362,7 +415,7 @@ class LearnedRunner:
         for i in range(len(self.test)):
             item = self.test[i]
             with torch.no_grad():
-                P = pred.predict(i, item)
+                P = pred.predict(self.test, i, item)
             B, V = item["gt"].shape[:2]
             if tuple(P.shape) != (B, V, 3):
                 raise RuntimeError(f"predicted {tuple(P.shape)} for {item['seq_id']}, expected "
@@ -385,7 +438,7 @@ class LearnedRunner:
         the first test sequence."""
         item = self.test[0]
         with torch.no_grad():
-            mem = peak_memory(lambda: pred.predict(0, item))
+            mem = peak_memory(lambda: pred.predict(self.test, 0, item))
         t = batch_sweep(lambda b: pred.make_batch(item, b), self.batches, self.warmup,
                         self.repeats)
         t.update(peak_mem_mb=mem["peak_mb"], memory_method=mem["method"],
@@ -511,7 +564,8 @@ class LearnedRunner:
                 "resumed_from_epoch": clock.restored_epochs, "phase": sched.phase,
                 "transitions": {str(k): e for k, e in sched.transitions.items()},
                 "config": config, "checkpoint": str(last)}
-        return _Predictor(lambda i, item: gartrans_predict(module, item, "gartrans"), make_batch,
+        return _Predictor(lambda ds, i, item: gartrans_predict(module, item, "gartrans"),
+                          make_batch,
                           "frame-parallel forward of `batch` frames, static branch "
                           "(encode_static) computed once per garment outside the timed call"
                           ), info
@@ -535,8 +589,8 @@ class LearnedRunner:
         info = self._fit_plain(model, step, len(self.train), self.budget.epochs, cfg["lr"], seed,
                                folder / "last.pt")
 
-        def predict(i: int, item: Dict[str, Any]) -> Tensor:
-            scene, _ = self._scene(self.test, i)
+        def predict(ds: SequenceChunks, i: int, item: Dict[str, Any]) -> Tensor:
+            scene, _ = self._scene(ds, i)
             return model(scene, item["rotations"][:, -1], item["translation"][:, -1])
 
         def make_batch(item: Dict[str, Any], b: int) -> Callable[[], Any]:
@@ -583,8 +637,8 @@ class LearnedRunner:
         info = self._fit_plain(model, step, len(self.train), self.budget.epochs, cfg["lr"], seed,
                                folder / "last.pt")
 
-        def predict(i: int, item: Dict[str, Any]) -> Tensor:
-            scene, coarse = self._scene(self.test, i, coarse=True)
+        def predict(ds: SequenceChunks, i: int, item: Dict[str, Any]) -> Tensor:
+            scene, coarse = self._scene(ds, i, coarse=True)
             lbs = lbs_coarse(item)
             return model.rollout(scene, coarse, lbs[0], lbs[1], item["body_pos"],
                                  pinned_targets=lbs)
@@ -622,7 +676,7 @@ class LearnedRunner:
             end = H + j + 1
             return item["rotations"][:, end - h - 1:end], item["translation"][:, end - 1]
 
-        models: Dict[int, NCSStyle] = {}  # record index -> its garment's model
+        models: Dict[Tuple[str, str], NCSStyle] = {}  # (garment, body) -> its model
         total = {"epochs": 0, "train_seconds": 0.0, "resumed_from_epoch": 0}
         for g, (key, recs) in enumerate(sorted(groups.items())):
             scene, _ = self._scene(ds, next(k for k, x in enumerate(ds.index) if x[0] == recs[0]))
@@ -645,19 +699,21 @@ class LearnedRunner:
             total["train_seconds"] += info["train_seconds"]
             total["resumed_from_epoch"] = max(total["resumed_from_epoch"],
                                               info["resumed_from_epoch"])
-            for i in recs:
-                models[i] = model
-        if [r["id"] for r in self.test.records] != [r["id"] for r in ds.records]:
-            raise RuntimeError("the whole-sequence and chunked test sets list other sequences")
+            models[key] = model
 
-        def predict(i: int, item: Dict[str, Any]) -> Tensor:
-            scene, _ = self._scene(self.test, i)
-            return models[i](scene, *poses(item, -1))
+        def model_of(ds: SequenceChunks, i: int) -> NCSStyle:
+            r = ds.records[ds.index[i][0]]
+            return models[(garment_key(r["garment"]), body_key(r["body"]))]
+
+        def predict(ds: SequenceChunks, i: int, item: Dict[str, Any]) -> Tensor:
+            scene, _ = self._scene(ds, i)
+            return model_of(ds, i)(scene, *poses(item, -1))
 
         def make_batch(item: Dict[str, Any], b: int) -> Callable[[], Any]:
             scene, _ = self._scene(self.test, 0)
             r, t = poses(_cycled(item, b), -1)
-            return lambda: models[0](scene, r, t)
+            model = model_of(self.test, 0)
+            return lambda: model(scene, r, t)
 
         return _Predictor(predict, make_batch, "one call predicting `batch` frames (the first "
                                                "test garment's model)"), \
@@ -668,7 +724,7 @@ class LearnedRunner:
             it = _cycled(item, b)
             return lambda: lbs_coarse(it)
 
-        return _Predictor(lambda i, item: lbs_coarse(item), make_batch,
+        return _Predictor(lambda ds, i, item: lbs_coarse(item), make_batch,
                           "one call skinning `batch` frames"), \
             {"epochs": 0, "train_seconds": 0.0, "resumed_from_epoch": 0,
              "config": {"weights": "the simulator's transferred skinning weights"}}

@@ -52,7 +52,8 @@ class BenchChunks(SequenceChunks):
         self.root, self.split, self.chunk, self.history = None, None, chunk, history
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size = self.static_cache = 1
-        self.records = [{"id": seq.name, "num_frames": T, "status": "ok"}]
+        self.records = [{"id": seq.name, "num_frames": T, "status": "ok",
+                         "garment": seq.item["garment"], "body": seq.item["body"]}]
         self.index = [(0, t0, min(chunk, T - t0)) for t0 in range(0, T, chunk)]
         self._seqs = store.LRUCache(1)
         self._static = store.LRUCache(1)
@@ -66,6 +67,8 @@ class BenchChunks(SequenceChunks):
             "garment_vertices": g.vertices.numpy().astype(np.float32),
             "garment_faces": g.faces.numpy().astype(np.int64),
             "garment_face_uv": g.face_uv.numpy().astype(np.float32),
+            "garment_pinned": (g.pinned.numpy() if g.pinned is not None
+                               else np.zeros(V, bool)).astype(bool),
             "motion_rotations": m.rotations.float().numpy(),
             "motion_translation": m.translation.float().numpy(),
             "positions": positions,

@@ -36,7 +36,8 @@ METRICS: Tuple[str, ...] = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "
 UNITS = {"E_dist": "cm", "E_vnorm": "deg", "E_fnorm": "deg", "E_len": "%", "E_curv": "rad",
          "collision_rate": "%"}
 KINDS = ("accuracy", "stability", "scaling", "leaveout", "precision", "long_sequence",
-         "learned")
+         "learned", "learned_stability")
+STABILITY_KINDS = ("stability", "learned_stability")
 #: the field an ok record of each extra kind must hold (their modules document the rest)
 EXTRA_REQUIRED = {"scaling": "timing", "leaveout": "scenes", "precision": "rows",
                   "long_sequence": "verdict"}
@@ -69,6 +70,23 @@ def _sanitize(obj: Any) -> Any:
     return obj
 
 
+def _stability_table(records: List[Dict[str, Any]]) -> List[str]:
+    rows = []
+    for r in records:
+        m = r.get("metrics", {})
+
+        def g(k: str, scale: float = 1.0, digits: int = 3) -> str:
+            v = m.get(k)
+            return "—" if v is None else f"{scale * v:.{digits}g}"
+        rows.append([r["method"], r["case"], str(r["seed"]), f"**{r.get('verdict', 'failed')}**",
+                     g("frames"), g("nonfinite"), g("max_speed"), g("body_max_speed"),
+                     g("energy_growth"), g("max_penetration_m", 1e3), g("nonconverged_frames"),
+                     (r.get("reason") or r.get("message") or "").replace("|", "/")[:160]])
+    return _table(["method", "case", "seed", "verdict", "frames", "non-finite",
+                   "max speed (m/s)", "body max speed (m/s)", "energy growth",
+                   "penetration (mm)", "unconverged frames", "reason"], rows) + [""]
+
+
 def check_record(rec: Dict[str, Any]) -> Dict[str, Any]:
     """Validate one record (``ValueError`` naming ``records`` and the field); returns a
     JSON-safe copy (non-finite numbers of failed records become ``None``)."""
@@ -90,7 +108,7 @@ def check_record(rec: Dict[str, Any]) -> Dict[str, Any]:
         missing = [m for m in METRICS if m not in rec.get("metrics", {})]
         if missing:
             raise ValueError(f"`records`: {rec['kind']} record {where} lacks metric(s) {missing}")
-    if rec["status"] == "ok" and rec["kind"] == "stability" and "verdict" not in rec:
+    if rec["status"] == "ok" and rec["kind"] in STABILITY_KINDS and "verdict" not in rec:
         raise ValueError(f"`records`: stability record {where} lacks a verdict")
     need = EXTRA_REQUIRED.get(rec["kind"])
     if rec["status"] == "ok" and need is not None and need not in rec:
@@ -223,28 +241,24 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
         lines += ["No accuracy records.", ""]
     stab = [r for r in records if r["kind"] == "stability"]
     lines += ["## Stability", ""]
-    if stab:
-        th = next((r.get("thresholds") for r in stab if r.get("thresholds")), None)
-        if th:
-            lines += ["Thresholds: " + ", ".join(f"{k}={v}" for k, v in th.items()) +
-                      " (see `garmentgnn.bench.stability.Thresholds`).", ""]
-        rows = []
-        for r in stab:
-            m = r.get("metrics", {})
-
-            def g(k: str, scale: float = 1.0, digits: int = 3) -> str:
-                v = m.get(k)
-                return "—" if v is None else f"{scale * v:.{digits}g}"
-            rows.append([r["method"], r["case"], str(r["seed"]), f"**{r.get('verdict', 'failed')}**",
-                         g("nonfinite"), g("max_speed"), g("body_max_speed"),
-                         g("energy_growth"), g("max_penetration_m", 1e3),
-                         g("nonconverged_frames"),
-                         (r.get("reason") or r.get("message") or "").replace("|", "/")[:160]])
-        lines += _table(["method", "case", "seed", "verdict", "non-finite", "max speed (m/s)",
-                         "body max speed (m/s)", "energy growth", "penetration (mm)",
-                         "unconverged frames", "reason"], rows) + [""]
-    else:
-        lines += ["No stability records.", ""]
+    th = next((r.get("thresholds") for r in records
+               if r["kind"] in STABILITY_KINDS and r.get("thresholds")), None)
+    if th:
+        lines += ["Thresholds: " + ", ".join(f"{k}={v}" for k, v in th.items()) +
+                  " (see `garmentgnn.bench.stability.Thresholds`).", ""]
+    lines += (["The simulator on the bench's stability item (a garment on the capsule "
+               "body), per motion seed.", ""] + _stability_table(stab) if stab
+              else ["No stability records.", ""])
+    lstab = [r for r in records if r["kind"] == "learned_stability"]
+    if lstab:
+        seqs = sorted({str(r.get("sequence")) for r in lstab})
+        lines += ["### Every method on a test sequence of the dataset", "",
+                  f"The cases built on `{', '.join(seqs)}` (the first test sequence of the "
+                  "learned methods' dataset: its anny body, garment and motion), predicted "
+                  "by each learned method (the model of the seed in the table) and by the "
+                  "simulator with the dataset's settings. No learned method takes the "
+                  "material as input: `stiff_x1000` changes only how their output is "
+                  "scored.", ""] + _stability_table(lstab)
     # they import this module
     from garmentgnn.bench import learned, leaveout, precision, scaling
     lines += learned.markdown(records, learned_png)

@@ -8,7 +8,9 @@ optionally ``.ok``, ``.message``, ``.converged [T]``) such as a
 :func:`simulator_predictor`; a learned model is plugged in by wrapping its rollout the
 same way.
 
-Cases (all on a small garment on the capsule body, few frames):
+Cases (on any generated item: the bench's small garment on the capsule body for the
+simulator, a test sequence of the learned methods' dataset for them, see
+:meth:`garmentgnn.bench.learned.LearnedRunner.stability_record`):
 
 =================  ==============================================================
 ``baseline``       the unmodified case (reference point for the others)
@@ -16,6 +18,7 @@ Cases (all on a small garment on the capsule body, few frames):
 ``extreme_pose``   every limited joint driven over the sequence to (beyond, then
                    clamped back to) its limits of :mod:`garmentgnn.motion.limits`
 ``fast_x5``        the motion at 5x speed
+``long_1000``      the motion generated over 1000 frames (:data:`LONG_FRAMES`)
 ``sliver_face``    one interior triangle squashed to 1/1000 of its area (a vertex
                    moved 99.9% of the way to its opposite edge, in 3D and UV alike)
 ``zero_area_face`` the same vertex moved onto the edge (3D), the face's UV collapsed to
@@ -115,17 +118,21 @@ def _degenerate(seq: BenchSequence, fraction: float) -> Tuple[Garment, Dict[str,
     free = ~boundary_vertex_mask(g.faces, V)
     if g.pinned is not None:
         free &= ~g.pinned
-    # vertices whose UV corners all agree (not on a UV seam), so one UV move fits all
-    dev = (g.face_uv.reshape(-1, 2) - g.uv[g.faces.flatten()]).abs().amax(-1)
-    seam = torch.zeros(V, dtype=torch.bool)
-    seam[g.faces.flatten()[dev > 1e-7]] = True
-    free &= ~seam
-    ok = free[g.faces]  # [F, 3]
-    cand = torch.nonzero(ok[:, 0], as_tuple=False).flatten()
-    if cand.numel() == 0:
-        raise ValueError("`garment`: no interior unpinned vertex to degrade")
-    f = int(cand[cand.numel() // 2])
-    v, a, b = (int(i) for i in g.faces[f])
+    if not bool(free.any()):
+        raise ValueError("`garment`: no interior, unpinned vertex to degrade")
+    # the spread of each vertex's UV corners: 0 off the seams of a pattern whose panels are
+    # flat; a garment whose face_uv is laid flat per face (templates.build_pattern on a
+    # non-developable panel) has none at 0, so the vertices of the smallest spread are used
+    flat, fu0 = g.faces.flatten(), g.face_uv.reshape(-1, 2)
+    idx = flat[:, None].expand(-1, 2)
+    hi = torch.full((V, 2), -float("inf"), dtype=fu0.dtype).scatter_reduce(0, idx, fu0, "amax")
+    lo = torch.full((V, 2), float("inf"), dtype=fu0.dtype).scatter_reduce(0, idx, fu0, "amin")
+    spread = (hi - lo).amax(-1)
+    free &= spread <= max(1e-7, float(spread[free].min()))
+    cand = torch.nonzero(free[g.faces], as_tuple=False)  # [K, 2]: (face, corner)
+    f, c = (int(i) for i in cand[cand.shape[0] // 2])
+    order = [c, (c + 1) % 3, (c + 2) % 3]  # the chosen corner first, winding kept
+    v, a, b = (int(g.faces[f, k]) for k in order)
     verts = g.vertices.clone()
     def move(p, q):  # exactly q at fraction 1 (no float round-off: a true zero area)
         return q.clone() if fraction >= 1.0 else p + fraction * (q - p)
@@ -135,20 +142,21 @@ def _degenerate(seq: BenchSequence, fraction: float) -> Tuple[Garment, Dict[str,
     uv[v] = move(uv[v], 0.5 * (uv[a] + uv[b]))
     face_uv = g.face_uv.clone()
     fu = face_uv.view(-1, 2)
-    corners = torch.nonzero(g.faces.flatten() == v, as_tuple=False).flatten()
-    tri = face_uv[f]
+    corners = torch.nonzero(flat == v, as_tuple=False).flatten()
+    tri = face_uv[f, order]
     target = 0.5 * (tri[1] + tri[2])
-    fu[corners] = move(tri[0], target).expand(corners.numel(), 2)  # all equal tri[0]
+    fu[corners] += move(tri[0], target) - tri[0]  # every corner of v by the same UV step
     if fraction >= 1.0:
         # the float32 midpoint is collinear only up to round-off (ClothRest would still
         # call the face valid): collapse this face's UV corner onto a neighbour instead,
         # an exactly zero-area UV face (3D: the vertex lies on the edge)
-        face_uv[f, 0] = face_uv[f, 1]
+        face_uv[f, c] = face_uv[f, order[1]]
     new = Garment(verts, g.faces.clone(), uv, face_uv, name=g.name + "-degenerate", kind=g.kind,
                   pinned=g.pinned, panel=g.panel, info=dict(g.info))
     area = 0.5 * torch.linalg.det(torch.stack([face_uv[f, 1] - face_uv[f, 0],
                                                face_uv[f, 2] - face_uv[f, 0]]).double()).abs()
-    return new, {"face": f, "vertex": v, "uv_area_m2": float(area)}
+    return new, {"face": f, "vertex": v, "uv_area_m2": float(area),
+                 "uv_corner_spread_m": float(spread[v])}
 
 
 def stability_sequence(case: str, item: Dict[str, Any], seed: int
@@ -166,6 +174,9 @@ def stability_sequence(case: str, item: Dict[str, Any], seed: int
     if case == "extreme_pose":
         motion, info = _extreme_pose(base)
         return make_sequence(item, seed, motion=motion), info
+    if case == "long_1000":
+        it = dict(item, motion=dict(item["motion"], num_frames=LONG_FRAMES))
+        return make_sequence(it, seed), {"num_frames": LONG_FRAMES}
     if case == "fast_x5":
         it = dict(item, motion=dict(item["motion"], speed=5.0 * item["motion"]["speed"]))
         return make_sequence(it, seed), {"speed": it["motion"]["speed"]}
@@ -173,11 +184,15 @@ def stability_sequence(case: str, item: Dict[str, Any], seed: int
     return make_sequence(item, seed, garment=garment), info
 
 
+#: frames of the ``long_1000`` case
+LONG_FRAMES = 1000
+
 CASES: Dict[str, str] = {
     "baseline": "unmodified",
     "stiff_x1000": "material stiffness x1000",
     "extreme_pose": "joints driven to their limits (clamped)",
     "fast_x5": "motion at 5x speed",
+    "long_1000": "the motion over 1000 frames",
     "sliver_face": "one face squashed to 1/1000 of its area (3D + UV)",
     "zero_area_face": "one face of zero area (vertex on the edge in 3D, UV exactly 0)",
 }

@@ -38,7 +38,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
-from garmentgnn.geometry import edge_features, push_outside, vertex_normals
+from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
+                                push_outside, unique_edges, vertex_normals)
 from garmentgnn.nn import make_layer
 
 
@@ -154,14 +155,22 @@ class GarTrans(nn.Module):
             projection; the collision loss (Eq. 10) alone keeps the garment out.
         blend_shape: ``False`` leaves out the blend shape ``B^t`` (``T^t = T``) and its
             transformer stack; ``True`` is the paper.
+        strain_limit: sweeps of a differentiable step, before the collision projection,
+            that shortens the edges of ``M^{t,d}`` longer than on the rest garment
+            (:func:`garmentgnn.geometry.project_edge_lengths` with ``stretch_only``:
+            Provot's strain limiting); ``0`` (the paper): none.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
                  heads: int = 4, fps: float = 30.0, edge_dim: int = 4,
                  lbs_start: bool = False, collision_projection: Optional[float] = None,
-                 blend_shape: bool = True) -> None:
+                 blend_shape: bool = True, strain_limit: int = 0) -> None:
         super().__init__()
+        if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
+            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got "
+                             f"{strain_limit!r}")
+        self.strain_limit = strain_limit
         if collision_projection is not None and not collision_projection >= 0:
             raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
                              f"None, got {collision_projection}")
@@ -314,6 +323,10 @@ class GarTrans(nn.Module):
         e = edge_features(cur.reshape(B * V, 3), ei)
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         final = cur + self._gate(2, accel / self.fps ** 2)
+        if self.strain_limit:
+            edges = unique_edges(faces, V).edges
+            final = project_edge_lengths(final, edges, edge_lengths(rest_pos, edges),
+                                         self.strain_limit, stretch_only=True)
         if self.collision_projection is not None and body_pos is not None:
             if body_faces is None:
                 raise ValueError("`body_faces`: needed with `body_pos` for the collision "

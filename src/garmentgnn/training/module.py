@@ -49,6 +49,7 @@ class GarTransModule(L.LightningModule):
             garment vertices out of the body (:class:`GarTrans`); ``None``: off (the
             paper).  Applied in training and inference alike.
         blend_shape: ``False`` leaves out GarTrans's blend shape ``B^t``.
+        strain_limit: sweeps of GarTrans's strain-limiting step (``0``: none).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -58,7 +59,8 @@ class GarTransModule(L.LightningModule):
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
                  use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True,
-                 collision_projection: float | None = None, blend_shape: bool = True) -> None:
+                 collision_projection: float | None = None, blend_shape: bool = True,
+                 strain_limit: int = 0) -> None:
         super().__init__()
         if lbs_start and not skin_prior:
             raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
@@ -69,7 +71,7 @@ class GarTransModule(L.LightningModule):
                               rest_layer=rest_layer, blend_layer=blend_layer,
                               dynamic_layer=dynamic_layer, heads=heads, fps=fps,
                               lbs_start=lbs_start, collision_projection=collision_projection,
-                              blend_shape=blend_shape)
+                              blend_shape=blend_shape, strain_limit=strain_limit)
         # only one of the body code paths is ever used; freeze the other (DDP requires
         # every trainable parameter to receive a gradient)
         unused = self.model.body_default if use_body else self.model.body_fc
