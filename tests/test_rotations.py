@@ -47,6 +47,19 @@ def test_axis_angle_round_trip_near_zero_and_pi(angle, dtype):
         np.testing.assert_allclose(aa, Rotation.from_matrix(M).as_rotvec(), atol=1e-7)
 
 
+@pytest.mark.parametrize("dtype,atol", [(torch.float16, 2e-3), (torch.bfloat16, 2e-2)])
+def test_axis_angle_to_matrix_half_precision_near_zero(dtype, atol):
+    """float16 / bfloat16: zero and tiny rotations give the identity-like matrix (not
+    0/0 = NaN from a small-angle threshold that underflows), scipy within the dtype's
+    resolution."""
+    rv = np.concatenate([np.zeros((1, 3)), _unit(8, 3) * 1e-5, _unit(8, 4) * 1e-2,
+                         _unit(8, 5) * 0.7])
+    R = axis_angle_to_matrix(torch.tensor(rv, dtype=dtype))
+    assert R.dtype == dtype and torch.isfinite(R).all()
+    np.testing.assert_allclose(R.double().numpy(), Rotation.from_rotvec(rv).as_matrix(),
+                               atol=atol)
+
+
 def test_axis_angle_gradient_finite_at_zero():
     x = torch.zeros(3, 3, dtype=D, requires_grad=True)
     axis_angle_to_matrix(x).sum().backward()

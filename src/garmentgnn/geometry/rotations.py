@@ -10,13 +10,17 @@ _AXES = {"X": 0, "Y": 1, "Z": 2}
 def axis_angle_to_matrix(aa: Tensor) -> Tensor:
     """Rodrigues' formula: ``[..., 3]`` axis-angle (angle = norm) to ``[..., 3, 3]``.
 
-    Smooth at zero rotation (uses the Taylor series of sin(t)/t and (1-cos t)/t^2).
+    Smooth at zero rotation (uses the Taylor series of sin(t)/t and (1-cos t)/t^2 below
+    t^2 = 1e-8, or below the dtype's machine epsilon where that is larger: float16 and
+    bfloat16, where 1e-8 underflows to 0 and t = 0 would divide 0 by 0).
     """
+    info = torch.finfo(aa.dtype)
+    floor, threshold = max(1e-24, info.tiny), max(1e-8, info.eps)
     theta2 = (aa * aa).sum(-1, keepdim=True).unsqueeze(-1)  # [..., 1, 1]
-    theta = theta2.clamp_min(1e-24).sqrt()
-    small = theta2 < 1e-8
+    theta = theta2.clamp_min(floor).sqrt()
+    small = theta2 < threshold
     a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2.clamp_min(floor))
     x, y, z = aa.unbind(-1)
     zero = torch.zeros_like(x)
     K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).view(*aa.shape[:-1], 3, 3)
