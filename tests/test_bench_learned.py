@@ -267,11 +267,14 @@ def test_learned_stability_records(flow, data):
 
 
 @pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
-def test_stability_baseline_case_is_the_test_prediction(flow, data):
+def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch):
     """The unmodified case, rebuilt from the test record's description and presented by
     BenchChunks, gets exactly the prediction of the test set's own item (SequenceChunks
-    over the generated file): the suite tests the trained models on their own inputs."""
+    over the generated file): the suite tests the trained models on their own inputs.
+    The frame-parallel methods are called on chunks of 3 frames here, the whole-sequence
+    prediction being the oracle."""
     from garmentgnn.bench import stability
+    monkeypatch.setattr(learned, "STABILITY_CHUNK", 3)
     out, _ = flow
     runner = learned.LearnedRunner(learned.prepare_dataset(data), learned_only().learned, out,
                                    (1,), 0, 1)
