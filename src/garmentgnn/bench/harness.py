@@ -174,8 +174,7 @@ def preset(name: str) -> Preset:
             dataset="small", data_workers=2,
             learned=learned_mod.LearnedBudget(
                 seeds=3, epochs=4, window=1, ncs_epochs=8,
-                # not long_1000: building it on the anny body (1000 posed frames) was
-                # killed at 24 GB, the machine's memory (docs/bench.md)
+                # not long_1000: over 5 min per method on this machine (docs/bench.md)
                 stability_cases=("baseline", "stiff_x1000", "extreme_pose", "fast_x5",
                                  "sliver_face", "zero_area_face")))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
