@@ -221,6 +221,29 @@ def test_degenerate_and_extreme_cases_are_what_they_claim():
     from garmentgnn.motion import within_limits
     assert info["joint_frames_clamped"] > 0
     assert within_limits(seq.motion.rotations, seq.body.skeleton, tol_deg=1e-2)
+    seq, info = stability.stability_sequence("long_1000", item, 0)
+    assert seq.num_frames == 1000 == info["num_frames"] and seq.body_frames.shape[0] == 1000
+
+
+def test_degenerate_case_on_a_pattern_laid_flat_per_face():
+    """A T-shirt's face_uv is laid flat per face (no vertex whose UV corners all agree):
+    the sliver still has 1/1000 of its face's UV area and the zero-area face exactly 0,
+    every UV corner of the moved vertex shifted by the same step."""
+    from garmentgnn.bench.sequences import case_item, make_sequence
+    item = case_item("t", "tshirt", 200, "walk", 3, {"sleeves": "none"})
+    base = make_sequence(item, 0).garment
+    seq, info = stability.stability_sequence("sliver_face", item, 0)
+    f, v = info["face"], info["vertex"]
+    assert info["uv_corner_spread_m"] > 0  # no seam-free vertex: the smallest spread
+    a0 = base.face_uv[f]
+    area0 = 0.5 * abs(float(torch.linalg.det(torch.stack([a0[1] - a0[0], a0[2] - a0[0]]))))
+    assert info["uv_area_m2"] == pytest.approx(area0 / 1000, rel=1e-2)
+    mask = (base.faces == v)
+    step = (seq.garment.face_uv - base.face_uv)[mask]
+    assert torch.allclose(step, step[:1].expand_as(step), atol=1e-7) and step.abs().max() > 0
+    assert torch.equal(seq.garment.face_uv[~mask], base.face_uv[~mask])
+    seq, info = stability.stability_sequence("zero_area_face", item, 0)
+    assert info["uv_area_m2"] == 0.0 and not bool(seq.rest.valid[info["face"]])
 
 
 def test_register_and_cli_arguments(tmp_path):
