@@ -16,8 +16,8 @@ from ._validate import check_mesh, check_points, safe_norm
 from .mesh import FaceAdjacency, boundary_vertex_mask, face_adjacency
 from .normals import _face_angles, face_cross, face_vertices, scatter_faces_to_vertices
 
-__all__ = ["edge_lengths", "project_edge_lengths", "dihedral_angles", "face_cotangents", "mixed_voronoi_areas",
-           "angle_defect", "gaussian_curvature"]
+__all__ = ["edge_lengths", "project_edge_lengths", "dihedral_angles", "face_cotangents",
+           "mixed_voronoi_areas", "angle_defect", "gaussian_curvature"]
 
 
 def edge_lengths(pos: Tensor, edges: Tensor) -> Tensor:
@@ -49,7 +49,9 @@ def project_edge_lengths(pos: Tensor, edges: Tensor, rest_lengths: Tensor,
 
     One sweep makes an isolated edge exactly ``l0`` (each end moves half way, the
     midpoint stays); on a mesh, the moves of the edges at a vertex are averaged (the
-    Jacobi form, stable for any mesh), so a sweep only reduces the error.  A mesh whose
+    Jacobi form, stable for any mesh).  Sweeps lower the mean error, slowly for global
+    stretch (a 5% stretched sphere: under 1% after 1000), and the largest error can
+    rise for the first sweeps as the correction spreads.  A mesh whose
     edges are already at rest length is a fixed point (rigid motions are kept).
     ``stretch_only``: only edges longer than rest are corrected (Provot's strain limit:
     cloth resists stretching, while compressed edges are where it buckles).
