@@ -121,6 +121,34 @@ def test_gartrans_loss_weights_phases_and_nan():
     assert PAPER_WEIGHTS["edge"] == 15.0 and PAPER_WEIGHTS["shear"] == 2.0
 
 
+def test_curvature_term_is_the_metric_and_its_gradient():
+    """The extra ``curv`` term is ``k_curv`` times E_curv (its hand-computed test is
+    above), off by default, scaled with the supervised terms, zero at the ground truth
+    and on a rigid motion of it (the angle defect is intrinsic), and its gradient
+    matches finite differences."""
+    pos, faces = sheet(4)
+    gt = pos.clone()
+    gt[5, 2], gt[10, 2] = 0.15, -0.1
+    bumped = gt.clone()
+    bumped[6, 2] = 0.2
+    assert PAPER_WEIGHTS["curv"] == 0.0 and "curv" not in GarTransLoss().enabled
+    loss = GarTransLoss(weights={"curv": 30.0}, enabled=["curv"])
+    _, terms = loss(LossInputs(pred=bumped.unsqueeze(0), faces=faces, gt=gt.unsqueeze(0)))
+    assert float(terms["curv"]) == pytest.approx(30 * float(curvature_error(bumped, gt, faces)))
+    assert float(terms["curv"]) > 0
+    for same in (gt, tilt(gt, 0.7) + 1.0):
+        _, t0 = loss(LossInputs(pred=same.unsqueeze(0), faces=faces, gt=gt.unsqueeze(0)))
+        assert float(t0["curv"]) == pytest.approx(0.0, abs=1e-12)
+    loss.supervised_scale = 0.05
+    _, t5 = loss(LossInputs(pred=bumped.unsqueeze(0), faces=faces, gt=gt.unsqueeze(0)))
+    assert float(t5["curv"]) == pytest.approx(0.05 * float(terms["curv"]))
+    x = bumped.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda p: loss(LossInputs(pred=p.unsqueeze(0), faces=faces, gt=gt.unsqueeze(0)))[0], (x,))
+    with pytest.raises(ValueError, match="gt"):
+        loss(LossInputs(pred=bumped.unsqueeze(0), faces=faces))
+
+
 def test_collision_term_with_candidate_faces_equals_the_exact_search():
     """The loss searches only the faces around the nearest body vertices; for a cloth
     close to a convex body that is the exact nearest face, so the term (and its

@@ -231,6 +231,23 @@ def test_strain_limit_is_the_edge_projection_of_the_prediction(scene):
         build(body, ny, strain_limit=-2)
 
 
+def test_strain_limit_targets_are_static(scene):
+    """The strain limit's edges and rest lengths come with the static features, once
+    per garment; static features made without them give the same prediction."""
+    from garmentgnn.geometry import edge_lengths, unique_edges
+    body, g, ei, ny, bd, rots, tr = scene
+    model = build(body, ny, lbs_start=True, strain_limit=3).eval()
+    with torch.no_grad():
+        model.gates.copy_(torch.tensor([1.0, 1.0, 100.0]))
+        static = model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd)
+        edges = unique_edges(g.faces, g.vertices.shape[0]).edges
+        torch.testing.assert_close(static.strain_edges, edges)
+        torch.testing.assert_close(static.strain_lengths, edge_lengths(g.vertices, edges))
+        bare = type(static)(x2=static.x2, log_prior=static.log_prior)
+        torch.testing.assert_close(run(model, scene, bare)["final"],
+                                   run(model, scene, static)["final"])
+
+
 def test_blend_shape_can_be_left_out(scene):
     """``blend_shape=False``: no blend stack, the coarse mesh is LBS of the rest garment
     with the learned weights ``W^t`` (Eq. 1 with ``T^t = T``)."""

@@ -14,7 +14,11 @@ simulator) with the paper's weights as stiffnesses:
 * Eq. 10 collision ``k_c sum_i |min(s(p_i) - eps, 0)|``
 * Eq. 11 gravity ``-k_g sum_i m_i p_i . g``
 * Eq. 12 stretch, Eq. 13 shear (``k_s``, ``k_h``)
-* extra, off by default: bending and inertia.
+* extra, off by default: bending and inertia;
+* extra supervised term, off by default (not in the paper):
+  ``L_curv = k_curv / N_int sum_i |K_i - K_i^GT|``, the angle defect (discrete Gaussian
+  curvature) at interior vertices -- the E_curv metric itself, the way Eqs. 8 and 9
+  train toward E_len and the normal errors.
 
 Paper weights: k_v 100, k_e 15, k_n 50; k_c 1.5, k_g 0.1, k_s 5, k_h 2.
 """
@@ -27,6 +31,7 @@ from typing import Dict, Iterable, Optional
 from torch import Tensor, nn
 
 from garmentgnn.geometry import edge_lengths, unique_edges, vertex_normals
+from garmentgnn.metrics import curvature_error
 from garmentgnn.physics import (
     ClothRest,
     bending_energy,
@@ -40,7 +45,7 @@ from garmentgnn.physics import (
 PAPER_WEIGHTS: Dict[str, float] = {
     "vert": 100.0, "edge": 15.0, "norm": 50.0,
     "collision": 1.5, "gravity": 0.1, "stretch": 5.0, "shear": 2.0,
-    "bending": 0.0, "inertia": 0.0,
+    "bending": 0.0, "inertia": 0.0, "curv": 0.0,
 }
 SUPERVISED = ("vert", "edge", "norm")
 PHYSICS = ("collision", "gravity", "stretch", "shear", "bending", "inertia")
@@ -145,7 +150,7 @@ class GarTransLoss(nn.Module):
     def forward(self, inp: LossInputs):
         w = self.weights
         pred = inp.pred
-        need_gt = self.enabled & set(SUPERVISED)
+        need_gt = self.enabled & set(SUPERVISED + ("curv",))
         if need_gt and inp.gt is None:
             raise ValueError(f"`gt`: supervised term(s) {sorted(need_gt)} need ground truth")
         if "gravity" in self.enabled and inp.mass is None:
@@ -157,6 +162,7 @@ class GarTransLoss(nn.Module):
                 pred, inp.gt, self._unique_edges(inp.faces, pred.shape[-2]),
                 self.edge_reduction).mean(),
             "norm": lambda: s * w["norm"] * normal_loss(pred, inp.gt, inp.faces).mean(),
+            "curv": lambda: s * w["curv"] * curvature_error(pred, inp.gt, inp.faces).mean(),
             "collision": lambda: collision_energy(pred, inp.body_pos, inp.body_faces,
                                                   self.collision_margin, w["collision"],
                                                   power=1,

@@ -128,6 +128,9 @@ class StaticFeatures:
 
     x2: Tensor  # [V, S]  x'' = (x̄^[1] ⊙ u^[1]) b^[1]
     log_prior: Optional[Tensor] = None  # [V, S] log of prior skinning weights (or None)
+    #: ``strain_limit``'s targets: the unique edges ``[E, 2]`` and their rest lengths ``[E]``
+    strain_edges: Optional[Tensor] = None
+    strain_lengths: Optional[Tensor] = None
 
 
 class GarTrans(nn.Module):
@@ -245,7 +248,16 @@ class GarTrans(nn.Module):
                 raise ValueError(f"`skin_prior`: expected [{rest_pos.shape[0]}, "
                                  f"{self.num_joints}], got {tuple(skin_prior.shape)}")
             log_prior = skin_prior.to(x1.dtype).clamp_min(1e-4).log()
-        return StaticFeatures(x2=x1 @ b, log_prior=log_prior)  # x'' = x' ⊗ b^[1]: [V, S]
+        static = StaticFeatures(x2=x1 @ b, log_prior=log_prior)  # x'' = x' ⊗ b^[1]: [V, S]
+        if self.strain_limit:
+            static.strain_edges, static.strain_lengths = self._strain_targets(rest_pos, faces)
+        return static
+
+    @staticmethod
+    def _strain_targets(rest_pos: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+        """The strain limit's unique edges ``[E, 2]`` and their rest lengths ``[E]``."""
+        edges = unique_edges(faces, rest_pos.shape[0]).edges
+        return edges, edge_lengths(rest_pos, edges)
 
     # -- dynamic branch -------------------------------------------------------
     def motion_code(self, rotations: Tensor, translation: Tensor) -> Tensor:
@@ -324,9 +336,11 @@ class GarTrans(nn.Module):
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         final = cur + self._gate(2, accel / self.fps ** 2)
         if self.strain_limit:
-            edges = unique_edges(faces, V).edges
-            final = project_edge_lengths(final, edges, edge_lengths(rest_pos, edges),
-                                         self.strain_limit, stretch_only=True)
+            edges, lengths = static.strain_edges, static.strain_lengths
+            if edges is None:  # static features made before strain_limit was switched on
+                edges, lengths = self._strain_targets(rest_pos, faces)
+            final = project_edge_lengths(final, edges, lengths, self.strain_limit,
+                                         stretch_only=True)
         if self.collision_projection is not None and body_pos is not None:
             if body_faces is None:
                 raise ValueError("`body_faces`: needed with `body_pos` for the collision "
