@@ -85,8 +85,7 @@ GARTRANS_MODEL: Dict[str, Any] = {
     "rest_layer": "gt", "blend_layer": "gt", "dynamic_layer": "sat", "heads": 4,
     "fps": 30.0, "lr": 0.003, "edge_reduction": "sum", "collision_margin": 0.002,
     "collision_projection": 0.002, "loss_weights": {"edge": 150.0, "curv": 200.0},
-    "blend_shape": False,
-    "strain_limit": 10, "use_body": True}
+    "blend_shape": False, "strain_limit": 10, "use_body": True}
 #: ``configs/gartrans.yaml``'s ``data:`` section (without ``root`` and ``num_workers``)
 DATA: Dict[str, int] = {"chunk": 8, "history": 3, "nystrom_dim": 16, "num_landmarks": 64}
 #: the ``ProgressiveSchedule`` arguments of ``configs/gartrans.yaml`` except the windows
