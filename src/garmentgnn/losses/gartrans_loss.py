@@ -48,6 +48,8 @@ PAPER_WEIGHTS: Dict[str, float] = {
     "bending": 0.0, "inertia": 0.0, "curv": 0.0,
 }
 SUPERVISED = ("vert", "edge", "norm")
+#: the terms that compare with the ground truth: the paper's supervised ones and ``curv``
+NEEDS_GT = SUPERVISED + ("curv",)
 PHYSICS = ("collision", "gravity", "stretch", "shear", "bending", "inertia")
 
 
@@ -150,7 +152,7 @@ class GarTransLoss(nn.Module):
     def forward(self, inp: LossInputs):
         w = self.weights
         pred = inp.pred
-        need_gt = self.enabled & set(SUPERVISED + ("curv",))
+        need_gt = self.enabled & set(NEEDS_GT)
         if need_gt and inp.gt is None:
             raise ValueError(f"`gt`: supervised term(s) {sorted(need_gt)} need ground truth")
         if "gravity" in self.enabled and inp.mass is None:
