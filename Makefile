@@ -8,19 +8,31 @@ STAMP  := $(VENV)/.installed
 # (a bare `torch` would pull a multi-GB CUDA build).  The package itself states a range.
 TORCH_PIN ?= torch==2.13.0
 PIP := $(PY) -m pip --disable-pip-version-check
+# Blender's cloth engine: the `bpy` wheel (GPL-3; CPython 3.11 only; pins numpy<2) lives in its
+# own environment inside .venv, which the engine starts as a worker (docs/simulator.md).
+BPY_ENV := $(VENV)/bpy
+BPY_PIN ?= bpy==5.0.1
+# where a bpy wheel exists, `make test` fails (not skips) the Blender tests if it is missing
+EXPECT_BLENDER := $(shell $(PYTHON) -c "import platform, sys; print(int(sys.version_info[:2] == (3, 11) and platform.machine() in ('x86_64', 'AMD64', 'arm64')))" 2>/dev/null)
 PYTEST_ARGS ?=
 
 .PHONY: install demo test test-fast bench-layers clean
 
 install: $(STAMP)
 
-$(STAMP): setup.cfg pyproject.toml
+$(STAMP): setup.cfg pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip setuptools wheel
 	$(PIP) install -q "$(TORCH_PIN)"
 	$(PIP) install -q -e ".[dev,human,smpl]"
 	# torch-scatter compiles against the installed torch (~4 min once; pip caches the wheel)
 	$(PIP) install -q --no-build-isolation "torch-scatter>=2.1,<3"
+	@if [ "$(EXPECT_BLENDER)" = "1" ]; then \
+	  test -x $(BPY_ENV)/bin/python || $(PYTHON) -m venv $(BPY_ENV); \
+	  $(BPY_ENV)/bin/python -m pip --disable-pip-version-check install -q "$(BPY_PIN)"; \
+	else \
+	  echo "note: no bpy wheel for this Python/platform: the Blender engine is not installed (the torch engine still works)"; \
+	fi
 	touch $(STAMP)
 
 # The main demo: every layer learns a mesh operator; then the reference simulator
@@ -33,7 +45,7 @@ demo: $(STAMP)
 # The whole suite with torch-scatter, then the fast suite again with it hidden
 # (PyG's native scatter path).  Slow tests run too; `make test-fast` skips them.
 test: $(STAMP)
-	GARMENTGNN_EXPECT_SCATTER=1 $(PY) -m pytest $(PYTEST_ARGS)
+	GARMENTGNN_EXPECT_SCATTER=1 GARMENTGNN_EXPECT_BLENDER=$(EXPECT_BLENDER) $(PY) -m pytest $(PYTEST_ARGS)
 	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 test-fast: $(STAMP)

@@ -17,12 +17,15 @@ def _import_callable(spec: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from garmentgnn.data.generate import PRESETS
+    from garmentgnn.data.generate import ENGINES, PRESETS
     p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
     g = sub.add_parser("generate", help="simulate a dataset preset into a folder (resumable)")
     g.add_argument("--preset", choices=PRESETS, default="tiny")
+    g.add_argument("--engine", choices=("auto",) + ENGINES, default="auto",
+                   help="simulation engine: Blender's cloth (run in worker processes) or the "
+                        "torch reference simulator; auto = blender where `bpy` is installed")
     g.add_argument("--out", required=True, help="output folder (rerun to resume)")
     g.add_argument("--workers", type=int, default=1,
                    help="worker processes (0 = in this process); default 1")
@@ -69,12 +72,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.command == "generate":
         from garmentgnn.data.generate import SpecMismatch, generate, preset
         sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
-        spec = preset(args.preset, seed=args.seed)
         try:
+            spec = preset(args.preset, seed=args.seed, engine=args.engine)
             summary = generate(spec, args.out, workers=args.workers, limit=args.limit,
                                simulate_fn=sim, retry_failed=args.retry_failed,
                                progress=not args.no_progress, estimate=args.estimate)
-        except SpecMismatch as exc:
+        except (SpecMismatch, RuntimeError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         print(summary)

@@ -78,6 +78,11 @@ class Spec:
     held_out: Dict[str, Dict[str, List[str]]] = field(default_factory=dict)
     seed: int = 0
     sample: Optional[int] = None
+    engine: str = "torch"
+
+    def __post_init__(self) -> None:
+        if self.engine not in ENGINES:
+            raise ValueError(f"`engine`: unknown {self.engine!r}; choose one of {ENGINES}")
 
     def split_of(self, garment: Dict, body: Dict, motion: Dict) -> str:
         keys = {"garments": garment_key(garment), "bodies": body_key(body),
@@ -95,11 +100,13 @@ class Spec:
                                               self.materials):
             desc = {"garment": g, "body": b, "motion": m, "material": mat,
                     "settings": self.settings}
+            if self.engine != "torch":  # torch items keep the ids they had before engines
+                desc["engine"] = self.engine
             digest = hashlib.sha1(f"{_canon(desc)}|seed={self.seed}".encode()).hexdigest()
             shape = b["shape"] if isinstance(b["shape"], str) else "custom"
             iid = f"{g['kind']}-{b['model']}-{shape}-{m['name']}-{mat}-{digest[:10]}"
             out.append(dict(desc, id=iid, seed=int(digest[10:18], 16) & 0x7FFFFFFF,
-                            split=self.split_of(g, b, m)))
+                            split=self.split_of(g, b, m), engine=self.engine))
         if self.sample is not None and self.sample < len(out):
             keep = sorted(random.Random(self.seed).sample(range(len(out)), self.sample))
             out = [out[i] for i in keep]
@@ -122,9 +129,39 @@ def _m(name, num_frames, speed=1.0, amplitude=1.0):
     return {"name": name, "num_frames": num_frames, "speed": speed, "amplitude": amplitude}
 
 
-def preset(name: str, seed: int = 0) -> Spec:
-    """``tiny`` (tests, < 1 min), ``small`` (tens of minutes on 2 cores) or ``paper``
-    (the paper's scale; hours to days).  See ``docs/dataset.md``."""
+#: the engines a spec can name (``auto`` in :func:`resolve_engine` picks one)
+ENGINES = ("torch", "blender")
+#: the Blender engine's settings in every preset (:class:`garmentgnn.sim.blender.BlenderSettings`;
+#: its run-time knobs ``threads`` and ``timeout`` do not change results and stay out of specs)
+BLENDER_SETTINGS = {"fps": 30.0, "preroll_frames": 10, "quality": 5, "collision_quality": 2,
+                    "collision_distance": 0.005, "body_thickness": 0.005, "self_collision": False,
+                    "air_damping": 1.0, "damping": 5.0}
+
+
+def resolve_engine(name: str = "auto") -> str:
+    """``torch`` or ``blender``; ``auto`` is ``blender`` where its worker can run (see
+    :func:`garmentgnn.sim.blender.blender_available`), else ``torch``."""
+    if name == "auto":
+        from garmentgnn.sim.blender import blender_available
+        return "blender" if blender_available() else "torch"
+    if name not in ENGINES:
+        raise ValueError(f"`engine`: unknown {name!r}; choose 'auto' or one of {ENGINES}")
+    return name
+
+
+def preset(name: str, seed: int = 0, engine: str = "torch") -> Spec:
+    """``tiny`` (tests, < 1 min), ``small`` (tens of minutes on 2 cores), ``medium``
+    (Blender, about an hour on 2 cores) or ``paper`` (the paper's scale; hours to days),
+    simulated by ``engine`` (``torch``, ``blender`` or ``auto``).  See ``docs/dataset.md``."""
+    engine = resolve_engine(engine)
+    spec = _preset(name, seed, engine)
+    spec.engine = engine
+    if engine == "blender":
+        spec.settings = dict(BLENDER_SETTINGS)
+    return spec
+
+
+def _preset(name: str, seed: int, engine: str) -> Spec:
     if name == "tiny":
         return Spec(
             name="tiny",
@@ -141,7 +178,7 @@ def preset(name: str, seed: int = 0) -> Spec:
         # garments are new cuts of the trained kinds (as in the paper, Sec. 4.1), so the
         # train split sees every kind and the test split asks for generalisation to an
         # unseen shape, plus an unseen motion (kick); the fat body is held out for val.
-        n = 16
+        n = 60 if engine == "blender" else 16  # Blender is fast enough for longer sequences
         garments = [_g("skirt", 400), _g("skirt", 400, length="mini", flare="flared"),
                     _g("dress", 400), _g("tshirt", 400), _g("trousers", 400),
                     _g("skirt", 400, length="midi", flare="flared"),
@@ -244,14 +281,33 @@ def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
     return garment, body, motion, material
 
 
-def default_simulate():
+def default_simulate(engine: str = "torch"):
+    """The engine's simulate function: :func:`garmentgnn.sim.simulate` (``torch``) or
+    :func:`garmentgnn.sim.blender.simulate_blender` (``blender``)."""
+    if engine == "blender":
+        from garmentgnn.sim.blender import simulate_blender
+        return simulate_blender
     from garmentgnn.sim import simulate
     return simulate
 
 
 def _settings(item):
+    if item.get("engine", "torch") == "blender":
+        from garmentgnn.sim.blender import BlenderSettings
+        return BlenderSettings(**item["settings"])
     from garmentgnn.sim import SimSettings
     return SimSettings(**item["settings"])
+
+
+def engine_info(engine: str, settings: Dict[str, Any]) -> Dict[str, Any]:
+    """What the manifest and each sequence file record of the engine: name, version
+    (the ``bpy`` package for Blender, garmentgnn's for the torch simulator), settings."""
+    if engine == "blender":
+        from garmentgnn.sim.blender import blender_version
+        version = blender_version()
+    else:
+        version = store.code_version()["version"]
+    return {"name": engine, "version": version, "settings": dict(settings)}
 
 
 def _plain_settings(item):
@@ -273,7 +329,7 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
     random.seed(seed)
     rec = store.pending_record(item)
     try:
-        sim = simulate_fn or default_simulate()
+        sim = simulate_fn or default_simulate(item.get("engine", "torch"))
         if settings_fn is None:
             settings_fn = _settings if simulate_fn is None else _plain_settings
         settings = settings_fn(item)
@@ -316,7 +372,8 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             num_faces=int(garment.faces.shape[0]), fps=float(motion.fps),
             joint_names=list(motion.joint_names), garment_name=garment.name,
             material_params=asdict(material), nonconverged_frames=int((~converged).sum()),
-            code={"version": store.code_version()["version"]})
+            code={"version": store.code_version()["version"]},
+            engine=engine_info(item.get("engine", "torch"), item["settings"]))
         path = Path(out) / store.SEQUENCES / f"{item['id']}.npz"
         store.write_sequence(path, arrays, meta)
         rec = store.record_from_meta(meta)
@@ -358,7 +415,7 @@ def estimate_seconds(items: Sequence[Dict[str, Any]], workers: int,
         return RESOLUTIONS[r] if isinstance(r, str) else int(r)
 
     probe = max(items, key=res)
-    sim = simulate_fn or default_simulate()
+    sim = simulate_fn or default_simulate(probe.get("engine", "torch"))
     n_threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -369,7 +426,12 @@ def estimate_seconds(items: Sequence[Dict[str, Any]], workers: int,
         per_frame = (time.perf_counter() - t0) / max(1, frames - 1)
     finally:
         torch.set_num_threads(n_threads)
-    total_frames = sum(max(1, it["motion"]["num_frames"] - 1) for it in items)
+    if probe.get("engine", "torch") == "blender":  # pre-roll frames and worker start-up count
+        preroll = int(probe["settings"].get("preroll_frames", 0))
+        per_frame *= (frames - 1) / (frames + preroll)
+        total_frames = sum(it["motion"]["num_frames"] + preroll for it in items)
+    else:
+        total_frames = sum(max(1, it["motion"]["num_frames"] - 1) for it in items)
     return total_frames * per_frame / max(1, workers), per_frame
 
 
@@ -432,6 +494,9 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     The manifest is rewritten atomically after every finished item.
     """
     t_start = time.perf_counter()
+    if spec.engine == "blender" and simulate_fn is None:
+        from garmentgnn.sim.blender import require_blender
+        require_blender()  # before any file is written: say how to install `bpy`
     if log is None:
         def log(msg: str) -> None:
             print(msg, flush=True)
@@ -444,6 +509,7 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     prev = _load_existing(out, spec_json)
     header = {k: v for k, v in spec_json.items() if k != "items"}
     header["code"] = store.code_version()
+    header["engine"] = engine_info(spec.engine, spec.settings)
 
     records: Dict[str, Dict[str, Any]] = {}
     todo: List[Dict[str, Any]] = []

@@ -202,8 +202,10 @@ def read_manifest(out: PathLike) -> Dict[str, Any]:
 def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> Dict[str, Any]:
     """The manifest record of an ok item, from a sequence file's metadata."""
     keys = ("id", "garment", "body", "motion", "material", "settings", "seed", "split",
-            "num_frames", "num_vertices", "code", "nonconverged_frames")
+            "num_frames", "num_vertices", "code", "nonconverged_frames", "engine")
     rec = {k: meta.get(k) for k in keys}
+    if rec["engine"] is None:  # written before engines were recorded: the torch simulator
+        rec["engine"] = {"name": "torch"}
     rec.update(status="ok", message="", seconds=seconds if seconds is not None
                else meta.get("seconds"), file=f"{SEQUENCES}/{meta['id']}.npz")
     return rec
@@ -244,7 +246,8 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
 def pending_record(item: Dict[str, Any]) -> Dict[str, Any]:
     rec = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
                                  "seed", "split")}
-    rec.update(status="pending", message="", seconds=None, file=None)
+    rec.update(status="pending", message="", seconds=None, file=None,
+               engine={"name": item.get("engine", "torch")})
     return rec
 
 

@@ -556,46 +556,24 @@ def _smoothstep(P: int) -> Tensor:
     return u * u * (3 - 2 * u)
 
 
-def simulate(garment, body: Optional[Body], motion, material: Material,
-             settings: Optional[SimSettings] = None,
-             progress: Optional[Callable[[int, int], None]] = None,
-             body_frames: Optional[Tensor] = None) -> SimResult:
-    """Simulate ``garment`` on ``body`` following ``motion``; one output per motion frame.
+def trajectories(garment, body: Optional[Body], motion, preroll_frames: int = 0,
+                 body_frames: Optional[Tensor] = None) -> Tuple[Tensor, Optional[Tensor]]:
+    """The garment's rest shape carried by the body, and the posed body, for every frame
+    an engine steps through: ``preroll_frames`` frames that blend from the rest pose into
+    the motion's first pose (joint rotations and root translation scaled by a smoothstep
+    from 0 to 1, so the first is the rest pose itself), then the motion's frames.
 
-    The garment starts at its rest shape skinned (weights from
-    :func:`garmentgnn.garments.skinning.transfer_skinning_weights`) to the motion's first
-    frame with zero velocity; pinned vertices follow their skinned positions.  The body
-    is interpolated linearly between frames for the substeps.  ``body=None`` simulates
-    without a body (``motion`` then only sets the number of frames; pinned vertices stay
-    at rest).  ``body_frames [T, Vb, 3]`` may replace the posed body vertices.
-    ``progress(frame, num_frames)`` is called after each frame.
-    """
+    Returns ``(skinned [P + T, V, 3] float64, body_frames [P + T, Vb, 3] float64 or None)``.
+    The skinned garment is the initial state and the pinned vertices' targets; its weights
+    come from :func:`garmentgnn.garments.skinning.transfer_skinning_weights`.  Without a
+    ``body`` the garment stays at rest (``preroll_frames`` must then be 0).
+    ``body_frames [T, Vb, 3]`` may replace the posed body vertices."""
     from garmentgnn.garments.skinning import transfer_skinning_weights
 
-    t0 = time.time()
-    st = settings or SimSettings()
-    st.validate()
-    if not isinstance(material, Material):
-        raise ValueError(f"`material`: expected a Material, got {type(material).__name__}")
     verts = garment.vertices
-    if not isinstance(verts, Tensor) or verts.dim() != 2 or verts.shape[-1] != 3:
-        raise ValueError("`garment.vertices`: expected a [V, 3] tensor")
-    _check_finite(verts, "garment.vertices")
-    _check_finite(garment.face_uv, "garment.face_uv")
-    fps_m = float(getattr(motion, "fps", st.fps))
-    if not fps_m > 0:
-        raise ValueError(f"`motion.fps`: must be positive, got {fps_m}")
-    if abs(fps_m - st.fps) > 1e-6 * st.fps:
-        raise ValueError(f"`settings.fps` ({st.fps}) differs from `motion.fps` ({fps_m}); "
-                         f"use motion.resample({st.fps}) or set settings.fps")
-    T = int(motion.num_frames)
-    if T < 1:
-        raise ValueError("`motion`: has no frames")
-    V = verts.shape[0]
-    pinned = garment.pinned if garment.pinned is not None else torch.zeros(V, dtype=torch.bool)
-    P = st.preroll_frames if body is not None else 0
-
-    # body and pinned-vertex trajectories
+    T, V, P = int(motion.num_frames), verts.shape[0], int(preroll_frames)
+    if body is None and P:
+        raise ValueError("`preroll_frames`: needs a `body` (nothing to blend into)")
     if body is not None:
         rot = motion.rotations
         if rot.shape[1] != body.skeleton.num_joints:
@@ -618,10 +596,8 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
         W = transfer_skinning_weights(verts.float(), garment.faces, body.vertices.float(),
                                       body.weights.float())
         skinned = linear_blend_skinning(verts.to(A.dtype), W.to(A.dtype), A).to(DTYPE)
-        body_faces = body.faces
     else:
         skinned = verts.to(DTYPE).unsqueeze(0).expand(T, V, 3)
-        body_faces = None
         if body_frames is not None:
             raise ValueError("`body_frames`: given without a `body`")
     if body_frames is not None:
@@ -630,6 +606,47 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
                              f"{(body_frames.shape[0] - P,) + tuple(body_frames.shape[1:])}")
         _check_finite(body_frames, "body_frames")
         body_frames = body_frames.detach().to(DTYPE)
+    return skinned, body_frames
+
+
+def simulate(garment, body: Optional[Body], motion, material: Material,
+             settings: Optional[SimSettings] = None,
+             progress: Optional[Callable[[int, int], None]] = None,
+             body_frames: Optional[Tensor] = None) -> SimResult:
+    """Simulate ``garment`` on ``body`` following ``motion``; one output per motion frame.
+
+    The garment starts at its rest shape skinned (weights from
+    :func:`garmentgnn.garments.skinning.transfer_skinning_weights`) to the motion's first
+    frame with zero velocity; pinned vertices follow their skinned positions.  The body
+    is interpolated linearly between frames for the substeps.  ``body=None`` simulates
+    without a body (``motion`` then only sets the number of frames; pinned vertices stay
+    at rest).  ``body_frames [T, Vb, 3]`` may replace the posed body vertices.
+    ``progress(frame, num_frames)`` is called after each frame.
+    """
+    t0 = time.time()
+    st = settings or SimSettings()
+    st.validate()
+    if not isinstance(material, Material):
+        raise ValueError(f"`material`: expected a Material, got {type(material).__name__}")
+    verts = garment.vertices
+    if not isinstance(verts, Tensor) or verts.dim() != 2 or verts.shape[-1] != 3:
+        raise ValueError("`garment.vertices`: expected a [V, 3] tensor")
+    _check_finite(verts, "garment.vertices")
+    _check_finite(garment.face_uv, "garment.face_uv")
+    fps_m = float(getattr(motion, "fps", st.fps))
+    if not fps_m > 0:
+        raise ValueError(f"`motion.fps`: must be positive, got {fps_m}")
+    if abs(fps_m - st.fps) > 1e-6 * st.fps:
+        raise ValueError(f"`settings.fps` ({st.fps}) differs from `motion.fps` ({fps_m}); "
+                         f"use motion.resample({st.fps}) or set settings.fps")
+    T = int(motion.num_frames)
+    if T < 1:
+        raise ValueError("`motion`: has no frames")
+    V = verts.shape[0]
+    pinned = garment.pinned if garment.pinned is not None else torch.zeros(V, dtype=torch.bool)
+    P = st.preroll_frames if body is not None else 0
+    skinned, body_frames = trajectories(garment, body, motion, P, body_frames)
+    body_faces = None if body is None else body.faces
     system = ClothSystem(verts, garment.faces, material, garment.face_uv, pinned, body_faces, st)
 
     x = skinned[0].clone()
