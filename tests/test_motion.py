@@ -625,3 +625,16 @@ def test_motion_rejects_nan():
     rot[0, 1, 2] = float("nan")
     with pytest.raises(ValueError, match="NaN"):
         Motion(rot, torch.zeros(2, 3), ["a", "b", "c"])
+
+
+def test_make_motion_mixes_two_generators_evenly():
+    sk = CapsuleBodyModel().skeleton
+    kw = dict(num_frames=20, fps=30.0, speed=1.2, seed=3)
+    mix = make_motion("walk+arm_swing", sk, **kw)
+    ref = blend(make_motion("walk", sk, **kw), make_motion("arm_swing", sk, **kw), 0.5)
+    assert torch.equal(mix.rotations, ref.rotations)
+    assert torch.equal(mix.translation, ref.translation)
+    assert not torch.allclose(mix.rotations, make_motion("walk", sk, **kw).rotations)
+    for bad in ("walk+walk", "walk+arm_swing+run", "walk+moonwalk"):
+        with pytest.raises(ValueError, match="`name`"):
+            make_motion(bad, sk, **kw)

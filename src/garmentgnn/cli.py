@@ -26,7 +26,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--engine", choices=("auto",) + ENGINES, default="auto",
                    help="simulation engine: Blender's cloth (run in worker processes) or the "
                         "torch reference simulator; auto = blender where `bpy` is installed")
-    g.add_argument("--out", required=True, help="output folder (rerun to resume)")
+    g.add_argument("--out", default=None,
+                   help="output folder (rerun to resume); default $GARMENTGNN_DATA_DIR/"
+                        "<preset>-<engine>, $GARMENTGNN_DATA_DIR defaulting to "
+                        "~/.cache/garmentgnn/datasets")
     g.add_argument("--workers", type=int, default=1,
                    help="worker processes (0 = in this process); default 1")
     g.add_argument("--seed", type=int, default=0, help="base seed of the spec (default 0)")
@@ -74,7 +77,12 @@ def main(argv: Optional[List[str]] = None) -> int:
         sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
         try:
             spec = preset(args.preset, seed=args.seed, engine=args.engine)
-            summary = generate(spec, args.out, workers=args.workers, limit=args.limit,
+            out = args.out
+            if out is None:
+                from garmentgnn.data.store import data_root
+                out = data_root() / f"{spec.name}-{spec.engine}"
+                print(f"writing to {out}", flush=True)
+            summary = generate(spec, out, workers=args.workers, limit=args.limit,
                                simulate_fn=sim, retry_failed=args.retry_failed,
                                progress=not args.no_progress, estimate=args.estimate)
         except (SpecMismatch, RuntimeError) as exc:

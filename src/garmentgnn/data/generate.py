@@ -60,6 +60,9 @@ def motion_key(m: Dict[str, Any]) -> str:
     return f"{m['name']}-s{m.get('speed', 1.0):g}-a{m.get('amplitude', 1.0):g}-n{m['num_frames']}"
 
 
+_PART = {"garments": "garment", "bodies": "body", "motions": "motion"}
+
+
 @dataclass
 class Spec:
     """The full description of a dataset (see the module doc for the split rule).
@@ -85,13 +88,19 @@ class Spec:
             raise ValueError(f"`engine`: unknown {self.engine!r}; choose one of {ENGINES}")
 
     def split_of(self, garment: Dict, body: Dict, motion: Dict) -> str:
+        return self.held_out_parts(garment, body, motion)[0]
+
+    def held_out_parts(self, garment: Dict, body: Dict, motion: Dict) -> Tuple[str, List[str]]:
+        """The item's split and which of its parts (``garment``, ``body``, ``motion``)
+        are held out for it: reports break the test split down by these."""
         keys = {"garments": garment_key(garment), "bodies": body_key(body),
                 "motions": motion_key(motion)}
         for split in ("test", "val"):
             h = self.held_out.get(split, {})
-            if any(keys[k] in h.get(k, ()) for k in keys):
-                return split
-        return "train"
+            parts = [_PART[k] for k in keys if keys[k] in h.get(k, ())]
+            if parts:
+                return split, parts
+        return "train", []
 
     def items(self) -> List[Dict[str, Any]]:
         """Every item, in grid order (garment, body, motion, material)."""
@@ -105,8 +114,9 @@ class Spec:
             digest = hashlib.sha1(f"{_canon(desc)}|seed={self.seed}".encode()).hexdigest()
             shape = b["shape"] if isinstance(b["shape"], str) else "custom"
             iid = f"{g['kind']}-{b['model']}-{shape}-{m['name']}-{mat}-{digest[:10]}"
+            split, parts = self.held_out_parts(g, b, m)
             out.append(dict(desc, id=iid, seed=int(digest[10:18], 16) & 0x7FFFFFFF,
-                            split=self.split_of(g, b, m), engine=self.engine))
+                            split=split, held_out=parts, engine=self.engine))
         if self.sample is not None and self.sample < len(out):
             keep = sorted(random.Random(self.seed).sample(range(len(out)), self.sample))
             out = [out[i] for i in keep]
@@ -193,6 +203,8 @@ def _preset(name: str, seed: int, engine: str) -> Spec:
                                "motions": [motion_key(motions[4])]},
                       "val": {"bodies": [body_key(bodies[2])]}},
             seed=seed, sample=24)
+    if name == "medium":
+        return _medium(seed)
     if name == "paper":
         n = 300
         garments = (
@@ -233,7 +245,53 @@ def _preset(name: str, seed: int, engine: str) -> Spec:
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESETS}")
 
 
-PRESETS = ("tiny", "small", "paper")
+PRESETS = ("tiny", "small", "medium", "paper")
+
+
+def _medium(seed: int) -> Spec:
+    """About 500 sequences of 60 frames (2 s at 30 fps) on 32 anny body shapes: 16 garments
+    of every kind in several cuts and sizes (``ease``), three fabrics, 21 motions (the
+    generators at several speeds and amplitudes, and even mixes of two).  Garments of
+    about 1-1.4K vertices; the body collider is anny's 1,229-vertex topology.  Held out
+    for test: one garment, three bodies, two motions; for val: one garment, two bodies,
+    one motion.  Sized to generate in under an hour with the Blender engine and two
+    workers on two cores (docs/dataset.md)."""
+    n, res = 60, 1500
+    garments = [
+        _g("skirt", res, length="knee", flare="a-line"), _g("skirt", res, length="mini", flare="flared"),
+        _g("skirt", res, length="midi", flare="pencil"), _g("skirt", res, length="long", flare="full"),
+        _g("dress", res, length="knee", flare="a-line"), _g("dress", res, length="midi", flare="flared"),
+        _g("dress", res, length="long", flare="full", top="sleeveless"),
+        _g("tshirt", res, sleeves="short", ease=0.02), _g("tshirt", res, sleeves="none", length="waist",
+                                                          neckline="scoop", ease=0.05),
+        _g("tshirt", res, sleeves="long", ease=0.04),
+        _g("trousers", res, length="shorts", ease=0.03), _g("trousers", res, length="knee", ease=0.05),
+        _g("trousers", res, length="long", ease=0.02),
+        _g("jumpsuit", res, length="knee", sleeves="none", ease=0.03),
+        _g("jumpsuit", res, length="long", sleeves="short", ease=0.02),
+        _g("jumpsuit", res, length="long", sleeves="none", ease=0.05)]
+    rng = np.random.default_rng(seed + 1)
+    # anny phenotype order: gender, age, muscle, weight, height, proportions
+    bodies = [{"model": "anny", "shape": s} for s in ("thin", "regular", "fat")] + [
+        {"model": "anny", "shape": [round(float(x), 4) for x in rng.uniform(0.2, 0.8, 6)]}
+        for _ in range(29)]
+    motions = [_m(name_, n, speed=s, amplitude=a) for name_, s, a in (
+        ("walk", 1.0, 1.0), ("walk", 1.3, 1.2), ("walk", 0.7, 0.8), ("run", 1.0, 1.0),
+        ("run", 1.2, 1.1), ("twirl", 1.0, 1.0), ("twirl", 0.7, 1.2), ("kick", 1.0, 1.0),
+        ("kick", 1.2, 0.8), ("arm_swing", 1.0, 1.0), ("arm_swing", 1.4, 1.3), ("jump", 1.0, 1.0),
+        ("jump", 0.8, 0.9), ("sit_stand", 1.0, 1.0), ("sit_stand", 1.5, 1.0),
+        ("walk+arm_swing", 1.0, 1.0), ("walk+twirl", 1.0, 1.0), ("run+arm_swing", 1.0, 1.0),
+        ("twirl+arm_swing", 1.0, 1.0), ("kick+arm_swing", 1.0, 1.0), ("jump+arm_swing", 1.0, 1.0))]
+    keys = {"g": [garment_key(g) for g in garments], "b": [body_key(b) for b in bodies],
+            "m": [motion_key(m) for m in motions]}
+    return Spec(
+        name="medium", garments=garments, bodies=bodies, motions=motions,
+        materials=["silk", "cotton", "denim"],
+        held_out={"test": {"garments": [keys["g"][5]], "bodies": keys["b"][3:6],
+                           "motions": [keys["m"][6], keys["m"][20]]},
+                  "val": {"garments": [keys["g"][9]], "bodies": keys["b"][6:8],
+                          "motions": [keys["m"][8]]}},
+        seed=seed, sample=520)
 
 # --------------------------------------------------------------------------- one item
 _MODELS: Dict[str, Any] = {}
@@ -367,6 +425,7 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
         }
         meta = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
                                      "seed", "split")}
+        meta["held_out"] = item.get("held_out", [])
         meta.update(
             format_version=store.FORMAT_VERSION, num_frames=T, num_vertices=V,
             num_faces=int(garment.faces.shape[0]), fps=float(motion.fps),

@@ -38,6 +38,13 @@ SEQUENCE_KEYS = ("garment_vertices", "garment_faces", "garment_uv", "garment_fac
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
+def data_root() -> Path:
+    """Where ``garmentgnn generate`` writes datasets without ``--out``:
+    ``$GARMENTGNN_DATA_DIR``, else ``~/.cache/garmentgnn/datasets`` (outside any work tree)."""
+    env = os.environ.get("GARMENTGNN_DATA_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "garmentgnn" / "datasets"
+
+
 # --------------------------------------------------------------------------- atomic writes
 def sequence_path(root: PathLike, record: Dict[str, Any]) -> Path:
     """Where a manifest record's sequence file lives under ``root``."""
@@ -202,7 +209,7 @@ def read_manifest(out: PathLike) -> Dict[str, Any]:
 def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> Dict[str, Any]:
     """The manifest record of an ok item, from a sequence file's metadata."""
     keys = ("id", "garment", "body", "motion", "material", "settings", "seed", "split",
-            "num_frames", "num_vertices", "code", "nonconverged_frames", "engine")
+            "num_frames", "num_vertices", "code", "nonconverged_frames", "engine", "held_out")
     rec = {k: meta.get(k) for k in keys}
     if rec["engine"] is None:  # written before engines were recorded: the torch simulator
         rec["engine"] = {"name": "torch"}
@@ -247,7 +254,7 @@ def pending_record(item: Dict[str, Any]) -> Dict[str, Any]:
     rec = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
                                  "seed", "split")}
     rec.update(status="pending", message="", seconds=None, file=None,
-               engine={"name": item.get("engine", "torch")})
+               engine={"name": item.get("engine", "torch")}, held_out=item.get("held_out", []))
     return rec
 
 

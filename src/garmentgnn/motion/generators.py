@@ -445,9 +445,19 @@ MOTIONS: Dict[str, Callable[..., Motion]] = {
 
 
 def make_motion(name: str, skeleton: Skeleton, **kwargs) -> Motion:
-    """``MOTIONS[name](skeleton, **kwargs)`` with a ``ValueError`` for unknown names."""
+    """``MOTIONS[name](skeleton, **kwargs)`` with a ``ValueError`` for unknown names.
+
+    ``"a+b"`` (e.g. ``"walk+arm_swing"``) is the even :func:`blend` of two generators
+    called with the same arguments: a mix of the two motions."""
+    if isinstance(name, str) and "+" in name:
+        parts = name.split("+")
+        if len(parts) != 2 or parts[0] == parts[1]:
+            raise ValueError(f"`name`: a mix names two different motions, 'a+b'; got {name!r}")
+        a, b = (make_motion(p, skeleton, **kwargs) for p in parts)
+        return blend(a, b, 0.5)
     if name not in MOTIONS:
-        raise ValueError(f"`name`: unknown motion {name!r}; choose one of {sorted(MOTIONS)}")
+        raise ValueError(f"`name`: unknown motion {name!r}; choose one of {sorted(MOTIONS)} "
+                         f"or a mix 'a+b' of two")
     fn = MOTIONS[name]
     accepted = set(inspect.signature(fn).parameters) - {"skeleton"}
     unknown = sorted(set(kwargs) - accepted)
