@@ -24,7 +24,7 @@ $(STAMP): setup.cfg pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip setuptools wheel
 	$(PIP) install -q "$(TORCH_PIN)"
-	$(PIP) install -q -e ".[dev,human,smpl]"
+	$(PIP) install -q -e ".[dev,human,smpl,ray]"
 	# torch-scatter compiles against the installed torch (~4 min once; pip caches the wheel)
 	$(PIP) install -q --no-build-isolation "torch-scatter>=2.1,<3"
 	@if [ "$(EXPECT_BLENDER)" = "1" ]; then \

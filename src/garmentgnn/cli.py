@@ -32,6 +32,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "~/.cache/garmentgnn/datasets")
     g.add_argument("--workers", type=int, default=1,
                    help="worker processes (0 = in this process); default 1")
+    g.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help="local worker processes, or one Ray task per sequence")
+    g.add_argument("--address", default=None,
+                   help="with --backend ray: the cluster to join (HOST:PORT); default a "
+                        "local cluster of --workers CPUs")
     g.add_argument("--seed", type=int, default=0, help="base seed of the spec (default 0)")
     g.add_argument("--limit", type=int, default=None,
                    help="simulate at most N pending items in this run")
@@ -84,7 +89,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                 print(f"writing to {out}", flush=True)
             summary = generate(spec, out, workers=args.workers, limit=args.limit,
                                simulate_fn=sim, retry_failed=args.retry_failed,
-                               progress=not args.no_progress, estimate=args.estimate)
+                               progress=not args.no_progress, estimate=args.estimate,
+                               backend=args.backend, address=args.address)
         except (SpecMismatch, RuntimeError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -541,7 +541,8 @@ def _load_existing(out: Path, spec_json: Dict[str, Any]) -> Dict[str, Dict[str, 
 def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
              simulate_fn: Optional[Callable] = None, settings_fn: Optional[Callable] = None,
              retry_failed: bool = False, progress: bool = True, estimate: bool = False,
-             log: Optional[Callable[[str], None]] = None) -> Summary:
+             log: Optional[Callable[[str], None]] = None, backend: str = "local",
+             address: Optional[str] = None) -> Summary:
     """Generate (or resume generating) ``spec`` into ``out``.
 
     Items whose sequence file exists and validates are skipped; failed items are kept
@@ -551,7 +552,11 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     ``simulate_fn``/``settings_fn``: dependency injection for tests (picklable,
     module-level callables); default ``garmentgnn.sim.simulate`` / ``SimSettings``.
     The manifest is rewritten atomically after every finished item.
+    ``backend="ray"`` runs one Ray task per item instead (:mod:`garmentgnn.data.ray_backend`;
+    ``workers`` CPUs of a local cluster, or the cluster at ``address``).
     """
+    if backend not in ("local", "ray"):
+        raise ValueError(f"`backend`: 'local' or 'ray', got {backend!r}")
     t_start = time.perf_counter()
     if spec.engine == "blender" and simulate_fn is None:
         from garmentgnn.sim.blender import require_blender
@@ -625,7 +630,11 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
             bar.set_postfix(failed=summary.failed)
 
     try:
-        if workers <= 0:
+        if backend == "ray":
+            from garmentgnn.data.ray_backend import run_on_ray
+            run_on_ray(todo, str(out), finish, simulate_fn, settings_fn, workers=workers,
+                       address=address)
+        elif workers <= 0:
             import torch
             n_threads = torch.get_num_threads()
             torch.set_num_threads(1)
