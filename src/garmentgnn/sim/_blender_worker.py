@@ -76,11 +76,12 @@ def run(inp, out):
     scene.gravity = tuple(cfg["gravity"])
     tmp = tempfile.mkdtemp(prefix="garmentgnn-blender-")
 
-    body = _mesh_object(bpy, "body", B[0], body_faces)
-    _pc2(os.path.join(tmp, "body.pc2"), B)
-    _cache(body, os.path.join(tmp, "body.pc2"))
-    body.modifiers.new("collision", "COLLISION")  # after the cache: it collides as animated
-    _set(body.collision, cfg["collider"], "collision settings")
+    if len(body_faces):  # no body: the cloth hangs from its pins with no collider
+        body = _mesh_object(bpy, "body", B[0], body_faces)
+        _pc2(os.path.join(tmp, "body.pc2"), B)
+        _cache(body, os.path.join(tmp, "body.pc2"))
+        body.modifiers.new("collision", "COLLISION")  # after the cache: collides as animated
+        _set(body.collision, cfg["collider"], "collision settings")
 
     cloth_obj = _mesh_object(bpy, "garment", G[0], faces)
     _pc2(os.path.join(tmp, "garment.pc2"), G)

@@ -35,6 +35,7 @@ from typing import Any, Callable, Dict, Optional
 import numpy as np
 import torch
 
+from garmentgnn.geometry import unique_edges
 from garmentgnn.physics import GRAVITY, Material
 
 WORKER = Path(__file__).with_name("_blender_worker.py")
@@ -173,7 +174,7 @@ def blender_config(material: Material, rest_vertices: torch.Tensor, faces: torch
     Coulomb coefficient."""
     X = rest_vertices.detach().double()
     f = faces.long()
-    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(dim=1).values.unique(dim=0)
+    e = unique_edges(f, X.shape[0]).edges
     L = float((X[e[:, 0]] - X[e[:, 1]]).norm(dim=1).mean())
     area = float(0.5 * torch.linalg.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]])
                  .norm(dim=1).sum())
@@ -263,8 +264,9 @@ def simulate_blender(garment, body, motion, material: Material,
 
     Same inputs and output as :func:`garmentgnn.sim.simulate`: one output per motion
     frame, in the garment's own vertex order; frame 0 is the garment after the pre-roll.
-    ``body`` is required (it is the collider and carries the pinned vertices).
-    ``progress`` is called once, at the end (the worker runs the sequence in one go)."""
+    ``body`` is the collider and carries the pinned vertices; with ``body=None`` the cloth
+    hangs from its pins at rest, with no collider.  ``progress`` is called once, at the
+    end (the worker runs the sequence in one go)."""
     from garmentgnn.sim.simulator import SimResult, trajectories
 
     t0 = time.time()
@@ -273,22 +275,27 @@ def simulate_blender(garment, body, motion, material: Material,
         raise TypeError(f"`settings`: expected BlenderSettings, got {type(st).__name__}")
     if not isinstance(material, Material):
         raise TypeError(f"`material`: expected a Material, got {type(material).__name__}")
-    if body is None:
-        raise ValueError("`body`: the Blender engine needs a body (the collider)")
     fps_m = float(getattr(motion, "fps", st.fps))
     if abs(fps_m - st.fps) > 1e-6 * st.fps:
         raise ValueError(f"`settings.fps` ({st.fps}) differs from `motion.fps` ({fps_m}); "
                          f"use motion.resample({st.fps}) or set settings.fps")
     T, P = int(motion.num_frames), st.preroll_frames
-    skinned, frames = trajectories(garment, body, motion, P, body_frames)
     V = garment.vertices.shape[0]
+    if body is None:
+        if body_frames is not None:
+            raise ValueError("`body_frames`: given without a `body`")
+        skinned = garment.vertices.double().unsqueeze(0).expand(P + T, V, 3)
+        frames, body_faces = torch.zeros(P + T, 0, 3), torch.zeros(0, 3, dtype=torch.long)
+    else:
+        skinned, frames = trajectories(garment, body, motion, P, body_frames)
+        body_faces = body.faces
     pinned = (torch.zeros(V, dtype=torch.bool) if garment.pinned is None
               else garment.pinned.bool())
     arrays = {"garment_frames": skinned.float().numpy(),
               "faces": garment.faces.long().numpy(),
               "pinned": pinned.numpy(),
               "body_frames": frames.float().numpy(),
-              "body_faces": body.faces.long().numpy()}
+              "body_faces": body_faces.long().numpy()}
     config = blender_config(material, garment.vertices, garment.faces, st)
     res = run_worker(arrays, config, threads=st.threads, timeout=st.timeout)
     X = torch.from_numpy(res["positions"][P:]).float()

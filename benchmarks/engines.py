@@ -1,0 +1,198 @@
+"""Blender's cloth against the torch reference simulator, side by side in one run.
+
+Cases (the same meshes, material and frame rate for both engines):
+
+- ``hang``: a square silk sheet pinned along its top edge swings down under gravity
+  (``--sizes`` vertices; no collider, so it isolates the cloth solve);
+- ``drape``: a 1 m sheet falls onto a sphere of radius 0.3 m (Blender only: the torch
+  simulator collides with a body mesh, it has no rigid colliders);
+- ``anny``: the first ``medium`` item's garment on its anny body and motion, shortened to
+  ``--frames`` frames, with each engine's dataset settings.
+
+Each row: seconds per simulated frame, vertex-substeps per second, penetration of the
+collider at the end of every frame (exact signed distance: max and mean depth, share of
+vertex-frames inside), edge strain against the rest mesh (mean and max over all frames),
+kinetic energy at the last frame (per kg of cloth, so sizes compare), and for ``anny``
+the distance between the two engines' garments.  Writes
+``benchmarks/results/engines.{json,md}``.
+
+    python benchmarks/engines.py                          # 300, 1K, 4K vertices, 30 frames
+    python benchmarks/engines.py --sizes 300 --frames 10 --cases hang
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from garmentgnn.data.generate import BLENDER_SETTINGS, build_inputs, preset
+from garmentgnn.garments import Garment
+from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
+from garmentgnn.motion import Motion
+from garmentgnn.physics import material
+from garmentgnn.sim import SimSettings, simulate
+from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker, simulate_blender
+from garmentgnn.sim.simulator import trajectories
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from simulator import hanging_sheet  # noqa: E402  (the sheet of the simulator benchmark)
+
+TORCH = SimSettings(fps=30.0, substeps=4)
+
+
+def metrics(P: torch.Tensor, rest: torch.Tensor, faces: torch.Tensor, fps: float,
+            body=None) -> dict:
+    """``P [T, V, 3]``; ``body``: ``(frames [T, Vb, 3], faces)`` or ``None``."""
+    P = P.double()
+    e = unique_edges(faces).edges
+    L0 = (rest[e[:, 0]] - rest[e[:, 1]]).double().norm(dim=-1)
+    strain = ((P[:, e[:, 0]] - P[:, e[:, 1]]).norm(dim=-1) / L0 - 1).abs()
+    v = (P[-1] - P[-2]) * fps
+    out = {"strain_mean_pct": 100 * float(strain.mean()), "strain_max_pct": 100 * float(strain.max()),
+           "kinetic_J_per_kg": 0.5 * float((v * v).sum(-1).mean()),
+           "finite": bool(torch.isfinite(P).all())}
+    if body is not None:
+        frames, bf = body
+        depth = torch.stack([(-signed_distance(P[t], frames[t].double(), bf).distance).clamp_min(0)
+                             for t in range(P.shape[0])])
+        inside = depth > 0
+        out.update(pen_max_mm=1e3 * float(depth.max()),
+                   pen_mean_mm=1e3 * float(depth[inside].mean()) if inside.any() else 0.0,
+                   pen_share_pct=100 * float(inside.double().mean()))
+    return out
+
+
+def row(case, engine, V, substeps, seconds, frames, m, **extra):
+    per = seconds / frames
+    return dict(case=case, engine=engine, vertices=V, substeps=substeps, frames=frames,
+                seconds_per_frame=per, vertex_substeps_per_s=V * substeps / per, **m, **extra)
+
+
+def still(frames: int) -> Motion:
+    return Motion(torch.zeros(frames, 1, 3), torch.zeros(frames, 3), ["root"], 30.0)
+
+
+def case_hang(V: int, frames: int, mat) -> list:
+    g = hanging_sheet(V)
+    out = []
+    t0 = time.perf_counter()
+    res = simulate(g, None, still(frames + 1), mat, TORCH)
+    out.append(row("hang", "torch", g.num_vertices, TORCH.substeps, time.perf_counter() - t0,
+                   frames, metrics(res.positions, g.vertices, g.faces, 30.0), ok=res.ok))
+    st = BlenderSettings(preroll_frames=1)
+    t0 = time.perf_counter()
+    res = simulate_blender(g, None, still(frames + 1), mat, st)
+    out.append(row("hang", "blender", g.num_vertices, st.quality, time.perf_counter() - t0,
+                   frames, metrics(res.positions, g.vertices, g.faces, 30.0), ok=res.ok))
+    return out
+
+
+def case_drape(V: int, frames: int, mat) -> list:
+    import trimesh
+    n = max(2, int(round(math.sqrt(V))))
+    pos, faces = grid_mesh(n, n, (1.0, 1.0))
+    pos = pos - torch.tensor([0.5, 0.5, -0.35])
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.3)
+    bv = torch.tensor(sphere.vertices, dtype=torch.float32)
+    bf = torch.tensor(sphere.faces, dtype=torch.long)
+    st = BlenderSettings(preroll_frames=1)
+    N = frames + 1
+    t0 = time.perf_counter()
+    res = run_worker({"garment_frames": pos.expand(N, -1, -1).numpy(), "faces": faces.numpy(),
+                      "pinned": np.zeros(pos.shape[0], bool),
+                      "body_frames": bv.expand(N, -1, -1).numpy(), "body_faces": bf.numpy()},
+                     blender_config(mat, pos, faces, st))
+    P = torch.from_numpy(res["positions"][1:])
+    m = metrics(P, pos, faces, 30.0, (bv.expand(frames, -1, -1), bf))
+    return [row("drape", "blender", pos.shape[0], st.quality, time.perf_counter() - t0, frames, m,
+                ok=True)]
+
+
+def case_anny(frames: int) -> list:
+    item = preset("medium", engine="blender").items()[0]
+    g, body, motion, mat = build_inputs(item, num_frames=frames)
+    out, P = [], {}
+    specs = (("torch", dict(preroll_frames=6)), ("blender", dict(BLENDER_SETTINGS)))
+    for engine, kw in specs:
+        t0 = time.perf_counter()
+        if engine == "torch":
+            st = SimSettings(fps=30.0, substeps=TORCH.substeps, **kw)
+            res = simulate(g, body, motion, mat, st)
+            sub = st.substeps
+        else:
+            st = BlenderSettings(**kw)
+            res = simulate_blender(g, body, motion, mat, st)
+            sub = st.quality
+        seconds = time.perf_counter() - t0
+        _, bframes = trajectories(g, body, motion, st.preroll_frames)
+        P[engine] = res.positions
+        m = metrics(res.positions, g.vertices, g.faces, 30.0,
+                    (bframes[st.preroll_frames:], body.faces))
+        out.append(row("anny", engine, g.num_vertices, sub, seconds, frames - 1, m, ok=res.ok,
+                       item=item["id"]))
+    gap = (P["torch"] - P["blender"]).norm(dim=-1)
+    for r in out:
+        r["engines_apart_cm_mean"] = 100 * float(gap.mean())
+        r["engines_apart_cm_last"] = 100 * float(gap[-1].mean())
+    return out
+
+
+COLUMNS = [("case", "{}"), ("engine", "{}"), ("vertices", "{}"), ("seconds_per_frame", "{:.3f}"),
+           ("vertex_substeps_per_s", "{:,.0f}"), ("pen_max_mm", "{:.1f}"), ("pen_mean_mm", "{:.2f}"),
+           ("pen_share_pct", "{:.3f}"), ("strain_mean_pct", "{:.2f}"), ("strain_max_pct", "{:.1f}"),
+           ("kinetic_J_per_kg", "{:.2e}"), ("engines_apart_cm_mean", "{:.2f}")]
+
+
+def table(rows) -> str:
+    head = "| " + " | ".join(c for c, _ in COLUMNS) + " |"
+    lines = [head, "|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        lines.append("| " + " | ".join(f.format(r[c]) if c in r else "–" for c, f in COLUMNS) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[300, 1000, 4000])
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--cases", nargs="+", default=["hang", "drape", "anny"],
+                    choices=["hang", "drape", "anny"])
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (Blender uses all cores)")
+    ap.add_argument("--out", default=str(HERE / "results" / "engines"))
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    mat = material("silk")
+    rows = []
+    for case in args.cases:
+        for V in (args.sizes if case != "anny" else [None]):
+            new = {"hang": lambda: case_hang(V, args.frames, mat),
+                   "drape": lambda: case_drape(V, args.frames, mat),
+                   "anny": lambda: case_anny(args.frames)}[case]()
+            for r in new:
+                print(json.dumps({k: (round(v, 5) if isinstance(v, float) else v)
+                                  for k, v in r.items()}), flush=True)
+            rows.extend(new)
+    doc = {"command": " ".join(["python", "benchmarks/engines.py"] + (argv or sys.argv[1:])),
+           "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                       "torch_threads": args.threads},
+           "material": "silk", "fps": 30.0, "rows": rows}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out + ".json").write_text(json.dumps(doc, indent=1))
+    md = f"`{doc['command']}` on {doc['machine']['platform']}, {doc['machine']['cpus']} CPUs\n\n" \
+         + table(rows) + "\n"
+    Path(args.out + ".md").write_text(md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
