@@ -5,9 +5,12 @@ Every object is a node with one mesh whose base ``POSITION`` is frame 0 and whos
 morph target ``k`` holds ``positions[k] - positions[0]`` (so target 0 is zero).  The
 animation ``"sequence"`` drives each node's ``weights`` with ``STEP`` keys at
 ``k / fps``: one-hot on target ``k``, so the displayed mesh at time ``k / fps`` is
-exactly frame ``k``.  Vertices stay in our order (no welding, no reordering); a node
-may carry a translation (``offset``) so several objects can stand side by side
-without touching their vertex data.  Written as a binary ``.glb`` (opens in Blender,
+exactly frame ``k``.  Vertices stay in our order and our coordinates (no welding, no
+reordering); a node may carry a translation (``offset``) so several objects can stand
+side by side without touching their vertex data.  glTF is +Y up and ours is +Z up
+(the body's front faces -Y), so all object nodes hang under one root node
+``"garmentgnn (Z up)"`` rotated -90 degrees about X: a viewer shows ``(x, y, z)`` at
+``(x, z, -y)``, upright and facing +Z.  Written as a binary ``.glb`` (opens in Blender,
 three.js / any browser viewer, VTK); needs ``pygltflib`` (the ``viz`` extra).
 """
 from __future__ import annotations
@@ -20,6 +23,8 @@ from typing import List, Sequence, Tuple, Union
 import numpy as np
 
 PathLike = Union[str, os.PathLike]
+#: quaternion (x, y, z, w) of the root node: -90 degrees about X, our +Z up -> glTF +Y up
+Z_UP_TO_Y_UP = (-float(np.sqrt(0.5)), 0.0, 0.0, float(np.sqrt(0.5)))
 
 
 @dataclass
@@ -121,7 +126,9 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0) ->
             anim.channels.append(g.AnimationChannel(
                 sampler=len(anim.samplers) - 1,
                 target=g.AnimationChannelTarget(node=len(doc.nodes) - 1, path="weights")))
-    doc.scenes.append(g.Scene(nodes=list(range(len(doc.nodes)))))
+    doc.nodes.append(g.Node(name="garmentgnn (Z up)", rotation=list(Z_UP_TO_Y_UP),
+                            children=list(range(len(doc.nodes)))))
+    doc.scenes.append(g.Scene(nodes=[len(doc.nodes) - 1]))
     if anim is not None:
         doc.animations.append(anim)
     doc.buffers.append(g.Buffer(byteLength=len(blob)))
