@@ -287,6 +287,8 @@ def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: fl
     (a folder of per-frame OBJs) or ``gltf`` (one ``.glb`` with the posed body unless
     ``body=False``, one morph target per frame and an animation; see
     :mod:`garmentgnn.data.gltf`)."""
+    if fmt not in ("pc2", "obj", "gltf"):
+        raise ValueError(f"`fmt`: expected 'pc2', 'obj' or 'gltf', got {fmt!r}")
     if fmt == "gltf":
         from garmentgnn.data.gltf import sequence_meshes, write_gltf
         meshes, fps = sequence_meshes(load_sequence(seq_path), body=body)
@@ -294,7 +296,5 @@ def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: fl
     seq = load_sequence(seq_path, ["positions", "garment_faces", "meta_json"])
     if fmt == "pc2":
         return [write_pc2(out, seq["positions"], start_frame=start_frame)]
-    if fmt == "obj":
-        return write_obj_sequence(out, seq["positions"], seq["garment_faces"],
-                                  stem=Path(seq_path).stem)
-    raise ValueError(f"`fmt`: expected 'pc2', 'obj' or 'gltf', got {fmt!r}")
+    return write_obj_sequence(out, seq["positions"], seq["garment_faces"],
+                              stem=Path(seq_path).stem)
