@@ -67,11 +67,15 @@ function start() {
     const centre = box.getCenter(new THREE.Vector3());
     const size = box.getSize(new THREE.Vector3());
     const fit = Math.max(size.y, size.x / camera.aspect) * 0.5 / Math.tan(THREE.MathUtils.degToRad(15));
-    camera.position.set(centre.x, centre.y + 0.1 * size.y, centre.z + 1.05 * fit + 0.5 * size.z);
+    camera.position.set(centre.x, centre.y + 0.1 * size.y, centre.z + 1.2 * fit + 0.5 * size.z);
     controls.target.copy(centre);
     if (gltf.animations.length) {
       mixer = new THREE.AnimationMixer(gltf.scene);
       for (const clip of gltf.animations) {
+        // hold the last key for one frame step: a looping clip ends at its last key's
+        // time and would wrap to frame 0 there, never showing the last frame
+        const times = clip.tracks.length ? clip.tracks[0].times : [];
+        if (times.length > 1) clip.duration = times[times.length - 1] + (times[1] - times[0]);
         mixer.clipAction(clip).play();
         duration = Math.max(duration, clip.duration);
       }
