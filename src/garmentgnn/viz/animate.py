@@ -102,14 +102,12 @@ def _pyvista():
     return pyvista
 
 
-def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def _normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals ``[V, 3]`` (smooth shading of a moving mesh)."""
-    tri = points[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    vn = np.zeros_like(points)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    return vn / np.linalg.norm(vn, axis=1, keepdims=True).clip(1e-12)
+    import torch
+
+    from garmentgnn.geometry import vertex_normals
+    return vertex_normals(torch.from_numpy(points), torch.from_numpy(faces)).numpy()
 
 
 def _font(size: int):
@@ -243,7 +241,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         plotter.subplot(0, j)
         plotter.set_background("white")
         gm = pv.PolyData.from_regular_faces(p.positions[0].copy(), F)
-        gm.point_data["Normals"] = vertex_normals(p.positions[0], F)
+        gm.point_data["Normals"] = _normals(p.positions[0], F)
         gm.point_data.active_normals_name = "Normals"
         kw = dict(smooth_shading=False, specular=0.15, diffuse=0.85, ambient=0.15)
         if p.error is not None:
@@ -255,7 +253,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         bm = None
         if body is not None:
             bm = pv.PolyData.from_regular_faces(body[0].copy(), BF)
-            bm.point_data["Normals"] = vertex_normals(body[0], BF)
+            bm.point_data["Normals"] = _normals(body[0], BF)
             bm.point_data.active_normals_name = "Normals"
             plotter.add_mesh(bm, color=BODY_COLOR, smooth_shading=False, specular=0.05)
         cam = plotter.camera
@@ -309,13 +307,13 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         for t in range(T):
             for p, gm, bm in meshes:
                 gm.points[:] = p.positions[t]
-                gm.point_data["Normals"][:] = vertex_normals(p.positions[t], F)
+                gm.point_data["Normals"][:] = _normals(p.positions[t], F)
                 if p.error is not None:
                     gm.point_data["err"][:] = p.error[t]
                 gm.Modified()
                 if bm is not None:
                     bm.points[:] = body[t]
-                    bm.point_data["Normals"][:] = vertex_normals(body[t], BF)
+                    bm.point_data["Normals"][:] = _normals(body[t], BF)
                     bm.Modified()
             plotter.render()
             frame = compose(plotter.screenshot(return_img=True), t)
