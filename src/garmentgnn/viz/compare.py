@@ -64,19 +64,22 @@ def comparison(root: PathLike, models: Mapping[str, object], split: str = "test"
     """Ground truth, each of ``models`` (name -> :class:`GarTransModule` or checkpoint
     path; ``mode`` ``"gartrans"`` frame-parallel or ``"gartrans_ar"`` autoregressive)
     and, with ``lbs``, the LBS-only coarse garment, on the ``index``-th sequence of
-    ``split`` under ``root``."""
-    from garmentgnn.data import store
-    from garmentgnn.training.datamodule import SequenceChunks
-    from garmentgnn.training.evaluate import predict
-
+    ``split`` under ``root``.  Models run in eval mode (their mode is restored)."""
     if mode not in ("gartrans", "gartrans_ar"):
         raise ValueError(f"`mode`: expected 'gartrans' or 'gartrans_ar', got {mode!r}")
     # loaded with autograd on: building the model runs a backward pass
     loaded = {name: (load_checkpoint(m) if isinstance(m, (str, os.PathLike)) else m)
               for name, m in models.items()}
-    with torch.no_grad():
-        return _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks,
-                           max_frames)
+    modes = {name: m.training for name, m in loaded.items()}
+    try:
+        for m in loaded.values():
+            m.eval()
+        with torch.no_grad():
+            return _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks,
+                               max_frames)
+    finally:
+        for name, m in loaded.items():
+            m.train(modes[name])
 
 
 def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames
