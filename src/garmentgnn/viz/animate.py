@@ -300,7 +300,8 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
     if not 0 <= still_frame < T:
         raise ValueError(f"`still_frame`: expected 0 <= still_frame < {T}, got {still_frame}")
     writer = (imageio.get_writer(mp4_path, fps=play_fps, codec="libx264", quality=7,
-                                 macro_block_size=16, pixelformat="yuv420p")
+                                 macro_block_size=16, pixelformat="yuv420p",
+                                 ffmpeg_log_level="error")
               if mp4_path else None)
     gif_frames: List[np.ndarray] = []
     try:
