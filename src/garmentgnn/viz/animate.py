@@ -16,7 +16,11 @@ Install: ``pip install "garmentgnn[viz]"`` (pyvista, vtk, imageio, imageio-ffmpe
 from __future__ import annotations
 
 import ctypes.util
+import functools
 import os
+import re
+import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -80,8 +84,24 @@ def vertex_error_cm(pred, gt) -> np.ndarray:
     return 100.0 * np.linalg.norm(p - g, axis=-1)
 
 
-def renderer_unavailable() -> Optional[str]:
-    """``None`` if off-screen rendering can work here, otherwise why not (and how to fix)."""
+_PROBE = """
+import os
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+import pyvista
+p = pyvista.Plotter(off_screen=True, window_size=(16, 16))
+p.add_mesh(pyvista.Sphere())
+assert p.screenshot(return_img=True).shape == (16, 16, 3)
+p.close()
+"""
+
+
+@functools.lru_cache(maxsize=None)
+def renderer_unavailable(probe: bool = True) -> Optional[str]:
+    """``None`` if off-screen rendering works here, otherwise why not (and how to fix).
+
+    With ``probe`` (default) a tiny render runs once in a subprocess: VTK segfaults
+    instead of raising when the GL libraries are incomplete (e.g. ``libegl1`` without
+    ``libgl1-mesa-dri``), and that must not take the calling process down."""
     try:
         import imageio  # noqa: F401
         import imageio_ffmpeg  # noqa: F401
@@ -90,12 +110,22 @@ def renderer_unavailable() -> Optional[str]:
         return f"{e.name} is not installed: {_INSTALL}"
     if not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL") is None:
         return f"no display and no libEGL: {_INSTALL}"
+    if probe:
+        try:
+            r = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True,
+                               timeout=120)
+        except subprocess.TimeoutExpired:
+            return f"a 16x16 test render timed out: {_INSTALL}"
+        if r.returncode != 0:
+            text = re.sub(r"\x1b\[[0-9;]*m", "", r.stderr or r.stdout).strip()
+            tail = text.splitlines()[-1:] or [f"exit {r.returncode}"]
+            return f"a 16x16 test render failed ({tail[0][:200]}): {_INSTALL}"
     return None
 
 
 def _pyvista():
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    reason = renderer_unavailable()
+    reason = renderer_unavailable(probe=False)
     if reason:
         raise ImportError(reason)
     import pyvista
