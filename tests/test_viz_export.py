@@ -27,9 +27,16 @@ def make_dataset(out):
     return out
 
 
+_DATA = {}
+
+
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    return make_dataset(tmp_path_factory.mktemp("vizdata"))
+    """Generated once per session (tmp_path_factory's folders live that long) and shared
+    with test_viz.py."""
+    if "root" not in _DATA:
+        _DATA["root"] = make_dataset(tmp_path_factory.mktemp("vizdata"))
+    return _DATA["root"]
 
 
 def vtk_read(path, times):

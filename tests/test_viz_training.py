@@ -13,7 +13,6 @@ from test_training_cli import CONFIGS, fast_args
 
 def test_train_writes_curves_matching_the_csv_logger(root, tmp_path):  # noqa: F811
     args = ["fit", "--config", str(CONFIGS / "gartrans.yaml")] + fast_args(root, tmp_path)
-    args[args.index("--trainer.max_epochs") + 1] = "2"
     cli = train_main(args)
     plots = [c for c in cli.trainer.callbacks if isinstance(c, TrainingPlots)]
     assert len(plots) == 1
@@ -21,9 +20,9 @@ def test_train_writes_curves_matching_the_csv_logger(root, tmp_path):  # noqa: F
     assert png is not None and png.name == "training_curves.png" and png.stat().st_size > 10_000
     assert tmp_path in png.parents  # the run's log folder
     csv_rows = read_metrics_csv(next(tmp_path.rglob("metrics.csv")))
-    assert [r["epoch"] for r in csv_rows] == [0, 1]
+    assert [r["epoch"] for r in csv_rows] == [0]
     hist = plots[0].history
-    assert [r["epoch"] for r in hist] == [0, 1]
+    assert [r["epoch"] for r in hist] == [0]
     for mine, logged in zip(hist, csv_rows):
         keys = {k for k in logged if k.startswith(("train/", "val/"))}
         assert {"train/loss", "val/E_dist"} <= keys and keys <= set(mine)
