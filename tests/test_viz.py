@@ -111,7 +111,7 @@ def test_comparison_against_evaluate_split(dataset, tmp_path):  # noqa: F811
 
 
 @needs_renderer
-def test_show_cli_from_a_checkpoint(dataset, tmp_path):  # noqa: F811
+def test_show_cli_from_a_checkpoint(dataset, tmp_path, capsys):  # noqa: F811
     import lightning as L
 
     from garmentgnn.cli import main
@@ -125,9 +125,20 @@ def test_show_cli_from_a_checkpoint(dataset, tmp_path):  # noqa: F811
     trainer.fit(module, dm)
     ckpt = tmp_path / "m.ckpt"
     trainer.save_checkpoint(ckpt)
+    # a precomputed prediction: the simulation moved 1 cm along x, so exactly 1 cm off
+    from garmentgnn.data import store
+    rec = [r for r in store.read_manifest(dataset)["items"] if r["split"] == "test"][0]
+    gt = store.load_sequence(store.sequence_path(dataset, rec))["positions"]
+    np.save(tmp_path / "shifted.npy", gt + np.array([0.01, 0.0, 0.0], np.float32))
     out = tmp_path / "show" / "cmp"
+    capsys.readouterr()
     assert main(["show", "--data", str(dataset), "--ckpt", f"mine={ckpt}", "--out", str(out),
+                 "--pred", f"shifted={tmp_path / 'shifted.npy'}",
                  "--history", "2", "--num-landmarks", "16", "--max-frames", "2",
                  "--height", "720", "--no-gif"]) == 0
+    printed = capsys.readouterr().out
+    assert "shifted: mean E_dist 1.000 cm" in printed and "LBS only: mean E_dist" in printed
+    from PIL import Image
+    assert Image.open(out.with_suffix(".png")).size[1] >= 720
     assert out.with_suffix(".mp4").stat().st_size > 1000 and not out.with_suffix(".gif").exists()
     assert out.with_suffix(".png").is_file() and out.with_suffix(".glb").is_file()

@@ -294,7 +294,13 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
 
     slow = max(1.0, min_seconds * fps / T) if T > 1 else 1.0
     play_fps = fps / slow
-    font_t, font_s = _font(30), _font(20)
+    font_s = _font(20)
+    title_fonts = []  # 30 px, smaller where a title would not fit its panel
+    for p in panels:
+        size = 30
+        while size > 12 and _font(size).getlength(p.title) > pw - 16:
+            size -= 2
+        title_fonts.append(_font(size))
     bar = colorbar_image(min(W - 40, 900), _FOOTER - 24, clim, cmap,
                          "distance to ground truth, E_dist (cm)") if errs else None
     mean_err = {p.title: float(p.error.mean()) for p in panels if p.error is not None}
@@ -305,7 +311,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         d = ImageDraw.Draw(canvas)
         for j, p in enumerate(panels):
             cx = j * pw + pw // 2
-            d.text((cx, 8), p.title, fill="black", font=font_t, anchor="ma")
+            d.text((cx, 8), p.title, fill="black", font=title_fonts[j], anchor="ma")
             if p.error is not None:
                 d.text((cx, 46), f"mean {p.error[t].mean():.2f} cm, max {p.error[t].max():.1f}",
                        fill=(70, 70, 70), font=font_s, anchor="ma")
@@ -313,7 +319,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
                 d.line([(j * pw, _HEADER), (j * pw, _HEADER + h3d)], fill=(200, 200, 200), width=2)
         if bar is not None:
             canvas.paste(Image.fromarray(bar), ((W - bar.shape[1]) // 2, _HEADER + h3d + 4))
-        info = f"frame {t + frame_offset} / {T - 1 + frame_offset}"
+        info = f"frame {t + frame_offset + 1} / {T + frame_offset}"
         if slow > 1.0:
             info += f"  (playing {slow:.3g}x slower)"
         d.text((10, H - 8), info, fill=(70, 70, 70), font=font_s, anchor="ld")

@@ -13,6 +13,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--ckpt", action="append", default=[], metavar="[NAME=]PATH",
                    help="a GarTrans checkpoint to show (repeat for baselines / ablations); "
                    "NAME is the panel title (default: the file name)")
+    s.add_argument("--pred", action="append", default=[], metavar="NAME=FILE.npy",
+                   help="any other method's garment on this sequence, [T, V, 3] in our vertex "
+                   "order (e.g. a bench baseline), shown after the checkpoints")
     s.add_argument("--out", required=True, help="output path without suffix (.mp4/.gif/.png/.glb)")
     s.add_argument("--split", default="test")
     s.add_argument("--index", type=int, default=0, help="which sequence of the split")
@@ -35,7 +38,8 @@ def main(args: argparse.Namespace) -> int:
     res = show(args.data, dict(parse_named(args.ckpt)), args.out, split=args.split,
                index=args.index, mode=args.mode, lbs=not args.no_lbs, history=args.history,
                num_landmarks=args.num_landmarks, max_frames=args.max_frames,
-               gltf=not args.no_gltf, height=args.height, gif=not args.no_gif,
+               predictions=dict(parse_named(args.pred, "--pred")), gltf=not args.no_gltf,
+               height=args.height, gif=not args.no_gif,
                clim=None if args.clim is None else (0.0, args.clim))
     a = res["animation"]
     for p in a.mean_error:

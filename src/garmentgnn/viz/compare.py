@@ -37,7 +37,7 @@ class Comparison:
                 f"frames={len(self.frames)})")
 
 
-def parse_named(specs: Sequence[str]) -> List[Tuple[str, str]]:
+def parse_named(specs: Sequence[str], option: str = "--ckpt") -> List[Tuple[str, str]]:
     """``["GarTrans=a.ckpt", "b.ckpt"]`` -> ``[("GarTrans", "a.ckpt"), ("b", "b.ckpt")]``."""
     out = []
     for s in specs:
@@ -45,7 +45,7 @@ def parse_named(specs: Sequence[str]) -> List[Tuple[str, str]]:
         if not sep:
             name, path = Path(s).stem, s
         if not name or not path:
-            raise ValueError(f"`--ckpt`: expected NAME=PATH or PATH, got {s!r}")
+            raise ValueError(f"`{option}`: expected NAME=PATH or PATH, got {s!r}")
         out.append((name, path))
     return out
 
@@ -60,11 +60,14 @@ def load_checkpoint(path: PathLike):
 
 def comparison(root: PathLike, models: Mapping[str, object], split: str = "test",
                index: int = 0, mode: str = "gartrans", lbs: bool = True, history: int = 3,
-               num_landmarks: int = 64, max_frames: Optional[int] = None) -> Comparison:
+               num_landmarks: int = 64, max_frames: Optional[int] = None,
+               predictions: Optional[Mapping[str, object]] = None) -> Comparison:
     """Ground truth, each of ``models`` (name -> :class:`GarTransModule` or checkpoint
-    path; ``mode`` ``"gartrans"`` frame-parallel or ``"gartrans_ar"`` autoregressive)
-    and, with ``lbs``, the LBS-only coarse garment, on the ``index``-th sequence of
-    ``split`` under ``root``.  Models run in eval mode (their mode is restored)."""
+    path; ``mode`` ``"gartrans"`` frame-parallel or ``"gartrans_ar"`` autoregressive),
+    each of ``predictions`` (name -> ``[T, V, 3]`` array or ``.npy`` path: any other
+    method's garment on this sequence, in our vertex order) and, with ``lbs``, the
+    LBS-only coarse garment, on the ``index``-th sequence of ``split`` under ``root``.
+    Models run in eval mode (their mode is restored)."""
     if mode not in ("gartrans", "gartrans_ar"):
         raise ValueError(f"`mode`: expected 'gartrans' or 'gartrans_ar', got {mode!r}")
     # loaded with autograd on: building the model runs a backward pass
@@ -76,14 +79,14 @@ def comparison(root: PathLike, models: Mapping[str, object], split: str = "test"
             m.eval()
         with torch.no_grad():
             return _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks,
-                               max_frames)
+                               max_frames, dict(predictions or {}))
     finally:
         for name, m in loaded.items():
             m.train(modes[name])
 
 
-def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames
-                ) -> Comparison:
+def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames,
+                predictions) -> Comparison:
     from garmentgnn.data import store
     from garmentgnn.training.datamodule import SequenceChunks
     from garmentgnn.training.evaluate import predict
@@ -105,6 +108,15 @@ def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, m
         if not np.isfinite(pred).all():
             raise ValueError(f"model {name!r} predicted NaN/inf on {item['seq_id']}")
         panels.append(Panel(name, pred, vertex_error_cm(pred, gt)))
+    for name, pred in predictions.items():
+        pred = np.load(pred) if isinstance(pred, (str, os.PathLike)) else pred
+        pred = np.asarray(pred.detach().cpu() if hasattr(pred, "detach") else pred, np.float64)
+        if pred.shape != gt.shape:
+            raise ValueError(f"`predictions`[{name!r}]: expected {gt.shape} (the frames and "
+                             f"vertices of {item['seq_id']}), got {pred.shape}")
+        if not np.isfinite(pred).all():
+            raise ValueError(f"`predictions`[{name!r}] contain NaN/inf")
+        panels.append(Panel(name, pred, vertex_error_cm(pred, gt)))
     if lbs:
         pred = predict(None, item, "lbs").double().numpy()
         panels.append(Panel("LBS only", pred, vertex_error_cm(pred, gt)))
@@ -123,13 +135,14 @@ def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, m
 def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
          split: str = "test", index: int = 0, mode: str = "gartrans", lbs: bool = True,
          history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
-         gltf: bool = True, **render_kw) -> Dict[str, object]:
+         predictions: Optional[Mapping[str, object]] = None, gltf: bool = True,
+         **render_kw) -> Dict[str, object]:
     """Render the comparison of one held-out sequence to ``<out>.mp4/.gif/.png`` and,
     with ``gltf``, export every panel with the body to ``<out>.glb``; returns
     ``{"animation": Animation, "gltf": path or None, "comparison": Comparison}``."""
     from garmentgnn.viz.animate import render_animation
     c = comparison(root, checkpoints, split, index, mode, lbs, history, num_landmarks,
-                   max_frames)
+                   max_frames, predictions)
     anim = render_animation(c.panels, c.faces, out, c.body_positions, c.body_faces, fps=c.fps,
                             caption=c.seq_id, frame_offset=int(c.frames[0]), **render_kw)
     glb = None
