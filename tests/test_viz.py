@@ -75,6 +75,8 @@ def test_render_animation_frames_and_files(tmp_path):
     assert np.abs(video[0].astype(int) - video[-1].astype(int)).max(-1).__gt__(40).mean() > 0.005
     gif = iio.imread(a.gif, index=None)
     assert gif.shape[0] == T and gif.shape[1] == H // 2
+    with pytest.raises(ValueError, match="clim"):
+        render_animation(panels, F, tmp_path / "x", clim=(2.0, 2.0))
     with pytest.raises(ValueError, match="height"):
         render_animation(panels, F, tmp_path / "x", height=480)
     with pytest.raises(ValueError, match="same frames"):

@@ -251,6 +251,8 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
     if clim is None:
         top = float(np.percentile(np.concatenate([e.ravel() for e in errs]), 99)) if errs else 1.0
         clim = (0.0, float(f"{max(top, 1e-3):.2g}"))
+    elif not (len(clim) == 2 and np.isfinite(clim).all() and clim[1] > clim[0]):
+        raise ValueError(f"`clim`: expected (low, high) in cm with high > low, got {clim}")
     h3d = _round_up(height - _HEADER - _FOOTER)
     H = h3d + _HEADER + _FOOTER
     pw = panel_width or _round_up(0.62 * h3d)
