@@ -32,7 +32,7 @@ _DATA = {}
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    """Generated once per session (tmp_path_factory's folders live that long) and shared
+    """Generated once per test run (tmp_path_factory's folders live that long) and shared
     with test_viz.py."""
     if "root" not in _DATA:
         _DATA["root"] = make_dataset(tmp_path_factory.mktemp("vizdata"))
