@@ -16,15 +16,19 @@ BPY_PIN ?= bpy==5.0.1
 EXPECT_BLENDER := $(shell $(PYTHON) -c "import platform, sys; print(int(sys.version_info[:2] == (3, 11) and platform.machine() in ('x86_64', 'AMD64', 'arm64')))" 2>/dev/null)
 PYTEST_ARGS ?=
 
-.PHONY: install demo test test-fast bench-layers clean
+VIEWER := build/viewer/viewer.bundle.js
+# Debian packages for headless rendering (EGL for VTK) and the viewer test (chromium)
+APT_PKGS ?= libegl1 libgl1-mesa-dri chromium
 
-install: $(STAMP)
+.PHONY: install system-deps demo test test-fast bench-layers clean
+
+install: $(STAMP) system-deps $(VIEWER)
 
 $(STAMP): setup.cfg pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip setuptools wheel
 	$(PIP) install -q "$(TORCH_PIN)"
-	$(PIP) install -q -e ".[dev,human,smpl,ray]"
+	$(PIP) install -q -e ".[dev,human,smpl,ray,viz]"
 	# torch-scatter compiles against the installed torch (~4 min once; pip caches the wheel)
 	$(PIP) install -q --no-build-isolation "torch-scatter>=2.1,<3"
 	@if [ "$(EXPECT_BLENDER)" = "1" ]; then \
@@ -35,20 +39,38 @@ $(STAMP): setup.cfg pyproject.toml Makefile
 	fi
 	touch $(STAMP)
 
+# apt packages, each only when missing; without root or apt-get: a note, no failure
+# (renders and the viewer test then skip and say why)
+system-deps:
+	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+		apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends $$missing; \
+	else echo "note: not root or no apt-get; install$$missing yourself for headless renders (EGL) and the HTML viewer test (chromium)"; fi
+
+# the HTML viewer's script: three.js from npm bundled by esbuild (outside the package source)
+$(VIEWER): viewer/viewer.js viewer/package.json viewer/package-lock.json
+	@if command -v npm >/dev/null 2>&1; then \
+		mkdir -p build/viewer && cp viewer/package.json viewer/package-lock.json viewer/viewer.js build/viewer/ && \
+		cd build/viewer && npm ci --no-audit --no-fund --loglevel=error && \
+		npx esbuild viewer.js --bundle --format=iife --minify --outfile=viewer.bundle.js --log-level=warning; \
+	else echo "note: npm not found; the HTML viewer (garmentgnn.viz.viewer) needs build/viewer/viewer.bundle.js (apt-get install npm, then make install)"; fi
+
 # The main demo: every layer learns a mesh operator; then the reference simulator
 # generates the `tiny` dataset, GarTrans is trained on it and predicts the held-out
-# motion: metrics vs LBS and demo_out/gartrans_demo.png (simulated / GarTrans / LBS).
-demo: $(STAMP)
+# motion: metrics vs LBS and demo_out/gartrans_demo.{mp4,gif,png} (simulated / GarTrans / LBS
+# side by side, coloured by per-vertex error).
+demo: install
 	$(PY) examples/layer_demo.py
 	$(PY) examples/train_demo.py --out demo_out
 
 # The whole suite with torch-scatter, then the fast suite again with it hidden
 # (PyG's native scatter path).  Slow tests run too; `make test-fast` skips them.
-test: $(STAMP)
+test: install
 	GARMENTGNN_EXPECT_SCATTER=1 GARMENTGNN_EXPECT_BLENDER=$(EXPECT_BLENDER) $(PY) -m pytest $(PYTEST_ARGS)
 	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
-test-fast: $(STAMP)
+test-fast: install
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 bench-layers: $(STAMP)

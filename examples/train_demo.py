@@ -6,8 +6,11 @@
 2. trains GarTrans (full model, progressive schedule with short windows) on the
    training split with Lightning, on the CPU;
 3. predicts the held-out motion (arm swing) frame-parallel and autoregressively,
-   scores both and the LBS-only coarse garment against the simulation, and writes a
-   PNG strip: simulated / GarTrans / LBS only, over the frames of one sequence.
+   scores both and the LBS-only coarse garment against the simulation;
+4. renders simulated | GarTrans | LBS only side by side over one held-out sequence,
+   the predictions coloured by per-vertex distance to the simulation (cm), as an MP4,
+   a GIF, a PNG still and a glTF (``garmentgnn show``, pyvista/VTK off-screen).  With
+   no renderer installed it writes the matplotlib PNG strip instead and says why.
 
     python examples/train_demo.py --out demo_out [--epochs 40]
 """
@@ -22,6 +25,7 @@ import lightning as L
 from garmentgnn.data import generate, preset
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
 from garmentgnn.training.evaluate import evaluate_split, markdown_table, render_strip
+from garmentgnn.viz.animate import renderer_unavailable
 
 
 def main() -> None:
@@ -35,7 +39,7 @@ def main() -> None:
 
     data = out / "data_tiny"
     summary = generate(preset("tiny"), data, workers=args.workers, progress=True)
-    print(f"[1/3] dataset: {summary} ({time.time() - t0:.0f} s)")
+    print(f"[1/4] dataset: {summary} ({time.time() - t0:.0f} s)")
 
     t1 = time.time()
     L.seed_everything(0, workers=True)
@@ -49,16 +53,28 @@ def main() -> None:
     trainer.fit(module, dm)
     ckpt = out / "gartrans_demo.ckpt"
     trainer.save_checkpoint(ckpt)
-    print(f"[2/3] trained {args.epochs} epochs in {time.time() - t1:.0f} s; phases began at "
+    print(f"[2/4] trained {args.epochs} epochs in {time.time() - t1:.0f} s; phases began at "
           f"epochs {sched.transitions}; checkpoint {ckpt}")
 
     module = GarTransModule.load_from_checkpoint(ckpt).eval()
     res = evaluate_split(module, data, "test", history=3, num_landmarks=64)
-    print(f"[3/3] held-out test split ({res['lbs']['frames']} frames):")
+    print(f"[3/4] held-out test split ({res['lbs']['frames']} frames):")
     print(markdown_table(res))
-    png, seq = render_strip(module, data, "test", out / "gartrans_demo.png", history=3,
-                            num_landmarks=64)
-    print(f"wrote {png} ({seq}); total {time.time() - t0:.0f} s")
+    reason = renderer_unavailable()
+    if reason is None:
+        from garmentgnn.viz.compare import show
+        t3 = time.time()
+        r = show(data, {"GarTrans": module}, out / "gartrans_demo", split="test", history=3,
+                 num_landmarks=64)
+        a = r["animation"]
+        print(f"[4/4] {r['comparison'].seq_id}: {a.frames} frames at {a.size[0]}x{a.size[1]} "
+              f"in {time.time() - t3:.0f} s; wrote {a.gif}, {a.still}, {r['gltf']}")
+        print(f"animation: {a.mp4}")
+    else:
+        png, seq = render_strip(module, data, "test", out / "gartrans_demo.png", history=3,
+                                num_landmarks=64)
+        print(f"[4/4] no animation ({reason}); wrote the still strip {png} ({seq})")
+    print(f"total {time.time() - t0:.0f} s")
 
 
 if __name__ == "__main__":

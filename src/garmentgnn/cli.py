@@ -1,5 +1,6 @@
 """Command line: ``garmentgnn generate ...``, ``garmentgnn export ...``,
-``garmentgnn manifest ...``, ``garmentgnn train ...`` (Lightning's CLI, see
+``garmentgnn manifest ...``, ``garmentgnn show ...`` (see :mod:`garmentgnn.viz`),
+``garmentgnn train ...`` (Lightning's CLI, see
 :mod:`garmentgnn.training.lightning_cli`), ``garmentgnn bench ...`` (see
 :mod:`garmentgnn.bench`) (also ``python -m garmentgnn.cli``)."""
 from __future__ import annotations
@@ -48,16 +49,19 @@ def build_parser() -> argparse.ArgumentParser:
     # test hook: module:function replacing garmentgnn.sim.simulate
     g.add_argument("--simulate-fn", default=None, help=argparse.SUPPRESS)
 
-    e = sub.add_parser("export", help="export a sequence file as PC2 or an OBJ sequence")
+    e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence or glTF")
     e.add_argument("--seq", required=True, help="OUT/sequences/<id>.npz")
-    e.add_argument("--format", choices=("pc2", "obj"), required=True)
-    e.add_argument("--out", required=True, help="the .pc2 file, or a folder for OBJs")
+    e.add_argument("--format", choices=("pc2", "obj", "gltf"), required=True)
+    e.add_argument("--out", required=True, help="the .pc2 / .glb file, or a folder for OBJs")
+    e.add_argument("--no-body", action="store_true", help="glTF: the garment only")
     e.add_argument("--start-frame", type=float, default=0.0, help="PC2 start frame")
 
     m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files")
     m.add_argument("--out", required=True)
     from garmentgnn.bench.cli import add_parser as add_bench_parser
     add_bench_parser(sub)
+    from garmentgnn.viz.cli import add_parser as add_show_parser
+    add_show_parser(sub)
     t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
                        "configs/gartrans.yaml --data.root DIR (see `garmentgnn train --help`)",
                        add_help=False)
@@ -99,9 +103,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.command == "bench":
         from garmentgnn.bench.cli import main as bench_main
         return bench_main(args)
+    if args.command == "show":
+        from garmentgnn.viz.cli import main as show_main
+        return show_main(args)
     if args.command == "export":
         from garmentgnn.data.store import export_sequence
-        paths = export_sequence(args.seq, args.format, args.out, start_frame=args.start_frame)
+        paths = export_sequence(args.seq, args.format, args.out, start_frame=args.start_frame,
+                                body=not args.no_body)
         print(f"wrote {len(paths)} file(s): {paths[0]}" + (" ..." if len(paths) > 1 else ""))
         return 0
     if args.command == "manifest":

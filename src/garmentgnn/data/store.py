@@ -1,4 +1,4 @@
-"""On-disk layout of a generated dataset: sequence files, the manifest, PC2/OBJ export.
+"""On-disk layout of a generated dataset: sequence files, the manifest, PC2/OBJ/glTF export.
 
 Layout of an output folder ``OUT``::
 
@@ -291,14 +291,20 @@ def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarra
     return paths
 
 
-def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: float = 0.0
-                    ) -> List[Path]:
-    """Export a sequence file's simulated positions as ``pc2`` (one file) or ``obj``
-    (a folder of per-frame OBJs)."""
+def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: float = 0.0,
+                    body: bool = True) -> List[Path]:
+    """Export a sequence file's simulated positions as ``pc2`` (one file), ``obj``
+    (a folder of per-frame OBJs) or ``gltf`` (one ``.glb`` with the posed body unless
+    ``body=False``, one morph target per frame and an animation; see
+    :mod:`garmentgnn.data.gltf`)."""
+    if fmt not in ("pc2", "obj", "gltf"):
+        raise ValueError(f"`fmt`: expected 'pc2', 'obj' or 'gltf', got {fmt!r}")
+    if fmt == "gltf":
+        from garmentgnn.data.gltf import sequence_meshes, write_gltf
+        meshes, fps = sequence_meshes(load_sequence(seq_path), body=body)
+        return [write_gltf(out, meshes, fps=fps)]
     seq = load_sequence(seq_path, ["positions", "garment_faces", "meta_json"])
     if fmt == "pc2":
         return [write_pc2(out, seq["positions"], start_frame=start_frame)]
-    if fmt == "obj":
-        return write_obj_sequence(out, seq["positions"], seq["garment_faces"],
-                                  stem=Path(seq_path).stem)
-    raise ValueError(f"`fmt`: expected 'pc2' or 'obj', got {fmt!r}")
+    return write_obj_sequence(out, seq["positions"], seq["garment_faces"],
+                              stem=Path(seq_path).stem)

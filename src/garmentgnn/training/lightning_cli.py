@@ -10,6 +10,8 @@ width) are linked from the data module, so a config only says *what* to train::
 
 Every option of the module, the data module, the trainer and its callbacks is a flag
 (``garmentgnn train fit --help``); ``--print_config`` shows the merged configuration.
+At the end of ``fit`` the loss terms and validation metrics per epoch are drawn into
+``<log dir>/training_curves.png`` (:class:`~garmentgnn.training.plots.TrainingPlots`).
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from lightning.pytorch.cli import LightningCLI
 
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.module import GarTransModule
+from garmentgnn.training.plots import TrainingPlots
 
 
 def _dim(name: str):
@@ -38,10 +41,12 @@ class GarTransCLI(LightningCLI):
 
 
 def main(args: Optional[Sequence[str]] = None, run: bool = True) -> GarTransCLI:
-    """Run the CLI (``args`` default: ``sys.argv[1:]``); returns the CLI object."""
+    """Run the CLI (``args`` default: ``sys.argv[1:]``); returns the CLI object.  Every
+    run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder)."""
     return GarTransCLI(GarTransModule, GarmentDataModule, args=None if args is None else list(args),
                        run=run, seed_everything_default=0,
-                       save_config_kwargs={"overwrite": True})
+                       save_config_kwargs={"overwrite": True},
+                       trainer_defaults={"callbacks": [TrainingPlots()]})
 
 
 if __name__ == "__main__":  # pragma: no cover

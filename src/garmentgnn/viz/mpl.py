@@ -1,4 +1,4 @@
-"""Headless PNG renders of meshes with matplotlib (flat Lambert shading, painter's order).
+"""Headless PNG stills of meshes with matplotlib (flat Lambert shading, painter's order).
 
 Good enough to look at garments on bodies from a test or a demo with no GPU and
 no display; not a production renderer.

@@ -1,0 +1,51 @@
+"""``garmentgnn show``: an MP4/GIF (+ PNG still, + glTF) of ground truth | checkpoints |
+LBS only on one held-out sequence, coloured by per-vertex error."""
+from __future__ import annotations
+
+import argparse
+import time
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    s = sub.add_parser("show", help="animate ground truth | checkpoints | LBS on a held-out "
+                       "sequence (MP4, GIF, PNG, glTF)", description=__doc__)
+    s.add_argument("--data", required=True, help="generated dataset folder (manifest.json)")
+    s.add_argument("--ckpt", action="append", default=[], metavar="[NAME=]PATH",
+                   help="a GarTrans checkpoint to show (repeat for baselines / ablations); "
+                   "NAME is the panel title (default: the file name)")
+    s.add_argument("--pred", action="append", default=[], metavar="NAME=FILE.npy",
+                   help="any other method's garment on this sequence, [T, V, 3] in our vertex "
+                   "order (e.g. a bench baseline), shown after the checkpoints")
+    s.add_argument("--out", required=True, help="output path without suffix (.mp4/.gif/.png/.glb)")
+    s.add_argument("--split", default="test")
+    s.add_argument("--index", type=int, default=0, help="which sequence of the split")
+    s.add_argument("--mode", choices=("gartrans", "gartrans_ar"), default="gartrans",
+                   help="frame-parallel or autoregressive prediction")
+    s.add_argument("--no-lbs", action="store_true", help="leave out the LBS-only panel")
+    s.add_argument("--history", type=int, default=3)
+    s.add_argument("--num-landmarks", type=int, default=64)
+    s.add_argument("--max-frames", type=int, default=None)
+    s.add_argument("--height", type=int, default=896, help="frame height in px (>= 720)")
+    s.add_argument("--clim", type=float, default=None, help="top of the error scale (cm)")
+    s.add_argument("--no-gif", action="store_true")
+    s.add_argument("--no-gltf", action="store_true")
+    return s
+
+
+def main(args: argparse.Namespace) -> int:
+    from garmentgnn.viz.compare import parse_named, show
+    t0 = time.perf_counter()
+    res = show(args.data, dict(parse_named(args.ckpt)), args.out, split=args.split,
+               index=args.index, mode=args.mode, lbs=not args.no_lbs, history=args.history,
+               num_landmarks=args.num_landmarks, max_frames=args.max_frames,
+               predictions=dict(parse_named(args.pred, "--pred")), gltf=not args.no_gltf,
+               height=args.height, gif=not args.no_gif,
+               clim=None if args.clim is None else (0.0, args.clim))
+    a = res["animation"]
+    for p in a.mean_error:
+        print(f"{p}: mean E_dist {a.mean_error[p]:.3f} cm")
+    for path in (a.mp4, a.gif, a.still, res["gltf"]):
+        if path is not None:
+            print(f"wrote {path}")
+    print(f"{a.frames} frames at {a.size[0]}x{a.size[1]} in {time.perf_counter() - t0:.1f} s")
+    return 0

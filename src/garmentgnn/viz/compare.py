@@ -1,0 +1,169 @@
+"""The panels of one held-out sequence: ground truth | trained checkpoints | LBS only.
+
+:func:`comparison` runs every model on one sequence of a generated dataset (the
+same inputs as :func:`garmentgnn.training.evaluate.evaluate_split`) and returns
+:class:`~garmentgnn.viz.animate.Panel` objects with per-vertex errors, plus the posed
+body, ready for :func:`~garmentgnn.viz.animate.render_animation` or for glTF export.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+
+from garmentgnn.viz.animate import GT_COLOR, Panel, vertex_error_cm
+
+PathLike = Union[str, os.PathLike]
+
+
+@dataclass
+class Comparison:
+    """A sequence's panels, garment faces and posed body (numpy, metres)."""
+
+    seq_id: str
+    panels: List[Panel]
+    faces: np.ndarray
+    body_positions: np.ndarray
+    body_faces: np.ndarray
+    fps: float
+    frames: np.ndarray
+
+    def __repr__(self) -> str:
+        return (f"Comparison({self.seq_id!r}, panels={[p.title for p in self.panels]}, "
+                f"frames={len(self.frames)})")
+
+
+def parse_named(specs: Sequence[str], option: str = "--ckpt") -> List[Tuple[str, str]]:
+    """``["GarTrans=a.ckpt", "b.ckpt"]`` -> ``[("GarTrans", "a.ckpt"), ("b", "b.ckpt")]``."""
+    out = []
+    for s in specs:
+        name, sep, path = s.partition("=")
+        if not sep:
+            name, path = Path(s).stem, s
+        if not name or not path:
+            raise ValueError(f"`{option}`: expected NAME=PATH or PATH, got {s!r}")
+        out.append((name, path))
+    return out
+
+
+def load_checkpoint(path: PathLike):
+    """A :class:`GarTransModule` from a Lightning checkpoint, on the CPU, in eval mode."""
+    from garmentgnn.training import GarTransModule
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    return GarTransModule.load_from_checkpoint(str(path), map_location="cpu").eval()
+
+
+def comparison(root: PathLike, models: Mapping[str, object], split: str = "test",
+               index: int = 0, mode: str = "gartrans", lbs: bool = True, history: int = 3,
+               num_landmarks: int = 64, max_frames: Optional[int] = None,
+               predictions: Optional[Mapping[str, object]] = None) -> Comparison:
+    """Ground truth, each of ``models`` (name -> :class:`GarTransModule` or checkpoint
+    path; ``mode`` ``"gartrans"`` frame-parallel or ``"gartrans_ar"`` autoregressive),
+    each of ``predictions`` (name -> ``[T, V, 3]`` array or ``.npy`` path: any other
+    method's garment on this sequence, in our vertex order) and, with ``lbs``, the
+    LBS-only coarse garment, on the ``index``-th sequence of ``split`` under ``root``.
+    Models run in eval mode (their mode is restored)."""
+    if mode not in ("gartrans", "gartrans_ar"):
+        raise ValueError(f"`mode`: expected 'gartrans' or 'gartrans_ar', got {mode!r}")
+    # loaded with autograd on: building the model runs a backward pass
+    loaded = {name: (load_checkpoint(m) if isinstance(m, (str, os.PathLike)) else m)
+              for name, m in models.items()}
+    modes = {name: m.training for name, m in loaded.items()}
+    try:
+        for m in loaded.values():
+            m.eval()
+        with torch.no_grad():
+            return _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks,
+                               max_frames, dict(predictions or {}))
+    finally:
+        for name, m in loaded.items():
+            m.train(modes[name])
+
+
+def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames,
+                predictions) -> Comparison:
+    from garmentgnn.data import store
+    from garmentgnn.training.datamodule import SequenceChunks
+    from garmentgnn.training.evaluate import predict
+
+    nys = {int(m.hparams.nystrom_dim) for m in loaded.values()} or {16}
+    if len(nys) > 1:
+        raise ValueError(f"`models`: checkpoints disagree on nystrom_dim {sorted(nys)}")
+    ds = SequenceChunks(root, split, chunk=10 ** 9, history=history, nystrom_dim=nys.pop(),
+                        num_landmarks=num_landmarks)
+    if not len(ds):
+        raise ValueError(f"`split`: no {split!r} sequences under {root}")
+    if not 0 <= index < len(ds):
+        raise ValueError(f"`index`: {split!r} has {len(ds)} sequences, got index {index}")
+    item = ds[index]
+    gt = item["gt"].double().numpy()
+    panels = [Panel("simulated (ground truth)", gt, color=GT_COLOR)]
+    for name, module in loaded.items():
+        pred = predict(module, item, mode).double().numpy()
+        if not np.isfinite(pred).all():
+            raise ValueError(f"model {name!r} predicted NaN/inf on {item['seq_id']}")
+        panels.append(Panel(name, pred, vertex_error_cm(pred, gt)))
+    for name, pred in predictions.items():
+        pred = np.load(pred) if isinstance(pred, (str, os.PathLike)) else pred
+        pred = np.asarray(pred.detach().cpu() if hasattr(pred, "detach") else pred, np.float64)
+        if pred.shape != gt.shape:
+            raise ValueError(f"`predictions`[{name!r}]: expected {gt.shape} (the frames and "
+                             f"vertices of {item['seq_id']}), got {pred.shape}")
+        if not np.isfinite(pred).all():
+            raise ValueError(f"`predictions`[{name!r}] contain NaN/inf")
+        panels.append(Panel(name, pred, vertex_error_cm(pred, gt)))
+    if lbs:
+        pred = predict(None, item, "lbs").double().numpy()
+        panels.append(Panel("LBS only", pred, vertex_error_cm(pred, gt)))
+    meta = store.read_meta(store.sequence_path(root, ds.records[ds.index[index][0]]))
+    fps = float((meta.get("settings") or {}).get("fps", 30.0))
+    T = gt.shape[0] if max_frames is None else min(gt.shape[0], max_frames)
+    if T < gt.shape[0]:
+        for p in panels:
+            p.positions = p.positions[:T]
+            p.error = None if p.error is None else p.error[:T]
+    return Comparison(item["seq_id"], panels, item["faces"].numpy(),
+                      item["body_pos"][:T].double().numpy(), item["body_faces"].numpy(), fps,
+                      item["frames"][:T].numpy())
+
+
+def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
+         split: str = "test", index: int = 0, mode: str = "gartrans", lbs: bool = True,
+         history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
+         predictions: Optional[Mapping[str, object]] = None, gltf: bool = True,
+         **render_kw) -> Dict[str, object]:
+    """Render the comparison of one held-out sequence to ``<out>.mp4/.gif/.png`` and,
+    with ``gltf``, export every panel with the body to ``<out>.glb``; returns
+    ``{"animation": Animation, "gltf": path or None, "comparison": Comparison}``."""
+    from garmentgnn.viz.animate import render_animation
+    c = comparison(root, checkpoints, split, index, mode, lbs, history, num_landmarks,
+                   max_frames, predictions)
+    anim = render_animation(c.panels, c.faces, out, c.body_positions, c.body_faces, fps=c.fps,
+                            caption=c.seq_id, frame_offset=int(c.frames[0]), **render_kw)
+    glb = None
+    if gltf:
+        glb = export_comparison_gltf(c, Path(out).with_suffix(".glb"))
+    return {"animation": anim, "gltf": glb, "comparison": c}
+
+
+def export_comparison_gltf(c: Comparison, path: PathLike, spacing: float = 0.0) -> Path:
+    """Every panel's garment and the body as one glTF 2.0 binary with morph-target
+    animation; panel ``j`` (and a copy of the body) is moved ``j * spacing`` along X by
+    its node's translation (default: the garment's width x 1.6), the vertex data stay in
+    our order and coordinates."""
+    from garmentgnn.data.gltf import GltfMesh, write_gltf
+    width = float(np.ptp(c.panels[0].positions[..., 0])) if c.panels else 1.0
+    dx = spacing or 1.6 * max(width, 0.3)
+    meshes = []
+    for j, p in enumerate(c.panels):
+        off = (j * dx, 0.0, 0.0)
+        meshes.append(GltfMesh(f"body {j}" if j else "body", c.body_positions, c.body_faces,
+                               (0.8, 0.8, 0.8), off))
+        meshes.append(GltfMesh(p.title, p.positions, c.faces, p.color if p.error is None
+                               else (0.85, 0.35, 0.25), off))
+    return write_gltf(path, meshes, fps=c.fps)

@@ -1,0 +1,62 @@
+"""A single-file HTML viewer of an exported glTF: three.js plays the morph-target
+animation, the mouse turns and zooms.
+
+The page embeds the ``.glb`` (base64) and the three.js bundle, so it opens from
+``file://`` with no server, no flags and no network.  The bundle
+(``build/viewer/viewer.bundle.js``: ``viewer/viewer.js`` + three.js from npm, bundled by
+esbuild) is built by ``make install``; by hand::
+
+    mkdir -p build/viewer && cp viewer/package.json viewer/package-lock.json viewer/viewer.js build/viewer/
+    cd build/viewer && npm ci && npx esbuild viewer.js --bundle --format=iife --minify --outfile=viewer.bundle.js
+
+``GARMENTGNN_VIEWER_BUNDLE`` may point at a bundle elsewhere.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from pathlib import Path
+from typing import Union
+
+PathLike = Union[str, os.PathLike]
+
+_REPO = Path(__file__).resolve().parents[3]
+BUILD_HINT = ("build it with `make install` (needs npm), or by hand: mkdir -p build/viewer && "
+              "cp viewer/package.json viewer/package-lock.json viewer/viewer.js build/viewer/ && "
+              "cd build/viewer && npm ci && npx esbuild viewer.js --bundle --format=iife "
+              "--minify --outfile=viewer.bundle.js")
+
+
+def bundle_path() -> Path:
+    """Where the three.js viewer bundle is expected."""
+    env = os.environ.get("GARMENTGNN_VIEWER_BUNDLE")
+    return Path(env) if env else _REPO / "build" / "viewer" / "viewer.bundle.js"
+
+
+def write_viewer(glb: PathLike, out: PathLike, title: str = "") -> Path:
+    """Write ``out`` (.html): one page that shows and plays ``glb``; returns its path."""
+    from garmentgnn.data.store import atomic_write_bytes
+    bundle = bundle_path()
+    if not bundle.is_file():
+        raise FileNotFoundError(f"the viewer bundle {bundle} is missing: {BUILD_HINT}")
+    data = Path(glb).read_bytes()
+    if data[:4] != b"glTF":
+        raise ValueError(f"`glb`: {glb} is not a binary glTF (.glb) file")
+    js = bundle.read_text().replace("</script", "<\\/script")
+    title = title or Path(glb).stem
+    title_js = json.dumps(title).replace("<", "\\u003c")
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{html.escape(title)}</title>
+<style>html,body{{margin:0;height:100%;overflow:hidden;background:#fff;font:14px sans-serif}}
+#status{{position:absolute;left:10px;top:8px;color:#333}}</style></head>
+<body><div id="status">loading ...</div>
+<script>window.__title = {title_js};</script>
+<script id="glb" type="application/octet-stream">{base64.b64encode(data).decode()}</script>
+<script>{js}</script>
+</body></html>
+"""
+    return atomic_write_bytes(out, page.encode())
