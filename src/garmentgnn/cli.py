@@ -16,14 +16,26 @@ def _import_callable(spec: str):
     return getattr(importlib.import_module(mod), attr)
 
 
+def _path(text: str) -> str:
+    """An argparse type: a non-empty path (``--out ""`` would write into the current
+    folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path; name a folder or file")
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
+    import garmentgnn
     from garmentgnn.data.generate import PRESETS
     p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     g = sub.add_parser("generate", help="simulate a dataset preset into a folder (resumable)")
     g.add_argument("--preset", choices=PRESETS, default="tiny")
-    g.add_argument("--out", required=True, help="output folder (rerun to resume)")
+    g.add_argument("--out", required=True, type=_path, help="output folder (rerun to resume)")
+    g.add_argument("--force", action="store_true",
+                   help="overwrite the spec and manifest of another dataset in --out")
     g.add_argument("--workers", type=int, default=1,
                    help="worker processes (0 = in this process); default 1")
     g.add_argument("--seed", type=int, default=0, help="base seed of the spec (default 0)")
@@ -38,13 +50,14 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--simulate-fn", default=None, help=argparse.SUPPRESS)
 
     e = sub.add_parser("export", help="export a sequence file as PC2 or an OBJ sequence")
-    e.add_argument("--seq", required=True, help="OUT/sequences/<id>.npz")
+    e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
     e.add_argument("--format", choices=("pc2", "obj"), required=True)
-    e.add_argument("--out", required=True, help="the .pc2 file, or a folder for OBJs")
+    e.add_argument("--out", required=True, type=_path,
+                   help="the .pc2 file, or a folder for OBJs")
     e.add_argument("--start-frame", type=float, default=0.0, help="PC2 start frame")
 
     m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files")
-    m.add_argument("--out", required=True)
+    m.add_argument("--out", required=True, type=_path, help="the dataset folder")
     from garmentgnn.bench.cli import add_parser as add_bench_parser
     add_bench_parser(sub)
     t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
@@ -57,11 +70,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["train"]:  # everything after `train` belongs to LightningCLI
+        from garmentgnn.data.store import IntegrityError
+        from garmentgnn.training.integrity import CheckpointError
         from garmentgnn.training.lightning_cli import main as train_main
         saved = sys.argv
         sys.argv = [f"{Path(saved[0]).name} train"] + argv[1:]  # LightningCLI reads argv
         try:
             train_main()
+        except (FileNotFoundError, IntegrityError, CheckpointError) as exc:
+            print(f"error: {exc}", file=sys.stderr)  # one line: the path and the fix
+            return 2
         finally:
             sys.argv = saved
         return 0
@@ -73,7 +91,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         try:
             summary = generate(spec, args.out, workers=args.workers, limit=args.limit,
                                simulate_fn=sim, retry_failed=args.retry_failed,
-                               progress=not args.no_progress, estimate=args.estimate)
+                               progress=not args.no_progress, estimate=args.estimate,
+                               force=args.force)
         except SpecMismatch as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
@@ -84,11 +103,26 @@ def main(argv: Optional[List[str]] = None) -> int:
         return bench_main(args)
     if args.command == "export":
         from garmentgnn.data.store import export_sequence
-        paths = export_sequence(args.seq, args.format, args.out, start_frame=args.start_frame)
+        if not Path(args.seq).is_file():
+            print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
+                  f"dataset made by `garmentgnn generate`)", file=sys.stderr)
+            return 2
+        try:
+            paths = export_sequence(args.seq, args.format, args.out,
+                                    start_frame=args.start_frame)
+        except (ValueError, KeyError, OSError) as exc:
+            print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
+                  file=sys.stderr)
+            return 2
         print(f"wrote {len(paths)} file(s): {paths[0]}" + (" ..." if len(paths) > 1 else ""))
         return 0
     if args.command == "manifest":
-        from garmentgnn.data.store import rebuild_manifest
+        from garmentgnn.data.store import SEQUENCES, rebuild_manifest
+        if not (Path(args.out) / SEQUENCES).is_dir():
+            what = "no such folder" if not Path(args.out).is_dir() else f"no {SEQUENCES}/ in it"
+            print(f"error: --out {args.out}: {what}; a dataset folder is made by "
+                  f"`garmentgnn generate --out {args.out}`", file=sys.stderr)
+            return 2
         doc = rebuild_manifest(args.out)
         print(f"rebuilt {args.out}/manifest.json: {doc['counts']}")
         return 0

@@ -21,6 +21,7 @@ import hashlib
 import itertools
 import json
 import multiprocessing
+import os
 import random
 import sys
 import time
@@ -320,7 +321,7 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
         path = Path(out) / store.SEQUENCES / f"{item['id']}.npz"
         store.write_sequence(path, arrays, meta)
         rec = store.record_from_meta(meta)
-        rec["code"] = store.code_version()
+        rec.update(code=store.code_version(), sha256=store.file_sha256(path))
     except Exception as e:
         tb = traceback.format_exc(limit=3)
         rec.update(status="failed", message=f"{type(e).__name__}: {e}\n{tb}")
@@ -328,8 +329,12 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
     return rec
 
 
-def _init_worker() -> None:
+def _init_worker(parent_pid: Optional[int] = None) -> None:
     import torch
+
+    from garmentgnn.data._lifeline import watch_parent
+    if parent_pid is not None:  # die with the parent, even when it is SIGKILLed
+        watch_parent(parent_pid)
     torch.set_num_threads(1)
     try:
         torch.set_num_interop_threads(1)
@@ -396,16 +401,30 @@ class SpecMismatch(RuntimeError):
     pass
 
 
-def _load_existing(out: Path, spec_json: Dict[str, Any]) -> Dict[str, Dict[str, Any]]:
-    """Check ``OUT/spec.json`` matches; return previous manifest records by id."""
+def _load_existing(out: Path, spec_json: Dict[str, Any], force: bool = False
+                   ) -> Dict[str, Dict[str, Any]]:
+    """Check ``OUT/spec.json`` (or, without it, ``OUT/manifest.json``) holds this
+    dataset; return previous manifest records by id.  ``force``: replace another
+    dataset's spec and manifest instead of refusing."""
     spec_path = out / store.SPEC
+    ids = [it["id"] for it in spec_json["items"]]
+    if force:
+        store.atomic_write_json(spec_path, spec_json)
+    elif not spec_path.exists() and (out / store.MANIFEST).exists():
+        try:
+            other = [r["id"] for r in store.read_manifest(out)["items"]]
+        except (ValueError, KeyError, TypeError):
+            other = None
+        if other is None or not set(other) <= set(ids):
+            raise SpecMismatch(f"{out} holds another dataset's {store.MANIFEST}; use another "
+                               f"--out, or --force to overwrite it")
     if spec_path.exists():
         with open(spec_path) as f:
             old = json.load(f)
-        if [it["id"] for it in old["items"]] != [it["id"] for it in spec_json["items"]]:
+        if [it["id"] for it in old["items"]] != ids:
             raise SpecMismatch(
                 f"{out} holds a different dataset (spec {old.get('name')!r}, seed "
-                f"{old.get('seed')}); use another --out or delete it")
+                f"{old.get('seed')}); use another --out, or --force to overwrite it")
     else:
         store.atomic_write_json(spec_path, spec_json)
     prev = {}
@@ -420,7 +439,7 @@ def _load_existing(out: Path, spec_json: Dict[str, Any]) -> Dict[str, Dict[str, 
 def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
              simulate_fn: Optional[Callable] = None, settings_fn: Optional[Callable] = None,
              retry_failed: bool = False, progress: bool = True, estimate: bool = False,
-             log: Optional[Callable[[str], None]] = None) -> Summary:
+             log: Optional[Callable[[str], None]] = None, force: bool = False) -> Summary:
     """Generate (or resume generating) ``spec`` into ``out``.
 
     Items whose sequence file exists and validates are skipped; failed items are kept
@@ -429,8 +448,12 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     ``limit``: simulate at most this many (pending) items in this call.
     ``simulate_fn``/``settings_fn``: dependency injection for tests (picklable,
     module-level callables); default ``garmentgnn.sim.simulate`` / ``SimSettings``.
-    The manifest is rewritten atomically after every finished item.
+    The manifest is rewritten atomically after every finished item.  A folder holding
+    another dataset raises :class:`SpecMismatch` unless ``force``.  Pool workers end
+    when this process does, even when it is killed with ``SIGKILL``.
     """
+    if not str(out).strip():
+        raise ValueError("`out`: empty path; name the output folder, e.g. --out data/tiny")
     t_start = time.perf_counter()
     if log is None:
         def log(msg: str) -> None:
@@ -441,7 +464,7 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     store.remove_stale_temporaries(out / store.SEQUENCES)
     spec_json = spec.to_json()
     items = spec_json["items"]
-    prev = _load_existing(out, spec_json)
+    prev = _load_existing(out, spec_json, force)
     header = {k: v for k, v in spec_json.items() if k != "items"}
     header["code"] = store.code_version()
 
@@ -453,9 +476,13 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
         old = prev.get(it["id"])
         if path.exists():
             msg = store.validate_sequence(path, it["id"])
+            if msg is None and old and old.get("sha256") \
+                    and store.file_sha256(path) != old["sha256"]:
+                msg = "SHA-256 differs from the manifest's"
             if msg is None:
                 records[it["id"]] = (old if old and old.get("status") == "ok"
-                                     else store.record_from_meta(store.read_meta(path)))
+                                     else dict(store.record_from_meta(store.read_meta(path)),
+                                               sha256=store.file_sha256(path)))
                 summary.skipped += 1
                 continue
             log(f"warning: {path.name} is invalid ({msg}); simulating it again")
@@ -512,7 +539,8 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
         else:
             ctx = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                     initializer=_init_worker) as pool:
+                                     initializer=_init_worker,
+                                     initargs=(os.getpid(),)) as pool:
                 pending = {pool.submit(run_item, it, str(out), simulate_fn, settings_fn)
                            for it in todo}
                 try:

@@ -13,6 +13,7 @@ with a fixed timestamp, so the same content gives byte-identical files.
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -142,6 +143,42 @@ def load_sequence(path: PathLike, keys: Optional[Iterable[str]] = None) -> Dict[
     return out
 
 
+def file_sha256(path: PathLike) -> str:
+    """Hex SHA-256 of a file's bytes (the integrity hash kept in manifest records)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+class IntegrityError(ValueError):
+    """A file's content differs from the hash recorded for it (bit rot, an edit, a
+    truncated copy)."""
+
+
+def load_record_sequence(root: PathLike, record: Dict[str, Any],
+                         keys: Optional[Iterable[str]] = None) -> Dict[str, Any]:
+    """:func:`load_sequence` of a manifest record's file, after checking its SHA-256
+    against the record's ``sha256`` (records written before hashes were kept have
+    none and are not checked).  Raises :class:`IntegrityError` on a mismatch and
+    ``FileNotFoundError`` naming the file and the fix when it is missing."""
+    path = sequence_path(root, record)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: sequence file of item {record.get('id')!r} is "
+                                f"missing; rerun `garmentgnn generate` on {root} to make it")
+    want = record.get("sha256")
+    if want and file_sha256(path) != want:
+        raise IntegrityError(f"{path}: SHA-256 differs from the manifest's (corrupt or "
+                             f"changed file); delete it and rerun `garmentgnn generate` on "
+                             f"{root}, or run `garmentgnn manifest --out {root}` to accept it")
+    try:
+        return load_sequence(path, keys)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+        raise IntegrityError(f"{path}: unreadable sequence file ({type(e).__name__}: {e}); "
+                             f"delete it and rerun `garmentgnn generate` on {root}") from e
+
+
 def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional[str]:
     """``None`` if ``path`` is a complete, loadable sequence file (of ``item_id``),
     otherwise a message saying what is wrong."""
@@ -195,8 +232,23 @@ def write_manifest(out: PathLike, records: List[Dict[str, Any]], header: Dict[st
 
 
 def read_manifest(out: PathLike) -> Dict[str, Any]:
-    with open(Path(out) / MANIFEST) as f:
-        return json.load(f)
+    """``OUT/manifest.json``; ``FileNotFoundError`` / ``ValueError`` naming the path and
+    the command that makes or repairs it."""
+    path = Path(out) / MANIFEST
+    if not path.is_file():
+        what = "folder does not exist" if not Path(out).is_dir() else f"has no {MANIFEST}"
+        raise FileNotFoundError(f"{out}: {what}; make the dataset with `garmentgnn generate "
+                                f"--preset tiny --out {out}`")
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); rebuild it with `garmentgnn "
+                         f"manifest --out {out}`") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("items"), list):
+        raise ValueError(f"{path}: no 'items' list; rebuild it with `garmentgnn manifest "
+                         f"--out {out}`")
+    return doc
 
 
 def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> Dict[str, Any]:
@@ -223,7 +275,7 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
         if msg is not None:
             invalid.append(f"{p.name}: {msg}")
             continue
-        found[p.stem] = record_from_meta(read_meta(p))
+        found[p.stem] = dict(record_from_meta(read_meta(p)), sha256=file_sha256(p))
     header: Dict[str, Any] = {"rebuilt": True}
     records: List[Dict[str, Any]] = []
     spec_path = out / SPEC
