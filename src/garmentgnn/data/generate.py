@@ -294,6 +294,9 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             return np.asarray(default if v is None else torch.as_tensor(v).cpu(), dtype=dtype)
 
         converged = arr("converged", bool, np.ones(T, bool))
+        pen = getattr(res, "penetration", None)  # exact end-of-frame depth (real simulator)
+        pen = None if pen is None or len(pen) != T else np.asarray(pen, np.float32)
+        pen_limit = float(getattr(res, "max_penetration", np.inf))
         arrays = {
             "garment_vertices": garment.vertices.numpy().astype(np.float32),
             "garment_faces": garment.faces.numpy().astype(np.int64),
@@ -310,6 +313,8 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             "newton_iterations": arr("newton_iterations", np.int32, np.zeros(T)),
             "residual": arr("residual", np.float32, np.zeros(T)),
         }
+        if pen is not None:
+            arrays["penetration"] = pen
         meta = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
                                      "seed", "split")}
         meta.update(
@@ -317,6 +322,8 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             num_faces=int(garment.faces.shape[0]), fps=float(motion.fps),
             joint_names=list(motion.joint_names), garment_name=garment.name,
             material_params=asdict(material), nonconverged_frames=int((~converged).sum()),
+            penetrating_frames=None if pen is None else int((pen > pen_limit).sum()),
+            max_penetration_depth=None if pen is None else float(pen.max()),
             code={"version": store.code_version()["version"]})
         path = Path(out) / store.SEQUENCES / f"{item['id']}.npz"
         store.write_sequence(path, arrays, meta)

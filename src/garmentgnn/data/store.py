@@ -32,7 +32,8 @@ FORMAT_VERSION = 1
 SEQUENCES = "sequences"
 MANIFEST = "manifest.json"
 SPEC = "spec.json"
-#: arrays every sequence file holds (besides ``meta_json``)
+#: arrays every sequence file holds (besides ``meta_json``; files of the real simulator
+#: also hold ``penetration [T]``, the exact end-of-frame depth inside the body, metres)
 SEQUENCE_KEYS = ("garment_vertices", "garment_faces", "garment_uv", "garment_face_uv",
                  "garment_pinned", "body_shape", "motion_rotations", "motion_translation",
                  "positions", "converged", "newton_iterations", "residual")
@@ -254,7 +255,8 @@ def read_manifest(out: PathLike) -> Dict[str, Any]:
 def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> Dict[str, Any]:
     """The manifest record of an ok item, from a sequence file's metadata."""
     keys = ("id", "garment", "body", "motion", "material", "settings", "seed", "split",
-            "num_frames", "num_vertices", "code", "nonconverged_frames")
+            "num_frames", "num_vertices", "code", "nonconverged_frames", "penetrating_frames",
+            "max_penetration_depth")
     rec = {k: meta.get(k) for k in keys}
     rec.update(status="ok", message="", seconds=seconds if seconds is not None
                else meta.get("seconds"), file=f"{SEQUENCES}/{meta['id']}.npz")
