@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import os
 import struct
 import subprocess
@@ -105,6 +106,11 @@ def remove_stale_temporaries(folder: PathLike) -> int:
 
 
 # --------------------------------------------------------------------------- sequence files
+class IntegrityError(ValueError):
+    """A file that is unreadable, or whose content differs from the hash recorded for
+    it (bit rot, an edit, a truncated copy)."""
+
+
 def _npz_bytes(arrays: Dict[str, np.ndarray]) -> bytes:
     """A deterministic ``.npz`` (fixed member order and timestamps, stored uncompressed)."""
     buf = io.BytesIO()
@@ -131,16 +137,30 @@ def write_sequence(path: PathLike, arrays: Dict[str, np.ndarray], meta: Dict[str
 
 def read_meta(path: PathLike) -> Dict[str, Any]:
     """Only the JSON metadata of a sequence file (does not read the positions)."""
-    with np.load(path, allow_pickle=False) as z:
-        return json.loads(z["meta_json"].tobytes().decode())
+    return load_sequence(path, ["meta_json"])["meta"]
 
 
 def load_sequence(path: PathLike, keys: Optional[Iterable[str]] = None) -> Dict[str, Any]:
-    """All arrays (or ``keys``) of a sequence file as numpy arrays plus ``meta`` (dict)."""
-    with np.load(path, allow_pickle=False) as z:
-        names = list(z.files) if keys is None else [k for k in keys]
-        out: Dict[str, Any] = {k: z[k] for k in names if k != "meta_json"}
-        out["meta"] = json.loads(z["meta_json"].tobytes().decode())
+    """All arrays (or ``keys``) of a sequence file as numpy arrays plus ``meta`` (dict).
+
+    A missing file raises ``FileNotFoundError``; an unreadable one (truncated, corrupt
+    zip member -- every member carries a CRC-32 --, missing array, bad metadata)
+    :class:`IntegrityError`, naming the path."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such sequence file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            names = list(z.files) if keys is None else [k for k in keys]
+            out: Dict[str, Any] = {k: z[k] for k in names if k != "meta_json"}
+            meta = json.loads(z["meta_json"].tobytes().decode())
+    except Exception as e:  # zip, npy-header, EOF, JSON and decoding errors of many kinds
+        raise IntegrityError(f"{path}: unreadable sequence file ({type(e).__name__}: "
+                             f"{str(e)[:120]}); delete it and rerun `garmentgnn generate`"
+                             ) from None
+    if not isinstance(meta, dict):
+        raise IntegrityError(f"{path}: unreadable sequence file (metadata is not a JSON "
+                             f"object); delete it and rerun `garmentgnn generate`")
+    out["meta"] = meta
     return out
 
 
@@ -151,11 +171,6 @@ def file_sha256(path: PathLike) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
-
-
-class IntegrityError(ValueError):
-    """A file's content differs from the hash recorded for it (bit rot, an edit, a
-    truncated copy)."""
 
 
 def load_record_sequence(root: PathLike, record: Dict[str, Any],
@@ -173,11 +188,7 @@ def load_record_sequence(root: PathLike, record: Dict[str, Any],
         raise IntegrityError(f"{path}: SHA-256 differs from the manifest's (corrupt or "
                              f"changed file); delete it and rerun `garmentgnn generate` on "
                              f"{root}, or run `garmentgnn manifest --out {root}` to accept it")
-    try:
-        return load_sequence(path, keys)
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
-        raise IntegrityError(f"{path}: unreadable sequence file ({type(e).__name__}: {e}); "
-                             f"delete it and rerun `garmentgnn generate` on {root}") from e
+    return load_sequence(path, keys)
 
 
 def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional[str]:
@@ -311,9 +322,17 @@ def write_pc2(path: PathLike, positions: np.ndarray, start_frame: float = 0.0,
     """Blender/3ds Max point cache: header ``POINTCACHE2\\0``, version 1, number of
     points, start frame, sample rate (frames between samples), number of samples, then
     ``float32`` xyz for every point of every sample."""
-    P = np.asarray(positions, dtype="<f4")
+    P = np.asarray(positions)
     if P.ndim != 3 or P.shape[2] != 3:
         raise ValueError(f"`positions`: expected [T, V, 3], got {P.shape}")
+    if not np.issubdtype(P.dtype, np.number) or np.iscomplexobj(P):
+        raise TypeError(f"`positions`: expected real numbers, got dtype {P.dtype}")
+    P = P.astype("<f4")
+    if not np.isfinite(P).all():
+        raise ValueError("`positions`: contain NaN/inf (or values beyond float32)")
+    if not math.isfinite(start_frame) or not math.isfinite(sample_rate) or sample_rate <= 0:
+        raise ValueError(f"`start_frame`/`sample_rate`: expected finite numbers and a "
+                         f"positive rate, got {start_frame!r}, {sample_rate!r}")
     head = PC2_HEADER.pack(b"POINTCACHE2\0", 1, P.shape[1], float(start_frame),
                            float(sample_rate), P.shape[0])
     return atomic_write_bytes(path, head + np.ascontiguousarray(P).tobytes())
@@ -322,6 +341,9 @@ def write_pc2(path: PathLike, positions: np.ndarray, start_frame: float = 0.0,
 def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarray,
                        stem: str = "frame") -> List[Path]:
     """One OBJ per frame, ``folder/<stem>_<t:04d>.obj``, same vertex order in every file."""
+    X = np.asarray(positions, dtype=np.float64)
+    if X.ndim != 3 or X.shape[2] != 3 or not np.isfinite(X).all():
+        raise ValueError(f"`positions`: expected finite [T, V, 3], got shape {X.shape}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     F = np.asarray(faces, dtype=np.int64) + 1

@@ -1,6 +1,7 @@
 """Mesh connectivity and a procedural sheet mesh."""
 from __future__ import annotations
 
+import operator
 from typing import NamedTuple, Optional, Tuple
 
 import torch
@@ -21,6 +22,19 @@ def faces_to_edge_index(faces: Tensor, num_nodes: int) -> Tensor:
         ``[2, E]`` edge index, coalesced and sorted by target (column 1), the
         CSR order that lets :mod:`garmentgnn.nn` layers use segment reductions.
     """
+    if not isinstance(faces, Tensor):
+        raise TypeError(f"`faces`: expected a torch.Tensor [F, 3], got {type(faces).__name__}")
+    if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
+        raise TypeError(f"`faces`: expected an integer tensor, got dtype {faces.dtype}; "
+                        f"use faces.long()")
+    try:
+        n = None if isinstance(num_nodes, bool) else operator.index(num_nodes)
+    except (TypeError, RuntimeError):
+        n = None
+    if n is None or n < 0:
+        raise ValueError(f"`num_nodes`: expected the number of mesh vertices (an int >= 0), "
+                         f"got {num_nodes!r}")
+    num_nodes = n
     if faces.dim() != 2 or faces.size(1) != 3:
         raise ValueError(f"`faces`: expected shape [F, 3], got {tuple(faces.shape)}")
     if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= num_nodes):
