@@ -13,7 +13,14 @@ from typing import List, Optional
 
 def _import_callable(spec: str):
     mod, _, attr = spec.partition(":")
-    return getattr(importlib.import_module(mod), attr)
+    try:
+        fn = getattr(importlib.import_module(mod), attr)
+    except (ImportError, AttributeError, ValueError, TypeError) as exc:
+        raise ValueError(f"--simulate-fn {spec!r}: cannot import it ({exc}); give "
+                         f"module:function") from None
+    if not callable(fn):
+        raise ValueError(f"--simulate-fn {spec!r}: not a function; give module:function")
+    return fn
 
 
 def _path(text: str) -> str:
@@ -86,14 +93,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "generate":
         from garmentgnn.data.generate import SpecMismatch, generate, preset
-        sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
-        spec = preset(args.preset, seed=args.seed)
         try:
+            sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
+            spec = preset(args.preset, seed=args.seed)
             summary = generate(spec, args.out, workers=args.workers, limit=args.limit,
                                simulate_fn=sim, retry_failed=args.retry_failed,
                                progress=not args.no_progress, estimate=args.estimate,
                                force=args.force)
-        except SpecMismatch as exc:
+        except (SpecMismatch, ValueError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         print(summary)
@@ -123,7 +130,11 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"error: --out {args.out}: {what}; a dataset folder is made by "
                   f"`garmentgnn generate --out {args.out}`", file=sys.stderr)
             return 2
-        doc = rebuild_manifest(args.out)
+        try:
+            doc = rebuild_manifest(args.out)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         print(f"rebuilt {args.out}/manifest.json: {doc['counts']}")
         return 0
     return 2

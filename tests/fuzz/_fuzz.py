@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 #: examples per fuzz test (``GARMENTGNN_FUZZ_EXAMPLES=500 pytest tests/fuzz`` for more)
-EXAMPLES = int(os.environ.get("GARMENTGNN_FUZZ_EXAMPLES", "12"))
+EXAMPLES = int(os.environ.get("GARMENTGNN_FUZZ_EXAMPLES", "25"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,
                 derandomize=os.environ.get("GARMENTGNN_FUZZ_RANDOM") != "1",
                 suppress_health_check=list(HealthCheck))

@@ -1,4 +1,4 @@
-"""Fuzz suite settings: ``GARMENTGNN_FUZZ_EXAMPLES`` examples per test (default 12,
+"""Fuzz suite settings: ``GARMENTGNN_FUZZ_EXAMPLES`` examples per test (default 25,
 derandomized); ``GARMENTGNN_FUZZ_RANDOM=1`` draws new cases each run;
 ``GARMENTGNN_FUZZ_REPORT=path.json`` writes the outcome counts per target."""
 import json

@@ -426,9 +426,8 @@ def _load_existing(out: Path, spec_json: Dict[str, Any], force: bool = False
             raise SpecMismatch(f"{out} holds another dataset's {store.MANIFEST}; use another "
                                f"--out, or --force to overwrite it")
     if spec_path.exists():
-        with open(spec_path) as f:
-            old = json.load(f)
-        if [it["id"] for it in old["items"]] != ids:
+        old = store.read_json(spec_path, "--force to overwrite it")
+        if [it.get("id") for it in old.get("items", [])] != ids:
             raise SpecMismatch(
                 f"{out} holds a different dataset (spec {old.get('name')!r}, seed "
                 f"{old.get('seed')}); use another --out, or --force to overwrite it")
@@ -461,6 +460,8 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     """
     if not str(out).strip():
         raise ValueError("`out`: empty path; name the output folder, e.g. --out data/tiny")
+    if Path(out).exists() and not Path(out).is_dir():
+        raise ValueError(f"`out`: {out} is a file; name a folder for the dataset")
     t_start = time.perf_counter()
     if log is None:
         def log(msg: str) -> None:

@@ -243,6 +243,19 @@ def write_manifest(out: PathLike, records: List[Dict[str, Any]], header: Dict[st
     return atomic_write_json(Path(out) / MANIFEST, doc)
 
 
+def read_json(path: PathLike, fix: str) -> Dict[str, Any]:
+    """A JSON object from ``path``; ``ValueError`` naming the path and ``fix`` when the
+    file is not one (truncated, edited, binary)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); {fix}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(doc).__name__}; {fix}")
+    return doc
+
+
 def read_manifest(out: PathLike) -> Dict[str, Any]:
     """``OUT/manifest.json``; ``FileNotFoundError`` / ``ValueError`` naming the path and
     the command that makes or repairs it."""
@@ -251,13 +264,8 @@ def read_manifest(out: PathLike) -> Dict[str, Any]:
         what = "folder does not exist" if not Path(out).is_dir() else f"has no {MANIFEST}"
         raise FileNotFoundError(f"{out}: {what}; make the dataset with `garmentgnn generate "
                                 f"--preset tiny --out {out}`")
-    try:
-        with open(path, encoding="utf-8") as f:
-            doc = json.load(f)
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path}: not valid JSON ({e}); rebuild it with `garmentgnn "
-                         f"manifest --out {out}`") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("items"), list):
+    doc = read_json(path, f"rebuild it with `garmentgnn manifest --out {out}`")
+    if not isinstance(doc.get("items"), list):
         raise ValueError(f"{path}: no 'items' list; rebuild it with `garmentgnn manifest "
                          f"--out {out}`")
     return doc
@@ -293,8 +301,11 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
     records: List[Dict[str, Any]] = []
     spec_path = out / SPEC
     if spec_path.exists():
-        with open(spec_path) as f:
-            spec = json.load(f)
+        spec = read_json(spec_path, "delete it (items without a file are then not listed)")
+        if not isinstance(spec.get("items"), list) or \
+                not all(isinstance(it, dict) and "id" in it for it in spec["items"]):
+            raise ValueError(f"{spec_path}: no valid 'items' list; delete it (items without "
+                             f"a file are then not listed)")
         header.update({k: v for k, v in spec.items() if k != "items"})
         for it in spec["items"]:
             records.append(found.pop(it["id"], None) or pending_record(it))
@@ -307,8 +318,8 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
 
 
 def pending_record(item: Dict[str, Any]) -> Dict[str, Any]:
-    rec = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
-                                 "seed", "split")}
+    rec = {k: item.get(k) for k in ("id", "garment", "body", "motion", "material", "settings",
+                                     "seed", "split")}
     rec.update(status="pending", message="", seconds=None, file=None)
     return rec
 
