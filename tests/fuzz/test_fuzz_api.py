@@ -157,3 +157,44 @@ def test_write_pc2(tmp_path_factory, P, start):
         assert sig == b"POINTCACHE2\0" and (ns, n) == tuple(P.shape[:2])
         data = np.frombuffer(raw[store.PC2_HEADER.size:], "<f4").reshape(ns, n, 3)
         assert np.array_equal(data, P.numpy().astype("<f4")) and np.isfinite(data).all()
+
+
+@FUZZ
+@given(scale=st.sampled_from([1e-3, 1.0, 10.0, 1000.0]),
+       offset=st.sampled_from([0.0, 0.3, 10.0]), special=st.one_of(st.none(), SPECIAL),
+       frames=st.integers(0, 3), fps=st.sampled_from([30.0, 24.0]),
+       names=st.sampled_from([["root"], ["Root"], ["root", "x"]]),
+       body=st.booleans(), bad_face=st.booleans())
+def test_simulate_odd_garments(scale, offset, special, frames, fps, names, body, bad_face):
+    import trimesh
+
+    from garmentgnn.body.body import Body
+    from garmentgnn.body.skeleton import Skeleton
+    from garmentgnn.garments.garment import Garment
+    from garmentgnn.physics import material
+    from garmentgnn.sim import simulate
+    pos, faces = grid_mesh(3, 3, (0.2, 0.2), dtype=torch.float32)
+    uv = pos[:, :2].clone()
+    pos = (pos + torch.tensor([-0.1, -0.1, 0.16])) * scale + torch.tensor([offset, 0.0, 0.0])
+    if special is not None:
+        pos[4, 2] = special
+    if bad_face:
+        faces = faces.clone()
+        faces[0, 0] = 99
+    g = outcome("sim.simulate (garment)", Garment, pos, faces, uv)
+    if g is None:
+        return
+    ico = trimesh.creation.icosphere(subdivisions=1, radius=0.15)
+    v = torch.tensor(ico.vertices, dtype=torch.float32)
+    b = Body(v, torch.tensor(ico.faces), Skeleton(["root"], torch.tensor([-1])),
+             torch.zeros(1, 3), torch.ones(len(v), 1)) if body else None
+    S = len(names)
+    m = outcome("sim.simulate (motion)", Motion, torch.zeros(frames, S, 3),
+                torch.zeros(frames, 3), names, fps)
+    if m is None:
+        return
+    res = outcome("sim.simulate", simulate, g, b, m, material("silk"))
+    if res is not None:
+        assert res.positions.shape == (frames, 9, 3) or not res.ok
+        assert torch.isfinite(res.positions).all()
+        assert res.penetration.shape[0] == res.positions.shape[0]
