@@ -55,8 +55,31 @@ def point_sets(draw):
 BODY_POS, BODY_FACES = grid_mesh(3, 3, (0.5, 0.5), dtype=torch.float64)
 
 
+@st.composite
+def face_sets(draw):
+    """The 3x3 grid's faces, maybe with one index or the dtype changed, or anything."""
+    kind = draw(st.sampled_from(["valid", "index", "dtype", "random"]))
+    f = BODY_FACES.clone()
+    if kind == "index":
+        f[draw(st.integers(0, len(f) - 1)), draw(st.integers(0, 2))] = draw(
+            st.sampled_from([-1, 9, 2 ** 40]))
+    elif kind == "dtype":
+        f = f.to(draw(st.sampled_from([torch.int32, torch.int16, torch.uint8, torch.float32])))
+    elif kind == "random":
+        f = draw(tensors(max_len=4))
+    return f
+
+
+@st.composite
+def grid_points(draw):
+    """The grid's 9 vertices (dtype, NaN/inf drawn), or any point set."""
+    if draw(st.booleans()):
+        return draw(tensors(shape=(9, 3)))
+    return draw(point_sets())
+
+
 @FUZZ
-@given(points=point_sets(), faces=st.one_of(st.just(BODY_FACES), tensors(max_len=4)))
+@given(points=point_sets(), faces=face_sets())
 def test_signed_distance_and_penetration(points, faces):
     for name, fn in (("signed_distance", signed_distance), ("penetration_depth",
                                                               penetration_depth)):
@@ -73,7 +96,8 @@ def test_signed_distance_and_penetration(points, faces):
 
 
 @FUZZ
-@given(faces=tensors(max_len=5), num_nodes=st.one_of(st.none(), st.integers(-2, 12)))
+@given(faces=face_sets(), num_nodes=st.one_of(st.none(), st.integers(-2, 12),
+                                              st.sampled_from([9, 9.0, True])))
 def test_faces_to_edge_index(faces, num_nodes):
     ei = outcome("geometry.faces_to_edge_index", faces_to_edge_index, faces, num_nodes)
     if ei is not None:
@@ -88,7 +112,7 @@ def test_faces_to_edge_index(faces, num_nodes):
 
 
 @FUZZ
-@given(pos=point_sets(), faces=st.one_of(st.just(BODY_FACES), tensors(max_len=4)))
+@given(pos=grid_points(), faces=face_sets())
 def test_normals_and_edge_features(pos, faces):
     n = outcome("geometry.vertex_normals", vertex_normals, pos, faces)
     if n is not None and finite_in(pos):

@@ -69,9 +69,12 @@ def test_corrupt_mesh_files(mesh_files, tmp_path_factory, fmt, data):
     st.sampled_from(["v 0 0 0", "v 1 0 0", "v 0 1 0", "v nan 0 0", "v 1e400 0 0", "f 1 2 3",
                      "f 1 2 9", "f -1 -2 -3", "f 1/1 2/2 3/3", "vt 0 0", "f 1 1 2", "f 0 1 2",
                      "o x", "# c\xe9", "usemtl a", "f 1 2", "v 1 2", "\ufeffv 0 0 1"]),
-    st.text(max_size=12)), max_size=20), sep=st.sampled_from(["\n", "\r\n", "\r"]))
-def test_obj_statements(tmp_path_factory, lines, sep):
+    st.text(max_size=12)), max_size=20), sep=st.sampled_from(["\n", "\r\n", "\r"]),
+    base=st.booleans())
+def test_obj_statements(tmp_path_factory, lines, sep, base):
     p = tmp_path_factory.mktemp("o") / "s.obj"
+    if base:  # a valid triangle first, then the drawn statements
+        lines = ["v 0 0 0", "v 1 0 0", "v 0 1 0", "f 1 2 3"] + lines
     p.write_bytes(sep.join(lines).encode("utf-8", "surrogatepass"))
     g = outcome("garment OBJ statements", load_garment, p, names=(str(p),))
     if g is not None:
@@ -195,7 +198,11 @@ def test_checkpoint_errors_are_checkpoint_errors(tmp_path):
 
 # ------------------------------------------------------------------ manifest / spec JSON
 @FUZZ
-@given(doc=st.one_of(st.binary(max_size=64), st.builds(lambda o: json.dumps(o).encode(),
+@given(doc=st.one_of(st.binary(max_size=64),
+                    st.builds(lambda items: json.dumps({"items": items}).encode(),
+                              st.lists(st.dictionaries(st.sampled_from(["id", "status"]),
+                                                       st.text(max_size=3)), max_size=2)),
+                    st.builds(lambda o: json.dumps(o).encode(),
                                                  st.recursive(st.none() | st.integers()
                                                               | st.text(max_size=5),
                                                               lambda c: st.lists(c, max_size=3)
