@@ -22,7 +22,7 @@ EXAMPLES = int(os.environ.get("GARMENTGNN_FUZZ_EXAMPLES", "25"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,
                 derandomize=os.environ.get("GARMENTGNN_FUZZ_RANDOM") != "1",
                 suppress_health_check=list(HealthCheck))
-#: (target, "result" | "clear error") -> count, over the session
+#: (target, "result" | "clear error") -> count, over the whole test run
 TALLY: Counter = Counter()
 CLEAR = (ValueError, TypeError, FileNotFoundError)
 

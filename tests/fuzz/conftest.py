@@ -7,7 +7,7 @@ import os
 from _fuzz import TALLY
 
 
-def pytest_sessionfinish(session, exitstatus):
+def pytest_sessionfinish():
     path = os.environ.get("GARMENTGNN_FUZZ_REPORT")
     if not path or not TALLY:
         return
