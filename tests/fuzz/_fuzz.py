@@ -1,5 +1,10 @@
 """Shared pieces of the fuzz suite: the hypothesis settings, the outcome classifier and
-the tally written to ``$GARMENTGNN_FUZZ_REPORT``.
+the tally written to ``$GARMENTGNN_FUZZ_REPORT`` (JSON, at exit).
+
+``GARMENTGNN_FUZZ_EXAMPLES`` examples per test (default 25, derandomized);
+``GARMENTGNN_FUZZ_RANDOM=1`` draws new cases on each run.  (No ``conftest.py`` here: a
+second module named ``conftest`` would shadow ``tests/conftest.py`` for the test files
+that import from it.)
 
 Every fuzzed call must end in one of two ways: a result (checked against an oracle by
 the test), or a *clear error*: ``ValueError`` / ``TypeError`` / ``FileNotFoundError``
@@ -10,6 +15,8 @@ file and is one short line.  Anything else -- ``IndexError``, ``KeyError``,
 """
 from __future__ import annotations
 
+import atexit
+import json
 import os
 from collections import Counter
 from typing import Any, Callable, Iterable, Optional
@@ -66,3 +73,15 @@ def mutations(data: bytes) -> st.SearchStrategy:
         st.just(b""),
         st.binary(max_size=256),
     )
+
+
+@atexit.register
+def _write_report() -> None:
+    path = os.environ.get("GARMENTGNN_FUZZ_REPORT")
+    if not path or not TALLY:
+        return
+    out: dict = {}
+    for (target, kind), n in sorted(TALLY.items()):
+        out.setdefault(target, {"result": 0, "clear error": 0})[kind] += n
+    with open(path, "w") as f:
+        json.dump(out, f, indent=1, sort_keys=True)
