@@ -150,7 +150,8 @@ def test_bad_input_raises_named_errors():
         simulate(bad, None, still_motion(3), SOFT)
     body = sphere_body()
     with pytest.raises(ValueError, match="body_frames"):
-        simulate(g, body, still_motion(3), SOFT, body_frames=body.vertices.expand(5, -1, -1))
+        simulate(sheet(4, 0.2, z=0.16), body, still_motion(3), SOFT,
+                 body_frames=body.vertices.expand(5, -1, -1))
     with pytest.raises(ValueError, match="h"):
         sysm = ClothSystem(g.vertices, g.faces, SOFT)
         step(sysm, g.vertices, torch.zeros_like(g.vertices), 0.0)

@@ -16,7 +16,10 @@ from garmentgnn.data.generate import (
     run_item,
 )
 from garmentgnn.data.store import (
+    IntegrityError,
     export_sequence,
+    file_sha256,
+    load_record_sequence,
     load_sequence,
     read_manifest,
     rebuild_manifest,
@@ -25,10 +28,11 @@ from garmentgnn.data.store import (
     write_pc2,
 )
 
-__all__ = ["GarmentFrame", "GarmentSequenceDataset", "PRESETS", "Spec", "SpecMismatch",
-           "Summary", "body_key", "export_sequence", "garment_key", "generate",
-           "load_sequence", "motion_key", "preset", "read_manifest", "rebuild_manifest",
-           "run_item", "validate_sequence", "write_obj_sequence", "write_pc2"]
+__all__ = ["GarmentFrame", "GarmentSequenceDataset", "IntegrityError", "PRESETS", "Spec",
+           "SpecMismatch", "Summary", "body_key", "export_sequence", "file_sha256",
+           "garment_key", "generate", "load_record_sequence", "load_sequence", "motion_key",
+           "preset", "read_manifest", "rebuild_manifest", "run_item", "validate_sequence",
+           "write_obj_sequence", "write_pc2"]
 
 
 def __getattr__(name):

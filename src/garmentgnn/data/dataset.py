@@ -109,7 +109,7 @@ class GarmentSequenceDataset(Dataset):
         rec = self.records[s]
 
         def load() -> Dict[str, Any]:
-            seq = store.load_sequence(store.sequence_path(self._root, rec))
+            seq = store.load_record_sequence(self._root, rec)
             self.num_file_loads += 1
             faces = torch.from_numpy(seq["garment_faces"]).long()
             seq["edge_index"] = faces_to_edge_index(faces, seq["garment_vertices"].shape[0])

@@ -21,6 +21,7 @@ import hashlib
 import itertools
 import json
 import multiprocessing
+import os
 import random
 import sys
 import time
@@ -407,6 +408,9 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             return np.asarray(default if v is None else torch.as_tensor(v).cpu(), dtype=dtype)
 
         converged = arr("converged", bool, np.ones(T, bool))
+        pen = getattr(res, "penetration", None)  # exact end-of-frame depth (real simulator)
+        pen = None if pen is None or len(pen) != T else np.asarray(pen, np.float32)
+        pen_limit = float(getattr(res, "max_penetration", np.inf))
         arrays = {
             "garment_vertices": garment.vertices.numpy().astype(np.float32),
             "garment_faces": garment.faces.numpy().astype(np.int64),
@@ -423,6 +427,8 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             "newton_iterations": arr("newton_iterations", np.int32, np.zeros(T)),
             "residual": arr("residual", np.float32, np.zeros(T)),
         }
+        if pen is not None:
+            arrays["penetration"] = pen
         meta = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
                                      "seed", "split")}
         meta["held_out"] = item.get("held_out", [])
@@ -431,12 +437,14 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             num_faces=int(garment.faces.shape[0]), fps=float(motion.fps),
             joint_names=list(motion.joint_names), garment_name=garment.name,
             material_params=asdict(material), nonconverged_frames=int((~converged).sum()),
+            penetrating_frames=None if pen is None else int((pen > pen_limit).sum()),
+            max_penetration_depth=None if pen is None else float(pen.max()),
             code={"version": store.code_version()["version"]},
             engine=engine_info(item.get("engine", "torch"), item["settings"]))
         path = Path(out) / store.SEQUENCES / f"{item['id']}.npz"
         store.write_sequence(path, arrays, meta)
         rec = store.record_from_meta(meta)
-        rec["code"] = store.code_version()
+        rec.update(code=store.code_version(), sha256=store.file_sha256(path))
     except Exception as e:
         tb = traceback.format_exc(limit=3)
         rec.update(status="failed", message=f"{type(e).__name__}: {e}\n{tb}")
@@ -444,8 +452,12 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
     return rec
 
 
-def _init_worker() -> None:
+def _init_worker(parent_pid: Optional[int] = None) -> None:
     import torch
+
+    from garmentgnn.data._lifeline import watch_parent
+    if parent_pid is not None:  # die with the parent, even when it is SIGKILLed
+        watch_parent(parent_pid)
     torch.set_num_threads(1)
     try:
         torch.set_num_interop_threads(1)
@@ -517,16 +529,29 @@ class SpecMismatch(RuntimeError):
     pass
 
 
-def _load_existing(out: Path, spec_json: Dict[str, Any]) -> Dict[str, Dict[str, Any]]:
-    """Check ``OUT/spec.json`` matches; return previous manifest records by id."""
+def _load_existing(out: Path, spec_json: Dict[str, Any], force: bool = False
+                   ) -> Dict[str, Dict[str, Any]]:
+    """Check ``OUT/spec.json`` (or, without it, ``OUT/manifest.json``) holds this
+    dataset; return previous manifest records by id.  ``force``: replace another
+    dataset's spec and manifest instead of refusing."""
     spec_path = out / store.SPEC
+    ids = [it["id"] for it in spec_json["items"]]
+    if force:
+        store.atomic_write_json(spec_path, spec_json)
+    elif not spec_path.exists() and (out / store.MANIFEST).exists():
+        try:
+            other = [r["id"] for r in store.read_manifest(out)["items"]]
+        except (ValueError, KeyError, TypeError):
+            other = None
+        if other is None or not set(other) <= set(ids):
+            raise SpecMismatch(f"{out} holds another dataset's {store.MANIFEST}; use another "
+                               f"--out, or --force to overwrite it")
     if spec_path.exists():
-        with open(spec_path) as f:
-            old = json.load(f)
-        if [it["id"] for it in old["items"]] != [it["id"] for it in spec_json["items"]]:
+        old = store.read_json(spec_path, "--force to overwrite it")
+        if [it.get("id") for it in old.get("items", [])] != ids:
             raise SpecMismatch(
                 f"{out} holds a different dataset (spec {old.get('name')!r}, seed "
-                f"{old.get('seed')}); use another --out or delete it")
+                f"{old.get('seed')}); use another --out, or --force to overwrite it")
     else:
         store.atomic_write_json(spec_path, spec_json)
     prev = {}
@@ -541,8 +566,8 @@ def _load_existing(out: Path, spec_json: Dict[str, Any]) -> Dict[str, Dict[str, 
 def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
              simulate_fn: Optional[Callable] = None, settings_fn: Optional[Callable] = None,
              retry_failed: bool = False, progress: bool = True, estimate: bool = False,
-             log: Optional[Callable[[str], None]] = None, backend: str = "local",
-             address: Optional[str] = None) -> Summary:
+             log: Optional[Callable[[str], None]] = None, force: bool = False,
+             backend: str = "local", address: Optional[str] = None) -> Summary:
     """Generate (or resume generating) ``spec`` into ``out``.
 
     Items whose sequence file exists and validates are skipped; failed items are kept
@@ -551,12 +576,18 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     ``limit``: simulate at most this many (pending) items in this call.
     ``simulate_fn``/``settings_fn``: dependency injection for tests (picklable,
     module-level callables); default ``garmentgnn.sim.simulate`` / ``SimSettings``.
-    The manifest is rewritten atomically after every finished item.
+    The manifest is rewritten atomically after every finished item.  A folder holding
+    another dataset raises :class:`SpecMismatch` unless ``force``.  Pool workers end
+    when this process does, even when it is killed with ``SIGKILL``.
     ``backend="ray"`` runs one Ray task per item instead (:mod:`garmentgnn.data.ray_backend`;
     ``workers`` CPUs of a local cluster, or the cluster at ``address``).
     """
     if backend not in ("local", "ray"):
         raise ValueError(f"`backend`: 'local' or 'ray', got {backend!r}")
+    if not str(out).strip():
+        raise ValueError("`out`: empty path; name the output folder, e.g. --out data/tiny")
+    if Path(out).exists() and not Path(out).is_dir():
+        raise ValueError(f"`out`: {out} is a file; name a folder for the dataset")
     t_start = time.perf_counter()
     if spec.engine == "blender" and simulate_fn is None:
         from garmentgnn.sim.blender import require_blender
@@ -570,7 +601,7 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     store.remove_stale_temporaries(out / store.SEQUENCES)
     spec_json = spec.to_json()
     items = spec_json["items"]
-    prev = _load_existing(out, spec_json)
+    prev = _load_existing(out, spec_json, force)
     header = {k: v for k, v in spec_json.items() if k != "items"}
     header["code"] = store.code_version()
     header["engine"] = engine_info(spec.engine, spec.settings)
@@ -583,9 +614,13 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
         old = prev.get(it["id"])
         if path.exists():
             msg = store.validate_sequence(path, it["id"])
+            if msg is None and old and old.get("sha256") \
+                    and store.file_sha256(path) != old["sha256"]:
+                msg = "SHA-256 differs from the manifest's"
             if msg is None:
                 records[it["id"]] = (old if old and old.get("status") == "ok"
-                                     else store.record_from_meta(store.read_meta(path)))
+                                     else dict(store.record_from_meta(store.read_meta(path)),
+                                               sha256=store.file_sha256(path)))
                 summary.skipped += 1
                 continue
             log(f"warning: {path.name} is invalid ({msg}); simulating it again")
@@ -646,7 +681,8 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
         else:
             ctx = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                     initializer=_init_worker) as pool:
+                                     initializer=_init_worker,
+                                     initargs=(os.getpid(),)) as pool:
                 pending = {pool.submit(run_item, it, str(out), simulate_fn, settings_fn)
                            for it in todo}
                 try:

@@ -13,8 +13,10 @@ with a fixed timestamp, so the same content gives byte-identical files.
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
+import math
 import os
 import struct
 import subprocess
@@ -31,7 +33,8 @@ FORMAT_VERSION = 1
 SEQUENCES = "sequences"
 MANIFEST = "manifest.json"
 SPEC = "spec.json"
-#: arrays every sequence file holds (besides ``meta_json``)
+#: arrays every sequence file holds (besides ``meta_json``; files of the real simulator
+#: also hold ``penetration [T]``, the exact end-of-frame depth inside the body, metres)
 SEQUENCE_KEYS = ("garment_vertices", "garment_faces", "garment_uv", "garment_face_uv",
                  "garment_pinned", "body_shape", "motion_rotations", "motion_translation",
                  "positions", "converged", "newton_iterations", "residual")
@@ -110,6 +113,11 @@ def remove_stale_temporaries(folder: PathLike) -> int:
 
 
 # --------------------------------------------------------------------------- sequence files
+class IntegrityError(ValueError):
+    """A file that is unreadable, or whose content differs from the hash recorded for
+    it (bit rot, an edit, a truncated copy)."""
+
+
 def _npz_bytes(arrays: Dict[str, np.ndarray]) -> bytes:
     """A deterministic ``.npz`` (fixed member order and timestamps, stored uncompressed)."""
     buf = io.BytesIO()
@@ -136,17 +144,58 @@ def write_sequence(path: PathLike, arrays: Dict[str, np.ndarray], meta: Dict[str
 
 def read_meta(path: PathLike) -> Dict[str, Any]:
     """Only the JSON metadata of a sequence file (does not read the positions)."""
-    with np.load(path, allow_pickle=False) as z:
-        return json.loads(z["meta_json"].tobytes().decode())
+    return load_sequence(path, ["meta_json"])["meta"]
 
 
 def load_sequence(path: PathLike, keys: Optional[Iterable[str]] = None) -> Dict[str, Any]:
-    """All arrays (or ``keys``) of a sequence file as numpy arrays plus ``meta`` (dict)."""
-    with np.load(path, allow_pickle=False) as z:
-        names = list(z.files) if keys is None else [k for k in keys]
-        out: Dict[str, Any] = {k: z[k] for k in names if k != "meta_json"}
-        out["meta"] = json.loads(z["meta_json"].tobytes().decode())
+    """All arrays (or ``keys``) of a sequence file as numpy arrays plus ``meta`` (dict).
+
+    A missing file raises ``FileNotFoundError``; an unreadable one (truncated, corrupt
+    zip member -- every member carries a CRC-32 --, missing array, bad metadata)
+    :class:`IntegrityError`, naming the path."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such sequence file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            names = list(z.files) if keys is None else [k for k in keys]
+            out: Dict[str, Any] = {k: z[k] for k in names if k != "meta_json"}
+            meta = json.loads(z["meta_json"].tobytes().decode())
+    except Exception as e:  # zip, npy-header, EOF, JSON and decoding errors of many kinds
+        raise IntegrityError(f"{path}: unreadable sequence file ({type(e).__name__}: "
+                             f"{str(e)[:120]}); delete it and rerun `garmentgnn generate`"
+                             ) from None
+    if not isinstance(meta, dict):
+        raise IntegrityError(f"{path}: unreadable sequence file (metadata is not a JSON "
+                             f"object); delete it and rerun `garmentgnn generate`")
+    out["meta"] = meta
     return out
+
+
+def file_sha256(path: PathLike) -> str:
+    """Hex SHA-256 of a file's bytes (the integrity hash kept in manifest records)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_record_sequence(root: PathLike, record: Dict[str, Any],
+                         keys: Optional[Iterable[str]] = None) -> Dict[str, Any]:
+    """:func:`load_sequence` of a manifest record's file, after checking its SHA-256
+    against the record's ``sha256`` (records written before hashes were kept have
+    none and are not checked).  Raises :class:`IntegrityError` on a mismatch and
+    ``FileNotFoundError`` naming the file and the fix when it is missing."""
+    path = sequence_path(root, record)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: sequence file of item {record.get('id')!r} is "
+                                f"missing; rerun `garmentgnn generate` on {root} to make it")
+    want = record.get("sha256")
+    if want and file_sha256(path) != want:
+        raise IntegrityError(f"{path}: SHA-256 differs from the manifest's (corrupt or "
+                             f"changed file); delete it and rerun `garmentgnn generate` on "
+                             f"{root}, or run `garmentgnn manifest --out {root}` to accept it")
+    return load_sequence(path, keys)
 
 
 def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional[str]:
@@ -201,15 +250,39 @@ def write_manifest(out: PathLike, records: List[Dict[str, Any]], header: Dict[st
     return atomic_write_json(Path(out) / MANIFEST, doc)
 
 
+def read_json(path: PathLike, fix: str) -> Dict[str, Any]:
+    """A JSON object from ``path``; ``ValueError`` naming the path and ``fix`` when the
+    file is not one (truncated, edited, binary)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); {fix}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(doc).__name__}; {fix}")
+    return doc
+
+
 def read_manifest(out: PathLike) -> Dict[str, Any]:
-    with open(Path(out) / MANIFEST) as f:
-        return json.load(f)
+    """``OUT/manifest.json``; ``FileNotFoundError`` / ``ValueError`` naming the path and
+    the command that makes or repairs it."""
+    path = Path(out) / MANIFEST
+    if not path.is_file():
+        what = "folder does not exist" if not Path(out).is_dir() else f"has no {MANIFEST}"
+        raise FileNotFoundError(f"{out}: {what}; make the dataset with `garmentgnn generate "
+                                f"--preset tiny --out {out}`")
+    doc = read_json(path, f"rebuild it with `garmentgnn manifest --out {out}`")
+    if not isinstance(doc.get("items"), list):
+        raise ValueError(f"{path}: no 'items' list; rebuild it with `garmentgnn manifest "
+                         f"--out {out}`")
+    return doc
 
 
 def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> Dict[str, Any]:
     """The manifest record of an ok item, from a sequence file's metadata."""
     keys = ("id", "garment", "body", "motion", "material", "settings", "seed", "split",
-            "num_frames", "num_vertices", "code", "nonconverged_frames", "engine", "held_out")
+            "num_frames", "num_vertices", "code", "nonconverged_frames", "penetrating_frames",
+            "max_penetration_depth", "engine", "held_out")
     rec = {k: meta.get(k) for k in keys}
     if rec["engine"] is None:  # written before engines were recorded: the torch simulator
         rec["engine"] = {"name": "torch"}
@@ -232,13 +305,16 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
         if msg is not None:
             invalid.append(f"{p.name}: {msg}")
             continue
-        found[p.stem] = record_from_meta(read_meta(p))
+        found[p.stem] = dict(record_from_meta(read_meta(p)), sha256=file_sha256(p))
     header: Dict[str, Any] = {"rebuilt": True}
     records: List[Dict[str, Any]] = []
     spec_path = out / SPEC
     if spec_path.exists():
-        with open(spec_path) as f:
-            spec = json.load(f)
+        spec = read_json(spec_path, "delete it (items without a file are then not listed)")
+        if not isinstance(spec.get("items"), list) or \
+                not all(isinstance(it, dict) and "id" in it for it in spec["items"]):
+            raise ValueError(f"{spec_path}: no valid 'items' list; delete it (items without "
+                             f"a file are then not listed)")
         header.update({k: v for k, v in spec.items() if k != "items"})
         for it in spec["items"]:
             records.append(found.pop(it["id"], None) or pending_record(it))
@@ -251,8 +327,8 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
 
 
 def pending_record(item: Dict[str, Any]) -> Dict[str, Any]:
-    rec = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
-                                 "seed", "split")}
+    rec = {k: item.get(k) for k in ("id", "garment", "body", "motion", "material", "settings",
+                                     "seed", "split")}
     rec.update(status="pending", message="", seconds=None, file=None,
                engine={"name": item.get("engine", "torch")}, held_out=item.get("held_out", []))
     return rec
@@ -267,9 +343,17 @@ def write_pc2(path: PathLike, positions: np.ndarray, start_frame: float = 0.0,
     """Blender/3ds Max point cache: header ``POINTCACHE2\\0``, version 1, number of
     points, start frame, sample rate (frames between samples), number of samples, then
     ``float32`` xyz for every point of every sample."""
-    P = np.asarray(positions, dtype="<f4")
+    P = np.asarray(positions)
     if P.ndim != 3 or P.shape[2] != 3:
         raise ValueError(f"`positions`: expected [T, V, 3], got {P.shape}")
+    if not np.issubdtype(P.dtype, np.number) or np.iscomplexobj(P):
+        raise TypeError(f"`positions`: expected real numbers, got dtype {P.dtype}")
+    P = P.astype("<f4")
+    if not np.isfinite(P).all():
+        raise ValueError("`positions`: contain NaN/inf (or values beyond float32)")
+    if not math.isfinite(start_frame) or not math.isfinite(sample_rate) or sample_rate <= 0:
+        raise ValueError(f"`start_frame`/`sample_rate`: expected finite numbers and a "
+                         f"positive rate, got {start_frame!r}, {sample_rate!r}")
     head = PC2_HEADER.pack(b"POINTCACHE2\0", 1, P.shape[1], float(start_frame),
                            float(sample_rate), P.shape[0])
     return atomic_write_bytes(path, head + np.ascontiguousarray(P).tobytes())
@@ -278,6 +362,9 @@ def write_pc2(path: PathLike, positions: np.ndarray, start_frame: float = 0.0,
 def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarray,
                        stem: str = "frame") -> List[Path]:
     """One OBJ per frame, ``folder/<stem>_<t:04d>.obj``, same vertex order in every file."""
+    X = np.asarray(positions, dtype=np.float64)
+    if X.ndim != 3 or X.shape[2] != 3 or not np.isfinite(X).all():
+        raise ValueError(f"`positions`: expected finite [T, V, 3], got shape {X.shape}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     F = np.asarray(faces, dtype=np.int64) + 1

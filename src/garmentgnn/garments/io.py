@@ -51,11 +51,24 @@ def _fail(path, msg: str):
 # ---------------------------------------------------------------------------------------
 # readers
 # ---------------------------------------------------------------------------------------
-def _read_obj(path: Path) -> _Raw:
+def _decode_obj(path: Path) -> str:
+    """The text of an OBJ file as Blender and trimesh read it: a UTF-8 byte-order mark
+    is dropped, CRLF / CR line ends are line ends, and bytes that are not UTF-8
+    (latin-1 comments or object names written by older exporters) are read as
+    latin-1.  A file with NUL bytes is binary, not an OBJ."""
+    data = path.read_bytes()
+    if b"\0" in data:
+        _fail(path, "cannot parse: not a text OBJ file (binary data, NUL bytes)")
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
-    except UnicodeDecodeError as e:
-        _fail(path, f"cannot parse: not a text OBJ file ({e.reason} at byte {e.start})")
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def _read_obj(path: Path) -> _Raw:
+    text = _decode_obj(path)
     V: List[List[float]] = []
     VT: List[List[float]] = []
     faces: List[Tuple[int, int, int]] = []

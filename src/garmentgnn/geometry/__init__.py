@@ -5,7 +5,8 @@ the batch.  Torch functions are differentiable in the positions; the geodesic /
 Nystroem functions are numpy/scipy pre-processing on a single rest mesh.
 """
 from garmentgnn.geometry.distance import (SignedDistance, WindingNumber,
-                                          closest_point_on_triangle, push_outside,
+                                          closest_point_on_triangle, is_closed_mesh,
+                                          penetration_depth, push_outside,
                                           signed_distance,
                                           vertex_joint_distances)
 from garmentgnn.geometry.geodesic import (HeatGeodesicSolver, NystromFeatures,
@@ -44,7 +45,7 @@ __all__ = [
     "nystrom_eigenvectors", "geodesic_nystrom_features", "NystromFeatures",
     # body distances (Eq. 10)
     "closest_point_on_triangle", "signed_distance", "SignedDistance", "push_outside",
-    "vertex_joint_distances", "WindingNumber",
+    "vertex_joint_distances", "WindingNumber", "penetration_depth", "is_closed_mesh",
     # rotations
     "axis_angle_to_matrix", "matrix_to_axis_angle", "euler_to_matrix", "matrix_to_euler",
 ]

@@ -1,13 +1,14 @@
 """Mesh connectivity and a procedural sheet mesh."""
 from __future__ import annotations
 
+import operator
 from typing import NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
 from torch_geometric.utils import sort_edge_index, to_undirected
 
-from ._validate import check_faces
+from ._validate import check_faces, check_points
 
 
 def faces_to_edge_index(faces: Tensor, num_nodes: int) -> Tensor:
@@ -21,6 +22,19 @@ def faces_to_edge_index(faces: Tensor, num_nodes: int) -> Tensor:
         ``[2, E]`` edge index, coalesced and sorted by target (column 1), the
         CSR order that lets :mod:`garmentgnn.nn` layers use segment reductions.
     """
+    if not isinstance(faces, Tensor):
+        raise TypeError(f"`faces`: expected a torch.Tensor [F, 3], got {type(faces).__name__}")
+    if faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool:
+        raise TypeError(f"`faces`: expected an integer tensor, got dtype {faces.dtype}; "
+                        f"use faces.long()")
+    try:
+        n = None if isinstance(num_nodes, bool) else operator.index(num_nodes)
+    except (TypeError, RuntimeError):
+        n = None
+    if n is None or n < 0:
+        raise ValueError(f"`num_nodes`: expected the number of mesh vertices (an int >= 0), "
+                         f"got {num_nodes!r}")
+    num_nodes = n
     if faces.dim() != 2 or faces.size(1) != 3:
         raise ValueError(f"`faces`: expected shape [F, 3], got {tuple(faces.shape)}")
     if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= num_nodes):
@@ -53,9 +67,24 @@ def grid_mesh(nx: int, ny: int, size: Tuple[float, float] = (1.0, 1.0),
 
 
 def edge_features(pos: Tensor, edge_index: Tensor) -> Tensor:
-    """Per-edge ``[length, unit direction (3)]`` features, ``[E, 4]``."""
+    """Per-edge ``[length, unit direction (3)]`` features, ``[E, 4]``.
+
+    ``pos [V, 3]`` finite floats, ``edge_index [2, E]`` integer indices into it; a
+    length that overflows the dtype (coordinates far beyond metres) raises."""
+    pos = check_points(pos, "pos", allow_empty=True)
+    if pos.dim() != 2:
+        raise ValueError(f"`pos`: expected [V, 3], got {tuple(pos.shape)}")
+    if not isinstance(edge_index, Tensor) or edge_index.dim() != 2 or edge_index.size(0) != 2 \
+            or edge_index.is_floating_point() or edge_index.dtype == torch.bool:
+        raise ValueError("`edge_index`: expected an integer tensor [2, E] (faces_to_edge_index)")
+    if edge_index.numel() and (int(edge_index.min()) < 0
+                               or int(edge_index.max()) >= pos.size(0)):
+        raise ValueError(f"`edge_index`: indices must lie in [0, {pos.size(0)})")
     d = pos.index_select(0, edge_index[1]) - pos.index_select(0, edge_index[0])
     length = d.norm(dim=-1, keepdim=True)
+    if not torch.isfinite(length).all():
+        raise ValueError(f"`pos`: edge lengths overflow {pos.dtype}; coordinates are far "
+                         f"beyond garment scale (metres expected), or use float64")
     return torch.cat([length, d / length.clamp_min(1e-12)], -1)
 
 

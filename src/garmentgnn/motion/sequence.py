@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List
+from typing import List, Sequence
 
 import torch
 from torch import Tensor
@@ -76,3 +76,33 @@ class Motion:
         wt = w.to(self.translation.dtype).view(-1, 1)
         tr = self.translation[i0] * (1 - wt) + self.translation[i0 + 1] * wt
         return Motion(rot, tr, list(self.joint_names), float(fps))
+
+
+def match_joints(motion, joint_names: Sequence[str]) -> Tensor:
+    """``motion.rotations`` ``[T, S, 3]`` in the order of ``joint_names`` (a body
+    skeleton's), matched by name: a motion saved to BVH and loaded back lists its
+    joints depth-first, which need not be the skeleton's order.  Raises
+    ``ValueError`` naming the unknown and missing joints when the names differ.  An
+    object without ``joint_names`` is matched by joint count (and must agree)."""
+    rot = motion.rotations
+    names = getattr(motion, "joint_names", None)
+    target = list(joint_names)
+    if names is None:
+        if rot.shape[1] != len(target):
+            raise ValueError(f"`motion`: has {rot.shape[1]} joints, the skeleton "
+                             f"{len(target)}; retarget it first (garmentgnn.motion.retarget)")
+        return rot
+    names = list(names)
+    if names == target:
+        return rot
+    if len(set(names)) != len(names):
+        raise ValueError(f"`motion.joint_names`: repeated names "
+                         f"{sorted({n for n in names if names.count(n) > 1})}")
+    unknown = [n for n in names if n not in set(target)]
+    missing = [n for n in target if n not in set(names)]
+    if unknown or missing:
+        raise ValueError(f"`motion`: joint names differ from the skeleton's (unknown: "
+                         f"{unknown[:8]}, missing: {missing[:8]}); retarget it first "
+                         f"(garmentgnn.motion.retarget(motion, skeleton))")
+    index = {n: i for i, n in enumerate(names)}
+    return rot[:, [index[n] for n in target]]

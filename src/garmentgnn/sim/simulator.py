@@ -23,8 +23,11 @@ from torch import Tensor
 
 from garmentgnn.body.body import Body
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
-from garmentgnn.geometry import dihedral_angles, signed_distance, unique_edges
+from garmentgnn.garments.placement import check_placement
+from garmentgnn.geometry import (dihedral_angles, penetration_depth, signed_distance,
+                                 unique_edges)
 from garmentgnn.geometry.mesh import FaceAdjacency
+from garmentgnn.motion.sequence import match_joints
 from garmentgnn.physics import (GRAVITY, ClothRest, Material, bending_energy, collision_energy,
                                 gravity_energy, inertia_energy, shear_energy, stretch_energy,
                                 stvk_energy)
@@ -70,7 +73,10 @@ class SimSettings:
         max_penetration: a substep that ends with a vertex deeper than this inside the
             body (after the contact planes were refreshed) fails, so the frame is retried
             with twice the substeps (m); at the last refinement the frame is kept and
-            flagged unconverged (a pinch between body parts, not tunnelling).
+            flagged unconverged (a pinch between body parts, not tunnelling).  Every
+            recorded frame is also measured exactly at its end (all body faces, winding
+            number inside test: :func:`garmentgnn.geometry.penetration_depth`); frames
+            deeper than this are flagged in ``SimResult.penetrating`` and the message.
         distance_candidates: ``candidates`` of :func:`garmentgnn.geometry.signed_distance`
             (``None`` = exact brute force).
         gravity: gravity vector (Z up).
@@ -97,7 +103,20 @@ class SimSettings:
     flat_rest: bool = False
     line_search_steps: int = 30
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid setting (run at construction
+        and again by :func:`simulate`, in case a field was changed since)."""
+        def number(name: str, lo: float, strict: bool) -> None:
+            v = getattr(self, name)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
+                and (v > lo if strict else v >= lo)
+            if not ok:
+                raise ValueError(f"`settings.{name}`: must be a finite number "
+                                 f"{'>' if strict else '>='} {lo}, got {v!r}")
+
         if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
             raise ValueError(f"`settings.fps`: must be a positive finite number, got {self.fps!r}")
         for name in ("substeps", "max_newton"):
@@ -114,10 +133,30 @@ class SimSettings:
             raise ValueError("`settings.collision_stiffness`: must be non-negative")
         if self.collision_power not in (2, 3):
             raise ValueError("`settings.collision_power`: 2 or 3 (needs a second derivative)")
-        for name in ("settle_frames", "preroll_frames"):
+        for name in ("settle_frames", "preroll_frames", "max_refinements"):
             v = getattr(self, name)
-            if not isinstance(v, int) or v < 0:
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"`settings.{name}`: must be a non-negative int, got {v!r}")
+        if not isinstance(self.line_search_steps, int) or self.line_search_steps < 1:
+            raise ValueError(f"`settings.line_search_steps`: must be a positive int, got "
+                             f"{self.line_search_steps!r}")
+        number("tol", 0.0, True)
+        number("collision_stiffness", 0.0, False)
+        number("contact_radius", 0.0, False)
+        number("max_penetration", 0.0, True)
+        dc = self.distance_candidates
+        if dc is not None and (not isinstance(dc, int) or isinstance(dc, bool) or dc < 1):
+            raise ValueError(f"`settings.distance_candidates`: a positive int or None (exact), "
+                             f"got {dc!r}")
+        g = self.gravity
+        if not (isinstance(g, (tuple, list)) and len(g) == 3
+                and all(isinstance(c, (int, float)) and math.isfinite(c) for c in g)):
+            raise ValueError(f"`settings.gravity`: three finite numbers (m/s^2, Z up), "
+                             f"got {g!r}")
+        for name in ("retry_unconverged", "flat_rest"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"`settings.{name}`: must be True or False, got "
+                                 f"{getattr(self, name)!r}")
 
 
 @dataclass
@@ -132,6 +171,16 @@ class SimResult:
     message: str
     seconds: float
     substeps: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))  # [T]
+    #: [T] exact depth (m) of the deepest garment vertex inside the body at the end of
+    #: each frame (:func:`garmentgnn.geometry.penetration_depth`; zeros without a body)
+    penetration: Tensor = field(default_factory=lambda: torch.zeros(0))
+    #: the ``max_penetration`` the frames were checked against
+    max_penetration: float = math.inf
+
+    @property
+    def penetrating(self) -> Tensor:
+        """``[T]`` bool: frames whose exact penetration exceeds ``max_penetration``."""
+        return self.penetration > self.max_penetration
 
 
 @dataclass
@@ -574,11 +623,9 @@ def trajectories(garment, body: Optional[Body], motion, preroll_frames: int = 0,
     T, V, P = int(motion.num_frames), verts.shape[0], int(preroll_frames)
     if body is None and P:
         raise ValueError("`preroll_frames`: needs a `body` (nothing to blend into)")
+    check_placement(verts, None if body is None else body.vertices)
     if body is not None:
-        rot = motion.rotations
-        if rot.shape[1] != body.skeleton.num_joints:
-            raise ValueError(f"`motion`: has {rot.shape[1]} joints, the body skeleton "
-                             f"{body.skeleton.num_joints}; retarget it first")
+        rot = match_joints(motion, body.skeleton.joint_names)
         trans = motion.translation
         if P:  # pre-roll: rest pose -> first pose (axis-angle scaling = slerp from identity)
             w = _smoothstep(P).to(rot.dtype)
@@ -718,10 +765,22 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
                              torch.zeros(0, dtype=torch.long), torch.zeros(0), False, out[5],
                              time.time() - t0)
         x, v = out[0], out[1]
+    flagged: List[str] = []
+
+    def exact_depth(t: int, x: Tensor) -> float:
+        """Exact penetration at the end of frame ``t`` (flagged over the limit)."""
+        if body_frames is None:
+            return 0.0
+        d = float(penetration_depth(x, body_frames[P + t], body_faces).max())
+        if d > st.max_penetration:
+            flagged.append(f"frame {t}: exact penetration {d * 1e3:.1f} mm > max_penetration "
+                           f"{st.max_penetration * 1e3:.1f} mm")
+        return d
+
     positions: List[Tensor] = [x.float()]
     converged, iterations, residual, substeps = [True], [0], [0.0], [0]
+    penetration = [exact_depth(0, x)]
     ok, message = True, "ok"
-    flagged: List[str] = []
     for t in range(1, T):
         out = advance(x, v, bf(P + t - 1), bf(P + t), skinned[P + t - 1], skinned[P + t],
                       f"frame {t}")
@@ -739,6 +798,7 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
         substeps.append(int(out[6]))
         if out[5]:
             flagged.append(f"frame {t}: {out[5]}")
+        penetration.append(exact_depth(t, x))
         if progress is not None:
             progress(t, T)
     if ok and flagged:
@@ -746,4 +806,5 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     return SimResult(torch.stack(positions), torch.tensor(converged),
                      torch.tensor(iterations, dtype=torch.long),
                      torch.tensor(residual, dtype=torch.float32), ok, message, time.time() - t0,
-                     torch.tensor(substeps, dtype=torch.long))
+                     torch.tensor(substeps, dtype=torch.long),
+                     torch.tensor(penetration, dtype=torch.float32), float(st.max_penetration))

@@ -95,7 +95,7 @@ class SequenceChunks(Dataset):
 
         def load() -> dict[str, Any]:
             self.num_file_loads += 1
-            return store.load_sequence(store.sequence_path(self.root, rec))
+            return store.load_record_sequence(self.root, rec)
 
         return self._seqs.get_or_build(rec["id"], load)
 
@@ -184,7 +184,7 @@ try:
     import lightning as L
 
     class GarmentDataModule(L.LightningDataModule):
-        """Train/val chunks from the manifest's splits (one chunk per step).
+        """Train/val/test chunks from the manifest's splits (one chunk per step).
 
         ``num_joints`` / ``num_body_vertices`` (for building the model) are read from
         the first training chunk.
@@ -198,12 +198,16 @@ try:
         def __init__(self, root, chunk: int = 8, history: int = 3, num_workers: int = 0,
                      nystrom_dim: int = 16, num_landmarks: int = 64, train_split: str = "train",
                      val_split: str | None = "val", shuffle: bool = True, seed: int = 0,
-                     drop_last: bool = False) -> None:
+                     drop_last: bool = False, test_split: str = "test") -> None:
             super().__init__()
+            if not (Path(root) / store.MANIFEST).is_file():
+                store.read_manifest(root)  # raises: which path, and the command that makes it
             self.root, self.chunk, self.history = Path(root), chunk, history
             self.num_workers, self.nystrom_dim, self.num_landmarks = num_workers, nystrom_dim, \
                 num_landmarks
-            self.train_split, self.val_split = train_split, val_split
+            self.train_split, self.val_split, self.test_split = train_split, val_split, \
+                test_split
+            self.test_set: SequenceChunks | None = None
             self.shuffle, self.seed, self.drop_last = shuffle, seed, drop_last
             self.train_set: SequenceChunks | None = None
             self.val_set: SequenceChunks | None = None
@@ -257,6 +261,12 @@ try:
             if self.val_set is None:
                 return []
             return self._loader(self.val_set, False)
+
+        def test_dataloader(self) -> DataLoader:
+            """Chunks of ``test_split`` in order (``garmentgnn train test``)."""
+            if self.test_set is None:
+                self.test_set = self._make(self.test_split)
+            return self._loader(self.test_set, False)
 except ImportError:  # pragma: no cover - lightning is optional for the dataset itself
     GarmentDataModule = None  # type: ignore
 

@@ -20,8 +20,16 @@ from typing import Optional, Sequence
 from lightning.pytorch.cli import LightningCLI
 
 from garmentgnn.training.datamodule import GarmentDataModule
+from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
 from garmentgnn.training.module import GarTransModule
 from garmentgnn.training.plots import TrainingPlots
+
+
+def _plain(ns) -> dict:
+    """A jsonargparse Namespace (or None) as a plain dict."""
+    if ns is None:
+        return {}
+    return ns.as_dict() if hasattr(ns, "as_dict") else dict(ns)
 
 
 def _dim(name: str):
@@ -31,7 +39,35 @@ def _dim(name: str):
 
 
 class GarTransCLI(LightningCLI):
-    """LightningCLI with the data-dependent model sizes linked from the data module."""
+    """LightningCLI with the data-dependent model sizes linked from the data module.
+
+    Subcommands: ``fit``, ``validate`` and ``test`` (the test split's metrics);
+    Lightning's ``predict`` is not offered (use ``examples/evaluate_checkpoint.py``).
+    ``--ckpt_path X`` is checked first: an unreadable or changed file, or a
+    ``--model.*`` flag (or config value) that differs from X's hyper-parameters, is a
+    :class:`~garmentgnn.training.integrity.CheckpointError`."""
+
+    @staticmethod
+    def subcommands() -> dict[str, set[str]]:
+        subs = LightningCLI.subcommands()
+        return {k: subs[k] for k in ("fit", "validate", "test")}
+
+    def _parse_ckpt_path(self) -> None:
+        sub = self.config.get("subcommand") if self.config is not None else None
+        ckpt_path = self.config[sub].get("ckpt_path") if sub else None
+        if not ckpt_path or ckpt_path in ("last", "best", "hpc", "registry"):
+            return super()._parse_ckpt_path()
+        ckpt = load_checkpoint_file(ckpt_path)
+        given = _plain(self.config[sub].get("model"))
+        defaults = _plain(self._subcommand_parsers[sub].get_defaults().get("model"))
+        bad = hparam_conflicts(given, defaults, ckpt.get("hyper_parameters") or {})
+        if bad:
+            what = ", ".join(f"--model.{k} {v!r} (checkpoint: {c!r})"
+                             for k, (v, c) in sorted(bad.items()))
+            raise CheckpointError(f"{ckpt_path}: {what}; the model is rebuilt from the "
+                                  f"checkpoint's hyper-parameters, so drop the flag(s), or "
+                                  f"start a new run without --ckpt_path")
+        return super()._parse_ckpt_path()
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.nystrom_dim", "model.nystrom_dim")

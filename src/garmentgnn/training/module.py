@@ -23,6 +23,7 @@ from garmentgnn.losses.gartrans_loss import (
 )
 from garmentgnn.metrics.garment_metrics import evaluate
 from garmentgnn.models import GarTrans
+from garmentgnn.training.integrity import stamp_checkpoint, verify_checkpoint
 
 #: the rest-pose processing submodule frozen in the third phase (§4.1)
 REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
@@ -136,14 +137,28 @@ class GarTransModule(L.LightningModule):
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
 
-    def validation_step(self, batch: dict[str, Any], batch_idx: int):
+    def _eval_step(self, batch: dict[str, Any], prefix: str):
         out = self(batch)
         B = out["final"].shape[0]
         metrics = evaluate(out["final"], batch["gt"], batch["faces"], batch["body_pos"],
                            batch["body_faces"])
         for k, v in metrics.items():
-            self.log(f"val/{k}", v, on_epoch=True, batch_size=B)
+            self.log(f"{prefix}/{k}", v, on_epoch=True, batch_size=B)
         return metrics
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int):
+        return self._eval_step(batch, "val")
+
+    def test_step(self, batch: dict[str, Any], batch_idx: int):
+        """The validation metrics on the data module's test split (``test/...``)."""
+        return self._eval_step(batch, "test")
+
+    # -- checkpoint integrity (garmentgnn.training.integrity) ---------------------------
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        stamp_checkpoint(checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        verify_checkpoint(checkpoint)
 
     def configure_optimizers(self):
         opt = torch.optim.Adamax(self.parameters(), lr=self.hparams.lr)
