@@ -35,7 +35,7 @@ from typing import Any, Callable, Dict, Optional
 import numpy as np
 import torch
 
-from garmentgnn.geometry import unique_edges
+from garmentgnn.geometry import penetration_depth, unique_edges
 from garmentgnn.physics import GRAVITY, Material
 
 WORKER = Path(__file__).with_name("_blender_worker.py")
@@ -74,6 +74,9 @@ class BlenderSettings:
         threads: CPU cores the worker may use (its CPU affinity; Blender's cloth solver
             ignores its own thread setting); ``None``: all of them.
         timeout: seconds one sequence may take before its worker is killed.
+        max_penetration: frames whose deepest garment vertex is further inside the body
+            than this (m, measured exactly at the end of every recorded frame with
+            :func:`garmentgnn.geometry.penetration_depth`) are flagged in the result.
     """
 
     fps: float = 30.0
@@ -87,6 +90,7 @@ class BlenderSettings:
     damping: float = 5.0
     threads: Optional[int] = None
     timeout: float = 1800.0
+    max_penetration: float = 0.01
 
     def __post_init__(self) -> None:
         if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
@@ -102,8 +106,10 @@ class BlenderSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"`{name}`: must be a finite number >= 0, got {v!r}")
-        if not self.timeout > 0:
-            raise ValueError(f"`timeout`: must be positive, got {self.timeout!r}")
+        for name in ("timeout", "max_penetration"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise ValueError(f"`{name}`: must be a positive number, got {v!r}")
 
 
 # --------------------------------------------------------------------------- the interpreter
@@ -301,9 +307,18 @@ def simulate_blender(garment, body, motion, material: Material,
     X = torch.from_numpy(res["positions"][P:]).float()
     if X.shape != (T, V, 3):
         raise RuntimeError(f"Blender worker returned {tuple(X.shape)}, expected {(T, V, 3)}")
+    depth = torch.zeros(T)
+    if body is not None:  # exact, at the end of every recorded frame
+        for t in range(T):
+            depth[t] = float(penetration_depth(X[t].double(), frames[P + t], body_faces).max())
+    message = f"ok (Blender {res['info'].get('blender_version')})"
+    deep = torch.nonzero(depth > st.max_penetration).flatten()
+    if deep.numel():
+        message += (f"; {deep.numel()} frame(s) deeper than {st.max_penetration * 1e3:.1f} mm "
+                    f"in the body, first: frame {int(deep[0])} ({float(depth[deep[0]]) * 1e3:.1f} mm)")
     if progress is not None:
         progress(T - 1, T)
-    info = res["info"]
     return SimResult(X, torch.ones(T, dtype=torch.bool), torch.zeros(T, dtype=torch.long),
-                     torch.zeros(T), True, f"ok (Blender {info.get('blender_version')})",
-                     time.time() - t0, torch.full((T,), st.quality, dtype=torch.long))
+                     torch.zeros(T), True, message, time.time() - t0,
+                     torch.full((T,), st.quality, dtype=torch.long), penetration=depth,
+                     max_penetration=st.max_penetration)
