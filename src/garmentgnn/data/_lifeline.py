@@ -16,31 +16,18 @@ terminal) reaches the parent and every worker at once.
 """
 from __future__ import annotations
 
-import ctypes
 import os
-import signal
-import sys
 import threading
 import time
 
-_PR_SET_PDEATHSIG = 1
-
-
-def _set_pdeathsig() -> bool:
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        return libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
+from garmentgnn._process import set_pdeathsig
 
 
 def watch_parent(parent_pid: int, interval: float = 0.5) -> None:
     """End this process when ``parent_pid`` (the process that started it) is gone."""
     if os.getppid() != parent_pid:  # the parent died before we got here
         os._exit(1)
-    _set_pdeathsig()
+    set_pdeathsig()
 
     def poll() -> None:
         while True:

@@ -35,6 +35,7 @@ from typing import Any, Callable, Dict, Optional
 import numpy as np
 import torch
 
+from garmentgnn._process import set_pdeathsig
 from garmentgnn.geometry import penetration_depth, unique_edges
 from garmentgnn.physics import GRAVITY, Material
 
@@ -220,11 +221,7 @@ def blender_config(material: Material, rest_vertices: torch.Tensor, faces: torch
 def _child_setup(cores: Optional[int]) -> Callable[[], None]:
     def setup() -> None:
         os.setsid()  # its own process group: killed as one on timeout
-        try:  # die with the parent (Linux)
-            import ctypes
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-        except (OSError, AttributeError):
-            pass
+        set_pdeathsig()  # and it dies with its parent
         if cores is not None and hasattr(os, "sched_setaffinity"):
             allowed = sorted(os.sched_getaffinity(0))
             os.sched_setaffinity(0, allowed[:max(1, cores)])
