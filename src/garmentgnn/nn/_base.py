@@ -8,7 +8,7 @@ from typing import NamedTuple, Optional, Sequence, Tuple, Union, overload
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-from torch.nn.parameter import is_lazy
+from torch.nn.parameter import UninitializedParameter
 from torch_geometric import is_compiling
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.nn.dense.linear import Linear
@@ -17,8 +17,8 @@ from torch_geometric.typing import Adj, OptTensor
 
 from garmentgnn.nn._graph import (CSRPlan, Graph, PairTensor, check_outputs, edge_softmax,
                                   prepare_graph)
-from garmentgnn.nn._sparse import (CSR_DTYPES, csr_aggregate, csr_edge_aggregate, csr_scores,
-                                   kernels_enabled)
+from garmentgnn.nn._sparse import (CSR_DTYPES, Pattern, head_pattern, incidence_pattern,
+                                   kernels_enabled, sddmm, spmm)
 
 _HOOKS = ("_propagate_forward_pre_hooks", "_propagate_forward_hooks",
           "_message_forward_pre_hooks", "_message_forward_hooks",
@@ -124,13 +124,34 @@ class LayerContract(MessagePassing):
 class Route(NamedTuple):
     """How one call runs: on the CSR kernels (``plan`` set) or by message passing.
 
-    Per-edge tensors of a fused call are in the plan's CSR order between
-    :meth:`AttentionConv.route` and the end of the call; ``index`` is the
-    target of each edge in that working order.
+    Per-edge, per-head tensors come in the route's working layout: ``[E, H]``
+    in the caller's edge order on the message route, a flat head-major
+    ``[H*E]`` vector in CSR order on the fused route (the value layout of the
+    kernels' block-diagonal pattern).  ``index`` is the segment (target, or
+    (head, target) row) of every working entry, ``ptr`` the CSR offsets of
+    those segments when they are sorted, ``num_segments`` their number.
     """
 
     plan: Optional[CSRPlan]
+    heads: int
     index: Tensor
+    ptr: Optional[Tensor]
+    num_segments: int
+    pattern: Optional[Pattern]
+
+    def edges_in(self, t: Tensor) -> Tensor:
+        """``[E, H]`` in the caller's order -> working layout."""
+        if self.plan is None:
+            return t
+        t = t.t()
+        return (t if self.plan.perm is None else t.index_select(1, self.plan.perm)).reshape(-1)
+
+    def edges_out(self, t: Tensor) -> Tensor:
+        """Working layout -> ``[E, H]`` in the caller's order."""
+        if self.plan is None:
+            return t
+        t = t.view(self.heads, -1)
+        return (t if self.plan.inv is None else t.index_select(1, self.plan.inv)).t()
 
 
 class AttentionConv(LayerContract):
@@ -184,7 +205,7 @@ class AttentionConv(LayerContract):
         """
         H, C = self.heads, self.out_channels
         for lin in lins:
-            if is_lazy(lin.weight):
+            if isinstance(lin.weight, UninitializedParameter):
                 lin.initialize_parameters(lin, (x,))
         weight = torch.cat([lin.weight for lin in lins], 0)
         bias = torch.cat([lin.bias for lin in lins], 0) if lins[0].bias is not None else None
@@ -216,51 +237,49 @@ class AttentionConv(LayerContract):
         return bool(self.explain) or any(len(getattr(self, h)) > 0 for h in _HOOKS)
 
     def route(self, g: Graph, *operands: Tensor) -> Route:
-        plan = g.plan
+        plan, H = g.plan, self.heads
         if (plan is None or not kernels_enabled() or plan.num_edges == 0 or self.observed()
                 or any(t.dtype not in CSR_DTYPES for t in operands)):
-            return Route(None, g.edge_index[1])
-        return Route(plan, plan.dst)
-
-    @staticmethod
-    def to_work(t: Tensor, r: Route) -> Tensor:
-        """A per-edge tensor in the caller's order, in the route's working order."""
-        return t if r.plan is None else r.plan.to_csr(t)
-
-    @staticmethod
-    def to_caller(t: Tensor, r: Route) -> Tensor:
-        return t if r.plan is None else r.plan.to_caller(t)
+            return Route(None, H, g.edge_index[1], None, g.num_dst, None)
+        pat = head_pattern(plan, H)
+        return Route(plan, H, pat.rows, pat.ptr, H * g.num_dst, pat)
 
     # ------------------------------------------------------------------ attention steps
     @staticmethod
     def edge_scores(q: Tensor, k: Tensor, g: Graph, r: Route) -> Tensor:
-        """``q_i . k_j`` per edge ``j -> i`` and head, ``[E, H]`` in working order."""
-        if r.plan is not None:
-            return csr_scores(q, k, r.plan)
+        """``q_i . k_j`` per edge ``j -> i`` and head, in the working layout."""
+        if r.pattern is not None:
+            H, C = q.size(1), q.size(2)
+            qs = q.transpose(0, 1).reshape(H * g.num_dst, C)
+            ks = k.transpose(0, 1).reshape(H * g.num_src, C)
+            return sddmm(qs, ks, r.pattern)
         # contiguous first: gathering rows of a strided [N, H, C] view is several times slower
         q_i = q.contiguous().index_select(0, g.edge_index[1])
         return (q_i * k.contiguous().index_select(0, g.edge_index[0])).sum(-1)
 
     @staticmethod
-    def softmax(scores: Tensor, g: Graph, r: Route) -> Tensor:
-        """Softmax over each target's incoming edges (working order)."""
-        return edge_softmax(scores, r.index, g.num_dst, None if r.plan is None else r.plan.ptr)
+    def softmax(scores: Tensor, r: Route) -> Tensor:
+        """Softmax over each target's incoming edges, per head (working layout)."""
+        return edge_softmax(scores, r.index, r.num_segments, r.ptr)
 
     def aggregate_values(self, alpha: Tensor, v: Tensor, g: Graph, r: Route,
                          **messages: Tensor) -> Tensor:
         """``sum_j alpha_ij v_j`` per head, ``[N_dst, H, C]``; ``messages`` are the
         extra per-edge arguments of :meth:`message` (message route only)."""
-        if r.plan is not None:
-            return csr_aggregate(alpha, v, r.plan)
+        if r.pattern is not None:
+            H, C = v.size(1), v.size(2)
+            out = spmm(alpha, v.transpose(0, 1).reshape(H * g.num_src, C), r.pattern)
+            return out.view(H, g.num_dst, C).transpose(0, 1)
         return self.propagate(g.edge_index, v=v, alpha=alpha, size=(g.num_src, g.num_dst),
                               **messages)
 
     @staticmethod
-    def aggregate_edge_rows(alpha: Tensor, y: Tensor, r: Route) -> Tensor:
+    def aggregate_edge_rows(alpha: Tensor, y: Tensor, g: Graph, r: Route) -> Tensor:
         """``sum_j alpha_ij y_ij`` per head for edge rows ``y [E, D]`` in the caller's
         order: ``[N_dst, H, D]`` (fused route only)."""
         assert r.plan is not None
-        return csr_edge_aggregate(alpha, y, r.plan)
+        out = spmm(alpha, y, incidence_pattern(r.plan, r.heads))
+        return out.view(r.heads, g.num_dst, -1).transpose(0, 1)
 
     def merge_heads(self, out: Tensor, x_dst: Tensor) -> Tensor:
         """``W_o heads(out) + skip(x_dst)``: concatenate or average the heads."""

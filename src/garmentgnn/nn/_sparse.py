@@ -82,6 +82,7 @@ class Pattern:
         self._transpose_parts = transpose  # (ptr_t, col_t, to_t), built on demand otherwise
         self._t: Optional[Pattern] = None
         self._to_t: Optional[Tensor] = None
+        self.rows: Optional[Tensor] = None  # row of every entry (head patterns set it)
 
     def matrix(self, values: Tensor) -> Tensor:
         with _quiet():
@@ -102,6 +103,7 @@ class Pattern:
         return self._to_t
 
     @property
+    @torch.inference_mode(False)
     def T(self) -> "Pattern":
         if self._t is None:
             ptr_t, col_t, to_t = self._transpose_parts or self._build_transpose()
@@ -120,6 +122,7 @@ class Pattern:
             return torch.sparse.sampled_addmm(pattern, a, b.t(), beta=0.0).values()
 
 
+@torch.inference_mode(False)  # cached patterns serve autograd calls too
 def head_pattern(plan: CSRPlan, heads: int) -> Pattern:
     """Block-diagonal ``[H*N_dst, H*N_src]``: the graph's pattern once per head.
 
@@ -145,10 +148,12 @@ def head_pattern(plan: CSRPlan, heads: int) -> Pattern:
 
         pat = Pattern(ptr, col, (heads * nd, heads * ns))
         pat._build_transpose = transpose  # type: ignore[method-assign]
+        pat.rows = (plan.dst.unsqueeze(0) + off * nd).reshape(-1)  # row of every entry
         plan.patterns[key] = pat
     return plan.patterns[key]
 
 
+@torch.inference_mode(False)
 def incidence_pattern(plan: CSRPlan, heads: int) -> Pattern:
     """Per-head target-by-edge incidence ``[H*N_dst, E]``; row ``(h, i)`` holds the
     incoming edges of ``i`` as columns in the *caller's* edge order, so
@@ -216,27 +221,3 @@ def sddmm(a: Tensor, b: Tensor, pat: Pattern) -> Tensor:
 def spmm(values: Tensor, dense: Tensor, pat: Pattern) -> Tensor:
     """``pat(values) @ dense`` (differentiable in both, to any order)."""
     return _SpMM.apply(values.contiguous(), dense.contiguous(), pat)
-
-
-def csr_scores(q: Tensor, k: Tensor, plan: CSRPlan) -> Tensor:
-    """``q_i . k_j`` for every edge ``j -> i`` (CSR order) and head: ``[E, H]``."""
-    H, C = q.size(1), q.size(2)
-    qs = q.transpose(0, 1).reshape(H * plan.num_dst, C)
-    ks = k.transpose(0, 1).reshape(H * plan.num_src, C)
-    return sddmm(qs, ks, head_pattern(plan, H)).view(H, -1).t()
-
-
-def csr_aggregate(alpha: Tensor, v: Tensor, plan: CSRPlan) -> Tensor:
-    """``sum_j alpha_ij v_j`` per head: ``[N_dst, H, C]`` from ``alpha [E, H]`` (CSR order)."""
-    H, C = v.size(1), v.size(2)
-    vs = v.transpose(0, 1).reshape(H * plan.num_src, C)
-    out = spmm(alpha.t().reshape(-1), vs, head_pattern(plan, H))
-    return out.view(H, plan.num_dst, C).transpose(0, 1)
-
-
-def csr_edge_aggregate(alpha: Tensor, y: Tensor, plan: CSRPlan) -> Tensor:
-    """``sum_j alpha_ij y_ij`` per head: ``[N_dst, H, D]`` from ``alpha [E, H]`` (CSR
-    order) and edge rows ``y [E, D]`` in the caller's order."""
-    H = alpha.size(1)
-    out = spmm(alpha.t().reshape(-1), y, incidence_pattern(plan, H))
-    return out.view(H, plan.num_dst, -1).transpose(0, 1)

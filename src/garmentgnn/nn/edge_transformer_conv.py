@@ -133,14 +133,14 @@ class EdgeTransformerConv(AttentionConv):
         # order (the per-channel edge product needs it; it is also the new edge state)
         q_i, k_j = q.contiguous().index_select(0, dst), k.contiguous().index_select(0, src)
         w_hat = q_i * k_j * self.lin_edge(e).view(E, H, C)
-        alpha = self.softmax(self.to_work(w_hat.sum(-1), r), g, r)  # [E, H]
+        alpha = self.softmax(r.edges_in(w_hat.sum(-1)), r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
         out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
 
         w_hat = w_hat.reshape(E, H * C) if self.concat else w_hat.mean(1)
         e_out = self.lin_edge_out(w_hat)
         e_out = e_out + (e if self.lin_edge_skip is None else self.lin_edge_skip(e))
-        return out, e_out, (g.edge_index, self.to_caller(alpha, r))
+        return out, e_out, (g.edge_index, r.edges_out(alpha))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -104,11 +104,11 @@ class GraphTransformerConv(AttentionConv):
         q, k, v, x_dst = self.project_qkv(x)
         r = self.route(g, q)
         # Eq. (3): scaled dot-product scores, one per edge and head.
-        alpha = self.softmax(self.edge_scores(q, k, g, r), g, r)  # [E, H]
+        alpha = self.softmax(self.edge_scores(q, k, g, r), r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
         # Eq. (4): x_i' = W_o heads(sum_j alpha_ij v_j) + skip(x_i)
         out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
-        return out, None, (g.edge_index, self.to_caller(alpha, r))
+        return out, None, (g.edge_index, r.edges_out(alpha))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

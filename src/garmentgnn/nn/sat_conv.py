@@ -153,12 +153,12 @@ class SATConv(AttentionConv):
         r = self.route(g, q, e)
 
         # Eq. (5): h_ij = (q_i . k_j / sqrt(C)) * sigmoid(W_p e_ij), one per edge and head
-        h = self.edge_scores(q, k, g, r) * self.to_work(torch.sigmoid(self.lin_edge_gate(e)), r)
+        h = self.edge_scores(q, k, g, r) * r.edges_in(torch.sigmoid(self.lin_edge_gate(e)))
         logits = h
         if self.training and self.attn_mask_p > 0:
             drop = torch.rand_like(h) < self.attn_mask_p
-            logits = h.masked_fill(keep_one_mask(drop, r.index, g.num_dst), float("-inf"))
-        alpha = self.softmax(logits, g, r)  # [E, H]
+            logits = h.masked_fill(keep_one_mask(drop, r.index, r.num_segments), float("-inf"))
+        alpha = self.softmax(logits, r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
 
         if r.plan is not None:
@@ -166,7 +166,7 @@ class SATConv(AttentionConv):
             #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + [W_q' | b] sum_j alpha [e_ij | 1]
             # so only the narrow [E, D+1] edge rows are aggregated, never [E, H, C] values.
             out = self.aggregate_values(alpha_used, v, g, r)  # [N, H, C]
-            agg_e = self.aggregate_edge_rows(alpha_used, F.pad(e, (0, 1), value=1.0), r)
+            agg_e = self.aggregate_edge_rows(alpha_used, F.pad(e, (0, 1), value=1.0), g, r)
             w = self.lin_edge_value.weight.view(H, C, D)
             b = (self.lin_edge_value.bias.view(H, C, 1) if self.lin_edge_value.bias is not None
                  else w.new_zeros(H, C, 1))
@@ -177,9 +177,9 @@ class SATConv(AttentionConv):
         out = self.merge_heads(out, x_dst)
 
         # e_ij' = W_e h_ij + skip(e_ij), from the unmasked scores
-        e_out = self.lin_edge_out(self.to_caller(h, r))
+        e_out = self.lin_edge_out(r.edges_out(h))
         e_out = e_out + (e if self.lin_edge_skip is None else self.lin_edge_skip(e))
-        return out, e_out, (g.edge_index, self.to_caller(alpha, r))
+        return out, e_out, (g.edge_index, r.edges_out(alpha))
 
     def message(self, v_j: Tensor, alpha: Tensor, qe: Tensor) -> Tensor:  # type: ignore[override]
         return (v_j + qe) * alpha.unsqueeze(-1)

@@ -189,10 +189,10 @@ class StructureAwareTransformerConv(AttentionConv):
             (v,) = self.project(x[0], (self.lin_value,))
             x_dst = x[1]
         r = self.route(g, q)
-        alpha = self.softmax(self.edge_scores(q, k, g, r), g, r)
+        alpha = self.softmax(self.edge_scores(q, k, g, r), r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
         out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
-        return out, None, (g.edge_index, self.to_caller(alpha, r))
+        return out, None, (g.edge_index, r.edges_out(alpha))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
