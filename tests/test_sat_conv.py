@@ -9,8 +9,10 @@ from garmentgnn.nn import SATConv
 from garmentgnn.nn._sparse import csr_kernels
 
 
-def reference_sat(conv: SATConv, x, edge_index, e):
-    """Eqs. (5)-(6) written edge by edge and node by node, in float64."""
+def reference_sat(conv: SATConv, x, edge_index, e, drop=None):
+    """Eqs. (5)-(6) written edge by edge and node by node, in float64.  Edge ``drop``
+    (an index) keeps its attention weight but contributes no message, which is what an
+    explainer's edge mask of 0 means (as for PyG's convs)."""
     H, C = conv.heads, conv.out_channels
     x, e = x.double(), e.double()
 
@@ -35,6 +37,8 @@ def reference_sat(conv: SATConv, x, edge_index, e):
         for hd in range(H):
             a = torch.softmax(h[inc, hd], 0)
             for w, n in zip(a, inc):
+                if drop is not None and int(n) == drop:
+                    continue
                 qe = lin(conv.lin_edge_value, e[n]).view(H, C)[hd]
                 agg[i, hd] += w * (v[int(edge_index[0, n]), hd] + qe)
     heads = agg.reshape(N, H * C) if conv.concat else agg.mean(1)
