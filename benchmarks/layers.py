@@ -2,7 +2,7 @@
 TransformerConv and GATv2Conv, side by side in one run.
 
 A ~10K-vertex triangle mesh (nx x nx grid, ~59K directed edges), input width 64,
-edge features of width ``--edge-dim``; for every configuration of heads x
+edge features of width 4 (length and direction) and 64; for every configuration of heads x
 channels (4x16, 1x64, 4x64), edge order (sorted by target as
 ``faces_to_edge_index`` gives it, and randomly shuffled) and thread count (1, 2),
 every layer is timed forward (inference, no autograd) and forward+backward
@@ -20,6 +20,7 @@ table between the ``<!-- bench:layers -->`` markers in ``docs/layers.md``.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -83,10 +84,10 @@ def time_round(layers: dict, x, ei, e, fwd: dict, fb: dict, record: bool) -> Non
 
 
 def run(args) -> dict:
-    x, graphs = mesh(args.nx, args.width, args.edge_dim)
     rows = []
-    for heads, channels in CONFIGS:
-        layers = build_layers(args.width, heads, channels, args.edge_dim, args.layers)
+    for edge_dim, (heads, channels) in itertools.product(args.edge_dims, CONFIGS):
+        x, graphs = mesh(args.nx, args.width, edge_dim)
+        layers = build_layers(args.width, heads, channels, edge_dim, args.layers)
         for order, (ei, e) in graphs.items():
             for threads in args.threads:
                 torch.set_num_threads(threads)
@@ -97,18 +98,19 @@ def run(args) -> dict:
                 f0, b0 = statistics.median(fwd[ANCHOR]), statistics.median(fb[ANCHOR])
                 for name in layers:
                     f, b = statistics.median(fwd[name]), statistics.median(fb[name])
-                    rows.append(dict(layer=name, heads=heads, channels=channels, order=order,
+                    rows.append(dict(layer=name, edge_dim=edge_dim, heads=heads,
+                                     channels=channels, order=order,
                                      threads=threads, fwd_ms=1e3 * f, fwd_bwd_ms=1e3 * b,
                                      fwd_ratio=f / f0, fwd_bwd_ratio=b / b0))
                 sat = rows[-len(layers) + list(layers).index("sat")] if "sat" in layers else None
                 if sat is not None:
-                    print(f"[layers] {heads}x{channels} {order:8s} {threads}t: sat fwd "
+                    print(f"[layers] D={edge_dim} {heads}x{channels} {order:8s} {threads}t: sat fwd "
                           f"{sat['fwd_ratio']:.2f}x  fwd+bwd {sat['fwd_bwd_ratio']:.2f}x TC",
                           flush=True)
     return dict(torch=torch.__version__, torch_geometric=torch_geometric.__version__,
                 torch_scatter=torch_geometric.typing.WITH_TORCH_SCATTER,
                 num_nodes=x.size(0), num_edges=graphs["sorted"][0].size(1), width=args.width,
-                edge_dim=args.edge_dim, reps=args.reps,
+                edge_dims=args.edge_dims, reps=args.reps,
                 machine=dict(platform=platform.platform(), cpus=os.cpu_count(),
                              python=platform.python_version()),
                 rows=rows)
@@ -116,15 +118,17 @@ def run(args) -> dict:
 
 def markdown(res: dict) -> str:
     lines = [f"{res['num_nodes']} vertices, {res['num_edges']} directed edges, input width "
-             f"{res['width']}, edge_dim {res['edge_dim']}; median of {res['reps']} interleaved "
+             f"{res['width']}; median of {res['reps']} interleaved "
              f"rounds; torch {res['torch']}, PyG {res['torch_geometric']}, torch-scatter "
              f"{'on' if res['torch_scatter'] else 'off'}; {res['machine']['cpus']} CPUs. "
              "Ratios are to `TransformerConv(64, C, heads=H, edge_dim=D)` in the same rounds.",
              "",
-             "| H x C | edges | threads | layer | fwd ms | fwd+bwd ms | fwd / TC | fwd+bwd / TC |",
-             "|---|---|---:|---|---:|---:|---:|---:|"]
+             "| edge_dim | H x C | edges | threads | layer | fwd ms | fwd+bwd ms | fwd / TC | "
+             "fwd+bwd / TC |",
+             "|---:|---|---|---:|---|---:|---:|---:|---:|"]
     for r in res["rows"]:
-        lines.append(f"| {r['heads']}x{r['channels']} | {r['order']} | {r['threads']} | "
+        lines.append(f"| {r['edge_dim']} | {r['heads']}x{r['channels']} | {r['order']} | "
+                     f"{r['threads']} | "
                      f"{r['layer']} | {r['fwd_ms']:.1f} | {r['fwd_bwd_ms']:.1f} | "
                      f"{r['fwd_ratio']:.2f} | {r['fwd_bwd_ratio']:.2f} |")
     return "\n".join(lines) + "\n"
@@ -134,7 +138,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--nx", type=int, default=100, help="mesh is nx x nx vertices (100 -> 10K)")
     ap.add_argument("--width", type=int, default=64)
-    ap.add_argument("--edge-dim", type=int, default=4)
+    ap.add_argument("--edge-dims", type=int, nargs="+", default=[4, 64],
+                    help="edge feature widths (4: the mesh's length and direction)")
     ap.add_argument("--reps", type=int, default=9)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
