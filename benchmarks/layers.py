@@ -84,6 +84,7 @@ def time_round(layers: dict, x, ei, e, fwd: dict, fb: dict, record: bool) -> Non
 
 
 def run(args) -> dict:
+    load_before = os.getloadavg()[0]
     rows = []
     for edge_dim, (heads, channels) in itertools.product(args.edge_dims, CONFIGS):
         x, graphs = mesh(args.nx, args.width, edge_dim)
@@ -116,7 +117,8 @@ def run(args) -> dict:
                 num_nodes=x.size(0), num_edges=graphs["sorted"][0].size(1), width=args.width,
                 edge_dims=args.edge_dims, reps=args.reps,
                 machine=dict(platform=platform.platform(), cpus=os.cpu_count(),
-                             python=platform.python_version()),
+                             python=platform.python_version(),
+                             load_average=[load_before, os.getloadavg()[0]]),
                 rows=rows)
 
 
@@ -124,7 +126,9 @@ def markdown(res: dict) -> str:
     lines = [f"{res['num_nodes']} vertices, {res['num_edges']} directed edges, input width "
              f"{res['width']}; median of {res['reps']} interleaved "
              f"rounds; torch {res['torch']}, PyG {res['torch_geometric']}, torch-scatter "
-             f"{'on' if res['torch_scatter'] else 'off'}; {res['machine']['cpus']} CPUs. "
+             f"{'on' if res['torch_scatter'] else 'off'}; {res['machine']['cpus']} CPUs, load "
+             "average {:.1f} at the start and {:.1f} at the end (other work on the machine "
+             "adds noise, most to the 2-thread rows). ".format(*res["machine"]["load_average"]) +
              "Ratios are to `TransformerConv(64, C, heads=H, edge_dim=D)` in the same rounds: "
              "of the medians, and (in brackets) of the best times.",
              "",

@@ -31,7 +31,6 @@ from typing import Iterator, Optional, Tuple
 
 import torch
 from torch import Tensor
-
 from torch_geometric.index import index2ptr
 
 from garmentgnn.nn._graph import CSRPlan

@@ -163,22 +163,31 @@ class SATConv(AttentionConv):
 
         if r.plan is not None:
             # Eq. (6), by linearity of W_q':
-            #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + [W_q' | b] sum_j alpha [e_ij | 1]
-            # so only the narrow [E, D+1] edge rows are aggregated, never [E, H, C] values.
+            #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + W_q' sum_j alpha e_ij
+            #                                       + b sum_j alpha
+            # so only the narrow [E, D] edge rows are aggregated, never [E, H, C] values.
             out = self.aggregate_values(alpha_used, v, g, r)  # [N, H, C]
-            agg_e = self.aggregate_edge_rows(alpha_used, F.pad(e, (0, 1), value=1.0), g, r)
+            agg_e = self.aggregate_edge_rows(alpha_used, e, g, r)  # [N, H, D]
             w = self.lin_edge_value.weight.view(H, C, D)
-            b = (self.lin_edge_value.bias.view(H, C, 1) if self.lin_edge_value.bias is not None
-                 else w.new_zeros(H, C, 1))
-            out = out + torch.einsum("nhd,hcd->nhc", agg_e, torch.cat([w, b], -1))
+            out = out + torch.einsum("nhd,hcd->nhc", agg_e, w)
+            if self.lin_edge_value.bias is not None:
+                mass = alpha_used.new_zeros(r.num_segments).index_add_(0, r.index, alpha_used)
+                out = out + mass.view(H, g.num_dst, 1).transpose(0, 1) \
+                    * self.lin_edge_value.bias.view(H, C)
         else:  # the messages alpha_ij (v_j + q^e_ij), as hooks and explainers see them
             qe = self.lin_edge_value(e).view(e.size(0), H, C)
             out = self.aggregate_values(alpha_used, v, g, r, qe=qe)
         out = self.merge_heads(out, x_dst)
 
         # e_ij' = W_e h_ij + skip(e_ij), from the unmasked scores
-        e_out = self.lin_edge_out(r.edges_out(h))
-        e_out = e_out + (e if self.lin_edge_skip is None else self.lin_edge_skip(e))
+        h = r.edges_out(h)
+        if self.lin_edge_skip is None:  # one pass over the [E, D] output: e + [h | 1] [W_e | b]^T
+            w_e, b_e = self.lin_edge_out.weight, self.lin_edge_out.bias
+            if b_e is not None:
+                h, w_e = F.pad(h, (0, 1), value=1.0), torch.cat([w_e, b_e.unsqueeze(1)], 1)
+            e_out = torch.addmm(e, h, w_e.t())
+        else:
+            e_out = self.lin_edge_out(h) + self.lin_edge_skip(e)
         return out, e_out, (g.edge_index, r.edges_out(alpha))
 
     def message(self, v_j: Tensor, alpha: Tensor, qe: Tensor) -> Tensor:  # type: ignore[override]
