@@ -41,16 +41,16 @@ class TwoLayerNet(nn.Module):
     def __init__(self, name: str, hidden: int = 16, heads: int = 4, edge_dim: int = 4):
         super().__init__()
         self.enc = nn.Linear(1, hidden)
-        self.conv1 = make_layer(name, hidden, hidden // heads, edge_dim=edge_dim, heads=heads)
-        self.conv2 = make_layer(name, hidden, hidden // heads, edge_dim=edge_dim, heads=heads)
+        self.conv1 = make_layer(name, hidden, hidden // heads, heads=heads, edge_dim=edge_dim)
+        self.conv2 = make_layer(name, hidden, hidden // heads, heads=heads, edge_dim=edge_dim)
         self.head = nn.Linear(hidden, 1)
 
     def forward(self, z, edge_index, edge_attr):
         x = self.enc(z)
-        x, e = self.conv1(x, edge_index, edge_attr)
+        # the edge-carrying form: layers that ignore edges hand edge_attr back unchanged
+        x, e = self.conv1(x, edge_index, edge_attr, return_edge_attr=True)
         x = nn.functional.elu(x)
-        # layers that ignore edges hand edge_attr back unchanged
-        x, e = self.conv2(x, edge_index, e if e is not None else edge_attr)
+        x = self.conv2(x, edge_index, e)
         return self.head(nn.functional.elu(x))
 
 

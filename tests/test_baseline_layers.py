@@ -108,7 +108,8 @@ def test_gt_matches_loop_reference(in_ch, out_ch, heads, concat, sorted_by_dst):
     layer = GraphTransformerConv(in_ch, out_ch, heads=heads, concat=concat).eval()
     x = torch.randn(7, in_ch)
     ei = random_graph(7, 7, 20, sorted_by_dst)
-    out, e_out, (ei_ret, alpha) = layer(x, ei, return_attention_weights=True)
+    out, e_out, (ei_ret, alpha) = layer(x, ei, return_attention_weights=True,
+                                        return_edge_attr=True)
     ref, ref_alpha = reference_gt(layer, x, x, ei)
     assert out.shape == (7, heads * out_ch if concat else out_ch)
     assert e_out is None
@@ -123,7 +124,7 @@ def test_gt_bipartite_matches_loop_reference(sorted_by_dst):
     layer = GraphTransformerConv((5, 3), 4, heads=2).eval()
     x_src, x_dst = torch.randn(6, 5), torch.randn(4, 3)
     ei = random_graph(6, 4, 12, sorted_by_dst)
-    out, _ = layer((x_src, x_dst), ei)
+    out = layer((x_src, x_dst), ei)
     ref, _ = reference_gt(layer, x_src, x_dst, ei)
     torch.testing.assert_close(out, ref, atol=ATOL, rtol=0)
 
@@ -133,8 +134,8 @@ def test_gt_ignores_and_returns_edge_attr():
     layer = GraphTransformerConv(6, 3, edge_dim=2, heads=2).eval()
     x, ei = torch.randn(5, 6), random_graph(5, 5, 10, False)
     ea = torch.randn(10, 2)
-    out_a, e_out = layer(x, ei, ea)
-    out_b, none_out = layer(x, ei)
+    out_a, e_out = layer(x, ei, ea, return_edge_attr=True)
+    out_b, none_out = layer(x, ei, return_edge_attr=True)
     assert e_out is ea and none_out is None
     torch.testing.assert_close(out_a, out_b, atol=0, rtol=0)
     with pytest.raises(ValueError, match="edge_attr"):
@@ -159,7 +160,7 @@ def test_gt_equals_pyg_transformer_conv(in_ch, out_ch, heads, concat, sorted_by_
             ours.lin_skip.load_state_dict(pyg.lin_skip.state_dict())
     x = torch.randn(8, in_ch)
     ei = random_graph(8, 8, 24, sorted_by_dst, seed=3)
-    out, _, (_, alpha) = ours(x, ei, return_attention_weights=True)
+    out, (_, alpha) = ours(x, ei, return_attention_weights=True)
     ref, (_, ref_alpha) = pyg(x, ei, return_attention_weights=True)
     torch.testing.assert_close(out, ref, atol=ATOL, rtol=0)
     torch.testing.assert_close(alpha, ref_alpha, atol=ATOL, rtol=0)
@@ -197,7 +198,8 @@ def test_edge_transformer_matches_loop_reference(in_ch, out_ch, heads, concat, e
     x = torch.randn(7, in_ch)
     ei = random_graph(7, 7, 20, sorted_by_dst, seed=4)
     ea = torch.randn(20, 3)
-    out, e_out, (_, alpha) = layer(x, ei, ea, return_attention_weights=True)
+    out, e_out, (_, alpha) = layer(x, ei, ea, return_attention_weights=True,
+                                   return_edge_attr=True)
     ref, ref_e, ref_alpha = reference_edge(layer, x, ei, ea)
     assert e_out.shape == (20, edge_out or 3)
     torch.testing.assert_close(alpha, ref_alpha, atol=ATOL, rtol=0)
@@ -220,8 +222,8 @@ def test_edge_transformer_sparse_adjacency_matches_edge_index():
     ei = torch.tensor([[1, 2, 0, 3, 5, 4, 0, 2], [0, 0, 1, 2, 2, 3, 4, 5]])  # sorted, no dups
     ea = torch.randn(8, 2)
     adj_t = torch.sparse_coo_tensor(ei.flip(0), ea, (6, 6, 2)).coalesce()  # hybrid [N, N, D]
-    out_a, e_a = layer(x, ei, ea)
-    out_b, e_b = layer(x, adj_t)
+    out_a, e_a = layer(x, ei, ea, return_edge_attr=True)
+    out_b, e_b = layer(x, adj_t, return_edge_attr=True)
     torch.testing.assert_close(out_a, out_b, atol=ATOL, rtol=0)
     torch.testing.assert_close(e_a, e_b, atol=ATOL, rtol=0)
 
@@ -238,7 +240,8 @@ def test_structure_aware_matches_loop_reference(in_ch, out_ch, heads, concat, ed
     x = torch.randn(7, in_ch)
     ei = random_graph(7, 7, 20, sorted_by_dst, seed=6)
     ea = torch.randn(20, 3) if edge_dim else None
-    out, e_out, (_, alpha) = layer(x, ei, ea, return_attention_weights=True)
+    out, e_out, (_, alpha) = layer(x, ei, ea, return_attention_weights=True,
+                                   return_edge_attr=True)
     assert e_out is ea
 
     H, C = heads, out_ch
@@ -290,14 +293,25 @@ def test_structure_extractor_sees_exactly_k_hops(edge_dim):
         assert not changed(ea2=ea3)
 
 
-def test_structure_aware_rejects_bipartite():
-    with pytest.raises(ValueError, match="in_channels"):
-        StructureAwareTransformerConv((4, 5), 2)
+@pytest.mark.parametrize("edge_dim", [None, 2])
+def test_structure_aware_bipartite_is_the_graph_on_both_node_sets(edge_dim):
+    """A bipartite call equals the same layer on the graph whose nodes are the sources
+    followed by the targets (targets' rows of the output)."""
+    torch.manual_seed(10)
+    layer = StructureAwareTransformerConv((4, 4), 3, heads=2, edge_dim=edge_dim).eval()
+    x_src, x_dst = torch.randn(6, 4), torch.randn(4, 4)
+    ei = random_graph(6, 4, 12, False, seed=10)
+    ea = torch.randn(12, 2) if edge_dim else None
+    out = layer((x_src, x_dst), ei, ea)
+    union = torch.stack([ei[0], ei[1] + 6])
+    ref = layer(torch.cat([x_src, x_dst]), union, ea)[6:]
+    torch.testing.assert_close(out, ref, atol=ATOL, rtol=0)
+    # different widths: each side is mapped to the extractor's width first
+    wide = StructureAwareTransformerConv((4, 5), 3, heads=2, edge_dim=edge_dim).eval()
+    assert wide.lin_extract_src is not None and wide.lin_extract_dst is not None
+    assert wide((x_src, torch.randn(4, 5)), ei, ea).shape == (4, 6)
     with pytest.raises(ValueError, match="k_hops"):
         StructureAwareTransformerConv(4, 2, k_hops=0)
-    layer = StructureAwareTransformerConv((4, 4), 2)
-    with pytest.raises(ValueError, match="`x`"):
-        layer((torch.randn(3, 4), torch.randn(2, 4)), torch.tensor([[0, 1], [1, 0]]))
 
 
 # --------------------------------------------------------------------------- GAT
@@ -313,7 +327,8 @@ def test_gat_matches_standalone_gatv2(in_ch, out_ch, heads, concat, edge_dim, so
     x = torch.randn(7, in_ch)
     ei = random_graph(7, 7, 20, sorted_by_dst, seed=8)
     ea = torch.randn(20, 3) if edge_dim else None
-    out, e_out, (ei_ret, alpha) = layer(x, ei, ea, return_attention_weights=True)
+    out, e_out, (ei_ret, alpha) = layer(x, ei, ea, return_attention_weights=True,
+                                        return_edge_attr=True)
     ref, (_, ref_alpha) = ref_gat(x, ei, ea, return_attention_weights=True)
     ref = ref + skip(layer, x)
     assert e_out is ea
@@ -335,7 +350,8 @@ def test_contract_shapes_grads_and_validation(name):
     x = torch.randn(6, 5, requires_grad=True)
     ei = random_graph(6, 6, 14, False, seed=9)
     ea = torch.randn(14, 2)
-    out, e_out, (_, alpha) = layer(x, ei, ea, return_attention_weights=True)
+    out, e_out, (_, alpha) = layer(x, ei, ea, return_attention_weights=True,
+                                   return_edge_attr=True)
     assert out.shape == (6, 6) and e_out.shape == (14, 2) and alpha.shape == (14, 2)
     (out.sum() + e_out.sum()).backward()
     assert torch.isfinite(x.grad).all()

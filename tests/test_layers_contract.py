@@ -18,7 +18,7 @@ def build(name, in_ch=6, out_ch=4, heads=2, concat=True, **kw):
 
 
 def run(layer, x, ei, e):
-    out, e_out = layer(x, ei, e)
+    out, e_out = layer(x, ei, e, return_edge_attr=True)
     return out, e_out
 
 
@@ -83,14 +83,14 @@ def test_sparse_adjacency_matches_edge_index(name, form, grad):
     with torch.set_grad_enabled(grad):
         if form == "coo_hybrid":
             adj_t = torch.sparse_coo_tensor(ei.flip(0), e, (N, N, EDGE_DIM))
-            out_s, e_out_s = layer(x, adj_t)
+            out_s, e_out_s = layer(x, adj_t, return_edge_attr=True)
         elif form == "csr":
             adj_t = torch.sparse_coo_tensor(ei.flip(0), torch.ones(ei.size(1)),
                                             (N, N)).to_sparse_csr()
-            out_s, e_out_s = layer(x, adj_t, e[order])
+            out_s, e_out_s = layer(x, adj_t, e[order], return_edge_attr=True)
         else:
             eidx = EdgeIndex(ei[:, order], sparse_size=(N, N), sort_order="col")
-            out_s, e_out_s = layer(x, eidx, e[order])
+            out_s, e_out_s = layer(x, eidx, e[order], return_edge_attr=True)
     torch.testing.assert_close(out_s, out, atol=1e-5, rtol=1e-5)
     if e_out is not None:
         torch.testing.assert_close(e_out_s, e_out[order], atol=1e-5, rtol=1e-5)
@@ -105,7 +105,7 @@ def test_gradcheck(name):
     e = torch.randn(ei.size(1), EDGE_DIM, dtype=torch.float64, requires_grad=name in USES_EDGES)
 
     def f(a, b):
-        out, e_out = layer(a, ei, b)
+        out, e_out = layer(a, ei, b, return_edge_attr=True)
         return out if e_out is None or not e_out.requires_grad else (out, e_out)
 
     assert torch.autograd.gradcheck(f, (x, e))
@@ -118,7 +118,7 @@ def test_torch_compile_matches_eager(name, mesh_graph):
     layer = build(name).eval()
     ref, e_ref = run(layer, x, ei, e)
     compiled = torch.compile(layer, backend="aot_eager")
-    out, e_out = compiled(x, ei, e)
+    out = compiled(x, ei, e)
     torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
 
 
@@ -127,8 +127,8 @@ def test_sat_inductor_compile(mesh_graph):
     pos, _, ei, e = mesh_graph
     x = torch.cat([pos, pos.flip(-1)], -1)
     layer = build("sat").eval()
-    ref, e_ref = layer(x, ei, e)
-    out, e_out = torch.compile(layer)(x, ei, e)
+    ref, e_ref = layer(x, ei, e, return_edge_attr=True)
+    out, e_out = torch.compile(layer)(x, ei, e, return_edge_attr=True)
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(e_out, e_ref, atol=1e-4, rtol=1e-4)
 
@@ -163,13 +163,13 @@ def test_bad_input_raises_value_error_naming_argument(name):
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_validate_false_skips_checks(name):
+def test_check_finite_false_skips_the_check(name):
     N = 6
     ei = random_graph(N, 10, seed=11)
     x, e = torch.randn(N, 6), torch.randn(ei.size(1), EDGE_DIM)
     x[0, 0] = float("nan")
-    layer = build(name, validate=False).eval()
-    out, _ = layer(x, ei, e)  # no error: the caller opted out of the O(N+E) checks
+    layer = build(name, check_finite=False).eval()
+    out = layer(x, ei, e)  # no error: the caller opted out of the finite-value check
     assert out.shape[0] == N
 
 
@@ -179,7 +179,7 @@ def test_widths_and_reset(name, concat):
     layer = build(name, in_ch=5, out_ch=3, heads=2, concat=concat)
     N = 6
     ei = random_graph(N, 12, seed=12)
-    out, _ = layer(torch.randn(N, 5), ei, torch.randn(ei.size(1), EDGE_DIM))
+    out = layer(torch.randn(N, 5), ei, torch.randn(ei.size(1), EDGE_DIM))
     assert out.shape == (N, 6 if concat else 3)
     before = [p.detach().clone() for p in layer.parameters()]
     layer.reset_parameters()

@@ -6,12 +6,13 @@ import torch
 from conftest import random_graph
 
 from garmentgnn.nn import SATConv
-from garmentgnn.nn._graph import prepare_graph
-from garmentgnn.nn._sparse import use_csr_kernels
+from garmentgnn.nn._sparse import csr_kernels
 
 
-def reference_sat(conv: SATConv, x, edge_index, e):
-    """Eqs. (5)-(6) written edge by edge and node by node, in float64."""
+def reference_sat(conv: SATConv, x, edge_index, e, drop=None):
+    """Eqs. (5)-(6) written edge by edge and node by node, in float64.  Edge ``drop``
+    (an index) keeps its attention weight but contributes no message, which is what an
+    explainer's edge mask of 0 means (as for PyG's convs)."""
     H, C = conv.heads, conv.out_channels
     x, e = x.double(), e.double()
 
@@ -36,6 +37,8 @@ def reference_sat(conv: SATConv, x, edge_index, e):
         for hd in range(H):
             a = torch.softmax(h[inc, hd], 0)
             for w, n in zip(a, inc):
+                if drop is not None and int(n) == drop:
+                    continue
                 qe = lin(conv.lin_edge_value, e[n]).view(H, C)[hd]
                 agg[i, hd] += w * (v[int(edge_index[0, n]), hd] + qe)
     heads = agg.reshape(N, H * C) if conv.concat else agg.mean(1)
@@ -47,10 +50,12 @@ def reference_sat(conv: SATConv, x, edge_index, e):
 
 @pytest.mark.parametrize("concat", [True, False])
 @pytest.mark.parametrize("in_ch,edge_out", [(8, None), (5, 6)])
-@pytest.mark.parametrize("sort,grad", [(False, True), (True, True), (True, False)])
-def test_matches_dense_reference(concat, in_ch, edge_out, sort, grad):
-    """Unsorted edges (gather/scatter path) and CSR-sorted edges (sparse SDDMM/SpMM
-    kernels), with and without autograd, all match the reference."""
+@pytest.mark.parametrize("sort,grad,kernels", [(False, True, True), (True, True, True),
+                                               (True, False, True), (False, True, False)])
+def test_matches_dense_reference(concat, in_ch, edge_out, sort, grad, kernels):
+    """Both edge orders on the fused route (sparse SDDMM/SpMM kernels; unsorted edges are
+    sorted internally), with and without autograd, and the message route (kernels off:
+    propagate), all match the reference."""
     torch.manual_seed(0)
     N, H, C, D = 9, 2, 4, 3
     if concat is False and in_ch == 8:
@@ -61,10 +66,9 @@ def test_matches_dense_reference(concat, in_ch, edge_out, sort, grad):
     width = H * C if concat else C
     assert (conv.lin_skip is None) == (in_ch == width)
     assert (conv.lin_edge_skip is None) == (edge_out in (None, D))
-    g = prepare_graph(x, ei, e, D, require_edge_attr=True, validate=True)
-    with torch.set_grad_enabled(grad):
-        assert use_csr_kernels(g) == sort
-        out, e_out, (ei_ret, alpha) = conv(x, ei, e, return_attention_weights=True)
+    with torch.set_grad_enabled(grad), csr_kernels(kernels):
+        out, e_out, (ei_ret, alpha) = conv(x, ei, e, return_attention_weights=True,
+                                           return_edge_attr=True)
     ref_out, ref_e, ref_h = reference_sat(conv, x, ei, e)
     torch.testing.assert_close(out.double(), ref_out, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(e_out.double(), ref_e, atol=1e-5, rtol=1e-5)
@@ -79,7 +83,7 @@ def test_isolated_node_gets_only_skip():
     conv = SATConv(4, 4, edge_dim=2, heads=1).eval()
     x = torch.randn(3, 4)
     ei = torch.tensor([[0], [1]])  # node 2 has no incoming edge
-    out, _ = conv(x, ei, torch.randn(1, 2))
+    out = conv(x, ei, torch.randn(1, 2))
     torch.testing.assert_close(out[2], conv.lin_out.bias + x[2])
 
 
@@ -90,7 +94,8 @@ def test_attention_mask_never_nan_and_keeps_one_edge(sort):
     ei = random_graph(N, 60, seed=1, sort=sort)
     x, e = torch.randn(N, 8), torch.randn(ei.size(1), 3)
     conv = SATConv(8, 4, edge_dim=3, heads=2, attn_mask_p=1.0).train()
-    out, e_out, (_, alpha) = conv(x, ei, e, return_attention_weights=True)
+    out, e_out, (_, alpha) = conv(x, ei, e, return_attention_weights=True,
+                                  return_edge_attr=True)
     assert torch.isfinite(out).all() and torch.isfinite(e_out).all()
     # with p = 1 exactly one incoming edge per node and head survives, with weight 1
     nonzero = torch.zeros(N, 2).index_add_(0, ei[1], (alpha > 0).float())
@@ -99,7 +104,7 @@ def test_attention_mask_never_nan_and_keeps_one_edge(sort):
     assert all(torch.isfinite(p.grad).all() for p in conv.parameters() if p.grad is not None)
     # in eval mode the mask is off
     conv.eval()
-    _, _, (_, alpha) = conv(x, ei, e, return_attention_weights=True)
+    _, (_, alpha) = conv(x, ei, e, return_attention_weights=True)
     assert (alpha > 0).all()
 
 
@@ -108,7 +113,7 @@ def test_attention_mask_drops_a_fraction():
     N = 200
     ei = random_graph(N, 4000, seed=2)
     conv = SATConv(4, 4, edge_dim=1, attn_mask_p=0.3).train()
-    _, _, (_, alpha) = conv(torch.randn(N, 4), ei, torch.randn(ei.size(1), 1),
+    _, (_, alpha) = conv(torch.randn(N, 4), ei, torch.randn(ei.size(1), 1),
                             return_attention_weights=True)
     frac = (alpha == 0).float().mean().item()
     assert 0.2 < frac < 0.3  # 0.3 minus the one kept edge per node
@@ -124,7 +129,7 @@ def test_gradcheck_float64(sort):
     conv = SATConv(3, 2, edge_dim=2, heads=2, edge_out_channels=3).double().eval()
     x = torch.randn(N, 3, dtype=torch.float64, requires_grad=True)
     e = torch.randn(ei.size(1), 2, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda a, b: conv(a, ei, b), (x, e))
+    assert torch.autograd.gradcheck(lambda a, b: conv(a, ei, b, return_edge_attr=True), (x, e))
 
 
 def test_repr_and_reset():
@@ -142,8 +147,8 @@ def test_bipartite_matches_shared_input():
     ei = random_graph(N, 20, seed=5)
     x, e = torch.randn(N, 6), torch.randn(ei.size(1), 2)
     conv = SATConv(6, 3, edge_dim=2, heads=2).eval()
-    a, ea = conv(x, ei, e)
-    b, eb = conv((x, x), ei, e)
+    a, ea = conv(x, ei, e, return_edge_attr=True)
+    b, eb = conv((x, x), ei, e, return_edge_attr=True)
     torch.testing.assert_close(a, b)
     torch.testing.assert_close(ea, eb)
 

@@ -228,7 +228,7 @@ class DAStyle(nn.Module):
         ei = _batched_graph(scene.edge_index, B, V)
         ea = edge_features(scene.rest_pos.to(dtype), scene.edge_index).repeat(B, 1)
         for layer in self.layers:
-            x = self.act(layer(x, ei, ea)[0])
+            x = self.act(layer(x, ei, ea))
         offset = self.decoder(x).reshape(B, V, 3)
         return skinned + offset.to(skinned.dtype)
 

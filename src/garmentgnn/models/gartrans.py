@@ -115,8 +115,7 @@ class AttentionStack(nn.Module):
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
         e = edge_attr
         for i, layer in enumerate(self.layers):
-            x, e_new = layer(x, edge_index, e)
-            e = e if e_new is None else e_new
+            x, e = layer(x, edge_index, e, return_edge_attr=True)
             if i < len(self.layers) - 1 or self.last_act:
                 x = self.act(x)
         return x

@@ -1,7 +1,8 @@
 """CSR sparse kernels for dot-product graph attention, with their own backward.
 
-With the edges in CSR order (sorted by target, then source, no duplicates),
-the per-edge work of attention maps onto two sparse kernels:
+With the edges in CSR order (sorted by target, then source; the layers sort
+internally, see :class:`garmentgnn.nn._graph.CSRPlan`), the per-edge work of
+attention maps onto two sparse kernels:
 
 * SDDMM: the scores ``s_ij = q_i . k_j`` sampled on the graph's pattern;
 * SpMM:  the aggregation ``out_i = sum_j alpha_ij v_j``.
@@ -10,33 +11,34 @@ All heads run in one call on a block-diagonal ``[H*N_dst, H*N_src]`` pattern,
 so no ``[E, H, C]`` tensor is materialised in the forward *or* the backward
 pass.  PyTorch's own autograd for sparse CSR inputs is very slow on CPU (it
 densifies or re-sorts), so both kernels are :class:`torch.autograd.Function`
-with explicit gradients, which are again SDDMM/SpMM:
+whose gradients are again SDDMM/SpMM on the pattern or its transpose:
 
-* ``d s / d q = G k`` and ``d s / d k = G^T q`` (G: the score gradient on the pattern);
-* ``d out / d alpha = (dOut . v)`` sampled on the pattern, ``d out / d v = A^T dOut``.
+* SDDMM ``s = (A B^T)|_P``: ``dA = G B``, ``dB = G^T A`` (G: ``ds`` on P);
+* SpMM ``Y = P(v) B``: ``dv = (dY B^T)|_P``, ``dB = P(v)^T dY``.
 
-The transposed pattern is built once per graph and call (one ``argsort``).
-First-order gradients only (``once_differentiable``); under ``torch.compile``
-layers fall back to gather/scatter.
+The backward calls the same functions, so gradients of any order work (double
+backward, e.g. for gradient penalties).  Patterns and their transposes are
+built once per graph and head count and cached on the graph's plan.
+
+PyTorch warns once per process that its sparse CSR support is in beta; that
+warning is silenced only around the calls here (no process-wide filter).
 """
 from __future__ import annotations
 
 import contextlib
 import warnings
-from typing import Iterator, Tuple
+from typing import Iterator, Optional, Tuple
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
-from torch_geometric import is_compiling
 from torch_geometric.index import index2ptr
 
-from garmentgnn.nn._graph import Graph
-
-warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-
+from garmentgnn.nn._graph import CSRPlan
 
 _ENABLED = True
+
+#: dtypes PyTorch's sparse CSR kernels support on every device (no CPU half kernels)
+CSR_DTYPES = (torch.float32, torch.float64)
 
 
 @contextlib.contextmanager
@@ -44,7 +46,7 @@ def csr_kernels(enabled: bool) -> Iterator[None]:
     """Switch the sparse-kernel path on or off (for benchmarks and tests)::
 
         with csr_kernels(False):
-            out = conv(x, edge_index, edge_attr)   # gather + segment reductions
+            out = conv(x, edge_index, edge_attr)   # gather + propagate (message path)
     """
     global _ENABLED
     before, _ENABLED = _ENABLED, enabled
@@ -54,157 +56,167 @@ def csr_kernels(enabled: bool) -> Iterator[None]:
         _ENABLED = before
 
 
-#: dtypes PyTorch's sparse CSR kernels support on every device (no CPU half kernels)
-CSR_DTYPES = (torch.float32, torch.float64)
+def kernels_enabled() -> bool:
+    return _ENABLED
 
 
-def use_csr_kernels(g: Graph, *operands: Tensor) -> bool:
-    """True when the sparse-kernel path applies: CSR-ordered edges, eager mode, enabled,
-    and every operand in :data:`CSR_DTYPES` (bfloat16/float16 inputs, e.g. under
-    ``torch.autocast``, take the gather/scatter path)."""
-    return (_ENABLED and g.csr and g.ptr is not None and not is_compiling()
-            and all(t.dtype in CSR_DTYPES for t in operands))
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly")
+        yield
 
 
-class HeadPattern:
-    """The graph's CSR pattern repeated once per head (block diagonal), and its transpose."""
+class Pattern:
+    """A fixed CSR sparsity pattern of shape ``[R, C]``; values come in pattern order.
 
-    def __init__(self, g: Graph, heads: int) -> None:
-        assert g.ptr is not None
-        self.heads, self.num_src, self.num_dst = heads, g.num_src, g.num_dst
-        self.E = E = g.edge_index.size(1)
-        src, dst = g.edge_index[0], g.edge_index[1]
-        off = torch.arange(heads, device=src.device).unsqueeze(1)
-        self.ptr = torch.cat([(g.ptr[:-1].unsqueeze(0) + off * E).reshape(-1),
-                              g.ptr.new_full((1,), heads * E)])
-        self.col = (src.unsqueeze(0) + off * g.num_src).reshape(-1)
-        self.shape = (heads * g.num_dst, heads * g.num_src)
-        self._src, self._dst, self._off = src, dst, off
-        self._t: Tuple[Tensor, Tensor, Tensor] | None = None
+    ``T`` is the transposed pattern; ``to_t`` maps values into its order
+    (``values_T = values[to_t]``).
+    """
+
+    def __init__(self, ptr: Tensor, col: Tensor, shape: Tuple[int, int],
+                 transpose: Optional[Tuple[Tensor, Tensor, Tensor]] = None) -> None:
+        self.ptr, self.col, self.shape = ptr, col, shape
+        self._transpose_parts = transpose  # (ptr_t, col_t, to_t), built on demand otherwise
+        self._t: Optional[Pattern] = None
+        self._to_t: Optional[Tensor] = None
+        self.rows: Optional[Tensor] = None  # row of every entry (head patterns set it)
 
     def matrix(self, values: Tensor) -> Tensor:
-        return torch.sparse_csr_tensor(self.ptr, self.col, values, self.shape,
-                                       check_invariants=False)
+        with _quiet():
+            return torch.sparse_csr_tensor(self.ptr, self.col, values, self.shape,
+                                           check_invariants=False)
 
-    def transposed(self, values: Tensor) -> Tensor:
-        """The transposed matrix ``[H*N_src, H*N_dst]`` holding ``values`` (pattern order)."""
+    def _build_transpose(self) -> Tuple[Tensor, Tensor, Tensor]:
+        rows = torch.repeat_interleave(torch.arange(self.shape[0], device=self.col.device),
+                                       self.ptr.diff())
+        to_t = torch.argsort(self.col * self.shape[0] + rows, stable=True)
+        ptr_t = index2ptr(self.col[to_t], self.shape[1])
+        return ptr_t, rows[to_t], to_t
+
+    @property
+    def to_t(self) -> Tensor:
+        self.T  # noqa: B018 (builds the transpose)
+        assert self._to_t is not None
+        return self._to_t
+
+    @property
+    @torch.inference_mode(False)
+    def T(self) -> "Pattern":
         if self._t is None:
-            perm = torch.argsort(self._src * self.num_dst + self._dst)
-            ptr = index2ptr(self._src[perm], self.num_src)
-            ptr_h = torch.cat([(ptr[:-1].unsqueeze(0) + self._off * self.E).reshape(-1),
-                               ptr.new_full((1,), self.heads * self.E)])
-            col_h = (self._dst[perm].unsqueeze(0) + self._off * self.num_dst).reshape(-1)
-            perm_h = (perm.unsqueeze(0) + self._off * self.E).reshape(-1)
-            self._t = (ptr_h, col_h, perm_h)
-        ptr_h, col_h, perm_h = self._t
-        return torch.sparse_csr_tensor(ptr_h, col_h, values[perm_h],
-                                       (self.shape[1], self.shape[0]), check_invariants=False)
+            ptr_t, col_t, to_t = self._transpose_parts or self._build_transpose()
+            t = Pattern(ptr_t, col_t, (self.shape[1], self.shape[0]))
+            back = torch.empty_like(to_t)
+            back[to_t] = torch.arange(to_t.numel(), device=to_t.device)
+            t._t, t._to_t = self, back
+            self._t, self._to_t = t, to_t
+        return self._t
 
     def sample(self, a: Tensor, b: Tensor) -> Tensor:
-        """``(a b^T)`` on the pattern, as a flat value vector ``[H*E]``."""
-        pattern = self.matrix(a.new_zeros(self.col.numel()))  # beta=0 must not meet garbage
-        return torch.sparse.sampled_addmm(pattern, a, b.t(), beta=0.0).values()
+        """``(a b^T)`` on the pattern, as a flat value vector."""
+        with _quiet():  # beta=0 must not meet garbage: zero values
+            pattern = torch.sparse_csr_tensor(self.ptr, self.col, a.new_zeros(self.col.numel()),
+                                              self.shape, check_invariants=False)
+            return torch.sparse.sampled_addmm(pattern, a, b.t(), beta=0.0).values()
 
 
-class IncidencePattern:
-    """Per-head target-by-edge incidence ``[H*N_dst, E]``: row ``(h, i)`` holds the
-    incoming edges of ``i``.  ``A @ Y`` sums edge values ``Y [E, D]`` into targets."""
+@torch.inference_mode(False)  # cached patterns serve autograd calls too
+def head_pattern(plan: CSRPlan, heads: int) -> Pattern:
+    """Block-diagonal ``[H*N_dst, H*N_src]``: the graph's pattern once per head.
 
-    def __init__(self, g: Graph, heads: int) -> None:
-        assert g.ptr is not None
-        self.heads, self.num_dst = heads, g.num_dst
-        self.E = E = g.edge_index.size(1)
-        dst = g.edge_index[1]
-        off = torch.arange(heads, device=dst.device)
-        self.ptr = torch.cat([(g.ptr[:-1].unsqueeze(0) + off.unsqueeze(1) * E).reshape(-1),
-                              g.ptr.new_full((1,), heads * E)])
-        self.col = torch.arange(E, device=dst.device).repeat(heads)
-        self.shape = (heads * g.num_dst, E)
-        # transpose: row e holds its H entries (h, dst[e]), values in (E, H) order
-        self.ptr_t = torch.arange(0, heads * E + 1, heads, device=dst.device)
-        self.col_t = (dst.unsqueeze(1) + off.unsqueeze(0) * g.num_dst).reshape(-1)
+    Values are head-major: entry ``h*E + k`` is head ``h`` of the ``k``-th edge
+    in CSR order.  The transpose reuses one ``argsort`` of the base graph.
+    """
+    key = ("head", heads)
+    if key not in plan.patterns:
+        E, ns, nd = plan.num_edges, plan.num_src, plan.num_dst
+        dev = plan.src.device
+        off = torch.arange(heads, device=dev).unsqueeze(1)
+        ptr = torch.cat([(plan.ptr[:-1].unsqueeze(0) + off * E).reshape(-1),
+                         plan.ptr.new_full((1,), heads * E)])
+        col = (plan.src.unsqueeze(0) + off * ns).reshape(-1)
 
-    def matrix(self, values: Tensor) -> Tensor:
-        return torch.sparse_csr_tensor(self.ptr, self.col, values, self.shape,
-                                       check_invariants=False)
+        def transpose() -> Tuple[Tensor, Tensor, Tensor]:
+            perm = torch.argsort(plan.src * nd + plan.dst, stable=True)
+            ptr_b = index2ptr(plan.src[perm], ns)
+            ptr_t = torch.cat([(ptr_b[:-1].unsqueeze(0) + off * E).reshape(-1),
+                               ptr_b.new_full((1,), heads * E)])
+            col_t = (plan.dst[perm].unsqueeze(0) + off * nd).reshape(-1)
+            return ptr_t, col_t, (perm.unsqueeze(0) + off * E).reshape(-1)
 
-    def transposed(self, values: Tensor) -> Tensor:
-        vt = values.view(self.heads, self.E).t().reshape(-1)
-        return torch.sparse_csr_tensor(self.ptr_t, self.col_t, vt, (self.E, self.shape[0]),
-                                       check_invariants=False)
-
-    def sample(self, a: Tensor, b: Tensor) -> Tensor:
-        pattern = self.matrix(a.new_zeros(self.col.numel()))
-        return torch.sparse.sampled_addmm(pattern, a, b.t(), beta=0.0).values()
+        pat = Pattern(ptr, col, (heads * nd, heads * ns))
+        pat._build_transpose = transpose  # type: ignore[method-assign]
+        pat.rows = (plan.dst.unsqueeze(0) + off * nd).reshape(-1)  # row of every entry
+        plan.patterns[key] = pat
+    return plan.patterns[key]
 
 
-def head_pattern(g: Graph, heads: int, incidence: bool = False):
-    """The per-head (node or incidence) pattern of ``g``, built once per graph and head count."""
-    build = IncidencePattern if incidence else HeadPattern
-    if g.cache is None:
-        return build(g, heads)
-    key = (heads, incidence)
-    if key not in g.cache:
-        g.cache[key] = build(g, heads)
-    return g.cache[key]
+@torch.inference_mode(False)
+def incidence_pattern(plan: CSRPlan, heads: int) -> Pattern:
+    """Per-head target-by-edge incidence ``[H*N_dst, E]``; row ``(h, i)`` holds the
+    incoming edges of ``i`` as columns in the *caller's* edge order, so
+    ``A @ Y`` sums the caller's edge rows ``Y [E, D]`` into targets without
+    permuting ``Y``.  Values are head-major in CSR order, like :func:`head_pattern`."""
+    key = ("incidence", heads)
+    if key not in plan.patterns:
+        E, nd = plan.num_edges, plan.num_dst
+        dev = plan.src.device
+        off = torch.arange(heads, device=dev)
+        ptr = torch.cat([(plan.ptr[:-1].unsqueeze(0) + off.unsqueeze(1) * E).reshape(-1),
+                         plan.ptr.new_full((1,), heads * E)])
+        ids = plan.caller_ids
+        col = ids.repeat(heads)
+        # transpose [E, H*N_dst]: caller edge e holds its H entries (h, dst[e])
+        pos = torch.arange(E, device=dev) if plan.inv is None else plan.inv
+        dst_caller = plan.to_caller(plan.dst)
+        ptr_t = torch.arange(0, heads * E + 1, heads, device=dev)
+        col_t = (dst_caller.unsqueeze(1) + off.unsqueeze(0) * nd).reshape(-1)
+        to_t = (pos.unsqueeze(1) + off.unsqueeze(0) * E).reshape(-1)
+        plan.patterns[key] = Pattern(ptr, col, (heads * nd, E), (ptr_t, col_t, to_t))
+    return plan.patterns[key]
 
 
 class _SDDMM(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, qs: Tensor, ks: Tensor, pat: HeadPattern) -> Tensor:
-        ctx.save_for_backward(qs, ks)
+    def forward(ctx, a: Tensor, b: Tensor, pat: Pattern) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(a, b)
         ctx.pat = pat
-        return pat.sample(qs, ks)
+        return pat.sample(a, b)
 
     @staticmethod
-    @once_differentiable
-    def backward(ctx, grad: Tensor):
-        qs, ks = ctx.saved_tensors
-        pat: HeadPattern = ctx.pat
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        a, b = ctx.saved_tensors
+        pat: Pattern = ctx.pat
         grad = grad.contiguous()
-        gq = torch.sparse.mm(pat.matrix(grad), ks) if ctx.needs_input_grad[0] else None
-        gk = torch.sparse.mm(pat.transposed(grad), qs) if ctx.needs_input_grad[1] else None
-        return gq, gk, None
+        ga = spmm(grad, b, pat) if ctx.needs_input_grad[0] else None
+        gb = spmm(grad[pat.to_t], a, pat.T) if ctx.needs_input_grad[1] else None
+        return ga, gb, None
 
 
 class _SpMM(torch.autograd.Function):
-    """``A(values) @ vs`` for a :class:`HeadPattern` or :class:`IncidencePattern`."""
-
     @staticmethod
-    def forward(ctx, values: Tensor, vs: Tensor, pat) -> Tensor:
-        ctx.save_for_backward(values, vs)
+    def forward(ctx, values: Tensor, dense: Tensor, pat: Pattern) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(values, dense)
         ctx.pat = pat
-        return torch.sparse.mm(pat.matrix(values), vs)
+        with _quiet():
+            return torch.sparse.mm(pat.matrix(values), dense)
 
     @staticmethod
-    @once_differentiable
-    def backward(ctx, grad: Tensor):
-        values, vs = ctx.saved_tensors
-        pat = ctx.pat
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        values, dense = ctx.saved_tensors
+        pat: Pattern = ctx.pat
         grad = grad.contiguous()
-        ga = pat.sample(grad, vs) if ctx.needs_input_grad[0] else None
-        gv = torch.sparse.mm(pat.transposed(values), grad) if ctx.needs_input_grad[1] else None
-        return ga, gv, None
+        gv = sddmm(grad, dense, pat) if ctx.needs_input_grad[0] else None
+        gd = spmm(values[pat.to_t], grad, pat.T) if ctx.needs_input_grad[1] else None
+        return gv, gd, None
 
 
-def csr_sddmm(q: Tensor, k: Tensor, g: Graph) -> Tensor:
-    """``q_i . k_j`` for every edge ``j -> i`` and head: ``[E, H]`` from ``[N, H, C]``."""
-    H, C = q.size(1), q.size(2)
-    qs = q.transpose(0, 1).reshape(H * g.num_dst, C)
-    ks = k.transpose(0, 1).reshape(H * g.num_src, C)
-    return _SDDMM.apply(qs, ks, head_pattern(g, H)).view(H, -1).t()
+def sddmm(a: Tensor, b: Tensor, pat: Pattern) -> Tensor:
+    """``(a @ b^T)`` sampled on ``pat``: a value vector in pattern order (differentiable)."""
+    return _SDDMM.apply(a.contiguous(), b.contiguous(), pat)
 
 
-def csr_edge_spmm(alpha: Tensor, y: Tensor, g: Graph) -> Tensor:
-    """``sum_j alpha_ij y_ij`` per head for edge values ``y [E, D]``: ``[N_dst, H, D]``."""
-    H = alpha.size(1)
-    out = _SpMM.apply(alpha.t().reshape(-1), y, head_pattern(g, H, incidence=True))
-    return out.view(H, g.num_dst, -1).transpose(0, 1)
-
-
-def csr_spmm(alpha: Tensor, v: Tensor, g: Graph) -> Tensor:
-    """``sum_j alpha_ij v_j`` per head: ``[N_dst, H, C]`` from ``alpha [E, H]``, ``v [N_src, H, C]``."""
-    H, C = v.size(1), v.size(2)
-    vs = v.transpose(0, 1).reshape(H * g.num_src, C)
-    out = _SpMM.apply(alpha.t().reshape(-1), vs, head_pattern(g, H))
-    return out.view(H, g.num_dst, C).transpose(0, 1)
+def spmm(values: Tensor, dense: Tensor, pat: Pattern) -> Tensor:
+    """``pat(values) @ dense`` (differentiable in both, to any order)."""
+    return _SpMM.apply(values.contiguous(), dense.contiguous(), pat)

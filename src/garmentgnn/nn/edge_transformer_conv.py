@@ -6,10 +6,10 @@ from typing import Optional, Tuple, Union
 import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import Adj, OptTensor, PairTensor
+from torch_geometric.typing import PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import check_layer_args, edge_softmax, prepare_graph
+from garmentgnn.nn._graph import Graph, check_edge_out_channels, check_layer_args
 
 
 class EdgeTransformerConv(AttentionConv):
@@ -51,40 +51,43 @@ class EdgeTransformerConv(AttentionConv):
 
     Args:
         in_channels (int or tuple): input width, or ``(src, dst)`` widths for
-            bipartite graphs.
+            bipartite graphs; ``-1`` infers it from the first call.
         out_channels (int): channels per head, :math:`C`.
-        edge_dim (int): input edge feature width (required).
         heads (int): number of heads :math:`H`.
         concat (bool): concatenate heads (output ``H * C``) or average them
             (output ``C``).
+        edge_dim (int): input edge feature width (required, keyword).
         edge_out_channels (int, optional): width of the returned edge
             features; defaults to ``edge_dim`` (identity edge skip).
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check inputs (shapes, index range, NaN/inf) and raise
-            ``ValueError``; costs O(N + E) per call.
+        validate (bool): check that edge indices lie in range (once per graph).
+        check_finite (bool): raise ``ValueError`` when an output holds NaN/inf.
 
     Shapes:
         - **input:** ``x`` :math:`(|V|, F_{in})` or a pair,
           ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
           ``edge_attr`` :math:`(|E|, D)`
-        - **output:** ``(x_out, edge_attr_out)`` of shapes
-          :math:`(|V|, H C)` (or :math:`(|V|, C)`) and :math:`(|E|, D')`;
-          with ``return_attention_weights=True`` a third item
-          ``(edge_index, alpha)`` with ``alpha`` :math:`(|E|, H)`.
+        - **output:** :math:`(|V|, H C)` (or :math:`(|V|, C)`); with
+          ``return_edge_attr=True`` also the new edge features :math:`(|E|, D')`.
     """
+
+    requires_edge_attr = True
+    updates_edges = True
 
     def __init__(
         self,
         in_channels: Union[int, Tuple[int, int]],
         out_channels: int,
-        edge_dim: Optional[int] = None,
         heads: int = 1,
         concat: bool = True,
+        *,
+        edge_dim: Optional[int] = None,
         edge_out_channels: Optional[int] = None,
         dropout: float = 0.0,
         bias: bool = True,
         validate: bool = True,
+        check_finite: bool = True,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
@@ -93,10 +96,7 @@ class EdgeTransformerConv(AttentionConv):
                              "pass their width (use GraphTransformerConv to ignore edges)")
         in_src, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
                                           edge_dim_required=True)
-        if edge_out_channels is not None and (not isinstance(edge_out_channels, int)
-                                              or edge_out_channels <= 0):
-            raise ValueError(f"`edge_out_channels` must be a positive int or None, "
-                             f"got {edge_out_channels!r}")
+        check_edge_out_channels(edge_out_channels)
 
         self.in_channels = in_channels
         self.out_channels = out_channels
@@ -106,6 +106,7 @@ class EdgeTransformerConv(AttentionConv):
         self.edge_out_channels = edge_out_channels or edge_dim
         self.dropout = dropout
         self.validate = validate
+        self.check_finite = check_finite
 
         H, C = heads, out_channels
         out_width = H * C if concat else C
@@ -115,53 +116,31 @@ class EdgeTransformerConv(AttentionConv):
         self.lin_edge = Linear(edge_dim, H * C, bias=bias)  # W_E
         self.lin_out = Linear(out_width, out_width, bias=bias)  # W_o
         self.lin_edge_out = Linear(out_width, self.edge_out_channels, bias=bias)  # W_eo
-        self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
+        self.lin_skip = self.skip_layer(in_dst, out_width, bias)
         self.lin_edge_skip = (None if edge_dim == self.edge_out_channels
                               else Linear(edge_dim, self.edge_out_channels, bias=bias))
         self.reset_parameters()
 
-    def forward(
-        self,
-        x: Union[Tensor, PairTensor],
-        edge_index: Adj,
-        edge_attr: OptTensor = None,
-        return_attention_weights: Optional[bool] = None,
-    ):
-        """Run the layer.
-
-        Args:
-            x: node features ``[N, F_in]`` or ``(x_src, x_dst)``.
-            edge_index: ``[2, E]`` (source, target) indices or sparse ``adj_t``.
-            edge_attr: ``[E, edge_dim]`` edge features (required).
-            return_attention_weights: also return ``(edge_index, alpha)``.
-
-        Returns:
-            ``(x_out, edge_attr_out)``, plus ``(edge_index, alpha)`` when asked.
-        """
-        g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
-                          require_edge_attr=True, validate=self.validate)
+    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
         src, dst = g.edge_index[0], g.edge_index[1]
         e = g.edge_attr
         assert e is not None
-        H, C = self.heads, self.out_channels
+        H, C, E = self.heads, self.out_channels, g.edge_index.size(1)
         q, k, v, x_dst = self.project_qkv(x)
+        r = self.route(g, q)
 
-        # w_hat_ij = (q_i * k_j / sqrt(C)) * W_E e_ij, per channel: [E, H, C]
-        # (the per-channel edge product needs the [E, H, C] tensor; it is also the new edge state)
+        # w_hat_ij = (q_i * k_j / sqrt(C)) * W_E e_ij, per channel: [E, H, C] in the caller's
+        # order (the per-channel edge product needs it; it is also the new edge state)
         q_i, k_j = q.contiguous().index_select(0, dst), k.contiguous().index_select(0, src)
-        w_hat = q_i * k_j * self.lin_edge(e).view(-1, H, C)
-        score = w_hat.sum(-1)  # [E, H]
-        alpha = edge_softmax(score, g)  # [E, H]
+        w_hat = q_i * k_j * self.lin_edge(e).view(E, H, C)
+        alpha = self.softmax(r.edges_in(w_hat.sum(-1)), r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-        out = self.merge_heads(self.aggregate_values(alpha_used, v, g), x_dst)
+        out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
 
-        w_hat = w_hat.reshape(-1, H * C) if self.concat else w_hat.mean(1)
+        w_hat = w_hat.reshape(E, H * C) if self.concat else w_hat.mean(1)
         e_out = self.lin_edge_out(w_hat)
         e_out = e_out + (e if self.lin_edge_skip is None else self.lin_edge_skip(e))
-
-        if return_attention_weights:
-            return out, e_out, (g.edge_index, alpha)
-        return out, e_out
+        return out, e_out, (g.edge_index, r.edges_out(alpha))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -4,14 +4,15 @@ from __future__ import annotations
 from typing import Optional, Tuple, Union
 
 from torch import Tensor
-from torch_geometric.nn.conv import GATv2Conv, MessagePassing
+from torch_geometric.nn.conv import GATv2Conv
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import Adj, OptTensor, PairTensor
+from torch_geometric.typing import PairTensor
 
-from garmentgnn.nn._graph import check_layer_args, prepare_graph
+from garmentgnn.nn._base import LayerContract
+from garmentgnn.nn._graph import Graph, check_layer_args
 
 
-class GATBaselineConv(MessagePassing):
+class GATBaselineConv(LayerContract):
     r"""A graph attention baseline: PyG's
     :class:`~torch_geometric.nn.conv.GATv2Conv` (Brody, Alon & Yahav, *How
     Attentive are Graph Attention Networks?*, ICLR 2022) plus a residual
@@ -37,23 +38,27 @@ class GATBaselineConv(MessagePassing):
     Self-loops are **not** added by default (``add_self_loops=False``, unlike
     PyG's default): mesh vertices always have neighbours, the skip already
     carries :math:`\mathbf{x}_i`, and the contract returns attention weights
-    (and edge features) aligned with the *input* edges.  With
-    ``add_self_loops=True`` the returned ``(edge_index, alpha)`` covers the
-    augmented edge set built by ``GATv2Conv``.
+    aligned with the *input* edges.  With ``add_self_loops=True`` the
+    returned ``(edge_index, alpha)`` covers the augmented edge set built by
+    ``GATv2Conv``.
+
+    Its message passing (and so explainers' edge masks, message hooks and
+    attention collection) happens in the child ``gat``: register message
+    hooks there.
 
     Args:
         in_channels (int or tuple): input width, or ``(src, dst)`` widths for
-            bipartite graphs.
+            bipartite graphs; ``-1`` infers it from the first call.
         out_channels (int): channels per head.
-        edge_dim (int, optional): edge feature width; when set, edge features
-            are required and enter the attention scores.
         heads (int): number of heads :math:`H`.
         concat (bool): concatenate heads (output ``H * C``) or average them
             (output ``C``).
+        edge_dim (int, optional): edge feature width; when set, edge features
+            are required and enter the attention scores.
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check inputs (shapes, index range, NaN/inf) and raise
-            ``ValueError``; costs O(N + E) per call.
+        validate (bool): check that edge indices lie in range (once per graph).
+        check_finite (bool): raise ``ValueError`` when the output holds NaN/inf.
         add_self_loops (bool): let ``GATv2Conv`` add self-loops.
         **kwargs: passed to ``GATv2Conv`` (e.g. ``negative_slope``,
             ``share_weights``); ``residual`` is rejected since the layer has
@@ -63,23 +68,22 @@ class GATBaselineConv(MessagePassing):
         - **input:** ``x`` :math:`(|V|, F_{in})` or a pair,
           ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
           ``edge_attr`` :math:`(|E|, D)` or ``None``
-        - **output:** ``(x_out, edge_attr)`` with ``x_out`` of shape
-          :math:`(|V|, H C)` (or :math:`(|V|, C)`) and ``edge_attr`` the
-          input object (the values of a hybrid sparse ``adj_t`` when
-          ``edge_attr`` is ``None``); with ``return_attention_weights=True`` a third item
-          ``(edge_index, alpha)`` with ``alpha`` :math:`(|E|, H)`.
+        - **output:** :math:`(|V|, H C)` (or :math:`(|V|, C)`); with
+          ``return_edge_attr=True`` also ``edge_attr`` as given.
     """
 
     def __init__(
         self,
         in_channels: Union[int, Tuple[int, int]],
         out_channels: int,
-        edge_dim: Optional[int] = None,
         heads: int = 1,
         concat: bool = True,
+        *,
+        edge_dim: Optional[int] = None,
         dropout: float = 0.0,
         bias: bool = True,
         validate: bool = True,
+        check_finite: bool = True,
         add_self_loops: bool = False,
         **kwargs,
     ) -> None:
@@ -94,10 +98,12 @@ class GATBaselineConv(MessagePassing):
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.edge_dim = edge_dim
+        self.requires_edge_attr = edge_dim is not None
         self.heads = heads
         self.concat = concat
         self.dropout = dropout
         self.validate = validate
+        self.check_finite = check_finite
         self.add_self_loops = add_self_loops
 
         out_width = heads * out_channels if concat else out_channels
@@ -113,38 +119,12 @@ class GATBaselineConv(MessagePassing):
         if self.lin_skip is not None:
             self.lin_skip.reset_parameters()
 
-    def forward(
-        self,
-        x: Union[Tensor, PairTensor],
-        edge_index: Adj,
-        edge_attr: OptTensor = None,
-        return_attention_weights: Optional[bool] = None,
-    ):
-        """Run the layer.
-
-        Args:
-            x: node features ``[N, F_in]`` or ``(x_src, x_dst)``.
-            edge_index: ``[2, E]`` (source, target) indices or sparse ``adj_t``.
-            edge_attr: ``[E, edge_dim]`` edge features (required iff ``edge_dim``
-                is set); returned as is.
-            return_attention_weights: also return ``(edge_index, alpha)``.
-
-        Returns:
-            ``(x_out, edge_attr)``, plus ``(edge_index, alpha)`` when asked.
-        """
-        g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
-                          require_edge_attr=self.edge_dim is not None, validate=self.validate)
+    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
         x_dst = x if isinstance(x, Tensor) else x[1]
         e = g.edge_attr if self.edge_dim is not None else None
-
         out, (ei, alpha) = self.gat(x, g.edge_index, e, return_attention_weights=True)
         out = out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
-
-        # the caller's edge features as given; those a hybrid sparse adj_t carries otherwise
-        e_out = edge_attr if edge_attr is not None else g.edge_attr
-        if return_attention_weights:
-            return out, e_out, (ei, alpha)
-        return out, e_out
+        return out, None, (ei, alpha)
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -6,10 +6,10 @@ from typing import Optional, Tuple, Union
 import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import Adj, OptTensor, PairTensor
+from torch_geometric.typing import PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import check_layer_args, edge_softmax, prepare_graph
+from garmentgnn.nn._graph import Graph, check_layer_args
 
 
 class GraphTransformerConv(AttentionConv):
@@ -35,8 +35,8 @@ class GraphTransformerConv(AttentionConv):
     ``concat=False``) and the skip is the identity when the widths match and
     a linear map (``lin_skip``) otherwise.  Edge features take no part:
     ``edge_dim`` is accepted (so the layer is a drop-in replacement in a
-    registry) and only used to check the shape of ``edge_attr``, which is
-    returned unchanged.  The activation is left to the caller.
+    registry) and only used to check the shape of ``edge_attr``, which
+    ``return_edge_attr=True`` hands back unchanged.  The activation is left to the caller.
 
     With ``lin_out`` set to the identity this is PyG's
     :class:`~torch_geometric.nn.conv.TransformerConv` with
@@ -44,39 +44,38 @@ class GraphTransformerConv(AttentionConv):
 
     Args:
         in_channels (int or tuple): input width, or ``(src, dst)`` widths for
-            bipartite graphs.
+            bipartite graphs; ``-1`` infers it from the first call.
         out_channels (int): channels per head, :math:`C`.
-        edge_dim (int, optional): declared edge feature width; ignored apart
-            from the shape check of ``edge_attr``.
         heads (int): number of heads :math:`H`.
         concat (bool): concatenate heads (output ``H * C``) or average them
             (output ``C``).
+        edge_dim (int, optional): declared edge feature width; ignored apart
+            from the shape check of ``edge_attr``.
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check inputs (shapes, index range, NaN/inf) and raise
-            ``ValueError``; costs O(N + E) per call.
+        validate (bool): check that edge indices lie in range (once per graph).
+        check_finite (bool): raise ``ValueError`` when the output holds NaN/inf.
 
     Shapes:
         - **input:** ``x`` :math:`(|V|, F_{in})` or a pair,
           ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
           ``edge_attr`` :math:`(|E|, D)` or ``None``
-        - **output:** ``(x_out, edge_attr)`` with ``x_out`` of shape
-          :math:`(|V|, H C)` (or :math:`(|V|, C)`) and ``edge_attr`` the
-          input object (the values of a hybrid sparse ``adj_t`` when
-          ``edge_attr`` is ``None``); with ``return_attention_weights=True`` a third item
-          ``(edge_index, alpha)`` with ``alpha`` :math:`(|E|, H)`.
+        - **output:** :math:`(|V|, H C)` (or :math:`(|V|, C)`); with
+          ``return_edge_attr=True`` also ``edge_attr`` as given.
     """
 
     def __init__(
         self,
         in_channels: Union[int, Tuple[int, int]],
         out_channels: int,
-        edge_dim: Optional[int] = None,
         heads: int = 1,
         concat: bool = True,
+        *,
+        edge_dim: Optional[int] = None,
         dropout: float = 0.0,
         bias: bool = True,
         validate: bool = True,
+        check_finite: bool = True,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
@@ -90,6 +89,7 @@ class GraphTransformerConv(AttentionConv):
         self.concat = concat
         self.dropout = dropout
         self.validate = validate
+        self.check_finite = check_finite
 
         H, C = heads, out_channels
         out_width = H * C if concat else C
@@ -97,44 +97,18 @@ class GraphTransformerConv(AttentionConv):
         self.lin_key = Linear(in_src, H * C, bias=bias)
         self.lin_value = Linear(in_src, H * C, bias=bias)
         self.lin_out = Linear(out_width, out_width, bias=bias)  # W_o
-        self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
+        self.lin_skip = self.skip_layer(in_dst, out_width, bias)
         self.reset_parameters()
 
-    def forward(
-        self,
-        x: Union[Tensor, PairTensor],
-        edge_index: Adj,
-        edge_attr: OptTensor = None,
-        return_attention_weights: Optional[bool] = None,
-    ):
-        """Run the layer.
-
-        Args:
-            x: node features ``[N, F_in]`` or ``(x_src, x_dst)``.
-            edge_index: ``[2, E]`` (source, target) indices or sparse ``adj_t``.
-            edge_attr: optional ``[E, edge_dim]`` edge features; not used, returned as is.
-            return_attention_weights: also return ``(edge_index, alpha)``.
-
-        Returns:
-            ``(x_out, edge_attr)``, plus ``(edge_index, alpha)`` when asked.
-        """
-        g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
-                          require_edge_attr=False, validate=self.validate)
+    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
         q, k, v, x_dst = self.project_qkv(x)
-
+        r = self.route(g, q)
         # Eq. (3): scaled dot-product scores, one per edge and head.
-        score = self.edge_scores(q, k, g)  # [E, H]
-        alpha = edge_softmax(score, g)
+        alpha = self.softmax(self.edge_scores(q, k, g, r), r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-
         # Eq. (4): x_i' = W_o heads(sum_j alpha_ij v_j) + skip(x_i)
-        out = self.merge_heads(self.aggregate_values(alpha_used, v, g), x_dst)
-
-        # the caller's edge features as given; those a hybrid sparse adj_t carries otherwise
-        e_out = edge_attr if edge_attr is not None else g.edge_attr
-        if return_attention_weights:
-            return out, e_out, (g.edge_index, alpha)
-        return out, e_out
+        out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
+        return out, None, (g.edge_index, r.edges_out(alpha))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -24,11 +24,13 @@ def make_layer(name: str, in_channels: int, out_channels: int, *, edge_dim: Opti
                heads: int = 1, concat: bool = True, **kwargs) -> nn.Module:
     """Build a layer of the common contract by registry name.
 
-    Every layer is called as ``layer(x, edge_index, edge_attr) -> (x_out, edge_attr_out)``.
+    Every layer is called as ``layer(x, edge_index, edge_attr) -> x_out`` like a PyG
+    conv; ``return_edge_attr=True`` gives ``(x_out, edge_attr_out)`` for stacks that
+    carry edge features from layer to layer.
 
     Args:
         name: one of ``"sat"``, ``"gt"``, ``"gt_edge"``, ``"structure_aware"``, ``"gat"``.
-        in_channels: input node width.
+        in_channels: input node width (``-1``: inferred from the first call).
         out_channels: channels per head.
         edge_dim: input edge feature width (required by ``"sat"`` and ``"gt_edge"``).
         heads: attention heads.

@@ -7,10 +7,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import Adj, OptTensor, PairTensor
+from torch_geometric.typing import PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import check_layer_args, edge_softmax, keep_one_mask, prepare_graph
+from garmentgnn.nn._graph import Graph, check_edge_out_channels, check_layer_args, keep_one_mask
 
 
 class SATConv(AttentionConv):
@@ -47,21 +47,29 @@ class SATConv(AttentionConv):
 
     Implementation: the value term uses linearity,
     :math:`\sum_j \alpha_{ij}\mathbf{W}_{q'}\mathbf{e}_{ij} =
-    \mathbf{W}_{q'} \sum_j \alpha_{ij}\mathbf{e}_{ij}`, so the per-head edge
-    values are never materialised per edge; only the narrow edge features
-    are aggregated.  When ``edge_index`` is sorted by target (or given as a
-    sparse ``adj_t``) softmax and aggregation use CSR segment reductions, and
-    in inference (no autograd) with edges in CSR order the scores and sums run
-    as sparse SDDMM/SpMM kernels over all heads at once.
+    \mathbf{W}_{q'} \sum_j \alpha_{ij}\mathbf{e}_{ij}`, so on the fused
+    route the per-head edge values are never materialised per edge; only the
+    narrow edge features are aggregated (sparse SpMM over an incidence
+    pattern), and the scores are a sparse SDDMM over all heads.  Edges in any
+    order get this route: the layer sorts them once per graph (cached).  When
+    something observes the messages (an explainer's edge mask, a message
+    hook), under ``torch.compile`` and in half precision the layer runs
+    :meth:`propagate` with the full messages
+    :math:`\alpha_{ij}(\mathbf{v}_j + \mathbf{q}^e_{ij})` instead; both
+    routes compute the same numbers.
+
+    Not to be confused with the *Structure-Aware Transformer* (also "SAT")
+    of Chen et al. (2022): that one is
+    :class:`~garmentgnn.nn.StructureAwareTransformerConv`.
 
     Args:
         in_channels (int or tuple): input width, or ``(src, dst)`` widths for
-            bipartite graphs.
+            bipartite graphs; ``-1`` infers it from the first call.
         out_channels (int): channels per head, :math:`C`.
-        edge_dim (int): input edge feature width.
         heads (int): number of heads :math:`H`.
         concat (bool): concatenate heads (output ``H * C``) or average them
             (output ``C``).
+        edge_dim (int): input edge feature width (required, keyword).
         edge_out_channels (int, optional): width of the returned edge
             features; defaults to ``edge_dim`` (identity edge skip).
         dropout (float): dropout on the attention coefficients (training).
@@ -70,38 +78,47 @@ class SATConv(AttentionConv):
             incoming edge per node and head is always kept, so no NaN appears
             even at ``attn_mask_p=1``.
         bias (bool): learn additive biases.
-        validate (bool): check inputs (shapes, index range, NaN/inf) and raise
-            ``ValueError``; costs O(N + E) per call.
+        validate (bool): check that edge indices lie in range (once per graph).
+        check_finite (bool): raise ``ValueError`` when the output holds
+            NaN/inf, naming the bad input or the overflow (one host sync per
+            call; skipped under ``torch.compile``).
 
     Shapes:
         - **input:** ``x`` :math:`(|V|, F_{in})` or a pair,
           ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
           ``edge_attr`` :math:`(|E|, D)`
-        - **output:** ``(x_out, edge_attr_out)`` of shapes
-          :math:`(|V|, H C)` (or :math:`(|V|, C)`) and :math:`(|E|, D')`;
-          with ``return_attention_weights=True`` a third item
-          ``(edge_index, alpha)`` with ``alpha`` :math:`(|E|, H)`.
+        - **output:** :math:`(|V|, H C)` (or :math:`(|V|, C)`); see
+          :meth:`~garmentgnn.nn._base.LayerContract.forward` for
+          ``return_edge_attr`` (edge features :math:`(|E|, D')`) and
+          ``return_attention_weights`` (:math:`(|E|, H)`).
     """
+
+    requires_edge_attr = True
+    updates_edges = True
 
     def __init__(
         self,
         in_channels: Union[int, Tuple[int, int]],
         out_channels: int,
-        edge_dim: int,
         heads: int = 1,
         concat: bool = True,
+        *,
+        edge_dim: Optional[int] = None,
         edge_out_channels: Optional[int] = None,
         dropout: float = 0.0,
         attn_mask_p: float = 0.0,
         bias: bool = True,
         validate: bool = True,
+        check_finite: bool = True,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
         in_src, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
                                           edge_dim_required=True)
-        if not 0.0 <= attn_mask_p <= 1.0:
-            raise ValueError(f"`attn_mask_p` must lie in [0, 1], got {attn_mask_p}")
+        assert edge_dim is not None
+        if not (isinstance(attn_mask_p, (int, float)) and 0.0 <= attn_mask_p <= 1.0):
+            raise ValueError(f"`attn_mask_p` must lie in [0, 1], got {attn_mask_p!r}")
+        check_edge_out_channels(edge_out_channels)
 
         self.in_channels = in_channels
         self.out_channels = out_channels
@@ -112,6 +129,7 @@ class SATConv(AttentionConv):
         self.dropout = dropout
         self.attn_mask_p = attn_mask_p
         self.validate = validate
+        self.check_finite = check_finite
 
         H, C = heads, out_channels
         out_width = H * C if concat else C
@@ -122,63 +140,58 @@ class SATConv(AttentionConv):
         self.lin_edge_value = Linear(edge_dim, H * C, bias=bias)  # W_q'
         self.lin_out = Linear(out_width, out_width, bias=bias)  # W_o
         self.lin_edge_out = Linear(H, self.edge_out_channels, bias=bias)  # W_e
-        self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
+        self.lin_skip = self.skip_layer(in_dst, out_width, bias)
         self.lin_edge_skip = (None if edge_dim == self.edge_out_channels
                               else Linear(edge_dim, self.edge_out_channels, bias=bias))
         self.reset_parameters()
 
-    def forward(
-        self,
-        x: Union[Tensor, PairTensor],
-        edge_index: Adj,
-        edge_attr: OptTensor = None,
-        return_attention_weights: Optional[bool] = None,
-    ):
-        """Run the layer.
-
-        Args:
-            x: node features ``[N, F_in]`` or ``(x_src, x_dst)``.
-            edge_index: ``[2, E]`` (source, target) indices or sparse ``adj_t``.
-            edge_attr: ``[E, edge_dim]`` edge features (required).
-            return_attention_weights: also return ``(edge_index, alpha)``.
-
-        Returns:
-            ``(x_out, edge_attr_out)``, plus ``(edge_index, alpha)`` when asked.
-        """
-        g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
-                          require_edge_attr=True, validate=self.validate)
+    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
         e = g.edge_attr
         assert e is not None
-        H, C = self.heads, self.out_channels
+        H, C, D = self.heads, self.out_channels, self.edge_dim
         q, k, v, x_dst = self.project_qkv(x)
+        r = self.route(g, q, e)
 
         # Eq. (5): h_ij = (q_i . k_j / sqrt(C)) * sigmoid(W_p e_ij), one per edge and head
-        h = self.edge_scores(q, k, g) * torch.sigmoid(self.lin_edge_gate(e))  # [E, H]
+        h = self.edge_scores(q, k, g, r) * r.edges_in(torch.sigmoid(self.lin_edge_gate(e)))
         logits = h
         if self.training and self.attn_mask_p > 0:
             drop = torch.rand_like(h) < self.attn_mask_p
-            logits = h.masked_fill(keep_one_mask(drop, g.edge_index[1], g.num_dst), float("-inf"))
-        alpha = edge_softmax(logits, g)  # [E, H]
+            logits = h.masked_fill(keep_one_mask(drop, r.index, r.num_segments), float("-inf"))
+        alpha = self.softmax(logits, r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
 
-        # Eq. (6), by linearity of W_q':
-        #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + [W_q' | b] sum_j alpha [e_ij | 1]
-        # so only the narrow [E, D+1] edge features are aggregated, never [E, H, C] values.
-        out = self.aggregate_values(alpha_used, v, g)  # [N, H, C]
-        agg_e = self.aggregate_edges(alpha_used, F.pad(e, (0, 1), value=1.0), g)  # [N, H, D+1]
-        w = self.lin_edge_value.weight.view(H, C, self.edge_dim)
-        b = (self.lin_edge_value.bias.view(H, C, 1) if self.lin_edge_value.bias is not None
-             else w.new_zeros(H, C, 1))
-        out = out + torch.einsum("nhd,hcd->nhc", agg_e, torch.cat([w, b], -1))
+        if r.plan is not None:
+            # Eq. (6), by linearity of W_q':
+            #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + W_q' sum_j alpha e_ij
+            #                                       + b sum_j alpha
+            # so only the narrow [E, D] edge rows are aggregated, never [E, H, C] values.
+            out = self.aggregate_values(alpha_used, v, g, r)  # [N, H, C]
+            agg_e = self.aggregate_edge_rows(alpha_used, e, g, r)  # [N, H, D]
+            w = self.lin_edge_value.weight.view(H, C, D)
+            out = out + torch.einsum("nhd,hcd->nhc", agg_e, w)
+            if self.lin_edge_value.bias is not None:
+                mass = alpha_used.new_zeros(r.num_segments).index_add_(0, r.index, alpha_used)
+                out = out + mass.view(H, g.num_dst, 1).transpose(0, 1) \
+                    * self.lin_edge_value.bias.view(H, C)
+        else:  # the messages alpha_ij (v_j + q^e_ij), as hooks and explainers see them
+            qe = self.lin_edge_value(e).view(e.size(0), H, C)
+            out = self.aggregate_values(alpha_used, v, g, r, qe=qe)
         out = self.merge_heads(out, x_dst)
 
         # e_ij' = W_e h_ij + skip(e_ij), from the unmasked scores
-        e_out = self.lin_edge_out(h)
-        e_out = e_out + (e if self.lin_edge_skip is None else self.lin_edge_skip(e))
+        h = r.edges_out(h)
+        if self.lin_edge_skip is None:  # one pass over the [E, D] output: e + [h | 1] [W_e | b]^T
+            w_e, b_e = self.lin_edge_out.weight, self.lin_edge_out.bias
+            if b_e is not None:
+                h, w_e = F.pad(h, (0, 1), value=1.0), torch.cat([w_e, b_e.unsqueeze(1)], 1)
+            e_out = torch.addmm(e, h, w_e.t())
+        else:
+            e_out = self.lin_edge_out(h) + self.lin_edge_skip(e)
+        return out, e_out, (g.edge_index, r.edges_out(alpha))
 
-        if return_attention_weights:
-            return out, e_out, (g.edge_index, alpha)
-        return out, e_out
+    def message(self, v_j: Tensor, alpha: Tensor, qe: Tensor) -> Tensor:  # type: ignore[override]
+        return (v_j + qe) * alpha.unsqueeze(-1)
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -3,14 +3,15 @@ from __future__ import annotations
 
 from typing import Optional, Tuple, Union
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torch_geometric.nn.conv import GINConv, GINEConv
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import Adj, OptTensor, PairTensor
+from torch_geometric.typing import OptTensor, PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import check_layer_args, edge_softmax, prepare_graph
+from garmentgnn.nn._graph import Graph, check_layer_args
 
 
 class StructureAwareTransformerConv(AttentionConv):
@@ -44,73 +45,99 @@ class StructureAwareTransformerConv(AttentionConv):
     \mathrm{ReLU}(\mathbf{h}_j + \mathbf{W}_l \mathbf{e}_{ij})\big)`
     (PyG :class:`~torch_geometric.nn.conv.GINEConv`; the edge term is
     dropped for :class:`~torch_geometric.nn.conv.GINConv`) with a 2-layer
-    MLP of width ``in_channels``, :math:`\Vert_h` concatenates the heads (or
-    averages them when ``concat=False``) and the skip is the identity when
-    the widths match and a linear map otherwise.  The global (all-pairs)
-    variant of the paper is not implemented; edge features only enter the
-    extractor and are returned unchanged.  The activation is left to the
-    caller.
+    MLP of width ``hidden_channels``, :math:`\Vert_h` concatenates the heads
+    (or averages them when ``concat=False``) and the skip is the identity
+    when the widths match and a linear map otherwise.  The global
+    (all-pairs) variant of the paper is not implemented; edge features only
+    enter the extractor.  The activation is left to the caller.
+
+    **Bipartite graphs** (``x = (x_src, x_dst)``, e.g. inside
+    :func:`~torch_geometric.nn.to_hetero`): the extractor runs on the graph
+    whose nodes are both sets and whose edges are the given ``src -> dst``
+    edges, so a target's :math:`\varphi` sees its sources' features and a
+    source's :math:`\varphi` (which has no incoming edge there) its own; this
+    is the same k-subtree extractor, applied to that graph.  A pair is always
+    read as two node sets, so ``conv((x, x), ...)`` differs from
+    ``conv(x, ...)``.
+
+    Not to be confused with :class:`~garmentgnn.nn.SATConv`, the
+    structure-*augmented* transformer of GarTrans, also abbreviated "SAT".
 
     Args:
-        in_channels (int or tuple): input width; a ``(src, dst)`` pair must
-            have equal entries since the extractor runs on one node set.
+        in_channels (int or tuple): input width, or ``(src, dst)`` widths;
+            ``-1`` infers it from the first call.
         out_channels (int): channels per head, :math:`C`.
-        edge_dim (int, optional): edge feature width; selects GINE (edge
-            features required) over GIN (edges ignored).
         heads (int): number of heads :math:`H`.
         concat (bool): concatenate heads (output ``H * C``) or average them
             (output ``C``).
+        edge_dim (int, optional): edge feature width; selects GINE (edge
+            features required) over GIN (edges ignored).
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check inputs (shapes, index range, NaN/inf) and raise
-            ``ValueError``; costs O(N + E) per call.
+        validate (bool): check that edge indices lie in range (once per graph).
+        check_finite (bool): raise ``ValueError`` when the output holds NaN/inf.
         k_hops (int): number of GIN layers :math:`k` of the extractor.
+        hidden_channels (int, optional): width of the extractor; defaults to
+            the input width when that is known and the same for sources and
+            targets, else to the output width.  When it differs from an input
+            width, a linear map (``lin_extract`` or ``lin_extract_src`` /
+            ``lin_extract_dst``) brings that input to it first.
 
     Shapes:
-        - **input:** ``x`` :math:`(|V|, F_{in})`,
+        - **input:** ``x`` :math:`(|V|, F_{in})` or a pair,
           ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
           ``edge_attr`` :math:`(|E|, D)` (when ``edge_dim`` is set)
-        - **output:** ``(x_out, edge_attr)`` with ``x_out`` of shape
-          :math:`(|V|, H C)` (or :math:`(|V|, C)`) and ``edge_attr`` the
-          input object (the values of a hybrid sparse ``adj_t`` when
-          ``edge_attr`` is ``None``); with ``return_attention_weights=True`` a third item
-          ``(edge_index, alpha)`` with ``alpha`` :math:`(|E|, H)`.
+        - **output:** :math:`(|V|, H C)` (or :math:`(|V|, C)`); with
+          ``return_edge_attr=True`` also ``edge_attr`` as given.
     """
 
     def __init__(
         self,
         in_channels: Union[int, Tuple[int, int]],
         out_channels: int,
-        edge_dim: Optional[int] = None,
         heads: int = 1,
         concat: bool = True,
+        *,
+        edge_dim: Optional[int] = None,
         dropout: float = 0.0,
         bias: bool = True,
         validate: bool = True,
+        check_finite: bool = True,
         k_hops: int = 2,
+        hidden_channels: Optional[int] = None,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
         in_src, in_dst = check_layer_args(in_channels, out_channels, heads, edge_dim, dropout,
                                           edge_dim_required=False)
-        if not isinstance(k_hops, int) or k_hops <= 0:
+        if not isinstance(k_hops, int) or isinstance(k_hops, bool) or k_hops <= 0:
             raise ValueError(f"`k_hops` must be a positive int, got {k_hops!r}")
-        if in_src != in_dst:
-            raise ValueError(f"`in_channels`: the structure extractor runs on a single node set; "
-                             f"got different source/target widths {in_channels!r}")
 
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.edge_dim = edge_dim
+        self.requires_edge_attr = edge_dim is not None
         self.heads = heads
         self.concat = concat
         self.dropout = dropout
         self.validate = validate
+        self.check_finite = check_finite
         self.k_hops = k_hops
 
         H, C = heads, out_channels
         out_width = H * C if concat else C
-        hidden = in_dst
+        known = in_src == in_dst and in_src > 0
+        hidden = hidden_channels or (in_src if known else out_width)
+        check_layer_args(hidden, 1, 1, None, 0.0, edge_dim_required=False)
+        self.hidden_channels = hidden
+        # inputs narrower or wider than the extractor get a linear map to it first
+        self.lin_extract = self.lin_extract_src = self.lin_extract_dst = None
+        if isinstance(in_channels, int):
+            if in_channels != hidden:
+                self.lin_extract = Linear(in_channels, hidden, bias=bias)
+        elif not (in_src == in_dst == hidden):
+            self.lin_extract_src = Linear(in_src, hidden, bias=bias)
+            self.lin_extract_dst = Linear(in_dst, hidden, bias=bias)
         self.extractor = nn.ModuleList()  # k-subtree GNN extractor (phi)
         for _ in range(k_hops):
             mlp = nn.Sequential(nn.Linear(hidden, hidden, bias=bias), nn.ReLU(),
@@ -121,60 +148,51 @@ class StructureAwareTransformerConv(AttentionConv):
         self.lin_key = Linear(hidden, H * C, bias=bias)
         self.lin_value = Linear(in_src, H * C, bias=bias)
         self.lin_out = Linear(out_width, out_width, bias=bias)  # W_o
-        self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
+        self.lin_skip = self.skip_layer(in_dst, out_width, bias)
         self.reset_parameters()
 
-    def extract(self, x: Tensor, edge_index: Adj, edge_attr: OptTensor = None) -> Tensor:
-        """The k-subtree structure embedding :math:`\\varphi` ``[N, in_channels]``.
+    def _extract_input(self, x: Tensor, side: str) -> Tensor:
+        lin = self.lin_extract if self.lin_extract is not None else (
+            self.lin_extract_src if side == "src" else self.lin_extract_dst)
+        return x if lin is None else lin(x)
+
+    def extract(self, x: Union[Tensor, PairTensor], edge_index: Tensor,
+                edge_attr: OptTensor = None) -> Union[Tensor, PairTensor]:
+        """The k-subtree structure embedding :math:`\\varphi`, ``[N, hidden_channels]``
+        (a ``(phi_src, phi_dst)`` pair for a bipartite ``x``).
 
         Node ``i``'s row depends only on nodes (and edges) at most ``k_hops``
-        incoming hops away.
+        incoming hops away.  ``edge_index`` is a ``[2, E]`` tensor.
         """
-        h = x
+        if isinstance(x, Tensor):
+            h, ei, n_src = self._extract_input(x, "src"), edge_index, None
+        else:  # the graph on both node sets: targets are numbered after the sources
+            n_src = x[0].size(0)
+            h = torch.cat([self._extract_input(x[0], "src"), self._extract_input(x[1], "dst")])
+            ei = torch.stack([edge_index[0], edge_index[1] + n_src])
         for layer, conv in enumerate(self.extractor):
             if layer > 0:
                 h = h.relu()
-            h = conv(h, edge_index) if self.edge_dim is None else conv(h, edge_index, edge_attr)
-        return h
+            h = conv(h, ei) if self.edge_dim is None else conv(h, ei, edge_attr)
+        return h if n_src is None else (h[:n_src], h[n_src:])
 
-    def forward(
-        self,
-        x: Union[Tensor, PairTensor],
-        edge_index: Adj,
-        edge_attr: OptTensor = None,
-        return_attention_weights: Optional[bool] = None,
-    ):
-        """Run the layer.
-
-        Args:
-            x: node features ``[N, F_in]`` (a bipartite pair is rejected).
-            edge_index: ``[2, E]`` (source, target) indices or sparse ``adj_t``.
-            edge_attr: ``[E, edge_dim]`` edge features (required iff ``edge_dim``
-                is set); returned as is.
-            return_attention_weights: also return ``(edge_index, alpha)``.
-
-        Returns:
-            ``(x_out, edge_attr)``, plus ``(edge_index, alpha)`` when asked.
-        """
-        g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
-                          require_edge_attr=self.edge_dim is not None, validate=self.validate)
-        if not isinstance(x, Tensor):
-            raise ValueError("`x`: StructureAwareTransformerConv runs its structure extractor on "
-                             "a single node set; pass one [N, F] tensor, not a bipartite pair")
+    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
         phi = self.extract(x, g.edge_index, g.edge_attr)
         # queries and keys see the k-hop structure (phi); values are the plain features
-        q, k = self.project(phi, (self.lin_query, self.lin_key), True)
-        (v,) = self.project(x, (self.lin_value,))
-        score = self.edge_scores(q, k, g)  # [E, H]
-        alpha = edge_softmax(score, g)
+        if isinstance(x, Tensor):
+            q, k = self.project(phi, (self.lin_query, self.lin_key), True)
+            (v,) = self.project(x, (self.lin_value,))
+            x_dst = x
+        else:
+            (q,) = self.project(phi[1], (self.lin_query,), True)
+            (k,) = self.project(phi[0], (self.lin_key,))
+            (v,) = self.project(x[0], (self.lin_value,))
+            x_dst = x[1]
+        r = self.route(g, q)
+        alpha = self.softmax(self.edge_scores(q, k, g, r), r)
         alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-        out = self.merge_heads(self.aggregate_values(alpha_used, v, g), x)
-
-        # the caller's edge features as given; those a hybrid sparse adj_t carries otherwise
-        e_out = edge_attr if edge_attr is not None else g.edge_attr
-        if return_attention_weights:
-            return out, e_out, (g.edge_index, alpha)
-        return out, e_out
+        out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
+        return out, None, (g.edge_index, r.edges_out(alpha))
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
