@@ -234,6 +234,7 @@ def test_ncs_never_reads_test_positions(flow, data, tmp_path):
             arrays = {k: seq[k] for k in store.SEQUENCE_KEYS}
             arrays["positions"] = arrays["positions"] + np.float32(0.05)
             store.write_sequence(path, arrays, seq["meta"])
+    store.rebuild_manifest(moved)  # edited on purpose: record the new files' hashes
     summary = harness.run(learned_only(methods=(learned.NCS,)), tmp_path / "b", data=moved,
                           progress=False)
     assert summary.failed == 0
