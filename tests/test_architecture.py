@@ -1,4 +1,4 @@
-"""Dependencies point one way (the brief's layout rules), checked on the source's imports."""
+"""Dependencies point one way (the layout rules in the README), checked on the source's imports."""
 import ast
 from pathlib import Path
 

@@ -1,4 +1,4 @@
-"""Benchmark harness (issue 6): accuracy against a reference simulation, run time and
+"""Benchmark harness: accuracy against a reference simulation, run time and
 memory, a stability suite, and scaling / leave-out / reduced-precision / long-sequence
 reports; ``garmentgnn bench`` (see :mod:`garmentgnn.bench.cli`)."""
 from garmentgnn.bench.harness import (METHODS, PLANNED, PRESET_NAMES, Prediction, Preset,

@@ -1,5 +1,5 @@
 """The learned methods inside ``garmentgnn bench``: every method trained and evaluated on
-the same generated dataset (issue 6, "all trained/evaluated on the same data split").
+the same generated dataset and data split.
 
 One bench run (:func:`garmentgnn.bench.harness.run`) with a preset that has a
 :class:`LearnedBudget`:
