@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from garmentgnn.data.generate import BLENDER_SETTINGS, build_inputs, preset
+from garmentgnn.data.presets import BLENDER_SETTINGS, build_inputs, preset
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
 from garmentgnn.motion import Motion

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn.data.generate import build_body
+from garmentgnn.body.factory import build_body
 from garmentgnn.data.store import load_sequence
 from garmentgnn.viz import render_grid
 

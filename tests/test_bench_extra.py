@@ -13,7 +13,7 @@ from garmentgnn.bench.model_inputs import BenchChunks, forward_args, untrained_m
 from garmentgnn.bench.sequences import build_scene, case_item, make_sequence
 from garmentgnn.bench.timing import num_threads
 from garmentgnn.data import Spec, generate
-from garmentgnn.data.generate import build_body
+from garmentgnn.body.factory import build_body
 from garmentgnn.data.store import load_sequence, sequence_path
 from garmentgnn.garments import make_garment
 from garmentgnn.models import GarTrans

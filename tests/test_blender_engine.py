@@ -18,7 +18,8 @@ import torch
 import trimesh
 
 from garmentgnn.data import store
-from garmentgnn.data.generate import BLENDER_SETTINGS, build_inputs, generate, preset
+from garmentgnn.data.generate import generate
+from garmentgnn.data.presets import BLENDER_SETTINGS, build_inputs, preset
 from garmentgnn.physics.materials import MATERIALS
 from garmentgnn.sim.blender import (BLENDER_TIME_UNIT, BlenderSettings, blender_available,
                                     blender_config, require_blender, run_worker,
@@ -170,7 +171,7 @@ def _slow_first(item):
 
 @needs_blender
 def test_a_failed_sequence_is_recorded_and_retried(tmp_path):
-    from garmentgnn.data.generate import Spec
+    from garmentgnn.data.presets import Spec
     spec = preset("tiny", engine="blender")
     spec = Spec(**{**spec.__dict__, "sample": 2})
     items = spec.items()

@@ -277,7 +277,7 @@ def test_dataset_items_and_lazy_loading(clean_run):
     assert d3.pose.shape == (3, S, 3) and d3.translation.shape == (3, 3)
     assert torch.equal(d3.pose[-1], torch.from_numpy(seq["motion_rotations"][3]))
     # body vertices recomputed from the body model + stored motion
-    from garmentgnn.data.generate import build_body
+    from garmentgnn.body.factory import build_body
     body = build_body(seq["meta"]["body"])
     bv, _ = body.pose(torch.from_numpy(seq["motion_rotations"][3:5]),
                       torch.from_numpy(seq["motion_translation"][3:5]))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from garmentgnn.data import store
-from garmentgnn.data.generate import generate, preset
+from garmentgnn.data import generate, preset
 from garmentgnn.sim.blender import blender_available
 
 ray = pytest.importorskip("ray", reason="Ray is an optional extra (make install installs it)")

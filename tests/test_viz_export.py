@@ -8,7 +8,9 @@ import torch
 
 from conftest import lbs_simulate
 from garmentgnn.data import generate, store
-from garmentgnn.data.generate import Spec, build_body, motion_key
+from garmentgnn.body.factory import build_body
+from garmentgnn.data.presets import Spec
+from garmentgnn.data.keys import motion_key
 from garmentgnn.data.gltf import GltfMesh, write_gltf
 
 vtk = pytest.importorskip("vtk", reason='VTK is not installed: pip install "garmentgnn[viz]"')

@@ -34,7 +34,7 @@ def _path(text: str) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     import garmentgnn
-    from garmentgnn.data.generate import ENGINES, PRESETS
+    from garmentgnn.data.presets import ENGINES, PRESETS
     p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
     sub = p.add_subparsers(dest="command", required=True)
@@ -107,7 +107,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     args = build_parser().parse_args(argv)
     if args.command == "generate":
-        from garmentgnn.data.generate import SpecMismatch, generate, preset
+        from garmentgnn.data import SpecMismatch, generate, preset
         try:
             sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
             spec = preset(args.preset, seed=args.seed, engine=args.engine)

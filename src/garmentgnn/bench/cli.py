@@ -40,7 +40,7 @@ def main(args: argparse.Namespace) -> int:
     if args.data is not None and args.no_learned:
         print("error: --data and --no-learned exclude each other", file=sys.stderr)
         return 2
-    from garmentgnn.data.generate import SpecMismatch
+    from garmentgnn.data import SpecMismatch
     try:
         summary = run(preset(args.preset), args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,

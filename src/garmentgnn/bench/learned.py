@@ -66,7 +66,7 @@ from garmentgnn.bench.model_inputs import BenchChunks
 from garmentgnn.bench.report import METRICS, UNITS, _fmt, _mean_std, _table, plot_summary
 from garmentgnn.bench.timing import batch_sweep, peak_memory
 from garmentgnn.data import store
-from garmentgnn.data.generate import body_key, garment_key
+from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.losses.gartrans_loss import PHYSICS, SUPERVISED, GarTransLoss, LossInputs
 from garmentgnn.metrics import evaluate
 from garmentgnn.models.baselines import CoarseLevel, DAStyle, GarmentScene, HOODStyle, NCSStyle
@@ -207,7 +207,7 @@ def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
     ``train`` / ``test`` sequences."""
     root = Path(root)
     if preset_name is not None:
-        from garmentgnn.data.generate import generate, preset
+        from garmentgnn.data import generate, preset
         if not isinstance(workers, int) or workers < 0:
             raise ValueError(f"`workers`: expected a non-negative int, got {workers!r}")
         generate(preset(preset_name), root, workers=workers, progress=progress,

@@ -8,7 +8,7 @@ from typing import Any, Dict, Optional
 
 from torch import Tensor
 
-from garmentgnn.data.generate import build_inputs
+from garmentgnn.data.presets import build_inputs
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.models.baselines import GarmentScene
 from garmentgnn.physics import ClothRest, Material
@@ -18,7 +18,7 @@ def case_item(name: str, kind: str, resolution: int, motion: str, num_frames: in
               params: Optional[Dict[str, Any]] = None, body_shape: str = "regular",
               speed: float = 1.0, amplitude: float = 1.0, material: str = "silk"
               ) -> Dict[str, Any]:
-    """A benchmark case in the item format of :mod:`garmentgnn.data.generate` (capsule
+    """A benchmark case in the item format of :mod:`garmentgnn.data.presets` (capsule
     body), plus its ``name``; the seed is filled in per run."""
     if num_frames < 2:
         raise ValueError(f"`num_frames`: at least 2 (frame 0 is the shared initial state), "

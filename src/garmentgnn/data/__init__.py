@@ -1,20 +1,12 @@
-"""Dataset generation (garments x bodies x motions x materials through the simulator),
+"""Dataset specs and presets (garments x bodies x motions x materials), their generation
+through the simulator,
 the on-disk store (sequence files, manifest, PC2/OBJ export) and a lazy PyG dataset.
 
 The PyG dataset classes are imported on first use so that the CLI and the generator
 do not pay for importing torch_geometric."""
-from garmentgnn.data.generate import (
-    PRESETS,
-    Spec,
-    SpecMismatch,
-    Summary,
-    body_key,
-    garment_key,
-    generate,
-    motion_key,
-    preset,
-    run_item,
-)
+from garmentgnn.data.generate import SpecMismatch, Summary, generate, run_item
+from garmentgnn.data.keys import body_key, garment_key, motion_key
+from garmentgnn.data.presets import PRESETS, Spec, preset
 from garmentgnn.data.store import (
     IntegrityError,
     export_sequence,

@@ -17,7 +17,8 @@ import torch
 from torch_geometric.data import Data, Dataset
 
 from garmentgnn.data import store
-from garmentgnn.data.generate import body_key, body_model, build_body
+from garmentgnn.body.factory import build_body
+from garmentgnn.data.keys import body_key
 from garmentgnn.geometry.mesh import edge_features, faces_to_edge_index
 
 
@@ -161,4 +162,4 @@ class GarmentSequenceDataset(Dataset):
         )
 
 
-__all__ = ["GarmentFrame", "GarmentSequenceDataset", "body_model"]
+__all__ = ["GarmentFrame", "GarmentSequenceDataset"]

@@ -1,25 +1,11 @@
-"""Dataset generation: a spec (garments x bodies x motions x materials), presets,
-parallel workers, resume.
+"""Dataset generation: simulate a spec's items (:mod:`garmentgnn.data.presets`) with
+parallel workers, resumably, into a dataset folder (sequence files + manifest).
 
-An *item* is one simulation: a garment template (kind + parameters + resolution) built
-on a body (model + shape), driven by a procedural motion (name + speed + amplitude +
-frame count) with a material preset and simulator settings.  Its ``id`` is a readable
-prefix plus a hash of that canonical description and the spec's base seed, and its
-``seed`` (motion jitter, torch/numpy RNG in the simulation) is derived from the same
-hash, so an item's content never depends on which other items exist or on the order
-they run in.
-
-Split rule (the paper's held-out garments / bodies / motions, Sec. 4.1): each spec
-names held-out garments, body shapes and motions for ``test`` and for ``val``.  An item
-goes to ``test`` if its garment OR body OR motion is held out for test; otherwise to
-``val`` if any of them is held out for val; otherwise to ``train``.  So no train item
-shares a held-out component with a test item.
+Each item is simulated on its own (:func:`run_item`) with the seed its spec gave it, so
+an item's content never depends on which other items exist or on the order they run in.
 """
 from __future__ import annotations
 
-import hashlib
-import itertools
-import json
 import multiprocessing
 import os
 import random
@@ -35,311 +21,10 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from garmentgnn.data import store
+from garmentgnn.data.presets import Spec, build_inputs
 
-# --------------------------------------------------------------------------- spec
-#: garment: {"kind", "params" (template kwargs), "resolution"}
-#: body: {"model": "capsule" | "anny", "shape": preset name or list of floats}
-#: motion: {"name", "num_frames", "speed", "amplitude"}
-
-
-def _canon(obj: Any) -> str:
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
-
-
-def garment_key(g: Dict[str, Any]) -> str:
-    params = "".join(f"-{k}={v}" for k, v in sorted(g.get("params", {}).items()))
-    return f"{g['kind']}{params}@{g['resolution']}"
-
-
-def body_key(b: Dict[str, Any]) -> str:
-    s = b["shape"]
-    s = s if isinstance(s, str) else "[" + ",".join(f"{x:.4g}" for x in s) + "]"
-    return f"{b['model']}:{s}"
-
-
-def motion_key(m: Dict[str, Any]) -> str:
-    return f"{m['name']}-s{m.get('speed', 1.0):g}-a{m.get('amplitude', 1.0):g}-n{m['num_frames']}"
-
-
-_PART = {"garments": "garment", "bodies": "body", "motions": "motion"}
-
-
-@dataclass
-class Spec:
-    """The full description of a dataset (see the module doc for the split rule).
-
-    ``held_out`` maps ``"test"`` / ``"val"`` to ``{"garments": [...], "bodies": [...],
-    "motions": [...]}`` of keys as given by :func:`garment_key`, :func:`body_key`,
-    :func:`motion_key`.  ``sample``: if set, a seeded random subset of that many items
-    of the full grid (kept in grid order)."""
-
-    name: str
-    garments: List[Dict[str, Any]]
-    bodies: List[Dict[str, Any]]
-    motions: List[Dict[str, Any]]
-    materials: List[str]
-    settings: Dict[str, Any] = field(default_factory=lambda: {"fps": 30.0, "substeps": 4, "preroll_frames": 6})
-    held_out: Dict[str, Dict[str, List[str]]] = field(default_factory=dict)
-    seed: int = 0
-    sample: Optional[int] = None
-    engine: str = "torch"
-
-    def __post_init__(self) -> None:
-        if self.engine not in ENGINES:
-            raise ValueError(f"`engine`: unknown {self.engine!r}; choose one of {ENGINES}")
-
-    def split_of(self, garment: Dict, body: Dict, motion: Dict) -> str:
-        return self.held_out_parts(garment, body, motion)[0]
-
-    def held_out_parts(self, garment: Dict, body: Dict, motion: Dict) -> Tuple[str, List[str]]:
-        """The item's split and which of its parts (``garment``, ``body``, ``motion``)
-        are held out for it: reports break the test split down by these."""
-        keys = {"garments": garment_key(garment), "bodies": body_key(body),
-                "motions": motion_key(motion)}
-        for split in ("test", "val"):
-            h = self.held_out.get(split, {})
-            parts = [_PART[k] for k in keys if keys[k] in h.get(k, ())]
-            if parts:
-                return split, parts
-        return "train", []
-
-    def items(self) -> List[Dict[str, Any]]:
-        """Every item, in grid order (garment, body, motion, material)."""
-        out = []
-        for g, b, m, mat in itertools.product(self.garments, self.bodies, self.motions,
-                                              self.materials):
-            desc = {"garment": g, "body": b, "motion": m, "material": mat,
-                    "settings": self.settings}
-            if self.engine != "torch":  # torch items keep the ids they had before engines
-                desc["engine"] = self.engine
-            digest = hashlib.sha1(f"{_canon(desc)}|seed={self.seed}".encode()).hexdigest()
-            shape = b["shape"] if isinstance(b["shape"], str) else "custom"
-            iid = f"{g['kind']}-{b['model']}-{shape}-{m['name']}-{mat}-{digest[:10]}"
-            split, parts = self.held_out_parts(g, b, m)
-            out.append(dict(desc, id=iid, seed=int(digest[10:18], 16) & 0x7FFFFFFF,
-                            split=split, held_out=parts, engine=self.engine))
-        if self.sample is not None and self.sample < len(out):
-            keep = sorted(random.Random(self.seed).sample(range(len(out)), self.sample))
-            out = [out[i] for i in keep]
-        ids = [it["id"] for it in out]
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"spec {self.name!r}: duplicate items (repeated grid entries)")
-        return out
-
-    def to_json(self) -> Dict[str, Any]:
-        d = asdict(self)
-        d["items"] = self.items()
-        return d
-
-
-def _g(kind, resolution, **params):
-    return {"kind": kind, "params": params, "resolution": resolution}
-
-
-def _m(name, num_frames, speed=1.0, amplitude=1.0):
-    return {"name": name, "num_frames": num_frames, "speed": speed, "amplitude": amplitude}
-
-
-#: the engines a spec can name (``auto`` in :func:`resolve_engine` picks one)
-ENGINES = ("torch", "blender")
-#: the Blender engine's settings in every preset (:class:`garmentgnn.sim.blender.BlenderSettings`;
-#: its run-time knobs ``threads`` and ``timeout`` do not change results and stay out of specs)
-BLENDER_SETTINGS = {"fps": 30.0, "preroll_frames": 10, "quality": 5, "collision_quality": 2,
-                    "collision_distance": 0.005, "body_thickness": 0.005, "self_collision": False,
-                    "air_damping": 1.0, "damping": 5.0}
-
-
-def resolve_engine(name: str = "auto") -> str:
-    """``torch`` or ``blender``; ``auto`` is ``blender`` where its worker can run (see
-    :func:`garmentgnn.sim.blender.blender_available`), else ``torch``."""
-    if name == "auto":
-        from garmentgnn.sim.blender import blender_available
-        return "blender" if blender_available() else "torch"
-    if name not in ENGINES:
-        raise ValueError(f"`engine`: unknown {name!r}; choose 'auto' or one of {ENGINES}")
-    return name
-
-
-def preset(name: str, seed: int = 0, engine: str = "torch") -> Spec:
-    """``tiny`` (tests, < 1 min), ``small`` (tens of minutes on 2 cores), ``medium``
-    (Blender, about an hour on 2 cores) or ``paper`` (the paper's scale; hours to days),
-    simulated by ``engine`` (``torch``, ``blender`` or ``auto``).  See ``docs/dataset.md``."""
-    engine = resolve_engine(engine)
-    spec = _preset(name, seed, engine)
-    spec.engine = engine
-    if engine == "blender":
-        spec.settings = dict(BLENDER_SETTINGS)
-    return spec
-
-
-def _preset(name: str, seed: int, engine: str) -> Spec:
-    if name == "tiny":
-        return Spec(
-            name="tiny",
-            garments=[_g("skirt", 300, length="mini"), _g("tshirt", 300, sleeves="none")],
-            bodies=[{"model": "capsule", "shape": "thin"},
-                    {"model": "capsule", "shape": "regular"}],
-            motions=[_m("walk", 8), _m("arm_swing", 8)],
-            materials=["silk"],
-            held_out={"test": {"motions": [motion_key(_m("arm_swing", 8))]}},
-            seed=seed)
-    if name == "small":
-        # Sized from the measured simulator (docs/dataset.md): ~24 items x (15 simulated +
-        # 6 pre-roll frames) of ~400-vertex garments, ~30 min on 2 cores.  Held-out
-        # garments are new cuts of the trained kinds (as in the paper, Sec. 4.1), so the
-        # train split sees every kind and the test split asks for generalisation to an
-        # unseen shape, plus an unseen motion (kick); the fat body is held out for val.
-        n = 60 if engine == "blender" else 16  # Blender is fast enough for longer sequences
-        garments = [_g("skirt", 400), _g("skirt", 400, length="mini", flare="flared"),
-                    _g("dress", 400), _g("tshirt", 400), _g("trousers", 400),
-                    _g("skirt", 400, length="midi", flare="flared"),
-                    _g("dress", 400, length="midi", flare="flared")]
-        bodies = [{"model": "anny", "shape": s} for s in ("thin", "regular", "fat")]
-        motions = [_m("walk", n), _m("run", n), _m("twirl", n), _m("arm_swing", n),
-                   _m("kick", n)]
-        return Spec(
-            name="small", garments=garments, bodies=bodies, motions=motions,
-            materials=["silk", "cotton"],
-            held_out={"test": {"garments": [garment_key(g) for g in garments[5:]],
-                               "motions": [motion_key(motions[4])]},
-                      "val": {"bodies": [body_key(bodies[2])]}},
-            seed=seed, sample=24)
-    if name == "medium":
-        return _medium(seed)
-    if name == "paper":
-        n = 300
-        garments = (
-            [_g("skirt", "medium", length=L, flare=f) for L in ("mini", "knee", "midi", "long")
-             for f in ("pencil", "a-line", "flared", "full")]                              # 16
-            + [_g("dress", "medium", length=L, flare=f) for L in ("knee", "midi", "long")
-               for f in ("a-line", "flared", "full")]                                     # 9
-            + [_g("tshirt", "medium", sleeves=s, length=L, neckline=nl)
-               for s in ("none", "short", "elbow", "long") for L in ("hip", "waist")
-               for nl in ("crew", "scoop")]                                               # 16
-            + [_g("trousers", "medium", length=L) for L in ("shorts", "knee", "capri",
-                                                             "long")]                     # 4
-            + [_g("jumpsuit", "medium", length=L, sleeves=s) for L in ("knee", "long")
-               for s in ("none", "short")])                                               # 4
-        rng = np.random.default_rng(seed)
-        # anny phenotype order: gender, age, muscle, weight, height, proportions
-        test_bodies = [{"model": "anny", "shape": [round(float(x), 4) for x in
-                                                   rng.uniform(0.2, 0.8, 6)]}
-                       for _ in range(1)]
-        bodies = [{"model": "anny", "shape": s} for s in ("thin", "regular", "fat")] \
-            + test_bodies
-        motions = [_m(name_, n, speed=s, amplitude=a)
-                   for name_ in ("walk", "run", "twirl", "kick", "arm_swing", "jump",
-                                 "sit_stand")
-                   for s, a in ((1.0, 1.0), (0.8, 0.8), (1.25, 1.2))]
-        test_garments = [garment_key(garments[i]) for i in range(0, len(garments), 10)]  # 5
-        return Spec(
-            name="paper", garments=garments, bodies=bodies, motions=motions,
-            materials=["silk"],
-            held_out={"test": {"garments": test_garments,
-                               "bodies": [body_key(b) for b in test_bodies],
-                               "motions": [motion_key(m) for m in motions
-                                           if m["name"] == "sit_stand" and m["speed"] == 1.0]},
-                      "val": {"garments": [garment_key(garments[i]) for i in (1, 17, 28)],
-                              "motions": [motion_key(m) for m in motions
-                                          if m["name"] == "jump" and m["speed"] == 1.25]}},
-            seed=seed)
-    raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESETS}")
-
-
-PRESETS = ("tiny", "small", "medium", "paper")
-
-
-def _medium(seed: int) -> Spec:
-    """About 500 sequences of 60 frames (2 s at 30 fps) on 32 anny body shapes: 16 garments
-    of every kind in several cuts and sizes (``ease``), three fabrics, 21 motions (the
-    generators at several speeds and amplitudes, and even mixes of two).  Garments of
-    about 1.3-1.6K vertices; the body collider is anny's 1,229-vertex topology.  Held out
-    for test: one garment, three bodies, two motions; for val: one garment, two bodies,
-    one motion.  Sized to generate in under an hour with the Blender engine and two
-    workers on two cores (docs/dataset.md)."""
-    n, res = 60, 1500
-    garments = [
-        _g("skirt", res, length="knee", flare="a-line"), _g("skirt", res, length="mini", flare="flared"),
-        _g("skirt", res, length="midi", flare="pencil"), _g("skirt", res, length="long", flare="full"),
-        _g("dress", res, length="knee", flare="a-line"), _g("dress", res, length="midi", flare="flared"),
-        _g("dress", res, length="long", flare="full", top="sleeveless"),
-        _g("tshirt", res, sleeves="short", ease=0.02), _g("tshirt", res, sleeves="none", length="waist",
-                                                          neckline="scoop", ease=0.05),
-        _g("tshirt", res, sleeves="long", ease=0.04),
-        _g("trousers", res, length="shorts", ease=0.03), _g("trousers", res, length="knee", ease=0.05),
-        _g("trousers", res, length="long", ease=0.02),
-        _g("jumpsuit", res, length="knee", sleeves="none", ease=0.03),
-        _g("jumpsuit", res, length="long", sleeves="short", ease=0.02),
-        _g("jumpsuit", res, length="long", sleeves="none", ease=0.05)]
-    rng = np.random.default_rng(seed + 1)
-    # anny phenotype order: gender, age, muscle, weight, height, proportions
-    bodies = [{"model": "anny", "shape": s} for s in ("thin", "regular", "fat")] + [
-        {"model": "anny", "shape": [round(float(x), 4) for x in rng.uniform(0.2, 0.8, 6)]}
-        for _ in range(29)]
-    motions = [_m(name_, n, speed=s, amplitude=a) for name_, s, a in (
-        ("walk", 1.0, 1.0), ("walk", 1.3, 1.2), ("walk", 0.7, 0.8), ("run", 1.0, 1.0),
-        ("run", 1.2, 1.1), ("twirl", 1.0, 1.0), ("twirl", 0.7, 1.2), ("kick", 1.0, 1.0),
-        ("kick", 1.2, 0.8), ("arm_swing", 1.0, 1.0), ("arm_swing", 1.4, 1.3), ("jump", 1.0, 1.0),
-        ("jump", 0.8, 0.9), ("sit_stand", 1.0, 1.0), ("sit_stand", 1.5, 1.0),
-        ("walk+arm_swing", 1.0, 1.0), ("walk+twirl", 1.0, 1.0), ("run+arm_swing", 1.0, 1.0),
-        ("twirl+arm_swing", 1.0, 1.0), ("kick+arm_swing", 1.0, 1.0), ("jump+arm_swing", 1.0, 1.0))]
-    keys = {"g": [garment_key(g) for g in garments], "b": [body_key(b) for b in bodies],
-            "m": [motion_key(m) for m in motions]}
-    return Spec(
-        name="medium", garments=garments, bodies=bodies, motions=motions,
-        materials=["silk", "cotton", "denim"],
-        held_out={"test": {"garments": [keys["g"][5]], "bodies": keys["b"][3:6],
-                           "motions": [keys["m"][6], keys["m"][20]]},
-                  "val": {"garments": [keys["g"][9]], "bodies": keys["b"][6:8],
-                          "motions": [keys["m"][8]]}},
-        seed=seed, sample=520)
 
 # --------------------------------------------------------------------------- one item
-_MODELS: Dict[str, Any] = {}
-_BODIES: Dict[str, Any] = {}
-
-
-def body_model(name: str):
-    """A (per-process cached) body model: ``capsule`` or ``anny``."""
-    if name not in _MODELS:
-        from garmentgnn.body import AnnyBodyModel, CapsuleBodyModel
-        if name == "capsule":
-            _MODELS[name] = CapsuleBodyModel()
-        elif name == "anny":
-            _MODELS[name] = AnnyBodyModel()
-        else:
-            raise ValueError(f"body model: unknown {name!r}; use 'capsule' or 'anny'")
-    return _MODELS[name]
-
-
-def build_body(spec: Dict[str, Any]):
-    key = body_key(spec)
-    if key not in _BODIES:
-        _BODIES[key] = body_model(spec["model"])(spec["shape"])
-    return _BODIES[key]
-
-
-def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
-    """``(garment, body, motion, material, settings_dict)`` of an item."""
-    import torch
-
-    from garmentgnn.garments import make_garment
-    from garmentgnn.motion import make_motion
-    from garmentgnn.physics.materials import MATERIALS
-
-    body = build_body(item["body"])
-    g = item["garment"]
-    garment = make_garment(g["kind"], body, resolution=g["resolution"], **g.get("params", {}))
-    m = item["motion"]
-    model = body_model(item["body"]["model"])
-    motion = make_motion(m["name"], model.skeleton, num_frames=num_frames or m["num_frames"],
-                         fps=float(item["settings"].get("fps", 30.0)), speed=m["speed"],
-                         amplitude=m["amplitude"], seed=item["seed"],
-                         rest_joints=body.joints.to(torch.float64))
-    material = MATERIALS[item["material"]]
-    return garment, body, motion, material
-
-
 def default_simulate(engine: str = "torch"):
     """The engine's simulate function: :func:`garmentgnn.sim.simulate` (``torch``) or
     :func:`garmentgnn.sim.blender.simulate_blender` (``blender``)."""
@@ -452,7 +137,9 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
     return rec
 
 
-def _init_worker(parent_pid: Optional[int] = None) -> None:
+def init_worker(parent_pid: Optional[int] = None) -> None:
+    """Set up a worker process: one torch thread, and (given ``parent_pid``) exit when
+    that process does."""
     import torch
 
     from garmentgnn.data._lifeline import watch_parent
@@ -681,7 +368,7 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
         else:
             ctx = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                     initializer=_init_worker,
+                                     initializer=init_worker,
                                      initargs=(os.getpid(),)) as pool:
                 pending = {pool.submit(run_item, it, str(out), simulate_fn, settings_fn)
                            for it in todo}

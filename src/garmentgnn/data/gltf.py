@@ -146,7 +146,7 @@ def sequence_meshes(seq: dict, body: bool = True) -> Tuple[List[GltfMesh], float
     if body:
         import torch
 
-        from garmentgnn.data.generate import build_body
+        from garmentgnn.body.factory import build_body
         b = build_body(meta["body"])
         dt = b.vertices.dtype
         with torch.no_grad():

@@ -25,9 +25,9 @@ def _task(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable],
           settings_fn: Optional[Callable]) -> Dict[str, Any]:
     """A Ray task: one item, in a worker with one torch thread."""
     global _INITIALISED
-    from garmentgnn.data.generate import _init_worker, run_item
+    from garmentgnn.data.generate import init_worker, run_item
     if not _INITIALISED:
-        _init_worker()
+        init_worker()
         _INITIALISED = True
     return run_item(item, out, simulate_fn, settings_fn)
 

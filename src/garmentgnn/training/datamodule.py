@@ -37,7 +37,8 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from garmentgnn.data import store
-from garmentgnn.data.generate import body_key, build_body
+from garmentgnn.body.factory import build_body
+from garmentgnn.data.keys import body_key
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
 from garmentgnn.physics import ClothRest
