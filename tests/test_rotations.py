@@ -5,7 +5,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from garmentgnn.geometry import (axis_angle_to_matrix, euler_to_matrix, matrix_to_axis_angle,
-                                 matrix_to_euler)
+                                 matrix_to_euler, unwrap_axis_angle)
 
 D = torch.float64
 TAIT_BRYAN = ["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"]
@@ -104,3 +104,18 @@ def test_bad_order():
         euler_to_matrix(torch.zeros(3), "XY")
     with pytest.raises(ValueError, match="`order`"):
         matrix_to_euler(torch.eye(3), "XYX")
+
+
+def test_unwrap_axis_angle_keeps_rotations_and_removes_jumps():
+    # a joint spinning steadily about a fixed axis past pi: the wrapped axis-angle jumps
+    # (angle pi - e -> axis flipped), the unwrapped one grows linearly, same rotations
+    axis = _unit(1, 3)[0]
+    angles = np.linspace(0.0, 3 * np.pi, 41)  # steps of 3 pi / 40: never exactly 2 pi
+    R = Rotation.from_rotvec(angles[:, None] * axis)
+    wrapped = R.as_rotvec()[:, None, :]  # [T, 1, 3], angle in [0, pi]
+    assert np.abs(np.diff(wrapped, axis=0)).max() > 1.0
+    out = unwrap_axis_angle(wrapped)
+    np.testing.assert_allclose(out[:, 0], angles[:, None] * axis, atol=1e-9)
+    np.testing.assert_allclose(Rotation.from_rotvec(out[:, 0]).as_matrix(), R.as_matrix(),
+                               atol=1e-9)
+    assert out is not wrapped and np.abs(np.diff(wrapped, axis=0)).max() > 1.0  # input kept

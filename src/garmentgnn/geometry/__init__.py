@@ -24,7 +24,8 @@ from garmentgnn.geometry.mesh import (EdgeTopology, FaceAdjacency, boundary_vert
 from garmentgnn.geometry.normals import (face_angles, face_areas, face_normals,
                                          scatter_faces_to_vertices, vertex_normals)
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, euler_to_matrix,
-                                           matrix_to_axis_angle, matrix_to_euler)
+                                           matrix_to_axis_angle, matrix_to_euler,
+                                           unwrap_axis_angle)
 from garmentgnn.geometry.uv import (DeformationGradient, UVFrame, deformation_gradient,
                                     flat_triangles, uv_deformation_gradient, uv_rest_frame)
 
@@ -48,4 +49,5 @@ __all__ = [
     "vertex_joint_distances", "WindingNumber", "penetration_depth", "is_closed_mesh",
     # rotations
     "axis_angle_to_matrix", "matrix_to_axis_angle", "euler_to_matrix", "matrix_to_euler",
+    "unwrap_axis_angle",
 ]

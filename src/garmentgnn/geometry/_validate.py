@@ -6,8 +6,9 @@ argument and says how to fix it.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Tuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -82,3 +83,21 @@ def safe_norm(x: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
     sq = (x * x).sum(dim, keepdim=keepdim)
     tiny = torch.finfo(x.dtype).tiny if x.is_floating_point() else 1e-30
     return torch.sqrt(sq.clamp_min(tiny ** 0.5))
+
+
+def numpy_mesh(pos: Any, faces: Any, what: str = "geodesics are computed"
+               ) -> Tuple[np.ndarray, np.ndarray]:
+    """Validate a single mesh and return float64 / int64 numpy copies (``what`` names
+    the computation in the error for a batched ``pos``)."""
+    if isinstance(pos, np.ndarray):
+        if not np.issubdtype(pos.dtype, np.floating):
+            raise TypeError(f"`pos`: expected floating-point positions, got dtype {pos.dtype}")
+        pos = torch.from_numpy(pos)
+    if isinstance(faces, np.ndarray):
+        faces = torch.from_numpy(faces)
+    pos = check_points(pos, "pos")
+    if pos.dim() != 2:
+        raise ValueError(f"`pos`: {what} on one rest mesh, expected shape "
+                         f"[V, 3], got {tuple(pos.shape)}; loop over the batch")
+    faces = check_faces(faces, pos.size(0), "faces")
+    return (pos.detach().cpu().double().numpy(), faces.detach().cpu().numpy().astype(np.int64))

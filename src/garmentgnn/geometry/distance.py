@@ -12,10 +12,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._validate import check_faces, check_points, safe_norm
-from .geodesic import _numpy_mesh
+from ._validate import check_faces, check_points, numpy_mesh, safe_norm
 from .mesh import EdgeTopology, unique_edges
-from .normals import _face_angles, face_cross, scatter_faces_to_vertices
+from .normals import face_angles_unchecked, face_cross, scatter_faces_to_vertices
 
 __all__ = ["closest_point_on_triangle", "SignedDistance", "signed_distance", "push_outside",
            "penetration_depth", "is_closed_mesh",
@@ -241,7 +240,7 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
     ne = X.new_zeros(B, topo.edges.size(0), 3).index_add(
         1, topo.face_edges.reshape(-1), nf.unsqueeze(-2).expand(B, F, 3, 3).reshape(B, 3 * F, 3))
     ne = ne / safe_norm(ne, keepdim=True)
-    nv = scatter_faces_to_vertices(nf.unsqueeze(-2) * _face_angles(X, f).unsqueeze(-1), f, Vb)
+    nv = scatter_faces_to_vertices(nf.unsqueeze(-2) * face_angles_unchecked(X, f).unsqueeze(-1), f, Vb)
     nv = nv / safe_norm(nv, keepdim=True)
 
     def pick(table: Tensor, idx: Tensor) -> Tensor:  # table [B, N, 3], idx [B, V]
@@ -386,7 +385,7 @@ class WindingNumber:
 
     def __init__(self, pos: Union[Tensor, np.ndarray], faces: Union[Tensor, np.ndarray],
                  cell: Optional[float] = None) -> None:
-        v, f = _numpy_mesh(pos, faces, "winding numbers are computed")
+        v, f = numpy_mesh(pos, faces, "winding numbers are computed")
         tri = v[f]
         a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
         #: sign of the z component of each face normal (the crossing's direction)

@@ -29,7 +29,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.sparse.linalg import splu
 from torch import Tensor
 
-from ._validate import check_faces, check_indices, check_points
+from ._validate import check_faces, check_indices, check_points, numpy_mesh
 
 __all__ = ["mesh_edge_graph", "graph_geodesic_distances", "cotan_laplacian",
            "HeatGeodesicSolver", "heat_geodesic_distances", "farthest_point_sampling",
@@ -41,24 +41,6 @@ ArrayLike = Union[Tensor, np.ndarray]
 # ---------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------
-def _numpy_mesh(pos: Any, faces: Any, what: str = "geodesics are computed"
-                ) -> Tuple[np.ndarray, np.ndarray]:
-    """Validate a single mesh and return float64 / int64 numpy copies (``what`` names
-    the computation in the error for a batched ``pos``)."""
-    if isinstance(pos, np.ndarray):
-        if not np.issubdtype(pos.dtype, np.floating):
-            raise TypeError(f"`pos`: expected floating-point positions, got dtype {pos.dtype}")
-        pos = torch.from_numpy(pos)
-    if isinstance(faces, np.ndarray):
-        faces = torch.from_numpy(faces)
-    pos = check_points(pos, "pos")
-    if pos.dim() != 2:
-        raise ValueError(f"`pos`: {what} on one rest mesh, expected shape "
-                         f"[V, 3], got {tuple(pos.shape)}; loop over the batch")
-    faces = check_faces(faces, pos.size(0), "faces")
-    return (pos.detach().cpu().double().numpy(), faces.detach().cpu().numpy().astype(np.int64))
-
-
 def _like(x: np.ndarray, ref: Any) -> ArrayLike:
     if isinstance(ref, Tensor):
         return torch.from_numpy(np.ascontiguousarray(x)).to(device=ref.device, dtype=ref.dtype)
@@ -72,7 +54,7 @@ def _unique_edges_np(f: np.ndarray) -> np.ndarray:
 
 def mesh_edge_graph(pos: ArrayLike, faces: ArrayLike) -> sp.csr_matrix:
     """Symmetric sparse ``[V, V]`` matrix of mesh edge lengths (float64)."""
-    p, f = _numpy_mesh(pos, faces)
+    p, f = numpy_mesh(pos, faces)
     e = _unique_edges_np(f)
     w = np.linalg.norm(p[e[:, 1]] - p[e[:, 0]], axis=1)
     # zero-length edges would be dropped as "no edge" by csgraph; keep them tiny
@@ -89,7 +71,7 @@ def graph_geodesic_distances(pos: ArrayLike, faces: ArrayLike, sources: Any) -> 
     ``d(s, v) = min over edge paths s -> v of sum of edge lengths``; ``inf`` for
     vertices in another connected component.
     """
-    p, f = _numpy_mesh(pos, faces)
+    p, f = numpy_mesh(pos, faces)
     src = check_indices(sources, p.shape[0], "sources").numpy()
     d = dijkstra(mesh_edge_graph(p, f), directed=False, indices=src)
     return _like(np.atleast_2d(d), pos)
@@ -115,7 +97,7 @@ def cotan_laplacian(pos: ArrayLike, faces: ArrayLike) -> Tuple[sp.csr_matrix, np
     Returns:
         ``(L [V, V] csr float64, M [V] float64)``.
     """
-    p, f = _numpy_mesh(pos, faces)
+    p, f = numpy_mesh(pos, faces)
     n = p.shape[0]
     cot = _cotan_np(p, f)
     rows, cols, vals = [], [], []
@@ -156,7 +138,7 @@ class HeatGeodesicSolver:
     def __init__(self, pos: ArrayLike, faces: ArrayLike, t_scale: float = 1.0):
         if not t_scale > 0:
             raise ValueError(f"`t_scale`: must be positive, got {t_scale}")
-        p, f = _numpy_mesh(pos, faces)
+        p, f = numpy_mesh(pos, faces)
         self.pos, self.faces, self.num_vertices = p, f, p.shape[0]
         L, M = cotan_laplacian(p, f)
         e = _unique_edges_np(f)
@@ -215,7 +197,7 @@ def heat_geodesic_distances(pos: ArrayLike, faces: ArrayLike, sources: Any,
 # ---------------------------------------------------------------------------
 def _distance_fn(pos: Any, faces: Any,
                  geodesic: str) -> Tuple[Callable[[np.ndarray], np.ndarray], int]:
-    p, f = _numpy_mesh(pos, faces)
+    p, f = numpy_mesh(pos, faces)
     if geodesic == "graph":
         g = mesh_edge_graph(p, f)
         return (lambda s: dijkstra(g, directed=False, indices=s)), p.shape[0]
@@ -370,7 +352,7 @@ def geodesic_nystrom_features(pos: ArrayLike, faces: ArrayLike, k: int = 16,
     pre-processing).  Returns a tensor in ``pos``'s dtype/device when ``pos`` is a
     tensor, else float64.
     """
-    p, f = _numpy_mesh(pos, faces)
+    p, f = numpy_mesh(pos, faces)
     n = p.shape[0]
     z = min(int(num_landmarks), n)
     if z < 1:

@@ -14,7 +14,8 @@ from torch import Tensor
 
 from ._validate import check_mesh, check_points, safe_norm
 from .mesh import FaceAdjacency, boundary_vertex_mask, face_adjacency
-from .normals import _face_angles, face_cross, face_vertices, scatter_faces_to_vertices
+from .normals import (face_angles_unchecked, face_cross, face_vertices,
+                      scatter_faces_to_vertices)
 
 __all__ = ["edge_lengths", "project_edge_lengths", "dihedral_angles", "face_cotangents",
            "mixed_voronoi_areas", "angle_defect", "gaussian_curvature"]
@@ -154,7 +155,7 @@ def mixed_voronoi_areas(pos: Tensor, faces: Tensor) -> Tensor:
     pos, faces = check_mesh(pos, faces)
     p = face_vertices(pos, faces)
     area = 0.5 * safe_norm(face_cross(pos, faces))  # [..., F]
-    ang = _face_angles(pos, faces)  # [..., F, 3]
+    ang = face_angles_unchecked(pos, faces)  # [..., F, 3]
     cot = face_cotangents(pos, faces)
     sq = []  # squared length of the edge opposite corner k
     for k in range(3):
@@ -190,7 +191,7 @@ def angle_defect(pos: Tensor, faces: Tensor, boundary: str = "turning") -> Tenso
     """
     pos, faces = check_mesh(pos, faces)
     nv = pos.size(-2)
-    ang_sum = scatter_faces_to_vertices(_face_angles(pos, faces).unsqueeze(-1), faces,
+    ang_sum = scatter_faces_to_vertices(face_angles_unchecked(pos, faces).unsqueeze(-1), faces,
                                         nv).squeeze(-1)
     used = torch.zeros(nv, dtype=torch.bool, device=faces.device)
     used[faces.reshape(-1)] = True

@@ -15,6 +15,7 @@ from torch import Tensor
 from ._validate import check_mesh, safe_norm
 
 __all__ = ["face_vertices", "face_cross", "face_normals", "face_areas", "face_angles",
+           "face_angles_unchecked",
            "vertex_normals", "scatter_faces_to_vertices"]
 
 
@@ -64,10 +65,11 @@ def face_angles(pos: Tensor, faces: Tensor) -> Tensor:
     corner (robust for nearly flat angles, unlike ``acos``).
     """
     pos, faces = check_mesh(pos, faces)
-    return _face_angles(pos, faces)
+    return face_angles_unchecked(pos, faces)
 
 
-def _face_angles(pos: Tensor, faces: Tensor) -> Tensor:
+def face_angles_unchecked(pos: Tensor, faces: Tensor) -> Tensor:
+    """:func:`face_angles` without validation, for callers that have checked the mesh."""
     p = face_vertices(pos, faces)
     out = []
     for k in range(3):
@@ -112,7 +114,7 @@ def vertex_normals(pos: Tensor, faces: Tensor, weighting: str = "area") -> Tenso
         c = face_cross(pos, faces)
     elif weighting == "angle":
         c = _unit(face_cross(pos, faces))
-        c = c.unsqueeze(-2) * _face_angles(pos, faces).unsqueeze(-1)  # [..., F, 3, 3]
+        c = c.unsqueeze(-2) * face_angles_unchecked(pos, faces).unsqueeze(-1)  # [..., F, 3, 3]
         return _unit(scatter_faces_to_vertices(c, faces, pos.size(-2)))
     else:
         raise ValueError(f"`weighting`: expected 'area' or 'angle', got {weighting!r}")

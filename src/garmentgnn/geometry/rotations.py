@@ -1,6 +1,8 @@
-"""Rotation conversions (batched, differentiable): axis-angle, matrices, Euler angles."""
+"""Rotation conversions (batched, differentiable): axis-angle, matrices, Euler angles;
+and making an axis-angle sequence continuous in time (numpy)."""
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -99,3 +101,18 @@ def matrix_to_euler(R: Tensor, order: str) -> Tensor:
     first = torch.where(lock, first_lock, first)
     last = torch.where(lock, torch.zeros_like(last), last)
     return torch.stack([first, middle, last], -1)
+
+
+def unwrap_axis_angle(aa: np.ndarray) -> np.ndarray:
+    """Make ``[T, S, 3]`` axis-angle (numpy) continuous in time: each rotation keeps its
+    axis and gets the angle ``+ 2 pi k`` closest to the previous frame's (a copy)."""
+    out = aa.copy()
+    for t in range(1, aa.shape[0]):
+        cur = out[t]
+        ang = np.linalg.norm(cur, axis=-1, keepdims=True)
+        ok = ang[:, 0] > 1e-8
+        axis = np.where(ok[:, None], cur / np.maximum(ang, 1e-12), 0.0)
+        p = (out[t - 1] * axis).sum(-1, keepdims=True)
+        k = np.round((p - ang) / (2 * np.pi))
+        out[t] = np.where(ok[:, None], cur + 2 * np.pi * k * axis, cur)
+    return out

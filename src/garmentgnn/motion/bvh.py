@@ -42,8 +42,7 @@ from torch import Tensor
 
 from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, matrix_to_axis_angle,
-                                           matrix_to_euler)
-from garmentgnn.motion.generators import _unwrap_axis_angle
+                                           matrix_to_euler, unwrap_axis_angle)
 from garmentgnn.motion.sequence import Motion
 
 _CHANNELS = {f"{a}{kind}": (kind, a) for a in "XYZ" for kind in ("position", "rotation")}
@@ -358,7 +357,7 @@ def load_bvh(source: Union[str, os.PathLike], *, scale: float = 1.0, up: str = "
         translation = translation @ C.T
         ends = {k: C @ v for k, v in ends.items()}
         R = C @ R @ C.T
-    aa = torch.from_numpy(_unwrap_axis_angle(matrix_to_axis_angle(R).numpy())) if T else \
+    aa = torch.from_numpy(unwrap_axis_angle(matrix_to_axis_angle(R).numpy())) if T else \
         torch.zeros(0, S, 3, dtype=torch.float64)
     hierarchy = BVHHierarchy(names, torch.tensor(parents, dtype=torch.long),
                              offsets_t.to(dtype), channels,

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, euler_to_matrix,
-                                           matrix_to_axis_angle)
+                                           matrix_to_axis_angle, unwrap_axis_angle)
 from garmentgnn.motion.limits import JOINT_LIMITS
 from garmentgnn.motion.sequence import Motion
 
@@ -123,20 +123,6 @@ class _Pose:
         a[:, 2] += s * sign * np.broadcast_to(z, (self.T,))
 
 
-def _unwrap_axis_angle(aa: np.ndarray) -> np.ndarray:
-    """Make ``[T, S, 3]`` axis-angle continuous in time (angle + 2 pi k along the axis)."""
-    out = aa.copy()
-    for t in range(1, aa.shape[0]):
-        cur = out[t]
-        ang = np.linalg.norm(cur, axis=-1, keepdims=True)
-        ok = ang[:, 0] > 1e-8
-        axis = np.where(ok[:, None], cur / np.maximum(ang, 1e-12), 0.0)
-        p = (out[t - 1] * axis).sum(-1, keepdims=True)
-        k = np.round((p - ang) / (2 * np.pi))
-        out[t] = np.where(ok[:, None], cur + 2 * np.pi * k * axis, cur)
-    return out
-
-
 def _finish(skeleton: Skeleton, pose: _Pose, translation: np.ndarray, fps: float,
             dtype: torch.dtype = torch.float32) -> Motion:
     T, S = pose.T, skeleton.num_joints
@@ -153,7 +139,7 @@ def _finish(skeleton: Skeleton, pose: _Pose, translation: np.ndarray, fps: float
         euler = clamped[:, ["XYZ".index(a) for a in order]]
         R = euler_to_matrix(torch.from_numpy(np.deg2rad(euler)), order)
         aa[:, k] = matrix_to_axis_angle(R).numpy()
-    aa = _unwrap_axis_angle(aa)
+    aa = unwrap_axis_angle(aa)
     return Motion(torch.tensor(aa, dtype=dtype), torch.tensor(translation, dtype=dtype),
                   list(skeleton.joint_names), float(fps))
 
