@@ -277,6 +277,22 @@ def test_angle_defect_matches_trimesh(noisy_sphere):
     assert defect.sum().item() == pytest.approx(4 * math.pi, abs=1e-9)  # Gauss-Bonnet
 
 
+def test_angle_defect_difference_matches_trimesh_on_interior_vertices(noisy_sheet):
+    pos, faces = noisy_sheet
+    bumped = pos.clone()
+    bumped[..., 2] += 0.05 * torch.sin(3 * pos[..., 0])
+    interior = ~G.boundary_vertex_mask(faces, pos.size(0)).numpy()
+    ref = [trimesh.Trimesh(p.numpy(), faces.numpy(), process=False).vertex_defects
+           for p in (bumped, pos)]
+    expect = np.abs(ref[0] - ref[1])[interior].mean()
+    assert expect > 1e-3
+    assert G.angle_defect_difference(bumped, pos, faces).item() == pytest.approx(expect, rel=1e-10)
+    both = G.angle_defect_difference(torch.stack([bumped, pos]), torch.stack([pos, pos]), faces)
+    assert both.shape == (2,) and both[1].item() == 0.0
+    with pytest.raises(ValueError, match="same shape"):
+        G.angle_defect_difference(bumped, pos[:-1], faces)
+
+
 @pytest.mark.parametrize("r", [1.0, 2.5])
 def test_gaussian_curvature_of_sphere(r):
     m = trimesh.creation.icosphere(subdivisions=3, radius=r)

@@ -14,8 +14,8 @@ from garmentgnn.geometry.geodesic import (HeatGeodesicSolver, NystromFeatures,
                                           geodesic_nystrom_features,
                                           graph_geodesic_distances, heat_geodesic_distances,
                                           mesh_edge_graph, nystrom_eigenvectors)
-from garmentgnn.geometry.measures import (angle_defect, dihedral_angles, edge_lengths,
-                                          project_edge_lengths,
+from garmentgnn.geometry.measures import (angle_defect, angle_defect_difference,
+                                          dihedral_angles, edge_lengths, project_edge_lengths,
                                           face_cotangents, gaussian_curvature,
                                           mixed_voronoi_areas)
 from garmentgnn.geometry.mesh import (EdgeTopology, FaceAdjacency, boundary_vertex_mask,
@@ -36,7 +36,7 @@ __all__ = [
     # normals / measures
     "face_normals", "face_areas", "face_angles", "vertex_normals",
     "scatter_faces_to_vertices", "edge_lengths", "project_edge_lengths", "dihedral_angles", "face_cotangents",
-    "mixed_voronoi_areas", "angle_defect", "gaussian_curvature",
+    "mixed_voronoi_areas", "angle_defect", "angle_defect_difference", "gaussian_curvature",
     # UV deformation gradient (Eq. 14)
     "uv_deformation_gradient", "uv_rest_frame", "deformation_gradient", "flat_triangles",
     "DeformationGradient", "UVFrame",

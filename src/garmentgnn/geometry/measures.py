@@ -18,7 +18,8 @@ from .normals import (face_angles_unchecked, face_cross, face_vertices,
                       scatter_faces_to_vertices)
 
 __all__ = ["edge_lengths", "project_edge_lengths", "dihedral_angles", "face_cotangents",
-           "mixed_voronoi_areas", "angle_defect", "gaussian_curvature"]
+           "mixed_voronoi_areas", "angle_defect", "angle_defect_difference",
+           "gaussian_curvature"]
 
 
 def edge_lengths(pos: Tensor, edges: Tensor) -> Tensor:
@@ -206,6 +207,18 @@ def angle_defect(pos: Tensor, faces: Tensor, boundary: str = "turning") -> Tenso
             raise ValueError(f"`boundary`: expected 'turning', 'zero' or 'full', got "
                              f"{boundary!r}")
     return torch.where(used, defect, torch.zeros_like(defect))
+
+
+def angle_defect_difference(pos: Tensor, ref: Tensor, faces: Tensor) -> Tensor:
+    """Mean absolute difference of the angle defect (:func:`angle_defect`) of ``pos`` and
+    ``ref`` (both ``[..., V, 3]`` on ``faces``) over the interior vertices, ``[...]``
+    (rad).  The curvature term of the GarTrans loss and the E_curv metric."""
+    if pos.shape != ref.shape:
+        raise ValueError(f"`pos` and `ref` must have the same shape, got {tuple(pos.shape)} "
+                         f"and {tuple(ref.shape)}")
+    interior = ~boundary_vertex_mask(faces, pos.shape[-2])
+    d = (angle_defect(pos, faces) - angle_defect(ref, faces)).abs()
+    return d[..., interior].mean(-1)
 
 
 def gaussian_curvature(pos: Tensor, faces: Tensor, boundary: str = "zero") -> Tensor:

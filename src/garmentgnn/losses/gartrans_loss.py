@@ -17,7 +17,8 @@ simulator) with the paper's weights as stiffnesses:
 * extra, off by default: bending and inertia;
 * extra supervised term, off by default (not in the paper):
   ``L_curv = k_curv / N_int sum_i |K_i - K_i^GT|``, the angle defect (discrete Gaussian
-  curvature) at interior vertices -- the E_curv metric itself, the way Eqs. 8 and 9
+  curvature) at interior vertices -- the E_curv metric itself
+  (:func:`garmentgnn.geometry.angle_defect_difference`), the way Eqs. 8 and 9
   train toward E_len and the normal errors.
 
 Paper weights: k_v 100, k_e 15, k_n 50; k_c 1.5, k_g 0.1, k_s 5, k_h 2.
@@ -30,8 +31,7 @@ from typing import Dict, Iterable, Optional
 
 from torch import Tensor, nn
 
-from garmentgnn.geometry import edge_lengths, unique_edges, vertex_normals
-from garmentgnn.metrics import curvature_error
+from garmentgnn.geometry import angle_defect_difference, edge_lengths, unique_edges, vertex_normals
 from garmentgnn.physics import (
     ClothRest,
     bending_energy,
@@ -164,7 +164,8 @@ class GarTransLoss(nn.Module):
                 pred, inp.gt, self._unique_edges(inp.faces, pred.shape[-2]),
                 self.edge_reduction).mean(),
             "norm": lambda: s * w["norm"] * normal_loss(pred, inp.gt, inp.faces).mean(),
-            "curv": lambda: s * w["curv"] * curvature_error(pred, inp.gt, inp.faces).mean(),
+            "curv": lambda: s * w["curv"] * angle_defect_difference(pred, inp.gt,
+                                                                    inp.faces).mean(),
             "collision": lambda: collision_energy(pred, inp.body_pos, inp.body_faces,
                                                   self.collision_margin, w["collision"],
                                                   power=1,

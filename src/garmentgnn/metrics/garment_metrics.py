@@ -24,7 +24,7 @@ from typing import Dict, Optional
 import torch
 from torch import Tensor
 
-from garmentgnn.geometry import (angle_defect, boundary_vertex_mask, edge_lengths, face_normals,
+from garmentgnn.geometry import (angle_defect_difference, edge_lengths, face_normals,
                                  signed_distance, unique_edges, vertex_normals)
 from garmentgnn.physics import (ClothRest, Material, bending_energy, gravity_energy,
                                 shear_energy, stretch_energy)
@@ -73,9 +73,7 @@ def edge_length_error(pred: Tensor, gt: Tensor, faces: Tensor) -> Tensor:
 def curvature_error(pred: Tensor, gt: Tensor, faces: Tensor) -> Tensor:
     """E_curv: mean absolute angle-defect difference at interior vertices (rad)."""
     _check(pred, gt)
-    interior = ~boundary_vertex_mask(faces, pred.shape[-2])
-    d = (angle_defect(pred, faces) - angle_defect(gt, faces)).abs()
-    return d[..., interior].mean(-1)
+    return angle_defect_difference(pred, gt, faces)
 
 
 def collision_rate(pos: Tensor, body_pos: Tensor, body_faces: Tensor) -> Tensor:
