@@ -2,14 +2,22 @@
 ``garmentgnn manifest ...``, ``garmentgnn show ...`` (see :mod:`garmentgnn.viz`),
 ``garmentgnn train ...`` (Lightning's CLI, see
 :mod:`garmentgnn.training.lightning_cli`), ``garmentgnn bench ...`` (see
-:mod:`garmentgnn.bench`) (also ``python -m garmentgnn.cli``)."""
+:mod:`garmentgnn.bench`) (also ``python -m garmentgnn.cli``).
+
+Each sub-command is a pair ``add_parser(subparsers)`` / ``main(args) -> exit status``
+(:data:`COMMANDS`): the data commands are here, ``bench`` and ``show`` in their
+packages' ``cli`` modules.  Nothing in the package imports this module."""
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+import warnings
 from pathlib import Path
-from typing import List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
+
+from garmentgnn.bench import cli as bench_cli
+from garmentgnn.viz import cli as viz_cli
 
 
 def _import_callable(spec: str):
@@ -32,13 +40,9 @@ def _path(text: str) -> str:
     return text
 
 
-def build_parser() -> argparse.ArgumentParser:
-    import garmentgnn
+def add_generate_parser(sub) -> argparse.ArgumentParser:
+    """The ``generate`` sub-command: simulate a dataset preset into a folder."""
     from garmentgnn.data.presets import ENGINES, PRESETS
-    p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0])
-    p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
-    sub = p.add_subparsers(dest="command", required=True)
-
     g = sub.add_parser("generate", help="simulate a dataset preset into a folder (resumable)")
     g.add_argument("--preset", choices=PRESETS, default="tiny")
     g.add_argument("--engine", choices=("auto",) + ENGINES, default="auto",
@@ -67,7 +71,32 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     # test hook: module:function replacing garmentgnn.sim.simulate
     g.add_argument("--simulate-fn", default=None, help=argparse.SUPPRESS)
+    return g
 
+
+def generate_main(args: argparse.Namespace) -> int:
+    from garmentgnn.data import SpecMismatch, generate, preset
+    try:
+        sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
+        spec = preset(args.preset, seed=args.seed, engine=args.engine)
+        out = args.out
+        if out is None:
+            from garmentgnn.data.store import data_root
+            out = data_root() / f"{spec.name}-{spec.engine}"
+            print(f"writing to {out}", flush=True)
+        summary = generate(spec, out, workers=args.workers, limit=args.limit,
+                           simulate_fn=sim, retry_failed=args.retry_failed,
+                           progress=not args.no_progress, estimate=args.estimate,
+                           force=args.force, backend=args.backend, address=args.address)
+    except (SpecMismatch, ValueError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(summary)
+    return 1 if summary.failed else 0
+
+
+def add_export_parser(sub) -> argparse.ArgumentParser:
+    """The ``export`` sub-command: one sequence file as PC2, OBJs or glTF."""
     e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence or glTF")
     e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
     e.add_argument("--format", choices=("pc2", "obj", "gltf"), required=True)
@@ -75,92 +104,99 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the .pc2 / .glb file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true", help="glTF: the garment only")
     e.add_argument("--start-frame", type=float, default=0.0, help="PC2 start frame")
+    return e
 
+
+def export_main(args: argparse.Namespace) -> int:
+    from garmentgnn.data.store import export_sequence
+    if not Path(args.seq).is_file():
+        print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
+              f"dataset made by `garmentgnn generate`)", file=sys.stderr)
+        return 2
+    try:
+        paths = export_sequence(args.seq, args.format, args.out,
+                                start_frame=args.start_frame, body=not args.no_body)
+    except (ValueError, KeyError, OSError) as exc:
+        print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
+              file=sys.stderr)
+        return 2
+    print(f"wrote {len(paths)} file(s): {paths[0]}" + (" ..." if len(paths) > 1 else ""))
+    return 0
+
+
+def add_manifest_parser(sub) -> argparse.ArgumentParser:
+    """The ``manifest`` sub-command: rebuild a dataset's manifest from its files."""
     m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files")
     m.add_argument("--out", required=True, type=_path, help="the dataset folder")
-    from garmentgnn.bench.cli import add_parser as add_bench_parser
-    add_bench_parser(sub)
-    from garmentgnn.viz.cli import add_parser as add_show_parser
-    add_show_parser(sub)
+    return m
+
+
+def manifest_main(args: argparse.Namespace) -> int:
+    from garmentgnn.data.store import SEQUENCES, rebuild_manifest
+    if not (Path(args.out) / SEQUENCES).is_dir():
+        what = "no such folder" if not Path(args.out).is_dir() else f"no {SEQUENCES}/ in it"
+        print(f"error: --out {args.out}: {what}; a dataset folder is made by "
+              f"`garmentgnn generate --out {args.out}`", file=sys.stderr)
+        return 2
+    try:
+        doc = rebuild_manifest(args.out)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"rebuilt {args.out}/manifest.json: {doc['counts']}")
+    return 0
+
+
+def add_train_parser(sub) -> argparse.ArgumentParser:
+    """The ``train`` sub-command: every argument after it goes to LightningCLI."""
     t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
                        "configs/gartrans.yaml --data.root DIR (see `garmentgnn train --help`)",
                        add_help=False)
     t.add_argument("lightning_args", nargs=argparse.REMAINDER)
+    return t
+
+
+def train_main(args: argparse.Namespace) -> int:
+    from garmentgnn.data.store import IntegrityError
+    from garmentgnn.training.integrity import CheckpointError
+    from garmentgnn.training.lightning_cli import main as lightning_main
+    try:
+        with warnings.catch_warnings():  # the args *are* the command line's, after `train`
+            warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+            lightning_main(args.lightning_args, prog="garmentgnn train")
+    except (FileNotFoundError, IntegrityError, CheckpointError) as exc:
+        print(f"error: {exc}", file=sys.stderr)  # one line: the path and the fix
+        return 2
+    return 0
+
+
+#: sub-command -> (``add_parser(subparsers)``, ``main(args) -> exit status``)
+COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
+    "generate": (add_generate_parser, generate_main),
+    "export": (add_export_parser, export_main),
+    "manifest": (add_manifest_parser, manifest_main),
+    "bench": (bench_cli.add_parser, bench_cli.main),
+    "show": (viz_cli.add_parser, viz_cli.main),
+    "train": (add_train_parser, train_main),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    import garmentgnn
+    p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    for add_parser, _ in COMMANDS.values():
+        add_parser(sub)
     return p
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["train"]:  # everything after `train` belongs to LightningCLI
-        from garmentgnn.data.store import IntegrityError
-        from garmentgnn.training.integrity import CheckpointError
-        from garmentgnn.training.lightning_cli import main as train_main
-        saved = sys.argv
-        sys.argv = [f"{Path(saved[0]).name} train"] + argv[1:]  # LightningCLI reads argv
-        try:
-            train_main()
-        except (FileNotFoundError, IntegrityError, CheckpointError) as exc:
-            print(f"error: {exc}", file=sys.stderr)  # one line: the path and the fix
-            return 2
-        finally:
-            sys.argv = saved
-        return 0
+    if argv[:1] == ["train"]:  # everything after `train` belongs to LightningCLI, --help too
+        return train_main(argparse.Namespace(command="train", lightning_args=argv[1:]))
     args = build_parser().parse_args(argv)
-    if args.command == "generate":
-        from garmentgnn.data import SpecMismatch, generate, preset
-        try:
-            sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
-            spec = preset(args.preset, seed=args.seed, engine=args.engine)
-            out = args.out
-            if out is None:
-                from garmentgnn.data.store import data_root
-                out = data_root() / f"{spec.name}-{spec.engine}"
-                print(f"writing to {out}", flush=True)
-            summary = generate(spec, out, workers=args.workers, limit=args.limit,
-                               simulate_fn=sim, retry_failed=args.retry_failed,
-                               progress=not args.no_progress, estimate=args.estimate,
-                               force=args.force, backend=args.backend, address=args.address)
-        except (SpecMismatch, ValueError, RuntimeError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        print(summary)
-        return 1 if summary.failed else 0
-    if args.command == "bench":
-        from garmentgnn.bench.cli import main as bench_main
-        return bench_main(args)
-    if args.command == "show":
-        from garmentgnn.viz.cli import main as show_main
-        return show_main(args)
-    if args.command == "export":
-        from garmentgnn.data.store import export_sequence
-        if not Path(args.seq).is_file():
-            print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
-                  f"dataset made by `garmentgnn generate`)", file=sys.stderr)
-            return 2
-        try:
-            paths = export_sequence(args.seq, args.format, args.out,
-                                    start_frame=args.start_frame, body=not args.no_body)
-        except (ValueError, KeyError, OSError) as exc:
-            print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
-                  file=sys.stderr)
-            return 2
-        print(f"wrote {len(paths)} file(s): {paths[0]}" + (" ..." if len(paths) > 1 else ""))
-        return 0
-    if args.command == "manifest":
-        from garmentgnn.data.store import SEQUENCES, rebuild_manifest
-        if not (Path(args.out) / SEQUENCES).is_dir():
-            what = "no such folder" if not Path(args.out).is_dir() else f"no {SEQUENCES}/ in it"
-            print(f"error: --out {args.out}: {what}; a dataset folder is made by "
-                  f"`garmentgnn generate --out {args.out}`", file=sys.stderr)
-            return 2
-        try:
-            doc = rebuild_manifest(args.out)
-        except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        print(f"rebuilt {args.out}/manifest.json: {doc['counts']}")
-        return 0
-    return 2
+    return COMMANDS[args.command][1](args)
 
 
 if __name__ == "__main__":

@@ -76,11 +76,14 @@ class GarTransCLI(LightningCLI):
                                   compute_fn=_dim(name))
 
 
-def main(args: Optional[Sequence[str]] = None, run: bool = True) -> GarTransCLI:
-    """Run the CLI (``args`` default: ``sys.argv[1:]``); returns the CLI object.  Every
-    run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder)."""
+def main(args: Optional[Sequence[str]] = None, run: bool = True,
+         prog: Optional[str] = None) -> GarTransCLI:
+    """Run the CLI (``args`` default: ``sys.argv[1:]``; ``prog``: the program name its
+    usage lines show); returns the CLI object.  Every run also gets
+    :class:`TrainingPlots` (``training_curves.png`` in the log folder)."""
     return GarTransCLI(GarTransModule, GarmentDataModule, args=None if args is None else list(args),
                        run=run, seed_everything_default=0,
+                       parser_kwargs={"prog": prog} if prog else None,
                        save_config_kwargs={"overwrite": True},
                        trainer_defaults={"callbacks": [TrainingPlots()]})
 
