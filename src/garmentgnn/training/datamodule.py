@@ -32,6 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
@@ -181,95 +182,90 @@ def _identity(x):
     return x
 
 
-try:
-    import lightning as L
+class GarmentDataModule(L.LightningDataModule):
+    """Train/val/test chunks from the manifest's splits (one chunk per step).
 
-    class GarmentDataModule(L.LightningDataModule):
-        """Train/val/test chunks from the manifest's splits (one chunk per step).
+    ``num_joints`` / ``num_body_vertices`` (for building the model) are read from
+    the first training chunk.
 
-        ``num_joints`` / ``num_body_vertices`` (for building the model) are read from
-        the first training chunk.
+    Resuming: the epoch to continue with is kept in the checkpoint
+    (:meth:`state_dict`) and the training sampler starts there, because Lightning
+    (2.6) builds a resumed fit's first data iterator *before* it calls the
+    sampler's ``set_epoch``, which would replay epoch 0's chunk order.
+    """
 
-        Resuming: the epoch to continue with is kept in the checkpoint
-        (:meth:`state_dict`) and the training sampler starts there, because Lightning
-        (2.6) builds a resumed fit's first data iterator *before* it calls the
-        sampler's ``set_epoch``, which would replay epoch 0's chunk order.
-        """
+    def __init__(self, root, chunk: int = 8, history: int = 3, num_workers: int = 0,
+                 nystrom_dim: int = 16, num_landmarks: int = 64, train_split: str = "train",
+                 val_split: str | None = "val", shuffle: bool = True, seed: int = 0,
+                 drop_last: bool = False, test_split: str = "test") -> None:
+        super().__init__()
+        if not (Path(root) / store.MANIFEST).is_file():
+            store.read_manifest(root)  # raises: which path, and the command that makes it
+        self.root, self.chunk, self.history = Path(root), chunk, history
+        self.num_workers, self.nystrom_dim, self.num_landmarks = num_workers, nystrom_dim, \
+            num_landmarks
+        self.train_split, self.val_split, self.test_split = train_split, val_split, \
+            test_split
+        self.test_set: SequenceChunks | None = None
+        self.shuffle, self.seed, self.drop_last = shuffle, seed, drop_last
+        self.train_set: SequenceChunks | None = None
+        self.val_set: SequenceChunks | None = None
+        self.start_epoch = 0  # the epoch a resumed fit continues with
 
-        def __init__(self, root, chunk: int = 8, history: int = 3, num_workers: int = 0,
-                     nystrom_dim: int = 16, num_landmarks: int = 64, train_split: str = "train",
-                     val_split: str | None = "val", shuffle: bool = True, seed: int = 0,
-                     drop_last: bool = False, test_split: str = "test") -> None:
-            super().__init__()
-            if not (Path(root) / store.MANIFEST).is_file():
-                store.read_manifest(root)  # raises: which path, and the command that makes it
-            self.root, self.chunk, self.history = Path(root), chunk, history
-            self.num_workers, self.nystrom_dim, self.num_landmarks = num_workers, nystrom_dim, \
-                num_landmarks
-            self.train_split, self.val_split, self.test_split = train_split, val_split, \
-                test_split
-            self.test_set: SequenceChunks | None = None
-            self.shuffle, self.seed, self.drop_last = shuffle, seed, drop_last
-            self.train_set: SequenceChunks | None = None
-            self.val_set: SequenceChunks | None = None
-            self.start_epoch = 0  # the epoch a resumed fit continues with
+    def state_dict(self) -> dict[str, int]:
+        trainer = getattr(self, "trainer", None)
+        if trainer is None:
+            return {}
+        # epochs whose training part ran to its end (a checkpoint written in
+        # on_train_epoch_end or after fit); a resumed fit starts with the next one
+        return {"next_epoch": int(trainer.fit_loop.epoch_progress.current.processed)}
 
-        def state_dict(self) -> dict[str, int]:
-            trainer = getattr(self, "trainer", None)
-            if trainer is None:
-                return {}
-            # epochs whose training part ran to its end (a checkpoint written in
-            # on_train_epoch_end or after fit); a resumed fit starts with the next one
-            return {"next_epoch": int(trainer.fit_loop.epoch_progress.current.processed)}
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.start_epoch = int(state.get("next_epoch", 0))
 
-        def load_state_dict(self, state: dict[str, int]) -> None:
-            self.start_epoch = int(state.get("next_epoch", 0))
+    def _make(self, split) -> SequenceChunks:
+        return SequenceChunks(self.root, split, self.chunk, self.history, self.nystrom_dim,
+                              self.num_landmarks, drop_last=self.drop_last)
 
-        def _make(self, split) -> SequenceChunks:
-            return SequenceChunks(self.root, split, self.chunk, self.history, self.nystrom_dim,
-                                  self.num_landmarks, drop_last=self.drop_last)
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is None:
+            self.train_set = self._make(self.train_split)
+        if self.val_set is None and self.val_split is not None:
+            self.val_set = self._make(self.val_split)
 
-        def setup(self, stage: str | None = None) -> None:
-            if self.train_set is None:
-                self.train_set = self._make(self.train_split)
-            if self.val_set is None and self.val_split is not None:
-                self.val_set = self._make(self.val_split)
+    @property
+    def dims(self) -> dict[str, int]:
+        self.setup()
+        if not len(self.train_set):
+            raise ValueError(f"no {self.train_split!r} chunks under {self.root}")
+        st = self.train_set.static(self.train_set.index[0][0])
+        return {"num_joints": st["rest_joints"].shape[0],
+                "num_body_vertices": st["body_joint_dists"].shape[0],
+                "nystrom_dim": self.nystrom_dim}
 
-        @property
-        def dims(self) -> dict[str, int]:
-            self.setup()
-            if not len(self.train_set):
-                raise ValueError(f"no {self.train_split!r} chunks under {self.root}")
-            st = self.train_set.static(self.train_set.index[0][0])
-            return {"num_joints": st["rest_joints"].shape[0],
-                    "num_body_vertices": st["body_joint_dists"].shape[0],
-                    "nystrom_dim": self.nystrom_dim}
+    def _loader(self, ds: SequenceChunks, shuffle: bool) -> DataLoader:
+        return DataLoader(ds, batch_size=None, sampler=EpochShuffleSampler(len(ds), self.seed,
+                                                                           shuffle),
+                          num_workers=self.num_workers, collate_fn=_identity,
+                          persistent_workers=self.num_workers > 0)
 
-        def _loader(self, ds: SequenceChunks, shuffle: bool) -> DataLoader:
-            return DataLoader(ds, batch_size=None, sampler=EpochShuffleSampler(len(ds), self.seed,
-                                                                               shuffle),
-                              num_workers=self.num_workers, collate_fn=_identity,
-                              persistent_workers=self.num_workers > 0)
+    def train_dataloader(self) -> DataLoader:
+        self.setup()
+        dl = self._loader(self.train_set, self.shuffle)
+        dl.sampler.set_epoch(self.start_epoch)
+        return dl
 
-        def train_dataloader(self) -> DataLoader:
-            self.setup()
-            dl = self._loader(self.train_set, self.shuffle)
-            dl.sampler.set_epoch(self.start_epoch)
-            return dl
+    def val_dataloader(self):
+        self.setup()
+        if self.val_set is None:
+            return []
+        return self._loader(self.val_set, False)
 
-        def val_dataloader(self):
-            self.setup()
-            if self.val_set is None:
-                return []
-            return self._loader(self.val_set, False)
-
-        def test_dataloader(self) -> DataLoader:
-            """Chunks of ``test_split`` in order (``garmentgnn train test``)."""
-            if self.test_set is None:
-                self.test_set = self._make(self.test_split)
-            return self._loader(self.test_set, False)
-except ImportError:  # pragma: no cover - lightning is optional for the dataset itself
-    GarmentDataModule = None  # type: ignore
+    def test_dataloader(self) -> DataLoader:
+        """Chunks of ``test_split`` in order (``garmentgnn train test``)."""
+        if self.test_set is None:
+            self.test_set = self._make(self.test_split)
+        return self._loader(self.test_set, False)
 
 
 __all__ = ["EpochShuffleSampler", "GarmentDataModule", "SequenceChunks"]
