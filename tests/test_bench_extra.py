@@ -167,7 +167,7 @@ def test_leaveout_measures_what_runs(seq):
             t = e["timing"]
             assert t["saved_ms"] == pytest.approx(t["forced_ms"] - t["left_out_ms"])
     md = "\n".join(leaveout.markdown([rec]))
-    assert "Every part the issue asks to skip is skipped." in md
+    assert "Every part the scene does not need is skipped." in md
 
 
 def test_leaveout_detection_fails_when_a_branch_runs(seq, monkeypatch):

@@ -258,6 +258,6 @@ def test_skirt_walk_end_to_end():
     assert torch.isfinite(res.positions).all()
     # known limit (docs/simulator.md): some substeps of a walking skirt hit max_newton
     # (projected Newton is linear on buckling cloth); they are kept and flagged.  The share
-    # depends on the numerical stack: at least 3/6 frames converged in the previous
-    # session's venv, 2/6 in a fresh one (same code; scipy 1.17.1, numpy 2.4.6)
+    # depends on the numerical stack: at least 3/6 frames converged in one environment,
+    # 2/6 in a fresh one (same code; scipy 1.17.1, numpy 2.4.6)
     assert float(res.converged.float().mean()) >= 1 / 3 - 1e-6

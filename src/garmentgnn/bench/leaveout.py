@@ -17,7 +17,7 @@ calls during one training-style step (:meth:`GarTransModule.forward`: ``encode_s
 + ``forward``, then :meth:`GarTransModule.compute_loss` with every term of the last
 training phase, :data:`garmentgnn.training.PHASE_TERMS` ``[3]``), and the loss terms
 are the ones :class:`~garmentgnn.losses.gartrans_loss.GarTransLoss` returned.
-:data:`SHOULD_SKIP` holds what the issue asks each scene to leave out; each entry is
+:data:`SHOULD_SKIP` holds what each scene's missing input makes unneeded; each entry is
 reported as ``skipped`` or ``computed`` from the measurement.
 
 **Time saved**: the wall time of that step (forward + loss) on the scene against the
@@ -48,8 +48,8 @@ SCENES: Dict[str, str] = {
     "no_uvs": "no material coordinates (no ClothRest)",
 }
 
-#: what the issue asks each scene to skip: model branches (GarTrans child modules) and
-#: loss terms.  This is the specification checked; what runs is measured.
+#: what each scene should skip, its input being missing: model branches (GarTrans child
+#: modules) and loss terms.  This is the specification checked; what runs is measured.
 SHOULD_SKIP: Dict[str, Tuple[str, ...]] = {
     "full": (),
     "no_body": ("body_fc", "collision"),
@@ -170,7 +170,7 @@ def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
     lines += ["Measured with forward hooks on every GarTrans child module and the loss terms "
               "`GarTransLoss` returned (all terms of the last training phase enabled), on one "
               "frame-parallel step (encode_static + forward + loss, no backward).  "
-              "*should skip*: what the issue asks; *skipped* / **computed**: what the code "
+              "*should skip*: what the scene does not need; *skipped* / **computed**: what the code "
               "did.  Time saved: the step on the scene against the step with the left-out "
               "input put back (the full scene), all scenes timed interleaved; untrained model.", ""]
     for r in recs:
@@ -198,5 +198,5 @@ def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
             lines += ["Not left out by the current code: " + "; ".join(r["not_left_out"]) + ".",
                       ""]
         else:
-            lines += ["Every part the issue asks to skip is skipped.", ""]
+            lines += ["Every part the scene does not need is skipped.", ""]
     return lines
