@@ -20,7 +20,7 @@ from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, SpecMismatch, generate, preset, read_manifest
 from garmentgnn.data import store
-from garmentgnn.data.generate import run_item
+from garmentgnn.data.worker import run_item
 from garmentgnn.garments import load_garment
 from garmentgnn.garments.garment import Garment
 from garmentgnn.geometry import grid_mesh, penetration_depth, signed_distance

@@ -298,8 +298,8 @@ def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch)
 
 def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
     import importlib
-    gen = importlib.import_module("garmentgnn.data.generate")  # the module, not the function
-    monkeypatch.setattr(gen, "default_simulate", lambda engine="torch": lbs_simulate)
+    worker = importlib.import_module("garmentgnn.data.worker")
+    monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": lbs_simulate)
     p = dataclasses.replace(learned_only(methods=(learned.LBS,)), data_workers=0)
     summary = harness.run(p, tmp_path, progress=False)
     assert summary.failed == 0

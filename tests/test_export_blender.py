@@ -6,7 +6,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from garmentgnn.data import store
+from garmentgnn.data import export, store
 from garmentgnn.sim.blender import blender_available, find_blender_python
 from test_viz_export import dataset  # noqa: F401  (the shared two-sequence toy dataset)
 
@@ -36,7 +36,7 @@ json.dump(out, open(sys.argv[2], "w"))
 def test_gltf_sequence_opens_in_blender(dataset, tmp_path):  # noqa: F811
     seq_path = sorted((dataset / store.SEQUENCES).glob("*.npz"))[0]
     seq = store.load_sequence(seq_path)
-    glb = store.export_sequence(seq_path, "gltf", tmp_path / "seq.glb")[0]
+    glb = export.export_sequence(seq_path, "gltf", tmp_path / "seq.glb")[0]
     script = tmp_path / "import.py"
     script.write_text(IMPORT)
     r = subprocess.run([find_blender_python(), str(script), str(glb), str(tmp_path / "o.json")],

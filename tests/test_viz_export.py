@@ -7,11 +7,12 @@ import pytest
 import torch
 
 from conftest import lbs_simulate
-from garmentgnn.data import generate, store
 from garmentgnn.body.factory import build_body
-from garmentgnn.data.presets import Spec
-from garmentgnn.data.keys import motion_key
+from garmentgnn.data import generate, store
+from garmentgnn.data.export import export_sequence
 from garmentgnn.data.gltf import GltfMesh, write_gltf
+from garmentgnn.data.keys import motion_key
+from garmentgnn.data.presets import Spec
 
 vtk = pytest.importorskip("vtk", reason='VTK is not installed: pip install "garmentgnn[viz]"')
 pytest.importorskip("pygltflib", reason='pygltflib is not installed: pip install "garmentgnn[viz]"')
@@ -119,7 +120,7 @@ def test_write_gltf_offsets_and_input_checks(tmp_path):
     with pytest.raises(ValueError, match="fps"):
         write_gltf(tmp_path / "z.glb", [GltfMesh("a", a, faces)], fps=0)
     with pytest.raises(ValueError, match="gltf"):
-        store.export_sequence(tmp_path / "none.npz", "abc", tmp_path / "q")
+        export_sequence(tmp_path / "none.npz", "abc", tmp_path / "q")
 
 
 def test_single_frame_gltf_has_no_animation(tmp_path):

@@ -108,7 +108,7 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
 
 
 def export_main(args: argparse.Namespace) -> int:
-    from garmentgnn.data.store import export_sequence
+    from garmentgnn.data.export import export_sequence
     if not Path(args.seq).is_file():
         print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
               f"dataset made by `garmentgnn generate`)", file=sys.stderr)

@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from _fuzz import FUZZ, outcome
-from garmentgnn.data import store
+from garmentgnn.data import export
 from garmentgnn.geometry import (edge_features, faces_to_edge_index, grid_mesh,
                                  penetration_depth, signed_distance, vertex_normals)
 from garmentgnn.motion.sequence import Motion, match_joints
@@ -173,13 +173,13 @@ def test_sim_settings(kw):
 @given(P=st.one_of(tensors(shape=(2, 3, 3)), tensors()), start=SPECIAL)
 def test_write_pc2(tmp_path_factory, P, start):
     p = tmp_path_factory.mktemp("pc2") / "x.pc2"
-    out = outcome("data.write_pc2", store.write_pc2, p, P.numpy() if not P.is_complex()
+    out = outcome("data.write_pc2", export.write_pc2, p, P.numpy() if not P.is_complex()
                   else P, start_frame=start)
     if out is not None:  # oracle: an independent reader of the documented layout
         raw = p.read_bytes()
-        sig, ver, n, sf, sr, ns = store.PC2_HEADER.unpack(raw[:store.PC2_HEADER.size])
+        sig, ver, n, sf, sr, ns = export.PC2_HEADER.unpack(raw[:export.PC2_HEADER.size])
         assert sig == b"POINTCACHE2\0" and (ns, n) == tuple(P.shape[:2])
-        data = np.frombuffer(raw[store.PC2_HEADER.size:], "<f4").reshape(ns, n, 3)
+        data = np.frombuffer(raw[export.PC2_HEADER.size:], "<f4").reshape(ns, n, 3)
         assert np.array_equal(data, P.numpy().astype("<f4")) and np.isfinite(data).all()
 
 

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from _fuzz import EXAMPLES, FUZZ, TALLY, mutations
 from garmentgnn.cli import main as cli_main
-from garmentgnn.data import Spec, generate, preset, read_manifest, store
+from garmentgnn.data import Spec, export, generate, preset, read_manifest, store
 from test_data import fake_simulate, files_of
 
 DOUBLE = "test_data:fake_simulate"
@@ -106,7 +106,7 @@ def test_cli_export(tmp_path_factory, dataset, capsys, seq, fmt, out, start, dat
             str(tmp / out) if out else "", "--start-frame", start]
     rc, _ = run_cli(args, capsys, "cli export")
     if rc == 0 and fmt == "pc2":
-        assert (tmp / out).stat().st_size > store.PC2_HEADER.size
+        assert (tmp / out).stat().st_size > export.PC2_HEADER.size
 
 
 @FUZZ

@@ -62,7 +62,7 @@ class BenchChunks(SequenceChunks):
         g, m = seq.garment, seq.motion
         positions = (gt.detach().float().numpy() if gt is not None
                      else np.zeros((T, 0, 3), np.float32))
-        # the arrays and meta of a generated sequence file (data.generate.run_item)
+        # the arrays and meta of a generated sequence file (data.worker.run_item)
         self._data: Dict[str, Any] = {
             "garment_vertices": g.vertices.numpy().astype(np.float32),
             "garment_faces": g.faces.numpy().astype(np.int64),

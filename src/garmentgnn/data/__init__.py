@@ -1,23 +1,22 @@
 """Dataset specs and presets (garments x bodies x motions x materials), their generation
-through the simulator,
-the on-disk store (sequence files, manifest, PC2/OBJ export) and a lazy PyG dataset.
+through the simulator, the on-disk store (sequence files, manifest), export (PC2, OBJ,
+glTF) and a lazy PyG dataset.
 
 The PyG dataset classes are imported on first use so that the CLI and the generator
 do not pay for importing torch_geometric."""
-from garmentgnn.data.generate import SpecMismatch, Summary, generate, run_item
+from garmentgnn.data.export import export_sequence, write_obj_sequence, write_pc2
+from garmentgnn.data.generate import SpecMismatch, Summary, generate
 from garmentgnn.data.keys import body_key, garment_key, motion_key
 from garmentgnn.data.presets import PRESETS, Spec, preset
+from garmentgnn.data.worker import run_item
 from garmentgnn.data.store import (
     IntegrityError,
-    export_sequence,
     file_sha256,
     load_record_sequence,
     load_sequence,
     read_manifest,
     rebuild_manifest,
     validate_sequence,
-    write_obj_sequence,
-    write_pc2,
 )
 
 __all__ = ["GarmentFrame", "GarmentSequenceDataset", "IntegrityError", "PRESETS", "Spec",

@@ -22,6 +22,8 @@ from typing import List, Sequence, Tuple, Union
 
 import numpy as np
 
+from garmentgnn.data.store import atomic_write_bytes
+
 PathLike = Union[str, os.PathLike]
 #: quaternion (x, y, z, w) of the root node: -90 degrees about X, our +Z up -> glTF +Y up
 Z_UP_TO_Y_UP = (-float(np.sqrt(0.5)), 0.0, 0.0, float(np.sqrt(0.5)))
@@ -63,8 +65,6 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0) ->
     """Write ``meshes`` (same frame count ``T`` each) as a ``.glb`` with one morph target
     per frame and one ``STEP`` animation (see the module doc); returns the path."""
     import pygltflib as g
-
-    from garmentgnn.data.store import atomic_write_bytes
 
     if not meshes:
         raise ValueError("`meshes`: need at least one mesh")

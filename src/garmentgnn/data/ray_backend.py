@@ -1,7 +1,7 @@
 """``garmentgnn generate --backend ray``: one Ray task per sequence.
 
 The driver (the process that runs :func:`garmentgnn.data.generate.generate`) keeps the
-manifest: each task simulates one item with :func:`~garmentgnn.data.generate.run_item`,
+manifest: each task simulates one item with :func:`~garmentgnn.data.worker.run_item`,
 writes its sequence file and returns its manifest record, which the driver writes as
 soon as it arrives -- exactly as the local process pool does, so a Ray run gives the
 same files as a local one, and a killed run resumes from the manifest the same way.
@@ -25,7 +25,7 @@ def _task(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable],
           settings_fn: Optional[Callable]) -> Dict[str, Any]:
     """A Ray task: one item, in a worker with one torch thread."""
     global _INITIALISED
-    from garmentgnn.data.generate import init_worker, run_item
+    from garmentgnn.data.worker import init_worker, run_item
     if not _INITIALISED:
         init_worker()
         _INITIALISED = True

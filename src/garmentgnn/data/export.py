@@ -1,0 +1,73 @@
+"""Export of a generated sequence file: a Blender/3ds Max point cache (PC2), a folder of
+per-frame OBJs, or glTF (:mod:`garmentgnn.data.gltf`)."""
+from __future__ import annotations
+
+import math
+import struct
+from pathlib import Path
+from typing import List
+
+import numpy as np
+
+from garmentgnn.data.gltf import sequence_meshes, write_gltf
+from garmentgnn.data.store import PathLike, atomic_write_bytes, load_sequence
+
+PC2_HEADER = struct.Struct("<12siiffi")
+
+
+def write_pc2(path: PathLike, positions: np.ndarray, start_frame: float = 0.0,
+              sample_rate: float = 1.0) -> Path:
+    """Blender/3ds Max point cache: header ``POINTCACHE2\\0``, version 1, number of
+    points, start frame, sample rate (frames between samples), number of samples, then
+    ``float32`` xyz for every point of every sample."""
+    P = np.asarray(positions)
+    if P.ndim != 3 or P.shape[2] != 3:
+        raise ValueError(f"`positions`: expected [T, V, 3], got {P.shape}")
+    if not np.issubdtype(P.dtype, np.number) or np.iscomplexobj(P):
+        raise TypeError(f"`positions`: expected real numbers, got dtype {P.dtype}")
+    P = P.astype("<f4")
+    if not np.isfinite(P).all():
+        raise ValueError("`positions`: contain NaN/inf (or values beyond float32)")
+    if not math.isfinite(start_frame) or not math.isfinite(sample_rate) or sample_rate <= 0:
+        raise ValueError(f"`start_frame`/`sample_rate`: expected finite numbers and a "
+                         f"positive rate, got {start_frame!r}, {sample_rate!r}")
+    head = PC2_HEADER.pack(b"POINTCACHE2\0", 1, P.shape[1], float(start_frame),
+                           float(sample_rate), P.shape[0])
+    return atomic_write_bytes(path, head + np.ascontiguousarray(P).tobytes())
+
+
+def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarray,
+                       stem: str = "frame") -> List[Path]:
+    """One OBJ per frame, ``folder/<stem>_<t:04d>.obj``, same vertex order in every file."""
+    X = np.asarray(positions, dtype=np.float64)
+    if X.ndim != 3 or X.shape[2] != 3 or not np.isfinite(X).all():
+        raise ValueError(f"`positions`: expected finite [T, V, 3], got shape {X.shape}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    F = np.asarray(faces, dtype=np.int64) + 1
+    flines = "".join(f"f {a} {b} {c}\n" for a, b, c in F)
+    paths = []
+    for t, X in enumerate(np.asarray(positions, dtype=np.float64)):
+        vlines = "".join(f"v {x:.7g} {y:.7g} {z:.7g}\n" for x, y, z in X)
+        p = folder / f"{stem}_{t:04d}.obj"
+        atomic_write_bytes(p, (f"# garmentgnn frame {t}\n" + vlines + flines).encode())
+        paths.append(p)
+    return paths
+
+
+def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: float = 0.0,
+                    body: bool = True) -> List[Path]:
+    """Export a sequence file's simulated positions as ``pc2`` (one file), ``obj``
+    (a folder of per-frame OBJs) or ``gltf`` (one ``.glb`` with the posed body unless
+    ``body=False``, one morph target per frame and an animation; see
+    :mod:`garmentgnn.data.gltf`)."""
+    if fmt not in ("pc2", "obj", "gltf"):
+        raise ValueError(f"`fmt`: expected 'pc2', 'obj' or 'gltf', got {fmt!r}")
+    if fmt == "gltf":
+        meshes, fps = sequence_meshes(load_sequence(seq_path), body=body)
+        return [write_gltf(out, meshes, fps=fps)]
+    seq = load_sequence(seq_path, ["positions", "garment_faces", "meta_json"])
+    if fmt == "pc2":
+        return [write_pc2(out, seq["positions"], start_frame=start_frame)]
+    return write_obj_sequence(out, seq["positions"], seq["garment_faces"],
+                              stem=Path(seq_path).stem)

@@ -1,0 +1,150 @@
+"""One item's simulation, as every worker runs it (a process-pool worker of
+:func:`garmentgnn.data.generate.generate`, or a Ray task of
+:mod:`garmentgnn.data.ray_backend`): build its inputs, simulate, write its sequence file
+and return its manifest record."""
+from __future__ import annotations
+
+import random
+import time
+import traceback
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable, Dict, Optional
+
+import numpy as np
+
+from garmentgnn.data import store
+from garmentgnn.data.presets import build_inputs
+
+
+def default_simulate(engine: str = "torch"):
+    """The engine's simulate function: :func:`garmentgnn.sim.simulate` (``torch``) or
+    :func:`garmentgnn.sim.blender.simulate_blender` (``blender``)."""
+    if engine == "blender":
+        from garmentgnn.sim.blender import simulate_blender
+        return simulate_blender
+    from garmentgnn.sim import simulate
+    return simulate
+
+
+def item_settings(item: Dict[str, Any]):
+    """The engine's settings object of an item: :class:`garmentgnn.sim.SimSettings` or
+    :class:`garmentgnn.sim.blender.BlenderSettings`."""
+    if item.get("engine", "torch") == "blender":
+        from garmentgnn.sim.blender import BlenderSettings
+        return BlenderSettings(**item["settings"])
+    from garmentgnn.sim import SimSettings
+    return SimSettings(**item["settings"])
+
+
+def engine_info(engine: str, settings: Dict[str, Any]) -> Dict[str, Any]:
+    """What the manifest and each sequence file record of the engine: name, version
+    (the ``bpy`` package for Blender, garmentgnn's for the torch simulator), settings."""
+    if engine == "blender":
+        from garmentgnn.sim.blender import blender_version
+        version = blender_version()
+    else:
+        version = store.code_version()["version"]
+    return {"name": engine, "version": version, "settings": dict(settings)}
+
+
+def plain_settings(item: Dict[str, Any]) -> Dict[str, Any]:
+    """Settings as a plain dict (test doubles of the simulator)."""
+    return dict(item["settings"])
+
+
+def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = None,
+             settings_fn: Optional[Callable] = None) -> Dict[str, Any]:
+    """Simulate one item and write ``OUT/sequences/<id>.npz``; returns its manifest record.
+
+    Exceptions from building or simulating are reported as ``status="failed"`` (nothing
+    is written); only ``BaseException``\\ s such as ``KeyboardInterrupt`` propagate."""
+    import torch
+    t0 = time.perf_counter()
+    seed = item["seed"]
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+    rec = store.pending_record(item)
+    try:
+        sim = simulate_fn or default_simulate(item.get("engine", "torch"))
+        if settings_fn is None:
+            settings_fn = item_settings if simulate_fn is None else plain_settings
+        settings = settings_fn(item)
+        garment, body, motion, material = build_inputs(item)
+        res = sim(garment, body, motion, material, settings=settings, progress=None)
+        T, V = motion.num_frames, garment.num_vertices
+        if not getattr(res, "ok", True):
+            raise RuntimeError(f"simulator: {getattr(res, 'message', 'not ok')}")
+        P = np.asarray(torch.as_tensor(res.positions).detach().cpu(), dtype=np.float32)
+        if P.shape != (T, V, 3):
+            raise RuntimeError(f"simulator returned positions {P.shape}, expected {(T, V, 3)}")
+        if not np.isfinite(P).all():
+            raise RuntimeError("simulator returned NaN/inf positions")
+
+        def arr(name, dtype, default):
+            v = getattr(res, name, None)
+            return np.asarray(default if v is None else torch.as_tensor(v).cpu(), dtype=dtype)
+
+        converged = arr("converged", bool, np.ones(T, bool))
+        pen = getattr(res, "penetration", None)  # exact end-of-frame depth (real simulator)
+        pen = None if pen is None or len(pen) != T else np.asarray(pen, np.float32)
+        pen_limit = float(getattr(res, "max_penetration", np.inf))
+        arrays = {
+            "garment_vertices": garment.vertices.numpy().astype(np.float32),
+            "garment_faces": garment.faces.numpy().astype(np.int64),
+            "garment_uv": garment.uv.numpy().astype(np.float32),
+            "garment_face_uv": garment.face_uv.numpy().astype(np.float32),
+            "garment_pinned": (np.zeros(V, bool) if garment.pinned is None
+                               else garment.pinned.numpy().astype(bool)),
+            "body_shape": (np.zeros(0, np.float64) if body.shape is None
+                           else body.shape.double().numpy()),
+            "motion_rotations": motion.rotations.float().numpy(),
+            "motion_translation": motion.translation.float().numpy(),
+            "positions": P,
+            "converged": converged,
+            "newton_iterations": arr("newton_iterations", np.int32, np.zeros(T)),
+            "residual": arr("residual", np.float32, np.zeros(T)),
+        }
+        if pen is not None:
+            arrays["penetration"] = pen
+        meta = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
+                                     "seed", "split")}
+        meta["held_out"] = item.get("held_out", [])
+        meta.update(
+            format_version=store.FORMAT_VERSION, num_frames=T, num_vertices=V,
+            num_faces=int(garment.faces.shape[0]), fps=float(motion.fps),
+            joint_names=list(motion.joint_names), garment_name=garment.name,
+            material_params=asdict(material), nonconverged_frames=int((~converged).sum()),
+            penetrating_frames=None if pen is None else int((pen > pen_limit).sum()),
+            max_penetration_depth=None if pen is None else float(pen.max()),
+            code={"version": store.code_version()["version"]},
+            engine=engine_info(item.get("engine", "torch"), item["settings"]))
+        path = Path(out) / store.SEQUENCES / f"{item['id']}.npz"
+        store.write_sequence(path, arrays, meta)
+        rec = store.record_from_meta(meta)
+        rec.update(code=store.code_version(), sha256=store.file_sha256(path))
+    except Exception as e:
+        tb = traceback.format_exc(limit=3)
+        rec.update(status="failed", message=f"{type(e).__name__}: {e}\n{tb}")
+    rec["seconds"] = round(time.perf_counter() - t0, 3)
+    return rec
+
+
+def init_worker(parent_pid: Optional[int] = None) -> None:
+    """Set up a worker process: one torch thread, and (given ``parent_pid``) exit when
+    that process does."""
+    import torch
+
+    from garmentgnn.data._lifeline import watch_parent
+    if parent_pid is not None:  # die with the parent, even when it is SIGKILLed
+        watch_parent(parent_pid)
+    torch.set_num_threads(1)
+    try:
+        torch.set_num_interop_threads(1)
+    except RuntimeError:
+        pass
+
+
+__all__ = ["default_simulate", "engine_info", "init_worker", "item_settings", "plain_settings",
+           "run_item"]
