@@ -29,7 +29,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.sparse.linalg import splu
 from torch import Tensor
 
-from ._validate import check_faces, check_indices, check_points, numpy_mesh
+from ._validate import check_indices, numpy_mesh
 
 __all__ = ["mesh_edge_graph", "graph_geodesic_distances", "cotan_laplacian",
            "HeatGeodesicSolver", "heat_geodesic_distances", "farthest_point_sampling",
