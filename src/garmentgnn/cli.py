@@ -75,6 +75,7 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
 
 
 def generate_main(args: argparse.Namespace) -> int:
+    """Generate (or resume) the preset; 1 when items failed, 2 for bad arguments."""
     from garmentgnn.data import SpecMismatch, generate, preset
     try:
         sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
@@ -108,6 +109,7 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
 
 
 def export_main(args: argparse.Namespace) -> int:
+    """Export one sequence file; 2 when it is missing or unreadable."""
     from garmentgnn.data.export import export_sequence
     if not Path(args.seq).is_file():
         print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
@@ -132,6 +134,7 @@ def add_manifest_parser(sub) -> argparse.ArgumentParser:
 
 
 def manifest_main(args: argparse.Namespace) -> int:
+    """Rebuild the manifest from the sequence files; 2 when the folder is no dataset."""
     from garmentgnn.data.store import SEQUENCES, rebuild_manifest
     if not (Path(args.out) / SEQUENCES).is_dir():
         what = "no such folder" if not Path(args.out).is_dir() else f"no {SEQUENCES}/ in it"
@@ -157,6 +160,8 @@ def add_train_parser(sub) -> argparse.ArgumentParser:
 
 
 def train_main(args: argparse.Namespace) -> int:
+    """Run LightningCLI on ``args.lightning_args``; 2 (one line naming the file and the
+    fix) for a missing or damaged dataset or checkpoint."""
     from garmentgnn.data.store import IntegrityError
     from garmentgnn.training.integrity import CheckpointError
     from garmentgnn.training.lightning_cli import main as lightning_main
@@ -182,6 +187,7 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``garmentgnn`` parser with every sub-command of :data:`COMMANDS`."""
     import garmentgnn
     p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
@@ -192,6 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    """Parse ``argv`` (default ``sys.argv[1:]``) and run its sub-command; the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["train"]:  # everything after `train` belongs to LightningCLI, --help too
         return train_main(argparse.Namespace(command="train", lightning_args=argv[1:]))
