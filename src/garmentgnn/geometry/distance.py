@@ -240,7 +240,8 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
     ne = X.new_zeros(B, topo.edges.size(0), 3).index_add(
         1, topo.face_edges.reshape(-1), nf.unsqueeze(-2).expand(B, F, 3, 3).reshape(B, 3 * F, 3))
     ne = ne / safe_norm(ne, keepdim=True)
-    nv = scatter_faces_to_vertices(nf.unsqueeze(-2) * face_angles_unchecked(X, f).unsqueeze(-1), f, Vb)
+    nv = scatter_faces_to_vertices(nf.unsqueeze(-2) * face_angles_unchecked(X, f).unsqueeze(-1),
+                                   f, Vb)
     nv = nv / safe_norm(nv, keepdim=True)
 
     def pick(table: Tensor, idx: Tensor) -> Tensor:  # table [B, N, 3], idx [B, V]
