@@ -7,5 +7,5 @@ from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.body.skeleton import ROLES, Skeleton
 from garmentgnn.body.smpl_body import SMPLBodyModel
 
-__all__ = ["AnnyBodyModel", "Body", "BodyModel", "CapsuleBodyModel", "SMPLBodyModel", "ROLES", "Skeleton", "body_model",
-           "build_body", "forward_kinematics", "linear_blend_skinning"]
+__all__ = ["AnnyBodyModel", "Body", "BodyModel", "CapsuleBodyModel", "SMPLBodyModel", "ROLES",
+           "Skeleton", "body_model", "build_body", "forward_kinematics", "linear_blend_skinning"]
