@@ -163,7 +163,7 @@ def test_hessian_matches_autograd():
                        settings=SimSettings(hessian="autograd"))
     x = g.vertices.double() + 1e-3 * torch.randn(25, 3, generator=torch.Generator().manual_seed(0),
                                                   dtype=torch.float64)
-    import garmentgnn.sim.simulator as S
+    import garmentgnn.sim.system as S
     proj = S._project_psd
     try:
         S._project_psd = lambda H: H
@@ -181,7 +181,7 @@ def test_analytic_membrane_hessian_matches_autograd():
     """Closed-form Baraff-Witkin blocks: exact = autograd of the physics energies, also
     for compressed and sheared faces; projected = PSD, and equal to the exact one on a
     face stretched along u and v with no shear."""
-    import garmentgnn.sim.simulator as S
+    import garmentgnn.sim.system as S
     from garmentgnn.physics import shear_energy, stretch_energy
     g = sheet(4, 0.2)
     sysm = ClothSystem(g.vertices, g.faces, material("silk"))
