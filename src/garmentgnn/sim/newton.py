@@ -4,7 +4,7 @@ backtracking line search on the true energy."""
 from __future__ import annotations
 
 import math
-from typing import Optional, Tuple
+from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from garmentgnn.sim.settings import DTYPE, StepResult
-from garmentgnn.sim.system import ClothSystem
+from garmentgnn.sim.system import ClothSystem, Contact
 
 
 def _solve_spd(A: sp.csc_matrix, b: np.ndarray) -> np.ndarray:
@@ -44,7 +44,7 @@ def _finite_energy(system: ClothSystem, x: Tensor, *args) -> float:
 
 def step(system: ClothSystem, x: Tensor, v: Tensor, h: float,
          body_pos: Optional[Tensor] = None, pinned_pos: Optional[Tensor] = None,
-         contact: Optional[Tuple[Tensor, Tensor, Tensor]] = None) -> StepResult:
+         contact: Optional[Contact] = None) -> StepResult:
     """One backward-Euler step of size ``h`` by Newton's method on the incremental potential.
 
     Args:
@@ -54,8 +54,11 @@ def step(system: ClothSystem, x: Tensor, v: Tensor, h: float,
         body_pos: ``[Vb, 3]`` body vertices at ``t_{n+1}`` (``None``: no collisions).
         pinned_pos: ``[V, 3]`` targets of the pinned vertices at ``t_{n+1}`` (rows of free
             vertices are ignored; default: pinned vertices stay at ``x``).
-        contact: linearised contacts ``(idx, q, n)`` from :meth:`ClothSystem.contact_planes`
-            (default: computed at ``x``).
+        contact: linearised contacts (:class:`~garmentgnn.sim.system.Contact`) from
+            :meth:`ClothSystem.contact_planes` (default: computed at ``x``, the rigid
+            colliders at frame 0).  With ``material.friction > 0`` their lagged normal
+            forces and normals define the friction potential of the step
+            (:mod:`garmentgnn.physics.friction`).
     """
     st = system.settings
     x = x.detach().to(DTYPE)
@@ -73,19 +76,18 @@ def step(system: ClothSystem, x: Tensor, v: Tensor, h: float,
         body_pos = body_pos.detach().to(DTYPE)
         if system.body_faces is None:
             raise ValueError("`body_pos`: the system was built without body faces")
-        if contact is None:
-            contact = system.contact_planes(x, body_pos)
-    else:
-        contact = None
+    if contact is None and (body_pos is not None or system.colliders):
+        contact = system.contact_planes(x, body_pos)
     if contact is not None and contact[0].numel():
-        # start outside the moved body: push the inertial guess of contact vertices out
-        # along the plane normals (otherwise the body moving into the cloth starts
+        # start outside the moved collider: push the inertial guess of contact vertices
+        # out along the plane normals (otherwise the body moving into the cloth starts
         # Newton at a huge penalty force)
         idx, q_, n_ = contact[:3]
         depth = (system.material.collision_margin - ((xk[idx] - q_) * n_).sum(-1)).clamp_min(0)
         depth = depth * system.free[idx]
         xk[idx] = xk[idx] + depth.unsqueeze(-1) * n_
-    args = (x_tilde, h, body_pos, contact)
+    friction = system.has_friction(contact)
+    args = (x_tilde, h, body_pos, contact, x if friction else None)
     free_dofs = system.free_dofs
     margin, k, q = (system.material.collision_margin, st.collision_stiffness,
                     st.collision_power)
@@ -111,7 +113,8 @@ def step(system: ClothSystem, x: Tensor, v: Tensor, h: float,
                 idx = torch.nonzero(hit).squeeze(1)
                 coef = k * q * (q - 1) * pen[idx] ** (q - 2)
                 pen_grad = (contact[0][idx], coef, contact[2][idx])
-        H = system.hessian(xk, h, pen_grad)
+        H = system.hessian(xk, h, pen_grad,
+                           system.friction_blocks(xk, x, contact, h) if friction else None)
         Hff = H[free_dofs][:, free_dofs].tocsc()
         g = grad.reshape(-1).numpy()[free_dofs]
         try:

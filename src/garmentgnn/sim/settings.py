@@ -33,6 +33,11 @@ class SimSettings:
             the reference the analytic blocks are tested against).
         collision_stiffness: ``k`` of the cubic penalty ``k max(eps - s, 0)^3`` (J/m^3).
         collision_power: penalty exponent (3, HOOD's smooth penalty).
+        friction_velocity: ``eps_v`` (m/s) of the smoothed Coulomb friction
+            (:mod:`garmentgnn.physics.friction`): tangential sliding slower than this
+            counts as sticking (IPC's static-friction threshold; the potential uses
+            ``eps_v h`` as displacement threshold).  ``Material.friction`` is ``mu``;
+            ``mu = 0`` disables friction.
         preroll_frames: frames simulated (not recorded) before frame 0 while the body and
             the pinned vertices move from the rest pose into the motion's first pose
             (joint rotations and root translation scaled by a smoothstep from 0 to 1);
@@ -70,6 +75,7 @@ class SimSettings:
     hessian: str = "analytic"
     collision_stiffness: float = 1e6
     collision_power: int = 3
+    friction_velocity: float = 1e-3
     preroll_frames: int = 0
     settle_frames: int = 0
     max_refinements: int = 3
@@ -121,6 +127,7 @@ class SimSettings:
         number("tol", 0.0, True)
         number("collision_stiffness", 0.0, False)
         number("contact_radius", 0.0, False)
+        number("friction_velocity", 0.0, True)
         number("max_penetration", 0.0, True)
         dc = self.distance_candidates
         if dc is not None and (not isinstance(dc, int) or isinstance(dc, bool) or dc < 1):

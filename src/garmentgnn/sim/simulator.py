@@ -18,7 +18,7 @@ the names above.  See ``docs/simulator.md``.
 from __future__ import annotations
 
 import time
-from typing import Callable, List, Optional
+from typing import Callable, List, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -26,19 +26,21 @@ from torch import Tensor
 from garmentgnn.body.body import Body
 from garmentgnn.geometry import penetration_depth
 from garmentgnn.physics import Material
+from garmentgnn.sim.colliders import Collider, Plane, Sphere
 from garmentgnn.sim.newton import step
 from garmentgnn.sim.settings import DTYPE, SimResult, SimSettings, StepResult
-from garmentgnn.sim.system import ClothSystem
+from garmentgnn.sim.system import ClothSystem, Contact, check_colliders
 from garmentgnn.sim.trajectory import _check_finite, trajectories
 
-__all__ = ["ClothSystem", "DTYPE", "SimResult", "SimSettings", "StepResult", "simulate", "step",
+__all__ = ["ClothSystem", "Collider", "Contact", "DTYPE", "Plane", "SimResult", "Sphere", "SimSettings", "StepResult", "simulate", "step",
            "trajectories"]
 
 
 def simulate(garment, body: Optional[Body], motion, material: Material,
              settings: Optional[SimSettings] = None,
              progress: Optional[Callable[[int, int], None]] = None,
-             body_frames: Optional[Tensor] = None) -> SimResult:
+             body_frames: Optional[Tensor] = None,
+             colliders: Union[Collider, Sequence[Collider]] = ()) -> SimResult:
     """Simulate ``garment`` on ``body`` following ``motion``; one output per motion frame.
 
     The garment starts at its rest shape skinned (weights from
@@ -48,6 +50,14 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     without a body (``motion`` then only sets the number of frames; pinned vertices stay
     at rest).  ``body_frames [T, Vb, 3]`` may replace the posed body vertices.
     ``progress(frame, num_frames)`` is called after each frame.
+
+    ``colliders`` (:class:`~garmentgnn.sim.colliders.Sphere`,
+    :class:`~garmentgnn.sim.colliders.Plane`) are rigid obstacles besides or instead of
+    the body ("cloth drapes on a sphere" needs ``body=None, colliders=Sphere(...)``);
+    moving colliders are interpolated between frames like the body.  Contacts with the
+    body and the colliders get Coulomb friction with ``material.friction`` as ``mu``
+    (lagged IPC friction, :mod:`garmentgnn.physics.friction`).  ``SimResult.penetration``
+    is the exact depth inside the body or any collider.
     """
     t0 = time.time()
     st = settings or SimSettings()
@@ -73,38 +83,48 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     P = st.preroll_frames if body is not None else 0
     skinned, body_frames = trajectories(garment, body, motion, P, body_frames)
     body_faces = None if body is None else body.faces
-    system = ClothSystem(verts, garment.faces, material, garment.face_uv, pinned, body_faces, st)
+    colliders = check_colliders(colliders)
+    system = ClothSystem(verts, garment.faces, material, garment.face_uv, pinned, body_faces, st,
+                         colliders)
+    touching = body is not None or bool(colliders)
 
     x = skinned[0].clone()
     v = torch.zeros_like(x)
     frame_dt = 1.0 / st.fps
     margin = material.collision_margin
 
-    def run_frame(x, v, b0, b1, p0, p1, substeps, accept_penetration=False):
+    def run_frame(x, v, b0, b1, p0, p1, f0, f1, substeps, accept_penetration=False):
         h = frame_dt / substeps
         iters, res, conv, note = 0, 0.0, True, ""
         # the body moves |b1 - b0| / substeps per substep: vertices that close must be in
         # the contact set from the start, or a fast limb passes through them
         radius = st.contact_radius if b0 is None else max(
             st.contact_radius, 2.0 * float((b1 - b0).norm(dim=-1).max()) / substeps)
+        for c in colliders:  # likewise for a moving collider
+            moved = float(c.motion(x.new_zeros(1, 3), f0, f1).norm())
+            radius = max(radius, 2.0 * moved / substeps)
         for s in range(1, substeps + 1):
             w = s / substeps
+            w_prev = (s - 1) / substeps
             bp = None if b0 is None else (1 - w) * b0 + w * b1
+            bq = None if b0 is None else (1 - w_prev) * b0 + w_prev * b1
             pp = (1 - w) * p0 + w * p1
-            contact = None if bp is None else system.contact_planes(x, bp, radius)
+            fp, fq = (1 - w) * f0 + w * f1, (1 - w_prev) * f0 + w_prev * f1
+            planes = (lambda y: system.contact_planes(y, bp, radius, fp, bq, fq))
+            contact = planes(x) if touching else None
             for _ in range(3):
                 r = step(system, x, v, h, bp, pp, contact)
-                if not r.ok or bp is None:
+                if not r.ok or not touching:
                     break
                 # the planes are a linearisation: check the true distance, refresh if needed
-                new = system.contact_planes(r.x, bp, radius)
+                new = planes(r.x)
                 d = new[3]
                 known = torch.zeros(system.V, dtype=torch.bool)
                 known[contact[0]] = True
                 if not ((d < 0).any() or ((d < margin) & ~known).any()):
                     break
                 contact = new
-            if r.ok and bp is not None and float(d.min()) < -st.max_penetration:
+            if r.ok and touching and float(d.min()) < -st.max_penetration:
                 depth = (f"penetration {-float(d.min()) * 1e3:.1f} mm > max_penetration "
                          f"{st.max_penetration * 1e3:.1f} mm")
                 if accept_penetration:
@@ -122,11 +142,11 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
             x, v = r.x, r.v
         return x, v, iters, res, conv, note
 
-    def advance(x, v, b0, b1, p0, p1, label):
+    def advance(x, v, b0, b1, p0, p1, label, f0=0.0, f1=0.0):
         sub = st.substeps
         msg = ""
         for k in range(st.max_refinements + 1):
-            out = run_frame(x, v, b0, b1, p0, p1, sub,
+            out = run_frame(x, v, b0, b1, p0, p1, f0, f1, sub,
                             accept_penetration=k == st.max_refinements)
             if out[0] is not None and (out[4] or not st.retry_unconverged):
                 return out + (sub,)
@@ -148,9 +168,11 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
 
     def exact_depth(t: int, x: Tensor) -> float:
         """Exact penetration at the end of frame ``t`` (flagged over the limit)."""
-        if body_frames is None:
-            return 0.0
-        d = float(penetration_depth(x, body_frames[P + t], body_faces).max())
+        d = 0.0
+        if body_frames is not None:
+            d = float(penetration_depth(x, body_frames[P + t], body_faces).max())
+        for c in colliders:
+            d = max(d, float((-c.distance(x, float(t)).distance).max()))
         if d > st.max_penetration:
             flagged.append(f"frame {t}: exact penetration {d * 1e3:.1f} mm > max_penetration "
                            f"{st.max_penetration * 1e3:.1f} mm")
@@ -162,7 +184,7 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     ok, message = True, "ok"
     for t in range(1, T):
         out = advance(x, v, bf(P + t - 1), bf(P + t), skinned[P + t - 1], skinned[P + t],
-                      f"frame {t}")
+                      f"frame {t}", float(t - 1), float(t))
         if out[0] is None:
             ok, message = False, out[5]
             break

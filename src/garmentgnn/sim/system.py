@@ -3,19 +3,54 @@ potential (energies of :mod:`garmentgnn.physics`), contact linearisation and the
 PSD-projected sparse Hessian."""
 from __future__ import annotations
 
-from typing import Callable, Optional, Tuple
+from typing import Callable, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from garmentgnn.geometry import dihedral_angles, signed_distance, unique_edges
+from garmentgnn.geometry import (closest_point_on_triangle, dihedral_angles, signed_distance,
+                                 unique_edges)
 from garmentgnn.geometry.mesh import FaceAdjacency
 from garmentgnn.physics import (ClothRest, Material, bending_energy, collision_energy,
                                 gravity_energy, inertia_energy, shear_energy, stretch_energy,
-                                stvk_energy)
+                                friction_energy, friction_hessian, stvk_energy)
+from garmentgnn.sim.colliders import Collider
 from garmentgnn.sim.settings import DTYPE, SimSettings
+
+
+class Contact(NamedTuple):
+    """Linearised contacts from :meth:`ClothSystem.contact_planes` (``C`` contacts).
+
+    Attributes:
+        idx: ``[C]`` cloth vertex of each contact.
+        closest: ``[C, 3]`` closest collider point ``q``.
+        normal: ``[C, 3]`` unit gradient ``n`` of the signed distance (``s ~ (p - q) . n``).
+        distance: ``[V]`` true signed distance of every vertex (min over the colliders).
+        force: ``[C]`` lagged normal force (the penalty force at the linearisation point).
+        motion: ``[C, 3]`` the collider's displacement under the contact over the step.
+    """
+    idx: Tensor
+    closest: Tensor
+    normal: Tensor
+    distance: Tensor
+    force: Tensor
+    motion: Tensor
+
+
+def check_colliders(colliders) -> Tuple[Collider, ...]:
+    """``colliders`` as a tuple of :class:`~garmentgnn.sim.colliders.Collider`
+    (``TypeError`` otherwise); a single collider is accepted."""
+    if isinstance(colliders, Collider):
+        colliders = (colliders,)
+    if colliders is None:
+        return ()
+    if not isinstance(colliders, (tuple, list)) or not all(isinstance(c, Collider)
+                                                           for c in colliders):
+        raise TypeError(f"`colliders`: expected Sphere/Plane colliders (garmentgnn.sim.colliders)"
+                        f", got {colliders!r}")
+    return tuple(colliders)
 
 
 def _local_rest(faces: Tensor, **kw) -> ClothRest:
@@ -110,12 +145,16 @@ class ClothSystem:
         pinned: ``[V]`` bool mask of vertices driven kinematically.
         body_faces: ``[Fb, 3]`` body triangles (``None``: no body).
         settings: :class:`SimSettings`.
+        colliders: rigid colliders (:mod:`garmentgnn.sim.colliders`), besides or instead
+            of the body.
     """
 
     def __init__(self, rest_pos: Tensor, faces: Tensor, material: Material,
                  face_uv: Optional[Tensor] = None, pinned: Optional[Tensor] = None,
-                 body_faces: Optional[Tensor] = None, settings: Optional[SimSettings] = None):
+                 body_faces: Optional[Tensor] = None, settings: Optional[SimSettings] = None,
+                 colliders: Sequence[Collider] = ()):
         self.settings = settings or SimSettings()
+        self.colliders = check_colliders(colliders)
         self.material = material
         rest_pos = rest_pos.detach().to(DTYPE)
         self.V = rest_pos.shape[0]
@@ -181,44 +220,108 @@ class ClothSystem:
         return (self.membrane(x, self.rest) + self.bending(x, self.rest)
                 + gravity_energy(x, self.mass, self.settings.gravity))
 
-    def contact_planes(self, x: Tensor, body_pos: Tensor, radius: Optional[float] = None
-                       ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    def contact_planes(self, x: Tensor, body_pos: Optional[Tensor] = None,
+                       radius: Optional[float] = None, frame: float = 0.0,
+                       body_prev: Optional[Tensor] = None,
+                       frame_prev: Optional[float] = None) -> Contact:
         """Linearised contacts for the vertices of ``x`` within ``margin + radius``
-        (default ``settings.contact_radius``) of the body: ``(idx [C], q [C, 3] closest
-        body points, n [C, 3] unit gradients of the signed distance, s [V] the true
-        signed distances of all vertices)``, so ``s(p) ~ (p - q) . n`` near ``x``."""
+        (default ``settings.contact_radius``) of the body (``body_pos``, when given) and
+        of every rigid collider (at fractional motion frame ``frame``), as a
+        :class:`Contact`: ``s(p) ~ (p - q) . n`` near ``x`` for each contact.  A vertex
+        near several colliders has one contact per collider.
+
+        The lagged normal force of each contact is the penalty force at ``x``,
+        ``k q max(eps - s, 0)^(q - 1)``; the collider motion under the contact runs from
+        ``body_prev`` / ``frame_prev`` to ``body_pos`` / ``frame`` (zero when not given).
+        """
         radius = self.settings.contact_radius if radius is None else radius
-        with torch.no_grad():
-            sd = signed_distance(x, body_pos, self.body_faces,
-                                 candidates=self.settings.distance_candidates,
-                                 body_edges=self.body_edges)
-        idx = torch.nonzero(sd.distance < self.material.collision_margin
-                            + radius).squeeze(1)
-        diff = x[idx] - sd.closest[idx]
-        dist = diff.norm(dim=-1, keepdim=True)
-        pseudo = sd.normal[idx]
-        sign = torch.where(sd.distance[idx] < 0, -1.0, 1.0).to(x.dtype).unsqueeze(-1)
-        n = torch.where(dist > 1e-9, sign * diff / dist.clamp_min(1e-30), pseudo)
-        return idx, (x[idx] - sd.distance[idx].unsqueeze(-1) * n), n, sd.distance
+        reach = self.material.collision_margin + radius
+        parts = []
+        if body_pos is not None:
+            with torch.no_grad():
+                sd = signed_distance(x, body_pos, self.body_faces,
+                                     candidates=self.settings.distance_candidates,
+                                     body_edges=self.body_edges)
+            idx = torch.nonzero(sd.distance < reach).squeeze(1)
+            diff = x[idx] - sd.closest[idx]
+            dist = diff.norm(dim=-1, keepdim=True)
+            pseudo = sd.normal[idx]
+            sign = torch.where(sd.distance[idx] < 0, -1.0, 1.0).to(x.dtype).unsqueeze(-1)
+            n = torch.where(dist > 1e-9, sign * diff / dist.clamp_min(1e-30), pseudo)
+            q = x[idx] - sd.distance[idx].unsqueeze(-1) * n
+            if body_prev is None:
+                motion = torch.zeros_like(q)
+            else:  # the body point under the contact: same barycentrics, previous pose
+                tri = self.body_faces[sd.face[idx]]
+                _, bary, _ = closest_point_on_triangle(
+                    sd.closest[idx], body_pos[tri[:, 0]], body_pos[tri[:, 1]],
+                    body_pos[tri[:, 2]])
+                motion = (bary.unsqueeze(-1) * (body_pos[tri] - body_prev.to(x.dtype)[tri])).sum(1)
+            parts.append((idx, q, n, sd.distance, motion))
+        for collider in self.colliders:
+            with torch.no_grad():
+                sd = collider.distance(x, frame)
+            idx = torch.nonzero(sd.distance < reach).squeeze(1)
+            motion = (torch.zeros(idx.shape[0], 3, dtype=x.dtype) if frame_prev is None
+                      else collider.motion(sd.closest[idx], frame_prev, frame))
+            parts.append((idx, sd.closest[idx], sd.normal[idx], sd.distance, motion))
+        if not parts:
+            raise ValueError("`body_pos`: no body and no colliders to build contacts with")
+        idx = torch.cat([p[0] for p in parts])
+        s_contact = torch.cat([p[3][p[0]] for p in parts])
+        distance = torch.stack([p[3] for p in parts]).min(0).values
+        st = self.settings
+        force = st.collision_stiffness * st.collision_power * (
+            self.material.collision_margin - s_contact).clamp_min(0.0) ** (st.collision_power - 1)
+        force = force * (s_contact < self.material.collision_margin)
+        return Contact(idx, torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts]),
+                       distance, force, torch.cat([p[4] for p in parts]))
+
+    def friction(self, x: Tensor, x_start: Tensor, contact: "Contact", h: float) -> Tensor:
+        """Lagged friction potential (:func:`garmentgnn.physics.friction_energy`) of the
+        contacts over a step of ``h`` seconds from ``x_start``."""
+        idx = contact.idx
+        rel = x[idx] - x_start[idx] - contact.motion
+        return friction_energy(rel, contact.normal, contact.force, self.material.friction,
+                               self.settings.friction_velocity * h)
+
+    def friction_blocks(self, x: Tensor, x_start: Tensor, contact: "Contact", h: float
+                        ) -> Tuple[Tensor, Tensor]:
+        """``(verts [C], [C, 3, 3] PSD Hessian blocks)`` of :meth:`friction`."""
+        idx = contact.idx
+        rel = x[idx] - x_start[idx] - contact.motion
+        return idx, friction_hessian(rel, contact.normal, contact.force, self.material.friction,
+                                     self.settings.friction_velocity * h)
+
+    def has_friction(self, contact: Optional["Contact"]) -> bool:
+        """Whether friction acts: ``mu > 0`` and some contact carries a normal force."""
+        return (self.material.friction > 0 and contact is not None
+                and contact.idx.numel() > 0 and bool((contact.force > 0).any()))
 
     def energy(self, x: Tensor, x_tilde: Tensor, h: float, body_pos: Optional[Tensor],
-               contact: Optional[Tuple[Tensor, Tensor, Tensor]]) -> Tuple[Tensor, Optional[Tensor]]:
+               contact: Optional[Contact], x_start: Optional[Tensor] = None
+               ) -> Tuple[Tensor, Optional[Tensor]]:
         """Incremental potential; returns ``(E, s)`` with ``s`` the (linearised) signed
-        distances of the contact vertices."""
+        distances of the contact vertices.  With ``x_start`` (the positions at the start
+        of the step) and ``mu > 0`` it includes the lagged friction potential.
+        ``body_pos`` is not used (the contacts carry the linearised collider)."""
         E = inertia_energy(x, x_tilde, self.mass, h) + self.internal_energy(x)
         s = None
-        if body_pos is not None and contact is not None and contact[0].numel():
+        if contact is not None and contact[0].numel():
             idx, q, n = contact[:3]
             p = x[idx]
             s = ((p - q) * n).sum(-1)
             E = E + collision_energy(p, body_pos, self.body_faces, self.material.collision_margin,
                                      self.settings.collision_stiffness,
                                      power=self.settings.collision_power, distance=s)
+            if x_start is not None and self.has_friction(contact):
+                E = E + self.friction(x, x_start, contact, h)
         return E, s
 
-    def hessian(self, x: Tensor, h: float, pen_grad: Optional[Tuple[Tensor, Tensor, Tensor]]
-                ) -> sp.csr_matrix:
-        """PSD-projected sparse Hessian of the incremental potential, ``[3V, 3V]``."""
+    def hessian(self, x: Tensor, h: float, pen_grad: Optional[Tuple[Tensor, Tensor, Tensor]],
+                friction: Optional[Tuple[Tensor, Tensor]] = None) -> sp.csr_matrix:
+        """PSD-projected sparse Hessian of the incremental potential, ``[3V, 3V]``;
+        ``friction``: ``(verts, blocks)`` of :meth:`friction_blocks`."""
         x = x.detach()
         rows, cols, vals = [], [], []
 
@@ -263,6 +366,8 @@ class ClothSystem:
             verts, coef, normal = pen_grad
             blocks = coef.view(-1, 1, 1) * normal.unsqueeze(-1) * normal.unsqueeze(-2)
             add(blocks, verts.unsqueeze(1))
+        if friction is not None:
+            add(friction[1], friction[0].unsqueeze(1))
         H = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                           shape=(n, n)).tocsr()
         return H
