@@ -157,7 +157,8 @@ class SimResult:
     seconds: float
     substeps: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))  # [T]
     #: [T] exact depth (m) of the deepest garment vertex inside the body at the end of
-    #: each frame (:func:`garmentgnn.geometry.penetration_depth`; zeros without a body)
+    #: each frame, or inside a rigid collider (:func:`garmentgnn.geometry.penetration_depth`;
+    #: zeros without a body and colliders)
     penetration: Tensor = field(default_factory=lambda: torch.zeros(0))
     #: the ``max_penetration`` the frames were checked against
     max_penetration: float = math.inf
