@@ -273,11 +273,10 @@ class ClothSystem:
         st = self.settings
         force = st.collision_stiffness * st.collision_power * (
             self.material.collision_margin - s_contact).clamp_min(0.0) ** (st.collision_power - 1)
-        force = force * (s_contact < self.material.collision_margin)
         return Contact(idx, torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts]),
                        distance, force, torch.cat([p[4] for p in parts]))
 
-    def friction(self, x: Tensor, x_start: Tensor, contact: "Contact", h: float) -> Tensor:
+    def friction(self, x: Tensor, x_start: Tensor, contact: Contact, h: float) -> Tensor:
         """Lagged friction potential (:func:`garmentgnn.physics.friction_energy`) of the
         contacts over a step of ``h`` seconds from ``x_start``."""
         idx = contact.idx
@@ -285,7 +284,7 @@ class ClothSystem:
         return friction_energy(rel, contact.normal, contact.force, self.material.friction,
                                self.settings.friction_velocity * h)
 
-    def friction_blocks(self, x: Tensor, x_start: Tensor, contact: "Contact", h: float
+    def friction_blocks(self, x: Tensor, x_start: Tensor, contact: Contact, h: float
                         ) -> Tuple[Tensor, Tensor]:
         """``(verts [C], [C, 3, 3] PSD Hessian blocks)`` of :meth:`friction`."""
         idx = contact.idx
@@ -293,7 +292,7 @@ class ClothSystem:
         return idx, friction_hessian(rel, contact.normal, contact.force, self.material.friction,
                                      self.settings.friction_velocity * h)
 
-    def has_friction(self, contact: Optional["Contact"]) -> bool:
+    def has_friction(self, contact: Optional[Contact]) -> bool:
         """Whether friction acts: ``mu > 0`` and some contact carries a normal force."""
         return (self.material.friction > 0 and contact is not None
                 and contact.idx.numel() > 0 and bool((contact.force > 0).any()))
