@@ -247,8 +247,11 @@ def write(args, argv, rows) -> str:
            "material": "silk", "fps": 30.0, "rows": rows}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out + ".json").write_text(json.dumps(doc, indent=1))
-    md = f"`{doc['command']}` on {doc['machine']['platform']}, {doc['machine']['cpus']} CPUs\n\n" \
-         + table(rows) + "\n"
+    md = f"`{doc['command']}` on {doc['machine']['platform']}, {doc['machine']['cpus']} CPUs\n\n"
+    kept = sorted({(r["case"], r["measured_by"]) for r in rows if "measured_by" in r})
+    for case, cmd in kept:
+        md += f"Rows of `{case}` kept from an earlier run: `{cmd}`.\n\n"
+    md += table(rows) + "\n"
     Path(args.out + ".md").write_text(md)
     return md
 
