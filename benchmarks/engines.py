@@ -6,8 +6,9 @@ Cases (the same meshes, material and frame rate for both engines):
   (``--sizes`` vertices, turned 30 degrees about the pinned edge, unstrained; no
   collider, so it isolates the cloth solve; the torch simulator only up to
   ``--torch-max-vertices``);
-- ``drape``: a 1 m sheet falls onto a sphere of radius 0.3 m (Blender only: the torch
-  simulator collides with a body mesh, it has no rigid colliders);
+- ``drape``: a 1 m sheet falls onto a sphere of radius 0.3 m (Blender: an icosphere
+  collider mesh; torch: the analytic :class:`~garmentgnn.sim.Sphere`; both with the
+  silk preset's friction; the torch simulator only up to ``--torch-max-vertices``);
 - ``anny``: the first ``medium`` item's garment on its anny body and motion, shortened to
   ``--frames`` frames, with each engine's dataset settings.
 
@@ -15,11 +16,13 @@ Each row: seconds per simulated frame, vertex-substeps per second, penetration o
 collider at the end of every frame (exact signed distance: max and mean depth, share of
 vertex-frames inside), edge strain against the rest mesh (mean and max over all frames),
 kinetic energy at the last frame (per kg of cloth, so sizes compare), and for ``anny``
-the distance between the two engines' garments.  Writes
+and ``drape`` the distance between the two engines' garments.  Sizes above
+``--torch-max-vertices`` get a torch row saying ``skipped: cost``.  Writes
 ``benchmarks/results/engines.{json,md}``.
 
     python benchmarks/engines.py                          # 300, 1K, 4K vertices, 30 frames
     python benchmarks/engines.py --sizes 300 --frames 10 --cases hang
+    python benchmarks/engines.py --cases drape --keep   # rerun drape, keep the other rows
 """
 from __future__ import annotations
 
@@ -40,7 +43,7 @@ from garmentgnn.garments import Garment
 from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
 from garmentgnn.motion import Motion
 from garmentgnn.physics import material
-from garmentgnn.sim import SimSettings, simulate
+from garmentgnn.sim import SimSettings, Sphere, simulate
 from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker, simulate_blender
 from garmentgnn.sim.simulator import trajectories
 
@@ -94,10 +97,24 @@ def still(frames: int) -> Motion:
     return Motion(torch.zeros(frames, 1, 3), torch.zeros(frames, 3), ["root"], 30.0)
 
 
+def skipped(case: str, V: int) -> dict:
+    return dict(case=case, engine="torch", vertices=V, note="skipped: cost")
+
+
+def engines_apart(out: list, P: dict) -> None:
+    """Mean distance between the two engines' vertices, over all frames and at the last."""
+    gap = (P["torch"].double() - P["blender"].double()).norm(dim=-1)
+    for r in out:
+        r["engines_apart_cm_mean"] = 100 * float(gap.mean())
+        r["engines_apart_cm_last"] = 100 * float(gap[-1].mean())
+
+
 def case_hang(V: int, frames: int, mat, torch_max: int) -> list:
     g = hanging_sheet(V)
     out = []
-    if g.num_vertices <= torch_max:
+    if g.num_vertices > torch_max:
+        out.append(skipped("hang", g.num_vertices))
+    else:
         t0 = time.perf_counter()
         res = simulate(g, None, still(frames + 1), mat, TORCH)
         out.append(row("hang", "torch", g.num_vertices, TORCH.substeps,
@@ -111,7 +128,7 @@ def case_hang(V: int, frames: int, mat, torch_max: int) -> list:
     return out
 
 
-def case_drape(V: int, frames: int, mat) -> list:
+def case_drape(V: int, frames: int, mat, torch_max: int) -> list:
     import trimesh
     n = max(2, int(round(math.sqrt(V))))
     pos, faces = grid_mesh(n, n, (1.0, 1.0))
@@ -126,10 +143,20 @@ def case_drape(V: int, frames: int, mat) -> list:
                       "pinned": np.zeros(pos.shape[0], bool),
                       "body_frames": bv.expand(N, -1, -1).numpy(), "body_faces": bf.numpy()},
                      blender_config(mat, pos, faces, st))
-    P = torch.from_numpy(res["positions"][1:])
-    m = metrics(P, pos, faces, 30.0, (bv.expand(frames, -1, -1), bf))
-    return [row("drape", "blender", pos.shape[0], st.quality, time.perf_counter() - t0, frames, m,
-                ok=True)]
+    P = {"blender": torch.from_numpy(res["positions"][1:])}
+    collider = (bv.expand(frames, -1, -1), bf)
+    out = [row("drape", "blender", pos.shape[0], st.quality, time.perf_counter() - t0, frames,
+               metrics(P["blender"], pos, faces, 30.0, collider), ok=True)]
+    if pos.shape[0] > torch_max:
+        return out + [skipped("drape", pos.shape[0])]
+    g = Garment(pos, faces, pos[:, :2] + 0.5)
+    t0 = time.perf_counter()
+    res = simulate(g, None, still(N), mat, TORCH, colliders=Sphere((0.0, 0.0, 0.0), 0.3))
+    P["torch"] = res.positions[1:]  # Blender's frame k is the state after k frames
+    out.append(row("drape", "torch", pos.shape[0], TORCH.substeps, time.perf_counter() - t0,
+                   frames, metrics(P["torch"], pos, faces, 30.0, collider), ok=res.ok))
+    engines_apart(out, P)
+    return out
 
 
 def case_anny(frames: int) -> list:
@@ -154,24 +181,23 @@ def case_anny(frames: int) -> list:
                     (bframes[st.preroll_frames:], body.faces))
         out.append(row("anny", engine, g.num_vertices, sub, seconds, frames - 1, m, ok=res.ok,
                        item=item["id"]))
-    gap = (P["torch"] - P["blender"]).norm(dim=-1)
-    for r in out:
-        r["engines_apart_cm_mean"] = 100 * float(gap.mean())
-        r["engines_apart_cm_last"] = 100 * float(gap[-1].mean())
+    engines_apart(out, P)
     return out
 
 
 COLUMNS = [("case", "{}"), ("engine", "{}"), ("vertices", "{}"), ("seconds_per_frame", "{:.3f}"),
            ("vertex_substeps_per_s", "{:,.0f}"), ("pen_max_mm", "{:.1f}"), ("pen_mean_mm", "{:.2f}"),
            ("pen_share_pct", "{:.3f}"), ("strain_mean_pct", "{:.4f}"), ("strain_max_pct", "{:.3f}"),
-           ("kinetic_J_per_kg", "{:.2e}"), ("engines_apart_cm_mean", "{:.2f}")]
+           ("kinetic_J_per_kg", "{:.2e}"), ("engines_apart_cm_mean", "{:.2f}"),
+           ("engines_apart_cm_last", "{:.2f}"), ("note", "{}")]
 
 
 def table(rows) -> str:
     head = "| " + " | ".join(c for c, _ in COLUMNS) + " |"
     lines = [head, "|" + "---|" * len(COLUMNS)]
     for r in rows:
-        lines.append("| " + " | ".join(f.format(r[c]) if c in r else "–" for c, f in COLUMNS) + " |")
+        lines.append("| " + " | ".join(f.format(r[c]) if c in r else "–" for c, f in COLUMNS)
+                     + " |")
     return "\n".join(lines)
 
 
@@ -185,14 +211,24 @@ def main(argv=None) -> int:
                     choices=["hang", "drape", "anny"])
     ap.add_argument("--threads", type=int, default=2, help="torch threads (Blender uses all cores)")
     ap.add_argument("--out", default=str(HERE / "results" / "engines"))
+    ap.add_argument("--keep", action="store_true",
+                    help="keep the rows of the cases not rerun from the existing JSON (marked "
+                         "with the command that measured them)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     mat = material("silk")
     rows = []
+    old = Path(args.out + ".json")
+    if args.keep and old.exists():
+        doc = json.loads(old.read_text())
+        for r in doc["rows"]:
+            if r["case"] not in args.cases:
+                r.setdefault("measured_by", doc["command"])
+                rows.append(r)
     for case in args.cases:
         for V in (args.sizes if case != "anny" else [None]):
             new = {"hang": lambda: case_hang(V, args.frames, mat, args.torch_max_vertices),
-                   "drape": lambda: case_drape(V, args.frames, mat),
+                   "drape": lambda: case_drape(V, args.frames, mat, args.torch_max_vertices),
                    "anny": lambda: case_anny(args.frames)}[case]()
             for r in new:
                 print(json.dumps({k: (round(v, 5) if isinstance(v, float) else v)
@@ -211,8 +247,11 @@ def write(args, argv, rows) -> str:
            "material": "silk", "fps": 30.0, "rows": rows}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out + ".json").write_text(json.dumps(doc, indent=1))
-    md = f"`{doc['command']}` on {doc['machine']['platform']}, {doc['machine']['cpus']} CPUs\n\n" \
-         + table(rows) + "\n"
+    md = f"`{doc['command']}` on {doc['machine']['platform']}, {doc['machine']['cpus']} CPUs\n\n"
+    kept = sorted({(r["case"], r["measured_by"]) for r in rows if "measured_by" in r})
+    for case, cmd in kept:
+        md += f"Rows of `{case}` kept from an earlier run: `{cmd}`.\n\n"
+    md += table(rows) + "\n"
     Path(args.out + ".md").write_text(md)
     return md
 

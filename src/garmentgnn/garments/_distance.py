@@ -219,7 +219,17 @@ class BodyDistance:
                  extra: float = 1e-3) -> Tuple[np.ndarray, int]:
         """Move points closer than ``margin`` (or inside) to ``margin + extra`` from the
         body along their outward direction, repeating (a push may land near another body
-        part).  Returns ``(points, number of points moved)``."""
+        part).  Returns ``(points, number of points moved)``.
+
+        Not :func:`garmentgnn.geometry.push_outside` (the one-step, differentiable
+        projection of learned models' outputs): the move per iteration is the same,
+        ``q + (margin + extra) n``, but bodies here are unions of overlapping closed
+        pieces (capsules), where the pseudo-normal sign of
+        :func:`~garmentgnn.geometry.signed_distance` is relative to the piece holding the
+        closest point and its closest face can be buried inside another piece.  So this
+        one signs by winding number, leaves through the closest visible surface, repeats
+        until every point clears the margin, and skips certified-far points with the
+        sample KD-tree; the templates' stored geometry depends on these choices."""
         p = np.array(points, dtype=np.float64)
         moved = np.zeros(len(p), bool)
         for _ in range(iterations):

@@ -23,6 +23,7 @@ from garmentgnn.geometry.mesh import (EdgeTopology, FaceAdjacency, boundary_vert
                                       grid_mesh, unique_edges)
 from garmentgnn.geometry.normals import (face_angles, face_areas, face_normals,
                                          scatter_faces_to_vertices, vertex_normals)
+from garmentgnn.geometry.sdf import plane_distance, sphere_distance
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, euler_to_matrix,
                                            matrix_to_axis_angle, matrix_to_euler,
                                            unwrap_axis_angle)
@@ -47,6 +48,8 @@ __all__ = [
     # body distances (Eq. 10)
     "closest_point_on_triangle", "signed_distance", "SignedDistance", "push_outside",
     "vertex_joint_distances", "WindingNumber", "penetration_depth", "is_closed_mesh",
+    # analytic rigid shapes
+    "sphere_distance", "plane_distance",
     # rotations
     "axis_angle_to_matrix", "matrix_to_axis_angle", "euler_to_matrix", "matrix_to_euler",
     "unwrap_axis_angle",

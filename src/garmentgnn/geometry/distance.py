@@ -275,6 +275,13 @@ def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: f
     closest point keeps its face, i.e. for depths below the body's local feature size.
     Differentiable in ``points`` and ``body_pos``.  ``candidates``: see
     :func:`signed_distance` (``None``: exact brute force).
+
+    Garment fitting does not use it: ``garmentgnn.garments._distance.BodyDistance.push_out``
+    solves a different problem (the same move ``q + margin n``, but repeated until no
+    point is within the margin, signed by winding number so that it is right inside
+    *overlapping* closed pieces such as the capsule body's, and leaving through the
+    closest *visible* surface instead of a face buried in another piece); one step of
+    this pseudo-normal projection can push such a point the wrong way.
     """
     if not margin >= 0:
         raise ValueError(f"`margin` must be >= 0 (metres), got {margin}")

@@ -2,8 +2,10 @@
 from garmentgnn.physics.energies import (GRAVITY, ClothRest, bending_energy, collision_energy,
                                          gravity_energy, inertia_energy, shear_energy,
                                          stretch_energy, stvk_energy)
+from garmentgnn.physics.friction import friction_energy, friction_hessian
 from garmentgnn.physics.materials import MATERIALS, Material, material
 
 __all__ = ["GRAVITY", "MATERIALS", "ClothRest", "Material", "bending_energy", "collision_energy",
+           "friction_energy", "friction_hessian",
            "gravity_energy", "inertia_energy", "material", "shear_energy", "stretch_energy",
            "stvk_energy"]

@@ -2,7 +2,7 @@
 
 :func:`simulate_blender` has the signature of :func:`garmentgnn.sim.simulate` and returns
 the same :class:`~garmentgnn.sim.SimResult`.  The garment and body trajectories are
-computed here (:func:`garmentgnn.sim.simulator.trajectories`, the same pre-roll as the
+computed here (:func:`garmentgnn.sim.trajectory.trajectories`, the same pre-roll as the
 torch simulator); Blender runs in a separate worker process,
 ``garmentgnn/sim/_blender_worker.py``, started with an interpreter that has the ``bpy``
 package (Blender as a Python module, GPL-3).  garmentgnn never imports ``bpy`` itself:
@@ -38,6 +38,8 @@ import torch
 from garmentgnn._process import set_pdeathsig
 from garmentgnn.geometry import face_areas, penetration_depth, unique_edges
 from garmentgnn.physics import GRAVITY, Material
+from garmentgnn.sim.settings import SimResult
+from garmentgnn.sim.trajectory import trajectories
 
 WORKER = Path(__file__).with_name("_blender_worker.py")
 ENV_VAR = "GARMENTGNN_BPY_PYTHON"
@@ -269,8 +271,6 @@ def simulate_blender(garment, body, motion, material: Material,
     ``body`` is the collider and carries the pinned vertices; with ``body=None`` the cloth
     hangs from its pins at rest, with no collider.  ``progress`` is called once, at the
     end (the worker runs the sequence in one go)."""
-    from garmentgnn.sim.simulator import SimResult, trajectories
-
     t0 = time.time()
     st = settings or BlenderSettings()
     if not isinstance(st, BlenderSettings):
