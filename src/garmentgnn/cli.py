@@ -68,12 +68,14 @@ def build_parser() -> argparse.ArgumentParser:
     # test hook: module:function replacing garmentgnn.sim.simulate
     g.add_argument("--simulate-fn", default=None, help=argparse.SUPPRESS)
 
-    e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence or glTF")
+    e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence, glTF, "
+                       "Alembic or .blend (the last two through Blender's bpy)")
     e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
-    e.add_argument("--format", choices=("pc2", "obj", "gltf"), required=True)
+    e.add_argument("--format", choices=("pc2", "obj", "gltf", "abc", "blend"), required=True)
     e.add_argument("--out", required=True, type=_path,
-                   help="the .pc2 / .glb file, or a folder for OBJs")
-    e.add_argument("--no-body", action="store_true", help="glTF: the garment only")
+                   help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
+    e.add_argument("--no-body", action="store_true",
+                   help="glTF, Alembic, .blend: the garment only")
     e.add_argument("--start-frame", type=float, default=0.0, help="PC2 start frame")
 
     m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files")
@@ -143,6 +145,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         except (ValueError, KeyError, OSError) as exc:
             print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
                   file=sys.stderr)
+            return 2
+        except RuntimeError as exc:  # Blender missing or failed (abc, blend)
+            print(f"error: --format {args.format}: {exc}", file=sys.stderr)
             return 2
         print(f"wrote {len(paths)} file(s): {paths[0]}" + (" ..." if len(paths) > 1 else ""))
         return 0
