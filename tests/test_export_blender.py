@@ -134,6 +134,9 @@ def test_alembic_and_blend_without_bpy_say_how_to_install(dataset, tmp_path, mon
                          "--out", str(tmp_path / f"x.{fmt}")]) == 2
         assert "bpy" in capsys.readouterr().err
         assert not (tmp_path / f"x.{fmt}").exists()
+    assert cli_main(["export", "--seq", str(seq_path), "--format", "abc",
+                     "--out", str(tmp_path / "x.blend")]) == 2
+    assert "must end in .abc" in capsys.readouterr().err
     m = GltfMesh("a", np.zeros((2, 3, 3)), np.array([[0, 1, 2]]))
     with pytest.raises(ValueError, match="end in .abc"):
         write_blender([m], abc=tmp_path / "x.blend")

@@ -139,6 +139,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
                   f"dataset made by `garmentgnn generate`)", file=sys.stderr)
             return 2
+        if args.format in ("abc", "blend") and Path(args.out).suffix.lower() != f".{args.format}":
+            print(f"error: --out {args.out}: an {args.format} file's name must end in "
+                  f".{args.format}", file=sys.stderr)
+            return 2
         try:
             paths = export_sequence(args.seq, args.format, args.out,
                                     start_frame=args.start_frame, body=not args.no_body)
