@@ -4,7 +4,7 @@
 (:class:`~garmentgnn.data.gltf.GltfMesh`: ``positions [T, V, 3]``, faces, colour, offset)
 and has Blender write them, in a worker process started with the Blender engine's
 interpreter (:func:`garmentgnn.sim.blender.run_blender_script`; the script is
-``garmentgnn/data/_blender_export_worker.py``).  garmentgnn never imports ``bpy``.
+``garmentgnn/sim/_blender_export_worker.py``).  garmentgnn never imports ``bpy``.
 
 In the files each object is one mesh in our vertex order and our coordinates (Blender is
 +Z up like us; its Alembic exporter converts to Alembic's +Y up and its importer back),
@@ -23,7 +23,7 @@ from typing import Dict, List, Optional, Sequence, Union
 import numpy as np
 
 PathLike = Union[str, os.PathLike]
-WORKER = Path(__file__).with_name("_blender_export_worker.py")
+WORKER = Path(__file__).parents[1] / "sim" / "_blender_export_worker.py"
 #: the file suffix of each format
 SUFFIX = {"abc": ".abc", "blend": ".blend"}
 

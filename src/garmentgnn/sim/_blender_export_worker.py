@@ -3,8 +3,9 @@
 Run as ``<python with bpy> _blender_export_worker.py IN.npz OUT.npz`` by
 :mod:`garmentgnn.data.blender_export` (through
 :func:`garmentgnn.sim.blender.run_blender_script`); never imported by garmentgnn.  It
-imports only the standard library, numpy and ``bpy`` (Blender as a Python module,
-GPL-3), so Blender's code runs in this separate process.
+imports only the standard library, numpy, ``bpy`` (Blender as a Python module, GPL-3)
+and the cloth worker beside it (``_blender_worker.py``, for its mesh builder), so
+Blender's code runs in this separate process.
 
 ``IN.npz`` holds, for each object ``i``, ``positions_<i> [T, V, 3]`` and ``faces_<i>
 [F, 3]``, and ``config_json``: ``{"objects": [{"name", "color", "offset"}], "fps",
@@ -21,19 +22,14 @@ import time
 
 import numpy as np
 
+from _blender_worker import _mesh_object  # the cloth worker beside this file
 
-def _mesh_object(bpy, name, verts, faces, color):
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata(verts.tolist(), [], faces.tolist())
-    mesh.update()
-    if len(mesh.vertices) != len(verts) or len(mesh.polygons) != len(faces):
-        raise RuntimeError(f"{name}: Blender built {len(mesh.vertices)} vertices / "
-                           f"{len(mesh.polygons)} faces from {len(verts)} / {len(faces)}")
+
+def _colored_object(bpy, name, verts, faces, color):
+    obj = _mesh_object(bpy, name, verts, faces)  # checks Blender kept every vertex and face
     mat = bpy.data.materials.new(name)
     mat.diffuse_color = (*color, 1.0)
-    mesh.materials.append(mat)
-    obj = bpy.data.objects.new(name, mesh)
-    bpy.context.scene.collection.objects.link(obj)
+    obj.data.materials.append(mat)
     return obj
 
 
@@ -73,7 +69,7 @@ def run(inp, out):
         if T is not None and P.shape[0] != T:
             raise RuntimeError(f"{spec['name']}: {P.shape[0]} frames, expected {T}")
         T = P.shape[0]
-        obj = _mesh_object(bpy, spec["name"], P[0], F, spec["color"])
+        obj = _colored_object(bpy, spec["name"], P[0], F, spec["color"])
         obj.location = tuple(spec["offset"])
         if T > 1:
             _animate(obj, P)
