@@ -71,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence, glTF, "
                        "Alembic or .blend (the last two through Blender's bpy)")
     e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
-    e.add_argument("--format", choices=("pc2", "obj", "gltf", "abc", "blend"), required=True)
+    from garmentgnn.data.store import EXPORT_FORMATS
+    e.add_argument("--format", choices=EXPORT_FORMATS, required=True)
     e.add_argument("--out", required=True, type=_path,
                    help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true",
@@ -140,8 +141,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                   f"dataset made by `garmentgnn generate`)", file=sys.stderr)
             return 2
         if args.format in ("abc", "blend") and Path(args.out).suffix.lower() != f".{args.format}":
-            print(f"error: --out {args.out}: an {args.format} file's name must end in "
-                  f".{args.format}", file=sys.stderr)
+            print(f"error: --out {args.out}: --format {args.format} writes a file whose "
+                  f"name must end in .{args.format}", file=sys.stderr)
             return 2
         try:
             paths = export_sequence(args.seq, args.format, args.out,
