@@ -120,7 +120,7 @@ def test_write_gltf_offsets_and_input_checks(tmp_path):
     with pytest.raises(ValueError, match="fps"):
         write_gltf(tmp_path / "z.glb", [GltfMesh("a", a, faces)], fps=0)
     with pytest.raises(ValueError, match="gltf"):
-        export_sequence(tmp_path / "none.npz", "abc", tmp_path / "q")
+        export_sequence(tmp_path / "none.npz", "fbx", tmp_path / "q")
 
 
 def test_single_frame_gltf_has_no_animation(tmp_path):

@@ -1,8 +1,11 @@
-"""Training curves at the end of ``garmentgnn train``: the PNG, and the recorded values
-against the CSVLogger's own ``metrics.csv``."""
+"""Training curves at the end of ``garmentgnn train``: the PNG, the recorded values
+against the CSVLogger's own ``metrics.csv``, and the TensorBoard log read back with
+TensorBoard's own reader."""
 import math
+from pathlib import Path
 
 import pytest
+from lightning.pytorch.loggers import TensorBoardLogger
 
 from garmentgnn.training.lightning_cli import main as train_main
 from garmentgnn.training.plots import (TrainingPlots, plot_training_curves,
@@ -11,8 +14,18 @@ from test_training import root  # noqa: F401  (the module-scoped toy dataset fix
 from test_training_cli import CONFIGS, fast_args
 
 
+def _tensorboard_scalars(folder):
+    """{tag: [(step, value)]} of the event files in ``folder``, read by TensorBoard."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    acc = EventAccumulator(str(folder), size_guidance={"scalars": 0})
+    acc.Reload()
+    return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
 def test_train_writes_curves_matching_the_csv_logger(root, tmp_path):  # noqa: F811
+    pytest.importorskip("tensorboard", reason="make install installs tensorboard")
     args = ["fit", "--config", str(CONFIGS / "gartrans.yaml")] + fast_args(root, tmp_path)
+    args[args.index("--trainer.max_epochs") + 1] = "2"
     cli = train_main(args)
     plots = [c for c in cli.trainer.callbacks if isinstance(c, TrainingPlots)]
     assert len(plots) == 1
@@ -20,14 +33,32 @@ def test_train_writes_curves_matching_the_csv_logger(root, tmp_path):  # noqa: F
     assert png is not None and png.name == "training_curves.png" and png.stat().st_size > 10_000
     assert tmp_path in png.parents  # the run's log folder
     csv_rows = read_metrics_csv(next(tmp_path.rglob("metrics.csv")))
-    assert [r["epoch"] for r in csv_rows] == [0]
+    assert [r["epoch"] for r in csv_rows] == [0, 1]
     hist = plots[0].history
-    assert [r["epoch"] for r in hist] == [0]
+    assert [r["epoch"] for r in hist] == [0, 1]
     for mine, logged in zip(hist, csv_rows):
         keys = {k for k in logged if k.startswith(("train/", "val/"))}
         assert {"train/loss", "val/E_dist"} <= keys and keys <= set(mine)
         for k in keys:
             assert math.isclose(mine[k], logged[k], rel_tol=1e-5, abs_tol=1e-7), k
+
+    # TensorBoard: the same per-epoch values, in the CSV log's run folder
+    tb = [lg for lg in cli.trainer.loggers if isinstance(lg, TensorBoardLogger)]
+    assert len(tb) == 1 and png.parent / "tensorboard" == Path(tb[0].log_dir)
+    assert list(Path(tb[0].log_dir).glob("events.out.tfevents.*"))
+    scalars = _tensorboard_scalars(tb[0].log_dir)
+    # per epoch: the tag's last value before the next epoch's ("epoch" is logged at each step)
+    epoch_at = sorted(scalars["epoch"])
+    terms = {k for k in hist[0] if k.startswith("train/") and k != "train/loss"}
+    assert terms, hist[0]  # the loss terms, not only the total
+    val = {k for k in hist[0] if k.startswith("val/")}
+    assert {"val/E_dist", "val/E_len"} <= val
+    for k in {"train/loss"} | terms | val:
+        tag = k + "_epoch" if k + "_epoch" in scalars else k
+        got = {int(dict(epoch_at).get(step, -1)): v for step, v in scalars[tag]}
+        assert sorted(got) == [0, 1], (k, scalars[tag], epoch_at)
+        for row in hist:
+            assert math.isclose(got[row["epoch"]], row[k], rel_tol=1e-5, abs_tol=1e-7), k
 
 
 def test_plot_training_curves_input(tmp_path):

@@ -98,12 +98,15 @@ def generate_main(args: argparse.Namespace) -> int:
 
 def add_export_parser(sub) -> argparse.ArgumentParser:
     """The ``export`` sub-command: one sequence file as PC2, OBJs or glTF."""
-    e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence or glTF")
+    e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence, glTF, "
+                       "Alembic or .blend (the last two through Blender's bpy)")
     e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
-    e.add_argument("--format", choices=("pc2", "obj", "gltf"), required=True)
+    from garmentgnn.data.export import EXPORT_FORMATS
+    e.add_argument("--format", choices=EXPORT_FORMATS, required=True)
     e.add_argument("--out", required=True, type=_path,
-                   help="the .pc2 / .glb file, or a folder for OBJs")
-    e.add_argument("--no-body", action="store_true", help="glTF: the garment only")
+                   help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
+    e.add_argument("--no-body", action="store_true",
+                   help="glTF, Alembic, .blend: the garment only")
     e.add_argument("--start-frame", type=float, default=0.0, help="PC2 start frame")
     return e
 
@@ -115,12 +118,19 @@ def export_main(args: argparse.Namespace) -> int:
         print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
               f"dataset made by `garmentgnn generate`)", file=sys.stderr)
         return 2
+    if args.format in ("abc", "blend") and Path(args.out).suffix.lower() != f".{args.format}":
+        print(f"error: --out {args.out}: --format {args.format} writes a file whose "
+              f"name must end in .{args.format}", file=sys.stderr)
+        return 2
     try:
         paths = export_sequence(args.seq, args.format, args.out,
                                 start_frame=args.start_frame, body=not args.no_body)
     except (ValueError, KeyError, OSError) as exc:
         print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
               file=sys.stderr)
+        return 2
+    except RuntimeError as exc:  # Blender missing or failed (abc, blend)
+        print(f"error: --format {args.format}: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {len(paths)} file(s): {paths[0]}" + (" ..." if len(paths) > 1 else ""))
     return 0

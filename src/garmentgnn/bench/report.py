@@ -354,7 +354,9 @@ def save_figure(fig, path) -> Path:
 def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] = (),
                  meta: Optional[Dict[str, Any]] = None) -> Dict[str, Path]:
     """Validate ``records`` and write ``results.json``, ``report.md`` and ``pareto.png``
-    (when there is something to plot) into ``out``; returns their paths."""
+    (when there is something to plot) into ``out``, and the animation of a held-out
+    sequence into ``out/media`` when the run trained GarTrans
+    (:func:`garmentgnn.bench.page.write_media`); returns their paths."""
     if isinstance(records, dict):
         raise ValueError("`records`: expected a list of records, got a dict")
     clean = [check_record(r) for r in records]
@@ -378,5 +380,11 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     text = render_markdown(clean, not_run, meta, "pareto.png" if png is not None else None,
                            "scaling.png" if scaling_png is not None else None,
                            "pareto_learned.png" if learned_png is not None else None)
+    # -- the animation of a held-out sequence (garmentgnn.bench.page), appended ----
+    from garmentgnn.bench.page import write_media
+    media = write_media(clean, out)
+    if media:
+        text += "\n" + "\n".join(media)
+    # -- end of the animation ----------------------------------------------------------
     paths["report"] = atomic_write_bytes(out / "report.md", text.encode())
     return paths

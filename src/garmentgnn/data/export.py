@@ -55,17 +55,30 @@ def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarra
     return paths
 
 
+#: the formats of :func:`export_sequence` (``abc`` and ``blend`` need Blender's ``bpy``)
+EXPORT_FORMATS = ("pc2", "obj", "gltf", "abc", "blend")
+
+
 def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: float = 0.0,
                     body: bool = True) -> List[Path]:
     """Export a sequence file's simulated positions as ``pc2`` (one file), ``obj``
-    (a folder of per-frame OBJs) or ``gltf`` (one ``.glb`` with the posed body unless
+    (a folder of per-frame OBJs), ``gltf`` (one ``.glb`` with the posed body unless
     ``body=False``, one morph target per frame and an animation; see
-    :mod:`garmentgnn.data.gltf`)."""
-    if fmt not in ("pc2", "obj", "gltf"):
-        raise ValueError(f"`fmt`: expected 'pc2', 'obj' or 'gltf', got {fmt!r}")
-    if fmt == "gltf":
+    :mod:`garmentgnn.data.gltf`), or, through Blender (the ``bpy`` package, see
+    :mod:`garmentgnn.data.blender_export`), ``abc`` (Alembic) or ``blend`` (a ``.blend``
+    file), garment and body animated likewise."""
+    if fmt not in EXPORT_FORMATS:
+        raise ValueError(f"`fmt`: expected one of {', '.join(map(repr, EXPORT_FORMATS))}, "
+                         f"got {fmt!r}")
+    if fmt in ("gltf", "abc", "blend"):
+        if fmt in ("abc", "blend"):  # the clear error before loading anything
+            from garmentgnn.sim.blender import require_blender
+            require_blender()
         meshes, fps = sequence_meshes(load_sequence(seq_path), body=body)
-        return [write_gltf(out, meshes, fps=fps)]
+        if fmt == "gltf":
+            return [write_gltf(out, meshes, fps=fps)]
+        from garmentgnn.data.blender_export import write_blender
+        return write_blender(meshes, fps=fps, **{fmt: out})
     seq = load_sequence(seq_path, ["positions", "garment_faces", "meta_json"])
     if fmt == "pc2":
         return [write_pc2(out, seq["positions"], start_frame=start_frame)]

@@ -229,18 +229,19 @@ def _child_setup(cores: Optional[int]) -> Callable[[], None]:
     return setup
 
 
-def run_worker(arrays: Dict[str, np.ndarray], config: Dict[str, Any],
-               threads: Optional[int] = None,
-               timeout: float = 1800.0) -> Dict[str, Any]:
-    """Run the Blender worker on raw arrays (``garment_frames``, ``faces``, ``pinned``,
-    ``body_frames``, ``body_faces``); returns its ``positions`` and ``info``.  A failure
-    raises ``RuntimeError`` with the end of Blender's output."""
+def run_blender_script(script: Path, arrays: Dict[str, np.ndarray], config: Dict[str, Any],
+                       threads: Optional[int] = None,
+                       timeout: float = 1800.0) -> Dict[str, np.ndarray]:
+    """Run ``<Blender's python> script IN.npz OUT.npz`` in its own process group (killed
+    after ``timeout`` s, and with this process), ``IN.npz`` holding ``arrays`` and
+    ``config_json``; returns every array of ``OUT.npz``.  A failure raises
+    ``RuntimeError`` with the end of Blender's output."""
     python = require_blender()
     with tempfile.TemporaryDirectory(prefix="garmentgnn-blender-") as tmp:
         inp, out = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
         np.savez(inp, config_json=np.frombuffer(json.dumps(config).encode(), np.uint8),
                  **arrays)
-        proc = subprocess.Popen([python, str(WORKER), str(inp), str(out)],
+        proc = subprocess.Popen([python, str(script), str(inp), str(out)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                 preexec_fn=_child_setup(threads))
         try:
@@ -256,8 +257,18 @@ def run_worker(arrays: Dict[str, np.ndarray], config: Dict[str, Any],
             tail = "\n".join(line for line in log.strip().splitlines()[-8:])
             raise RuntimeError(f"Blender worker failed (exit {proc.returncode}): {tail}")
         with np.load(out, allow_pickle=False) as z:
-            return {"positions": z["positions"], "seconds_per_frame": z["seconds_per_frame"],
-                    "info": json.loads(z["info_json"].tobytes().decode())}
+            return {k: z[k] for k in z.files}
+
+
+def run_worker(arrays: Dict[str, np.ndarray], config: Dict[str, Any],
+               threads: Optional[int] = None,
+               timeout: float = 1800.0) -> Dict[str, Any]:
+    """Run the Blender cloth worker on raw arrays (``garment_frames``, ``faces``,
+    ``pinned``, ``body_frames``, ``body_faces``); returns its ``positions`` and ``info``.
+    A failure raises ``RuntimeError`` with the end of Blender's output."""
+    z = run_blender_script(WORKER, arrays, config, threads=threads, timeout=timeout)
+    return {"positions": z["positions"], "seconds_per_frame": z["seconds_per_frame"],
+            "info": json.loads(z["info_json"].tobytes().decode())}
 
 
 def simulate_blender(garment, body, motion, material: Material,

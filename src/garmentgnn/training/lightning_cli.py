@@ -12,12 +12,19 @@ Every option of the module, the data module, the trainer and its callbacks is a 
 (``garmentgnn train fit --help``); ``--print_config`` shows the merged configuration.
 At the end of ``fit`` the loss terms and validation metrics per epoch are drawn into
 ``<log dir>/training_curves.png`` (:class:`~garmentgnn.training.plots.TrainingPlots`).
+Beside the configured ``CSVLogger`` every run also logs to TensorBoard (when the
+``tensorboard`` package is installed): the same values go to
+``<log dir>/tensorboard/events.out.tfevents.*`` (``tensorboard --logdir runs``).
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+import importlib.util
+from typing import Any, Optional, Sequence
 
+from lightning.pytorch import Trainer
 from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+from lightning.pytorch.utilities import rank_zero_warn
 
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
@@ -30,6 +37,29 @@ def _plain(ns) -> dict:
     if ns is None:
         return {}
     return ns.as_dict() if hasattr(ns, "as_dict") else dict(ns)
+
+
+#: TensorBoard's event files go into this sub-folder of the CSV logger's run folder
+TENSORBOARD_SUBDIR = "tensorboard"
+
+
+def add_tensorboard(trainer: Trainer) -> Optional[TensorBoardLogger]:
+    """Give ``trainer`` a :class:`TensorBoardLogger` writing into its ``CSVLogger``'s run
+    folder (``<save_dir>/<name>/version_<n>/tensorboard``), unless it already has one or
+    has no CSV logger.  Returns the logger added, or ``None`` (with a warning when the
+    ``tensorboard`` package is missing)."""
+    loggers = list(trainer.loggers)
+    csv = next((lg for lg in loggers if isinstance(lg, CSVLogger)), None)
+    if csv is None or any(isinstance(lg, TensorBoardLogger) for lg in loggers):
+        return None
+    if importlib.util.find_spec("tensorboard") is None:
+        rank_zero_warn("no TensorBoard log: the `tensorboard` package is not installed "
+                       "(`make install`, or pip install tensorboard); the CSV log is written")
+        return None
+    tb = TensorBoardLogger(save_dir=csv.save_dir, name=csv.name, version=csv.version,
+                           sub_dir=TENSORBOARD_SUBDIR, default_hp_metric=False)
+    trainer.loggers = loggers + [tb]
+    return tb
 
 
 def _dim(name: str):
@@ -69,6 +99,13 @@ class GarTransCLI(LightningCLI):
                                   f"start a new run without --ckpt_path")
         return super()._parse_ckpt_path()
 
+    def instantiate_trainer(self, **kwargs: Any) -> Trainer:
+        """Lightning's trainer, with a TensorBoard logger beside the CSV one
+        (:func:`add_tensorboard`)."""
+        trainer = super().instantiate_trainer(**kwargs)
+        add_tensorboard(trainer)
+        return trainer
+
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.nystrom_dim", "model.nystrom_dim")
         for name in ("num_joints", "num_body_vertices"):
@@ -80,7 +117,8 @@ def main(args: Optional[Sequence[str]] = None, run: bool = True,
          prog: Optional[str] = None) -> GarTransCLI:
     """Run the CLI (``args`` default: ``sys.argv[1:]``; ``prog``: the program name its
     usage lines show); returns the CLI object.  Every run also gets
-    :class:`TrainingPlots` (``training_curves.png`` in the log folder)."""
+    :class:`TrainingPlots` (``training_curves.png`` in the log folder) and a TensorBoard
+    log (:func:`add_tensorboard`)."""
     return GarTransCLI(GarTransModule, GarmentDataModule, args=None if args is None else list(args),
                        run=run, seed_everything_default=0,
                        parser_kwargs={"prog": prog} if prog else None,
