@@ -346,8 +346,7 @@ def edge_softmax(src: Tensor, index: Tensor, num_dst: int, ptr: Optional[Tensor]
     With a CSR pointer (edges sorted by target) the maximum runs on
     :func:`torch.segment_reduce` (several times faster on CPU than a scatter);
     the sums use ``index_add``, which, unlike ``segment_reduce``, can be
-    differentiated twice (:func:`segment_sum`: ``segment_reduce`` when no gradient is
-    recorded).  Without one it is PyG's :func:`softmax`, which
+    differentiated twice.  Without one it is PyG's :func:`softmax`, which
     scatters.  Entries of ``-inf`` get weight 0 as long as their segment holds
     a finite one.
     """
@@ -355,15 +354,5 @@ def edge_softmax(src: Tensor, index: Tensor, num_dst: int, ptr: Optional[Tensor]
         return softmax(src, index, None, num_dst)
     peak = torch.segment_reduce(src.detach(), "max", offsets=ptr, axis=0, unsafe=True)
     out = (src - peak.index_select(0, index)).exp()
-    total = segment_sum(out, index, num_dst, ptr)
+    total = out.new_zeros((num_dst,) + tuple(out.shape[1:])).index_add_(0, index, out)
     return out / (total.index_select(0, index) + 1e-16)
-
-
-def segment_sum(src: Tensor, index: Tensor, num_dst: int, ptr: Tensor) -> Tensor:
-    """Sums of ``src [E, ...]`` over the sorted segments ``index`` / ``ptr``,
-    ``[num_dst, ...]``: :func:`torch.segment_reduce` (a sequential pass, no atomics or
-    scatter) when no gradient is recorded through ``src``, else ``index_add`` (twice
-    differentiable).  Empty segments sum to 0."""
-    if not (torch.is_grad_enabled() and src.requires_grad):
-        return torch.segment_reduce(src, "sum", offsets=ptr, axis=0, unsafe=True)
-    return src.new_zeros((num_dst,) + tuple(src.shape[1:])).index_add_(0, index, src)

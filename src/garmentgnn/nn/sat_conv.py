@@ -10,8 +10,7 @@ from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.typing import PairTensor
 
 from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import (Graph, check_edge_out_channels, check_layer_args, keep_one_mask,
-                                  segment_sum)
+from garmentgnn.nn._graph import Graph, check_edge_out_channels, check_layer_args, keep_one_mask
 
 
 class SATConv(AttentionConv):
@@ -172,7 +171,7 @@ class SATConv(AttentionConv):
             w = self.lin_edge_value.weight.view(H, C, D)
             out = out + torch.einsum("nhd,hcd->nhc", agg_e, w)
             if self.lin_edge_value.bias is not None:
-                mass = segment_sum(alpha_used, r.index, r.num_segments, r.ptr)
+                mass = alpha_used.new_zeros(r.num_segments).index_add_(0, r.index, alpha_used)
                 out = out + mass.view(H, g.num_dst, 1).transpose(0, 1) \
                     * self.lin_edge_value.bias.view(H, C)
         else:  # the messages alpha_ij (v_j + q^e_ij), as hooks and explainers see them
