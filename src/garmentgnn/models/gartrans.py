@@ -124,6 +124,9 @@ class AttentionStack(nn.Module):
             c = w if last else per_head * heads
         self.out_channels = c
         self.act = {"elu": F.elu, "tanh": torch.tanh}[act]
+        #: the same, in place (used when no gradient is recorded: saves an allocation
+        #: and a pass over the node features per layer)
+        self.act_ = {"elu": F.elu_, "tanh": torch.tanh_}[act]
         self.last_act = last_act
         self._freeze_dead_edge_output(in_channels, edge_dim)
 
@@ -153,7 +156,7 @@ class AttentionStack(nn.Module):
         for i, layer in enumerate(self.layers):
             x, e = layer(x, edge_index, e, return_edge_attr=True)
             if i < len(self.layers) - 1 or self.last_act:
-                x = self.act(x)
+                x = self.act_(x) if not torch.is_grad_enabled() else self.act(x)
         return x
 
 
