@@ -113,7 +113,7 @@ def lbs_row(seq, repeats: int) -> Dict[str, Any]:
             "best_batch": T, "peak_mb": mem["peak_mb"]}
 
 
-def blender_row(seq, frames: int, preroll: int) -> Dict[str, Any]:
+def blender_row(seq, frames: int, preroll: int, cores: int) -> Dict[str, Any]:
     from garmentgnn.data.generate import BLENDER_SETTINGS
     from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker
     from garmentgnn.sim.simulator import trajectories
@@ -128,13 +128,14 @@ def blender_row(seq, frames: int, preroll: int) -> Dict[str, Any]:
                          else g.pinned.bool().numpy()),
               "body_frames": bframes[:n].float().numpy(), "body_faces": body.faces.long().numpy()}
     t0 = time.perf_counter()
-    res = run_worker(arrays, blender_config(seq.material, g.vertices, g.faces, st), threads=2)
+    res = run_worker(arrays, blender_config(seq.material, g.vertices, g.faces, st), threads=cores)
     wall = time.perf_counter() - t0
     sec = np.asarray(res["seconds_per_frame"])[st.preroll_frames:]
     per = float(np.mean(sec))
     return {"latency_ms": 1e3 * per, "throughput_fps": 1.0 / per, "best_batch": 1,
             "median_ms": 1e3 * float(np.median(sec)), "frames": int(sec.size),
             "preroll_frames": st.preroll_frames, "wall_s": wall, "quality": st.quality,
+            "cores": cores,
             "peak_mb_process": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}
 
 
@@ -319,7 +320,7 @@ def plot(rows: List[Dict[str, Any]], path: Path) -> None:
         ax.set_ylabel(lab)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"Inference on CPU ({torch.get_num_threads()} threads), skirt on a walking "
+    fig.suptitle(f"Inference on CPU ({torch.get_num_threads()} torch thread(s)), skirt on a walking "
                  "capsule body")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -336,6 +337,8 @@ def main(argv=None) -> int:
     ap.add_argument("--blender-frames", type=int, default=8)
     ap.add_argument("--blender-preroll", type=int, default=3)
     ap.add_argument("--no-blender", action="store_true")
+    ap.add_argument("--blender-cores", type=int, default=None,
+                    help="CPU cores of the Blender worker (its affinity); default: --threads")
     ap.add_argument("--torch-frames", type=int, default=3)
     ap.add_argument("--torch-max-vertices", type=int, default=1500)
     ap.add_argument("--profile", action="store_true")
@@ -344,12 +347,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(HERE / "results" / "inference"))
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    args.blender_cores = args.blender_cores or args.threads
     from garmentgnn.sim.blender import blender_available
     have_blender = not args.no_blender and blender_available()
     doc: Dict[str, Any] = {
         "command": " ".join(["python", "benchmarks/inference.py"] + (argv or sys.argv[1:])),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                    "torch_threads": torch.get_num_threads(),
+                    "torch_threads": torch.get_num_threads(), "blender_cores": args.blender_cores,
                     "load_average_start": os.getloadavg(), "gpu": torch.cuda.is_available()},
         "history": HISTORY, "paper_gpu": PAPER, "rows": [], "profile": {}}
     for res in args.sizes:
@@ -366,8 +370,8 @@ def main(argv=None) -> int:
             new.append(dict(method="torch simulator", **torch_sim_row(seq, args.torch_frames)))
         if have_blender:
             try:
-                new.append(dict(method="Blender", **blender_row(seq, args.blender_frames,
-                                                                 args.blender_preroll)))
+                new.append(dict(method="Blender", **blender_row(
+                    seq, args.blender_frames, args.blender_preroll, args.blender_cores)))
             except RuntimeError as e:
                 print(f"Blender failed: {e}", flush=True)
         bl = next((r for r in new if r["method"] == "Blender"), None)
@@ -396,7 +400,8 @@ def main(argv=None) -> int:
 def markdown(doc: Dict[str, Any]) -> str:
     m = doc["machine"]
     lines = [f"`{doc['command']}` on {m['platform']}, {m['cpus']} CPUs, {m['torch_threads']} "
-             f"torch threads, GPU: {'yes' if m['gpu'] else 'none'}; load average at start "
+             f"torch threads, Blender worker on {m.get('blender_cores', '?')} core(s), GPU: "
+             f"{'yes' if m['gpu'] else 'none'}; load average at start "
              f"{m['load_average_start'][0]:.2f}" +
              (f", at end {m['load_average_end'][0]:.2f}" if "load_average_end" in m else ""),
              "", table(doc["rows"]), ""]
