@@ -25,6 +25,9 @@ not); ``--experiments`` times bfloat16 and ``torch.compile`` at the smallest siz
 Writes ``benchmarks/results/inference.{json,md,png}``.
 
     OMP_NUM_THREADS=2 python benchmarks/inference.py --profile --experiments
+    # docs/inference.md's run (one core each; the machine was shared):
+    OMP_NUM_THREADS=1 python benchmarks/inference.py --profile --threads 1 --frames 16 \
+        --batches 1 4 16 --repeats 2 --torch-frames 2
     python benchmarks/inference.py --sizes 300 --frames 8 --no-blender   # quick look
 """
 from __future__ import annotations
@@ -320,8 +323,8 @@ def plot(rows: List[Dict[str, Any]], path: Path) -> None:
         ax.set_ylabel(lab)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"Inference on CPU ({torch.get_num_threads()} torch thread(s)), skirt on a walking "
-                 "capsule body")
+    fig.suptitle(f"Inference on CPU ({torch.get_num_threads()} torch thread(s)), skirt on a "
+                 "walking capsule body")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
