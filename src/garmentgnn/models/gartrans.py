@@ -30,8 +30,9 @@ are all equal skips the GRU (``Θ^[1] = 1``).
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -68,6 +69,41 @@ def batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
     return (edge_index.unsqueeze(1) + offsets.view(1, -1, 1)).reshape(2, -1)
 
 
+#: batched copies of garment graphs: ``(id(edge_index), copies, num_nodes) ->
+#: (weakref to edge_index, its version, batched edge_index)``
+_BATCHED: Dict[Tuple[int, int, int], Tuple["weakref.ref", int, Tensor]] = {}
+_MAX_BATCHED = 16
+
+
+def cached_batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
+    """:func:`batch_edges`, cached per ``edge_index`` tensor (its identity and version),
+    copy count and node count; one copy is ``edge_index`` itself.
+
+    The batched tensor is built outside inference mode, so it carries a version counter
+    and the layers' CSR plans (:mod:`garmentgnn.nn._graph`) are cached for it too: a
+    sequence predicted in chunks sorts and indexes its batched graph once, not once per
+    layer and chunk.  An ``edge_index`` made in inference mode has no version counter
+    and is not cached (a fresh batch every call)."""
+    if copies == 1:
+        return edge_index
+    try:
+        version = edge_index._version
+    except RuntimeError:  # an inference tensor
+        version = None
+    key = (id(edge_index), copies, num_nodes)
+    hit = _BATCHED.get(key)
+    if hit is not None and hit[0]() is edge_index and hit[1] == version:
+        return hit[2]
+    with torch.inference_mode(False):
+        out = batch_edges(edge_index, copies, num_nodes)
+    if version is not None:
+        while len(_BATCHED) >= _MAX_BATCHED:
+            _BATCHED.pop(next(iter(_BATCHED)))
+        _BATCHED[key] = (weakref.ref(edge_index, lambda _, k=key: _BATCHED.pop(k, None)),
+                         version, out)
+    return out
+
+
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
 BLEND_UNIT = 0.01
 
@@ -88,6 +124,9 @@ class AttentionStack(nn.Module):
             c = w if last else per_head * heads
         self.out_channels = c
         self.act = {"elu": F.elu, "tanh": torch.tanh}[act]
+        #: the same, in place (used when no gradient is recorded: saves an allocation
+        #: and a pass over the node features per layer)
+        self.act_ = {"elu": F.elu_, "tanh": torch.tanh_}[act]
         self.last_act = last_act
         self._freeze_dead_edge_output(in_channels, edge_dim)
 
@@ -117,7 +156,7 @@ class AttentionStack(nn.Module):
         for i, layer in enumerate(self.layers):
             x, e = layer(x, edge_index, e, return_edge_attr=True)
             if i < len(self.layers) - 1 or self.last_act:
-                x = self.act(x)
+                x = self.act_(x) if not torch.is_grad_enabled() else self.act(x)
         return x
 
 
@@ -261,19 +300,29 @@ class GarTrans(nn.Module):
     # -- dynamic branch -------------------------------------------------------
     def motion_code(self, rotations: Tensor, translation: Tensor) -> Tensor:
         """``Θ^[1]`` ``[B, S]`` from a pose history ``[B, H, S, 3]``, ``[B, H, 3]``;
-        ones (no modulation) when every frame of every history is the same pose."""
-        if bool((rotations == rotations[:, :1]).all()) and bool(
-                (translation == translation[:, :1]).all()):
-            return rotations.new_ones(rotations.shape[0], self.num_joints)
+        ones (no modulation) for a history whose frames are all the same pose (each
+        history on its own, so a frame's code does not depend on the other frames of
+        its batch); the GRU is skipped when every history is such."""
+        B = rotations.shape[0]
+        still = ((rotations == rotations[:, :1]).reshape(B, -1).all(1)
+                 & (translation == translation[:, :1]).reshape(B, -1).all(1))
+        ones = rotations.new_ones(B, self.num_joints)
+        if bool(still.all()):
+            return ones
         vel = torch.diff(translation, dim=1, prepend=translation[:, :1]) * self.fps
         seq = torch.cat([rotations.flatten(2), vel], -1)
         h, _ = self.gru(seq)
-        return self.gru_out(h[:, -1])
+        code = self.gru_out(h[:, -1])
+        return torch.where(still.unsqueeze(1), ones, code) if bool(still.any()) else code
 
     def coarse(self, static: StaticFeatures, rest_pos: Tensor, edge_index: Tensor,
-               rest_joints: Tensor, parents: Tensor, rotations: Tensor, translation: Tensor):
+               rest_joints: Tensor, parents: Tensor, rotations: Tensor, translation: Tensor,
+               rest_edge_attr: Optional[Tensor] = None):
         """Coarse meshes ``M^{t,c}`` for the last two frames of each history:
-        ``[B, 2, V, 3]`` (previous, current), plus the skinning weights ``[B, V, S]``."""
+        ``[B, 2, V, 3]`` (previous, current), plus the skinning weights ``[B, V, S]``
+        and the posed joints ``[B, S, 3]`` of frame t.  ``rest_edge_attr``: the rest
+        graph's :func:`edge_features` ``[E, 4]`` when the caller has them (computed
+        here otherwise)."""
         B, H = rotations.shape[:2]
         V = rest_pos.shape[0]
         x3 = static.x2.unsqueeze(0) * self.motion_code(rotations, translation).unsqueeze(1)
@@ -281,8 +330,9 @@ class GarTrans(nn.Module):
         W = torch.softmax(logits, -1)  # W^t
         template = rest_pos.unsqueeze(0).expand(B, V, 3)
         if self.blend is not None:
-            e = edge_features(rest_pos, edge_index).repeat(B, 1)
-            blend = self.blend(x3.reshape(B * V, -1), batch_edges(edge_index, B, V), e)
+            e = edge_features(rest_pos, edge_index) if rest_edge_attr is None else rest_edge_attr
+            blend = self.blend(x3.reshape(B * V, -1), cached_batch_edges(edge_index, B, V),
+                               e.repeat(B, 1))
             # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so
             # a freshly initialised model starts near its skinned rest garment, not ~30 cm off
             template = template + self._gate(1, BLEND_UNIT * blend.view(B, V, 3))
@@ -297,7 +347,8 @@ class GarTrans(nn.Module):
     def forward(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
                 edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
                 translation: Tensor, prev_final: Optional[Tensor] = None,
-                body_pos: Optional[Tensor] = None, body_faces: Optional[Tensor] = None):
+                body_pos: Optional[Tensor] = None, body_faces: Optional[Tensor] = None,
+                rest_edge_attr: Optional[Tensor] = None):
         """Predict ``M^{t,d}`` for a batch of frames (frame-parallel).
 
         Args:
@@ -309,6 +360,9 @@ class GarTrans(nn.Module):
             body_pos: ``[B, Vb, 3]`` the posed body of each frame, with ``body_faces``
                 ``[Fb, 3]``: used by ``collision_projection`` only (ignored without it;
                 a scene without a body passes ``None``).
+            rest_edge_attr: ``edge_features(rest_pos, edge_index)`` ``[E, 4]``, when the
+                caller keeps them across calls (:meth:`predict_sequence`); computed
+                here otherwise.
 
         Returns:
             dict with ``final [B, V, 3]``, ``coarse [B, V, 3]``, ``accel [B, V, 3]``,
@@ -319,7 +373,7 @@ class GarTrans(nn.Module):
         B = rotations.shape[0]
         V = rest_pos.shape[0]
         coarse2, W, joints = self.coarse(static, rest_pos, edge_index, rest_joints, parents,
-                                         rotations, translation)
+                                         rotations, translation, rest_edge_attr)
         prev, cur = coarse2[:, 0], coarse2[:, 1]
         if prev_final is not None:
             if prev_final.shape != cur.shape:
@@ -330,7 +384,7 @@ class GarTrans(nn.Module):
         n = vertex_normals(cur, faces)
         dj = torch.cdist(cur, joints)
         x = torch.cat([vel, n, dj], -1).reshape(B * V, -1)
-        ei = batch_edges(edge_index, B, V)
+        ei = cached_batch_edges(edge_index, B, V)
         e = edge_features(cur.reshape(B * V, 3), ei)
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         final = cur + self._gate(2, accel / self.fps ** 2)
@@ -366,3 +420,81 @@ class GarTrans(nn.Module):
             prev = o["final"]
             outs.append(o)
         return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}
+
+    # -- batched whole-sequence inference --------------------------------------
+    #: default chunk size of :meth:`predict_sequence`: frames per chunk such that a
+    #: chunk holds about this many garment vertices (bounds memory, see docs/inference.md)
+    CHUNK_VERTICES = 32768
+    #: what :meth:`predict_sequence` can return
+    SEQUENCE_OUTPUTS = ("final", "coarse", "accel", "weights")
+
+    def predict_sequence(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
+                         edge_index: Tensor, rest_joints: Tensor, parents: Tensor,
+                         rotations: Tensor, translation: Tensor, history: int = 3,
+                         batch_size: Optional[int] = None, body_pos: Optional[Tensor] = None,
+                         body_faces: Optional[Tensor] = None,
+                         outputs: Sequence[str] = ("final",)) -> Dict[str, Tensor]:
+        """Predict every frame of a motion, frame-parallel (the paper's batch inference).
+
+        The pose history of frame ``t`` is frames ``t-history .. t`` clamped at 0 (as
+        the training data module builds it); frames are predicted ``batch_size`` at a
+        time by :meth:`forward` (static branch ``static`` computed once by the caller,
+        dynamic branch batched) under ``torch.inference_mode``.  The batched graph, its
+        CSR plans and the rest graph's edge features are built once and reused by every
+        chunk.  Equals :meth:`forward` on each frame's history alone up to float
+        round-off, whatever ``batch_size``.
+
+        Args:
+            static, rest_pos, faces, edge_index, rest_joints, parents: as :meth:`forward`.
+            rotations: ``[T, S, 3]`` the motion's joint rotations (axis-angle).
+            translation: ``[T, 3]`` its root translations.
+            history: previous frames per pose history (``H = history + 1 >= 2``).
+            batch_size: frames per chunk; ``None``: about :attr:`CHUNK_VERTICES`
+                vertices per chunk (at least one frame).
+            body_pos: ``[T, Vb, 3]`` posed body (for ``collision_projection``), with
+                ``body_faces``.
+            outputs: which of :attr:`SEQUENCE_OUTPUTS` to return (``weights`` is
+                ``[T, V, S]``: large).
+
+        Returns:
+            ``{name: [T, V, 3]}`` (``weights``: ``[T, V, S]``) for each name in ``outputs``.
+        """
+        S = self.num_joints
+        if not isinstance(rotations, Tensor) or rotations.dim() != 3 \
+                or rotations.shape[1:] != (S, 3) or rotations.shape[0] < 1:
+            got = tuple(rotations.shape) if isinstance(rotations, Tensor) else type(rotations)
+            raise ValueError(f"`rotations`: expected [T>=1, {S}, 3] axis-angle rotations of "
+                             f"the whole motion, got {got}")
+        T = rotations.shape[0]
+        if not isinstance(translation, Tensor) or tuple(translation.shape) != (T, 3):
+            got = tuple(translation.shape) if isinstance(translation, Tensor) else type(translation)
+            raise ValueError(f"`translation`: expected [{T}, 3], got {got}")
+        if not isinstance(history, int) or isinstance(history, bool) or history < 1:
+            raise ValueError(f"`history`: expected an int >= 1 (H = history + 1 >= 2), got "
+                             f"{history!r}")
+        if batch_size is not None and (not isinstance(batch_size, int)
+                                       or isinstance(batch_size, bool) or batch_size < 1):
+            raise ValueError(f"`batch_size`: expected a positive int or None, got {batch_size!r}")
+        bad = [o for o in outputs if o not in self.SEQUENCE_OUTPUTS]
+        if isinstance(outputs, str) or bad or not outputs:
+            raise ValueError(f"`outputs`: expected a non-empty sequence of "
+                             f"{self.SEQUENCE_OUTPUTS}, got {outputs!r}")
+        if body_pos is not None and (body_pos.dim() != 3 or body_pos.shape[0] != T):
+            raise ValueError(f"`body_pos`: expected [{T}, Vb, 3], got {tuple(body_pos.shape)}")
+        V = rest_pos.shape[0]
+        b = batch_size or max(1, self.CHUNK_VERTICES // max(V, 1))
+        b = min(b, T)
+        with torch.inference_mode():
+            rest_e = edge_features(rest_pos, edge_index)
+            offsets = torch.arange(-history, 1, device=rotations.device)
+            out = {k: rest_pos.new_empty(T, V, S if k == "weights" else 3) for k in outputs}
+            for t0 in range(0, T, b):  # chunks of frames, each predicted in one batch
+                frames = torch.arange(t0, min(t0 + b, T), device=rotations.device)
+                hist = (frames.unsqueeze(1) + offsets).clamp_min(0)  # [n, H]
+                o = self.forward(static, rest_pos, faces, edge_index, rest_joints, parents,
+                                 rotations[hist], translation[hist],
+                                 body_pos=None if body_pos is None else body_pos[frames],
+                                 body_faces=body_faces, rest_edge_attr=rest_e)
+                for k in outputs:
+                    out[k][t0:t0 + len(frames)] = o[k]
+        return out

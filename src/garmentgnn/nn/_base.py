@@ -285,8 +285,20 @@ class AttentionConv(LayerContract):
         """``W_o heads(out) + skip(x_dst)``: concatenate or average the heads."""
         out = out.reshape(out.size(0), self.heads * self.out_channels) if self.concat \
             else out.mean(1)
-        out = self.lin_out(out)
-        return out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
+        lin, skip = self.lin_out, self.lin_skip
+        lazy = any(isinstance(p, UninitializedParameter)
+                   for m in (lin, skip) if m is not None for p in m.parameters())
+        if lazy:
+            return lin(out) + (x_dst if skip is None else skip(x_dst))
+        # residual (and both biases) first, then one matmul accumulating into it:
+        # one pass over the output fewer than linear + add
+        b = lin.bias
+        if skip is None:
+            base = x_dst + b if b is not None else x_dst.clone()
+        else:
+            sb = skip.bias
+            base = F.linear(x_dst, skip.weight, sb if b is None else (b if sb is None else sb + b))
+        return base.addmm_(out, lin.weight.t())
 
     def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:
         return v_j * alpha.unsqueeze(-1)

@@ -165,15 +165,19 @@ class SATConv(AttentionConv):
             # Eq. (6), by linearity of W_q':
             #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + W_q' sum_j alpha e_ij
             #                                       + b sum_j alpha
-            # so only the narrow [E, D] edge rows are aggregated, never [E, H, C] values.
-            out = self.aggregate_values(alpha_used, v, g, r)  # [N, H, C]
-            agg_e = self.aggregate_edge_rows(alpha_used, e, g, r)  # [N, H, D]
+            #                                     = sum_j alpha v_j + [W_q' | b] sum_j alpha [e_ij | 1]
+            # so only the narrow [E, D+1] edge rows are aggregated, never [E, H, C] values;
+            # the ones column gives the attention mass sum_j alpha_ij that the bias needs.
+            out = self.aggregate_values(alpha_used, v, g, r)  # [N, H, C], head-major storage
+            b_q = self.lin_edge_value.bias
+            rows = e if b_q is None else F.pad(e, (0, 1), value=1.0)
+            agg_e = self.aggregate_edge_rows(alpha_used, rows, g, r)  # [N, H, D(+1)]
             w = self.lin_edge_value.weight.view(H, C, D)
-            out = out + torch.einsum("nhd,hcd->nhc", agg_e, w)
-            if self.lin_edge_value.bias is not None:
-                mass = alpha_used.new_zeros(r.num_segments).index_add_(0, r.index, alpha_used)
-                out = out + mass.view(H, g.num_dst, 1).transpose(0, 1) \
-                    * self.lin_edge_value.bias.view(H, C)
+            if b_q is not None:
+                w = torch.cat([w, b_q.view(H, C, 1)], 2)
+            # one batched matmul over the heads, in the kernels' head-major layout
+            out = torch.baddbmm(out.transpose(0, 1), agg_e.transpose(0, 1),
+                                w.transpose(1, 2)).transpose(0, 1)
         else:  # the messages alpha_ij (v_j + q^e_ij), as hooks and explainers see them
             qe = self.lin_edge_value(e).view(e.size(0), H, C)
             out = self.aggregate_values(alpha_used, v, g, r, qe=qe)
