@@ -1,12 +1,13 @@
 """``garmentgnn train``: Lightning's own CLI over :class:`GarTransModule` and
-:class:`GarmentDataModule`, configured by the YAML files in ``configs/``.
+:class:`GarmentDataModule`, configured by the YAML files packaged in
+``garmentgnn/configs/`` (named without folder or suffix, or given as paths).
 
 The model sizes that depend on the data (number of joints, body vertices, Nyström
 width) are linked from the data module, so a config only says *what* to train::
 
-    garmentgnn train fit --config configs/gartrans.yaml --data.root data/small
-    garmentgnn train fit --config configs/gartrans.yaml --config configs/ablations/wo_gating.yaml ...
-    garmentgnn train fit --config configs/gartrans.yaml --ckpt_path last   # resume
+    garmentgnn train fit --config gartrans --data.root data/small
+    garmentgnn train fit --config gartrans --config ablations/wo_gating ...
+    garmentgnn train fit --config gartrans --ckpt_path last   # resume
 
 Every option of the module, the data module, the trainer and its callbacks is a flag
 (``garmentgnn train fit --help``); ``--print_config`` shows the merged configuration.
@@ -15,10 +16,12 @@ At the end of ``fit`` the loss terms and validation metrics per epoch are drawn 
 """
 from __future__ import annotations
 
+import sys
 from typing import Optional, Sequence
 
 from lightning.pytorch.cli import LightningCLI
 
+from garmentgnn.training.configs import resolve_config_args
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
 from garmentgnn.training.module import GarTransModule
@@ -77,9 +80,12 @@ class GarTransCLI(LightningCLI):
 
 
 def main(args: Optional[Sequence[str]] = None, run: bool = True) -> GarTransCLI:
-    """Run the CLI (``args`` default: ``sys.argv[1:]``); returns the CLI object.  Every
+    """Run the CLI (``args`` default: ``sys.argv[1:]``; ``--config NAME`` may name a
+    packaged configuration, :func:`~garmentgnn.training.configs.resolve_config_args`);
+    returns the CLI object.  Every
     run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder)."""
-    return GarTransCLI(GarTransModule, GarmentDataModule, args=None if args is None else list(args),
+    args = resolve_config_args(sys.argv[1:] if args is None else args)
+    return GarTransCLI(GarTransModule, GarmentDataModule, args=args,
                        run=run, seed_everything_default=0,
                        save_config_kwargs={"overwrite": True},
                        trainer_defaults={"callbacks": [TrainingPlots()]})
