@@ -83,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     from garmentgnn.viz.cli import add_parser as add_show_parser
     add_show_parser(sub)
     t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
-                       "configs/gartrans.yaml --data.root DIR (see `garmentgnn train --help`)",
+                       "gartrans --data.root DIR (see `garmentgnn train --help`)",
                        add_help=False)
     t.add_argument("lightning_args", nargs=argparse.REMAINDER)
     return p

@@ -69,7 +69,7 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
             :func:`scaling_items`); its motion needs at least 2 frames.
         seed: motion seed and model initialisation seed.
         warmup, repeats: :func:`side_by_side` settings.
-        history, nystrom_dim, num_landmarks: data-module settings (``configs/``).
+        history, nystrom_dim, num_landmarks: data-module settings (``garmentgnn/configs/gartrans.yaml``).
         module_kwargs: further :class:`GarTransModule` arguments.
     """
     from garmentgnn.bench.model_inputs import BenchChunks, untrained_module

@@ -1,8 +1,6 @@
-"""Dataset generation (garments x bodies x motions x materials through the simulator),
-the on-disk store (sequence files, manifest, PC2/OBJ export) and a lazy PyG dataset.
-
-The PyG dataset classes are imported on first use so that the CLI and the generator
-do not pay for importing torch_geometric."""
+"""Dataset generation (garments x bodies x motions x materials through an engine) and
+the on-disk store (sequence files, manifest, PC2/OBJ/glTF export).  The model inputs
+read from it are :class:`garmentgnn.training.SequenceChunks`'s."""
 from garmentgnn.data.generate import (
     PRESETS,
     Spec,
@@ -28,15 +26,9 @@ from garmentgnn.data.store import (
     write_pc2,
 )
 
-__all__ = ["GarmentFrame", "GarmentSequenceDataset", "IntegrityError", "PRESETS", "Spec",
+__all__ = ["IntegrityError", "PRESETS", "Spec",
            "SpecMismatch", "Summary", "body_key", "export_sequence", "file_sha256",
            "garment_key", "generate", "load_record_sequence", "load_sequence", "motion_key",
            "preset", "read_manifest", "rebuild_manifest", "run_item", "validate_sequence",
            "write_obj_sequence", "write_pc2"]
 
-
-def __getattr__(name):
-    if name in ("GarmentFrame", "GarmentSequenceDataset"):
-        from garmentgnn.data import dataset
-        return getattr(dataset, name)
-    raise AttributeError(f"module 'garmentgnn.data' has no attribute {name!r}")
