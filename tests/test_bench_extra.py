@@ -86,7 +86,7 @@ def test_bench_items_equal_the_data_module_items(tmp_path):
     assert len(ours) == len(ds) == 2
     for idx in range(2):
         a, b_ = ds[idx], ours[idx]
-        assert set(a) == set(b_)
+        assert set(a.keys()) == set(b_.keys())
         for k, v in a.items():
             if isinstance(v, torch.Tensor):
                 assert v.dtype == b_[k].dtype, k
