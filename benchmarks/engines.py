@@ -48,7 +48,7 @@ from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker, 
 from garmentgnn.sim.simulator import trajectories
 
 HERE = Path(__file__).resolve().parent
-TORCH = SimSettings(fps=30.0, substeps=4)
+TORCH = SimSettings(fps=30.0, substeps=4, friction=True)
 
 
 def hanging_sheet(num_vertices: int, size: float = 0.5, tilt_deg: float = 30.0) -> Garment:
@@ -167,7 +167,7 @@ def case_anny(frames: int) -> list:
     for engine, kw in specs:
         t0 = time.perf_counter()
         if engine == "torch":
-            st = SimSettings(fps=30.0, substeps=TORCH.substeps, **kw)
+            st = SimSettings(fps=30.0, substeps=TORCH.substeps, friction=True, **kw)
             res = simulate(g, body, motion, mat, st)
             sub = st.substeps
         else:

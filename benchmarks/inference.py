@@ -117,7 +117,7 @@ def lbs_row(seq, repeats: int) -> Dict[str, Any]:
 
 
 def blender_row(seq, frames: int, preroll: int, cores: int) -> Dict[str, Any]:
-    from garmentgnn.data.generate import BLENDER_SETTINGS
+    from garmentgnn.data.presets import BLENDER_SETTINGS
     from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker
     from garmentgnn.sim.simulator import trajectories
 

@@ -7,8 +7,9 @@ from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.bench.sequences import build_scene
 from garmentgnn.garments import make_garment
 from garmentgnn.losses import GarTransLoss, LossInputs
-from garmentgnn.models.baselines import (CoarseLevel, DAStyle, GarmentScene, HOODStyle,
-                                         LBSBaseline, NCSStyle, skin)
+from garmentgnn.models.baselines import (CoarseLevel, DAStyle, HOODStyle, LBSBaseline,
+                                         NCSStyle, skin)
+from garmentgnn.models.inputs import GarmentInputs, build_garment
 from garmentgnn.motion import make_motion
 from garmentgnn.physics import MATERIALS, ClothRest
 
@@ -30,20 +31,21 @@ def _pose(motion, idx=None):
     return (r, t) if idx is None else (r[idx], t[idx])
 
 
-def _permuted(scene: GarmentScene, perm: torch.Tensor) -> GarmentScene:
+def _permuted(scene: GarmentInputs, perm: torch.Tensor) -> GarmentInputs:
     """The same garment with vertex ``perm[i]`` renamed ``i``."""
     inv = torch.empty_like(perm)
     inv[perm] = torch.arange(perm.numel())
-    return GarmentScene(scene.rest_pos[perm], inv[scene.faces], scene.weights[perm],
-                        scene.rest_joints, scene.parents,
-                        None if scene.pinned is None else scene.pinned[perm])
+    pinned = scene.get("pinned")
+    return build_garment(scene.rest_pos[perm], inv[scene.faces], scene.skin_weights[perm],
+                         scene.rest_joints, scene.parents,
+                         None if pinned is None else pinned[perm])
 
 
 def test_scene_validates(setup):
     _, g, _, scene = setup
     with pytest.raises(ValueError, match="weights"):
-        GarmentScene(scene.rest_pos, scene.faces, scene.weights[:-1], scene.rest_joints,
-                     scene.parents)
+        build_garment(scene.rest_pos, scene.faces, scene.skin_weights[:-1], scene.rest_joints,
+                      scene.parents)
     with pytest.raises(ValueError, match="rotations"):
         LBSBaseline()(scene, torch.zeros(2, 3, 3))
 

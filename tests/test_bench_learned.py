@@ -8,7 +8,6 @@ seconds.  Oracles: :func:`garmentgnn.training.evaluate.evaluate_split` (an indep
 scoring path) for LBS and for the trained GarTrans checkpoint; an uninterrupted training
 for the resumed one; a copy of the dataset with altered test positions for NCS."""
 import dataclasses
-import inspect
 import json
 import math
 import shutil
@@ -17,13 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from conftest import lbs_simulate, numbers
-from garmentgnn.bench import harness, learned, report
+from garmentgnn.bench import harness, learned, methods, presets, report, tables
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, motion_key, store
-from garmentgnn.training import GarTransModule, ProgressiveSchedule
+from garmentgnn.training import GarTransModule
 from garmentgnn.training.evaluate import evaluate_split
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,10 +44,10 @@ def data(tmp_path_factory):
     return out
 
 
-def learned_only(**budget) -> harness.Preset:
+def learned_only(**budget) -> presets.Preset:
     """The tiny preset with its simulator parts removed (only the learned tasks run; the
     learned stability suite only when ``stability_cases`` is given)."""
-    p = harness.preset("tiny")
+    p = presets.preset("tiny")
     p = dataclasses.replace(p, cases=(), budgets=(), stability_cases=(), scaling_item=None,
                             leaveout=False, precision_methods=(), long_item=None)
     budget.setdefault("stability_cases", ())
@@ -72,11 +70,11 @@ def flow(data, tmp_path_factory):
 
 
 def test_presets_budgets():
-    tiny, small = harness.preset("tiny"), harness.preset("small")
+    tiny, small = presets.preset("tiny"), presets.preset("small")
     assert tiny.dataset == "tiny" and small.dataset == "small"
     assert tiny.learned.seeds == 1 and small.learned.seeds >= 3
-    assert set(tiny.learned.methods) == set(small.learned.methods) == set(learned.METHOD_NAMES)
-    assert set(learned.METHOD_NAMES) >= set(harness.PLANNED)
+    assert set(tiny.learned.methods) == set(small.learned.methods) == set(methods.METHOD_NAMES)
+    assert set(methods.METHOD_NAMES) >= set(harness.PLANNED)
 
 
 @pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
@@ -86,8 +84,8 @@ def test_every_method_produces_a_finite_record(flow, data):
     assert summary.failed == 0 and summary.skipped == 0
     assert summary.ran == len(records_of(out))
     recs = [r for r in records_of(out) if r["kind"] == learned.KIND]
-    assert len(recs) == len(learned.METHOD_NAMES)  # one seed in tiny
-    assert {r["method"] for r in recs} == set(learned.METHOD_NAMES)
+    assert len(recs) == len(methods.METHOD_NAMES)  # one seed in tiny
+    assert {r["method"] for r in recs} == set(methods.METHOD_NAMES)
     for r in recs:
         assert r["kind"] == "learned" and r["status"] == "ok", (r["method"], r["message"])
         assert all(math.isfinite(x) for x in numbers(r)), r["method"]
@@ -98,18 +96,18 @@ def test_every_method_produces_a_finite_record(flow, data):
         assert t["latency_ms"] > 0 and t["throughput_fps"] > 0 and t["peak_mem_mb"] >= 0
         assert t["best_batch"] in p.batches and t["threads"] == p.threads
         assert r["dataset"]["root"] == str(data) and r["dataset"]["sequences"]["test"] == 1
-        trained = r["method"] != learned.LBS
+        trained = r["method"] != methods.LBS
         assert (r["train_seconds"] > 0) == trained
         assert r["epochs"] == (1 if trained else 0) and r["resumed_from_epoch"] == 0
     by = {r["method"]: r for r in recs}
-    for name, v in learned.GARTRANS.items():
+    for name in methods.GARTRANS:
         assert by[name]["phase"] == 1  # 1 epoch: the window (1) never elapses
         assert by[name]["config"]["model"]["dynamic_layer"] == \
-            v.model.get("dynamic_layer", "sat")
-        assert (out / "models" / f"{learned._slug(name)}--s0" / "last.ckpt").exists()
+            methods.variant_settings(name)[0]["dynamic_layer"]
+        assert (out / "models" / f"{tables.slug(name)}--s0" / "last.ckpt").exists()
     assert by["GarTrans w/o unsupervised loss"]["config"]["schedule"]["max_phase"] == 1
-    assert by[learned.NCS]["models"] == 1  # one per test garment
-    assert len(list((out / "models" / "NCS-style--s0").glob("garment*.pt"))) == 1
+    assert by[methods.NCS]["models"] == 1  # one per test garment
+    assert len(list((out / "models" / "NCS-style--s0").glob("garment*/last.ckpt"))) == 1
     # the methods differ (they are not all LBS in disguise)
     assert len({round(r["metrics"]["E_dist"], 9) for r in recs}) > 3
 
@@ -126,14 +124,14 @@ def test_records_equal_evaluate_split(flow, data):
     assert module.hparams.dynamic_layer == "gt_edge"
     ref = evaluate_split(module, data, "test", modes=("gartrans", "lbs"), history=3,
                          nystrom_dim=16, num_landmarks=64)
-    for mode, name in (("gartrans", rec["method"]), ("lbs", learned.LBS)):
+    for mode, name in (("gartrans", rec["method"]), ("lbs", methods.LBS)):
         r = ref[mode]
         assert r["frames"] == recs[name]["test_frames"]
         r["collision_rate"] = r.pop("collision")
         for m in report.METRICS:
             # float32 round-off: the records score frame by frame, evaluate_split per sequence
             assert recs[name]["metrics"][m] == pytest.approx(r[m], rel=1e-4, abs=1e-8), (name, m)
-    assert rec["metrics"]["E_dist"] != pytest.approx(recs[learned.LBS]["metrics"]["E_dist"],
+    assert rec["metrics"]["E_dist"] != pytest.approx(recs[methods.LBS]["metrics"]["E_dist"],
                                                      rel=1e-7)
 
 
@@ -144,11 +142,11 @@ def test_report_has_the_held_out_table(flow):
     assert "## Held-out test split" in md and "![Pareto, learned](pareto_learned.png)" in md
     assert (out / "pareto_learned.png").stat().st_size > 0
     table = md.split("## Held-out test split")[1].split("\n## ")[0]
-    for name in learned.METHOD_NAMES:
+    for name in methods.METHOD_NAMES:
         assert f"\n| {name}" in table, name
         assert f"- {name}: not run" not in md
     res = json.loads((out / "results.json").read_text())
-    assert not set(learned.METHOD_NAMES) & set(res["not_run"])
+    assert not set(methods.METHOD_NAMES) & set(res["not_run"])
     assert res["meta"]["dataset"]["sequences"] == {"train": 2, "val": 0, "test": 1}
     assert res["meta"]["preset_config"]["learned"]["epochs"] == 1
 
@@ -195,7 +193,7 @@ def test_interrupted_gartrans_training_resumes_from_last_ckpt(data, tmp_path, mo
 def test_nan_loss_gives_a_failed_record_then_retry(data, tmp_path, monkeypatch):
     from garmentgnn.models import gartrans
     from garmentgnn.models.baselines import DAStyle
-    p = learned_only(methods=("GarTrans (SAT)", learned.DA))
+    p = learned_only(methods=("GarTrans (SAT)", methods.DA))
     inner, da = gartrans.GarTrans.forward, DAStyle.forward
 
     def nan_gartrans(self, *a, **k):
@@ -235,14 +233,14 @@ def test_ncs_never_reads_test_positions(flow, data, tmp_path):
             arrays["positions"] = arrays["positions"] + np.float32(0.05)
             store.write_sequence(path, arrays, seq["meta"])
     store.rebuild_manifest(moved)  # edited on purpose: record the new files' hashes
-    summary = harness.run(learned_only(methods=(learned.NCS,)), tmp_path / "b", data=moved,
+    summary = harness.run(learned_only(methods=(methods.NCS,)), tmp_path / "b", data=moved,
                           progress=False)
     assert summary.failed == 0
     for g in (0,):
-        a = torch.load(out / "models" / "NCS-style--s0" / f"garment{g}.pt")["model"]
-        b = torch.load(tmp_path / "b" / "models" / "NCS-style--s0" / f"garment{g}.pt")["model"]
+        a, b = (torch.load(o / "models" / "NCS-style--s0" / f"garment{g}" / "last.ckpt",
+                           weights_only=False)["state_dict"] for o in (out, tmp_path / "b"))
         assert all(torch.equal(a[k], b[k]) for k in a)
-    e0 = next(r for r in records_of(out) if r["method"] == learned.NCS
+    e0 = next(r for r in records_of(out) if r["method"] == methods.NCS
               and r["kind"] == learned.KIND)["metrics"]["E_dist"]
     assert records_of(tmp_path / "b")[0]["metrics"]["E_dist"] != pytest.approx(e0)
 
@@ -254,7 +252,7 @@ def test_learned_stability_records(flow, data):
     out, _ = flow
     recs = [r for r in records_of(out) if r["kind"] == learned.STABILITY_KIND]
     test_id = store.read_manifest(data)["items"][2]["id"]
-    assert sorted(r["method"] for r in recs) == sorted(learned.METHOD_NAMES + (learned.SIMULATOR,))
+    assert sorted(r["method"] for r in recs) == sorted(methods.METHOD_NAMES + (learned.SIMULATOR,))
     for r in recs:
         assert r["status"] == "ok" and r["case"] == "zero_area_face", (r["method"], r["message"])
         assert r["verdict"] in ("stable", "degraded", "failed") and r["seed"] == 0
@@ -263,7 +261,7 @@ def test_learned_stability_records(flow, data):
         assert all(math.isfinite(x) for x in numbers(r["metrics"])), r["method"]
     md = (out / "report.md").read_text()
     table = md.split("### Every method on a test sequence of the dataset")[1].split("\n## ")[0]
-    for name in learned.METHOD_NAMES + (learned.SIMULATOR,):
+    for name in methods.METHOD_NAMES + (learned.SIMULATOR,):
         assert f"\n| {name} | zero_area_face | 0 |" in table, name
 
 
@@ -282,9 +280,9 @@ def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch)
     base = runner.test.records[0]
     seq, _ = stability.stability_sequence("baseline", dict(base, name="baseline"), base["seed"])
     item = runner.test[0]
-    for method in ("GarTrans (SAT)", learned.HOOD, learned.NCS, learned.DA, learned.LBS):
+    for method in ("GarTrans (SAT)", methods.HOOD, methods.NCS, methods.DA, methods.LBS):
         pred, info = runner.trained(method, 0)
-        if method != learned.LBS:  # the flow's model, not retrained
+        if method != methods.LBS:  # the flow's model, not retrained
             assert info["resumed_from_epoch"] == info["epochs"] == 1, (method, info)
         with torch.no_grad():
             ref = stability.stability_metrics(seq, pred.predict(runner.test, 0, item))
@@ -300,7 +298,7 @@ def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
     import importlib
     worker = importlib.import_module("garmentgnn.data.worker")
     monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": lbs_simulate)
-    p = dataclasses.replace(learned_only(methods=(learned.LBS,)), data_workers=0)
+    p = dataclasses.replace(learned_only(methods=(methods.LBS,)), data_workers=0)
     summary = harness.run(p, tmp_path, progress=False)
     assert summary.failed == 0
     man = store.read_manifest(tmp_path / "data")
@@ -310,58 +308,62 @@ def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
     assert rec["case"].startswith("tiny-") and rec["test_frames"] == 32
 
 
-def test_configs_are_mirrored():
-    """GARTRANS / DATA / SCHEDULE are configs/gartrans.yaml and configs/ablations/*.yaml."""
-    base = yaml.safe_load((ROOT / "configs" / "gartrans.yaml").read_text())
-    data = {k: v for k, v in base["data"].items() if k not in ("root", "num_workers")}
-    assert data == learned.DATA
-    defaults = {k: v.default for k, v in
-                inspect.signature(ProgressiveSchedule.__init__).parameters.items()
-                if k != "self"}
+@pytest.mark.parametrize("name", list(methods.GARTRANS))
+def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
+    """The bench's settings of each GarTrans variant are the ones LightningCLI builds from
+    the same packaged files (``garmentgnn train --config gartrans --config ablations/X``):
+    jsonargparse's own merge is the oracle for :func:`methods.variant_settings`."""
+    from garmentgnn.training.lightning_cli import main as train_main
+    v = methods.GARTRANS[name]
+    args = ["--config", "gartrans"] + (["--config", f"ablations/{v.config}"] if v.config else [])
+    cli = train_main(args + ["--data.root", str(data), "--trainer.logger", "false",
+                             "--trainer.default_root_dir", str(tmp_path)], run=False)
+    model, sched = methods.variant_settings(name)
+    hp = dict(cli.model.hparams)
+    assert {k: hp[k] for k in model} == model
+    cbs = [c for c in cli.config["trainer"]["callbacks"]
+           if c["class_path"].endswith("ProgressiveSchedule")]
+    assert len(cbs) == 1
+    built = {k: x for k, x in dict(cbs[0]["init_args"]).items() if k not in ("window", "window2")}
+    assert built == sched
+    assert methods.DATA == {k: x for k, x in dict(cli.config["data"]).items()
+                            if k in methods.DATA}
 
-    def schedule(cfg):
-        cbs = cfg.get("trainer", {}).get("callbacks")
-        if cbs is None:
-            cbs = base["trainer"]["callbacks"]
-        args = next(c["init_args"] for c in cbs if c["class_path"].endswith("ProgressiveSchedule"))
-        return {k: v for k, v in dict(defaults, **args).items() if k not in ("window", "window2")}
 
-    files = {p.stem for p in (ROOT / "configs" / "ablations").glob("*.yaml")}
-    assert files == {v.config for v in learned.GARTRANS.values() if v.config}
-    for name, v in learned.GARTRANS.items():
-        cfg = base if v.config is None else yaml.safe_load(
-            (ROOT / "configs" / "ablations" / f"{v.config}.yaml").read_text())
-        model = dict(base["model"], **cfg.get("model", {}))
-        assert dict(learned.GARTRANS_MODEL, **v.model) == model, name
-        mine = {k: x for k, x in dict(defaults, **learned.SCHEDULE, **v.schedule).items()
-                if k not in ("window", "window2")}
-        assert mine == schedule(cfg), name
+def test_baseline_configs_build_their_modules(data):
+    from garmentgnn.training import BaselineModule, GarmentDataModule
+    dm = GarmentDataModule(data, val_split=None, **methods.DATA)
+    for name, cfg in methods.BASELINES.items():
+        extra = {"num_vertices": 5} if name == methods.NCS else {}
+        module = BaselineModule(num_joints=dm.dims["num_joints"], **cfg, **extra)
+        assert module.hparams.method == cfg["method"] and module.hparams.lr == cfg["lr"]
+        assert set(module.loss_fn.enabled) == set(cfg["loss"]["enabled"])
 
 
 def test_bad_arguments(data, tmp_path):
     with pytest.raises(ValueError, match="epochs"):
-        learned.LearnedBudget(epochs=0)
+        methods.LearnedBudget(epochs=0)
     with pytest.raises(ValueError, match="methods"):
-        learned.LearnedBudget(methods=("nope",))
+        methods.LearnedBudget(methods=("nope",))
     with pytest.raises(ValueError, match="stability_cases"):
-        learned.LearnedBudget(stability_cases=("nope",))
+        methods.LearnedBudget(stability_cases=("nope",))
     with pytest.raises(ValueError, match="data"):
         learned.prepare_dataset(tmp_path / "empty")
     with pytest.raises(ValueError, match="data"):
         harness.run(learned_only(), tmp_path / "x", data=data, learned=False)
     info = learned.prepare_dataset(data)
     with pytest.raises(ValueError, match="method"):
-        learned.LearnedRunner(info, learned.LearnedBudget(), tmp_path, (1,), 0, 1).record("x", 0)
+        learned.LearnedRunner(info, methods.LearnedBudget(), tmp_path, (1,), 0, 1).record("x", 0)
     assert cli_main(["bench", "--out", str(tmp_path / "y"), "--data", str(data),
                      "--no-learned"]) == 2
     assert cli_main(["bench", "--out", str(tmp_path / "y"), "--no-progress",
                      "--data", str(tmp_path / "empty")]) == 2  # not a dataset
     # a checkpoint folder of another configuration is refused, not resumed
-    p = learned_only(methods=(learned.DA,))
+    p = learned_only(methods=(methods.DA,))
     harness.run(p, tmp_path / "z", data=data, progress=False)
     (tmp_path / "z" / "records").joinpath(
         next(f.name for f in (tmp_path / "z" / "records").glob("*.json"))).unlink()
-    p2 = learned_only(methods=(learned.DA,), epochs=2)
+    p2 = learned_only(methods=(methods.DA,), epochs=2)
     summary = harness.run(p2, tmp_path / "z", data=data, progress=False)
     rec = records_of(tmp_path / "z")[0]
     assert summary.failed == 1 and "another dataset or configuration" in rec["message"]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from garmentgnn.data import (GarmentSequenceDataset, Spec, SpecMismatch, body_key,
+from garmentgnn.data import (Spec, SpecMismatch, body_key,
                              garment_key, generate, motion_key, preset, read_manifest,
                              rebuild_manifest)
 from garmentgnn.data import store
@@ -254,62 +254,68 @@ def test_pc2_and_obj_export(clean_run, tmp_path):
 
 
 # --------------------------------------------------------------------------- dataset
-def test_dataset_items_and_lazy_loading(clean_run):
-    ds = GarmentSequenceDataset(clean_run, split="train", history=2, cache_size=1)
-    assert ds.num_file_loads == 0  # the index comes from the manifest alone
-    assert len(ds) == 4 * 7  # 4 train sequences x (8 - 1) frames
+def test_skinning_weights_are_stored_and_read_back(clean_run, tmp_path):
+    """Each file holds the weights the engine skinned its garment with (oracle: the same
+    transfer recomputed), and the model inputs read them from the file."""
+    import shutil
+    from garmentgnn.body.factory import build_body
+    from garmentgnn.garments.skinning import transfer_skinning_weights
+    from garmentgnn.training import SequenceChunks
+    rec = read_manifest(clean_run)["items"][0]
+    seq = store.load_sequence(store.sequence_path(clean_run, rec))
+    body = build_body(seq["meta"]["body"])
+    W = transfer_skinning_weights(torch.from_numpy(seq["garment_vertices"]).float(),
+                                  torch.from_numpy(seq["garment_faces"]).long(),
+                                  body.vertices.float(), body.weights.float())
+    np.testing.assert_allclose(seq["garment_skin_weights"], W.numpy(), rtol=0, atol=1e-6)
+    # an edited copy: the inputs follow the file, not a recomputation
+    copy = tmp_path / "copy"
+    shutil.copytree(clean_run, copy)
+    arrays = {k: v for k, v in seq.items() if k != "meta" and isinstance(v, np.ndarray)}
+    arrays["garment_skin_weights"] = np.roll(arrays["garment_skin_weights"], 1, axis=1)
+    store.write_sequence(store.sequence_path(copy, rec), arrays, seq["meta"])
+    store.rebuild_manifest(copy)
+    ds = SequenceChunks(copy, split=rec["split"], chunk=1, ids=[rec["id"]])
+    np.testing.assert_array_equal(ds[0].skin_weights.numpy(), arrays["garment_skin_weights"])
+
+
+def test_sequence_chunks_items_and_lazy_loading(clean_run):
+    """The model inputs read from the files: poses, history, simulated garment and the
+    posed body of each frame, loaded lazily (the index comes from the manifest alone)."""
+    from garmentgnn.models.inputs import GarmentInputs
+    from garmentgnn.training import SequenceChunks
+    ds = SequenceChunks(clean_run, split="train", chunk=1, history=2, cache_size=1)
+    assert ds.num_file_loads == 0
+    assert len(ds) == 4 * 8  # 4 train sequences x 8 frames
     d0 = ds[0]
-    assert ds.num_file_loads == 1
+    assert ds.num_file_loads == 1 and isinstance(d0, GarmentInputs)
     seq = store.load_sequence(clean_run / ds.records[0]["file"])
     V = seq["garment_vertices"].shape[0]
     P = torch.from_numpy(seq["positions"])
-    assert d0.pos.shape == (V, 3) and d0.prev_pos.shape == (V, 2, 3) and d0.y.shape == (V, 3)
-    assert torch.equal(d0.prev_pos[:, 0], P[0]) and torch.equal(d0.prev_pos[:, 1], P[0])
+    R = torch.from_numpy(seq["motion_rotations"])
+    assert d0.num_nodes == V and d0.gt.shape == (1, V, 3) and torch.equal(d0.gt[0], P[0])
     d3 = ds[3]
     assert ds.num_file_loads == 1  # same sequence: cached
-    assert d3.frame == 3 and d3.seq_id == ds.records[0]["id"]
-    assert torch.equal(d3.pos, P[3]) and torch.equal(d3.y, P[4])
-    assert torch.equal(d3.prev_pos[:, 0], P[2]) and torch.equal(d3.prev_pos[:, 1], P[1])
+    assert int(d3.frames[0]) == 3 and d3.seq_id == ds.records[0]["id"]
+    assert torch.equal(d3.gt[0], P[3])
+    assert d3.rotations.shape == (1, 3, R.shape[1], 3)
+    assert torch.equal(d3.rotations[0], R[1:4])  # frames t-2 .. t
+    assert torch.equal(ds[1].rotations[0], R[[0, 0, 1]])  # frame 0 repeated before the start
     ei = d3.edge_index
-    assert (ei[1, 1:] >= ei[1, :-1]).all() and d3.edge_attr.shape == (ei.shape[1], 4)
+    assert (ei[1, 1:] >= ei[1, :-1]).all()
     assert d3.faces.shape[1] == 3 and d3.face_uv.shape == (d3.faces.shape[0], 3, 2)
-    S = seq["motion_rotations"].shape[1]
-    assert d3.pose.shape == (3, S, 3) and d3.translation.shape == (3, 3)
-    assert torch.equal(d3.pose[-1], torch.from_numpy(seq["motion_rotations"][3]))
-    # body vertices recomputed from the body model + stored motion
+    # the posed body, recomputed from the body model + the stored motion
     from garmentgnn.body.factory import build_body
     body = build_body(seq["meta"]["body"])
-    bv, _ = body.pose(torch.from_numpy(seq["motion_rotations"][3:5]),
-                      torch.from_numpy(seq["motion_translation"][3:5]))
-    assert d3.body_vertices.shape == (body.vertices.shape[0], 2, 3)
-    torch.testing.assert_close(d3.body_vertices, bv.transpose(0, 1))
-    ds[7]  # next sequence evicts the first (cache_size=1)
+    bv, _ = body.pose(R[3:4], torch.from_numpy(seq["motion_translation"][3:4]))
+    torch.testing.assert_close(d3.body_pos, bv.float())
+    ds[8]  # next sequence evicts the first (cache_size=1)
     ds[0]
-    assert ds.num_file_loads == 3 and len(ds._cache) == 1
-    assert len(GarmentSequenceDataset(clean_run, split="test")) == 4 * 7
-    assert len(GarmentSequenceDataset(clean_run, split="val")) == 0
+    assert ds.num_file_loads == 3
+    assert len(SequenceChunks(clean_run, split="test", chunk=1)) == 4 * 8
+    assert len(SequenceChunks(clean_run, split="val")) == 0
 
 
-def test_dataset_dataloader_batching(clean_run):
-    from torch_geometric.loader import DataLoader
-    ds = GarmentSequenceDataset(clean_run, split="train", history=1)
-    batch = next(iter(DataLoader(ds, batch_size=4, shuffle=False)))
-    items = [ds[i] for i in (0, 1, 7, 8)]
-    batch = next(iter(DataLoader([ds[i] for i in (0, 1, 7, 8)], batch_size=4)))
-    assert batch.num_graphs == 4
-    assert batch.pose.shape[:2] == (4, 2) and batch.translation.shape == (4, 2, 3)
-    assert batch.prev_pos.shape == (batch.num_nodes, 1, 3)
-    off = items[0].num_nodes
-    F0 = items[0].faces.shape[0]
-    assert torch.equal(batch.faces[F0:F0 + items[1].faces.shape[0]], items[1].faces + off)
-    Vb = items[0].body_vertices.shape[0]
-    Fb = items[0].body_faces.shape[0]
-    assert torch.equal(batch.body_faces[Fb:2 * Fb], items[1].body_faces + Vb)
-    assert batch.edge_index.max() < batch.num_nodes
-    assert list(batch.seq_id) == [d.seq_id for d in items]
-
-
-# --------------------------------------------------------------------------- CLI
 def _env():
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "tests"), str(ROOT / "src"),
@@ -369,8 +375,9 @@ def test_cli_generate_tiny_real_simulator(tmp_path):
             assert x["message"] and not (tmp_path / "sequences" / f"{x['id']}.npz").exists()
     oks = [x for x in done if x["status"] == "ok"]
     if oks:
-        ds = GarmentSequenceDataset(tmp_path, split=None)
-        assert len(ds) == 7 * len(oks) and torch.isfinite(ds[len(ds) - 1].y).all()
+        from garmentgnn.training import SequenceChunks
+        ds = SequenceChunks(tmp_path, split=None, chunk=1)
+        assert len(ds) == 8 * len(oks) and torch.isfinite(ds[len(ds) - 1].gt).all()
     # rerun: nothing simulated again
     r2 = _real_tiny(tmp_path, "--limit", "0", "--no-estimate")
     assert "0 simulated, 2 skipped" in r2.stdout, r2.stdout + r2.stderr[-2000:]

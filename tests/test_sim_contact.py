@@ -41,7 +41,8 @@ def incline(mu: float, theta: float = 30.0, frames: int = 16):
     normal = torch.tensor([math.sin(th), 0.0, math.cos(th)], dtype=torch.float64)
     down = torch.tensor([math.cos(th), 0.0, -math.sin(th)], dtype=torch.float64)
     g = patch_on_plane(normal, down)
-    res = simulate(g, None, still(frames), replace(COTTON, friction=mu), SimSettings(substeps=4),
+    res = simulate(g, None, still(frames), replace(COTTON, friction=mu),
+                   SimSettings(substeps=4, friction=True),
                    colliders=Plane((0.0, 0.0, 0.0), normal.tolist()))
     assert res.ok, res.message
     return res, (res.positions.double() - res.positions[0].double()).mean(1) @ down
@@ -130,7 +131,7 @@ def test_rotated_scene_gives_rotated_answer():
     out = []
     for rot in (torch.eye(3, dtype=torch.float64), R):
         g = patch_on_plane(rot @ normal, rot @ down)
-        st = SimSettings(substeps=4, gravity=tuple((rot @ torch.tensor([0, 0, -G],
+        st = SimSettings(substeps=4, friction=True, gravity=tuple((rot @ torch.tensor([0, 0, -G],
                                                                          dtype=torch.float64)).tolist()))
         res = simulate(g, None, still(8), mat, st,
                        colliders=Plane((0.0, 0.0, 0.0), (rot @ normal).tolist()))
@@ -146,7 +147,8 @@ def test_sheet_dropped_on_sphere_rests_outside():
     pos, faces = grid_mesh(n, n, (0.4, 0.4))
     g = Garment(pos - torch.tensor([0.2, 0.2, -0.17]), faces, pos[:, :2].clone())
     sphere = Sphere((0.0, 0.0, 0.0), radius)
-    res = simulate(g, None, still(frames), COTTON, SimSettings(substeps=4), colliders=sphere)
+    res = simulate(g, None, still(frames), COTTON, SimSettings(substeps=4, friction=True),
+                   colliders=sphere)
     assert res.ok, res.message
     P = res.positions.double()
     sd = P.norm(dim=-1) - radius
@@ -166,7 +168,7 @@ def test_moving_sphere_pushes_and_carries_the_cloth():
     g = Garment(pos - torch.tensor([0.05, 0.05, -0.105]), faces, pos[:, :2].clone())
     centres = torch.zeros(frames, 3, dtype=torch.float64)
     centres[:, 2] = torch.linspace(0.0, 0.1, frames)
-    res = simulate(g, None, still(frames), COTTON, SimSettings(substeps=4),
+    res = simulate(g, None, still(frames), COTTON, SimSettings(substeps=4, friction=True),
                    colliders=Sphere(centres, 0.1))
     assert res.ok, res.message
     z = res.positions[:, 4, 2].double()

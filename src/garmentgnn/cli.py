@@ -163,7 +163,7 @@ def manifest_main(args: argparse.Namespace) -> int:
 def add_train_parser(sub) -> argparse.ArgumentParser:
     """The ``train`` sub-command: every argument after it goes to LightningCLI."""
     t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
-                       "configs/gartrans.yaml --data.root DIR (see `garmentgnn train --help`)",
+                       "gartrans --data.root DIR (see `garmentgnn train --help`)",
                        add_help=False)
     t.add_argument("lightning_args", nargs=argparse.REMAINDER)
     return t

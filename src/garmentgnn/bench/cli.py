@@ -11,7 +11,7 @@ import sys
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``bench`` sub-command to an ``argparse`` sub-parsers object."""
-    from garmentgnn.bench.harness import PRESET_NAMES
+    from garmentgnn.bench.presets import PRESET_NAMES
     b = subparsers.add_parser(
         "bench", help="benchmark: accuracy vs a reference simulation, run time, memory, "
                       "stability (resumable; writes OUT/report.md)")
@@ -33,7 +33,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
     """Run the bench sub-command; returns the exit status (0 when the run completed --
     failed records are results and are listed in the report; 2 for bad arguments)."""
-    from garmentgnn.bench.harness import preset, run
+    from garmentgnn.bench.harness import run
+    from garmentgnn.bench.presets import preset
     if args.seeds is not None and args.seeds < 1:
         print(f"error: --seeds must be positive, got {args.seeds}", file=sys.stderr)
         return 2

@@ -34,7 +34,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from garmentgnn.bench.report import _table
+from garmentgnn.bench.tables import table
 from garmentgnn.bench.sequences import BenchSequence
 from garmentgnn.bench.timing import side_by_side
 
@@ -191,7 +191,7 @@ def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
                 tt = [f"{t['forward_loss_ms']:.3g}", "—", "—"]
             rows.append([name, e["description"], ", ".join(e["active_branches"]),
                          ", ".join(e["loss_terms"]), check] + tt)
-        lines += _table(["scene", "what is missing", "branches run", "loss terms computed",
+        lines += table(["scene", "what is missing", "branches run", "loss terms computed",
                          "should skip → measured", "step (ms)", "with input put back (ms)",
                          "saved (ms)"], rows) + [""]
         if r["not_left_out"]:

@@ -69,6 +69,7 @@ class BenchChunks(SequenceChunks):
             "garment_face_uv": g.face_uv.numpy().astype(np.float32),
             "garment_pinned": (g.pinned.numpy() if g.pinned is not None
                                else np.zeros(V, bool)).astype(bool),
+            "garment_skin_weights": seq.scene.skin_weights.float().numpy(),
             "motion_rotations": m.rotations.float().numpy(),
             "motion_translation": m.translation.float().numpy(),
             "positions": positions,
@@ -81,11 +82,6 @@ class BenchChunks(SequenceChunks):
             raise IndexError(f"`i`: a BenchChunks holds one sequence, got {i}")
         return self._data
 
-    def __getitem__(self, idx: int) -> Dict[str, Any]:
-        item = super().__getitem__(idx)
-        if not self.has_gt:
-            del item["gt"]
-        return item
 
 
 def untrained_module(item: Dict[str, Any], seed: int = 0, **kwargs: Any) -> GarTransModule:
@@ -101,10 +97,3 @@ def untrained_module(item: Dict[str, Any], seed: int = 0, **kwargs: Any) -> GarT
                                 num_body_vertices=item["body_joint_dists"].shape[0],
                                 nystrom_dim=item["nystrom"].shape[1], **kwargs)
     return module.eval()
-
-
-def forward_args(item: Dict[str, Any]) -> tuple:
-    """The positional arguments after ``static`` of :meth:`GarTrans.forward` /
-    :meth:`GarTrans.rollout` for ``item``."""
-    return (item["rest_pos"], item["faces"], item["edge_index"], item["rest_joints"],
-            item["parents"], item["rotations"], item["translation"])

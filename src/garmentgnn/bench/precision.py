@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 
 from garmentgnn.bench import stability as stab
-from garmentgnn.bench.report import _table
+from garmentgnn.bench.tables import table
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.timing import measure
 
@@ -268,7 +268,7 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = 3, nystrom_dim:
              thresholds: LongThresholds = LONG_THRESHOLDS) -> Dict[str, Any]:
     """Autoregressive rollout of an untrained GarTrans over ``item``'s whole motion (a
     :func:`~garmentgnn.bench.sequences.case_item`); a ``kind="long_sequence"`` record."""
-    from garmentgnn.bench.model_inputs import BenchChunks, forward_args, untrained_module
+    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 
     rec: Dict[str, Any] = {"kind": "long_sequence", "method": LONG_METHOD,
                            "case": item.get("name"), "seed": seed,
@@ -284,7 +284,7 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = 3, nystrom_dim:
                    motion=item["motion"])
         t1 = time.perf_counter()
         with torch.inference_mode():
-            out = module.model.rollout(module.encode_static(x), *forward_args(x))
+            out = module(x, autoregressive=True)
         wall = time.perf_counter() - t1
         m = long_metrics(out["final"], out["coarse"], seq.body_frames, float(seq.motion.fps),
                          thresholds)
@@ -331,7 +331,7 @@ def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
                          "—" if dev is None else f"{1e3 * dev:.3g}",
                          f"{w['ms_per_frame']:.3g}" if ok else "—", f"**{w['verdict']}**",
                          (w.get("reason") or "").replace("|", "/")[:160]])
-    lines += _table(["method", "dtype", "mode", "status", "non-finite", "max deviation (mm)",
+    lines += table(["method", "dtype", "mode", "status", "non-finite", "max deviation (mm)",
                      "ms / frame", "verdict", "reason"], rows) + [""]
     return lines
 
@@ -371,7 +371,7 @@ def long_markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
                      g("disp_growth"), g("ms_per_frame"),
                      (r.get("reason") or r.get("message") or "").replace("|", "/")[:160]])
     rows = [[str(c) for c in row] for row in rows]
-    lines += _table(["method", "case", "frames", "vertices", "verdict", "non-finite",
+    lines += table(["method", "case", "frames", "vertices", "verdict", "non-finite",
                      "max speed (m/s)", "body max speed (m/s)", "disp. first window (mm)",
                      "disp. last window (mm)", "growth", "ms / frame", "reason"], rows) + [""]
     return lines

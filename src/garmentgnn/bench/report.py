@@ -30,11 +30,9 @@ import statistics
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
+from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
-METRICS: Tuple[str, ...] = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
-UNITS = {"E_dist": "cm", "E_vnorm": "deg", "E_fnorm": "deg", "E_len": "%", "E_curv": "rad",
-         "collision_rate": "%"}
 KINDS = ("accuracy", "stability", "scaling", "leaveout", "precision", "long_sequence",
          "learned", "learned_stability")
 STABILITY_KINDS = ("stability", "learned_stability")
@@ -70,7 +68,7 @@ def _sanitize(obj: Any) -> Any:
     return obj
 
 
-def _stability_table(records: List[Dict[str, Any]]) -> List[str]:
+def _stabilitytable(records: List[Dict[str, Any]]) -> List[str]:
     rows = []
     for r in records:
         m = r.get("metrics", {})
@@ -83,7 +81,7 @@ def _stability_table(records: List[Dict[str, Any]]) -> List[str]:
                      g("energy_growth"), g("max_energy_J"), g("max_penetration_m", 1e3),
                      g("nonconverged_frames"),
                      (r.get("reason") or r.get("message") or "").replace("|", "/")[:160]])
-    return _table(["method", "case", "seed", "verdict", "frames", "non-finite",
+    return table(["method", "case", "seed", "verdict", "frames", "non-finite",
                    "max speed (m/s)", "body max speed (m/s)", "energy growth",
                    "max energy (J)", "penetration (mm)", "unconverged frames", "reason"],
                   rows) + [""]
@@ -119,16 +117,6 @@ def check_record(rec: Dict[str, Any]) -> Dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- aggregation
-def _mean_std(values: Sequence[float]) -> Tuple[float, float]:
-    m = statistics.fmean(values)
-    return m, (statistics.stdev(values) if len(values) > 1 else 0.0)
-
-
-def _fmt(values: Sequence[float], digits: int = 3) -> str:
-    m, s = _mean_std(values)
-    return f"{m:.{digits}g} ± {s:.2g}" if len(values) > 1 else f"{m:.{digits}g}"
-
-
 def _order(names: Iterable[str]) -> List[str]:
     seen: List[str] = []
     for n in names:
@@ -153,31 +141,16 @@ def summarize(records: Sequence[Dict[str, Any]]) -> Dict[str, Any]:
                 by_seed.setdefault(r["seed"], []).append(r["metrics"][m])
             vals = [statistics.fmean(v) for v in by_seed.values()]
             if vals:
-                entry[m] = dict(zip(("mean", "std"), _mean_std(vals)), n=len(vals))
+                entry[m] = dict(zip(("mean", "std"), mean_std(vals)), n=len(vals))
         for t in ("latency_ms", "throughput_fps", "peak_mem_mb"):
             vals = [r["timing"][t] for r in ok if r.get("timing", {}).get(t) is not None]
             if vals:
-                entry[t] = dict(zip(("mean", "std"), _mean_std(vals)), n=len(vals))
+                entry[t] = dict(zip(("mean", "std"), mean_std(vals)), n=len(vals))
         out[method] = entry
     return out
 
 
-def pareto_front(points: Sequence[Tuple[str, float, float]]) -> List[str]:
-    """Names of the points not dominated in (latency, error), both lower-is-better."""
-    front = []
-    for name, x, y in points:
-        if not any((x2 <= x and y2 <= y) and (x2 < x or y2 < y) for _, x2, y2 in points):
-            front.append(name)
-    return front
-
-
 # --------------------------------------------------------------------------- markdown
-def _table(header: List[str], rows: List[List[str]]) -> List[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return lines
-
-
 def _cell(rs: List[Dict[str, Any]], metric: str, section: str = "metrics") -> str:
     ok = [r for r in rs if r["status"] == "ok" and r.get(section, {}).get(metric) is not None]
     failed = sum(r["status"] == "failed" for r in rs)
@@ -185,7 +158,7 @@ def _cell(rs: List[Dict[str, Any]], metric: str, section: str = "metrics") -> st
         return "not run"
     if not ok:
         return "failed"
-    s = _fmt([r[section][metric] for r in ok])
+    s = fmt([r[section][metric] for r in ok])
     return s + (f" ({failed}/{len(rs)} failed)" if failed else "")
 
 
@@ -218,7 +191,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                 rs = [r for r in acc if r["method"] == method and r["case"] == case]
                 if rs:
                     rows.append([_label(method, rs)] + [_cell(rs, m) for m in METRICS])
-            lines += _table(["method"] + metric_hdr, rows) + [""]
+            lines += table(["method"] + metric_hdr, rows) + [""]
         lines += ["## Accuracy and cost over all cases (shaped like Table 3)", "",
                   "Metrics: per seed the mean over cases, then mean ± std over seeds. "
                   "latency: ms per frame at batch 1; throughput: frames/s at the best batch; "
@@ -237,7 +210,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
             if e["failed"]:
                 row[0] += f" ({e['failed']}/{e['records']} failed)"
             rows.append(row)
-        lines += _table(["method"] + metric_hdr + ["latency (ms)", "throughput (fps)",
+        lines += table(["method"] + metric_hdr + ["latency (ms)", "throughput (fps)",
                                                    "peak mem (MB)"], rows) + [""]
     else:
         lines += ["No accuracy records.", ""]
@@ -249,7 +222,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
         lines += ["Thresholds: " + ", ".join(f"{k}={v}" for k, v in th.items()) +
                   " (see `garmentgnn.bench.stability.Thresholds`).", ""]
     lines += (["The simulator on the bench's stability item (a garment on the capsule "
-               "body), per motion seed.", ""] + _stability_table(stab) if stab
+               "body), per motion seed.", ""] + _stabilitytable(stab) if stab
               else ["No stability records.", ""])
     lstab = [r for r in records if r["kind"] == "learned_stability"]
     if lstab:
@@ -265,10 +238,10 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                   "energy), so for these methods it measures how far the later frames are "
                   "from rest (the cloth is stiff in stretch: a few % of edge strain is tens "
                   "of joules), not a blow-up over time; compare max energy with the "
-                  "simulator's row.", ""] + _stability_table(lstab)
+                  "simulator's row.", ""] + _stabilitytable(lstab)
     # they import this module
-    from garmentgnn.bench import learned, leaveout, precision, scaling
-    lines += learned.markdown(records, learned_png)
+    from garmentgnn.bench import learned_report, leaveout, precision, scaling
+    lines += learned_report.markdown(records, learned_png)
     lines += scaling.markdown(records, scaling_png)
     lines += leaveout.markdown(records)
     lines += precision.markdown(records)
@@ -295,59 +268,9 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
 
 
 # --------------------------------------------------------------------------- plots
-def plot_summary(summ: Dict[str, Dict[str, Any]], path, title: str) -> Optional[Path]:
-    """``log latency`` vs ``E_dist`` of per-method means ``{method: {"latency_ms":
-    {"mean": ...}, "E_dist": {"mean": ...}}}`` (Pareto front joined); ``None`` if no
-    method has both numbers."""
-    pts = [(m, e["latency_ms"]["mean"], e["E_dist"]["mean"]) for m, e in summ.items()
-           if "latency_ms" in e and "E_dist" in e and e["latency_ms"]["mean"] > 0]
-    if not pts:
-        return None
-    return plot_points(pts, path, title)
-
-
 def plot_pareto(records: Sequence[Dict[str, Any]], path: Path) -> Optional[Path]:
     """:func:`plot_summary` of the accuracy records (:func:`summarize`)."""
     return plot_summary(summarize(records), path, "Error against run time")
-
-
-def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str) -> Path:
-    """Scatter ``(name, latency ms, E_dist cm)`` points on a log latency axis, the Pareto
-    front joined, into the PNG ``path``."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    front = set(pareto_front(pts))
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    for name, x, y in pts:
-        ax.scatter([x], [y], color="C3" if name in front else "C0", zorder=3)
-        ax.annotate(name, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
-    fp = sorted((x, y) for n, x, y in pts if n in front)
-    if len(fp) > 1:
-        ax.step([p[0] for p in fp], [p[1] for p in fp], where="post", color="C3", alpha=0.5,
-                label="Pareto front")
-        ax.legend(fontsize=7)
-    ax.set_xscale("log")
-    ax.set_xlabel("latency per frame at batch 1 (ms, log)")
-    ax.set_ylabel("E_dist (cm)")
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    return save_figure(fig, path)
-
-
-def save_figure(fig, path) -> Path:
-    """Write a matplotlib figure to ``path`` (PNG, write-then-rename) and close it."""
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
 
 
 # --------------------------------------------------------------------------- entry point
@@ -370,8 +293,8 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     scaling_png = scaling.plot(clean, out / "scaling.png")
     if scaling_png is not None:
         paths["scaling"] = scaling_png
-    from garmentgnn.bench import learned
-    learned_png = learned.plot(clean, out / "pareto_learned.png")
+    from garmentgnn.bench import learned_report
+    learned_png = learned_report.plot(clean, out / "pareto_learned.png")
     if learned_png is not None:
         paths["pareto_learned"] = learned_png
     results = {"meta": meta or {}, "summary": summarize(clean), "not_run": list(not_run),

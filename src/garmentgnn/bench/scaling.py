@@ -32,7 +32,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import torch
 
-from garmentgnn.bench.report import _table, save_figure
+from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.bench.sequences import make_sequence
 from garmentgnn.bench.timing import peak_memory, side_by_side
 
@@ -69,10 +69,10 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
             :func:`scaling_items`); its motion needs at least 2 frames.
         seed: motion seed and model initialisation seed.
         warmup, repeats: :func:`side_by_side` settings.
-        history, nystrom_dim, num_landmarks: data-module settings (``configs/``).
+        history, nystrom_dim, num_landmarks: data-module settings (``garmentgnn/configs/gartrans.yaml``).
         module_kwargs: further :class:`GarTransModule` arguments.
     """
-    from garmentgnn.bench.model_inputs import BenchChunks, forward_args, untrained_module
+    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
     from garmentgnn.geometry import geodesic_nystrom_features
 
     rec: Dict[str, Any] = {"kind": "scaling", "method": METHOD, "case": item.get("name"),
@@ -88,7 +88,6 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
         frame = T // 2
         item_t = ds[frame]
         module = untrained_module(item_t, seed, **(module_kwargs or {}))
-        model = module.model
         rec.update(num_vertices=seq.garment.num_vertices,
                    num_faces=int(seq.garment.faces.shape[0]),
                    num_body_vertices=int(item_t["body_joint_dists"].shape[0]),
@@ -100,15 +99,16 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
             static = module.encode_static(item_t)
 
         def static_inputs() -> Dict[str, Any]:
-            st = ds._build_static(0)  # the data module's own static pre-processing
-            return dict(item_t, **{k: v for k, v in st.items() if not k.startswith("_")})
+            st, _ = ds._build_static(0)  # the data module's own static pre-processing
+            fresh = copy.copy(item_t)
+            fresh.update(st)
+            return fresh
 
         def cached():
-            return model(static, *forward_args(item_t))["final"]
+            return module(item_t, static)["final"]
 
         def uncached():
-            fresh = static_inputs()
-            return model(module.encode_static(fresh), *forward_args(fresh))["final"]
+            return module(static_inputs())["final"]
 
         fns = {"nystrom": lambda: geodesic_nystrom_features(
                    item_t["rest_pos"].double(), item_t["faces"], k=nystrom_dim,
@@ -179,7 +179,7 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
     hdr = ["requested", "vertices", "status", "cached (ms)", "uncached (ms)", "Nyström (ms)",
            "all static inputs (ms)", "encode_static (ms)", "cached mem (MB)",
            "uncached mem (MB)", "max abs. cached - uncached (m)"]
-    lines += _table(hdr, rows) + [""]
+    lines += table(hdr, rows) + [""]
     ok = _ok(recs)
     if ok:
         t0 = ok[0]["timing"]

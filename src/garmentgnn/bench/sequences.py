@@ -10,7 +10,7 @@ from torch import Tensor
 
 from garmentgnn.data.presets import build_inputs
 from garmentgnn.garments.skinning import transfer_skinning_weights
-from garmentgnn.models.baselines import GarmentScene
+from garmentgnn.models.inputs import GarmentInputs, build_garment
 from garmentgnn.physics import ClothRest, Material
 
 
@@ -31,14 +31,14 @@ def case_item(name: str, kind: str, resolution: int, motion: str, num_frames: in
             "material": material, "settings": {}}
 
 
-def build_scene(garment, body) -> GarmentScene:
-    """The models' :class:`GarmentScene` with the skinning weights the reference simulator
-    uses (:func:`transfer_skinning_weights` on float32 inputs, as in ``simulate``)."""
+def build_scene(garment, body) -> GarmentInputs:
+    """The skinned garment (:func:`~garmentgnn.models.inputs.build_garment`) with the
+    skinning weights the reference simulator uses (:func:`transfer_skinning_weights` on
+    float32 inputs, as in ``simulate``)."""
     W = transfer_skinning_weights(garment.vertices.float(), garment.faces,
                                   body.vertices.float(), body.weights.float())
-    return GarmentScene(rest_pos=garment.vertices.to(body.vertices.dtype), faces=garment.faces,
-                        weights=W, rest_joints=body.joints, parents=body.skeleton.parents,
-                        pinned=garment.pinned)
+    return build_garment(garment.vertices.to(body.vertices.dtype), garment.faces, W,
+                         body.joints, body.skeleton.parents, garment.pinned)
 
 
 @dataclass
@@ -61,7 +61,7 @@ class BenchSequence:
     motion: Any
     material: Material
     body_frames: Tensor
-    scene: GarmentScene
+    scene: GarmentInputs
     rest: ClothRest
     mass: Tensor
     item: Dict[str, Any]

@@ -15,6 +15,7 @@ import numpy as np
 
 from garmentgnn.data import store
 from garmentgnn.data.presets import build_inputs
+from garmentgnn.garments.skinning import transfer_skinning_weights
 
 
 def default_simulate(engine: str = "torch"):
@@ -97,6 +98,11 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             "garment_face_uv": garment.face_uv.numpy().astype(np.float32),
             "garment_pinned": (np.zeros(V, bool) if garment.pinned is None
                                else garment.pinned.numpy().astype(bool)),
+            # the weights the engine skinned the garment with (the rest pose, the pre-roll,
+            # pins), stored so the model inputs read them instead of recomputing them
+            "garment_skin_weights": transfer_skinning_weights(
+                garment.vertices.float(), garment.faces, body.vertices.float(),
+                body.weights.float()).numpy().astype(np.float32),
             "body_shape": (np.zeros(0, np.float64) if body.shape is None
                            else body.shape.double().numpy()),
             "motion_rotations": motion.rotations.float().numpy(),

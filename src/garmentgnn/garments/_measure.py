@@ -13,11 +13,11 @@ from garmentgnn.garments._fit import (HEAD, L_ARM, L_LEG, R_ARM, R_LEG, TORSO, B
 Length = Union[str, float]
 
 
-def _waist_z(fit: BodyFit) -> float:
+def waist_height(fit: BodyFit) -> float:
     return float(fit.J["pelvis"][2] + 0.35 * (fit.J["chest"][2] - fit.J["pelvis"][2]))
 
 
-def _section(fit: BodyFit, z_lo: float, z_hi: float, labels, ease: float):
+def torso_section(fit: BodyFit, z_lo: float, z_hi: float, labels, ease: float):
     pts = fit.select(labels, z_lo, z_hi)
     if len(pts) < 3:  # widen the band until the body is hit
         mid, half = 0.5 * (z_lo + z_hi), 0.5 * (z_hi - z_lo)
@@ -35,13 +35,13 @@ def _section(fit: BodyFit, z_lo: float, z_hi: float, labels, ease: float):
     return poly, centre
 
 
-def _ring(poly: np.ndarray, centre: np.ndarray, Q: int, z: float) -> np.ndarray:
+def section_ring(poly: np.ndarray, centre: np.ndarray, Q: int, z: float) -> np.ndarray:
     th, r = quarter_ring(lambda a: polar_radius(poly, centre, a), Q)
     xy = centre + r[:, None] * np.stack([np.cos(th), np.sin(th)], 1)
     return np.concatenate([xy, np.full((len(xy), 1), z)], 1)
 
 
-def _perimeter(ring: np.ndarray) -> float:
+def ring_perimeter(ring: np.ndarray) -> float:
     return float(np.linalg.norm(ring - np.roll(ring, -1, 0), axis=1).sum())
 
 
@@ -52,7 +52,7 @@ def _arc_samples(ts: np.ndarray, ys: np.ndarray, h: float, min_n: int = 1) -> np
     return np.interp(np.linspace(0.0, s[-1], n + 1), s, ts)
 
 
-def _armpit_z(fit: BodyFit, ease: float, margin: float) -> float:
+def armpit_height(fit: BodyFit, ease: float, margin: float) -> float:
     """Highest height whose torso ring (grown by ``ease``) clears both arms by a little
     more than ``margin`` (a deep armhole makes a big sleeve cap)."""
     need = max(margin + 0.003, 0.6 * ease)
@@ -60,14 +60,14 @@ def _armpit_z(fit: BodyFit, ease: float, margin: float) -> float:
     top = min(fit.J["l_shoulder"][2], fit.J["r_shoulder"][2])
     bottom = fit.J["chest"][2] - 0.1 * fit.height / 1.75
     for z in np.arange(top, bottom, -0.005):
-        poly, c = _section(fit, z - 0.02, z + 0.02, [TORSO], ease)
-        ring = _ring(poly, c, 12, z)
+        poly, c = torso_section(fit, z - 0.02, z + 0.02, [TORSO], ease)
+        ring = section_ring(poly, c, 12, z)
         if arms.query(ring)[0].min() >= need:
             return float(z)
     return float(bottom)
 
 
-def _crotch_z(fit: BodyFit, ease: float, margin: float, centre_x: float) -> float:
+def crotch_height(fit: BodyFit, ease: float, margin: float, centre_x: float) -> float:
     """Highest level below the pelvis where a crotch seam fits between the legs."""
     allp = fit.tree(range(6))
     top = min(fit.J["l_hip"][2], fit.J["r_hip"][2])
@@ -84,7 +84,7 @@ def _crotch_z(fit: BodyFit, ease: float, margin: float, centre_x: float) -> floa
         gap_r = centre_x - bandr[:, 0].max()
         if min(gap_l, gap_r) < margin + 0.004:
             continue
-        poly, c = _section(fit, z - 0.02, z + 0.02, [TORSO, L_LEG, R_LEG], ease)
+        poly, c = torso_section(fit, z - 0.02, z + 0.02, [TORSO, L_LEG, R_LEG], ease)
         ys = np.linspace(-1, 1, 21)
         r_b = polar_radius(poly, np.array([centre_x, c[1]]), np.array([np.pi / 2, -np.pi / 2]))
         seam = np.stack([np.full(21, centre_x), c[1] + 0.5 * (r_b[0] - r_b[1])
@@ -94,7 +94,7 @@ def _crotch_z(fit: BodyFit, ease: float, margin: float, centre_x: float) -> floa
     return float(bottom)
 
 
-def _neck(fit: BodyFit):
+def neck_level(fit: BodyFit):
     """``(z, radius, centre_xy)`` of the narrowest level between the neck and head joints."""
     c = fit.J["neck"][:2]
     best = None
@@ -128,7 +128,7 @@ def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: floa
     return out
 
 
-def _inflate(fit: BodyFit, O: np.ndarray, P: np.ndarray, ease: float, labels,
+def inflate_envelope(fit: BodyFit, O: np.ndarray, P: np.ndarray, ease: float, labels,
              z_max: float) -> np.ndarray:
     """Move points outward along rays from ``O`` until they are ``ease`` beyond the body."""
     shape = P.shape
@@ -141,7 +141,7 @@ def _inflate(fit: BodyFit, O: np.ndarray, P: np.ndarray, ease: float, labels,
     return (O + r[:, None] * d).reshape(shape)
 
 
-def _length_z(fit: BodyFit, length: Length, z_top: float, what: str,
+def hem_height(fit: BodyFit, length: Length, z_top: float, what: str,
               presets: Dict[str, Callable[[BodyFit], float]]) -> float:
     if isinstance(length, str):
         if length not in presets:

@@ -10,7 +10,7 @@ import numpy as np
 
 from garmentgnn.garments._fit import (HEAD, L_ARM, L_LEG, R_ARM, R_LEG, TORSO, BodyFit,
                                       MeshBuilder, grid_uv, polar_radius)
-from garmentgnn.garments._measure import _inflate, _neck, _ring, _section
+from garmentgnn.garments._measure import inflate_envelope, neck_level, section_ring, torso_section
 
 #: sleeves: fraction of the armhole-to-arm turn done by rotating the armhole loop (the
 #: rest happens while its shape morphs into the sleeve's circles over MORPH metres)
@@ -23,7 +23,7 @@ def _smooth_step(x: np.ndarray) -> np.ndarray:
 
 
 
-def _skirt_rings(fit: BodyFit, z_w: float, z_hem: float, flare: float, ease: float, h: float,
+def skirt_rings(fit: BodyFit, z_w: float, z_hem: float, flare: float, ease: float, h: float,
                  Q: Optional[int] = None):
     """Rings (hem first, waist last) of a stack of cones over the waist section.
 
@@ -31,7 +31,7 @@ def _skirt_rings(fit: BodyFit, z_w: float, z_hem: float, flare: float, ease: flo
     below the waist): the concave upper hull of what the hips/legs require and the
     flare line, made non-decreasing -- piecewise linear, so every strip is a frustum of
     a cone (exactly developable)."""
-    poly, c = _section(fit, z_w - 0.03, z_w + 0.03, [TORSO], ease)
+    poly, c = torso_section(fit, z_w - 0.03, z_w + 0.03, [TORSO], ease)
     dense = np.linspace(0, 2 * np.pi, 721)
     rw = polar_radius(poly, c, dense)
     rbar = rw.mean()
@@ -72,7 +72,7 @@ def _skirt_rings(fit: BodyFit, z_w: float, z_hem: float, flare: float, ease: flo
     ht, hs = _simplify_profile(ht, hs, 0.002 / rbar)
     if Q is None:
         Q = max(3, int(round(rbar * hs.mean() * 2 * np.pi / 4 / h)))
-    ring_w = _ring(poly, c, Q, z_w)
+    ring_w = section_ring(poly, c, Q, z_w)
     # ring depths spaced ~h along each straight piece of the slanted profile, the
     # profile's corners exactly on rings
     ts = [0.0]
@@ -110,7 +110,7 @@ def _simplify_profile(t: np.ndarray, s: np.ndarray, tol: float):
     return t[keep], s[keep]
 
 
-def _torso_rings(fit: BodyFit, z_lo: float, z_hi: float, Q: int, h: float, ease: float,
+def torso_rings(fit: BodyFit, z_lo: float, z_hi: float, Q: int, h: float, ease: float,
                  labels, loose: bool, exclude_top: bool = False) -> np.ndarray:
     """Rings from ``z_lo`` up to ``z_hi`` of fitted body sections.  ``loose``: a ring
     encloses everything of the body between its height and ``z_hi`` (hangs straight down
@@ -122,12 +122,12 @@ def _torso_rings(fit: BodyFit, z_lo: float, z_hi: float, Q: int, h: float, ease:
     rings = []
     for z in zs:
         top = z_hi + 0.02 if loose else z + 0.025
-        poly, c = _section(fit, z - 0.025, top, labels, ease)
-        rings.append(_ring(poly, c, Q, z))
+        poly, c = torso_section(fit, z - 0.025, top, labels, ease)
+        rings.append(section_ring(poly, c, Q, z))
     return np.stack(rings)
 
 
-def _tube_grid(B: MeshBuilder, rings_idx: np.ndarray, rings_pos: np.ndarray, panel: int,
+def tube_grid(B: MeshBuilder, rings_idx: np.ndarray, rings_pos: np.ndarray, panel: int,
                seam: int) -> None:
     """Closed tube from rings (rows bottom -> top, each CCW from above): outward normals,
     pattern cut at ring index ``seam``."""
@@ -245,7 +245,7 @@ def _loft_tube(fit: BodyFit, B: MeshBuilder, loop_idx: np.ndarray, path: np.ndar
     return idx
 
 
-def _upper_body(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: float,
+def add_upper_body(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: float,
                 ease: float, panels, stack_front=None, stack_back=None, neckline: str = "crew"):
     """Front and back panels from the armpit ring (last row of the stacks) up to the
     shoulder seams; returns the left and right armhole loops (vertex indices)."""
@@ -257,7 +257,7 @@ def _upper_body(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: f
     C = 2 * Q
     front_cols = np.concatenate([np.arange(2 * Q, 4 * Q), [0]])  # right side -> CF -> left side
     back_cols = np.arange(0, 2 * Q + 1)  # left side -> CB -> right side
-    z_neck, r_neck, nc = _neck(fit)
+    z_neck, r_neck, nc = neck_level(fit)
     # what the shoulders and neckline must clear: torso and neck up to the neck's
     # narrowest level (not the chin or jaw above it)
     z_head = min(fit.J["head"][2], z_neck + 0.01)
@@ -318,8 +318,8 @@ def _upper_body(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: f
     shift_b = w["l"] * near_l_b + w["r"] * near_r_b
     Ff = bezier(Af, Tf, shift_f, R)  # [R, C+1, 3], last row = top
     Fb = bezier(Ab, Tb, shift_b, R)
-    Ff = _inflate(fit, O, Ff, ease, labels, z_head)
-    Fb = _inflate(fit, O, Fb, ease, labels, z_head)
+    Ff = inflate_envelope(fit, O, Ff, ease, labels, z_head)
+    Fb = inflate_envelope(fit, O, Fb, ease, labels, z_head)
     # shared shoulder-seam vertices: back top row = front top row mirrored at the seams
     for m in range(a + 1):
         Fb[-1, m] = Ff[-1, C - m]
@@ -347,7 +347,7 @@ def _upper_body(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: f
     return loop_l, loop_r
 
 
-def _sleeve(fit: BodyFit, B: MeshBuilder, loop: np.ndarray, side: str, length: str, h: float,
+def add_sleeve(fit: BodyFit, B: MeshBuilder, loop: np.ndarray, side: str, length: str, h: float,
             ease: float, panel: int) -> None:
     sh, el, wr = (fit.J[f"{side}_{j}"] for j in ("shoulder", "elbow", "wrist"))
     lab = L_ARM if side == "l" else R_ARM
@@ -384,7 +384,7 @@ def _polyline_from_height(points: np.ndarray, z: float) -> np.ndarray:
     return points[-2:].copy()
 
 
-def _legs(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, z_c: float, z_hem: float,
+def add_legs(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, z_c: float, z_hem: float,
           h: float, ease: float, panels, centre_x: float) -> None:
     P = B.positions()
     ring = P[ring_idx]
@@ -438,7 +438,7 @@ def _legs(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, z_c: float
 
 
 
-def _straps(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: float, ease: float,
+def add_straps(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: float, ease: float,
             panels, width: float = 0.035) -> None:
     """Two straps from the front edge of the bodice over the shoulders to the back edge."""
     P = B.positions()
@@ -446,7 +446,7 @@ def _straps(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: float
     z_a = ring[0, 2]
     cxy = ring[:, :2].mean(0)
     O = np.array([cxy[0], cxy[1], z_a - 0.05])
-    z_head = min(fit.J["head"][2], _neck(fit)[0] + 0.01)
+    z_head = min(fit.J["head"][2], neck_level(fit)[0] + 0.01)
     N = 4 * Q
     W = max(1, int(round(width / h)))
     for side, sign, panel in (("l", 1.0, panels[0]), ("r", -1.0, panels[1])):
@@ -476,7 +476,7 @@ def _straps(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: float
         tt = t[:, None, None]
         pts = ((1 - tt) ** 3 * A + 3 * (1 - tt) ** 2 * tt * K1 + 3 * (1 - tt) * tt ** 2 * K2
                + tt ** 3 * Z)
-        pts = _inflate(fit, O, pts, ease, [TORSO, HEAD], z_head)
+        pts = inflate_envelope(fit, O, pts, ease, [TORSO, HEAD], z_head)
         mid = B.add(pts)
         gi = np.concatenate([ring_idx[fcols][None], mid, ring_idx[bcols][None]], 0)
         gp = np.concatenate([A[None], pts, Z[None]], 0)

@@ -52,11 +52,11 @@ import torch
 
 from garmentgnn.garments._fit import L_LEG, R_LEG, TORSO, BodyFit, MeshBuilder
 from garmentgnn.garments._flatten import build_pattern
-from garmentgnn.garments._measure import (SKIRT_LENGTHS, TROUSER_LENGTHS, Length, _armpit_z,
-                                          _crotch_z, _length_z, _perimeter, _ring, _section,
-                                          _waist_z)
-from garmentgnn.garments._parts import (_legs, _skirt_rings, _sleeve, _straps, _torso_rings,
-                                        _tube_grid, _upper_body)
+from garmentgnn.garments._measure import (SKIRT_LENGTHS, TROUSER_LENGTHS, Length, armpit_height,
+                                          crotch_height, hem_height, ring_perimeter, section_ring, torso_section,
+                                          waist_height)
+from garmentgnn.garments._parts import (add_legs, skirt_rings, add_sleeve, add_straps, torso_rings,
+                                        tube_grid, add_upper_body)
 from garmentgnn.garments.garment import Garment
 
 log = logging.getLogger(__name__)
@@ -209,21 +209,21 @@ def skirt(body, length: Length = "knee", flare: Union[str, float] = "a-line",
     _check_common(ease, margin)
     fit = BodyFit.of(body)
     f = _flare_value(flare)
-    z_w = _waist_z(fit)
-    z_hem = _length_z(fit, length, z_w, "skirt", SKIRT_LENGTHS)
+    z_w = waist_height(fit)
+    z_hem = hem_height(fit, length, z_w, "skirt", SKIRT_LENGTHS)
     if z_hem >= z_w - 0.05:
         raise ValueError(f"`length`: hem at {z_hem:.3f} m is not below the waist ({z_w:.3f} m)")
     top_n = {}
 
     def build(h):
         B = MeshBuilder()
-        rings, Q, _, corners = _skirt_rings(fit, z_w, z_hem, f, ease, h)
+        rings, Q, _, corners = skirt_rings(fit, z_w, z_hem, f, ease, h)
         idx = B.add(rings)
         # one panel per cone of the profile (a yoke above the hips, the skirt below),
         # each cut at the centre back
         cuts = [0] + corners + [len(rings) - 1]
         for p, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
-            _tube_grid(B, idx[a:b + 1], rings[a:b + 1], p, seam=Q)
+            tube_grid(B, idx[a:b + 1], rings[a:b + 1], p, seam=Q)
         top_n["top"] = idx[-1]
         return B
 
@@ -246,10 +246,10 @@ def trousers(body, length: Length = "long", resolution: Union[str, int] = "mediu
     """
     _check_common(ease, margin)
     fit = BodyFit.of(body)
-    z_w = _waist_z(fit)
-    z_hem = _length_z(fit, length, z_w, "trouser", TROUSER_LENGTHS)
+    z_w = waist_height(fit)
+    z_hem = hem_height(fit, length, z_w, "trouser", TROUSER_LENGTHS)
     cx = float(fit.J["pelvis"][0])
-    z_c = _crotch_z(fit, ease, margin, cx)
+    z_c = crotch_height(fit, ease, margin, cx)
     if z_hem >= z_c - 0.05:
         raise ValueError(f"`length`: hem at {z_hem:.3f} m is not below the crotch "
                          f"({z_c:.3f} m) on this body")
@@ -257,14 +257,14 @@ def trousers(body, length: Length = "long", resolution: Union[str, int] = "mediu
 
     def build(h):
         B = MeshBuilder()
-        poly, c = _section(fit, z_w - 0.03, z_w + 0.03, [TORSO], ease)
-        Q = max(3, int(round(_perimeter(_ring(poly, c, 8, z_w)) / 4 / h)))
-        rings = _torso_rings(fit, z_c, z_w, Q, h, ease, [TORSO, L_LEG, R_LEG], loose=False)
+        poly, c = torso_section(fit, z_w - 0.03, z_w + 0.03, [TORSO], ease)
+        Q = max(3, int(round(ring_perimeter(section_ring(poly, c, 8, z_w)) / 4 / h)))
+        rings = torso_rings(fit, z_c, z_w, Q, h, ease, [TORSO, L_LEG, R_LEG], loose=False)
         # a waist tube must not narrow downwards (it would cut under the buttocks)
         rings = _monotone_down(rings)
         idx = B.add(rings)
-        _tube_grid(B, idx, rings, 0, seam=Q)
-        _legs(fit, B, idx[0], Q, z_c, z_hem, h, ease, (1, 2), cx)
+        tube_grid(B, idx, rings, 0, seam=Q)
+        add_legs(fit, B, idx[0], Q, z_c, z_hem, h, ease, (1, 2), cx)
         top_n["top"] = idx[-1]
         return B
 
@@ -312,19 +312,19 @@ def _top(body, kind, sleeves, length, neckline, resolution, ease, margin, name,
     if neckline not in ("crew", "scoop"):
         raise ValueError(f"`neckline`: use 'crew' or 'scoop', got {neckline!r}")
     fit = BodyFit.of(body)
-    z_a = _armpit_z(fit, ease, margin)
-    z_w = _waist_z(fit)
+    z_a = armpit_height(fit, ease, margin)
+    z_w = waist_height(fit)
     cx = float(fit.J["pelvis"][0])
     info = {"armpit_z": z_a}
     if bottom == "hem":
         presets = {"hip": lambda f: min(f.J["l_hip"][2], f.J["r_hip"][2]) - 0.03,
-                   "waist": lambda f: _waist_z(f)}
-        z_lo = _length_z(fit, length, z_a, "top", presets)
+                   "waist": lambda f: waist_height(f)}
+        z_lo = hem_height(fit, length, z_a, "top", presets)
         if z_lo >= z_a - 0.05:
             raise ValueError(f"`length`: hem at {z_lo:.3f} m is not below the armpits")
     elif bottom == "legs":
-        z_lo = _crotch_z(fit, ease, margin, cx)
-        z_hem = _length_z(fit, legs_length, z_w, "trouser", TROUSER_LENGTHS)
+        z_lo = crotch_height(fit, ease, margin, cx)
+        z_hem = hem_height(fit, legs_length, z_w, "trouser", TROUSER_LENGTHS)
         if z_hem >= z_lo - 0.05:
             raise ValueError(f"`length`: hem at {z_hem:.3f} m is not below the crotch")
         info.update(crotch_z=z_lo, hem_z=z_hem)
@@ -334,26 +334,26 @@ def _top(body, kind, sleeves, length, neckline, resolution, ease, margin, name,
 
     def build(h):
         B = MeshBuilder()
-        poly, c = _section(fit, z_a - 0.03, z_a + 0.02, [TORSO], ease)
-        Q = max(4, int(round(_perimeter(_ring(poly, c, 8, z_a)) / 4 / h)))
+        poly, c = torso_section(fit, z_a - 0.03, z_a + 0.02, [TORSO], ease)
+        Q = max(4, int(round(ring_perimeter(section_ring(poly, c, 8, z_a)) / 4 / h)))
         if bottom == "skirt":
             z_hem, f = skirt_args
-            srings, _, _, _ = _skirt_rings(fit, z_w, z_hem, f, ease, h, Q=Q)
-            upper = _torso_rings(fit, z_w, z_a, Q, h, ease, [TORSO], loose=False)
+            srings, _, _, _ = skirt_rings(fit, z_w, z_hem, f, ease, h, Q=Q)
+            upper = torso_rings(fit, z_w, z_a, Q, h, ease, [TORSO], loose=False)
             rings = np.concatenate([srings[:-1], upper], 0)
         else:
             labels = [TORSO, L_LEG, R_LEG] if bottom == "legs" else [TORSO]
-            rings = _torso_rings(fit, z_lo, z_a, Q, h, ease, labels, loose=(bottom == "hem"))
+            rings = torso_rings(fit, z_lo, z_a, Q, h, ease, labels, loose=(bottom == "hem"))
             if bottom == "legs":
                 rings = _monotone_down(rings)
         idx = B.add(rings)
-        loops = _upper_body(fit, B, idx[-1], Q, h, ease, (0, 1), (idx, rings), (idx, rings),
+        loops = add_upper_body(fit, B, idx[-1], Q, h, ease, (0, 1), (idx, rings), (idx, rings),
                             neckline)
         if sleeves != "none":
-            _sleeve(fit, B, loops[0], "l", sleeves, h, ease, 2)
-            _sleeve(fit, B, loops[1], "r", sleeves, h, ease, 3)
+            add_sleeve(fit, B, loops[0], "l", sleeves, h, ease, 2)
+            add_sleeve(fit, B, loops[1], "r", sleeves, h, ease, 3)
         if bottom == "legs":
-            _legs(fit, B, idx[0], Q, z_lo, info["hem_z"], h, ease, (4, 5), cx)
+            add_legs(fit, B, idx[0], Q, z_lo, info["hem_z"], h, ease, (4, 5), cx)
         return B
 
     B, h = _at_resolution(build, _target(resolution))
@@ -379,8 +379,8 @@ def dress(body, length: Length = "knee", flare: Union[str, float] = "a-line",
         raise ValueError(f"`top`: use 'straps', 'strapless' or 'sleeveless', got {top!r}")
     fit = BodyFit.of(body)
     f = _flare_value(flare)
-    z_w = _waist_z(fit)
-    z_hem = _length_z(fit, length, z_w, "skirt", SKIRT_LENGTHS)
+    z_w = waist_height(fit)
+    z_hem = hem_height(fit, length, z_w, "skirt", SKIRT_LENGTHS)
     if z_hem >= z_w - 0.05:
         raise ValueError(f"`length`: hem at {z_hem:.3f} m is not below the waist ({z_w:.3f} m)")
     if top == "sleeveless":
@@ -388,23 +388,23 @@ def dress(body, length: Length = "knee", flare: Union[str, float] = "a-line",
                     bottom="skirt", skirt_args=(z_hem, f))
     if sleeves != "none":
         raise ValueError("`sleeves`: only a 'sleeveless' top can have sleeves")
-    z_a = _armpit_z(fit, ease, margin)
+    z_a = armpit_height(fit, ease, margin)
 
     def build(h):
         B = MeshBuilder()
-        poly, c = _section(fit, z_a - 0.03, z_a + 0.02, [TORSO], ease)
-        Q = max(4, int(round(_perimeter(_ring(poly, c, 8, z_a)) / 4 / h)))
+        poly, c = torso_section(fit, z_a - 0.03, z_a + 0.02, [TORSO], ease)
+        Q = max(4, int(round(ring_perimeter(section_ring(poly, c, 8, z_a)) / 4 / h)))
         Q += Q % 2
-        srings, _, _, corners = _skirt_rings(fit, z_w, z_hem, f, ease, h, Q=Q)
-        upper = _torso_rings(fit, z_w, z_a, Q, h, ease, [TORSO], loose=False)
+        srings, _, _, corners = skirt_rings(fit, z_w, z_hem, f, ease, h, Q=Q)
+        upper = torso_rings(fit, z_w, z_a, Q, h, ease, [TORSO], loose=False)
         rings = np.concatenate([srings[:-1], upper], 0)
         idx = B.add(rings)
         # panels: the skirt's cones (as in `skirt`), the bodice; cut at the centre back
         cuts = [0] + corners + [len(srings) - 1, len(rings) - 1]
         for p, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
-            _tube_grid(B, idx[a:b + 1], rings[a:b + 1], p, seam=Q)
+            tube_grid(B, idx[a:b + 1], rings[a:b + 1], p, seam=Q)
         if top == "straps":
-            _straps(fit, B, idx[-1], Q, h, ease, (len(cuts) - 1, len(cuts)))
+            add_straps(fit, B, idx[-1], Q, h, ease, (len(cuts) - 1, len(cuts)))
         return B
 
     B, h = _at_resolution(build, _target(resolution))

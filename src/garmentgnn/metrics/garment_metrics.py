@@ -105,3 +105,12 @@ def evaluate(pred: Tensor, gt: Tensor, faces: Tensor, body_pos: Optional[Tensor]
     if bad:
         raise ValueError(f"non-finite metric(s) {bad}: check `pred` for NaN/inf or degenerate faces")
     return res
+
+
+def evaluate_inputs(pred: Tensor, inp) -> Dict[str, float]:
+    """:func:`evaluate` of ``pred [B, V, 3]`` against a model input's ``gt`` (a
+    :class:`~garmentgnn.models.inputs.GarmentInputs`: its faces, posed body and
+    simulated garment)."""
+    if inp.get("gt") is None:
+        raise ValueError("`inp`: has no ground truth `gt` to score against")
+    return evaluate(pred.float(), inp.gt, inp.faces, inp.get("body_pos"), inp.get("body_faces"))

@@ -33,6 +33,10 @@ class SimSettings:
             the reference the analytic blocks are tested against).
         collision_stiffness: ``k`` of the cubic penalty ``k max(eps - s, 0)^3`` (J/m^3).
         collision_power: penalty exponent (3, HOOD's smooth penalty).
+        friction: apply Coulomb friction with ``Material.friction`` as ``mu`` against the
+            body and the colliders.  Off by default: on the walking skirt it cut the
+            converged frames from 3 of 6 to 1 of 6 (silk, mu 0.3; docs/simulator.md), so
+            the torch engine's datasets are generated without it.
         friction_velocity: ``eps_v`` (m/s) of the smoothed Coulomb friction
             (:mod:`garmentgnn.physics.friction`): tangential sliding slower than this
             counts as sticking (IPC's static-friction threshold; the potential uses
@@ -75,6 +79,7 @@ class SimSettings:
     hessian: str = "analytic"
     collision_stiffness: float = 1e6
     collision_power: int = 3
+    friction: bool = False
     friction_velocity: float = 1e-3
     preroll_frames: int = 0
     settle_frames: int = 0
@@ -128,6 +133,8 @@ class SimSettings:
         number("collision_stiffness", 0.0, False)
         number("contact_radius", 0.0, False)
         number("friction_velocity", 0.0, True)
+        if not isinstance(self.friction, bool):
+            raise ValueError(f"`settings.friction`: True or False, got {self.friction!r}")
         number("max_penetration", 0.0, True)
         dc = self.distance_candidates
         if dc is not None and (not isinstance(dc, int) or isinstance(dc, bool) or dc < 1):

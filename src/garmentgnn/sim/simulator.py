@@ -30,7 +30,7 @@ from garmentgnn.sim.colliders import Collider, Plane, Sphere
 from garmentgnn.sim.newton import step
 from garmentgnn.sim.settings import DTYPE, SimResult, SimSettings, StepResult
 from garmentgnn.sim.system import ClothSystem, Contact, check_colliders
-from garmentgnn.sim.trajectory import _check_finite, trajectories
+from garmentgnn.sim.trajectory import check_finite, trajectories
 
 __all__ = ["ClothSystem", "Collider", "Contact", "DTYPE", "Plane", "SimResult", "Sphere", "SimSettings", "StepResult", "simulate", "step",
            "trajectories"]
@@ -67,8 +67,8 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
     verts = garment.vertices
     if not isinstance(verts, Tensor) or verts.dim() != 2 or verts.shape[-1] != 3:
         raise ValueError("`garment.vertices`: expected a [V, 3] tensor")
-    _check_finite(verts, "garment.vertices")
-    _check_finite(garment.face_uv, "garment.face_uv")
+    check_finite(verts, "garment.vertices")
+    check_finite(garment.face_uv, "garment.face_uv")
     fps_m = float(getattr(motion, "fps", st.fps))
     if not fps_m > 0:
         raise ValueError(f"`motion.fps`: must be positive, got {fps_m}")

@@ -293,8 +293,9 @@ class ClothSystem:
                                      self.settings.friction_velocity * h)
 
     def has_friction(self, contact: Optional[Contact]) -> bool:
-        """Whether friction acts: ``mu > 0`` and some contact carries a normal force."""
-        return (self.material.friction > 0 and contact is not None
+        """Whether friction acts: ``settings.friction``, ``mu > 0`` and some contact
+        carries a normal force."""
+        return (self.settings.friction and self.material.friction > 0 and contact is not None
                 and contact.idx.numel() > 0 and bool((contact.force > 0).any()))
 
     def energy(self, x: Tensor, x_tilde: Tensor, h: float, body_pos: Optional[Tensor],

@@ -15,7 +15,7 @@ from garmentgnn.motion.sequence import match_joints
 from garmentgnn.sim.settings import DTYPE
 
 
-def _check_finite(t: Tensor, name: str) -> None:
+def check_finite(t: Tensor, name: str) -> None:
     if not torch.isfinite(t).all():
         raise ValueError(f"`{name}`: contains NaN/inf")
 
@@ -55,7 +55,7 @@ def trajectories(garment, body: Optional[Body], motion, preroll_frames: int = 0,
         if body_frames is None:
             body_frames = linear_blend_skinning(body.vertices, body.weights, A)
         elif P:
-            _check_finite(body_frames, "body_frames")
+            check_finite(body_frames, "body_frames")
             w = _smoothstep(P).to(body_frames.dtype).view(P, 1, 1)
             rest = body.vertices.to(body_frames.dtype)
             body_frames = torch.cat([(1 - w) * rest + w * body_frames[:1], body_frames])
@@ -70,7 +70,7 @@ def trajectories(garment, body: Optional[Body], motion, preroll_frames: int = 0,
         if body_frames.dim() != 3 or body_frames.shape[0] != T + P:
             raise ValueError(f"`body_frames`: expected [{T}, Vb, 3] (one per motion frame), got "
                              f"{(body_frames.shape[0] - P,) + tuple(body_frames.shape[1:])}")
-        _check_finite(body_frames, "body_frames")
+        check_finite(body_frames, "body_frames")
         body_frames = body_frames.detach().to(DTYPE)
     return skinned, body_frames
 

@@ -1,19 +1,22 @@
-"""Lightning training of GarTrans: chunked sequence data, the LightningModule and the
-progressive schedule callback (paper §4.1)."""
+"""Lightning training: chunked sequence data, the GarTrans and baseline LightningModules,
+the progressive schedule callback (paper §4.1) and the packaged configurations."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
            GarmentDataModule,
            SequenceChunks,
 )
-from garmentgnn.training.module import REST_BRANCH, GarTransModule
+from garmentgnn.training.baselines import BaselineModule
+from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
 
 __all__ = [
            "PHASE_TERMS",
            "REST_BRANCH",
+           "BaselineModule",
            "EpochShuffleSampler",
            "GarTransModule",
            "GarmentDataModule",
            "ProgressiveSchedule",
            "SequenceChunks",
+           "loss_inputs",
 ]

@@ -5,22 +5,13 @@ sequence (the ``.npz`` files written by ``garmentgnn generate``, loaded with
 :func:`garmentgnn.data.store.load_sequence`).  GarTrans predicts the frames of a
 chunk in parallel and shares one static encoding (``encode_static``) between them.
 
-Each item (a plain ``dict``; the data loader runs with ``batch_size=None``, one
-chunk per step) holds
-
-* ``rest_pos [V, 3]``, ``faces [F, 3]``, ``face_uv [F, 3, 2]``, ``edge_index [2, E]``
-  (:func:`faces_to_edge_index`, target-sorted), ``nystrom [V, k]``
-  (:func:`geodesic_nystrom_features`), ``rest`` (:class:`ClothRest`), ``mass [V]``,
-  ``skin_weights [V, S]`` (the simulator's transferred LBS weights);
-* ``rest_joints [S, 3]``, ``parents [S]``, ``body_joint_dists [Vb, S]`` (rest body
-  vertex-to-joint distances), ``body_faces [Fb, 3]``;
-* ``rotations [B, H, S, 3]`` and ``translation [B, H, 3]``: for each frame ``t`` of
-  the chunk the poses of frames ``t-history .. t`` (``H = history + 1``, the same
-  convention as :class:`~garmentgnn.data.GarmentSequenceDataset`; frame 0 repeated
-  before the start);
-* ``gt [B, V, 3]`` the stored (simulated) garment, ``body_pos [B, Vb, 3]`` the posed
-  body of the same frames;
-* ``seq_id`` (str), ``frames [B]``.
+Each item is a :class:`~garmentgnn.models.inputs.GarmentInputs` (a PyG ``Data``; the
+data loader runs with ``batch_size=None``, one chunk per step), built by
+:func:`~garmentgnn.models.inputs.build_static` and
+:func:`~garmentgnn.models.inputs.with_frames`: the model inputs every method, loss and
+metric reads.  ``skin_weights`` are the ones stored with the sequence (the weights the
+engine skinned the garment with); files written before they were stored get the same
+transfer recomputed.
 
 The static inputs (edge index, Nyström features, ClothRest, masses, rest body) are
 computed once per sequence and cached (``static_cache`` entries, LRU); positions and
@@ -28,7 +19,7 @@ motion are cached per sequence file (``cache_size`` files, LRU).
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,10 +30,8 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from garmentgnn.data import store
 from garmentgnn.body.factory import build_body
-from garmentgnn.data.keys import body_key
 from garmentgnn.garments.skinning import transfer_skinning_weights
-from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
-from garmentgnn.physics import ClothRest
+from garmentgnn.models.inputs import GarmentInputs, build_static, with_frames
 
 #: surface density used when a sequence file carries no material parameters (kg/m^2)
 DEFAULT_DENSITY = 0.15
@@ -60,11 +49,13 @@ class SequenceChunks(Dataset):
         nystrom_dim, num_landmarks: Nyström features (``k`` must equal the model's
             ``nystrom_dim``).
         cache_size, static_cache: sequence files / static inputs kept (LRU).
+        ids: keep only these sequence ids (e.g. one garment's sequences).
     """
 
     def __init__(self, root, split: str | None = "train", chunk: int = 8, history: int = 3,
                  nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
-                 cache_size: int = 4, static_cache: int = 64) -> None:
+                 cache_size: int = 4, static_cache: int = 64,
+                 ids: Sequence[str] | None = None) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
         if history < 1:
@@ -74,8 +65,14 @@ class SequenceChunks(Dataset):
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
         manifest = store.read_manifest(self.root)
+        keep = None if ids is None else set(ids)
         self.records = [r for r in manifest["items"] if r["status"] == "ok"
-                        and (split is None or r["split"] == split)]
+                        and (split is None or r["split"] == split)
+                        and (keep is None or r["id"] in keep)]
+        if keep is not None and len(self.records) != len(keep):
+            found = {r["id"] for r in self.records}
+            raise ValueError(f"`ids`: not ok {split!r} sequences under {root}: "
+                             f"{sorted(keep - found)[:5]}")
         self.index: list[tuple[int, int, int]] = []  # (record, first frame, frames)
         for i, r in enumerate(self.records):
             T = int(r["num_frames"])
@@ -101,60 +98,47 @@ class SequenceChunks(Dataset):
 
         return self._seqs.get_or_build(rec["id"], load)
 
-    def static(self, i: int) -> dict[str, Any]:
+    def static(self, i: int) -> GarmentInputs:
         """The per-sequence static inputs (cached)."""
+        return self._static_and_body(i)[0]
+
+    def _static_and_body(self, i: int) -> tuple[GarmentInputs, Any]:
         return self._static.get_or_build(self.records[i]["id"], lambda: self._build_static(i))
 
-    def _build_static(self, i: int) -> dict[str, Any]:
+    def _build_static(self, i: int) -> tuple[GarmentInputs, Any]:
         seq = self.sequence(i)
         meta = seq["meta"]
         rest_pos = torch.from_numpy(np.asarray(seq["garment_vertices"], np.float32))
         faces = torch.from_numpy(np.asarray(seq["garment_faces"])).long()
-        face_uv = torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32))
-        V = rest_pos.shape[0]
-        ei = faces_to_edge_index(faces, V)
-        ny = geodesic_nystrom_features(rest_pos.double(), faces, k=self.nystrom_dim,
-                                       num_landmarks=self.num_landmarks).float()
-        if ny.shape[1] < self.nystrom_dim:  # tiny meshes: fewer landmarks than k
-            ny = torch.cat([ny, ny.new_zeros(V, self.nystrom_dim - ny.shape[1])], 1)
-        rest = ClothRest.from_mesh(rest_pos, faces, face_uv)
-        density = float((meta.get("material_params") or {}).get("density", DEFAULT_DENSITY))
         body = build_body(meta["body"])
-        bverts = body.vertices.float()
-        joints = body.joints.float()
-        st = {
-            "rest_pos": rest_pos, "faces": faces, "face_uv": face_uv, "edge_index": ei,
-            "nystrom": ny, "rest": rest, "mass": rest.vertex_masses(density, V).float(),
-            "rest_joints": joints, "parents": body.skeleton.parents.long(),
-            "body_joint_dists": torch.cdist(bverts, joints), "body_faces": body.faces.long(),
-            # the simulator's skinning weights: the "LBS only" coarse garment (evaluation)
-            "skin_weights": transfer_skinning_weights(rest_pos, faces, bverts,
-                                                      body.weights.float()),
-            "_body": body, "_body_key": body_key(meta["body"]),
-        }
+        skin = seq.get("garment_skin_weights")
+        if skin is None:  # files written before the weights were stored: the same transfer
+            skin = transfer_skinning_weights(rest_pos, faces, body.vertices.float(),
+                                             body.weights.float())
+        pinned = np.asarray(seq["garment_pinned"]).astype(bool)
+        st = build_static(
+            rest_pos, faces, body, torch.as_tensor(np.asarray(skin, np.float32)),
+            face_uv=torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32)),
+            density=float((meta.get("material_params") or {}).get("density", DEFAULT_DENSITY)),
+            pinned=torch.from_numpy(pinned) if pinned.any() else None,
+            nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks)
         self.num_static_builds += 1
-        return st
+        return st, body
 
     # -- items --------------------------------------------------------------------
-    def __getitem__(self, idx: int) -> dict[str, Any]:
+    def __getitem__(self, idx: int) -> GarmentInputs:
         if not 0 <= idx < len(self):
             raise IndexError(f"chunk index {idx} out of range [0, {len(self)})")
         i, t0, n = self.index[idx]
-        seq, st = self.sequence(i), self.static(i)
-        frames = torch.arange(t0, t0 + n)
+        seq, (st, body) = self.sequence(i), self._static_and_body(i)
         rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
         tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
-        offs = torch.arange(-self.history, 1)
-        hist = (frames.view(-1, 1) + offs.view(1, -1)).clamp_min(0)  # [B, H]
-        gt = torch.from_numpy(np.asarray(seq["positions"][t0:t0 + n], np.float32))
-        body = st["_body"]
-        with torch.no_grad():
-            bpos, _ = body.pose(rot[frames].to(body.vertices.dtype),
-                                tr[frames].to(body.vertices.dtype))
-        item = {k: v for k, v in st.items() if not k.startswith("_")}
-        item.update(rotations=rot[hist], translation=tr[hist], gt=gt,
-                    body_pos=bpos.float(), seq_id=self.records[i]["id"], frames=frames)
-        return item
+        pos = seq["positions"]
+        gt = (torch.from_numpy(np.asarray(pos[t0:t0 + n], np.float32))
+              if np.asarray(pos).shape[1:2] == (st.num_vertices,) else None)
+        return with_frames(st, body, rot, tr,
+                           torch.arange(t0, t0 + n), self.history, gt=gt,
+                           seq_id=self.records[i]["id"])
 
 
 class EpochShuffleSampler(Sampler):
@@ -197,7 +181,8 @@ class GarmentDataModule(L.LightningDataModule):
     def __init__(self, root, chunk: int = 8, history: int = 3, num_workers: int = 0,
                  nystrom_dim: int = 16, num_landmarks: int = 64, train_split: str = "train",
                  val_split: str | None = "val", shuffle: bool = True, seed: int = 0,
-                 drop_last: bool = False, test_split: str = "test") -> None:
+                 drop_last: bool = False, test_split: str = "test",
+                 train_ids: Sequence[str] | None = None, cache_size: int = 4) -> None:
         super().__init__()
         if not (Path(root) / store.MANIFEST).is_file():
             store.read_manifest(root)  # raises: which path, and the command that makes it
@@ -211,6 +196,8 @@ class GarmentDataModule(L.LightningDataModule):
         self.train_set: SequenceChunks | None = None
         self.val_set: SequenceChunks | None = None
         self.start_epoch = 0  # the epoch a resumed fit continues with
+        self.train_ids = None if train_ids is None else list(train_ids)
+        self.cache_size = cache_size
 
     def state_dict(self) -> dict[str, int]:
         trainer = getattr(self, "trainer", None)
@@ -223,13 +210,14 @@ class GarmentDataModule(L.LightningDataModule):
     def load_state_dict(self, state: dict[str, int]) -> None:
         self.start_epoch = int(state.get("next_epoch", 0))
 
-    def _make(self, split) -> SequenceChunks:
+    def _make(self, split, ids: Sequence[str] | None = None) -> SequenceChunks:
         return SequenceChunks(self.root, split, self.chunk, self.history, self.nystrom_dim,
-                              self.num_landmarks, drop_last=self.drop_last)
+                              self.num_landmarks, drop_last=self.drop_last,
+                              cache_size=self.cache_size, ids=ids)
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is None:
-            self.train_set = self._make(self.train_split)
+            self.train_set = self._make(self.train_split, self.train_ids)
         if self.val_set is None and self.val_split is not None:
             self.val_set = self._make(self.val_split)
 

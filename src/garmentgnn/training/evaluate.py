@@ -17,38 +17,23 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import Any
 
 import torch
 
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
-from garmentgnn.metrics import evaluate
+from garmentgnn.metrics import evaluate_inputs
+from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.datamodule import SequenceChunks
 
 MODES = ("gartrans", "gartrans_ar", "lbs")
 
 
-def lbs_coarse(item: dict[str, Any]) -> torch.Tensor:
-    """``[B, V, 3]``: the rest garment skinned to each frame of a chunk (Eq. 1)."""
-    A, _ = forward_kinematics(item["rotations"][:, -1], item["rest_joints"], item["parents"],
-                              item["translation"][:, -1])
-    return linear_blend_skinning(item["rest_pos"], item["skin_weights"], A)
-
-
-def predict(module, item: dict[str, Any], mode: str) -> torch.Tensor:
+def predict(module, item: GarmentInputs, mode: str) -> torch.Tensor:
     """``[B, V, 3]`` garment of every frame of ``item`` (a :class:`SequenceChunks` item)."""
     if mode == "lbs":
-        return lbs_coarse(item)
-    m = module.model
-    static = module.encode_static(item)
-    args = (static, item["rest_pos"], item["faces"], item["edge_index"], item["rest_joints"],
-            item["parents"], item["rotations"], item["translation"])
-    body = {"body_pos": item.get("body_pos"), "body_faces": item.get("body_faces")}
-    if mode == "gartrans":
-        return m(*args, **body)["final"]
-    if mode == "gartrans_ar":
-        return m.rollout(*args, **body)["final"]
-    raise ValueError(f"`mode`: expected one of {MODES}, got {mode!r}")
+        return item.skinned()
+    if mode not in MODES:
+        raise ValueError(f"`mode`: expected one of {MODES}, got {mode!r}")
+    return module(item, autoregressive=mode == "gartrans_ar")["final"]
 
 
 @torch.no_grad()
@@ -79,8 +64,7 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
                 t0 = time.perf_counter()
                 pred = predict(module, item, mode)
                 seconds[mode] += time.perf_counter() - t0
-                res = evaluate(pred.float(), item["gt"], item["faces"], item["body_pos"],
-                               item["body_faces"])
+                res = evaluate_inputs(pred, item)
                 for k, v in res.items():
                     sums[mode][k] = sums[mode].get(k, 0.0) + v * B
     finally:

@@ -1,12 +1,13 @@
 """``garmentgnn train``: Lightning's own CLI over :class:`GarTransModule` and
-:class:`GarmentDataModule`, configured by the YAML files in ``configs/``.
+:class:`GarmentDataModule`, configured by the YAML files packaged in
+``garmentgnn/configs/`` (named without folder or suffix, or given as paths).
 
 The model sizes that depend on the data (number of joints, body vertices, Nyström
 width) are linked from the data module, so a config only says *what* to train::
 
-    garmentgnn train fit --config configs/gartrans.yaml --data.root data/small
-    garmentgnn train fit --config configs/gartrans.yaml --config configs/ablations/wo_gating.yaml ...
-    garmentgnn train fit --config configs/gartrans.yaml --ckpt_path last   # resume
+    garmentgnn train fit --config gartrans --data.root data/small
+    garmentgnn train fit --config gartrans --config ablations/wo_gating ...
+    garmentgnn train fit --config gartrans --ckpt_path last   # resume
 
 Every option of the module, the data module, the trainer and its callbacks is a flag
 (``garmentgnn train fit --help``); ``--print_config`` shows the merged configuration.
@@ -19,6 +20,7 @@ Beside the configured ``CSVLogger`` every run also logs to TensorBoard (when the
 from __future__ import annotations
 
 import importlib.util
+import sys
 from typing import Any, Optional, Sequence
 
 from lightning.pytorch import Trainer
@@ -26,6 +28,7 @@ from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_warn
 
+from garmentgnn.training.configs import resolve_config_args
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
 from garmentgnn.training.module import GarTransModule
@@ -115,11 +118,13 @@ class GarTransCLI(LightningCLI):
 
 def main(args: Optional[Sequence[str]] = None, run: bool = True,
          prog: Optional[str] = None) -> GarTransCLI:
-    """Run the CLI (``args`` default: ``sys.argv[1:]``; ``prog``: the program name its
-    usage lines show); returns the CLI object.  Every run also gets
-    :class:`TrainingPlots` (``training_curves.png`` in the log folder) and a TensorBoard
-    log (:func:`add_tensorboard`)."""
-    return GarTransCLI(GarTransModule, GarmentDataModule, args=None if args is None else list(args),
+    """Run the CLI (``args`` default: ``sys.argv[1:]``; ``--config NAME`` may name a
+    packaged configuration, :func:`~garmentgnn.training.configs.resolve_config_args`;
+    ``prog``: the program name its usage lines show); returns the CLI object.  Every
+    run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder) and
+    a TensorBoard log (:func:`add_tensorboard`)."""
+    args = resolve_config_args(sys.argv[1:] if args is None else args)
+    return GarTransCLI(GarTransModule, GarmentDataModule, args=args,
                        run=run, seed_everything_default=0,
                        parser_kwargs={"prog": prog} if prog else None,
                        save_config_kwargs={"overwrite": True},

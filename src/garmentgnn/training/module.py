@@ -21,9 +21,20 @@ from garmentgnn.losses.gartrans_loss import (
     NonFiniteLossError,
     vertex_loss,
 )
-from garmentgnn.metrics.garment_metrics import evaluate
-from garmentgnn.models import GarTrans
+from garmentgnn.metrics.garment_metrics import evaluate_inputs
+from garmentgnn.models import GarTrans, StaticFeatures
+from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.integrity import stamp_checkpoint, verify_checkpoint
+
+def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
+                predicted: torch.Tensor | None = None, ground_truth: bool = True) -> LossInputs:
+    """The :class:`LossInputs` of a prediction ``pred [B, V, 3]`` of ``inp``'s frames;
+    ``predicted``: the inertial prediction ``2 x_{t-1} - x_{t-2}`` (inertia term);
+    ``ground_truth=False`` leaves the simulated garment out (self-supervised methods)."""
+    return LossInputs(pred=pred, faces=inp.faces, gt=inp.get("gt") if ground_truth else None,
+                      body_pos=inp.get("body_pos"), body_faces=inp.get("body_faces"),
+                      mass=inp.get("mass"), rest=inp.get("rest"), predicted=predicted, dt=dt)
+
 
 #: the rest-pose processing submodule frozen in the third phase (§4.1)
 REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
@@ -98,30 +109,30 @@ class GarTransModule(L.LightningModule):
             yield from getattr(self.model, name).parameters()
 
     # -- forward ------------------------------------------------------------------
-    def encode_static(self, batch: dict[str, Any]):
+    def encode_static(self, inp: GarmentInputs) -> StaticFeatures:
         """The static branch of one garment on one body (a data-module item)."""
         hp = self.hparams
         return self.model.encode_static(
-            batch["rest_pos"], batch["faces"], batch["edge_index"], batch["rest_joints"],
-            batch["nystrom"], batch["body_joint_dists"] if hp.use_body else None,
-            batch["skin_weights"] if hp.get("skin_prior", False) else None)
+            inp.rest_pos, inp.faces, inp.edge_index, inp.rest_joints, inp.nystrom,
+            inp.body_joint_dists if hp.use_body else None,
+            inp.skin_weights if hp.get("skin_prior", False) else None)
 
-    def forward(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
-        m = self.model
-        static = self.encode_static(batch)
-        return m(static, batch["rest_pos"], batch["faces"], batch["edge_index"],
-                 batch["rest_joints"], batch["parents"], batch["rotations"],
-                 batch["translation"], body_pos=batch.get("body_pos"),
-                 body_faces=batch.get("body_faces"))
+    def forward(self, inp: GarmentInputs, static: StaticFeatures | None = None,
+                autoregressive: bool = False) -> dict[str, torch.Tensor]:
+        """GarTrans on every frame of ``inp``: frame-parallel (the paper's mode), or
+        ``autoregressive`` (:meth:`GarTrans.rollout`).  ``static``: a cached
+        :meth:`encode_static` of the same garment (default: computed here)."""
+        static = self.encode_static(inp) if static is None else static
+        run = self.model.rollout if autoregressive else self.model
+        return run(static, inp.rest_pos, inp.faces, inp.edge_index, inp.rest_joints,
+                   inp.parents, inp.rotations, inp.translation, body_pos=inp.get("body_pos"),
+                   body_faces=inp.get("body_faces"))
 
-    def compute_loss(self, batch: dict[str, Any], out: dict[str, torch.Tensor]):
-        pred = out["final"]
-        inp = LossInputs(pred=pred, faces=batch["faces"], gt=batch["gt"],
-                         body_pos=batch["body_pos"], body_faces=batch["body_faces"],
-                         mass=batch["mass"], rest=batch["rest"], dt=1.0 / self.hparams.fps)
+    def compute_loss(self, batch: GarmentInputs, out: dict[str, torch.Tensor]):
+        inp = loss_inputs(batch, out["final"], dt=1.0 / self.hparams.fps)
         return self.loss_fn(inp)  # NaN/inf raises NonFiniteLossError naming the term
 
-    def training_step(self, batch: dict[str, Any], batch_idx: int):
+    def training_step(self, batch: GarmentInputs, batch_idx: int):
         out = self(batch)
         B = out["final"].shape[0]
         # raises NonFiniteLossError naming the term; Trainer.fit re-raises it (stops)
@@ -137,19 +148,18 @@ class GarTransModule(L.LightningModule):
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
 
-    def _eval_step(self, batch: dict[str, Any], prefix: str):
+    def _eval_step(self, batch: GarmentInputs, prefix: str):
         out = self(batch)
         B = out["final"].shape[0]
-        metrics = evaluate(out["final"], batch["gt"], batch["faces"], batch["body_pos"],
-                           batch["body_faces"])
+        metrics = evaluate_inputs(out["final"], batch)
         for k, v in metrics.items():
             self.log(f"{prefix}/{k}", v, on_epoch=True, batch_size=B)
         return metrics
 
-    def validation_step(self, batch: dict[str, Any], batch_idx: int):
+    def validation_step(self, batch: GarmentInputs, batch_idx: int):
         return self._eval_step(batch, "val")
 
-    def test_step(self, batch: dict[str, Any], batch_idx: int):
+    def test_step(self, batch: GarmentInputs, batch_idx: int):
         """The validation metrics on the data module's test split (``test/...``)."""
         return self._eval_step(batch, "test")
 

@@ -1,0 +1,110 @@
+"""The learned methods of ``garmentgnn bench`` and their settings, read from the packaged
+YAML configurations (:mod:`garmentgnn.training.configs`) that ``garmentgnn train`` uses:
+nothing here restates a hyper-parameter.
+
+* GarTrans and the Table 1 variants (:data:`GARTRANS`): ``configs/gartrans.yaml`` and
+  one ``configs/ablations/<name>.yaml`` each (its ``model:`` overrides and, where it
+  lists callbacks, its :class:`ProgressiveSchedule` arguments);
+* the DA-, HOOD- and NCS-style baselines (:data:`BASELINES`):
+  ``configs/baselines/<name>.yaml``, trained by
+  :class:`~garmentgnn.training.BaselineModule`;
+* ``LBS only``: the rest garment skinned with the stored skinning weights, no learning.
+"""
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass
+from typing import Any, Dict, Optional, Tuple
+
+from garmentgnn.bench import stability as stab
+from garmentgnn.training.configs import load_config, schedule_args
+from garmentgnn.training.schedule import ProgressiveSchedule
+
+__all__ = ["BASELINES", "DATA", "GARTRANS", "GARTRANS_MODEL", "LBS", "METHOD_NAMES", "NCS",
+           "HOOD", "DA", "SEED_FREE", "LearnedBudget", "Variant", "variant_settings"]
+
+_BASE = load_config("gartrans")
+#: ``configs/gartrans.yaml``'s ``model:`` section
+GARTRANS_MODEL: Dict[str, Any] = dict(_BASE["model"])
+#: ``configs/gartrans.yaml``'s ``data:`` section without ``root`` and ``num_workers``
+DATA: Dict[str, Any] = {k: v for k, v in _BASE["data"].items()
+                        if k not in ("root", "num_workers")}
+#: the schedule arguments that the bench budget sets (the config's belong to its epochs)
+_WINDOWS = ("window", "window2")
+_SCHEDULE_DEFAULTS = {k: p.default for k, p in
+                      inspect.signature(ProgressiveSchedule.__init__).parameters.items()
+                      if k != "self"}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A GarTrans row: ``config`` names the ``configs/ablations/<config>.yaml`` it is
+    (``None``: ``configs/gartrans.yaml`` itself)."""
+
+    config: Optional[str]
+
+
+GARTRANS: Dict[str, Variant] = {
+    "GarTrans (SAT)": Variant(None),
+    "GarTrans w/o edge processing": Variant("wo_edge"),
+    "GarTrans w/o edge gating": Variant("wo_gating"),
+    "GarTrans structure-aware transformer": Variant("structure_aware"),
+    "GarTrans GAT": Variant("gat"),
+    "GarTrans w/o unsupervised loss": Variant("wo_unsup"),
+}
+NCS, HOOD, DA, LBS = "NCS-style", "HOOD-style", "DA-style", "LBS only"
+METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, LBS)
+#: methods without training or randomness: run for the first seed only
+SEED_FREE: Tuple[str, ...] = (LBS,)
+#: each baseline's ``configs/baselines/<name>.yaml`` ``model:`` section
+#: (:class:`~garmentgnn.training.BaselineModule` arguments)
+BASELINES: Dict[str, Dict[str, Any]] = {
+    name: load_config(f"baselines/{cfg}")["model"]
+    for name, cfg in ((DA, "da"), (HOOD, "hood"), (NCS, "ncs"))}
+
+
+def variant_settings(method: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
+    """``(model hyper-parameters, ProgressiveSchedule arguments without the windows)`` of
+    GarTrans variant ``method``: ``gartrans.yaml`` merged with its ablation file the way
+    LightningCLI merges two ``--config`` files (a list, like ``callbacks``, replaces)."""
+    v = GARTRANS[method]
+    cfg = load_config(f"ablations/{v.config}") if v.config else {}
+    model = dict(GARTRANS_MODEL, **(cfg.get("model") or {}))
+    sched = schedule_args(cfg)
+    sched = schedule_args(_BASE) if sched is None else sched
+    full = dict(_SCHEDULE_DEFAULTS, **sched)
+    return model, {k: val for k, val in full.items() if k not in _WINDOWS}
+
+
+@dataclass(frozen=True)
+class LearnedBudget:
+    """What the learned part of a bench preset trains.
+
+    Attributes:
+        seeds: training seeds ``0..seeds-1`` (``lightning.seed_everything(seed)``).
+        epochs: passes over the ``train`` split (GarTrans variants, DA, HOOD).
+        window: :class:`ProgressiveSchedule` window in epochs.
+        ncs_epochs: passes of each NCS model over its own garment's test poses.
+        methods: the names of :data:`METHOD_NAMES` to run.
+        stability_cases: :data:`garmentgnn.bench.stability.CASES` run by each method
+            (first seed's model) and the simulator on the first test sequence.
+    """
+
+    seeds: int = 1
+    epochs: int = 1
+    window: int = 1
+    ncs_epochs: int = 1
+    methods: Tuple[str, ...] = METHOD_NAMES
+    stability_cases: Tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("seeds", "epochs", "window", "ncs_epochs"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"`{name}`: expected a positive int, got {v!r}")
+        unknown = [m for m in self.methods if m not in METHOD_NAMES]
+        if unknown or not self.methods:
+            raise ValueError(f"`methods`: unknown {unknown} or empty; choose from {METHOD_NAMES}")
+        unknown = [c for c in self.stability_cases if c not in stab.CASES]
+        if unknown:
+            raise ValueError(f"`stability_cases`: unknown {unknown}; choose from {list(stab.CASES)}")

@@ -1,0 +1,82 @@
+"""DA-style baseline (DeePSD-style static supervised graph network)."""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import Tensor, nn
+
+from garmentgnn.geometry import edge_features, vertex_joint_distances, vertex_normals
+from garmentgnn.models.baselines.common import mlp, skin, small_init_
+from garmentgnn.models.gartrans import batch_edges
+from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.nn import GATBaselineConv
+
+__all__ = ["DAStyle"]
+
+
+class DAStyle(nn.Module):
+    """DeePSD-style static garment network ("DA" in the paper's Tables 2-3; Bertiche,
+    Madadi, Tylson & Escalera, *DeePSD: Automatic Deep Skinning And Pose Space
+    Deformation For 3D Garment Animation*, ICCV 2021).
+
+    A graph attention network over the garment mesh reads multi-source per-vertex
+    attributes -- rest position, rest vertex normal, LBS-skinned position relative to
+    the posed root joint, and distances from the skinned vertex to every posed joint --
+    and predicts a per-vertex offset added to the LBS result.  Garment-agnostic (the
+    mesh is an input), frame-by-frame (static: no history), trained supervised.
+
+    Simplified from DeePSD: no learned skinning weights (the scene's transferred
+    weights are used as-is), the pose-space deformation is a posed-space offset rather
+    than blend shapes in rest space, GATv2 layers (:class:`garmentgnn.nn.GATBaselineConv`)
+    instead of its point-cloud/graph encoder, and no physics regulariser.
+
+    Args:
+        num_joints: ``S``.
+        hidden: node width (heads are concatenated to it).
+        heads: attention heads per layer (must divide ``hidden``).
+        num_layers: GAT layers.
+    """
+
+    def __init__(self, num_joints: int, hidden: int = 64, heads: int = 2,
+                 num_layers: int = 3) -> None:
+        super().__init__()
+        if num_joints < 1:
+            raise ValueError(f"`num_joints`: must be positive, got {num_joints}")
+        if hidden < 1 or heads < 1 or hidden % heads:
+            raise ValueError(f"`heads`: must divide `hidden` ({hidden}), got {heads}")
+        if num_layers < 1:
+            raise ValueError(f"`num_layers`: must be positive, got {num_layers}")
+        self.num_joints = num_joints
+        self.encoder = mlp([9 + num_joints, hidden, hidden])
+        self.layers = nn.ModuleList(
+            GATBaselineConv(hidden, hidden // heads, edge_dim=4, heads=heads, concat=True)
+            for _ in range(num_layers))
+        self.act = nn.ELU()
+        self.decoder = mlp([hidden, hidden, 3])
+        small_init_(self.decoder[-1])
+
+    def features(self, scene: GarmentInputs, skinned: Tensor, joints: Tensor) -> Tensor:
+        """``[B, V, 9 + S]`` per-vertex attributes."""
+        B, V = skinned.shape[:2]
+        rest = scene.rest_pos.to(skinned.dtype).expand(B, V, 3)
+        normal = vertex_normals(scene.rest_pos, scene.faces).to(skinned.dtype).expand(B, V, 3)
+        rel = skinned - joints[:, :1]
+        dist = vertex_joint_distances(skinned, joints)
+        return torch.cat([rest, normal, rel, dist], -1)
+
+    def forward(self, scene: GarmentInputs, rotations: Tensor,
+                translation: Optional[Tensor] = None) -> Tensor:
+        """``rotations [B, S, 3]``, ``translation [B, 3]`` -> positions ``[B, V, 3]``."""
+        if scene.num_joints != self.num_joints:
+            raise ValueError(f"`scene`: has {scene.num_joints} joints, the model {self.num_joints}")
+        skinned, joints = skin(scene, rotations, translation)
+        dtype = self.encoder[0].weight.dtype
+        B, V = skinned.shape[:2]
+        x = self.encoder(self.features(scene, skinned, joints).to(dtype)).reshape(B * V, -1)
+        ei = batch_edges(scene.edge_index, B, V)
+        ea = edge_features(scene.rest_pos.to(dtype), scene.edge_index).repeat(B, 1)
+        for layer in self.layers:
+            x = self.act(layer(x, ei, ea))
+        offset = self.decoder(x).reshape(B, V, 3)
+        return skinned + offset.to(skinned.dtype)

@@ -1,0 +1,217 @@
+"""The one model-input type: a garment on a body over a chunk of frames.
+
+Every method (GarTrans, its ablations, the baselines, LBS), every loss, metric and the
+bench reads a :class:`GarmentInputs`; it is built in one place: :func:`build_static`
+makes the per-garment part once (graph, Nyström features, rest state, masses,
+skinning weights, rest body), :func:`with_frames` adds the frames of a chunk.  The
+training data module (:class:`garmentgnn.training.SequenceChunks`) and the bench's
+in-memory sequences both go through these two functions.
+
+:class:`GarmentInputs` is a PyG :class:`~torch_geometric.data.Data` (one graph: the
+garment mesh, ``num_nodes = V``), so it moves with ``.to(device)``, reads as
+``inp.gt`` or ``inp["gt"]`` and supports ``"gt" in inp``.
+
+Keys (``V`` garment vertices, ``S`` joints, ``Vb`` body vertices, ``B`` frames,
+``H = history + 1`` poses per frame):
+
+* static: ``rest_pos [V, 3]``, ``faces [F, 3]``, ``face_uv [F, 3, 2]``, ``edge_index
+  [2, E]`` (both directions, target-sorted), ``nystrom [V, k]``, ``rest``
+  (:class:`~garmentgnn.physics.ClothRest`), ``mass [V]``, ``skin_weights [V, S]``,
+  ``pinned [V]`` bool, ``rest_joints [S, 3]``, ``parents [S]``, ``body_joint_dists
+  [Vb, S]``, ``body_faces [Fb, 3]``;
+* per frame: ``rotations [B, H, S, 3]``, ``translation [B, H, 3]`` (the poses of frames
+  ``t - history .. t``; frame 0 repeated before the start), ``body_pos [B, Vb, 3]``
+  (the posed body), ``frames [B]``, optionally ``gt [B, V, 3]`` (the simulated
+  garment: absent where no ground truth exists), and ``seq_id`` (str).
+"""
+from __future__ import annotations
+
+import copy
+from typing import Optional
+
+import torch
+from torch import Tensor
+from torch_geometric.data import Data
+
+from garmentgnn.body.body import Body
+from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
+from garmentgnn.physics import ClothRest
+
+__all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "with_frames"]
+
+#: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
+FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames")
+
+
+class GarmentInputs(Data):
+    """One garment on one body over ``B`` frames (see the module doc for the keys)."""
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.rest_pos.shape[0])
+
+    @property
+    def num_joints(self) -> int:
+        return int(self.rest_joints.shape[0])
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rotations.shape[0]) if "rotations" in self else 0
+
+    def pinned_mask(self) -> Tensor:
+        """``[V]`` bool (all ``False`` when nothing is pinned)."""
+        p = self.get("pinned")
+        return torch.zeros(self.num_vertices, dtype=torch.bool) if p is None else p.bool()
+
+    def select(self, idx: Tensor) -> "GarmentInputs":
+        """The same garment restricted to frames ``idx`` (per-frame keys indexed, static
+        keys shared, not copied)."""
+        out = copy.copy(self)
+        for k in FRAME_KEYS:
+            if k in self:
+                out[k] = self[k][idx]
+        return out
+
+    def cycled(self, b: int) -> "GarmentInputs":
+        """``b`` frames taken cyclically from this chunk (for timing at batch ``b``)."""
+        return self.select(torch.arange(b) % self.num_frames)
+
+    def history_slot(self, j: int) -> "GarmentInputs":
+        """The inputs whose current pose is history slot ``j`` (``-1``: the frame itself,
+        ``-2``: one frame earlier, ...)."""
+        H = self.rotations.shape[1]
+        if not isinstance(j, int) or not -H <= j <= -1:
+            raise ValueError(f"`j`: expected an int with -{H} <= j <= -1, got {j!r}")
+        out = copy.copy(self)
+        out.rotations = self.rotations[:, :H + j + 1]
+        out.translation = self.translation[:, :H + j + 1]
+        return out
+
+    def skinned(self) -> Tensor:
+        """``[B, V, 3]``: the rest garment skinned to each frame with ``skin_weights``
+        (Eq. 1): the "LBS only" garment."""
+        A, _ = forward_kinematics(self.rotations[:, -1], self.rest_joints, self.parents,
+                                  self.translation[:, -1])
+        return linear_blend_skinning(self.rest_pos, self.skin_weights, A)
+
+    def without_ground_truth(self) -> "GarmentInputs":
+        """A shallow copy without ``gt`` (for methods that must never see it)."""
+        out = copy.copy(self)
+        if "gt" in out:
+            del out.gt
+        return out
+
+
+def build_garment(rest_pos: Tensor, faces: Tensor, skin_weights: Tensor, rest_joints: Tensor,
+                  parents: Tensor, pinned: Optional[Tensor] = None) -> GarmentInputs:
+    """The skinned garment alone (mesh, graph, skinning weights, skeleton, pinned mask):
+    what the pose-driven baselines and LBS read; :func:`build_static` adds the rest.
+
+    Args:
+        rest_pos: ``[V, 3]`` garment on the rest body; ``faces [F, 3]``.
+        skin_weights: ``[V, S]`` the garment's skinning weights (e.g. the body's
+            transferred to the garment, as the simulator skins it).
+        rest_joints: ``[S, 3]``; ``parents [S]`` (root ``-1``).
+        pinned: optional ``[V]`` bool mask of vertices that follow the body.
+    """
+    rest_pos, faces = torch.as_tensor(rest_pos), torch.as_tensor(faces).long()
+    if rest_pos.dim() != 2 or rest_pos.shape[1] != 3:
+        raise ValueError(f"`rest_pos`: expected [V, 3], got {tuple(rest_pos.shape)}")
+    if faces.dim() != 2 or faces.shape[1] != 3:
+        raise ValueError(f"`faces`: expected [F, 3], got {tuple(faces.shape)}")
+    if not torch.isfinite(rest_pos).all():
+        raise ValueError("`rest_pos`: contains NaN/inf")
+    if rest_joints.dim() != 2 or rest_joints.shape[1] != 3:
+        raise ValueError(f"`rest_joints`: expected [S, 3], got {tuple(rest_joints.shape)}")
+    V, S = rest_pos.shape[0], rest_joints.shape[0]
+    if skin_weights.shape != (V, S):
+        raise ValueError(f"`skin_weights`: expected [{V}, {S}], got {tuple(skin_weights.shape)}")
+    if parents.shape != (S,):
+        raise ValueError(f"`parents`: expected [{S}], got {tuple(parents.shape)}")
+    if pinned is not None:
+        pinned = torch.as_tensor(pinned).bool()
+        if pinned.shape != (V,):
+            raise ValueError(f"`pinned`: expected [{V}] bool, got {tuple(pinned.shape)}")
+    return GarmentInputs(rest_pos=rest_pos, faces=faces, edge_index=faces_to_edge_index(faces, V),
+                         skin_weights=skin_weights, rest_joints=rest_joints,
+                         parents=parents.long(), pinned=pinned, num_nodes=V)
+
+
+def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tensor,
+                 face_uv: Optional[Tensor] = None, density: float = 0.15,
+                 pinned: Optional[Tensor] = None, nystrom_dim: int = 16,
+                 num_landmarks: int = 64) -> GarmentInputs:
+    """The per-garment, per-body-shape part of the inputs (computed once per sequence):
+    :func:`build_garment` in float32 plus the Nyström features, the cloth rest state,
+    vertex masses and the rest body.
+
+    Args:
+        rest_pos, faces, skin_weights, pinned: as :func:`build_garment`.
+        body: the body in its rest pose (vertices, joints, skeleton, faces).
+        face_uv: ``[F, 3, 2]`` material coordinates (default: each rest triangle laid
+            flat, :meth:`ClothRest.from_mesh`).
+        density: surface density (kg/m^2) for the vertex masses.
+        nystrom_dim, num_landmarks: the Nyström features (zero-padded to ``nystrom_dim``
+            columns on meshes with fewer landmarks).
+    """
+    if not isinstance(body, Body):
+        raise TypeError(f"`body`: expected a garmentgnn.body.Body, got {type(body).__name__}")
+    bverts, joints = body.vertices.float(), body.joints.float()
+    out = build_garment(torch.as_tensor(rest_pos).float(), faces,
+                        torch.as_tensor(skin_weights).float(), joints, body.skeleton.parents,
+                        pinned)
+    V = out.num_vertices
+    ny = geodesic_nystrom_features(out.rest_pos.double(), out.faces, k=nystrom_dim,
+                                   num_landmarks=num_landmarks).float()
+    if ny.shape[1] < nystrom_dim:  # tiny meshes: fewer landmarks than k
+        ny = torch.cat([ny, ny.new_zeros(V, nystrom_dim - ny.shape[1])], 1)
+    face_uv = None if face_uv is None else torch.as_tensor(face_uv).float()
+    rest = ClothRest.from_mesh(out.rest_pos, out.faces, face_uv)
+    out.nystrom, out.rest = ny, rest
+    out.mass = rest.vertex_masses(density, V).float()
+    out.body_joint_dists = torch.cdist(bverts, joints)
+    out.body_faces = body.faces.long()
+    if face_uv is not None:
+        out.face_uv = face_uv
+    return out
+
+
+def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translation: Tensor,
+                frames: Tensor, history: int, gt: Optional[Tensor] = None,
+                seq_id: Optional[str] = None) -> GarmentInputs:
+    """``static`` plus frames ``frames`` of a motion.
+
+    Args:
+        body: the rest body (posed here for ``body_pos``).
+        rotations, translation: the whole motion, ``[T, S, 3]`` and ``[T, 3]``.
+        frames: ``[B]`` frame indices.
+        history: previous poses per frame (``H = history + 1 >= 2``).
+        gt: ``[B, V, 3]`` the simulated garment of those frames, or ``None``.
+    """
+    if not isinstance(history, int) or history < 1:
+        raise ValueError(f"`history`: expected an int >= 1 (GarTrans needs H >= 2), got "
+                         f"{history!r}")
+    rotations, translation = rotations.float(), translation.float()
+    T = rotations.shape[0]
+    frames = torch.as_tensor(frames).long()
+    if frames.numel() and not (0 <= int(frames.min()) and int(frames.max()) < T):
+        raise ValueError(f"`frames`: indices must lie in [0, {T}), got "
+                         f"[{int(frames.min())}, {int(frames.max())}]")
+    hist = (frames.view(-1, 1) + torch.arange(-history, 1).view(1, -1)).clamp_min(0)  # [B, H]
+    with torch.no_grad():
+        dt = body.vertices.dtype
+        bpos, _ = body.pose(rotations[frames].to(dt), translation[frames].to(dt))
+    out = copy.copy(static)
+    out.rotations, out.translation = rotations[hist], translation[hist]
+    out.body_pos, out.frames = bpos.float(), frames
+    if gt is not None:
+        gt = torch.as_tensor(gt).float()
+        if gt.shape != (frames.shape[0], static.num_vertices, 3):
+            raise ValueError(f"`gt`: expected [{frames.shape[0]}, {static.num_vertices}, 3], "
+                             f"got {tuple(gt.shape)}")
+        out.gt = gt
+    if seq_id is not None:
+        out.seq_id = seq_id
+    return out
+

@@ -1,0 +1,167 @@
+"""The DA-, HOOD- and NCS-style baselines as one LightningModule, trained by the same
+Lightning ``Trainer``, data module (:class:`GarmentDataModule`: one chunk per step, the
+epoch order of :class:`EpochShuffleSampler`) and checkpointing as GarTrans.  A method
+is a model plus its losses plus a configuration (``garmentgnn/configs/baselines/*.yaml``,
+:func:`garmentgnn.training.configs.load_config`):
+
+* ``da`` (:class:`~garmentgnn.models.baselines.DAStyle`): supervised, the supervised
+  terms of :class:`GarTransLoss` against the simulated garment; predicts each frame
+  from its pose.
+* ``hood`` (:class:`~garmentgnn.models.baselines.HOODStyle`): the physics terms only
+  (inertia included); trained one step at a time on its own rollout of each chunk,
+  started from the LBS garment of the two frames before the chunk, inputs detached
+  between steps; predicts by an autoregressive rollout over the whole input from the
+  LBS garment of its first two frames, pinned vertices driven by LBS.
+* ``ncs`` (:class:`~garmentgnn.models.baselines.NCSStyle`): garment-specific and
+  self-supervised -- the physics terms on its own predictions of three consecutive
+  frames; the chunks' simulated positions are removed before the loss ever sees them.
+  One module per garment (``num_vertices``).
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Tuple
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from garmentgnn.losses.gartrans_loss import NonFiniteLossError, GarTransLoss
+from garmentgnn.models.baselines import CoarseLevel, DAStyle, HOODStyle, NCSStyle
+from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.training.integrity import stamp_checkpoint, verify_checkpoint
+from garmentgnn.training.module import loss_inputs
+
+__all__ = ["BASELINE_METHODS", "BaselineModule"]
+
+#: the methods this module trains
+BASELINE_METHODS = ("da", "hood", "ncs")
+
+
+class BaselineModule(L.LightningModule):
+    """Args:
+        method: ``"da"``, ``"hood"`` or ``"ncs"``.
+        num_joints: ``S`` (from :attr:`GarmentDataModule.dims`).
+        num_vertices: the garment's vertex count (``ncs`` only: one model per garment).
+        model: keyword arguments of the model class.
+        lr: Adam learning rate.
+        loss: :class:`GarTransLoss` settings (``enabled``, ``weights``, ...).
+        coarse: ``hood``'s coarse level (``ratio``, ``k`` of :meth:`CoarseLevel.build`).
+        fps: frame rate (``dt = 1 / fps``).
+        history: the data module's pose history (``ncs`` reads ``model.history + 2``
+            poses per frame from it).
+        num_body_vertices, nystrom_dim: accepted (and ignored) so the data module's
+            sizes can be linked as for GarTrans.
+    """
+
+    def __init__(self, method: str, num_joints: int, num_vertices: Optional[int] = None,
+                 model: Optional[Dict[str, Any]] = None, lr: float = 1e-3,
+                 loss: Optional[Dict[str, Any]] = None, coarse: Optional[Dict[str, Any]] = None,
+                 fps: float = 30.0, history: int = 3, num_body_vertices: Optional[int] = None,
+                 nystrom_dim: Optional[int] = None) -> None:
+        super().__init__()
+        if method not in BASELINE_METHODS:
+            raise ValueError(f"`method`: expected one of {BASELINE_METHODS}, got {method!r}")
+        self.save_hyperparameters()
+        kw = dict(model or {})
+        self.dt = 1.0 / fps
+        if method == "da":
+            self.model = DAStyle(num_joints, **kw)
+        elif method == "hood":
+            self.model = HOODStyle(dt=self.dt, **kw)
+        else:
+            if not isinstance(num_vertices, int) or num_vertices < 1:
+                raise ValueError(f"`num_vertices`: the NCS-style model is garment-specific; "
+                                 f"give the garment's vertex count, got {num_vertices!r}")
+            h = int(kw.get("history", 1))
+            if history + 1 < h + 3:
+                raise ValueError(f"`history`: NCS with model history {h} needs a data "
+                                 f"history >= {h + 2}, got {history}")
+            self.model = NCSStyle(num_vertices, num_joints, **kw)
+        lk = dict(loss or {})
+        self.loss_fn = GarTransLoss(lk.pop("weights", None), **lk)
+        self._coarse: Dict[str, CoarseLevel] = {}  # HOOD's coarse level per sequence
+
+    # -- pieces ---------------------------------------------------------------------
+    def coarse_level(self, inp: GarmentInputs) -> CoarseLevel:
+        """HOOD's coarse level of ``inp``'s garment (built once per sequence)."""
+        key = inp.get("seq_id") or str(id(inp.rest_pos))
+        if key not in self._coarse:
+            c = self.hparams.coarse or {}
+            self._coarse[key] = CoarseLevel.build(inp.rest_pos, inp.faces, **c)
+        return self._coarse[key]
+
+    def _ncs_poses(self, inp: GarmentInputs, j: int) -> Tuple[Tensor, Tensor]:
+        """(rotations ``[B, h + 1, S, 3]``, translation ``[B, 3]``) ending at history
+        slot ``j`` of ``inp``."""
+        h = self.model.history
+        end = inp.rotations.shape[1] + j + 1
+        return inp.rotations[:, end - h - 1:end], inp.translation[:, end - 1]
+
+    # -- prediction -----------------------------------------------------------------
+    def forward(self, inp: GarmentInputs) -> Tensor:
+        """The garment ``[B, V, 3]`` of every frame of ``inp`` (HOOD: a rollout over
+        the frames in order, from the LBS garment of the first two)."""
+        m = self.hparams.method
+        if m == "da":
+            return self.model(inp, inp.rotations[:, -1], inp.translation[:, -1])
+        if m == "ncs":
+            return self.model(inp, *self._ncs_poses(inp, -1))
+        lbs = inp.skinned()
+        if lbs.shape[0] < 2:
+            raise ValueError("`inp`: a HOOD-style rollout needs at least 2 frames")
+        return self.model.rollout(inp, self.coarse_level(inp), lbs[0], lbs[1], inp.body_pos,
+                                  pinned_targets=lbs)
+
+    def step_batch(self, inp: GarmentInputs) -> Tensor:
+        """One call predicting every frame of ``inp`` independently (the timing sweep):
+        ``hood`` takes one autoregressive step per frame from the LBS garment of the
+        two frames before it."""
+        if self.hparams.method != "hood":
+            return self(inp)
+        return self.model.step(inp, self.coarse_level(inp), inp.history_slot(-3).skinned(),
+                               inp.history_slot(-2).skinned(), inp.body_pos, inp.skinned())
+
+    # -- training -------------------------------------------------------------------
+    def compute_loss(self, inp: GarmentInputs) -> Tuple[Tensor, Dict[str, Tensor]]:
+        m = self.hparams.method
+        if m == "da":
+            return self.loss_fn(loss_inputs(inp, self(inp), self.dt))
+        if m == "ncs":
+            inp = inp.without_ground_truth()  # self-supervised: never the simulation
+            p = [self.model(inp, *self._ncs_poses(inp, j)) for j in (-1, -2, -3)]
+            return self.loss_fn(loss_inputs(inp, p[0], self.dt, predicted=2 * p[1] - p[2],
+                                            ground_truth=False))
+        coarse = self.coarse_level(inp)
+        lbs = inp.skinned()
+        first = inp.select(torch.tensor([0]))
+        x_prev = first.history_slot(-3).skinned()[0]  # frame t0 - 2 (clamped at 0)
+        x_curr = first.history_slot(-2).skinned()[0]  # frame t0 - 1
+        preds, inertial = [], []
+        for b in range(lbs.shape[0]):  # one step at a time on its own rollout
+            nxt = self.model.step(inp, coarse, x_prev[None], x_curr[None],
+                                  inp.body_pos[b:b + 1], lbs[b:b + 1])[0]
+            preds.append(nxt)
+            inertial.append(2 * x_curr - x_prev)
+            x_prev, x_curr = x_curr, nxt.detach()
+        return self.loss_fn(loss_inputs(inp, torch.stack(preds), self.dt,
+                                        predicted=torch.stack(inertial), ground_truth=False))
+
+    def training_step(self, batch: GarmentInputs, batch_idx: int) -> Tensor:
+        total, terms = self.compute_loss(batch)
+        if not torch.isfinite(total):
+            raise NonFiniteLossError(f"loss 'total' is {float(total)}")
+        B = batch.num_frames
+        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B)
+        for k, v in terms.items():
+            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B)
+        return total
+
+    def configure_optimizers(self):
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+    # -- checkpoint integrity (garmentgnn.training.integrity) ---------------------------
+    def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        stamp_checkpoint(checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        verify_checkpoint(checkpoint)

@@ -1,0 +1,82 @@
+"""The training configurations: YAML files shipped inside the package
+(``garmentgnn/configs/``), read by ``garmentgnn train`` (LightningCLI's ``--config``)
+and by the bench alike, so a method's settings are written down once.
+
+* ``gartrans.yaml``: the full model, its data module, trainer and schedule;
+* ``ablations/<name>.yaml``: what each Table 1 ablation changes on top of it;
+* ``baselines/<name>.yaml``: the :class:`~garmentgnn.training.BaselineModule` settings
+  of the DA-, HOOD- and NCS-style baselines.
+
+``garmentgnn train fit --config gartrans --config ablations/wo_gating`` names packaged
+files without their folder or ``.yaml`` (:func:`resolve_config_args`).
+"""
+from __future__ import annotations
+
+import copy
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+import yaml
+
+__all__ = ["available", "config_path", "load_config", "resolve_config_args",
+           "schedule_args"]
+
+_ROOT = resources.files("garmentgnn") / "configs"
+
+
+def available() -> List[str]:
+    """The packaged configurations, as names (``"gartrans"``, ``"ablations/gat"``, ...)."""
+    root = Path(str(_ROOT))
+    return sorted(str(p.relative_to(root).with_suffix("")) for p in root.rglob("*.yaml"))
+
+
+def config_path(name: str) -> Path:
+    """The file of packaged configuration ``name`` (``"gartrans"``, ``"ablations/gat"``);
+    ``ValueError`` listing the names when there is no such file."""
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"`name`: expected a configuration name, got {name!r}")
+    path = Path(str(_ROOT)) / (name[:-5] if name.endswith(".yaml") else name)
+    path = path.with_suffix(".yaml")
+    if not path.is_file():
+        raise ValueError(f"`name`: no packaged configuration {name!r}; choose from {available()}")
+    return path
+
+
+@lru_cache(maxsize=None)
+def _load(name: str) -> Dict[str, Any]:
+    return yaml.safe_load(config_path(name).read_text()) or {}
+
+
+def load_config(name: str) -> Dict[str, Any]:
+    """Packaged configuration ``name`` as a plain dict (a fresh copy on every call)."""
+    return copy.deepcopy(_load(name))
+
+
+def schedule_args(config: Dict[str, Any]) -> Optional[Dict[str, Any]]:
+    """The ``init_args`` of the :class:`ProgressiveSchedule` callback in a configuration's
+    ``trainer.callbacks`` (``None`` when it lists none)."""
+    for cb in (config.get("trainer") or {}).get("callbacks") or []:
+        if str(cb.get("class_path", "")).endswith("ProgressiveSchedule"):
+            return dict(cb.get("init_args") or {})
+    return None
+
+
+def resolve_config_args(args: Sequence[str]) -> List[str]:
+    """``args`` with each ``--config NAME`` (or ``--config=NAME``) that is not an existing
+    file but a packaged configuration's name replaced by that file's path."""
+    out = list(args)
+    for i, a in enumerate(out):
+        if a == "--config" and i + 1 < len(out):
+            j, value, prefix = i + 1, out[i + 1], ""
+        elif a.startswith("--config="):
+            j, value, prefix = i, a.split("=", 1)[1], "--config="
+        else:
+            continue
+        if not Path(value).exists() and "\n" not in value and ":" not in value:
+            try:
+                out[j] = prefix + str(config_path(value))
+            except (ValueError, TypeError):
+                pass  # not a packaged name either: LightningCLI reports it
+    return out
