@@ -33,7 +33,7 @@ from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
 from test_training import NY, root  # noqa: F401  (module-scoped toy dataset)
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = str(ROOT / "configs" / "gartrans.yaml")
+CONFIG = str(ROOT / "src" / "garmentgnn" / "configs" / "gartrans.yaml")
 
 
 def env():

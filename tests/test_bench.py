@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from conftest import numbers
-from garmentgnn.bench import harness, precision, report, stability, timing
+from garmentgnn.bench import harness, precision, presets, report, stability, tables, timing
 from garmentgnn.cli import main as cli_main
 
 
@@ -20,13 +20,13 @@ from garmentgnn.cli import main as cli_main
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     t0 = time.perf_counter()
-    summary = harness.run(harness.preset("tiny"), out, progress=False, learned=False)
+    summary = harness.run(presets.preset("tiny"), out, progress=False, learned=False)
     return out, summary, time.perf_counter() - t0
 
 
 def test_tiny_preset_report(tiny_run):
     out, summary, seconds = tiny_run
-    p = harness.preset("tiny")
+    p = presets.preset("tiny")
     expected = len(harness.tasks(p, [0]))
     assert summary.ran == expected and summary.skipped == 0
     for name in ("results.json", "report.md", "pareto.png", "scaling.png"):
@@ -63,7 +63,7 @@ def test_tiny_preset_report(tiny_run):
 def test_tiny_preset_extra_reports(tiny_run):
     """Scaling, leave-out, precision and long-sequence records and report sections."""
     out, _, _ = tiny_run
-    p = harness.preset("tiny")
+    p = presets.preset("tiny")
     recs = json.loads((out / "results.json").read_text())["records"]
     by_kind = {k: [r for r in recs if r["kind"] == k]
                for k in ("scaling", "leaveout", "precision", "long_sequence")}
@@ -98,7 +98,7 @@ def test_tiny_preset_extra_reports(tiny_run):
 def test_rerun_skips_finished_records(tiny_run):
     out, _, _ = tiny_run
     before = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
-    summary = harness.run(harness.preset("tiny"), out, progress=False, learned=False)
+    summary = harness.run(presets.preset("tiny"), out, progress=False, learned=False)
     assert summary.ran == 0 and summary.skipped == len(before)
     after = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
     assert after == before
@@ -110,7 +110,7 @@ def test_deleted_record_is_rerun_and_leftovers_removed(tiny_run):
     rec.unlink()
     stale = rec.with_name(f".{rec.name}.tmp-99999")
     stale.write_text('{"half": ')  # a killed writer's leftover
-    summary = harness.run(harness.preset("tiny"), out, progress=False, learned=False)
+    summary = harness.run(presets.preset("tiny"), out, progress=False, learned=False)
     assert summary.ran == 1
     assert json.loads(rec.read_text())["status"] == "ok"
     assert not stale.exists()
@@ -163,7 +163,7 @@ def test_report_refuses_non_finite_unless_failed(tmp_path):
 
 def test_pareto_front():
     pts = [("a", 1.0, 5.0), ("b", 10.0, 1.0), ("c", 10.0, 6.0), ("d", 0.5, 7.0)]
-    assert report.pareto_front(pts) == ["a", "b", "d"]
+    assert tables.pareto_front(pts) == ["a", "b", "d"]
 
 
 def test_timing_helpers():
@@ -191,7 +191,7 @@ def test_stability_verdicts_and_plugged_predictor():
     assert stability.verdict(m, True, 1)[0] == "degraded"
     assert stability.verdict(m, False, 0)[0] == "failed"
     assert stability.verdict(dict(m, nonfinite=3.0), True, 0)[0] == "failed"
-    item = harness.preset("tiny").stability_item
+    item = presets.preset("tiny").stability_item
 
     def exploding(seq):  # a learned method that blows up
         from garmentgnn.models.baselines import LBSBaseline
@@ -211,7 +211,7 @@ def test_stability_verdicts_and_plugged_predictor():
 
 
 def test_degenerate_and_extreme_cases_are_what_they_claim():
-    item = harness.preset("tiny").stability_item
+    item = presets.preset("tiny").stability_item
     seq, info = stability.stability_sequence("zero_area_face", item, 0)
     assert info["uv_area_m2"] == 0.0
     assert not bool(seq.rest.valid[info["face"]])
@@ -252,9 +252,9 @@ def test_register_and_cli_arguments(tmp_path):
     with pytest.raises(ValueError, match="factory"):
         harness.register("new", 3)
     with pytest.raises(ValueError, match="preset"):
-        harness.preset("huge")
+        presets.preset("huge")
     with pytest.raises(ValueError, match="seeds"):
-        harness.run(harness.preset("tiny"), tmp_path, seeds=0)
+        harness.run(presets.preset("tiny"), tmp_path, seeds=0)
     assert cli_main(["bench", "--out", str(tmp_path), "--seeds", "0"]) == 2
     assert not os.listdir(tmp_path)
     assert Path(harness.__file__).exists()

@@ -10,7 +10,7 @@ from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSc
 from garmentgnn.training.lightning_cli import main as train_main
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = Path(__file__).resolve().parents[1] / "src" / "garmentgnn" / "configs"
 VARIANTS = sorted(p.name for p in (CONFIGS / "ablations").glob("*.yaml"))
 
 

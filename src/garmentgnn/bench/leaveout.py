@@ -27,6 +27,7 @@ scene); all scenes are timed interleaved in one
 """
 from __future__ import annotations
 
+import copy
 import time
 import traceback
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -60,19 +61,21 @@ SHOULD_SKIP: Dict[str, Tuple[str, ...]] = {
 
 def scene_item(base: Dict[str, Any], scene: str) -> Dict[str, Any]:
     """``base`` (a :class:`~garmentgnn.bench.model_inputs.BenchChunks` item of the full
-    scene) turned into leave-out ``scene`` (a new dict; tensors are shared)."""
+    scene) turned into leave-out ``scene`` (a shallow copy: tensors are shared; a part the
+    scene does not have is removed)."""
     if scene not in SCENES:
         raise ValueError(f"`scene`: unknown {scene!r}; choose one of {sorted(SCENES)}")
-    item = dict(base)
+    item = copy.copy(base)
     if scene == "no_body":
-        item.update(body_joint_dists=None, body_pos=None, body_faces=None)
+        for k in ("body_joint_dists", "body_pos", "body_faces"):
+            del item[k]
     elif scene == "static_pose":
         r, t = base["rotations"], base["translation"]
-        item.update(rotations=r[:1, :1].expand_as(r).contiguous(),
-                    translation=t[:1, :1].expand_as(t).contiguous(),
-                    body_pos=base["body_pos"][:1].expand_as(base["body_pos"]).contiguous())
+        item.update({"rotations": r[:1, :1].expand_as(r).contiguous(),
+                     "translation": t[:1, :1].expand_as(t).contiguous(),
+                     "body_pos": base["body_pos"][:1].expand_as(base["body_pos"]).contiguous()})
     elif scene == "no_uvs":
-        item["rest"] = None
+        del item["rest"]
     return item
 
 

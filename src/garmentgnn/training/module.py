@@ -114,7 +114,7 @@ class GarTransModule(L.LightningModule):
         hp = self.hparams
         return self.model.encode_static(
             inp.rest_pos, inp.faces, inp.edge_index, inp.rest_joints, inp.nystrom,
-            inp.body_joint_dists if hp.use_body else None,
+            inp.get("body_joint_dists") if hp.use_body else None,
             inp.skin_weights if hp.get("skin_prior", False) else None)
 
     def forward(self, inp: GarmentInputs, static: StaticFeatures | None = None,
