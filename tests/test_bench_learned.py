@@ -107,6 +107,9 @@ def test_every_method_produces_a_finite_record(flow, data):
         assert (out / "models" / f"{tables.slug(name)}--s0" / "last.ckpt").exists()
     assert by["GarTrans w/o unsupervised loss"]["config"]["schedule"]["max_phase"] == 1
     assert by[methods.NCS]["models"] == 1  # one per test garment
+    for m in (methods.DA, methods.HOOD, methods.NCS):  # the report animation's panels
+        P = np.load(out / "media" / "predictions" / f"{tables.slug(m)}.npy")
+        assert P.shape[0] == 4 and P.shape[2] == 3 and np.isfinite(P).all()
     assert len(list((out / "models" / "NCS-style--s0").glob("garment*/last.ckpt"))) == 1
     # the methods differ (they are not all LBS in disguise)
     assert len({round(r["metrics"]["E_dist"], 9) for r in recs}) > 3

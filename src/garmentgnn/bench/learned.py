@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import json
 import logging
 import time
@@ -212,6 +213,8 @@ class LearnedRunner:
             pred, info = self.trained(method, seed)
             rec.update(info)
             rec["metrics"], rec["test_frames"] = self.evaluate(pred)
+            if method in BASELINES and seed == 0:
+                self.save_prediction(method, pred)
             rec["timing"] = self.timing(pred)
             rec.update(status="ok", message="ok")
         except Exception as err:
@@ -219,6 +222,20 @@ class LearnedRunner:
                        traceback=traceback.format_exc(limit=6))
         rec["seconds"] = time.perf_counter() - t0
         return rec
+
+    def save_prediction(self, method: str, pred: "_Predictor") -> Path:
+        """``OUT/media/predictions/<method>.npy``: ``method``'s ``[T, V, 3]`` prediction
+        of the first test sequence, a panel of the report's animation
+        (:mod:`garmentgnn.bench.page`)."""
+        import numpy as np
+        from garmentgnn.bench.page import MEDIA
+        item = self.test[0]
+        with torch.no_grad():
+            P = pred.predict(self.test, 0, item).float().numpy()
+        buf = io.BytesIO()
+        np.save(buf, P)
+        return store.atomic_write_bytes(self.out / MEDIA / "predictions" / f"{slug(method)}.npy",
+                                        buf.getvalue())
 
     def trained(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
         """``method`` trained with ``seed`` (trained, or resumed from its checkpoint, on

@@ -11,8 +11,9 @@ lines of the report's section.
 
 Methods that are not GarTrans checkpoints (the DA/HOOD/NCS-style baselines) appear when
 their prediction of that sequence is saved as ``OUT/media/predictions/<method>.npy``
-(``[T, V, 3]``, our vertex order; e.g. ``numpy.save`` of the bench predictor's output) or
-passed in ``predictions``; the bench does not save them itself.
+(``[T, V, 3]``, our vertex order; the bench's learned runner saves them for the first
+training seed, :meth:`~garmentgnn.bench.learned.LearnedRunner.save_prediction`) or passed
+in ``predictions``.
 
 A rerun with the same checkpoints, predictions and options reuses the files (the options
 and the files' sizes and times are kept in ``OUT/media/heldout.json``).  Set
@@ -148,9 +149,9 @@ def _markdown(info: Dict[str, Any], seed: int, models: Mapping[str, str],
                         ("html", "3D viewer (HTML)")) if f.get(k))
     errs = ", ".join(f"{name} {info['mean_error_cm'][name]:.2f} cm" for name in info["panels"]
                      if name in info["mean_error_cm"])
-    missing = "" if preds else (" The DA/HOOD/NCS-style baselines are not shown: the bench "
-                                f"does not save their predictions (put them in "
-                                f"`{MEDIA}/predictions/<method>.npy` to add panels).")
+    missing = "" if preds else (" The DA/HOOD/NCS-style baselines are not shown: no "
+                                f"`{MEDIA}/predictions/<method>.npy` was saved (they were "
+                                "not run).")
     lines = [f"Test sequence `{info['seq_id']}`, first {info['frames']} frames: "
              f"{' | '.join(info['panels'])} (the models of training seed {seed}). Every "
              "predicted garment is coloured by its per-vertex distance to the simulation "

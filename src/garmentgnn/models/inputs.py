@@ -27,7 +27,7 @@ Keys (``V`` garment vertices, ``S`` joints, ``Vb`` body vertices, ``B`` frames,
 from __future__ import annotations
 
 import copy
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -38,7 +38,8 @@ from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
 from garmentgnn.physics import ClothRest
 
-__all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "with_frames"]
+__all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "check_pose", "skin",
+           "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
 FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames")
@@ -90,10 +91,8 @@ class GarmentInputs(Data):
 
     def skinned(self) -> Tensor:
         """``[B, V, 3]``: the rest garment skinned to each frame with ``skin_weights``
-        (Eq. 1): the "LBS only" garment."""
-        A, _ = forward_kinematics(self.rotations[:, -1], self.rest_joints, self.parents,
-                                  self.translation[:, -1])
-        return linear_blend_skinning(self.rest_pos, self.skin_weights, A)
+        (Eq. 1, :func:`skin`): the "LBS only" garment."""
+        return skin(self, self.rotations[:, -1], self.translation[:, -1])[0]
 
     def without_ground_truth(self) -> "GarmentInputs":
         """A shallow copy without ``gt`` (for methods that must never see it)."""
@@ -101,6 +100,37 @@ class GarmentInputs(Data):
         if "gt" in out:
             del out.gt
         return out
+
+
+def check_pose(scene: GarmentInputs, rotations: Tensor, translation: Optional[Tensor],
+                name: str = "rotations") -> None:
+    if rotations.dim() != 3 or rotations.shape[1:] != (scene.num_joints, 3):
+        raise ValueError(f"`{name}`: expected [B, {scene.num_joints}, 3] axis-angle, got "
+                         f"{tuple(rotations.shape)}")
+    if translation is not None and translation.shape != (rotations.shape[0], 3):
+        raise ValueError(f"`translation`: expected [{rotations.shape[0]}, 3], got "
+                         f"{tuple(translation.shape)}")
+
+
+def skin(scene: GarmentInputs, rotations: Tensor, translation: Optional[Tensor] = None,
+         offsets: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+    """Linear blend skinning (Eq. 1) of the rest garment, plus optional canonical offsets.
+
+    Args:
+        rotations: ``[B, S, 3]`` local axis-angle joint rotations.
+        translation: ``[B, 3]`` root translation (default zero).
+        offsets: ``[B, V, 3]`` added to the rest vertices *before* skinning.
+
+    Returns:
+        ``(positions [B, V, 3], posed joints [B, S, 3])`` in the dtype of ``rest_pos``
+        (the computation follows the simulator's: kinematics in that dtype).
+    """
+    check_pose(scene, rotations, translation)
+    dt = scene.rest_pos.dtype
+    A, joints = forward_kinematics(rotations.to(dt), scene.rest_joints.to(dt), scene.parents,
+                                   None if translation is None else translation.to(dt))
+    verts = scene.rest_pos if offsets is None else scene.rest_pos + offsets
+    return linear_blend_skinning(verts, scene.skin_weights.to(dt), A), joints
 
 
 def build_garment(rest_pos: Tensor, faces: Tensor, skin_weights: Tensor, rest_joints: Tensor,

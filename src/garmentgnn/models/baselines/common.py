@@ -1,46 +1,15 @@
-"""What the baselines share: skinning a garment (Eq. 1) and small MLPs."""
+"""What the baselines share: small MLPs and the LBS baseline (skinning itself is
+:func:`garmentgnn.models.inputs.skin`, re-exported here)."""
 from __future__ import annotations
 
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Sequence
 
 import torch
 from torch import Tensor, nn
 
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
-from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.models.inputs import GarmentInputs, check_pose, skin
 
 __all__ = ["LBSBaseline", "check_pose", "mlp", "skin", "small_init_"]
-
-
-def check_pose(scene: GarmentInputs, rotations: Tensor, translation: Optional[Tensor],
-                name: str = "rotations") -> None:
-    if rotations.dim() != 3 or rotations.shape[1:] != (scene.num_joints, 3):
-        raise ValueError(f"`{name}`: expected [B, {scene.num_joints}, 3] axis-angle, got "
-                         f"{tuple(rotations.shape)}")
-    if translation is not None and translation.shape != (rotations.shape[0], 3):
-        raise ValueError(f"`translation`: expected [{rotations.shape[0]}, 3], got "
-                         f"{tuple(translation.shape)}")
-
-
-def skin(scene: GarmentInputs, rotations: Tensor, translation: Optional[Tensor] = None,
-         offsets: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
-    """Linear blend skinning (Eq. 1) of the rest garment, plus optional canonical offsets.
-
-    Args:
-        rotations: ``[B, S, 3]`` local axis-angle joint rotations.
-        translation: ``[B, 3]`` root translation (default zero).
-        offsets: ``[B, V, 3]`` added to the rest vertices *before* skinning.
-
-    Returns:
-        ``(positions [B, V, 3], posed joints [B, S, 3])`` in the dtype of ``rest_pos``
-        (the computation follows the simulator's: kinematics in that dtype).
-    """
-    check_pose(scene, rotations, translation)
-    dt = scene.rest_pos.dtype
-    A, joints = forward_kinematics(rotations.to(dt), scene.rest_joints.to(dt), scene.parents,
-                                   None if translation is None else translation.to(dt))
-    verts = scene.rest_pos if offsets is None else scene.rest_pos + offsets
-    return linear_blend_skinning(verts, scene.skin_weights.to(dt), A), joints
 
 
 def mlp(sizes: Sequence[int], act: type = nn.ELU, norm: bool = False) -> nn.Sequential:
