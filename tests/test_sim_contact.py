@@ -87,7 +87,8 @@ def sliding_patch(mu: float, v0: float = 0.5):
     normal = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     g = patch_on_plane(normal, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
     mat = replace(COTTON, friction=mu)
-    system = ClothSystem(g.vertices, g.faces, mat, g.face_uv, colliders=[Plane()])
+    system = ClothSystem(g.vertices, g.faces, mat, g.face_uv, colliders=[Plane()],
+                         settings=SimSettings(friction=True))
     # start in the penalty equilibrium (the weight carried by the contact)
     x = g.vertices.double()
     x[:, 2] -= (system.mass * G / (3 * 1e6)).sqrt()
@@ -102,6 +103,24 @@ def sliding_patch(mu: float, v0: float = 0.5):
         xs.append(x)
         vs.append(v)
     return system, torch.stack(xs), torch.stack(vs)
+
+
+def test_friction_is_off_unless_switched_on():
+    """``SimSettings.friction`` defaults to off: mu is then ignored (the patch keeps
+    sliding as without friction)."""
+    normal = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    g = patch_on_plane(normal, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    system = ClothSystem(g.vertices, g.faces, replace(COTTON, friction=0.5), g.face_uv,
+                         colliders=[Plane()])
+    assert not system.settings.friction
+    x = g.vertices.double()
+    x[:, 2] -= 1e-3  # pressed into the floor: the contacts carry a normal force
+    assert not system.has_friction(system.contact_planes(x, None))
+    on = ClothSystem(g.vertices, g.faces, replace(COTTON, friction=0.5), g.face_uv,
+                     colliders=[Plane()], settings=SimSettings(friction=True))
+    assert on.has_friction(on.contact_planes(x, None))
+    with pytest.raises(ValueError, match="friction"):
+        SimSettings(friction=1)
 
 
 def test_friction_only_removes_energy_and_stops_at_coulomb_distance():

@@ -288,7 +288,7 @@ class AttentionConv(LayerContract):
         lin, skip = self.lin_out, self.lin_skip
         lazy = any(isinstance(p, UninitializedParameter)
                    for m in (lin, skip) if m is not None for p in m.parameters())
-        if lazy:
+        if lazy or torch.is_autocast_enabled(out.device.type):  # autocast: per-op dtypes
             return lin(out) + (x_dst if skip is None else skip(x_dst))
         # residual (and both biases) first, then one matmul accumulating into it:
         # one pass over the output fewer than linear + add
