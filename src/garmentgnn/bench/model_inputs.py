@@ -58,7 +58,6 @@ class BenchChunks(SequenceChunks):
         self._seqs = store.LRUCache(1)
         self._static = store.LRUCache(1)
         self.num_file_loads = self.num_static_builds = 0
-        self.has_gt = gt is not None
         g, m = seq.garment, seq.motion
         positions = (gt.detach().float().numpy() if gt is not None
                      else np.zeros((T, 0, 3), np.float32))

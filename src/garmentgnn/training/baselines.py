@@ -112,15 +112,6 @@ class BaselineModule(L.LightningModule):
         return self.model.rollout(inp, self.coarse_level(inp), lbs[0], lbs[1], inp.body_pos,
                                   pinned_targets=lbs)
 
-    def step_batch(self, inp: GarmentInputs) -> Tensor:
-        """One call predicting every frame of ``inp`` independently (the timing sweep):
-        ``hood`` takes one autoregressive step per frame from the LBS garment of the
-        two frames before it."""
-        if self.hparams.method != "hood":
-            return self(inp)
-        return self.model.step(inp, self.coarse_level(inp), inp.history_slot(-3).skinned(),
-                               inp.history_slot(-2).skinned(), inp.body_pos, inp.skinned())
-
     # -- training -------------------------------------------------------------------
     def compute_loss(self, inp: GarmentInputs) -> Tuple[Tensor, Dict[str, Tensor]]:
         m = self.hparams.method
