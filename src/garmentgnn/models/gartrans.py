@@ -200,14 +200,19 @@ class GarTrans(nn.Module):
             that shortens the edges of ``M^{t,d}`` longer than on the rest garment
             (:func:`garmentgnn.geometry.project_edge_lengths` with ``stretch_only``:
             Provot's strain limiting); ``0`` (the paper): none.
+        compile_search: run the projection's nearest-face search through
+            ``torch.compile`` (``compiled`` of :func:`garmentgnn.geometry.signed_distance`;
+            the same result, faster on CPU after a one-off compile).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
                  heads: int = 4, fps: float = 30.0, edge_dim: int = 4,
                  lbs_start: bool = False, collision_projection: Optional[float] = None,
-                 blend_shape: bool = True, strain_limit: int = 0) -> None:
+                 blend_shape: bool = True, strain_limit: int = 0,
+                 compile_search: bool = False) -> None:
         super().__init__()
+        self.compile_search = bool(compile_search)
         if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
             raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got "
                              f"{strain_limit!r}")
@@ -398,7 +403,8 @@ class GarTrans(nn.Module):
             if body_faces is None:
                 raise ValueError("`body_faces`: needed with `body_pos` for the collision "
                                  "projection")
-            final = push_outside(final, body_pos, body_faces, self.collision_projection)
+            final = push_outside(final, body_pos, body_faces, self.collision_projection,
+                                 compiled=self.compile_search)
         return {"final": final, "coarse": cur, "accel": accel, "weights": W}
 
     def rollout(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,

@@ -169,15 +169,17 @@ def inertia_energy(pos: Tensor, predicted: Tensor, mass: Tensor, dt: float,
 def collision_energy(pos: Tensor, body_pos: Tensor, body_faces: Tensor, margin: float,
                      stiffness: float, power: int = 1, reduce: str = "sum",
                      distance: Optional[Tensor] = None,
-                     candidates: Optional[int] = None) -> Tensor:
+                     candidates: Optional[int] = None, compiled: bool = False) -> Tensor:
     """``k sum_i max(eps - s(p_i), 0)^q``: ``q = 1`` is the paper's Eq. 10,
     ``q = 3`` HOOD's smooth penalty (used by the simulator).  ``distance`` may pass a
     precomputed ``s(p)`` (it must have been computed from ``pos`` to carry gradients);
-    ``candidates`` is passed to :func:`garmentgnn.geometry.signed_distance` (``None``:
-    exact brute force over all body faces)."""
+    ``candidates`` and ``compiled`` are passed to
+    :func:`garmentgnn.geometry.signed_distance` (``candidates=None``: exact brute force
+    over all body faces)."""
     if power not in (1, 2, 3):
         raise ValueError(f"`power` must be 1, 2 or 3, got {power}")
-    s = (signed_distance(pos, body_pos, body_faces, candidates=candidates).distance
+    s = (signed_distance(pos, body_pos, body_faces, candidates=candidates,
+                         compiled=compiled).distance
          if distance is None else distance)
     pen = torch.relu(margin - s)
     return _reduce(stiffness * pen ** power, reduce)

@@ -1,11 +1,13 @@
 """Lightning training: chunked sequence data, the GarTrans and baseline LightningModules,
-the progressive schedule callback (paper §4.1) and the packaged configurations."""
+the progressive schedule callback (paper §4.1), a wall-clock training budget and the
+packaged configurations."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
            GarmentDataModule,
            SequenceChunks,
 )
 from garmentgnn.training.baselines import BaselineModule
+from garmentgnn.training.budget import TimeBudget
 from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
 
@@ -18,5 +20,6 @@ __all__ = [
            "GarmentDataModule",
            "ProgressiveSchedule",
            "SequenceChunks",
+           "TimeBudget",
            "loss_inputs",
 ]

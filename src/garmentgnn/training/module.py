@@ -62,6 +62,8 @@ class GarTransModule(L.LightningModule):
             paper).  Applied in training and inference alike.
         blend_shape: ``False`` leaves out GarTrans's blend shape ``B^t``.
         strain_limit: sweeps of GarTrans's strain-limiting step (``0``: none).
+        compile_search: ``torch.compile`` the nearest-body-face search of the collision
+            projection and the collision loss (same results; see docs/model.md).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -72,7 +74,7 @@ class GarTransModule(L.LightningModule):
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
                  use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True,
                  collision_projection: float | None = None, blend_shape: bool = True,
-                 strain_limit: int = 0) -> None:
+                 strain_limit: int = 0, compile_search: bool = False) -> None:
         super().__init__()
         if lbs_start and not skin_prior:
             raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
@@ -83,7 +85,8 @@ class GarTransModule(L.LightningModule):
                               rest_layer=rest_layer, blend_layer=blend_layer,
                               dynamic_layer=dynamic_layer, heads=heads, fps=fps,
                               lbs_start=lbs_start, collision_projection=collision_projection,
-                              blend_shape=blend_shape, strain_limit=strain_limit)
+                              blend_shape=blend_shape, strain_limit=strain_limit,
+                              compile_search=compile_search)
         # only one of the body code paths is ever used; freeze the other (DDP requires
         # every trainable parameter to receive a gradient)
         unused = self.model.body_default if use_body else self.model.body_fc
@@ -91,7 +94,8 @@ class GarTransModule(L.LightningModule):
         self.loss_fn = GarTransLoss(loss_weights, enabled=enabled,
                                     supervised_scale=supervised_scale,
                                     collision_margin=collision_margin,
-                                    edge_reduction=edge_reduction)
+                                    edge_reduction=edge_reduction,
+                                    compile_search=compile_search)
 
     # -- phase controls (used by ProgressiveSchedule) ---------------------------------
     def set_rest_branch_frozen(self, frozen: bool) -> None:
