@@ -2,7 +2,8 @@
 generated dataset (no learning; ground truth used where an oracle says so).
 
 For every ok sequence (``--split``; default all), with ``M_v(t) = sum_j W_vj A_j(t)`` the
-blended skinning transform of vertex ``v`` (Eq. 1) and ``x_v(t)`` the simulated garment:
+blended skinning transform of vertex ``v`` (Eq. 1,
+``GarmentInputs.skinning_transforms``) and ``x_v(t)`` the simulated garment:
 
 * ``lbs``: the rest garment skinned (``GarmentInputs.skinned``);
 * ``static oracle (in-sample)``: each vertex's simulated position un-skinned into the
@@ -34,31 +35,12 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics import vertex_distance
+from garmentgnn.metrics.split import posed, to_rest_frame
 from garmentgnn.training import SequenceChunks
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def blended_transforms(inp) -> torch.Tensor:
-    """``[T, V, 4, 4]``: each vertex's blended skinning transform per frame (float64)."""
-    A, _ = forward_kinematics(inp.rotations[:, -1].double(), inp.rest_joints.double(),
-                              inp.parents, inp.translation[:, -1].double())
-    return torch.einsum("vs,tsij->tvij", inp.skin_weights.double(), A)
-
-
-def to_rest(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """``M^-1 x`` per frame and vertex: ``[T, V, 3]``."""
-    xh = torch.cat([x.double(), torch.ones_like(x[..., :1]).double()], -1)
-    return torch.linalg.solve(M, xh.unsqueeze(-1)).squeeze(-1)[..., :3]
-
-
-def skin(M: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
-    """``M rest`` with ``rest [V, 3]`` (one shape for every frame): ``[T, V, 3]``."""
-    rh = torch.cat([rest, torch.ones_like(rest[..., :1])], -1)
-    return torch.einsum("tvij,vj->tvi", M, rh)[..., :3]
 
 
 def main() -> None:
@@ -72,12 +54,12 @@ def main() -> None:
         for i in range(len(ds)):
             inp = ds[i]
             rec = ds.records[ds.index[i][0]]
-            M = blended_transforms(inp)
+            M = inp.skinning_transforms()
             gt = inp.gt.double()
             seqs.append({"id": rec["id"], "split": rec["split"], "M": M, "gt": gt,
                          "lbs": inp.skinned().double(),
                          "key": (garment_key(rec["garment"]), body_key(rec["body"])),
-                         "rest_mean": to_rest(M, gt).mean(0)})
+                         "rest_mean": to_rest_frame(M, gt).mean(0)})
     groups = defaultdict(list)
     for s in seqs:
         groups[s["key"]].append(s)
@@ -89,10 +71,10 @@ def main() -> None:
         if args.split is not None and s["split"] != args.split:
             continue
         T = s["gt"].shape[0]
-        preds = {"lbs": s["lbs"], "static oracle (in-sample)": skin(s["M"], s["rest_mean"])}
+        preds = {"lbs": s["lbs"], "static oracle (in-sample)": posed(s["M"], s["rest_mean"])}
         others = [o["rest_mean"] for o in groups[s["key"]] if o is not s]
         if others:
-            preds["static oracle (other motion)"] = skin(s["M"], torch.stack(others).mean(0))
+            preds["static oracle (other motion)"] = posed(s["M"], torch.stack(others).mean(0))
         row = {"id": s["id"], "split": s["split"], "frames": T}
         for m, P in preds.items():
             e = float(vertex_distance(P, s["gt"]).mean())  # cm

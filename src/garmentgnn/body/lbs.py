@@ -60,6 +60,20 @@ def forward_kinematics(rotations: Tensor, rest_joints: Tensor, parents: Tensor,
     return A, G_t
 
 
+def blend_transforms(weights: Tensor, transforms: Tensor) -> Tensor:
+    """Each vertex's blended skinning transform ``M_i = sum_k w_ik A_k`` (Eq. 1).
+
+    Args:
+        weights: ``[V, S]`` (or ``[T, V, S]``) skinning weights, rows summing to 1.
+        transforms: ``[T, S, 4, 4]`` from :func:`forward_kinematics`.
+
+    Returns:
+        ``[T, V, 4, 4]``: ``M_i`` maps vertex ``i``'s rest position to its skinned one.
+    """
+    eq = "vs,tsij->tvij" if weights.dim() == 2 else "tvs,tsij->tvij"
+    return torch.einsum(eq, weights, transforms)
+
+
 def linear_blend_skinning(vertices: Tensor, weights: Tensor, transforms: Tensor) -> Tensor:
     """``v'_i = sum_k w_ik A_k v_i`` (Eq. 1).
 
@@ -71,6 +85,5 @@ def linear_blend_skinning(vertices: Tensor, weights: Tensor, transforms: Tensor)
     """
     T = transforms.shape[0]
     v = vertices.expand(T, *vertices.shape[-2:]) if vertices.dim() == 2 else vertices
-    eq = "vs,tsij->tvij" if weights.dim() == 2 else "tvs,tsij->tvij"
-    M = torch.einsum(eq, weights, transforms)  # [T, V, 4, 4]
+    M = blend_transforms(weights, transforms)  # [T, V, 4, 4]
     return (M[..., :3, :3] @ v.unsqueeze(-1)).squeeze(-1) + M[..., :3, 3]

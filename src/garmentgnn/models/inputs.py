@@ -34,7 +34,7 @@ from torch import Tensor
 from torch_geometric.data import Data
 
 from garmentgnn.body.body import Body
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
 from garmentgnn.physics import ClothRest
 
@@ -93,6 +93,15 @@ class GarmentInputs(Data):
         """``[B, V, 3]``: the rest garment skinned to each frame with ``skin_weights``
         (Eq. 1, :func:`skin`): the "LBS only" garment."""
         return skin(self, self.rotations[:, -1], self.translation[:, -1])[0]
+
+    def skinning_transforms(self, dtype: torch.dtype = torch.float64) -> Tensor:
+        """``[B, V, 4, 4]``: each vertex's blended skinning transform per frame,
+        ``M_v(t) = sum_j W_vj A_j(t)`` (Eq. 1; kinematics in ``dtype``): ``M_v(t)``
+        applied to ``rest_pos[v]`` is :meth:`skinned`, and ``M_v(t)^-1`` takes a posed
+        garment back to the rest frame."""
+        A, _ = forward_kinematics(self.rotations[:, -1].to(dtype), self.rest_joints.to(dtype),
+                                  self.parents, self.translation[:, -1].to(dtype))
+        return blend_transforms(self.skin_weights.to(dtype), A)
 
     def without_ground_truth(self) -> "GarmentInputs":
         """A shallow copy without ``gt`` (for methods that must never see it)."""
