@@ -99,3 +99,84 @@ def test_ddp_two_cpu_processes_gloo(root, tmp_path, phase):  # noqa: F811
     assert any(n.startswith("model.dynamic") for n in changed)
     rest = {n for n in before if n.split(".")[1] in ("rest_fc", "rest_attn", "nystrom_fc")}
     assert (rest & changed) == (set() if phase == 3 else rest)
+
+
+class _Record(L.Callback):
+    """Writes, per rank, the chunks it trained on (sequence id, first frame) and the
+    gradients the optimizer stepped with (after DDP's all-reduce / accumulation)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self.chunks, self.grads = path, [], []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.chunks.append((batch.seq_id, int(batch.frames[0])))
+
+    def on_before_optimizer_step(self, trainer, pl_module, optimizer):
+        self.grads.append({n: p.grad.detach().clone() for n, p in pl_module.named_parameters()
+                           if p.grad is not None})
+
+    def on_train_end(self, trainer, pl_module):
+        torch.save({"chunks": self.chunks, "grads": self.grads},
+                   self.path / f"rank{trainer.global_rank}.pt")
+
+
+def _fit_recorded(root, tmp_path, init, devices, accumulate):  # noqa: F811
+    from lightning.pytorch.strategies import DDPStrategy
+    tmp_path.mkdir()
+    dm = GarmentDataModule(root, chunk=2, history=2, nystrom_dim=NY, num_landmarks=16, seed=0)
+    module = GarTransModule(**dm.dims)
+    module.load_state_dict(init)
+    strategy = DDPStrategy(start_method="spawn") if devices > 1 else "auto"
+    trainer = L.Trainer(accelerator="cpu", devices=devices, strategy=strategy, max_epochs=1,
+                        accumulate_grad_batches=accumulate, limit_val_batches=0,
+                        logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, default_root_dir=str(tmp_path),
+                        callbacks=[_Record(tmp_path), ProgressiveSchedule()])
+    trainer.fit(module, dm)  # spawn: the trained weights come back to this process
+    recs = [torch.load(tmp_path / f"rank{r}.pt") for r in range(devices)]
+    return module, recs
+
+
+def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
+    return torch.allclose(a, b, rtol=1e-4, atol=1e-7 * float(b.abs().max()))
+
+
+@pytest.mark.slow
+def test_ddp_two_cpu_processes_equals_one_process_accumulating(root, tmp_path):  # noqa: F811
+    """DDP (2 CPU processes, gloo) averages the replicas' gradients: a step on chunks
+    (c0 on rank 0, c1 on rank 1) is the single-process step with
+    ``accumulate_grad_batches=2`` over (c0, c1), the data module handing the replicas
+    consecutive chunks of the one shuffled epoch order.  4 chunks: 2 Adamax steps.
+    Adamax is scale-invariant (a sum of the replicas' gradients would give the same
+    weights as their mean), so the gradients of both steps are compared too."""
+    dm = GarmentDataModule(root, chunk=2, history=2, nystrom_dim=NY, num_landmarks=16, seed=0)
+    L.seed_everything(0)
+    init = GarTransModule(**dm.dims)
+    assert len(dm.train_set) == 4
+    with torch.no_grad():  # open the lbs_start gates so every branch gets gradient at once
+        init.model.gates.fill_(0.5)
+    init = {k: v.clone() for k, v in init.state_dict().items()}
+
+    ddp, (r0, r1) = _fit_recorded(root, tmp_path / "ddp", init, devices=2, accumulate=1)
+    ref, (one,) = _fit_recorded(root, tmp_path / "one", init, devices=1, accumulate=2)
+    # the replicas' chunks of step k are the single process's chunks 2k and 2k+1, and the
+    # epoch order is shuffled (not the dataset order)
+    assert one["chunks"][0::2] == r0["chunks"] and one["chunks"][1::2] == r1["chunks"]
+    assert len(set(one["chunks"])) == 4 and one["chunks"] != sorted(one["chunks"])
+    assert len(one["grads"]) == len(r0["grads"]) == len(r1["grads"]) == 2
+    for g_one, g0, g1 in zip(one["grads"], r0["grads"], r1["grads"]):
+        assert g_one.keys() == g0.keys() == g1.keys()
+        for n in g_one:
+            assert torch.equal(g0[n], g1[n]), n  # the all-reduced gradient
+            assert _close(g0[n], g_one[n]), (n, (g0[n] - g_one[n]).abs().max())
+    moved = 0
+    for (n, p), q in zip(ddp.named_parameters(), ref.parameters()):
+        assert _close(p.detach(), q.detach()), (n, (p - q).abs().max())
+        moved += not torch.equal(p.detach(), init[n])
+    assert moved > 0.9 * len(init)  # nearly every parameter took both steps
+    # the check can fail: one process stepping on every chunk (4 steps) is far off
+    wrong, (w,) = _fit_recorded(root, tmp_path / "wrong", init, devices=1, accumulate=1)
+    assert not all(_close(p.detach(), q.detach())
+                   for p, q in zip(ddp.parameters(), wrong.parameters()))
+    assert not all(_close(a, b) for a, b in zip(w["grads"][0].values(),
+                                                  r0["grads"][0].values()))

@@ -142,9 +142,10 @@ class BaselineModule(L.LightningModule):
         if not torch.isfinite(total):
             raise NonFiniteLossError(f"loss 'total' is {float(total)}")
         B = batch.num_frames
-        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B)
+        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B,
+                 sync_dist=True)
         for k, v in terms.items():
-            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B)
+            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B, sync_dist=True)
         return total
 
     def configure_optimizers(self):

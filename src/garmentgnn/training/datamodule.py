@@ -26,7 +26,8 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset
+from torch.utils.data.distributed import DistributedSampler
 
 from garmentgnn.data import store
 from garmentgnn.body.factory import build_body
@@ -141,25 +142,46 @@ class SequenceChunks(Dataset):
                            seq_id=self.records[i]["id"])
 
 
-class EpochShuffleSampler(Sampler):
+class EpochShuffleSampler(DistributedSampler):
     """A permutation seeded by ``(seed, epoch)``: the order of an epoch does not depend
     on what ran before it, so a run resumed from a checkpoint sees the same batches as
-    an uninterrupted one (Lightning calls :meth:`set_epoch` every epoch)."""
+    an uninterrupted one (Lightning calls :meth:`set_epoch` every epoch).
 
-    def __init__(self, n: int, seed: int = 0, shuffle: bool = True) -> None:
-        self.n, self.seed, self.shuffle, self.epoch = n, seed, shuffle, 0
+    With ``num_replicas > 1`` (DDP) replica ``rank`` takes every ``num_replicas``-th
+    chunk of that one permutation (the tail padded with its first chunks, as
+    :class:`~torch.utils.data.DistributedSampler` does), so the replicas' chunks of one
+    step are consecutive chunks of the single-process order: ``W`` replicas equal one
+    process with ``accumulate_grad_batches=W``.  Being a ``DistributedSampler``, it is
+    not wrapped by Lightning's ``DistributedSamplerWrapper``, whose own shuffle (seeded
+    by ``PL_GLOBAL_SEED``) would reorder the permutation a second time.
+    """
+
+    def __init__(self, n: int, seed: int = 0, shuffle: bool = True, num_replicas: int = 1,
+                 rank: int = 0) -> None:
+        if not 0 <= rank < num_replicas:
+            raise ValueError(f"`rank`: expected 0 <= rank < num_replicas={num_replicas}, "
+                             f"got {rank}")
+        # the base class only shards positions (its own shuffle stays off)
+        super().__init__(range(n), num_replicas=num_replicas, rank=rank, shuffle=False)
+        self.n, self.seed, self.order_shuffle = n, seed, shuffle
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
-    def __iter__(self) -> Iterator[int]:
-        if not self.shuffle:
-            return iter(range(self.n))
+    def order(self) -> list[int]:
+        """The epoch's order of all ``n`` chunks (before sharding)."""
+        if not self.order_shuffle:
+            return list(range(self.n))
         g = torch.Generator().manual_seed(self.seed * 100003 + self.epoch)
-        return iter(torch.randperm(self.n, generator=g).tolist())
+        return torch.randperm(self.n, generator=g).tolist()
 
-    def __len__(self) -> int:
-        return self.n
+    def __iter__(self) -> Iterator[int]:
+        order = self.order()
+        return iter([order[i] for i in super().__iter__()])
+
+    def __repr__(self) -> str:
+        return (f"EpochShuffleSampler(n={self.n}, seed={self.seed}, "
+                f"shuffle={self.order_shuffle}, rank={self.rank}/{self.num_replicas})")
 
 
 def _identity(x):
@@ -231,15 +253,20 @@ class GarmentDataModule(L.LightningDataModule):
                 "num_body_vertices": st["body_joint_dists"].shape[0],
                 "nystrom_dim": self.nystrom_dim}
 
-    def _loader(self, ds: SequenceChunks, shuffle: bool) -> DataLoader:
-        return DataLoader(ds, batch_size=None, sampler=EpochShuffleSampler(len(ds), self.seed,
-                                                                           shuffle),
+    def _loader(self, ds: SequenceChunks, shuffle: bool, num_replicas: int = 1,
+                rank: int = 0) -> DataLoader:
+        sampler = EpochShuffleSampler(len(ds), self.seed, shuffle, num_replicas, rank)
+        return DataLoader(ds, batch_size=None, sampler=sampler,
                           num_workers=self.num_workers, collate_fn=_identity,
                           persistent_workers=self.num_workers > 0)
 
     def train_dataloader(self) -> DataLoader:
         self.setup()
-        dl = self._loader(self.train_set, self.shuffle)
+        trainer = getattr(self, "trainer", None)
+        world, rank = 1, 0
+        if trainer is not None and trainer._accelerator_connector.use_distributed_sampler:
+            world, rank = trainer.world_size, trainer.global_rank  # DDP: this replica's share
+        dl = self._loader(self.train_set, self.shuffle, world, rank)
         dl.sampler.set_epoch(self.start_epoch)
         return dl
 

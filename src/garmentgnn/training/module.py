@@ -145,10 +145,14 @@ class GarTransModule(L.LightningModule):
             vert_err = vertex_loss(out["final"], batch["gt"]).mean()  # metres, unscaled
         if not torch.isfinite(total):
             raise NonFiniteLossError(f"loss 'total' is {float(total)}")
-        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B)
-        self.log("train/vert_err", vert_err, on_step=False, on_epoch=True, batch_size=B)
+        # DDP: epoch means over every replica's chunks (a no-op on one process)
+        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B,
+                 sync_dist=True)
+        self.log("train/vert_err", vert_err, on_step=False, on_epoch=True, batch_size=B,
+                 sync_dist=True)
         for k, v in terms.items():
-            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B)
+            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B,
+                     sync_dist=True)
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
 

@@ -12,7 +12,8 @@
 :class:`GarTransLoss` -- e.g. ``bending`` -- on from phase ``extra_from`` on.
 
 The monitored values are epoch means accumulated by the callback itself from the
-training step outputs (``vert_err``: unscaled mean vertex distance; ``terms``), and
+training step outputs (``vert_err``: unscaled mean vertex distance; ``terms``; under
+DDP summed over the replicas, so every replica changes phase at the same epoch), and
 the phase, the histories and the transition epochs are part of :meth:`state_dict`, so a
 run resumed from a checkpoint continues in exactly the same phase.
 """
@@ -115,8 +116,12 @@ class ProgressiveSchedule(L.Callback):
         return (old - new) / max(abs(old), 1e-12)
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
-        if self._n:
-            self.history.append(self._sum / self._n)
+        # DDP: the mean over every replica's chunks, so all replicas switch phase together
+        total = trainer.strategy.reduce(torch.tensor([self._sum, float(self._n)],
+                                                     dtype=torch.float64), reduce_op="sum")
+        s, n = (float(v) for v in total)
+        if n:
+            self.history.append(s / n)
         pl_module.log("schedule/phase", float(self.phase))
         if self.phase >= self.max_phase or len(self.history) <= (self.window if self.phase == 1
                                                                   else self.window2):
