@@ -46,7 +46,7 @@ from typing import Any, Callable, Dict, List
 import numpy as np
 import torch
 
-from garmentgnn.bench.model_inputs import BenchChunks, forward_args, untrained_module
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import case_item, make_sequence
 from garmentgnn.bench.timing import measure, peak_memory
 from garmentgnn.models import gartrans as gartrans_mod
@@ -71,6 +71,13 @@ def motion_tensors(seq):
 
 
 # --------------------------------------------------------------------------- GarTrans
+def forward_args(it) -> tuple:
+    """The positional arguments after ``static`` of :meth:`GarTrans.forward` for the
+    model input ``it``."""
+    return (it.rest_pos, it.faces, it.edge_index, it.rest_joints, it.parents, it.rotations,
+            it.translation)
+
+
 def gartrans_rows(seq, it, batches: List[int], repeats: int, **module_kw) -> Dict[str, Any]:
     module = untrained_module(it, 0, **module_kw)
     model = module.model

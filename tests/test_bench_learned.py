@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from conftest import lbs_simulate, numbers
-from garmentgnn.bench import harness, learned, methods, presets, report, tables
+from garmentgnn.bench import harness, learned, methods, presets, report, scoring, tables
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, motion_key, store
 from garmentgnn.training import GarTransModule
@@ -89,7 +89,7 @@ def test_every_method_produces_a_finite_record(flow, data):
     for r in recs:
         assert r["kind"] == "learned" and r["status"] == "ok", (r["method"], r["message"])
         assert all(math.isfinite(x) for x in numbers(r)), r["method"]
-        assert set(r["metrics"]) == set(report.METRICS)
+        assert set(r["metrics"]) == set(report.METRICS) | set(scoring.SPLIT_METRICS)
         assert r["metrics"]["E_dist"] > 0
         assert r["test_frames"] == 4  # 1 test sequence x 4 frames
         t = r["timing"]
@@ -370,3 +370,39 @@ def test_bad_arguments(data, tmp_path):
     summary = harness.run(p2, tmp_path / "z", data=data, progress=False)
     rec = records_of(tmp_path / "z")[0]
     assert summary.failed == 1 and "another dataset or configuration" in rec["message"]
+
+
+@pytest.mark.slow
+def test_time_budget_seed_plan_and_long_run(data, tmp_path):
+    """A wall-clock budget per run, every seed for the full model and for the best
+    ablation and baseline of seed 0 only, and the long run; records carry the held-out
+    groups, the per-sequence results and the budget actually used."""
+    full = next(iter(methods.GARTRANS))
+    p = learned_only(seeds=2, epochs=3, minutes=0.002, epoch_chunks=1, seed_methods=(full,),
+                     long_minutes=0.003)
+    summary = harness.run(p, tmp_path, data=data, progress=False)
+    recs = [r for r in records_of(tmp_path) if r["kind"] == learned.KIND]
+    assert summary.failed == 0 and all(r["status"] == "ok" for r in recs)
+    seeds = {}
+    for r in recs:
+        seeds.setdefault(r["method"], set()).add(r["seed"])
+    seed0 = {r["method"]: r["metrics"]["E_dist"] for r in recs if r["seed"] == 0}
+    plan = methods.seed_plan(dataclasses.replace(p.learned), seed0)
+    assert {m: len(s) for m, s in seeds.items() if m != methods.LONG} == plan
+    assert sum(n == 2 for n in plan.values()) == 3 and seeds[methods.LONG] == {0}
+    for r in recs:
+        if r["method"] != methods.LBS:
+            want = 60 * (0.003 if r["method"] == methods.LONG else 0.002)
+            assert r["budget_seconds"] == pytest.approx(want)  # NCS-style: all its models
+            assert 1 <= r["epochs"] <= 3
+        assert set(r["groups"]) == {"unseen motion"}
+        assert [s["held_out"] for s in r["per_sequence"]] == [["motion"]]
+        assert r["groups"]["unseen motion"]["E_dist"] == pytest.approx(r["metrics"]["E_dist"])
+    run = json.loads((tmp_path / "models" / f"{tables.slug(full)}--s0" / "run.json").read_text())
+    assert run["config"]["minutes"] == 0.002 and run["config"]["epoch_chunks"] == 1
+    text = (tmp_path / "report.md").read_text()
+    assert "### By held-out group" in text and "### Targets" in text
+    assert "### Static drape and dynamics" in text
+    # a second run redoes nothing
+    again = harness.run(p, tmp_path, data=data, progress=False)
+    assert again.ran == 0

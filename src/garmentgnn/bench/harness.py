@@ -37,7 +37,7 @@ import json
 import platform
 import time
 import traceback
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -274,10 +274,14 @@ def _accuracy_record(ctx: _Context, method: str, item: Dict[str, Any], seed: int
 
 
 def tasks(p: Preset, seeds: Sequence[int], learned_seeds: Sequence[int] = (),
-          data_case: Optional[str] = None) -> List[Tuple[str, str, Dict[str, Any], int]]:
+          data_case: Optional[str] = None, plan: Optional[Dict[str, int]] = None
+          ) -> List[Tuple[str, str, Dict[str, Any], int]]:
     """Every ``(kind, method, case item, seed)`` of a preset, in run order; the learned
     methods (``p.learned``) for each of ``learned_seeds``, on the dataset ``data_case``
-    (:attr:`garmentgnn.bench.learned.DatasetInfo.case`)."""
+    (:attr:`garmentgnn.bench.learned.DatasetInfo.case`); ``plan``: the number of
+    seeds of each learned method (:func:`garmentgnn.bench.methods.seed_plan`; default:
+    every seed, the seed-free methods one), and with it the long run
+    (:data:`~garmentgnn.bench.methods.LONG`) when the budget has one."""
     out: List[Tuple[str, str, Dict[str, Any], int]] = []
     for seed in seeds:
         for item in p.cases:
@@ -302,8 +306,12 @@ def tasks(p: Preset, seeds: Sequence[int], learned_seeds: Sequence[int] = (),
             raise ValueError("`data_case`: the learned tasks need the dataset's case name")
         for i, seed in enumerate(learned_seeds):
             for m in p.learned.methods:
-                if i == 0 or m not in methods.SEED_FREE:
+                n = plan.get(m, 1) if plan is not None else \
+                    (1 if m in methods.SEED_FREE else len(learned_seeds))
+                if i < n:
                     out.append(("learned", m, {"name": data_case}, seed))
+        if plan is not None and p.learned.long_minutes is not None:
+            out.append(("learned", methods.LONG, {"name": data_case}, learned_seeds[0]))
         # the stability suite on the dataset: each method's first-seed model, the simulator
         for case in p.learned.stability_cases:
             for m in p.learned.methods + (learned_mod.SIMULATOR,):
@@ -374,14 +382,23 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
         runner = learned_mod.LearnedRunner(data_info, p.learned, out, p.batches, p.warmup,
                                            p.repeats)
         lseeds = list(range(p.learned.seeds if seeds is None else n))
-    todo = tasks(p, list(range(n)), lseeds, data_info.case if data_info else None)
+    case = data_info.case if data_info else None
+    budget = p.learned if runner is not None else None
+    if budget is not None and budget.seed_methods is not None:
+        # first pass: seed 0 of every method; the seed plan depends on its results
+        first = tasks(p, list(range(n)), lseeds, case, {m: 1 for m in budget.methods})
+    else:
+        first = tasks(p, list(range(n)), lseeds, case)
     ctx = _Context(p, out)
-    records: List[Dict[str, Any]] = []
+    records: Dict[Tuple[str, str, str, int], Dict[str, Any]] = {}
     ran = skipped = 0
-    with num_threads(p.threads), tqdm(total=len(todo), desc=f"bench {p.name}",
-                                      disable=not progress) as bar:
+
+    def run_all(todo, bar) -> None:
+        nonlocal ran, skipped
         for kind, method, item, seed in todo:
             case = item["name"]
+            if (kind, method, case, seed) in records:
+                continue
             path = record_path(out, kind, method, case, seed)
             rec = load_record(path, kind, method, case, seed)
             if rec is not None and (rec["status"] == "ok" or not retry_failed):
@@ -403,8 +420,22 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
                 rec = _json_safe(_finalize(rec))
                 atomic_write_json(path, rec)
                 ran += 1
-            records.append(rec)
+            records[(kind, method, case, seed)] = rec
             bar.update(1)
+
+    with num_threads(p.threads), tqdm(total=len(first), desc=f"bench {p.name}",
+                                      disable=not progress) as bar:
+        run_all(first, bar)
+        if budget is not None and budget.seed_methods is not None:
+            seed0 = {r["method"]: r["metrics"]["E_dist"] for r in records.values()
+                     if r["kind"] == learned_mod.KIND and r["seed"] == lseeds[0]
+                     and r["status"] == "ok"}
+            plan = methods.seed_plan(replace(budget, seeds=len(lseeds)), seed0)
+            second = tasks(p, list(range(n)), lseeds, case, plan)
+            bar.total = len(first) + sum(t[:2] + (t[2]["name"], t[3]) not in records
+                                         for t in second)
+            run_all(second, bar)
+    records = list(records.values())
     planned = list(PLANNED) + [m for m in METHODS if m not in p.method_names()]
     not_run = [m for m in planned if not any(r["method"] == m for r in records)]
     meta = {"preset": p.name, "seeds": n, "threads": p.threads,

@@ -44,17 +44,17 @@ import torch
 from torch import Tensor
 
 from garmentgnn.bench import stability as stab
-from garmentgnn.bench.methods import (BASELINES, DATA, GARTRANS, GARTRANS_MODEL, HOOD, METHOD_NAMES, NCS,
-                                      LearnedBudget, variant_settings)
+from garmentgnn.bench import scoring
+from garmentgnn.bench.methods import (BASELINES, DATA, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
+                                      METHOD_NAMES, NCS, LearnedBudget, variant_settings)
 from garmentgnn.bench.model_inputs import BenchChunks
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.timing import batch_sweep, peak_memory
 from garmentgnn.data import store
 from garmentgnn.data.keys import body_key, garment_key
-from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 ProgressiveSchedule, SequenceChunks)
+                                 ProgressiveSchedule, SequenceChunks, TimeBudget)
 
 KIND = "learned"
 #: the record kind of :meth:`LearnedRunner.stability_record`
@@ -204,15 +204,16 @@ class LearnedRunner:
     def record(self, method: str, seed: int) -> Dict[str, Any]:
         """Train (or resume) ``method`` with ``seed``, evaluate and time it; exceptions
         (e.g. :class:`NonFiniteLossError`) give a failed record with their message."""
-        if method not in METHOD_NAMES:
-            raise ValueError(f"`method`: unknown {method!r}; choose from {METHOD_NAMES}")
+        if method not in METHOD_NAMES + (LONG,):
+            raise ValueError(f"`method`: unknown {method!r}; choose from "
+                             f"{METHOD_NAMES + (LONG,)}")
         rec: Dict[str, Any] = {"kind": KIND, "method": method, "case": self.data.case,
                                "seed": seed, "dataset": self.data.to_json()}
         t0 = time.perf_counter()
         try:
             pred, info = self.trained(method, seed)
             rec.update(info)
-            rec["metrics"], rec["test_frames"] = self.evaluate(pred)
+            rec.update(self.evaluate(pred))
             if method in BASELINES and seed == 0:
                 self.save_prediction(method, pred)
             rec["timing"] = self.timing(pred)
@@ -243,7 +244,7 @@ class LearnedRunner:
         key = (method, seed)
         if key not in self._trained:
             L.seed_everything(seed, workers=True, verbose=False)
-            if method in GARTRANS:
+            if method in GARTRANS or method == LONG:
                 self._trained[key] = self._gartrans(method, seed)
             elif method == NCS:
                 self._trained[key] = self._ncs(seed)
@@ -282,32 +283,15 @@ class LearnedRunner:
                    sequence=base["id"])
         return rec
 
-    def evaluate(self, pred: _Predictor) -> Tuple[Dict[str, float], int]:
-        """Means of :func:`garmentgnn.metrics.evaluate_inputs` over every frame of every
-        test sequence (``collision`` renamed ``collision_rate``).  Scored one frame at a
-        time (the metrics are per-frame means, so this equals scoring a sequence at once;
-        the exact body distance search runs 1.5x faster per frame than batched)."""
-        sums: Dict[str, float] = {}
-        frames = 0
-        for i in range(len(self.test)):
-            item = self.test[i]
-            with torch.no_grad():
-                P = pred.predict(self.test, i, item)
-            B, V = item.gt.shape[:2]
-            if tuple(P.shape) != (B, V, 3):
-                raise RuntimeError(f"predicted {tuple(P.shape)} for {item.seq_id}, expected "
-                                   f"{(B, V, 3)}")
-            if not torch.isfinite(P).all():
-                raise RuntimeError(f"{int((~torch.isfinite(P)).sum())} non-finite coordinates "
-                                   f"predicted for {item.seq_id}")
-            for t in range(B):
-                res = evaluate_inputs(P[t:t + 1], item.select(torch.tensor([t])))
-                for k, v in res.items():
-                    sums[k] = sums.get(k, 0.0) + v
-            frames += B
-        m = {k: v / frames for k, v in sums.items()}
-        m["collision_rate"] = m.pop("collision")
-        return m, frames
+    def evaluate(self, pred: _Predictor) -> Dict[str, Any]:
+        """``metrics`` (frame-weighted means over every frame of every test sequence),
+        ``groups`` (the same per held-out group), ``per_sequence`` and ``test_frames``
+        (:mod:`garmentgnn.bench.scoring`; the exact body distance search of the
+        metrics runs 1.5x faster per frame than batched)."""
+        per_seq = scoring.score(lambda i, item: pred.predict(self.test, i, item), self.test)
+        agg = scoring.aggregate(per_seq)
+        return {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
+                "test_frames": sum(s["frames"] for s in per_seq)}
 
     def timing(self, pred: _Predictor) -> Dict[str, Any]:
         """Latency at batch 1, throughput at the best batch, peak memory of predicting
@@ -344,12 +328,15 @@ class LearnedRunner:
         return folder
 
     def fit(self, module: L.LightningModule, dm: GarmentDataModule, folder: Path, epochs: int,
-            callbacks: Sequence[L.Callback] = ()) -> Dict[str, Any]:
-        """Fit ``module`` on ``dm`` for ``epochs`` with one Lightning ``Trainer`` set-up
-        (every method), resuming from ``folder/last.ckpt``; returns the epochs done, the
+            callbacks: Sequence[L.Callback] = (), minutes: Optional[float] = None
+            ) -> Dict[str, Any]:
+        """Fit ``module`` on ``dm`` for ``epochs`` (at most, with a ``minutes`` budget:
+        :class:`TimeBudget`) with one Lightning ``Trainer`` set-up (every method),
+        resuming from ``folder/last.ckpt``; returns the epochs and steps done, the
         training wall time and the epoch it resumed from."""
         from lightning.pytorch.callbacks import ModelCheckpoint
         clock = TrainClock()
+        budget = [TimeBudget(60.0 * minutes)] if minutes is not None else []
         # save_top_k=1 without a monitor keeps the latest epoch's checkpoint; last.ckpt
         # links to it (Lightning writes last.ckpt only along with a top-k checkpoint)
         ckpt = ModelCheckpoint(dirpath=folder, save_last="link", save_top_k=1,
@@ -364,12 +351,16 @@ class LearnedRunner:
             trainer = L.Trainer(max_epochs=epochs, accelerator="cpu", devices=1, logger=False,
                                 enable_checkpointing=True, enable_progress_bar=False,
                                 enable_model_summary=False,
-                                callbacks=[*callbacks, clock, ckpt], limit_val_batches=0,
+                                callbacks=[*callbacks, *budget, clock, ckpt], limit_val_batches=0,
+                                limit_train_batches=self.budget.epoch_chunks,
                                 num_sanity_val_steps=0, default_root_dir=folder)
             trainer.fit(module, dm, ckpt_path=str(last) if last.exists() else None)
         module.eval()
-        return {"epochs": clock.epochs, "train_seconds": clock.seconds,
+        info = {"epochs": clock.epochs, "train_seconds": clock.seconds,
                 "resumed_from_epoch": clock.restored_epochs, "checkpoint": str(last)}
+        if budget:
+            info.update(budget_seconds=budget[0].seconds, steps=budget[0].steps)
+        return info
 
     def _datamodule(self, seed: int, split: str = "train",
                     ids: Optional[Sequence[str]] = None) -> GarmentDataModule:
@@ -377,18 +368,25 @@ class LearnedRunner:
                                  train_ids=ids, cache_size=64, **DATA)
 
     # -- GarTrans ---------------------------------------------------------------------
+    def _limits(self, minutes: Optional[float]) -> Dict[str, Any]:
+        """The training limits of a run, recorded in its ``run.json``."""
+        return {"epochs": self.budget.epochs, "minutes": minutes,
+                "epoch_chunks": self.budget.epoch_chunks}
+
     def _gartrans(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
-        hp, sched_kw = variant_settings(method)
+        long = method == LONG
+        variant = next(iter(GARTRANS)) if long else method
+        hp, sched_kw = variant_settings(variant)
         sched_kw = dict(sched_kw, window=self.budget.window)
-        E = self.budget.epochs
-        v = GARTRANS[method]
-        config = {"model": hp, "schedule": sched_kw, "data": DATA, "epochs": E,
+        minutes = self.budget.long_minutes if long else self.budget.minutes
+        v = GARTRANS[variant]
+        config = {"model": hp, "schedule": sched_kw, "data": DATA, **self._limits(minutes),
                   "config": f"ablations/{v.config}" if v.config else "gartrans"}
         folder = self._folder(method, seed, config)
         dm = self._datamodule(seed)
         module = GarTransModule(**dm.dims, **hp)
         sched = ProgressiveSchedule(**sched_kw)
-        info = self.fit(module, dm, folder, E, [sched])
+        info = self.fit(module, dm, folder, self.budget.epochs, [sched], minutes)
 
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
             it = item.cycled(b)
@@ -425,35 +423,42 @@ class LearnedRunner:
 
     def _baseline(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
         cfg = BASELINES[method]
-        config = {"module": cfg, "epochs": self.budget.epochs, "config": f"baselines/{cfg['method']}"}
+        config = {"module": cfg, **self._limits(self.budget.minutes),
+                  "config": f"baselines/{cfg['method']}"}
         folder = self._folder(method, seed, config)
         dm = self._datamodule(seed)
         module = self._baseline_module(method, dm)
-        info = self.fit(module, dm, folder, self.budget.epochs)
+        info = self.fit(module, dm, folder, self.budget.epochs, minutes=self.budget.minutes)
         note = ("one autoregressive step of `batch` independent sequences per call"
                 if method == HOOD else "one call predicting `batch` frames")
         return _Predictor(lambda ds, i, item: module(item), self._batch_fn(module), note), \
             dict(info, config=config)
 
     def _ncs(self, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
-        config = {"module": BASELINES[NCS], "epochs": self.budget.ncs_epochs,
-                  "config": "baselines/ncs",
-                  "data": "the poses of the garment's own test sequences (no positions)"}
-        folder = self._folder(NCS, seed, config)
         groups: Dict[Tuple[str, str], List[str]] = {}  # (garment, body) -> sequence ids
         for r in self.test.records:
             groups.setdefault((garment_key(r["garment"]), body_key(r["body"])), []).append(r["id"])
+        # the budget is NCS-style's in all: shared evenly by its per-garment models
+        each = None if self.budget.minutes is None else self.budget.minutes / len(groups)
+        config = {"module": BASELINES[NCS], **self._limits(self.budget.minutes),
+                  "epochs": self.budget.ncs_epochs, "config": "baselines/ncs",
+                  "data": "the poses of the garment's own test sequences (no positions)"}
+        folder = self._folder(NCS, seed, config)
         modules: Dict[Tuple[str, str], BaselineModule] = {}
-        total = {"epochs": 0, "train_seconds": 0.0, "resumed_from_epoch": 0}
+        total: Dict[str, Any] = {"epochs": 0, "train_seconds": 0.0, "resumed_from_epoch": 0}
         for g, (key, ids) in enumerate(sorted(groups.items())):
             dm = self._datamodule(seed * 1000 + g, "test", ids)
             dm.setup()
             V = dm.train_set.static(0).num_vertices
             torch.manual_seed(seed * 1000 + g)
             module = self._baseline_module(NCS, dm, V)
-            info = self.fit(module, dm, folder / f"garment{g}", self.budget.ncs_epochs)
+            info = self.fit(module, dm, folder / f"garment{g}", self.budget.ncs_epochs,
+                            minutes=each)
             total["epochs"] = info["epochs"]
             total["train_seconds"] += info["train_seconds"]
+            for k in ("budget_seconds", "steps"):
+                if k in info:
+                    total[k] = total.get(k, 0) + info[k]
             total["resumed_from_epoch"] = max(total["resumed_from_epoch"],
                                               info["resumed_from_epoch"])
             modules[key] = module

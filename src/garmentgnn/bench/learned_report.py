@@ -3,18 +3,26 @@
 their error-against-run-time plot."""
 from __future__ import annotations
 
+import statistics
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
+from garmentgnn.bench import scoring
 from garmentgnn.bench.learned import KIND
-from garmentgnn.bench.methods import LBS, METHOD_NAMES
-from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
+from garmentgnn.bench.methods import DA, GARTRANS, HOOD, LBS, LONG, METHOD_NAMES, NCS
+from garmentgnn.bench.tables import (METRICS, UNITS, fmt, mean_std, plot_points, plot_summary,
+                                     table)
 
-__all__ = ["markdown", "plot", "summary"]
+__all__ = ["comparison_markdown", "engine_points", "markdown", "per_sequence", "plot",
+           "plot_engines", "summary"]
+
+#: the record kind of :mod:`garmentgnn.bench.engines`
+ENGINE_KIND = "engine"
+BASELINES_ORDER = (DA, HOOD, NCS)
 
 
 def _ordered(records: Sequence[Dict[str, Any]]) -> List[str]:
-    seen = [m for m in METHOD_NAMES if any(r["method"] == m for r in records)]
+    seen = [m for m in METHOD_NAMES + (LONG,) if any(r["method"] == m for r in records)]
     return seen + sorted({r["method"] for r in records} - set(seen))
 
 
@@ -89,3 +97,197 @@ def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
     """``pareto_learned.png``: log latency (batch 1) against E_dist of the learned
     methods' means; ``None`` without ok records."""
     return plot_summary(summary(records), path, "Held-out test split: error against run time")
+
+
+# --------------------------------------------------------------------------- comparison
+#: the method every comparison is made against, and the metrics of the targets
+FULL = next(iter(GARTRANS))
+ALPHA = 0.05
+
+
+def per_sequence(records: Sequence[Dict[str, Any]], method: str,
+                 metric: str = "E_dist") -> Dict[str, float]:
+    """``{sequence: metric}`` of ``method``, the mean over its ok seeds' records."""
+    vals: Dict[str, List[float]] = {}
+    for r in records:
+        if r["kind"] == KIND and r["method"] == method and r["status"] == "ok":
+            for s in r.get("per_sequence") or ():
+                vals.setdefault(s["sequence"], []).append(s["metrics"][metric])
+    return {k: statistics.fmean(v) for k, v in vals.items()}
+
+
+def _ok(records: Sequence[Dict[str, Any]], method: str) -> List[Dict[str, Any]]:
+    return [r for r in records if r["kind"] == KIND and r["method"] == method
+            and r["status"] == "ok" and r.get("groups") is not None]
+
+
+def _mean(rs: Sequence[Dict[str, Any]], get: Callable[[Dict[str, Any]], Optional[float]]
+          ) -> Optional[float]:
+    v = [x for x in (get(r) for r in rs) if x is not None]
+    return statistics.fmean(v) if v else None
+
+
+def _verdict(p: float) -> str:
+    return f"significant (p < {ALPHA})" if p < ALPHA else "not significant"
+
+
+def comparison_markdown(records: Sequence[Dict[str, Any]],
+                        engines_png: Optional[str] = None) -> List[str]:
+    """Held-out groups, the static / dynamic split, paired significance tests, the
+    targets and the engines (empty without learned records carrying per-sequence
+    results)."""
+    rs = [r for r in records if r["kind"] == KIND and r.get("per_sequence")]
+    if not rs:
+        return []
+    methods = _ordered(rs)
+    lines = ["### By held-out group", "",
+             "E_dist (cm) per group of test sequences (frame-weighted; mean ± std over "
+             "seeds); in brackets the change against LBS only. A sequence is in `unseen X` "
+             "when X is the one thing the train split lacks; `several unseen` holds out "
+             "more than one.", ""]
+    groups = [g for g in scoring.GROUPS if any(g in (r.get("groups") or {}) for r in rs)]
+    lbs = _ok(records, LBS)
+
+    def group_cell(ok: List[Dict[str, Any]], g: str, metric: str = "E_dist") -> str:
+        v = [r["groups"][g][metric] for r in ok if g in r["groups"]]
+        if not v:
+            return "—"
+        ref = _mean(lbs, lambda r: r["groups"].get(g, {}).get(metric))
+        rel = f" [{100 * (statistics.fmean(v) / ref - 1):+.0f}%]" if ref else ""
+        return fmt(v) + rel
+    rows = [[m] + [group_cell(_ok(records, m), g) for g in ["all"] + groups]
+            for m in methods if _ok(records, m)]
+    lines += table(["method", "all test"] + groups, rows) + [""]
+    lines += ["### Static drape and dynamics", "",
+              "The error split of `garmentgnn.metrics.static_dynamic_split` (docs/bench.md, "
+              "\"Where LBS's error is\"), frame-weighted over all test sequences; in brackets "
+              "the share of LBS's error of that part the method removes.", ""]
+    rows = []
+    for m in methods:
+        ok = _ok(records, m)
+        if not ok or "E_static" not in ok[0]["metrics"]:
+            continue
+        row = [m]
+        for k in scoring.SPLIT_METRICS:
+            ref = _mean(lbs, lambda r: r["metrics"].get(k))
+            v = [r["metrics"][k] for r in ok]
+            row.append(fmt(v) + (f" [{100 * (1 - statistics.fmean(v) / ref):.0f}% removed]"
+                                 if ref else ""))
+        rows.append(row)
+    lines += table(["method", "E_static (cm)", "E_dynamic (cm)"], rows) + [""]
+    lines += _significance(records, methods)
+    lines += _targets(records, groups)
+    lines += _engines(records, engines_png)
+    return lines
+
+
+def _significance(records: Sequence[Dict[str, Any]], methods: Sequence[str]) -> List[str]:
+    full = per_sequence(records, FULL)
+    if len(full) < 2:
+        return []
+    lines = ["### Paired tests", "",
+             f"Two-sided Wilcoxon signed-rank tests over the test sequences (per sequence: "
+             f"the mean over each method's seeds), {FULL} against each other method; "
+             f"median difference = {FULL} minus the other (negative: {FULL} lower).", ""]
+    rows = []
+    for m in methods:
+        other = per_sequence(records, m)
+        if m == FULL or len(set(full) & set(other)) < 2:
+            continue
+        w = scoring.wilcoxon(full, other)
+        rows.append([m, "E_dist", str(w["n"]), f"{w['median_diff']:+.3g}",
+                     f"{100 * w['wins']:.0f}%", f"{w['p']:.2g}", _verdict(w["p"])])
+    if len(set(full) & set(per_sequence(records, LBS))) >= 2:
+        for k in METRICS[1:5]:
+            w = scoring.wilcoxon(per_sequence(records, FULL, k), per_sequence(records, LBS, k))
+            rows.append([LBS, k, str(w["n"]), f"{w['median_diff']:+.3g}",
+                         f"{100 * w['wins']:.0f}%", f"{w['p']:.2g}", _verdict(w["p"])])
+    return lines + table(["against", "metric", "sequences", "median diff", f"{FULL} lower on",
+                          "p", "verdict"], rows) + [""]
+
+
+def _targets(records: Sequence[Dict[str, Any]], groups: Sequence[str]) -> List[str]:
+    full, lbs = _ok(records, FULL), _ok(records, LBS)
+    if not full or not lbs:
+        return []
+
+    def m(rs, key, g="all"):
+        return _mean(rs, lambda r: (r["metrics"] if g == "all" else r["groups"].get(g, {}))
+                     .get(key))
+    lines = ["### Targets", ""]
+    cuts = {g: 1 - m(full, "E_dist", g) / m(lbs, "E_dist", g) for g in groups
+            if m(full, "E_dist", g) is not None and m(lbs, "E_dist", g)}
+    ok30 = bool(cuts) and all(c >= 0.3 for c in cuts.values())
+    lines.append(f"- E_dist at least 30% below LBS on every held-out group: "
+                 f"**{'met' if ok30 else 'missed'}** ("
+                 + ", ".join(f"{g}: {100 * c:.0f}%" for g, c in cuts.items()) + ")")
+    better = [k for k in METRICS[:5] if m(full, k) < m(lbs, k)]
+    lines.append(f"- lower than LBS on all five metrics: **{'met' if len(better) == 5 else 'missed'}**"
+                 f" (lower on {', '.join(better) or 'none'})")
+    for b in BASELINES_ORDER:
+        rb = _ok(records, b)
+        if rb:
+            won = [k for k in METRICS[1:5] if m(full, k) < m(rb, k)]
+            hit = m(full, "E_dist") < m(rb, "E_dist") and len(won) >= 3
+            lines.append(f"- ahead of {b} on E_dist and at least 3 of the other four: "
+                         f"**{'met' if hit else 'missed'}** (E_dist {m(full, 'E_dist'):.3g} vs "
+                         f"{m(rb, 'E_dist'):.3g} cm; ahead on {', '.join(won) or 'none'})")
+    coll = m(full, "collision_rate")
+    lines.append(f"- collision rate at most 1% of vertices: **{'met' if coll <= 1 else 'missed'}**"
+                 f" ({coll:.3g}%)")
+    return lines + [""]
+
+
+def _engines(records: Sequence[Dict[str, Any]], png: Optional[str]) -> List[str]:
+    eng = [r for r in records if r["kind"] == ENGINE_KIND and r["status"] == "ok"]
+    if not eng:
+        return []
+    seqs = sorted({r["sequence"] for r in eng})
+    lines = ["### Physics engines", "",
+             f"Each engine setting re-simulates {len(seqs)} test sequences "
+             f"({', '.join(f'`{s}`' for s in seqs)}) and is scored against the dataset's "
+             "own simulation (the finest setting: ground truth); the learned methods' rows "
+             "are their errors on the same sequences. time: seconds per frame (engines: "
+             "the simulation; learned: latency at batch 1).", ""]
+    rows = []
+    for name, e_dist, sec, n in engine_points(records):
+        rows.append([name, f"{e_dist:.3g}", f"{sec:.3g}", str(n)])
+    lines += table(["method", "E_dist (cm)", "time (s/frame)", "sequences"], rows) + [""]
+    if png:
+        lines += [f"![Engines and learned methods]({png})", ""]
+    return lines
+
+
+def engine_points(records: Sequence[Dict[str, Any]]) -> List[Tuple[str, float, float, int]]:
+    """``(name, E_dist cm, seconds per frame, sequences)`` of every engine setting and
+    every learned method on the engines' sequences (frame-weighted)."""
+    eng = [r for r in records if r["kind"] == ENGINE_KIND and r["status"] == "ok"]
+    seqs = {r["sequence"] for r in eng}
+    pts = []
+    for name in dict.fromkeys(r["method"] for r in eng):
+        mine = [r for r in eng if r["method"] == name]
+        n = sum(r["frames"] for r in mine)
+        pts.append((name, sum(r["metrics"]["E_dist"] * r["frames"] for r in mine) / n,
+                    sum(r["seconds"] for r in mine) / n, len(mine)))
+    for m in _ordered([r for r in records if r["kind"] == KIND]):
+        ok = _ok(records, m)
+        if not ok:
+            continue
+        agg = [scoring.aggregate(r["per_sequence"], lambda s: s["sequence"] in seqs)
+               for r in ok]
+        if agg and "all" in agg[0] and all("latency_ms" in r.get("timing", {}) for r in ok):
+            pts.append((m, statistics.fmean(a["all"]["E_dist"] for a in agg),
+                        statistics.fmean(r["timing"]["latency_ms"] for r in ok) / 1000.0,
+                        len({s["sequence"] for s in ok[0]["per_sequence"]} & seqs)))
+    return pts
+
+
+def plot_engines(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
+    """``pareto_engines.png``: seconds per frame against E_dist of the engines and the
+    learned methods on the engines' sequences; ``None`` without engine records."""
+    pts = engine_points(records)
+    if not any(r["kind"] == ENGINE_KIND and r["status"] == "ok" for r in records):
+        return None
+    return plot_points([(n, 1000.0 * s, e) for n, e, s, _ in pts], path,
+                       "Engines and learned methods on the same test sequences")
+

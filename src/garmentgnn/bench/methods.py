@@ -20,8 +20,8 @@ from garmentgnn.bench import stability as stab
 from garmentgnn.training.configs import load_config, schedule_args
 from garmentgnn.training.schedule import ProgressiveSchedule
 
-__all__ = ["BASELINES", "DATA", "GARTRANS", "GARTRANS_MODEL", "LBS", "METHOD_NAMES", "NCS",
-           "HOOD", "DA", "SEED_FREE", "LearnedBudget", "Variant", "variant_settings"]
+__all__ = ["BASELINES", "DATA", "GARTRANS", "GARTRANS_MODEL", "LBS", "LONG", "METHOD_NAMES", "NCS",
+           "HOOD", "DA", "SEED_FREE", "LearnedBudget", "Variant", "seed_plan", "variant_settings"]
 
 _BASE = load_config("gartrans")
 #: ``configs/gartrans.yaml``'s ``model:`` section
@@ -76,18 +76,36 @@ def variant_settings(method: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
     return model, {k: val for k, val in full.items() if k not in _WINDOWS}
 
 
+#: the long run of full GarTrans (:attr:`LearnedBudget.long_minutes`)
+LONG = "GarTrans (SAT), long budget"
+
+
 @dataclass(frozen=True)
 class LearnedBudget:
     """What the learned part of a bench preset trains.
 
     Attributes:
         seeds: training seeds ``0..seeds-1`` (``lightning.seed_everything(seed)``).
-        epochs: passes over the ``train`` split (GarTrans variants, DA, HOOD).
+        epochs: passes over the ``train`` split (GarTrans variants, DA, HOOD); with
+            ``minutes``, the most epochs a run may take.
         window: :class:`ProgressiveSchedule` window in epochs.
         ncs_epochs: passes of each NCS model over its own garment's test poses.
         methods: the names of :data:`METHOD_NAMES` to run.
         stability_cases: :data:`garmentgnn.bench.stability.CASES` run by each method
             (first seed's model) and the simulator on the first test sequence.
+        minutes: the wall-clock training budget of every (method, seed) run
+            (:class:`~garmentgnn.training.TimeBudget`: stop when spent, learning rate
+            annealed over it); NCS-style splits it evenly over its per-garment models.
+            ``None``: train ``epochs`` epochs instead.
+        epoch_chunks: chunks per epoch (Lightning's ``limit_train_batches``), so that a
+            budget on a large dataset still has epochs for the schedule and checkpoints;
+            ``None``: the whole train split.
+        seed_methods: the methods trained with every seed; the other methods get seed
+            0 only, except the best GarTrans ablation and the best baseline (lowest
+            seed-0 test E_dist), which get every seed too.  ``None``: every method
+            gets every seed.
+        long_minutes: the budget of one more run of full GarTrans, seed 0
+            (:data:`LONG`): where it goes with more time; ``None``: no such run.
     """
 
     seeds: int = 1
@@ -96,15 +114,47 @@ class LearnedBudget:
     ncs_epochs: int = 1
     methods: Tuple[str, ...] = METHOD_NAMES
     stability_cases: Tuple[str, ...] = ()
+    minutes: Optional[float] = None
+    epoch_chunks: Optional[int] = None
+    seed_methods: Optional[Tuple[str, ...]] = None
+    long_minutes: Optional[float] = None
 
     def __post_init__(self) -> None:
         for name in ("seeds", "epochs", "window", "ncs_epochs"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"`{name}`: expected a positive int, got {v!r}")
+        for name in ("minutes", "long_minutes"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and 0 < v < float("inf")):
+                raise ValueError(f"`{name}`: expected a positive number of minutes or None, "
+                                 f"got {v!r}")
+        c = self.epoch_chunks
+        if c is not None and (not isinstance(c, int) or isinstance(c, bool) or c < 1):
+            raise ValueError(f"`epoch_chunks`: expected a positive int or None, got {c!r}")
         unknown = [m for m in self.methods if m not in METHOD_NAMES]
         if unknown or not self.methods:
             raise ValueError(f"`methods`: unknown {unknown} or empty; choose from {METHOD_NAMES}")
+        unknown = [m for m in (self.seed_methods or ()) if m not in self.methods]
+        if unknown:
+            raise ValueError(f"`seed_methods`: {unknown} are not in `methods`")
         unknown = [c for c in self.stability_cases if c not in stab.CASES]
         if unknown:
             raise ValueError(f"`stability_cases`: unknown {unknown}; choose from {list(stab.CASES)}")
+
+
+def seed_plan(budget: LearnedBudget, seed0: Dict[str, float]) -> Dict[str, int]:
+    """How many seeds each method of ``budget`` gets, given its methods' seed-0 test
+    E_dist (``seed0``; methods missing there count as worst): ``budget.seeds`` for
+    the ``seed_methods``, the best GarTrans ablation and the best baseline, 1 for the
+    rest (every method gets ``budget.seeds`` when ``seed_methods`` is ``None``)."""
+    n = budget.seeds
+    if budget.seed_methods is None:
+        return {m: (1 if m in SEED_FREE else n) for m in budget.methods}
+    full = set(budget.seed_methods)
+    first = next(iter(GARTRANS))
+    for pool in ([m for m in budget.methods if m in GARTRANS and m != first],
+                 [m for m in budget.methods if m in BASELINES]):
+        if pool:
+            full.add(min(pool, key=lambda m: seed0.get(m, float("inf"))))
+    return {m: (n if m in full and m not in SEED_FREE else 1) for m in budget.methods}

@@ -87,8 +87,10 @@ class Preset:
 
 
 def preset(name: str) -> Preset:
-    """``tiny`` (a smoke test: about 5 min on 2 cores, 2 of them generating its dataset)
-    or ``small`` (about 70 min, half of it generating its dataset; see docs/bench.md)."""
+    """``tiny`` (a smoke test: about 5 min on 2 cores, 2 of them generating its dataset),
+    ``small`` (about 70 min, half of it generating its dataset) or ``medium`` (the
+    learned methods on equal wall-clock budgets, seeds and held-out groups, with the
+    engines; about 150 min on 2 cores with an existing dataset; see docs/bench.md)."""
     if name == "tiny":
         return Preset(
             name="tiny",
@@ -131,10 +133,23 @@ def preset(name: str) -> Preset:
                 # not long_1000: over 5 min per method on this machine (docs/bench.md)
                 stability_cases=("baseline", "stiff_x1000", "extreme_pose", "fast_x5",
                                  "sliver_face", "zero_area_face")))
+    if name == "medium":
+        # the learned methods on the Blender `medium` dataset (generate it first, pass
+        # it with --data: generating it here takes hours); no simulator cases: the
+        # engines are points on the learned methods' error-against-run-time plot
+        return Preset(
+            name="medium", cases=(), seeds=1, reference=SimBudget(8, 50), budgets=(),
+            methods=(), batches=(1, 8, 32), warmup=1, repeats=3, threads=2,
+            dataset="medium", data_workers=2,
+            # sized in docs/bench.md ("medium"): 15 runs of 5 min + 25 min + scoring
+            learned=methods.LearnedBudget(
+                seeds=3, epochs=1000, window=2, ncs_epochs=1000, minutes=5.0,
+                epoch_chunks=50, seed_methods=(next(iter(methods.GARTRANS)),),
+                long_minutes=25.0))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 
-PRESET_NAMES = ("tiny", "small")
+PRESET_NAMES = ("tiny", "small", "medium")
 #: the scaling garment (its resolution is replaced per size): a knee skirt, walking
 _SCALING_ITEM = case_item("scaling-skirt-walk", "skirt", 1000, "walk", 8, {"length": "knee"})
 

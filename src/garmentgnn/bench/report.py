@@ -34,7 +34,7 @@ from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary,
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
 KINDS = ("accuracy", "stability", "scaling", "leaveout", "precision", "long_sequence",
-         "learned", "learned_stability")
+         "learned", "learned_stability", "engine")
 STABILITY_KINDS = ("stability", "learned_stability")
 #: the field an ok record of each extra kind must hold (their modules document the rest)
 EXTRA_REQUIRED = {"scaling": "timing", "leaveout": "scenes", "precision": "rows",
@@ -104,7 +104,7 @@ def check_record(rec: Dict[str, Any]) -> Dict[str, Any]:
     if bad and rec["status"] != "failed":
         raise ValueError(f"`records`: non-finite number(s) at {bad} in {where}; mark the "
                          "record failed (status='failed') if the method produced them")
-    if rec["status"] == "ok" and rec["kind"] in ("accuracy", "learned"):
+    if rec["status"] == "ok" and rec["kind"] in ("accuracy", "learned", "engine"):
         missing = [m for m in METRICS if m not in rec.get("metrics", {})]
         if missing:
             raise ValueError(f"`records`: {rec['kind']} record {where} lacks metric(s) {missing}")
@@ -169,7 +169,8 @@ def _label(method: str, rs: List[Dict[str, Any]]) -> str:
 def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = (),
                     meta: Optional[Dict[str, Any]] = None, pareto_png: Optional[str] = None,
                     scaling_png: Optional[str] = None,
-                    learned_png: Optional[str] = None) -> str:
+                    learned_png: Optional[str] = None,
+                    engines_png: Optional[str] = None) -> str:
     """The ``report.md`` text."""
     meta = meta or {}
     lines = ["# Benchmark report", ""]
@@ -242,6 +243,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
     # they import this module
     from garmentgnn.bench import learned_report, leaveout, precision, scaling
     lines += learned_report.markdown(records, learned_png)
+    lines += learned_report.comparison_markdown(records, engines_png)
     lines += scaling.markdown(records, scaling_png)
     lines += leaveout.markdown(records)
     lines += precision.markdown(records)
@@ -297,12 +299,16 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     learned_png = learned_report.plot(clean, out / "pareto_learned.png")
     if learned_png is not None:
         paths["pareto_learned"] = learned_png
+    engines_png = learned_report.plot_engines(clean, out / "pareto_engines.png")
+    if engines_png is not None:
+        paths["pareto_engines"] = engines_png
     results = {"meta": meta or {}, "summary": summarize(clean), "not_run": list(not_run),
                "records": clean}
     paths["results"] = atomic_write_json(out / "results.json", results)
     text = render_markdown(clean, not_run, meta, "pareto.png" if png is not None else None,
                            "scaling.png" if scaling_png is not None else None,
-                           "pareto_learned.png" if learned_png is not None else None)
+                           "pareto_learned.png" if learned_png is not None else None,
+                           "pareto_engines.png" if engines_png is not None else None)
     # -- the animation of a held-out sequence (garmentgnn.bench.page), appended ----
     from garmentgnn.bench.page import write_media
     media = write_media(clean, out)

@@ -18,6 +18,9 @@ import lightning as L
 
 __all__ = ["TimeBudget"]
 
+#: the clock (a module attribute, so tests can replace it)
+_now = time.perf_counter
+
 
 class TimeBudget(L.Callback):
     """Stop training after ``seconds`` of training steps; cosine learning rate over them.
@@ -76,7 +79,7 @@ class TimeBudget(L.Callback):
             trainer.should_stop = True
 
     def on_train_epoch_start(self, trainer, pl_module) -> None:
-        self._t0 = time.perf_counter()
+        self._t0 = _now()
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         if self.anneal:
@@ -86,7 +89,7 @@ class TimeBudget(L.Callback):
                     g["lr"] = self.eta_min + (base - self.eta_min) * c
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        now = time.perf_counter()
+        now = _now()
         if self._t0 is not None:  # since the epoch began or the last step ended
             self.spent += now - self._t0
         self._t0 = now

@@ -1,0 +1,66 @@
+"""The bench's per-sequence scoring helpers and the seed plan: held-out groups,
+frame-weighted means, the paired Wilcoxon test (exact small-sample p-values written
+out here) and which methods get every seed."""
+import pytest
+
+from garmentgnn.bench import methods, scoring
+
+
+def seq(name, frames, held, e):
+    return {"sequence": name, "frames": frames, "held_out": held,
+            "metrics": {"E_dist": e, "E_len": 2 * e}}
+
+
+def test_groups_and_frame_weighted_means():
+    assert scoring.group_of(["motion"]) == "unseen motion"
+    assert scoring.group_of(["body", "motion"]) == scoring.group_of(["garment", "body"]) \
+        == "several unseen"
+    assert scoring.group_of([]) is None
+    with pytest.raises(ValueError, match="held_out"):
+        scoring.group_of(["colour"])
+    ss = [seq("a", 10, ["motion"], 1.0), seq("b", 30, ["motion"], 3.0),
+          seq("c", 20, ["body"], 5.0), seq("d", 40, ["garment", "motion"], 7.0)]
+    agg = scoring.aggregate(ss)
+    assert set(agg) == {"all", "unseen motion", "unseen body", "several unseen"}
+    assert agg["unseen motion"]["E_dist"] == pytest.approx((10 * 1 + 30 * 3) / 40)
+    assert agg["all"]["E_len"] == pytest.approx(2 * (10 + 90 + 100 + 280) / 100)
+    only = scoring.aggregate(ss, keep=lambda s: s["sequence"] in ("a", "c"))
+    assert only["all"]["E_dist"] == pytest.approx((10 + 100) / 30)
+    assert "unseen garment" not in agg and scoring.aggregate([]) == {}
+
+
+def test_wilcoxon_exact_small_samples():
+    # n = 5, every difference negative: the exact two-sided p is 2 / 2^5
+    a = {k: float(i) for i, k in enumerate("vwxyz")}
+    b = {k: v + 1 + 0.1 * i for i, (k, v) in enumerate(a.items())}
+    w = scoring.wilcoxon(a, b)
+    assert w["n"] == 5 and w["p"] == pytest.approx(2 / 32) and w["wins"] == 1.0
+    assert w["median_diff"] == pytest.approx(-1.2)
+    # ranks 1..6, the negative ones {1, 2}: W = 3; P(W <= 3) = 5/64 (subsets of 1..6
+    # with sum <= 3: {}, {1}, {2}, {3}, {1,2}), two-sided 10/64
+    c = {str(i): 0.0 for i in range(1, 7)}
+    d = {str(i): (i if i > 2 else -i) * 1.0 for i in range(1, 7)}
+    assert scoring.wilcoxon(d, c)["p"] == pytest.approx(10 / 64)
+    assert scoring.wilcoxon(c, c)["p"] == 1.0
+    with pytest.raises(ValueError, match="common sequences"):
+        scoring.wilcoxon({"a": 1.0}, {"b": 2.0})
+
+
+def test_seed_plan():
+    full, abl = list(methods.GARTRANS)[0], list(methods.GARTRANS)[1:]
+    b = methods.LearnedBudget(seeds=3, seed_methods=(full,))
+    seed0 = {m: 10.0 for m in methods.METHOD_NAMES}
+    seed0[abl[2]] = 5.0
+    seed0[methods.HOOD] = 6.0
+    seed0[full] = 1.0  # the full model is never "the best ablation"
+    plan = methods.seed_plan(b, seed0)
+    assert {m for m, n in plan.items() if n == 3} == {full, abl[2], methods.HOOD}
+    assert all(n == 1 for m, n in plan.items() if m not in (full, abl[2], methods.HOOD))
+    every = methods.seed_plan(methods.LearnedBudget(seeds=2), {})
+    assert every[full] == 2 and every[methods.LBS] == 1
+    with pytest.raises(ValueError, match="seed_methods"):
+        methods.LearnedBudget(methods=(full,), seed_methods=(methods.DA,))
+    with pytest.raises(ValueError, match="minutes"):
+        methods.LearnedBudget(minutes=0)
+    with pytest.raises(ValueError, match="epoch_chunks"):
+        methods.LearnedBudget(epoch_chunks=0)
