@@ -64,3 +64,14 @@ def test_seed_plan():
         methods.LearnedBudget(minutes=0)
     with pytest.raises(ValueError, match="epoch_chunks"):
         methods.LearnedBudget(epoch_chunks=0)
+
+
+def test_stratified_subset():
+    recs = [{"id": f"{g[0]}{i}", "held_out": h} for g, h in
+            (("m", ["motion"]), ("b", ["body"]), ("g", ["garment"]), ("s", ["body", "motion"]))
+            for i in range(3)] + [{"id": "x0", "held_out": []}]
+    assert scoring.stratified(recs, 5) == ["m0", "b0", "g0", "s0", "x0"]
+    assert scoring.stratified(recs, 7) == ["m0", "b0", "g0", "s0", "x0", "m1", "b1"]
+    assert sorted(scoring.stratified(recs, 99)) == sorted(r["id"] for r in recs)
+    with pytest.raises(ValueError, match="`n`"):
+        scoring.stratified(recs, 0)

@@ -44,7 +44,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from garmentgnn.bench import leaveout, precision, scaling
+from garmentgnn.bench import engines, leaveout, precision, scaling
 from garmentgnn.bench import learned as learned_mod
 from garmentgnn.bench import methods
 from garmentgnn.bench import stability as stab
@@ -53,6 +53,7 @@ from garmentgnn.bench.report import STATUSES, check_record, write_report
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.timing import batch_sweep, num_threads, peak_memory
+from garmentgnn.data import store
 from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, code_version,
                                    remove_stale_temporaries)
 from garmentgnn.metrics import evaluate
@@ -415,6 +416,9 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
                     rec = runner.record(method, seed)
                 elif kind == "learned_stability":
                     rec = runner.stability_record(method, seed, case)
+                elif kind == engines.KIND:
+                    rec = engines.engine_record(data_info.root, item["item"],
+                                                engine_settings[method], p.engine_frames)
                 else:
                     rec = _extra_record(ctx, kind, method, item, seed)
                 rec = _json_safe(_finalize(rec))
@@ -423,6 +427,13 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
             records[(kind, method, case, seed)] = rec
             bar.update(1)
 
+    # the engines on a few test sequences of the learned methods' dataset
+    engine_settings = {e.name: e for e in engines.default_settings()} if p.engines else {}
+    if engine_settings and data_info is not None:
+        picked = engines.pick_sequences(store.read_manifest(data_info.root)["items"],
+                                        p.engine_per_group)
+        first += [(engines.KIND, name, {"name": it["id"], "item": it}, 0)
+                  for it in picked for name in engine_settings]
     with num_threads(p.threads), tqdm(total=len(first), desc=f"bench {p.name}",
                                       disable=not progress) as bar:
         run_all(first, bar)

@@ -106,6 +106,9 @@ class LearnedBudget:
             gets every seed.
         long_minutes: the budget of one more run of full GarTrans, seed 0
             (:data:`LONG`): where it goes with more time; ``None``: no such run.
+        test_sequences: score every method on this many test sequences, the same for
+            all, drawn evenly from the held-out groups
+            (:func:`garmentgnn.bench.scoring.stratified`); ``None``: all of them.
     """
 
     seeds: int = 1
@@ -118,6 +121,7 @@ class LearnedBudget:
     epoch_chunks: Optional[int] = None
     seed_methods: Optional[Tuple[str, ...]] = None
     long_minutes: Optional[float] = None
+    test_sequences: Optional[int] = None
 
     def __post_init__(self) -> None:
         for name in ("seeds", "epochs", "window", "ncs_epochs"):
@@ -129,9 +133,10 @@ class LearnedBudget:
             if v is not None and not (isinstance(v, (int, float)) and 0 < v < float("inf")):
                 raise ValueError(f"`{name}`: expected a positive number of minutes or None, "
                                  f"got {v!r}")
-        c = self.epoch_chunks
-        if c is not None and (not isinstance(c, int) or isinstance(c, bool) or c < 1):
-            raise ValueError(f"`epoch_chunks`: expected a positive int or None, got {c!r}")
+        for name in ("epoch_chunks", "test_sequences"):
+            c = getattr(self, name)
+            if c is not None and (not isinstance(c, int) or isinstance(c, bool) or c < 1):
+                raise ValueError(f"`{name}`: expected a positive int or None, got {c!r}")
         unknown = [m for m in self.methods if m not in METHOD_NAMES]
         if unknown or not self.methods:
             raise ValueError(f"`methods`: unknown {unknown} or empty; choose from {METHOD_NAMES}")

@@ -54,6 +54,10 @@ class Preset:
             and are tested on (generated under ``OUT/data`` unless ``run(data=...)``).
         learned: what :mod:`garmentgnn.bench.learned` trains (methods, seeds, epochs,
             schedule window); ``None``: no learned methods.
+        engines: run :func:`garmentgnn.bench.engines.default_settings` on
+            ``engine_per_group`` test sequences of each held-out group of the dataset
+            (:func:`~garmentgnn.bench.engines.pick_sequences`), ``engine_frames``
+            frames each (``None``: all).
         data_workers: worker processes generating the dataset.
         These extra reports run for the first seed only.
     """
@@ -81,6 +85,9 @@ class Preset:
     dataset: Optional[str] = None
     learned: Optional[methods.LearnedBudget] = None
     data_workers: int = 1
+    engines: bool = False
+    engine_per_group: int = 1
+    engine_frames: Optional[int] = 20
 
     def method_names(self) -> List[str]:
         return [self.reference.name] + [b.name for b in self.budgets] + list(self.methods)
@@ -141,11 +148,13 @@ def preset(name: str) -> Preset:
             name="medium", cases=(), seeds=1, reference=SimBudget(8, 50), budgets=(),
             methods=(), batches=(1, 8, 32), warmup=1, repeats=3, threads=2,
             dataset="medium", data_workers=2,
-            # sized in docs/bench.md ("medium"): 15 runs of 5 min + 25 min + scoring
+            # sized in docs/bench.md ("medium"): 15 runs of 5 min + 25 min + scoring 40
+            # test sequences (10 per held-out group) per run
             learned=methods.LearnedBudget(
                 seeds=3, epochs=1000, window=2, ncs_epochs=1000, minutes=5.0,
                 epoch_chunks=50, seed_methods=(next(iter(methods.GARTRANS)),),
-                long_minutes=25.0))
+                long_minutes=25.0, test_sequences=40),
+            engines=True, engine_per_group=1, engine_frames=20)
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 

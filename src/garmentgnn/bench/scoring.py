@@ -17,7 +17,8 @@ from torch import Tensor
 
 from garmentgnn.metrics import evaluate_inputs, split_inputs
 
-__all__ = ["GROUPS", "SPLIT_METRICS", "aggregate", "group_of", "score", "wilcoxon"]
+__all__ = ["GROUPS", "SPLIT_METRICS", "aggregate", "group_of", "score", "stratified",
+           "wilcoxon"]
 
 #: held-out groups: a sequence is in ``unseen X`` when X is the only thing it holds out,
 #: in ``several unseen`` when it holds out more than one
@@ -39,11 +40,29 @@ def group_of(held_out: Sequence[str]) -> Optional[str]:
     return f"unseen {held[0]}"
 
 
+def stratified(records: Sequence[Dict[str, Any]], n: int) -> List[str]:
+    """The ids of ``n`` of ``records`` (manifest items), taken in turn from each held-out
+    group (:data:`GROUPS`, then sequences holding out nothing), each group in id order:
+    a deterministic subset with every group as evenly represented as it can be."""
+    if not isinstance(n, int) or n < 1:
+        raise ValueError(f"`n`: expected a positive int, got {n!r}")
+    pools: Dict[Optional[str], List[str]] = {}
+    for r in sorted(records, key=lambda r: r["id"]):
+        pools.setdefault(group_of(r.get("held_out", [])), []).append(r["id"])
+    order = [g for g in (*GROUPS, None) if g in pools]
+    out: List[str] = []
+    while len(out) < min(n, len(records)):
+        for g in order:
+            if pools[g] and len(out) < n:
+                out.append(pools[g].pop(0))
+    return out
+
+
 def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
     """Per test sequence: ``predict(i, item)`` (the garment ``[T, V, 3]`` of item ``i``
     of ``test``, a whole-sequence :class:`~garmentgnn.training.SequenceChunks`) scored
-    against its simulation.  Metrics are frame means over the sequence (computed one
-    frame at a time; ``collision`` renamed ``collision_rate``); raises ``RuntimeError``
+    against its simulation.  Metrics are frame means over the sequence (``collision``
+    renamed ``collision_rate``); raises ``RuntimeError``
     for a prediction of the wrong shape or with non-finite coordinates."""
     out = []
     for i in range(len(test)):
@@ -57,11 +76,7 @@ def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
         if not torch.isfinite(P).all():
             raise RuntimeError(f"{int((~torch.isfinite(P)).sum())} non-finite coordinates "
                                f"predicted for {item.seq_id}")
-        sums: Dict[str, float] = {}
-        for t in range(T):
-            for k, v in evaluate_inputs(P[t:t + 1], item.select(torch.tensor([t]))).items():
-                sums[k] = sums.get(k, 0.0) + v
-        m = {k: v / T for k, v in sums.items()}
+        m = evaluate_inputs(P, item)  # per-frame metrics averaged over the T frames
         m["collision_rate"] = m.pop("collision", float("nan"))
         split = split_inputs(P, item)
         m.update({k: split[k] for k in SPLIT_METRICS})
