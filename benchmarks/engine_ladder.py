@@ -1,0 +1,79 @@
+"""The physics engines' error against run time on a dataset's test sequences
+(:mod:`garmentgnn.bench.engines`): one sequence per held-out group (motion, body,
+garment), each simulated again by every setting of
+:func:`~garmentgnn.bench.engines.default_settings` and by the dataset's own engine at
+its own settings (the oracle: its error must be ~0), for the first ``--frames`` frames.
+
+Prints a markdown table (seconds per simulated frame, E_dist in cm, non-converged
+frames of the torch simulator) and writes ``benchmarks/results/engine_ladder.{json,md}``::
+
+    OMP_NUM_THREADS=1 python benchmarks/engine_ladder.py \
+        --data ~/.cache/garmentgnn/datasets/medium-blender
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from garmentgnn.bench.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
+                                      default_settings, engine_record, item_engine,
+                                      pick_sequences)
+
+HERE = Path(__file__).resolve().parent
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, help="a generated dataset folder")
+    ap.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
+                    help="frames of each sequence (after the pre-roll)")
+    ap.add_argument("--per-group", type=int, default=1)
+    ap.add_argument("--out", default=str(HERE / "results" / "engine_ladder"),
+                    help="writes OUT.json and OUT.md")
+    a = ap.parse_args(argv)
+    picks = pick_sequences(dataset_items(a.data), a.per_group)
+    if not picks:
+        raise SystemExit(f"{a.data}: no ok test items held out for one part only")
+    t0 = time.perf_counter()
+    records = []
+    for item in picks:
+        oracle = EngineSetting(item_engine(item), "dataset's own settings (oracle)")
+        for setting in (oracle,) + default_settings():
+            rec = engine_record(a.data, item, setting, frames=min(a.frames, item["motion"]["num_frames"]))
+            rec.pop("traceback", None)
+            records.append(rec)
+            e = rec.get("metrics", {}).get("E_dist")
+            print(f"{rec['held_out'][0]:8s} {rec['method']:34s} {rec['status']:6s} "
+                  f"{rec.get('seconds_per_frame') or float('nan'):7.3f} s/frame  "
+                  f"E_dist {float('nan') if e is None else e:.4f} cm", flush=True)
+    write(records, Path(a.out),
+          f"Dataset `{Path(a.data).name}`, first {a.frames} frames of each sequence, "
+          f"{torch.get_num_threads()} torch thread(s), {platform.machine()}; "
+          f"{time.perf_counter() - t0:.0f} s in all.")
+
+
+def write(records, out: Path, header: str) -> None:
+    """``out.json`` (the records) and ``out.md`` (``header`` and the table); prints the table."""
+    lines = [header, "",
+             "| held out | sequence | method | s / simulated frame | E_dist (cm) | "
+             "non-converged frames | status |", "|---|---|---|---:|---:|---:|---|"]
+    for r in records:
+        e = r.get("metrics", {}).get("E_dist")
+        spf = r.get("seconds_per_frame")
+        lines.append(f"| {', '.join(r['held_out'])} | {r['case']} | {r['method']} | "
+                     f"{'-' if spf is None else f'{spf:.3f}'} | "
+                     f"{'-' if e is None else f'{e:.4f}'} | "
+                     f"{r.get('nonconverged_frames', '-')} | {r['status']} |")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(records, indent=1) + "\n")
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
