@@ -4,8 +4,8 @@ garment), each simulated again by every setting of
 :func:`~garmentgnn.bench.engines.default_settings` and by the dataset's own engine at
 its own settings (the oracle: its error must be ~0), for the first ``--frames`` frames.
 
-Prints a markdown table (seconds per simulated frame, E_dist in cm, non-converged
-frames of the torch simulator) and writes ``benchmarks/results/engine_ladder.{json,md}``::
+Prints a markdown table (seconds per simulated frame, E_dist in cm, collision rate,
+non-converged frames of the torch simulator) and writes ``benchmarks/results/engine_ladder.{json,md}``::
 
     OMP_NUM_THREADS=1 python benchmarks/engine_ladder.py \
         --data ~/.cache/garmentgnn/datasets/medium-blender
@@ -61,13 +61,17 @@ def write(records, out: Path, header: str) -> None:
     """``out.json`` (the records) and ``out.md`` (``header`` and the table); prints the table."""
     lines = [header, "",
              "| held out | sequence | method | s / simulated frame | E_dist (cm) | "
-             "non-converged frames | status |", "|---|---|---|---:|---:|---:|---|"]
+             "collision (%) | non-converged frames | status |",
+             "|---|---|---|---:|---:|---:|---:|---|"]
+
+    def num(x, fmt):
+        return "-" if x is None else format(x, fmt)
+
     for r in records:
-        e = r.get("metrics", {}).get("E_dist")
-        spf = r.get("seconds_per_frame")
+        m = r.get("metrics", {})
         lines.append(f"| {', '.join(r['held_out'])} | {r['case']} | {r['method']} | "
-                     f"{'-' if spf is None else f'{spf:.3f}'} | "
-                     f"{'-' if e is None else f'{e:.4f}'} | "
+                     f"{num(r.get('seconds_per_frame'), '.3f')} | {num(m.get('E_dist'), '.4f')} | "
+                     f"{num(m.get('collision_rate'), '.2f')} | "
                      f"{r.get('nonconverged_frames', '-')} | {r['status']} |")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(records, indent=1) + "\n")

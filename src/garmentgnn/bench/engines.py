@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from garmentgnn.data import store
-from garmentgnn.data.presets import ENGINES, Spec, build_inputs
+from garmentgnn.data.presets import ENGINES, build_inputs
 from garmentgnn.data.worker import default_simulate
 from garmentgnn.metrics import collision_rate, evaluate
 
@@ -158,9 +158,6 @@ def resolve_settings(item: Dict[str, Any], setting: EngineSetting):
     else:
         keep = {"fps", "preroll_frames"}
         base = {k: v for k, v in item["settings"].items() if k in keep}
-        if setting.engine == "torch":  # the torch engine's dataset defaults
-            defaults = Spec.__dataclass_fields__["settings"].default_factory()
-            base = dict(defaults, **base)
     base.update(setting.settings)
     return cls(**base)
 
@@ -229,6 +226,9 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
         _same("motion translation", motion.translation.float().numpy(),
               seq["motion_translation"][:n])
         simulate = default_simulate(setting.engine)
+        if setting.engine == "blender":  # finds the worker's interpreter (cached) untimed
+            from garmentgnn.sim.blender import require_blender
+            require_blender()
         t0 = time.perf_counter()
         res = simulate(garment, body, motion, material, settings=st, progress=None)
         seconds = time.perf_counter() - t0
