@@ -33,6 +33,8 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                     help="frames of each sequence (after the pre-roll)")
     ap.add_argument("--per-group", type=int, default=1)
+    ap.add_argument("--engine", choices=("blender", "torch"), default=None,
+                    help="run only this engine's settings (and the oracle)")
     ap.add_argument("--out", default=str(HERE / "results" / "engine_ladder"),
                     help="writes OUT.json and OUT.md")
     a = ap.parse_args(argv)
@@ -43,7 +45,8 @@ def main(argv=None) -> None:
     records = []
     for item in picks:
         oracle = EngineSetting(item_engine(item), "dataset's own settings (oracle)")
-        for setting in (oracle,) + default_settings():
+        ladder = [s for s in default_settings() if a.engine in (None, s.engine)]
+        for setting in [oracle] + ladder:
             rec = engine_record(a.data, item, setting, frames=min(a.frames, item["motion"]["num_frames"]))
             rec.pop("traceback", None)
             records.append(rec)
@@ -52,7 +55,8 @@ def main(argv=None) -> None:
                   f"{rec.get('seconds_per_frame') or float('nan'):7.3f} s/frame  "
                   f"E_dist {float('nan') if e is None else e:.4f} cm", flush=True)
     write(records, Path(a.out),
-          f"Dataset `{Path(a.data).name}`, first {a.frames} frames of each sequence, "
+          f"Dataset `{Path(a.data).name}`, first {a.frames} frames of each sequence"
+          f"{'' if a.engine is None else f', {a.engine} settings only'}, "
           f"{torch.get_num_threads()} torch thread(s), {platform.machine()}; "
           f"{time.perf_counter() - t0:.0f} s in all.")
 
