@@ -4,8 +4,8 @@ garment), each simulated again by every setting of
 :func:`~garmentgnn.bench.engines.default_settings` and by the dataset's own engine at
 its own settings (the oracle: its error must be ~0), for the first ``--frames`` frames.
 
-Prints a markdown table (seconds per simulated frame, E_dist in cm, non-converged
-frames of the torch simulator) and writes ``benchmarks/results/engine_ladder.{json,md}``::
+Prints a markdown table (seconds per simulated frame, E_dist in cm, collision rate,
+non-converged frames of the torch simulator) and writes ``benchmarks/results/engine_ladder.{json,md}``::
 
     OMP_NUM_THREADS=1 python benchmarks/engine_ladder.py \
         --data ~/.cache/garmentgnn/datasets/medium-blender
@@ -33,6 +33,8 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                     help="frames of each sequence (after the pre-roll)")
     ap.add_argument("--per-group", type=int, default=1)
+    ap.add_argument("--engine", choices=("blender", "torch"), default=None,
+                    help="run only this engine's settings (and the oracle)")
     ap.add_argument("--out", default=str(HERE / "results" / "engine_ladder"),
                     help="writes OUT.json and OUT.md")
     a = ap.parse_args(argv)
@@ -43,7 +45,8 @@ def main(argv=None) -> None:
     records = []
     for item in picks:
         oracle = EngineSetting(item_engine(item), "dataset's own settings (oracle)")
-        for setting in (oracle,) + default_settings():
+        ladder = [s for s in default_settings() if a.engine in (None, s.engine)]
+        for setting in [oracle] + ladder:
             rec = engine_record(a.data, item, setting, frames=min(a.frames, item["motion"]["num_frames"]))
             rec.pop("traceback", None)
             records.append(rec)
@@ -52,7 +55,8 @@ def main(argv=None) -> None:
                   f"{rec.get('seconds_per_frame') or float('nan'):7.3f} s/frame  "
                   f"E_dist {float('nan') if e is None else e:.4f} cm", flush=True)
     write(records, Path(a.out),
-          f"Dataset `{Path(a.data).name}`, first {a.frames} frames of each sequence, "
+          f"Dataset `{Path(a.data).name}`, first {a.frames} frames of each sequence"
+          f"{'' if a.engine is None else f', {a.engine} settings only'}, "
           f"{torch.get_num_threads()} torch thread(s), {platform.machine()}; "
           f"{time.perf_counter() - t0:.0f} s in all.")
 
@@ -61,13 +65,17 @@ def write(records, out: Path, header: str) -> None:
     """``out.json`` (the records) and ``out.md`` (``header`` and the table); prints the table."""
     lines = [header, "",
              "| held out | sequence | method | s / simulated frame | E_dist (cm) | "
-             "non-converged frames | status |", "|---|---|---|---:|---:|---:|---|"]
+             "collision (%) | non-converged frames | status |",
+             "|---|---|---|---:|---:|---:|---:|---|"]
+
+    def num(x, fmt):
+        return "-" if x is None else format(x, fmt)
+
     for r in records:
-        e = r.get("metrics", {}).get("E_dist")
-        spf = r.get("seconds_per_frame")
+        m = r.get("metrics", {})
         lines.append(f"| {', '.join(r['held_out'])} | {r['case']} | {r['method']} | "
-                     f"{'-' if spf is None else f'{spf:.3f}'} | "
-                     f"{'-' if e is None else f'{e:.4f}'} | "
+                     f"{num(r.get('seconds_per_frame'), '.3f')} | {num(m.get('E_dist'), '.4f')} | "
+                     f"{num(m.get('collision_rate'), '.2f')} | "
                      f"{r.get('nonconverged_frames', '-')} | {r['status']} |")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(records, indent=1) + "\n")
