@@ -53,7 +53,6 @@ from garmentgnn.bench.report import STATUSES, check_record, write_report
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.timing import batch_sweep, num_threads, peak_memory
-from garmentgnn.data import store
 from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, code_version,
                                    remove_stale_temporaries)
 from garmentgnn.metrics import evaluate
@@ -427,11 +426,12 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
             records[(kind, method, case, seed)] = rec
             bar.update(1)
 
-    # the engines on a few test sequences of the learned methods' dataset
+    # the engines on a few of the learned methods' test sequences
     engine_settings = {e.name: e for e in engines.default_settings()} if p.engines else {}
-    if engine_settings and data_info is not None:
-        picked = engines.pick_sequences(store.read_manifest(data_info.root)["items"],
-                                        p.engine_per_group)
+    if engine_settings and runner is not None:
+        # from the sequences the learned methods are scored on, so that both sit on
+        # one plot
+        picked = engines.pick_sequences(runner.test.records, p.engine_per_group)
         first += [(engines.KIND, name, {"name": it["id"], "item": it}, 0)
                   for it in picked for name in engine_settings]
     with num_threads(p.threads), tqdm(total=len(first), desc=f"bench {p.name}",

@@ -26,6 +26,15 @@ def _ordered(records: Sequence[Dict[str, Any]]) -> List[str]:
     return seen + sorted({r["method"] for r in records} - set(seen))
 
 
+def _scored(rs: Sequence[Dict[str, Any]]) -> str:
+    """What the learned records were scored on, in words."""
+    n = {len(r["per_sequence"]) for r in rs if r.get("per_sequence")}
+    frames = {r.get("test_frames") for r in rs if r.get("per_sequence")}
+    if len(n) == 1 and len(frames) == 1:
+        return f"the same {n.pop()} test sequences ({frames.pop()} frames)"
+    return "every test sequence"
+
+
 def summary(records: Sequence[Dict[str, Any]]) -> Dict[str, Dict[str, Any]]:
     """Per method: mean / std over seeds of the metrics, latency, throughput and train
     time of its ok ``learned`` records."""
@@ -58,7 +67,7 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
              f"{ds.get('frames', {}).get('test')} test frames. Every method is trained on "
              "the train split (NCS-style: one model per test garment, on that garment's own "
              "test poses, physics terms only -- never its simulated positions) and scored "
-             "on every frame of every test sequence against the simulation (frame-weighted "
+             f"on every frame of {_scored(rs)} against the simulation (frame-weighted "
              "means). A different case set from the simulator tables above: these rows are "
              "not comparable with them. Mean ± std over training seeds. latency: ms per "
              "frame at batch 1; throughput: frames/s at the best batch; train: wall time of "
@@ -148,11 +157,14 @@ def comparison_markdown(records: Sequence[Dict[str, Any]],
     groups = [g for g in scoring.GROUPS if any(g in (r.get("groups") or {}) for r in rs)]
     lbs = _ok(records, LBS)
 
+    def of(r: Dict[str, Any], g: str) -> Dict[str, float]:
+        return r["metrics"] if g == "all" else r["groups"].get(g, {})
+
     def group_cell(ok: List[Dict[str, Any]], g: str, metric: str = "E_dist") -> str:
-        v = [r["groups"][g][metric] for r in ok if g in r["groups"]]
+        v = [of(r, g)[metric] for r in ok if metric in of(r, g)]
         if not v:
             return "—"
-        ref = _mean(lbs, lambda r: r["groups"].get(g, {}).get(metric))
+        ref = _mean(lbs, lambda r: of(r, g).get(metric))
         rel = f" [{100 * (statistics.fmean(v) / ref - 1):+.0f}%]" if ref else ""
         return fmt(v) + rel
     rows = [[m] + [group_cell(_ok(records, m), g) for g in ["all"] + groups]
