@@ -138,7 +138,10 @@ def _fit_recorded(root, tmp_path, init, devices, accumulate):  # noqa: F811
 
 
 def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
-    return torch.allclose(a, b, rtol=1e-4, atol=1e-7 * float(b.abs().max()))
+    # rounding: the all-reduce sums in another order than accumulation (seen: 3.5e-10
+    # on an entry of a gradient whose largest entry is ~1e-4); a dropped or summed
+    # replica is off by O(1) of the largest entry
+    return torch.allclose(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
 
 
 @pytest.mark.slow

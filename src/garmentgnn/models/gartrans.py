@@ -18,15 +18,12 @@ Pipeline for a garment ``T`` (``V`` vertices) on a body with ``S`` joints:
    (length, direction) -> 6 layers [32,64,64,64,32,3], 4 heads, ELU, heads averaged
    at the output = acceleration ``a``; ``M^{t,d} = M^{t,c} + a dt^2``.
 
-Choices where the paper is vague (see docs/model.md): Nyström features are per
-vertex (``V x k`` eigenvector coordinates through FC layers), not one global
-vector; ``Θ^[1]`` is the GRU's last hidden state mapped to ``S`` by a linear
-layer; the acceleration is integrated as a displacement ``a dt^2`` on the coarse
-mesh (frame-parallel); every attention slot takes any registry layer name.
+Choices where the paper is vague (docs/model.md): per-vertex Nyström features
+(``V x k`` through FC layers); ``Θ^[1]`` = the GRU's last hidden state -> linear -> ``S``;
+``a dt^2`` added to the coarse mesh (frame-parallel); any registry layer in any slot.
 
-Leaving out what a scene does not need: ``body_joint_dists=None`` skips the body
-branch (a learned per-joint code replaces ``b^[1]``), a pose history whose frames
-are all equal skips the GRU (``Θ^[1] = 1``).
+Left out where a scene does not need it: the body branch (``body_joint_dists=None``: a
+learned per-joint code for ``b^[1]``) and the GRU (a still pose history: ``Θ^[1] = 1``).
 """
 from __future__ import annotations
 
@@ -200,9 +197,8 @@ class GarTrans(nn.Module):
             that shortens the edges of ``M^{t,d}`` longer than on the rest garment
             (:func:`garmentgnn.geometry.project_edge_lengths` with ``stretch_only``:
             Provot's strain limiting); ``0`` (the paper): none.
-        compile_search: run the projection's nearest-face search through
-            ``torch.compile`` (``compiled`` of :func:`garmentgnn.geometry.signed_distance`;
-            the same result, faster on CPU after a one-off compile).
+        compile_search: ``torch.compile`` the projection's nearest-face search (``compiled``
+            of :func:`garmentgnn.geometry.signed_distance`: same result, faster on CPU).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -212,11 +208,9 @@ class GarTrans(nn.Module):
                  blend_shape: bool = True, strain_limit: int = 0,
                  compile_search: bool = False) -> None:
         super().__init__()
-        self.compile_search = bool(compile_search)
         if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
-            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got "
-                             f"{strain_limit!r}")
-        self.strain_limit = strain_limit
+            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got {strain_limit!r}")
+        self.strain_limit, self.compile_search = strain_limit, bool(compile_search)
         if collision_projection is not None and not collision_projection >= 0:
             raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
                              f"None, got {collision_projection}")
