@@ -258,3 +258,15 @@ def test_register_and_cli_arguments(tmp_path):
     assert cli_main(["bench", "--out", str(tmp_path), "--seeds", "0"]) == 2
     assert not os.listdir(tmp_path)
     assert Path(harness.__file__).exists()
+
+
+@pytest.mark.parametrize("line", [
+    "garmentgnn bench --preset medium --out /o --data /d",
+    "garmentgnn bench --preset tiny --out o --seeds 2 --no-learned --retry-failed --no-progress"])
+def test_report_command_is_the_command_line(line):
+    """The command the report quotes parses back to the same arguments."""
+    from garmentgnn.bench.cli import _command
+    from garmentgnn.cli import build_parser
+    args = build_parser().parse_args(line.split()[1:])
+    assert _command(args) == line
+    assert build_parser().parse_args(_command(args).split()[1:]) == args

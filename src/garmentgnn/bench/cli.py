@@ -30,6 +30,19 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return b
 
 
+def _command(args: argparse.Namespace) -> str:
+    """The ``garmentgnn bench`` command line that ``args`` stand for."""
+    parts = ["garmentgnn", "bench", "--preset", args.preset, "--out", str(args.out)]
+    for flag, value in (("--seeds", args.seeds), ("--data", args.data)):
+        if value is not None:
+            parts += [flag, str(value)]
+    for flag, on in (("--no-learned", args.no_learned), ("--retry-failed", args.retry_failed),
+                     ("--no-progress", args.no_progress)):
+        if on:
+            parts.append(flag)
+    return " ".join(parts)
+
+
 def main(args: argparse.Namespace) -> int:
     """Run the bench sub-command; returns the exit status (0 when the run completed --
     failed records are results and are listed in the report; 2 for bad arguments)."""
@@ -45,7 +58,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         summary = run(preset(args.preset), args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,
-                      data=args.data, learned=not args.no_learned)
+                      data=args.data, learned=not args.no_learned,
+                      command=_command(args))
     except (ValueError, SpecMismatch) as err:  # bad arguments / a dataset folder of another spec
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import platform
 import time
 import traceback
@@ -346,13 +347,14 @@ def _extra_record(ctx: _Context, kind: str, method: str, item: Dict[str, Any], s
 
 
 def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
-        retry_failed: bool = False, data=None, learned: bool = True) -> RunSummary:
+        retry_failed: bool = False, data=None, learned: bool = True,
+        command: Optional[str] = None) -> RunSummary:
     """Run (or resume) preset ``p`` into ``out`` and write the report.
 
     ``seeds`` overrides both the preset's seeds and its learned methods' training seeds.
     The learned methods (``p.learned``, unless ``learned=False``) train on the dataset
     ``data`` (a generated dataset folder) or, by default, on ``p.dataset`` generated
-    (resumably) under ``OUT/data``."""
+    (resumably) under ``OUT/data``.  ``command``: the command line, for the report."""
     from tqdm.auto import tqdm
 
     if not isinstance(p, Preset):
@@ -449,9 +451,11 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     records = list(records.values())
     planned = list(PLANNED) + [m for m in METHODS if m not in p.method_names()]
     not_run = [m for m in planned if not any(r["method"] == m for r in records)]
-    meta = {"preset": p.name, "seeds": n, "threads": p.threads,
+    meta = {"command": command or f"garmentgnn.bench.harness.run(preset {p.name!r})",
+            "preset": p.name, "seeds": n, "threads": p.threads,
             "torch": torch.__version__, "python": platform.python_version(),
-            "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+            "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
+                       + f", {os.cpu_count()} CPUs",
             "code": code_version(),
             "reference": p.reference.name + " (ground truth)",
             "preset_config": _json_safe(asdict(p))}
