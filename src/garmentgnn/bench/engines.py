@@ -251,7 +251,7 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
             raise RuntimeError(f"{int((~torch.isfinite(pred)).sum())} non-finite coordinates")
         m = evaluate(pred, gt, garment.faces)
         # the collision metric in float32, as the learned methods are scored
-        # (evaluate_inputs): its exact brute-force search is ~2x slower in float64
+        # (evaluate_inputs)
         body_pos = body.pose(motion.rotations, motion.translation)[0].float()
         m["collision_rate"] = float(collision_rate(pred.float(), body_pos, body.faces).mean())
         rec.update(status="ok", message=str(res.message or "ok"), metrics=m)
