@@ -75,3 +75,31 @@ def test_stratified_subset():
     assert sorted(scoring.stratified(recs, 99)) == sorted(r["id"] for r in recs)
     with pytest.raises(ValueError, match="`n`"):
         scoring.stratified(recs, 0)
+
+
+def _record(method, per_seq, seed=0):
+    from garmentgnn.bench import learned, tables
+    seqs = [{"sequence": f"s{i}", "frames": 10, "held_out": ["motion"],
+             "metrics": {**{k: v for k in tables.METRICS}, "E_static": v, "E_dynamic": v}}
+            for i, v in enumerate(per_seq)]
+    agg = scoring.aggregate(seqs)
+    return {"kind": learned.KIND, "method": method, "case": "c", "seed": seed, "status": "ok",
+            "metrics": agg.pop("all"), "groups": agg, "per_sequence": seqs,
+            "test_frames": 10 * len(seqs)}
+
+
+def test_report_verdicts_from_paired_tests():
+    """Full GarTrans lower than an ablation on all 8 sequences: the exact two-sided p is
+    2/256, so the Table 1 ordering is "shown"; equal to LBS on half and higher on the
+    rest: the LBS targets are "missed"."""
+    from garmentgnn.bench import learned_report
+    full, abl = list(methods.GARTRANS)[:2]
+    base = [5.0 + i for i in range(8)]
+    recs = [_record(full, [v - 0.1 * (i + 1) for i, v in enumerate(base)]),
+            _record(abl, base), _record(methods.LBS, [v - 1.0 for v in base])]
+    text = "\n".join(learned_report.comparison_markdown(recs))
+    assert f"ahead of {abl} on E_dist: **shown**" in text and "p = 0.0078" in text
+    assert "at least 30% below LBS on every held-out group: **missed**" in text
+    assert "lower than LBS on all five metrics: **missed**" in text
+    row = next(line for line in text.splitlines() if line.startswith(f"| {abl} | E_dist"))
+    assert "significant (p < 0.05)" in row and "not significant" not in row

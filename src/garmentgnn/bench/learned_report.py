@@ -244,6 +244,18 @@ def _targets(records: Sequence[Dict[str, Any]], groups: Sequence[str]) -> List[s
             lines.append(f"- ahead of {b} on E_dist and at least 3 of the other four: "
                          f"**{'met' if hit else 'missed'}** (E_dist {m(full, 'E_dist'):.3g} vs "
                          f"{m(rb, 'E_dist'):.3g} cm; ahead on {', '.join(won) or 'none'})")
+    per_full = per_sequence(records, FULL)
+    for a in [x for x in GARTRANS if x != FULL and _ok(records, x)]:
+        other = per_sequence(records, a)
+        if len(set(per_full) & set(other)) < 2:
+            continue
+        w = scoring.wilcoxon(per_full, other)
+        ahead = m(full, "E_dist") < m(_ok(records, a), "E_dist")
+        word = ("shown" if ahead and w["p"] < ALPHA else
+                "refuted" if not ahead and w["p"] < ALPHA else "not significant")
+        lines.append(f"- Table 1 ordering, {FULL} ahead of {a} on E_dist: **{word}** "
+                     f"({m(full, 'E_dist'):.4g} vs {m(_ok(records, a), 'E_dist'):.4g} cm, "
+                     f"p = {w['p']:.2g})")
     coll = m(full, "collision_rate")
     lines.append(f"- collision rate at most 1% of vertices: **{'met' if coll <= 1 else 'missed'}**"
                  f" ({coll:.3g}%)")
