@@ -90,3 +90,37 @@ def test_no_animation_without_checkpoint_or_when_turned_off(dataset, tmp_path,  
     monkeypatch.setenv(ENV_VAR, "0")
     (tmp_path / "x.ckpt").write_bytes(b"")
     assert write_media(_records(dataset, tmp_path / "x.ckpt"), tmp_path) == []
+
+
+@pytest.mark.skipif(WHY is not None, reason=f"no off-screen renderer: {WHY}")
+def test_animation_shows_the_sequence_the_predictions_were_made_on(dataset, tmp_path,  # noqa: F811
+                                                                   monkeypatch):
+    """The learned methods score a subset of the split (``test_sequences``) whose first
+    sequence -- the one the saved baseline predictions show -- need not be the split's
+    first; the animation must be of that sequence, not of index 0."""
+    from garmentgnn.data import store
+    monkeypatch.setenv(ENV_VAR, "1")
+    ckpt = _checkpoint(dataset, tmp_path / "models" / "m.ckpt")
+    items = store.read_manifest(dataset)["items"]
+    assert len(items) == 2
+    first_scored = items[1]  # not index 0 of the whole dataset
+    gt = store.load_sequence(store.sequence_path(dataset, first_scored))["positions"]
+    out = tmp_path / "bench"
+    (out / MEDIA / "predictions").mkdir(parents=True)
+    np.save(out / MEDIA / "predictions" / "DA-style.npy", gt + np.float32([0.0, 0.01, 0.0]))
+    recs = [dict(r, per_sequence=[{"sequence": first_scored["id"], "frames": 7}])
+            for r in _records(dataset, ckpt)]
+    section = "\n".join(write_media(recs, out, split=None))
+    assert f"`{first_scored['id']}`" in section and f"`{items[0]['id']}`" not in section
+    assert "DA-style 1.00 cm" in section
+
+
+def test_comparison_selects_a_sequence_by_id(dataset):  # noqa: F811
+    from garmentgnn.data import store
+    from garmentgnn.viz.compare import comparison
+    items = store.read_manifest(dataset)["items"]
+    for k, rec in enumerate(items):
+        assert comparison(dataset, {}, split=None, index=rec["id"]).seq_id == rec["id"]
+        assert comparison(dataset, {}, split=None, index=k).seq_id == rec["id"]
+    with pytest.raises(ValueError, match="ids"):
+        comparison(dataset, {}, split="test", index="no-such-sequence")

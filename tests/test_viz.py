@@ -23,6 +23,17 @@ def test_vertex_error_matches_the_metric():
         vertex_error_cm(pred[:, :5], gt)
 
 
+def test_default_error_limit_ignores_one_diverged_panel():
+    from garmentgnn.viz.animate import default_error_limit
+    ramp = np.linspace(0.0, 10.0, 1001)  # 99th percentile: 9.9 cm exactly
+    assert default_error_limit([ramp]) == pytest.approx(9.9)
+    # three close methods and one 200 cm off: the median panel sets the range, not the
+    # outlier (a pooled percentile would give ~200 cm and a uniformly pale picture)
+    errs = [ramp, ramp * 1.1, ramp * 0.9, ramp + 200.0]
+    assert default_error_limit(errs) == pytest.approx(np.median([9.9, 10.89, 8.91, 209.9]))
+    assert default_error_limit([]) == 1.0
+
+
 def test_panel_checks_its_input():
     with pytest.raises(ValueError, match="positions"):
         Panel("a", np.zeros((3, 4)))

@@ -449,7 +449,9 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
                                          for t in second)
             run_all(second, bar)
     records = list(records.values())
-    planned = list(PLANNED) + [m for m in METHODS if m not in p.method_names()]
+    # the simulator-case methods (and their reference) only where the preset has cases
+    planned = list(PLANNED) + ([m for m in METHODS if m not in p.method_names()]
+                               if p.cases else [])
     not_run = [m for m in planned if not any(r["method"] == m for r in records)]
     meta = {"command": command or f"garmentgnn.bench.harness.run(preset {p.name!r})",
             "preset": p.name, "seeds": n, "threads": p.threads,
@@ -457,7 +459,8 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
             "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
                        + f", {os.cpu_count()} CPUs",
             "code": code_version(),
-            "reference": p.reference.name + " (ground truth)",
+            "reference": (p.reference.name + " (ground truth of the simulator cases)"
+                          if p.cases else "each dataset sequence's own simulation"),
             "preset_config": _json_safe(asdict(p))}
     if data_info is not None:
         meta["dataset"] = data_info.to_json()

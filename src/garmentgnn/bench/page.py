@@ -42,8 +42,11 @@ def media_enabled() -> bool:
 
 
 def _checkpoints(records: Sequence[Dict[str, Any]], max_models: int):
-    """``(dataset root, seed, {method: checkpoint}, data options)`` of the lowest seed
-    whose GarTrans records are ok and whose checkpoints exist, or ``None``."""
+    """``(dataset root, seed, {method: checkpoint}, data options, first scored sequence)``
+    of the lowest seed whose GarTrans records are ok and whose checkpoints exist, or
+    ``None``.  The first scored sequence (the id of the records' first ``per_sequence``
+    entry, ``None`` without one) is the one the saved predictions of
+    :meth:`garmentgnn.bench.learned.LearnedRunner.save_prediction` show."""
     rs = [r for r in records if r.get("kind") == "learned" and r.get("status") == "ok"
           and r.get("checkpoint") and Path(r["checkpoint"]).is_file()
           and (r.get("dataset") or {}).get("root")]
@@ -57,7 +60,9 @@ def _checkpoints(records: Sequence[Dict[str, Any]], max_models: int):
         "GarTrans")))
     models = {r["method"]: r["checkpoint"] for r in mine if r["dataset"]["root"] == root}
     data = (mine[0].get("config") or {}).get("data") or {}
-    return root, seed, dict(list(models.items())[:max_models]), data
+    first = next((r["per_sequence"][0]["sequence"] for r in mine if r.get("per_sequence")),
+                 None)
+    return root, seed, dict(list(models.items())[:max_models]), data, first
 
 
 def _stamp(paths: Sequence[PathLike], options: Dict[str, Any]) -> Dict[str, Any]:
@@ -69,7 +74,7 @@ def _stamp(paths: Sequence[PathLike], options: Dict[str, Any]) -> Dict[str, Any]
 
 
 def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *, split: str = "test",
-                index: int = 0, predictions: Optional[Mapping[str, PathLike]] = None,
+                index: Optional[Union[int, str]] = None, predictions: Optional[Mapping[str, PathLike]] = None,
                 max_models: int = MAX_MODELS, max_frames: Optional[int] = 120,
                 height: int = 720, force: bool = False) -> List[str]:
     """Render the held-out animation of a bench run into ``out/media`` and return the
@@ -79,7 +84,9 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *, split: str 
     Args:
         records: the run's records (:func:`garmentgnn.bench.report.check_record`ed).
         out: the bench folder (``report.md`` lives there; links are relative to it).
-        split, index: which sequence of the learned methods' dataset.
+        split, index: which sequence of the learned methods' dataset (an index into
+            ``split`` or a sequence id; default: the first sequence the records were
+            scored on, which is the one the saved predictions show, else the first).
         predictions: more panels, ``{name: .npy path}`` (added to the files found in
             ``out/media/predictions``).
         max_models: GarTrans checkpoints shown at most (GarTrans first).
@@ -92,7 +99,9 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *, split: str 
     found = _checkpoints(records, max_models)
     if found is None:
         return []
-    root, seed, models, data = found
+    root, seed, models, data, first = found
+    if index is None:
+        index = first if first is not None else 0
     out = Path(out)
     media = out / MEDIA
     preds: Dict[str, str] = {p.stem: str(p) for p in sorted((media / "predictions").glob("*.npy"))}

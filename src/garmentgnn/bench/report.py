@@ -181,10 +181,10 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
     methods = _order(r["method"] for r in acc)
     cases = _order(r["case"] for r in acc)
     metric_hdr = [f"{m} ({UNITS[m]})" for m in METRICS]
-    lines += ["## Accuracy per case (shaped like Table 1)", "",
-              "Mean ± std over seeds (frames 1..T-1; frame 0 is the shared initial state). "
-              "Errors are against the reference row of the same case.", ""]
+    lines += ["## Accuracy per case (shaped like Table 1)", ""]
     if acc:
+        lines += ["Mean ± std over seeds (frames 1..T-1; frame 0 is the shared initial "
+                  "state). Errors are against the reference row of the same case.", ""]
         for case in cases:
             lines += [f"### {case}", ""]
             rows = []
@@ -214,7 +214,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
         lines += table(["method"] + metric_hdr + ["latency (ms)", "throughput (fps)",
                                                    "peak mem (MB)"], rows) + [""]
     else:
-        lines += ["No accuracy records.", ""]
+        lines += ["Not run in this preset.", ""]
     stab = [r for r in records if r["kind"] == "stability"]
     lines += ["## Stability", ""]
     th = next((r.get("thresholds") for r in records
@@ -224,7 +224,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                   " (see `garmentgnn.bench.stability.Thresholds`).", ""]
     lines += (["The simulator on the bench's stability item (a garment on the capsule "
                "body), per motion seed.", ""] + _stabilitytable(stab) if stab
-              else ["No stability records.", ""])
+              else ["Not run in this preset.", ""])
     lstab = [r for r in records if r["kind"] == "learned_stability"]
     if lstab:
         seqs = sorted({str(r.get("sequence")) for r in lstab})

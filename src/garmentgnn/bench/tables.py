@@ -51,28 +51,38 @@ def plot_summary(summ: Dict[str, Dict[str, Any]], path, title: str) -> Optional[
     return plot_points(pts, path, title)
 
 
-def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str) -> Path:
-    """Scatter ``(name, latency ms, E_dist cm)`` points on a log latency axis, the Pareto
-    front joined, into the PNG ``path``."""
+def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str,
+                xlabel: str = "latency per frame at batch 1 (ms, log)") -> Path:
+    """Scatter ``(name, time ms, E_dist cm)`` points on a log time axis, the Pareto front
+    joined, into the PNG ``path``.  Each point has its own marker and colour and is named,
+    with its error, in a legend beside the axes (text labels overlap when methods sit
+    close together); the error axis turns logarithmic when the errors span more than a
+    factor 5, so that one diverged method does not flatten the rest."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     front = set(pareto_front(pts))
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    for name, x, y in pts:
-        ax.scatter([x], [y], color="C3" if name in front else "C0", zorder=3)
-        ax.annotate(name, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    markers = "osD^vP*Xh<>p"
+    fig, ax = plt.subplots(figsize=(9.6, 4.8))
+    for i, (name, x, y) in enumerate(pts):
+        label = f"{name}: {y:.3g} cm" + (" (front)" if name in front else "")
+        ax.scatter([x], [y], marker=markers[i % len(markers)], s=42, zorder=3,
+                   color=plt.get_cmap("tab20")(i % 20), label=label,
+                   edgecolors="black" if name in front else "none", linewidths=1.2)
     fp = sorted((x, y) for n, x, y in pts if n in front)
     if len(fp) > 1:
         ax.step([p[0] for p in fp], [p[1] for p in fp], where="post", color="C3", alpha=0.5,
                 label="Pareto front")
-        ax.legend(fontsize=7)
+    ys = [y for _, _, y in pts if y > 0]
+    if ys and max(ys) > 5 * min(ys):
+        ax.set_yscale("log")
     ax.set_xscale("log")
-    ax.set_xlabel("latency per frame at batch 1 (ms, log)")
-    ax.set_ylabel("E_dist (cm)")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("E_dist (cm" + (", log)" if ax.get_yscale() == "log" else ")"))
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     return save_figure(fig, path)
 

@@ -146,6 +146,16 @@ def _font(size: int):
     return ImageFont.truetype(font_manager.findfont("DejaVu Sans"), size)
 
 
+def default_error_limit(errors: Sequence[np.ndarray]) -> float:
+    """Top of the default error colour range (cm): the median over the panels of each
+    panel's 99th-percentile error.  One diverged panel (a method metres off) then
+    saturates at the colour bar's arrow instead of washing every other panel out to the
+    bottom colour; 1.0 without errors."""
+    if not errors:
+        return 1.0
+    return float(np.median([np.percentile(np.asarray(e).ravel(), 99) for e in errors]))
+
+
 def colorbar_image(width: int, height: int, clim: Tuple[float, float], cmap: str,
                    label: str) -> np.ndarray:
     """``[height, width, 3]`` uint8: a horizontal matplotlib colour bar."""
@@ -213,8 +223,8 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
             ``min_seconds`` (short sequences), and the caption says so.
         height: frame height in px (>= 720; 3D area = height - 176 px of titles/colour bar).
         panel_width: px per panel (default ``0.62 * 3D height``, rounded to 16).
-        clim: colour range of the error in cm (default: 0 .. 99th percentile of all
-            predicted panels' errors, shared).
+        clim: colour range of the error in cm, shared by every panel (default: 0 ..
+            :func:`default_error_limit`).
         elev, azim: camera elevation / azimuth in degrees (Z up; azimuth -90 looks at
             the front of a body facing -Y); one camera for every panel and frame.
         gif_scale: GIF frames are this fraction of the MP4 size (file size).
@@ -249,7 +259,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
 
     errs = [p.error for p in panels if p.error is not None]
     if clim is None:
-        top = float(np.percentile(np.concatenate([e.ravel() for e in errs]), 99)) if errs else 1.0
+        top = default_error_limit(errs)
         clim = (0.0, float(f"{max(top, 1e-3):.2g}"))
     elif not (len(clim) == 2 and np.isfinite(clim).all() and clim[1] > clim[0]):
         raise ValueError(f"`clim`: expected (low, high) in cm with high > low, got {clim}")

@@ -59,14 +59,15 @@ def load_checkpoint(path: PathLike):
 
 
 def comparison(root: PathLike, models: Mapping[str, object], split: str = "test",
-               index: int = 0, mode: str = "gartrans", lbs: bool = True, history: int = 3,
+               index: Union[int, str] = 0, mode: str = "gartrans", lbs: bool = True, history: int = 3,
                num_landmarks: int = 64, max_frames: Optional[int] = None,
                predictions: Optional[Mapping[str, object]] = None) -> Comparison:
     """Ground truth, each of ``models`` (name -> :class:`GarTransModule` or checkpoint
     path; ``mode`` ``"gartrans"`` frame-parallel or ``"gartrans_ar"`` autoregressive),
     each of ``predictions`` (name -> ``[T, V, 3]`` array or ``.npy`` path: any other
     method's garment on this sequence, in our vertex order) and, with ``lbs``, the
-    LBS-only coarse garment, on the ``index``-th sequence of ``split`` under ``root``.
+    LBS-only coarse garment, on the ``index``-th sequence of ``split`` under ``root``
+    (or, with a string ``index``, on the sequence of that id).
     Models run in eval mode (their mode is restored)."""
     if mode not in ("gartrans", "gartrans_ar"):
         raise ValueError(f"`mode`: expected 'gartrans' or 'gartrans_ar', got {mode!r}")
@@ -94,8 +95,11 @@ def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, m
     nys = {int(m.hparams.nystrom_dim) for m in loaded.values()} or {16}
     if len(nys) > 1:
         raise ValueError(f"`models`: checkpoints disagree on nystrom_dim {sorted(nys)}")
+    ids = None
+    if isinstance(index, str):  # a sequence id: that sequence alone
+        ids, index = [index], 0
     ds = SequenceChunks(root, split, chunk=10 ** 9, history=history, nystrom_dim=nys.pop(),
-                        num_landmarks=num_landmarks)
+                        num_landmarks=num_landmarks, ids=ids)
     if not len(ds):
         raise ValueError(f"`split`: no {split!r} sequences under {root}")
     if not 0 <= index < len(ds):
@@ -133,7 +137,8 @@ def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, m
 
 
 def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
-         split: str = "test", index: int = 0, mode: str = "gartrans", lbs: bool = True,
+         split: str = "test", index: Union[int, str] = 0, mode: str = "gartrans",
+         lbs: bool = True,
          history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
          predictions: Optional[Mapping[str, object]] = None, gltf: bool = True,
          **render_kw) -> Dict[str, object]:
