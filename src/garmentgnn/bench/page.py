@@ -73,8 +73,9 @@ def _stamp(paths: Sequence[PathLike], options: Dict[str, Any]) -> Dict[str, Any]
     return {"options": options, "files": files}
 
 
-def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *, split: str = "test",
-                index: Optional[Union[int, str]] = None, predictions: Optional[Mapping[str, PathLike]] = None,
+def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
+                split: Optional[str] = "test", index: Optional[Union[int, str]] = None,
+                predictions: Optional[Mapping[str, PathLike]] = None,
                 max_models: int = MAX_MODELS, max_frames: Optional[int] = 120,
                 height: int = 720, force: bool = False) -> List[str]:
     """Render the held-out animation of a bench run into ``out/media`` and return the
@@ -84,9 +85,10 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *, split: str 
     Args:
         records: the run's records (:func:`garmentgnn.bench.report.check_record`ed).
         out: the bench folder (``report.md`` lives there; links are relative to it).
-        split, index: which sequence of the learned methods' dataset (an index into
-            ``split`` or a sequence id; default: the first sequence the records were
-            scored on, which is the one the saved predictions show, else the first).
+        split, index: which sequence of the learned methods' dataset: an index into
+            ``split`` (``None``: every split) or a sequence id; default: the first
+            sequence the records were scored on (the one the saved predictions show),
+            else the first.
         predictions: more panels, ``{name: .npy path}`` (added to the files found in
             ``out/media/predictions``).
         max_models: GarTrans checkpoints shown at most (GarTrans first).

@@ -58,9 +58,9 @@ def load_checkpoint(path: PathLike):
     return GarTransModule.load_from_checkpoint(str(path), map_location="cpu").eval()
 
 
-def comparison(root: PathLike, models: Mapping[str, object], split: str = "test",
-               index: Union[int, str] = 0, mode: str = "gartrans", lbs: bool = True, history: int = 3,
-               num_landmarks: int = 64, max_frames: Optional[int] = None,
+def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str] = "test",
+               index: Union[int, str] = 0, mode: str = "gartrans", lbs: bool = True,
+               history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
                predictions: Optional[Mapping[str, object]] = None) -> Comparison:
     """Ground truth, each of ``models`` (name -> :class:`GarTransModule` or checkpoint
     path; ``mode`` ``"gartrans"`` frame-parallel or ``"gartrans_ar"`` autoregressive),
@@ -137,7 +137,7 @@ def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, m
 
 
 def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
-         split: str = "test", index: Union[int, str] = 0, mode: str = "gartrans",
+         split: Optional[str] = "test", index: Union[int, str] = 0, mode: str = "gartrans",
          lbs: bool = True,
          history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
          predictions: Optional[Mapping[str, object]] = None, gltf: bool = True,
