@@ -34,6 +34,7 @@ from typing import Any, Dict, List
 from garmentgnn.bench import harness
 from garmentgnn.bench.methods import DA, LBS
 from garmentgnn.bench.presets import preset
+from garmentgnn.bench.tables import table
 
 WO_UNSUP = "GarTrans w/o unsupervised loss"
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,18 +55,18 @@ def rows(records: List[Dict[str, Any]], minutes: str) -> List[Dict[str, Any]]:
     return out
 
 
-def markdown(table: List[Dict[str, Any]]) -> List[str]:
-    lbs = next(r for r in table if r["method"] == LBS)
-    lines = ["| method | budget (min) | seed | steps | E_dist (cm) | E_static (cm) "
-             "[LBS's removed] | E_dynamic (cm) [LBS's removed] |",
-             "|---|---|---|---|---|---|---|"]
-    for r in table:
+def markdown(rows_: List[Dict[str, Any]]) -> List[str]:
+    """The rows as a markdown table, with the share of LBS's error of each part removed."""
+    lbs = next(r for r in rows_ if r["method"] == LBS)
+    body = []
+    for r in rows_:
         cells = [r["method"], r["minutes"], str(r["seed"]), str(r["steps"] or "—"),
                  f"{r['E_dist']:.3f}"]
-        for k in ("E_static", "E_dynamic"):
-            cells.append(f"{r[k]:.3f} [{100 * (1 - r[k] / lbs[k]):.1f}%]")
-        lines.append("| " + " | ".join(cells) + " |")
-    return lines
+        cells += [f"{r[k]:.3f} [{100 * (1 - r[k] / lbs[k]):.1f}%]"
+                  for k in ("E_static", "E_dynamic")]
+        body.append(cells)
+    return table(["method", "budget (min)", "seed", "steps", "E_dist (cm)",
+                  "E_static (cm) [LBS's removed]", "E_dynamic (cm) [LBS's removed]"], body)
 
 
 def main() -> None:
@@ -95,16 +96,16 @@ def main() -> None:
     summary = harness.run(p, args.out, data=args.data, command=command)
     print(summary)
     res = json.loads((Path(args.out) / "results.json").read_text())
-    table = rows(ref["records"], "5 (medium)") + rows(res["records"], f"{args.minutes:g}")
-    if not any(r["method"] == WO_UNSUP and r["minutes"] != "5 (medium)" for r in table):
+    found = rows(ref["records"], "5 (medium)") + rows(res["records"], f"{args.minutes:g}")
+    if not any(r["method"] == WO_UNSUP and r["minutes"] != "5 (medium)" for r in found):
         raise RuntimeError(f"no ok record of {WO_UNSUP!r} in {args.out}: see its report.md")
-    lines = markdown(table)
+    lines = markdown(found)
     print("\n".join(lines))
     RESULTS.mkdir(parents=True, exist_ok=True)
     meta = {"command": command, "reference": str(ref_path.relative_to(ROOT))
             if ref_path.is_relative_to(ROOT) else str(ref_path),
             "code": res["meta"].get("code")}
-    (RESULTS / "static_drape_steps.json").write_text(json.dumps({"meta": meta, "rows": table},
+    (RESULTS / "static_drape_steps.json").write_text(json.dumps({"meta": meta, "rows": found},
                                                                 indent=1))
     (RESULTS / "static_drape_steps.md").write_text(
         f"# Static drape: steps or model\n\n`{command}`\n\n" + "\n".join(lines) + "\n")
