@@ -62,6 +62,35 @@ def test_cli_fit_writes_checkpoint_and_resumes(root, tmp_path):  # noqa: F811
     assert ck2["epoch"] == 1
 
 
+def _files(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("logger", [None, "false"])
+def test_cli_fit_writes_only_under_default_root_dir(root, tmp_path, monkeypatch, logger):  # noqa: F811
+    """The packaged config's logger has no save_dir of its own: with
+    ``--trainer.default_root_dir DIR`` (and no logger flag, or ``--trainer.logger false``)
+    logs, checkpoints, TensorBoard events and curve plots all land under DIR, and nothing
+    is written in the current folder."""
+    cwd, out = tmp_path / "cwd", tmp_path / "out"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    args = fast_args(root, out)
+    args = args[:args.index("--trainer.logger.init_args.save_dir")]
+    if logger:
+        args += ["--trainer.logger", logger]
+    assert cli_main(["train", "fit", "--config", "gartrans"] + args) == 0
+    assert _files(cwd) == []
+    written = _files(out)
+    assert any(f.endswith("last.ckpt") for f in written)
+    if logger is None:
+        log = out / "logs" / "version_0"
+        assert (log / "metrics.csv").is_file() and (log / "training_curves.png").is_file()
+        assert (log / "checkpoints" / "last.ckpt").is_file()
+        assert list((log / "tensorboard").glob("events.out.tfevents.*"))
+        assert all(f.startswith("logs/version_0/") for f in written)
+
+
 class _ReplicasEqual(L.Callback):
     def on_train_end(self, trainer, pl_module):
         import torch.distributed as dist

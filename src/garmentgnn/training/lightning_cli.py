@@ -16,10 +16,17 @@ At the end of ``fit`` the loss terms and validation metrics per epoch are drawn 
 Beside the configured ``CSVLogger`` every run also logs to TensorBoard (when the
 ``tensorboard`` package is installed): the same values go to
 ``<log dir>/tensorboard/events.out.tfevents.*`` (``tensorboard --logdir runs``).
+
+Where it all goes: the loggers' ``save_dir`` is linked to ``--trainer.default_root_dir``
+(a ``save_dir`` of their own is overridden), so ``--trainer.default_root_dir DIR`` puts
+the log folder ``DIR/logs/version_<n>`` -- metrics, checkpoints, TensorBoard events,
+curve plots, ``config.yaml`` -- under DIR; ``--trainer.logger false`` keeps only the
+checkpoints, in ``DIR/checkpoints``.  The packaged configs set ``runs/<name>``.
 """
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from typing import Any, Optional, Sequence
 
@@ -111,6 +118,11 @@ class GarTransCLI(LightningCLI):
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.nystrom_dim", "model.nystrom_dim")
+        # every logger writes under the trainer's root folder (the current folder when it
+        # is unset, as in Lightning), so --trainer.default_root_dir moves logs,
+        # checkpoints, TensorBoard events and curve plots together
+        parser.link_arguments("trainer.default_root_dir", "trainer.logger.init_args.save_dir",
+                              compute_fn=lambda d: d or os.getcwd())
         for name in ("num_joints", "num_body_vertices"):
             parser.link_arguments("data", f"model.{name}", apply_on="instantiate",
                                   compute_fn=_dim(name))
