@@ -5,7 +5,8 @@ garment), each simulated again by every setting of
 its own settings (the oracle: its error must be ~0), for the first ``--frames`` frames.
 
 Prints a markdown table (seconds per simulated frame, E_dist in cm, collision rate,
-non-converged frames of the torch simulator) and writes ``benchmarks/results/engine_ladder.{json,md}``::
+non-converged frames of the torch simulator) and writes ``engine_ladder.{json,md}`` into a
+cache folder (``--out`` elsewhere; ``--commit``: the committed ``benchmarks/results/``)::
 
     OMP_NUM_THREADS=1 python benchmarks/engine_ladder.py \
         --data ~/.cache/garmentgnn/datasets/medium-blender
@@ -20,24 +21,28 @@ from pathlib import Path
 
 import torch
 
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.bench.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
                                       default_settings, engine_record, item_engine,
                                       pick_sequences)
 
 HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "engine_ladder"
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
     ap.add_argument("--data", required=True, help="a generated dataset folder")
     ap.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                     help="frames of each sequence (after the pre-roll)")
-    ap.add_argument("--per-group", type=int, default=1)
+    ap.add_argument("--per-group", type=int, default=1,
+                    help="test sequences per held-out group")
     ap.add_argument("--engine", choices=("blender", "torch"), default=None,
-                    help="run only this engine's settings (and the oracle)")
-    ap.add_argument("--out", default=str(HERE / "results" / "engine_ladder"),
-                    help="writes OUT.json and OUT.md")
+                    help="run only this engine's settings (and the oracle); default both")
+    add_output_args(ap, RESULTS, "writes OUT.json and OUT.md")
     a = ap.parse_args(argv)
+    a.out = str(output_path(a, RESULTS))
     picks = pick_sequences(dataset_items(a.data), a.per_group)
     if not picks:
         raise SystemExit(f"{a.data}: no ok test items held out for one part only")

@@ -18,7 +18,8 @@ vertex-frames inside), edge strain against the rest mesh (mean and max over all 
 kinetic energy at the last frame (per kg of cloth, so sizes compare), and for ``anny``
 and ``drape`` the distance between the two engines' garments.  Sizes above
 ``--torch-max-vertices`` get a torch row saying ``skipped: cost``.  Writes
-``benchmarks/results/engines.{json,md}``.
+``engines.{json,md}`` in a cache folder (``--out`` elsewhere; ``--commit``: the committed
+``benchmarks/results/engines.*``).
 
     python benchmarks/engines.py                          # 300, 1K, 4K vertices, 30 frames
     python benchmarks/engines.py --sizes 300 --frames 10 --cases hang
@@ -38,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.data.presets import BLENDER_SETTINGS, build_inputs, preset
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
@@ -48,6 +50,7 @@ from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker, 
 from garmentgnn.sim.simulator import trajectories
 
 HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "engines"
 TORCH = SimSettings(fps=30.0, substeps=4, friction=True)
 
 
@@ -202,19 +205,22 @@ def table(rows) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[300, 1000, 4000])
-    ap.add_argument("--frames", type=int, default=30)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[300, 1000, 4000],
+                    help="sheet sizes (vertices) of the hang and drape cases")
+    ap.add_argument("--frames", type=int, default=30, help="simulated frames per case")
     ap.add_argument("--torch-max-vertices", type=int, default=1500,
                     help="skip the torch simulator above this size (5K vertices: ~2 min/frame)")
     ap.add_argument("--cases", nargs="+", default=["hang", "anny", "drape"],
-                    choices=["hang", "drape", "anny"])
+                    choices=["hang", "drape", "anny"], help="scenes to simulate")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (Blender uses all cores)")
-    ap.add_argument("--out", default=str(HERE / "results" / "engines"))
+    add_output_args(ap, RESULTS, "writes OUT.json and OUT.md")
     ap.add_argument("--keep", action="store_true",
                     help="keep the rows of the cases not rerun from the existing JSON (marked "
                          "with the command that measured them)")
     args = ap.parse_args(argv)
+    args.out = str(output_path(args, RESULTS))
     torch.set_num_threads(args.threads)
     mat = material("silk")
     rows = []

@@ -22,7 +22,8 @@ The "LBS error removed" column compares with ``lbs`` over all frames (the previo
 oracle covers frames 1.. only).
 
 Prints a markdown table of frame-weighted E_dist (cm) and the fraction of LBS's error
-each removes, and writes ``benchmarks/results/error_split.{json,md}``::
+each removes, and writes ``error_split.{json,md}`` into a cache folder (``--out`` elsewhere;
+``--commit``: the committed ``benchmarks/results/``)::
 
     python benchmarks/error_split.py --data ~/.cache/garmentgnn/datasets/tiny-torch
 """
@@ -35,6 +36,7 @@ from pathlib import Path
 
 import torch
 
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics import vertex_distance
 from garmentgnn.metrics.split import posed, to_rest_frame
@@ -44,10 +46,13 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
     ap.add_argument("--data", required=True, help="a generated dataset folder")
     ap.add_argument("--split", default=None, help="train / val / test (default: every split)")
+    add_output_args(ap, RESULTS, "folder for error_split.json and error_split.md")
     args = ap.parse_args()
+    out = output_path(args, RESULTS)
     ds = SequenceChunks(args.data, split=None, chunk=10 ** 9, history=1)
     seqs = []
     with torch.no_grad():
@@ -106,9 +111,9 @@ def main() -> None:
                   f"{prev['E_dist_cm'] * prev['frames'] / frames['lbs']:.3f} cm over all frames."]
     text = "\n".join(lines) + "\n"
     print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "error_split.md").write_text(text)
-    (RESULTS / "error_split.json").write_text(json.dumps(
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "error_split.md").write_text(text)
+    (out / "error_split.json").write_text(json.dumps(
         {"data": str(args.data), "split": args.split, "summary": summary, "sequences": rows},
         indent=1))
 

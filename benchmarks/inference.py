@@ -22,7 +22,8 @@ bound) for the in-process methods; the Blender worker's peak RSS (whole process,
 ``getrusage`` of the children).  ``--profile`` adds a by-module and by-operator
 ``torch.profiler`` breakdown of one GarTrans frame per size (static branch cached and
 not); ``--experiments`` times bfloat16 and ``torch.compile`` at the smallest size.
-Writes ``benchmarks/results/inference.{json,md,png}``.
+Writes ``inference.{json,md,png}`` into a cache folder (``--out`` elsewhere; ``--commit``:
+the committed ``benchmarks/results/inference.*``).
 
     OMP_NUM_THREADS=2 python benchmarks/inference.py --profile --experiments
     # docs/inference.md's run (one core each; the machine was shared):
@@ -46,6 +47,7 @@ from typing import Any, Callable, Dict, List
 import numpy as np
 import torch
 
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import case_item, make_sequence
 from garmentgnn.bench.timing import measure, peak_memory
@@ -53,6 +55,7 @@ from garmentgnn.models import gartrans as gartrans_mod
 from garmentgnn.models.baselines import LBSBaseline
 
 HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "inference"
 HISTORY = 3
 #: the paper's GPU figures (10K vertices)
 PAPER = {"latency_ms": 29.0, "throughput_fps": 280.0}
@@ -338,24 +341,31 @@ def plot(rows: List[Dict[str, Any]], path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 4000, 10000],
                     help="template resolutions (requested vertex counts)")
     ap.add_argument("--frames", type=int, default=32, help="motion frames (GarTrans, LBS)")
-    ap.add_argument("--batches", type=int, nargs="+", default=[1, 4, 8, 16, 32])
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--blender-frames", type=int, default=8)
-    ap.add_argument("--blender-preroll", type=int, default=3)
-    ap.add_argument("--no-blender", action="store_true")
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 4, 8, 16, 32],
+                    help="GarTrans batch sizes (frames per call) for the throughput")
+    ap.add_argument("--repeats", type=int, default=3, help="timed repeats (the best is kept)")
+    ap.add_argument("--blender-frames", type=int, default=8, help="frames Blender records")
+    ap.add_argument("--blender-preroll", type=int, default=3,
+                    help="Blender's pre-roll frames (shortened from the dataset's)")
+    ap.add_argument("--no-blender", action="store_true", help="leave out the Blender engine")
     ap.add_argument("--blender-cores", type=int, default=None,
                     help="CPU cores of the Blender worker (its affinity); default: --threads")
-    ap.add_argument("--torch-frames", type=int, default=3)
-    ap.add_argument("--torch-max-vertices", type=int, default=1500)
-    ap.add_argument("--profile", action="store_true")
-    ap.add_argument("--experiments", action="store_true")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--out", default=str(HERE / "results" / "inference"))
+    ap.add_argument("--torch-frames", type=int, default=3, help="frames of the torch simulator")
+    ap.add_argument("--torch-max-vertices", type=int, default=1500,
+                    help="time the torch simulator only up to this many vertices")
+    ap.add_argument("--profile", action="store_true",
+                    help="add a torch.profiler breakdown of one GarTrans frame per size")
+    ap.add_argument("--experiments", action="store_true",
+                    help="time bfloat16 and torch.compile at the smallest size")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads")
+    add_output_args(ap, RESULTS, "writes OUT.json, OUT.md and OUT.png")
     args = ap.parse_args(argv)
+    args.out = str(output_path(args, RESULTS))
     torch.set_num_threads(args.threads)
     args.blender_cores = args.blender_cores or args.threads
     from garmentgnn.sim.blender import blender_available

@@ -14,8 +14,9 @@ Layers run with their defaults (input checks and the finite-output check on).
     python benchmarks/layers.py                   # full size
     python benchmarks/layers.py --nx 30 --reps 3  # quick look
 
-Writes ``benchmarks/results/layers.json`` and ``layers.md``, and replaces the
-table between the ``<!-- bench:layers -->`` markers in ``docs/layers.md``.
+Writes ``layers.json`` and ``layers.md`` into a cache folder (``--out`` elsewhere); with
+``--commit`` into the committed ``benchmarks/results/``, and it replaces the table between
+the ``<!-- bench:layers -->`` markers in ``docs/layers.md``.
 """
 from __future__ import annotations
 
@@ -34,10 +35,13 @@ import torch_geometric
 import torch_geometric.typing
 from torch_geometric.nn import GATv2Conv, TransformerConv
 
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh
 from garmentgnn.nn import LAYERS, make_layer
 
 HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+DOCS = HERE.parent / "docs" / "layers.md"
 ANCHOR = "TransformerConv"
 CONFIGS = [(4, 16), (1, 64), (4, 64)]
 MARK = "<!-- bench:layers -->"
@@ -145,20 +149,25 @@ def markdown(res: dict) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
     ap.add_argument("--nx", type=int, default=100, help="mesh is nx x nx vertices (100 -> 10K)")
-    ap.add_argument("--width", type=int, default=64)
+    ap.add_argument("--width", type=int, default=64, help="node feature width")
     ap.add_argument("--edge-dims", type=int, nargs="+", default=[4, 64],
                     help="edge feature widths (4: the mesh's length and direction)")
-    ap.add_argument("--reps", type=int, default=9)
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--reps", type=int, default=9, help="timed repetitions (median kept)")
+    ap.add_argument("--warmup", type=int, default=2, help="untimed first repetitions")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch thread counts")
     ap.add_argument("--layers", nargs="+", default=["sat"], choices=sorted(LAYERS),
                     help="garmentgnn layers to time beside TransformerConv and GATv2Conv")
-    ap.add_argument("--out", type=Path, default=HERE / "results")
-    ap.add_argument("--docs", default=str(HERE.parent / "docs" / "layers.md"),
-                    help="file whose table between the markers is replaced ('' to skip)")
+    add_output_args(ap, RESULTS, "folder for layers.json and layers.md")
+    ap.add_argument("--docs", default=None,
+                    help=f"file whose table between the markers is replaced; default: none, "
+                         f"{DOCS} with --commit")
     args = ap.parse_args()
+    args.out = output_path(args, RESULTS)
+    if args.docs is None and args.commit:
+        args.docs = str(DOCS)
 
     res = run(args)
     args.out.mkdir(parents=True, exist_ok=True)

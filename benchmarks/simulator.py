@@ -5,7 +5,8 @@ isolate the cloth solve): thread counts and stiffness multipliers at the smalles
 size, vertex counts at the largest thread count.  Each configuration simulates ``--frames`` frames at 30 fps after one
 warm-up frame; the table reports seconds per frame, frames per second,
 vertex-substeps per second, mean Newton iterations per frame and whether every
-frame converged.  Writes ``benchmarks/results/simulator.{json,md}``.
+frame converged.  Writes ``simulator.{json,md}``
+into a cache folder (``--out`` elsewhere; ``--commit``: the committed ``benchmarks/results/``).
 
     python benchmarks/simulator.py                       # 1K, 5K, 10K vertices
     python benchmarks/simulator.py --sizes 1000 --frames 2
@@ -22,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import grid_mesh
 from garmentgnn.motion import Motion
@@ -29,6 +31,7 @@ from garmentgnn.physics import material
 from garmentgnn.sim import SimSettings, simulate
 
 HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
 
 
 def hanging_sheet(num_vertices: int, size: float = 0.5) -> Garment:
@@ -62,15 +65,19 @@ def run(num_vertices: int, threads: int, stiffness: float, frames: int, substeps
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 10000])
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 10000],
+                    help="sheet sizes (vertices)")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2],
+                    help="torch thread counts, measured at the smallest size")
     ap.add_argument("--stiffness", type=float, nargs="+", default=[1.0, 1000.0],
                     help="stiffness multipliers, measured at the smallest size")
-    ap.add_argument("--frames", type=int, default=3)
-    ap.add_argument("--substeps", type=int, default=4)
-    ap.add_argument("--out", type=Path, default=HERE / "results")
+    ap.add_argument("--frames", type=int, default=3, help="simulated frames per row")
+    ap.add_argument("--substeps", type=int, default=4, help="simulator substeps per frame")
+    add_output_args(ap, RESULTS, "folder for simulator.json and simulator.md")
     args = ap.parse_args()
+    args.out = output_path(args, RESULTS)
     rows = []
     small, most = min(args.sizes), max(args.threads)
     # thread scaling and stiffness at the smallest size; vertex scaling at most threads

@@ -19,7 +19,8 @@ committed `medium` results).
 * If it stays near 5%, the model or its inputs learn the drape more slowly per step.
 
 One training seed, so this is a pointer, not a significance claim. It writes
-``benchmarks/results/static_drape_steps.{json,md}``::
+``static_drape_steps.{json,md}`` into ``--out`` (``--commit``: the committed
+``benchmarks/results/``)::
 
     python benchmarks/static_drape_steps.py --data ~/.cache/garmentgnn/datasets/medium-blender
 """
@@ -31,6 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Dict, List
 
+from garmentgnn._argparse import HelpFormatter
 from garmentgnn.bench import harness
 from garmentgnn.bench.methods import DA, LBS
 from garmentgnn.bench.presets import preset
@@ -70,15 +72,18 @@ def markdown(rows_: List[Dict[str, Any]]) -> List[str]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
     ap.add_argument("--data", required=True, help="the generated `medium` dataset folder")
     ap.add_argument("--out", default=str(Path.home() / ".cache" / "garmentgnn" / "bench" /
                                          "medium-static-steps"),
                     help="bench folder of this run (rerun to resume)")
     ap.add_argument("--minutes", type=float, default=10.0,
-                    help="training budget of the ablation (default 10)")
+                    help="training budget of the ablation")
     ap.add_argument("--reference", default=str(REFERENCE),
                     help="results.json of the 5-minute `medium` run")
+    ap.add_argument("--commit", action="store_true",
+                    help=f"write the table into the committed {RESULTS} (default: into --out)")
     args = ap.parse_args()
     if args.minutes <= 0:
         raise ValueError(f"`--minutes`: expected > 0, got {args.minutes}")
@@ -101,13 +106,15 @@ def main() -> None:
         raise RuntimeError(f"no ok record of {WO_UNSUP!r} in {args.out}: see its report.md")
     lines = markdown(found)
     print("\n".join(lines))
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    table = RESULTS if args.commit else Path(args.out)
+    table.mkdir(parents=True, exist_ok=True)
+    print(f"results: {table}")
     meta = {"command": command, "reference": str(ref_path.relative_to(ROOT))
             if ref_path.is_relative_to(ROOT) else str(ref_path),
             "code": res["meta"].get("code")}
-    (RESULTS / "static_drape_steps.json").write_text(json.dumps({"meta": meta, "rows": found},
+    (table / "static_drape_steps.json").write_text(json.dumps({"meta": meta, "rows": found},
                                                                 indent=1))
-    (RESULTS / "static_drape_steps.md").write_text(
+    (table / "static_drape_steps.md").write_text(
         f"# Static drape: steps or model\n\n`{command}`\n\n" + "\n".join(lines) + "\n")
 
 

@@ -16,7 +16,8 @@ chunk order, and reports:
 
 Variants alternate (``--repeats`` rounds of all of them) so a busy machine slows each
 alike; the median frames/s per variant and its ratio to the first are printed and
-written to ``benchmarks/results/train_speed.{json,md}``::
+written to ``train_speed.{json,md}`` in a cache folder (``--out`` elsewhere; ``--commit``:
+the committed ``benchmarks/results/train_speed.*``)::
 
     python benchmarks/train_speed.py --data ~/.cache/garmentgnn/datasets/medium-blender
     python benchmarks/train_speed.py --data DATA --steps 20 --repeats 1   # quick look
@@ -40,6 +41,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 #: the last commit before the training speed-ups
 BEFORE = "098489e"
+RESULTS = HERE / "results" / "train_speed"
 
 
 def child(args: argparse.Namespace) -> None:
@@ -112,17 +114,28 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="a generated dataset folder")
-    ap.add_argument("--before", default=BEFORE, help="git revision of the 'before' variant")
-    ap.add_argument("--steps", type=int, default=40, help="timed training steps")
-    ap.add_argument("--warmup", type=int, default=4, help="untimed first steps")
-    ap.add_argument("--repeats", type=int, default=2, help="rounds over the variants")
-    ap.add_argument("--threads", type=int, default=2, help="torch threads per variant")
-    ap.add_argument("--out", default=str(HERE / "results" / "train_speed"))
+    # the child runs this file under another revision's src: no garmentgnn import here
+    d = " (default: %(default)s)"
+    ap.add_argument("--before", default=BEFORE,
+                    help="git revision of the 'before' variant" + d)
+    ap.add_argument("--steps", type=int, default=40, help="timed training steps" + d)
+    ap.add_argument("--warmup", type=int, default=4, help="untimed first steps" + d)
+    ap.add_argument("--repeats", type=int, default=2, help="rounds over the variants" + d)
+    ap.add_argument("--threads", type=int, default=2, help="torch threads per variant" + d)
+    out = ap.add_mutually_exclusive_group()
+    out.add_argument("--out", default=None,
+                     help="writes OUT.json and OUT.md; default "
+                          "~/.cache/garmentgnn/benchmarks/train_speed (the committed copy "
+                          "only with --commit)")
+    out.add_argument("--commit", action="store_true",
+                     help=f"write the committed results, {RESULTS}" + d)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--data-overrides", default="{}", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
         return child(a)
+    from garmentgnn._argparse import output_path
+    a.out = str(output_path(a, RESULTS))
     if a.steps < 1 or a.warmup < 1 or a.repeats < 1:
         ap.error("--steps, --warmup and --repeats must be positive")
     tmp = Path(tempfile.mkdtemp(prefix="train_speed_src_"))

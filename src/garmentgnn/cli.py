@@ -16,6 +16,7 @@ import warnings
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
+from garmentgnn._argparse import HelpFormatter
 from garmentgnn.bench import cli as bench_cli
 from garmentgnn.viz import cli as viz_cli
 
@@ -43,8 +44,11 @@ def _path(text: str) -> str:
 def add_generate_parser(sub) -> argparse.ArgumentParser:
     """The ``generate`` sub-command: simulate a dataset preset into a folder."""
     from garmentgnn.data.presets import ENGINES, PRESETS
-    g = sub.add_parser("generate", help="simulate a dataset preset into a folder (resumable)")
-    g.add_argument("--preset", choices=PRESETS, default="tiny")
+    g = sub.add_parser("generate", help="simulate a dataset preset into a folder (resumable)",
+                       description="Simulate a dataset preset into a folder: one sequence "
+                       "file per item and a manifest; rerun to resume.",
+                       formatter_class=HelpFormatter)
+    g.add_argument("--preset", choices=PRESETS, default="tiny", help="dataset preset")
     g.add_argument("--engine", choices=("auto",) + ENGINES, default="auto",
                    help="simulation engine: Blender's cloth (run in worker processes) or the "
                         "torch reference simulator; auto = blender where `bpy` is installed")
@@ -55,15 +59,15 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--force", action="store_true",
                    help="overwrite the spec and manifest of another dataset in --out")
     g.add_argument("--workers", type=int, default=1,
-                   help="worker processes (0 = in this process); default 1")
+                   help="worker processes (0 = in this process)")
     g.add_argument("--backend", choices=("local", "ray"), default="local",
                    help="local worker processes, or one Ray task per sequence")
     g.add_argument("--address", default=None,
                    help="with --backend ray: the cluster to join (HOST:PORT); default a "
                         "local cluster of --workers CPUs")
-    g.add_argument("--seed", type=int, default=0, help="base seed of the spec (default 0)")
+    g.add_argument("--seed", type=int, default=0, help="base seed of the spec")
     g.add_argument("--limit", type=int, default=None,
-                   help="simulate at most N pending items in this run")
+                   help="simulate at most N pending items in this run (default: all)")
     g.add_argument("--retry-failed", action="store_true",
                    help="simulate items recorded as failed again")
     g.add_argument("--estimate", action=argparse.BooleanOptionalAction, default=True,
@@ -99,15 +103,21 @@ def generate_main(args: argparse.Namespace) -> int:
 def add_export_parser(sub) -> argparse.ArgumentParser:
     """The ``export`` sub-command: one sequence file as PC2, OBJs or glTF."""
     e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence, glTF, "
-                       "Alembic or .blend (the last two through Blender's bpy)")
+                       "Alembic or .blend (the last two through Blender's bpy)",
+                       description="Export one sequence file of a generated dataset "
+                       "(OUT/sequences/<id>.npz): the garment's per-frame positions as PC2 "
+                       "point caches, one OBJ per frame, an animated glTF (.glb, with the "
+                       "body), or through Blender's bpy an Alembic (.abc) or .blend scene "
+                       "whose frame rate is the sequence's.",
+                       formatter_class=HelpFormatter)
     e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
     from garmentgnn.data.export import EXPORT_FORMATS
-    e.add_argument("--format", choices=EXPORT_FORMATS, required=True)
+    e.add_argument("--format", choices=EXPORT_FORMATS, required=True, help="file format")
     e.add_argument("--out", required=True, type=_path,
                    help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true",
                    help="glTF, Alembic, .blend: the garment only")
-    e.add_argument("--start-frame", type=float, default=0.0, help="PC2 start frame")
+    e.add_argument("--start-frame", type=float, default=0.0, help="PC2: the frame number of the first sample")
     return e
 
 
@@ -138,7 +148,9 @@ def export_main(args: argparse.Namespace) -> int:
 
 def add_manifest_parser(sub) -> argparse.ArgumentParser:
     """The ``manifest`` sub-command: rebuild a dataset's manifest from its files."""
-    m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files")
+    m = sub.add_parser("manifest", help="rebuild OUT/manifest.json from the sequence files",
+                       description="Rebuild a dataset's manifest.json from its sequence "
+                       "files.", formatter_class=HelpFormatter)
     m.add_argument("--out", required=True, type=_path, help="the dataset folder")
     return m
 
@@ -199,7 +211,8 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
 def build_parser() -> argparse.ArgumentParser:
     """The ``garmentgnn`` parser with every sub-command of :data:`COMMANDS`."""
     import garmentgnn
-    p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0],
+                                formatter_class=HelpFormatter)
     p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     for add_parser, _ in COMMANDS.values():

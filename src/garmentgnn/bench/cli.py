@@ -11,11 +11,15 @@ import sys
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``bench`` sub-command to an ``argparse`` sub-parsers object."""
+    from garmentgnn._argparse import HelpFormatter
     from garmentgnn.bench.presets import PRESET_NAMES
     b = subparsers.add_parser(
         "bench", help="benchmark: accuracy vs a reference simulation, run time, memory, "
-                      "stability (resumable; writes OUT/report.md)")
-    b.add_argument("--preset", choices=PRESET_NAMES, default="tiny")
+                      "stability (resumable; writes OUT/report.md)",
+        description="Benchmark: accuracy against a reference simulation, run time, memory "
+                    "and stability of the simulator budgets, LBS and the learned methods "
+                    "(resumable; writes OUT/report.md).", formatter_class=HelpFormatter)
+    b.add_argument("--preset", choices=PRESET_NAMES, default="tiny", help="benchmark preset")
     b.add_argument("--out", required=True, help="output folder (rerun to resume)")
     b.add_argument("--seeds", type=int, default=None,
                    help="number of seeds, of the simulated cases and of the learned methods' "

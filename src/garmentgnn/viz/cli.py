@@ -5,10 +5,13 @@ from __future__ import annotations
 import argparse
 import time
 
+from garmentgnn._argparse import HelpFormatter
+
 
 def add_parser(sub) -> argparse.ArgumentParser:
     s = sub.add_parser("show", help="animate ground truth | checkpoints | LBS on a held-out "
-                       "sequence (MP4, GIF, PNG, glTF)", description=__doc__)
+                       "sequence (MP4, GIF, PNG, glTF)", description=__doc__,
+                       formatter_class=HelpFormatter)
     s.add_argument("--data", required=True, help="generated dataset folder (manifest.json)")
     s.add_argument("--ckpt", action="append", default=[], metavar="[NAME=]PATH",
                    help="a GarTrans checkpoint to show (repeat for baselines / ablations); "
@@ -17,18 +20,22 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="any other method's garment on this sequence, [T, V, 3] in our vertex "
                    "order (e.g. a bench baseline), shown after the checkpoints")
     s.add_argument("--out", required=True, help="output path without suffix (.mp4/.gif/.png/.glb)")
-    s.add_argument("--split", default="test")
+    s.add_argument("--split", default="test", help="the dataset split of the sequence")
     s.add_argument("--index", type=int, default=0, help="which sequence of the split")
     s.add_argument("--mode", choices=("gartrans", "gartrans_ar"), default="gartrans",
                    help="frame-parallel or autoregressive prediction")
     s.add_argument("--no-lbs", action="store_true", help="leave out the LBS-only panel")
-    s.add_argument("--history", type=int, default=3)
-    s.add_argument("--num-landmarks", type=int, default=64)
-    s.add_argument("--max-frames", type=int, default=None)
+    s.add_argument("--history", type=int, default=3,
+                   help="past frames each prediction sees (as the checkpoints were trained)")
+    s.add_argument("--num-landmarks", type=int, default=64,
+                   help="Nystrom landmarks of the garment's geodesic features")
+    s.add_argument("--max-frames", type=int, default=None,
+                   help="show at most this many frames (default: the whole sequence)")
     s.add_argument("--height", type=int, default=896, help="frame height in px (>= 720)")
-    s.add_argument("--clim", type=float, default=None, help="top of the error scale (cm)")
-    s.add_argument("--no-gif", action="store_true")
-    s.add_argument("--no-gltf", action="store_true")
+    s.add_argument("--clim", type=float, default=None, help="top of the error scale in cm (default: from the panels that did not "
+                   "diverge)")
+    s.add_argument("--no-gif", action="store_true", help="write no GIF beside the MP4")
+    s.add_argument("--no-gltf", action="store_true", help="write no glTF (.glb) file")
     return s
 
 
