@@ -71,7 +71,9 @@ if path.endswith(".abc"):
     bpy.ops.wm.alembic_import(filepath=path)
 else:
     bpy.ops.wm.open_mainfile(filepath=path)
-json.dump(evaluated_frames(bpy.context.scene), open(sys.argv[3], "w"))
+result = evaluated_frames(bpy.context.scene)
+result["scene fps"] = bpy.context.scene.render.fps / bpy.context.scene.render.fps_base
+json.dump(result, open(sys.argv[3], "w"))
 '''
 
 
@@ -110,6 +112,11 @@ def test_alembic_and_blend_round_trip(dataset, tmp_path, fmt):  # noqa: F811
     assert cli_main(["export", "--seq", str(seq_path), "--format", fmt, "--out", str(out)]) == 0
     assert out.is_file()
     objects = _blender_read(READ_ANIMATED, tmp_path, out, fps)
+    scene_fps = objects.pop("scene fps")
+    if fmt == "blend":  # the file opens at the sequence's frame rate (Blender's default: 24)
+        assert scene_fps == pytest.approx(fps) and fps != 24
+    else:  # Alembic keeps seconds; the archive records the frame rate it was written at
+        assert f"FramesPerTimeUnit={fps:f};".encode() in out.read_bytes()
     assert sorted(objects) == sorted(m.name for m in meshes), sorted(objects)
     T = seq["positions"].shape[0]
     for m in meshes:

@@ -112,7 +112,9 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
                        formatter_class=HelpFormatter)
     e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
     from garmentgnn.data.export import EXPORT_FORMATS
-    e.add_argument("--format", choices=EXPORT_FORMATS, required=True, help="file format")
+    e.add_argument("--format", choices=EXPORT_FORMATS, required=True,
+                   help="file format; abc keeps time in seconds: import it into a scene at "
+                        "the sequence's fps (Blender's default is 24), the .blend opens at it")
     e.add_argument("--out", required=True, type=_path,
                    help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true",
