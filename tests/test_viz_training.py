@@ -70,6 +70,26 @@ def test_plot_training_curves_input(tmp_path):
     assert p.is_file() and p.stat().st_size > 5_000
 
 
+@pytest.mark.parametrize("epochs", [2, 3, 7])
+def test_short_run_epoch_ticks_are_integers(tmp_path, monkeypatch, epochs):
+    """A run of a few epochs: every epoch tick shown is a whole number (matplotlib's
+    default locator puts 0.25 steps between two epochs)."""
+    from matplotlib.figure import Figure
+    saved = []
+    orig = Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: (saved.append(fig),
+                                                                  orig(fig, *a, **k)))
+    hist = [{"epoch": e, "train/loss": 1.0 / (e + 1), "val/E_dist": 3.0 - 0.1 * e}
+            for e in range(epochs)]
+    plot_training_curves(hist, tmp_path / "c.png")
+    axes = [ax for ax in saved[0].axes if ax.get_visible()]
+    assert len(axes) == 2
+    for ax in axes:
+        lo, hi = ax.get_xlim()
+        ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+        assert len(ticks) >= 2 and all(float(t).is_integer() for t in ticks), ticks
+
+
 def test_callback_state_round_trips():
     cb = TrainingPlots()
     cb.history = [{"epoch": 0, "train/loss": 1.0}]
