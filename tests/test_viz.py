@@ -94,6 +94,70 @@ def test_render_animation_frames_and_files(tmp_path):
         render_animation([panels[0], Panel("short", G[:2])], F, tmp_path / "x")
 
 
+def person(T=3):
+    """A 1.9 m 'body' (legs, torso, head, raised arms) and a 1 m long dress-like frustum
+    around it, swaying along x."""
+    import trimesh
+    from trimesh.transformations import rotation_matrix
+    parts = [trimesh.creation.cylinder(radius=0.06, height=0.8, sections=12)
+             .apply_translation([x, 0, 0.4]) for x in (-0.1, 0.1)]
+    parts.append(trimesh.creation.cylinder(radius=0.16, height=0.65, sections=16)
+                 .apply_translation([0, 0, 1.125]))
+    parts.append(trimesh.creation.icosphere(2, radius=0.11).apply_translation([0, 0, 1.58]))
+    for sx in (-1, 1):
+        arm = trimesh.creation.cylinder(radius=0.045, height=0.6, sections=10)
+        parts.append(arm.apply_transform(rotation_matrix(sx * 0.6, [0, 1, 0]))
+                     .apply_translation([sx * 0.32, 0, 1.6]))
+    body = trimesh.util.concatenate(parts)
+    dress = trimesh.creation.cylinder(radius=1.0, height=1.0, sections=32)
+    V = dress.vertices.copy()
+    V[:, :2] *= np.where(V[:, 2:] > 0, 0.2, 0.34)  # narrow at the top (z 1.45), wide below
+    V[:, 2] += 0.95
+    sway = np.array([0.03, 0.0, 0.0])
+    return (np.stack([V + t * sway for t in range(T)]), dress.faces,
+            np.stack([body.vertices + t * sway for t in range(T)]), body.faces)
+
+
+@needs_renderer
+def test_render_frames_the_body_and_clips_a_diverged_panel(tmp_path):
+    """One prediction falls metres away: the others are still framed on the body (the
+    old shared camera followed the diverged garment and left each other garment a
+    quarter of its panel), the diverged one is labelled, and the colour scale comes
+    from the panels that stayed."""
+    import imageio.v3 as iio
+    from garmentgnn.viz.animate import _FOOTER, _HEADER, render_animation
+    G, F, B, BF = person()
+    T = G.shape[0]
+    rng = np.random.default_rng(0)
+    far = G + np.linspace(0.3, 2.4, T)[:, None, None] * np.array([0.3, -0.2, -1.0])
+    preds = {"GarTrans": G + rng.normal(0, 0.01, G.shape), "HOOD-style": far,
+             "LBS only": G * np.array([1.04, 1.04, 1.0])}
+    panels = [Panel("simulated (ground truth)", G)] + [
+        Panel(k, P, vertex_error_cm(P, G)) for k, P in preds.items()]
+    a = render_animation(panels, F, tmp_path / "a", B, BF, fps=30, min_seconds=0.0,
+                         height=720, mp4=False, gif=False, still_frame=T - 1)
+    assert a.diverged == ["HOOD-style"]
+    stayed = [p.error for p in panels[1:] if p.title != "HOOD-style"]
+    assert a.clim[1] < 5.0 < np.percentile(panels[2].error, 1)  # not set by HOOD-style
+    assert a.clim[1] >= 0.9 * min(np.percentile(e, 99) for e in stayed)
+    W, H = a.size
+    h3d = H - _HEADER - _FOOTER
+    pw = W // len(panels)
+    px = iio.imread(a.still)[_HEADER:_HEADER + h3d, :, :3].astype(int)
+    chroma = px.max(-1) - px.min(-1)
+    garment = chroma > 30  # the blue truth and the colour map; body grey, background white
+    grey = (chroma < 12) & (px.max(-1) < 235)
+    for j, p in enumerate(panels):
+        rows = np.flatnonzero(garment[:, j * pw:(j + 1) * pw].sum(1) >= 3)
+        body_rows = np.flatnonzero(grey[:, j * pw + 4:(j + 1) * pw - 4].sum(1) >= 3)
+        # the whole body is in frame: neither its head nor its feet touch the edges
+        assert body_rows.min() > 2 and body_rows.max() < h3d - 3, p.title
+        if p.title == "HOOD-style":
+            assert len(rows) == 0  # left the frame (clipped), said in the panel's label
+            continue
+        assert (rows.max() - rows.min() + 1) / h3d >= 0.4, p.title
+
+
 def test_comparison_against_evaluate_split(dataset, tmp_path):  # noqa: F811
     from garmentgnn.data import store
     from garmentgnn.metrics import vertex_distance

@@ -5,6 +5,16 @@ camera: typically ground truth | GarTrans | baselines | LBS only.  Predicted pan
 are coloured by their per-vertex distance to the ground truth (``E_dist`` in cm), all
 with one colour scale, shown once as a colour bar under the panels.
 
+Framing (:func:`frame_view`): the camera is fitted to the whole posed body and the
+ground truth over every frame, so no head or feet are cut.  A prediction that leaves
+that frame (a diverged method, metres away) is *diverged*: it is clipped where it
+leaves, its panel says "diverged: <mean error> cm", and it neither widens the view nor
+sets the colour scale, which comes from the other panels.  Error colours are drawn
+unlit (flat), so a pixel's colour is the colour bar's colour of its error; the ground
+truth and the body are lit.  The PNG still is the *representative* frame
+(:func:`representative_frame`): the frame whose mean error of the first predicted
+panel is closest to that panel's median over the frames.
+
 Rendering is pyvista/VTK off-screen (a real depth buffer, so the body never shows
 through a garment drawn in front of it).  With no display it uses EGL
 (``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow``, set here unless already set; apt
@@ -156,6 +166,78 @@ def default_error_limit(errors: Sequence[np.ndarray]) -> float:
     return float(np.median([np.percentile(np.asarray(e).ravel(), 99) for e in errors]))
 
 
+def representative_frame(error: np.ndarray) -> int:
+    """The frame (``error [T, V]``) whose mean error is closest to the median of the
+    per-frame means: a still that shows a typical frame, not a lucky or unlucky one
+    (the first such frame on ties)."""
+    per_frame = np.asarray(error, np.float64).reshape(len(error), -1).mean(1)
+    return int(np.argmin(np.abs(per_frame - np.median(per_frame))))
+
+
+def _view_axes(elev: float, azim: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(towards the camera, screen right, screen up) unit vectors, Z up."""
+    e, a = np.radians(elev), np.radians(azim)
+    back = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    right = np.cross(-back, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    return back, right, np.cross(right, -back)
+
+
+@dataclass
+class View:
+    """A parallel-projection camera (:func:`frame_view`): ``focal`` point, ``half_height``
+    (VTK's parallel scale, metres), ``aspect`` (width / height of the framed extent) and
+    ``outside [panels, T]``: the fraction of each panel's garment vertices outside the
+    frame per frame; ``diverged`` panels are those that leave it."""
+
+    focal: np.ndarray
+    back: np.ndarray
+    half_height: float
+    aspect: float
+    outside: np.ndarray
+    diverged: List[int]
+
+    def camera(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(position, focal point)."""
+        return self.focal + 10.0 * max(self.half_height, 0.1) * self.back, self.focal
+
+
+def frame_view(panels: Sequence["Panel"], body: Optional[np.ndarray], elev: float,
+               azim: float, margin: float = 0.04, tolerance: float = 0.1,
+               leave: float = 0.01) -> View:
+    """Frame the camera on the body (all frames) and the panels without an error (the
+    ground truth), then on every predicted panel that stays within that frame widened
+    by ``tolerance`` of its size on each side (at most ``leave`` of its vertices outside
+    in every frame); the others are diverged.  ``margin``: blank border (fraction)."""
+    back, right, up = _view_axes(elev, azim)
+
+    def uv(points: np.ndarray) -> np.ndarray:
+        return np.stack([points @ right, points @ up], -1)
+
+    ref = [p.positions.reshape(-1, 3) for p in panels if p.error is None] or \
+        [panels[0].positions.reshape(-1, 3)]
+    if body is not None:
+        ref.append(body.reshape(-1, 3))
+    r = uv(np.concatenate(ref))
+    lo, hi = r.min(0), r.max(0)
+    pad = tolerance * (hi - lo).max()
+    outside = np.zeros((len(panels), panels[0].positions.shape[0]))
+    for j, p in enumerate(panels):
+        q = uv(p.positions)  # [T, V, 2]
+        out = ((q < lo - pad) | (q > hi + pad)).any(-1)
+        outside[j] = out.mean(1)
+    diverged = [j for j, p in enumerate(panels)
+                if p.error is not None and outside[j].max() > leave]
+    keep = [uv(p.positions.reshape(-1, 3)) for j, p in enumerate(panels) if j not in diverged]
+    pts = np.concatenate([r] + keep)
+    lo, hi = pts.min(0), pts.max(0)
+    size = np.maximum(hi - lo, 1e-3) * (1 + 2 * margin)
+    mid = (lo + hi) / 2
+    centre = np.concatenate([p.positions.reshape(-1, 3) for p in panels]).mean(0)
+    focal = centre + right * (mid[0] - centre @ right) + up * (mid[1] - centre @ up)
+    return View(focal, back, float(size[1] / 2), float(size[0] / size[1]), outside, diverged)
+
+
 def colorbar_image(width: int, height: int, clim: Tuple[float, float], cmap: str,
                    label: str) -> np.ndarray:
     """``[height, width, 3]`` uint8: a horizontal matplotlib colour bar."""
@@ -191,16 +273,13 @@ class Animation:
     clim: Tuple[float, float]
     seconds: float
     mean_error: Dict[str, float] = field(default_factory=dict)  # cm, per predicted panel
+    still_frame: int = 0  # the frame of the PNG (0-based, within the panels' frames)
+    still_error: Dict[str, float] = field(default_factory=dict)  # cm, on that frame
+    diverged: List[str] = field(default_factory=list)  # panels that left the frame
 
 
 def _round_up(x: float, m: int = 16) -> int:
     return int(-(-int(round(x)) // m) * m)
-
-
-def _camera(centre: np.ndarray, half_height: float, elev: float, azim: float):
-    e, a = np.radians(elev), np.radians(azim)
-    direction = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-    return centre + 10.0 * half_height * direction, centre
 
 
 def render_animation(panels: Sequence[Panel], faces, out: PathLike,
@@ -222,13 +301,16 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         fps: frame rate of the sequence; playback is slowed so the clip lasts at least
             ``min_seconds`` (short sequences), and the caption says so.
         height: frame height in px (>= 720; 3D area = height - 176 px of titles/colour bar).
-        panel_width: px per panel (default ``0.62 * 3D height``, rounded to 16).
+        panel_width: px per panel (default: the framed view's aspect, between 0.45 and
+            1.2 times the 3D height, rounded to 16).
         clim: colour range of the error in cm, shared by every panel (default: 0 ..
-            :func:`default_error_limit`).
+            :func:`default_error_limit` of the panels that did not diverge).
         elev, azim: camera elevation / azimuth in degrees (Z up; azimuth -90 looks at
-            the front of a body facing -Y); one camera for every panel and frame.
+            the front of a body facing -Y); one camera for every panel and frame,
+            framed by :func:`frame_view`.
         gif_scale: GIF frames are this fraction of the MP4 size (file size).
-        still_frame: which frame goes to the PNG (default: the middle one).
+        still_frame: which frame goes to the PNG (default: :func:`representative_frame`
+            of the first predicted panel; the middle frame without one).
         caption: extra text under the colour bar (e.g. the sequence id).
         frame_offset: added to the frame numbers shown (when ``panels`` hold a slice).
     """
@@ -257,25 +339,22 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
     from PIL import Image, ImageDraw
     t_start = time.perf_counter()
 
+    view = frame_view(panels, body, elev, azim)
     errs = [p.error for p in panels if p.error is not None]
     if clim is None:
-        top = default_error_limit(errs)
+        top = default_error_limit([p.error for j, p in enumerate(panels)
+                                   if p.error is not None and j not in view.diverged] or errs)
         clim = (0.0, float(f"{max(top, 1e-3):.2g}"))
     elif not (len(clim) == 2 and np.isfinite(clim).all() and clim[1] > clim[0]):
         raise ValueError(f"`clim`: expected (low, high) in cm with high > low, got {clim}")
     h3d = _round_up(height - _HEADER - _FOOTER)
     H = h3d + _HEADER + _FOOTER
-    pw = panel_width or _round_up(0.62 * h3d)
+    pw = panel_width or _round_up(min(max(view.aspect, 0.45), 1.2) * h3d)
     n = len(panels)
     W = pw * n
-
-    # one camera for everything: framed on the garments (all panels, all frames) with a
-    # margin, so the garment fills the panel and the body gives context around it
-    allg = np.concatenate([p.positions.reshape(-1, 3) for p in panels])
-    lo, hi = allg.min(0), allg.max(0)
-    centre = (lo + hi) / 2
-    half_h = 0.5 * max(hi[2] - lo[2], (hi[:2] - lo[:2]).max() * h3d / pw) * 1.25
-    cam_pos, focal = _camera(centre, half_h, elev, azim)
+    # one camera for everything, fitted to the body and ground truth (frame_view)
+    half_h = view.half_height * max(1.0, view.aspect * h3d / pw)
+    cam_pos, focal = view.camera()
 
     plotter = pv.Plotter(shape=(1, n), off_screen=True, window_size=(W, h3d), border=False)
     meshes = []
@@ -286,10 +365,10 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         gm.point_data["Normals"] = _normals(p.positions[0], F)
         gm.point_data.active_normals_name = "Normals"
         kw = dict(smooth_shading=False, specular=0.15, diffuse=0.85, ambient=0.15)
-        if p.error is not None:
+        if p.error is not None:  # unlit: every pixel is a colour of the colour bar
             gm.point_data["err"] = p.error[0].copy()
             plotter.add_mesh(gm, scalars="err", cmap=cmap, clim=clim, show_scalar_bar=False,
-                             **kw)
+                             lighting=False)
         else:
             plotter.add_mesh(gm, color=p.color, **kw)
         bm = None
@@ -307,12 +386,14 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
     slow = max(1.0, min_seconds * fps / T) if T > 1 else 1.0
     play_fps = fps / slow
     font_s = _font(20)
-    title_fonts = []  # 30 px, smaller where a title would not fit its panel
-    for p in panels:
-        size = 30
-        while size > 12 and _font(size).getlength(p.title) > pw - 16:
-            size -= 2
-        title_fonts.append(_font(size))
+    size = 30  # one title size for every panel: the largest at which all of them fit
+    while size > 12 and max(_font(size).getlength(p.title) for p in panels) > pw - 16:
+        size -= 2
+    title_font = _font(size)
+    info_size = 20
+    while info_size > 11 and _font(info_size).getlength("mean 00.00 cm, max 000.0") > pw - 12:
+        info_size -= 1
+    font_info = _font(info_size)
     bar = colorbar_image(min(W - 40, 900), _FOOTER - 24, clim, cmap,
                          "distance to ground truth, E_dist (cm)") if errs else None
     mean_err = {p.title: float(p.error.mean()) for p in panels if p.error is not None}
@@ -323,10 +404,13 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         d = ImageDraw.Draw(canvas)
         for j, p in enumerate(panels):
             cx = j * pw + pw // 2
-            d.text((cx, 8), p.title, fill="black", font=title_fonts[j], anchor="ma")
-            if p.error is not None:
+            d.text((cx, 8), p.title, fill="black", font=title_font, anchor="ma")
+            if p.error is not None and view.outside[j, t] > 0.01:
+                d.text((cx, 46), f"diverged: {p.error[t].mean():.0f} cm",
+                       fill=(180, 0, 0), font=font_info, anchor="ma")
+            elif p.error is not None:
                 d.text((cx, 46), f"mean {p.error[t].mean():.2f} cm, max {p.error[t].max():.1f}",
-                       fill=(70, 70, 70), font=font_s, anchor="ma")
+                       fill=(70, 70, 70), font=font_info, anchor="ma")
             if j:
                 d.line([(j * pw, _HEADER), (j * pw, _HEADER + h3d)], fill=(200, 200, 200), width=2)
         if bar is not None:
@@ -344,7 +428,9 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
     mp4_path = out.with_suffix(".mp4") if mp4 else None
     gif_path = out.with_suffix(".gif") if gif else None
     still_path = out.with_suffix(".png")
-    still_frame = T // 2 if still_frame is None else int(still_frame)
+    if still_frame is None:
+        still_frame = representative_frame(errs[0]) if errs else T // 2
+    still_frame = int(still_frame)
     if not 0 <= still_frame < T:
         raise ValueError(f"`still_frame`: expected 0 <= still_frame < {T}, got {still_frame}")
     writer = (imageio.get_writer(mp4_path, fps=play_fps, codec="libx264", quality=7,
@@ -383,4 +469,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         iio.imwrite(gif_path, np.stack(gif_frames), duration=1000.0 / play_fps, loop=0)
     return Animation(mp4=mp4_path, gif=gif_path, still=still_path, frames=T, size=(W, H),
                      fps=play_fps, clim=tuple(clim), seconds=time.perf_counter() - t_start,
-                     mean_error=mean_err)
+                     mean_error=mean_err, still_frame=still_frame,
+                     still_error={p.title: float(p.error[still_frame].mean())
+                                  for p in panels if p.error is not None},
+                     diverged=[panels[j].title for j in view.diverged])
