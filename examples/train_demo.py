@@ -30,9 +30,10 @@ from garmentgnn.viz.animate import renderer_unavailable
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="demo_out")
-    ap.add_argument("--epochs", type=int, default=40)
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default="demo_out", help="output folder (default: %(default)s)")
+    ap.add_argument("--epochs", type=int, default=40, help="training epochs (default: %(default)s)")
+    ap.add_argument("--workers", type=int, default=2,
+                    help="simulation worker processes (default: %(default)s)")
     args = ap.parse_args()
     out = Path(args.out)
     t0 = time.time()
@@ -69,6 +70,12 @@ def main() -> None:
         a = r["animation"]
         print(f"[4/4] {r['comparison'].seq_id}: {a.frames} frames at {a.size[0]}x{a.size[1]} "
               f"in {time.time() - t3:.0f} s; wrote {a.gif}, {a.still}, {r['gltf']}")
+        frame = int(r["comparison"].frames[a.still_frame]) + 1
+        print(f"still {a.still}: frame {frame} of {a.frames}, the frame closest to "
+              f"GarTrans's median per-frame error; on it "
+              + ", ".join(f"{k} {v:.2f} cm" for k, v in a.still_error.items())
+              + "; over the sequence "
+              + ", ".join(f"{k} {v:.2f} cm" for k, v in a.mean_error.items()))
         print(f"animation: {a.mp4}")
     else:
         png, seq = render_strip(module, data, "test", out / "gartrans_demo.png", history=3,

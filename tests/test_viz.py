@@ -208,13 +208,20 @@ def test_show_cli_from_a_checkpoint(dataset, tmp_path, capsys):  # noqa: F811
     gt = store.load_sequence(store.sequence_path(dataset, rec))["positions"]
     np.save(tmp_path / "shifted.npy", gt + np.array([0.01, 0.0, 0.0], np.float32))
     out = tmp_path / "show" / "cmp"
+    from garmentgnn.viz.viewer import bundle_path
+    viewer = bundle_path().is_file()
     capsys.readouterr()
     assert main(["show", "--data", str(dataset), "--ckpt", f"mine={ckpt}", "--out", str(out),
                  "--pred", f"shifted={tmp_path / 'shifted.npy'}",
                  "--history", "2", "--num-landmarks", "16", "--max-frames", "2",
-                 "--height", "720", "--no-gif"]) == 0
+                 "--height", "720", "--no-gif"] + (["--html"] if viewer else [])) == 0
     printed = capsys.readouterr().out
     assert "shifted: mean E_dist 1.000 cm" in printed and "LBS only: mean E_dist" in printed
+    # the still's frame and its numbers: 1 cm on every frame
+    assert "the frame closest to the first prediction's median per-frame error" in printed
+    assert out.with_suffix(".html").is_file() == viewer
+    if viewer:
+        assert f"wrote {out.with_suffix('.html')}" in printed
     from PIL import Image
     assert Image.open(out.with_suffix(".png")).size[1] >= 720
     assert out.with_suffix(".mp4").stat().st_size > 1000 and not out.with_suffix(".gif").exists()

@@ -12,13 +12,20 @@ side by side without touching their vertex data.  glTF is +Y up and ours is +Z u
 ``"garmentgnn (Z up)"`` rotated -90 degrees about X: a viewer shows ``(x, y, z)`` at
 ``(x, z, -y)``, upright and facing +Z.  Written as a binary ``.glb`` (opens in Blender,
 three.js / any browser viewer, VTK); needs ``pygltflib`` (the ``viz`` extra).
+
+An object with per-vertex ``colors`` (e.g. an error colour map) gets ``COLOR_0`` (glTF's
+linear RGB of the given sRGB colours) with one ``COLOR_0`` morph target per frame beside
+the positions, so the colours step with the frames, and an unlit material
+(``KHR_materials_unlit``): a viewer shows exactly those colours.  ``label`` goes into the
+node's ``extras`` and ``extras`` of :func:`write_gltf` into the scene's (three.js: the
+objects' ``userData``), for a viewer to show.
 """
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -31,14 +38,17 @@ Z_UP_TO_Y_UP = (-float(np.sqrt(0.5)), 0.0, 0.0, float(np.sqrt(0.5)))
 
 @dataclass
 class GltfMesh:
-    """One object: ``positions [T, V, 3]`` (metres), ``faces [F, 3]``, an RGB colour and
-    a node translation ``offset``."""
+    """One object: ``positions [T, V, 3]`` (metres), ``faces [F, 3]``, an RGB colour, a
+    node translation ``offset``, optional per-vertex sRGB ``colors`` in 0..1 (``[T, V,
+    3]``, or ``[V, 3]`` for every frame; drawn unlit) and a ``label`` for viewers."""
 
     name: str
     positions: np.ndarray
     faces: np.ndarray
     color: Tuple[float, float, float] = (0.7, 0.7, 0.7)
     offset: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    colors: Optional[np.ndarray] = None
+    label: str = ""
 
     def __post_init__(self) -> None:
         p = self.positions
@@ -55,15 +65,31 @@ class GltfMesh:
             raise ValueError(f"GltfMesh {self.name!r}: `faces` must be [F, 3] indices into "
                              f"{p.shape[1]} vertices")
         self.positions, self.faces = p.astype(np.float32), f.astype(np.uint32)
+        if self.colors is not None:
+            c = np.asarray(self.colors, np.float64)
+            c = np.broadcast_to(c, p.shape) if c.shape == p.shape[1:] else c
+            if c.shape != p.shape or not np.isfinite(c).all() or c.min() < 0 or c.max() > 1:
+                raise ValueError(f"GltfMesh {self.name!r}: `colors` must be [T, V, 3] or "
+                                 f"[V, 3] = {p.shape[1:]} values in 0..1, got {c.shape}")
+            self.colors = c.astype(np.float32)
 
     def __repr__(self) -> str:
         T, V, _ = self.positions.shape
         return f"GltfMesh({self.name!r}, frames={T}, vertices={V}, faces={len(self.faces)})"
 
 
-def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0) -> Path:
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB colour components (0..1) to linear RGB (glTF's ``COLOR_0``), the sRGB
+    standard's transfer function."""
+    c = np.asarray(c, np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0,
+               extras: Optional[Dict[str, Any]] = None) -> Path:
     """Write ``meshes`` (same frame count ``T`` each) as a ``.glb`` with one morph target
-    per frame and one ``STEP`` animation (see the module doc); returns the path."""
+    per frame and one ``STEP`` animation (see the module doc); ``extras`` (JSON) go into
+    the scene; returns the path."""
     import pygltflib as g
 
     if not meshes:
@@ -105,18 +131,30 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0) ->
         idx = add(m.faces.ravel(), g.SCALAR, g.ELEMENT_ARRAY_BUFFER, True)
         targets = [{"POSITION": add(m.positions[k] - base, g.VEC3, g.ARRAY_BUFFER, True)}
                    for k in range(T)] if T > 1 else None
-        doc.materials.append(g.Material(
+        attributes = g.Attributes(POSITION=pos)
+        material = g.Material(
             name=m.name, doubleSided=True,
             pbrMetallicRoughness=g.PbrMetallicRoughness(
                 baseColorFactor=[*map(float, m.color), 1.0], metallicFactor=0.0,
-                roughnessFactor=0.8)))
-        prim = g.Primitive(attributes=g.Attributes(POSITION=pos), indices=idx,
+                roughnessFactor=0.8))
+        if m.colors is not None:
+            lin = srgb_to_linear(m.colors).astype(np.float32)
+            attributes.COLOR_0 = add(lin[0], g.VEC3, g.ARRAY_BUFFER)
+            for k, t in enumerate(targets or []):
+                t["COLOR_0"] = add(lin[k] - lin[0], g.VEC3, g.ARRAY_BUFFER)
+            material.pbrMetallicRoughness.baseColorFactor = [1.0, 1.0, 1.0, 1.0]
+            material.extensions = {"KHR_materials_unlit": {}}
+            if "KHR_materials_unlit" not in doc.extensionsUsed:
+                doc.extensionsUsed.append("KHR_materials_unlit")
+        doc.materials.append(material)
+        prim = g.Primitive(attributes=attributes, indices=idx,
                            material=len(doc.materials) - 1, targets=targets)
         doc.meshes.append(g.Mesh(name=m.name, primitives=[prim],
                                  weights=[1.0] + [0.0] * (T - 1) if T > 1 else None,
                                  extras={"targetNames": [f"frame_{k}" for k in range(T)]}
                                  if T > 1 else {}))
-        node = g.Node(name=m.name, mesh=len(doc.meshes) - 1)
+        node = g.Node(name=m.name, mesh=len(doc.meshes) - 1,
+                      extras={"label": m.label} if m.label else {})
         if any(m.offset):
             node.translation = [float(x) for x in m.offset]
         doc.nodes.append(node)
@@ -128,7 +166,7 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0) ->
                 target=g.AnimationChannelTarget(node=len(doc.nodes) - 1, path="weights")))
     doc.nodes.append(g.Node(name="garmentgnn (Z up)", rotation=list(Z_UP_TO_Y_UP),
                             children=list(range(len(doc.nodes)))))
-    doc.scenes.append(g.Scene(nodes=[len(doc.nodes) - 1]))
+    doc.scenes.append(g.Scene(nodes=[len(doc.nodes) - 1], extras=dict(extras or {})))
     if anim is not None:
         doc.animations.append(anim)
     doc.buffers.append(g.Buffer(byteLength=len(blob)))

@@ -1,5 +1,6 @@
-"""``garmentgnn show``: an MP4/GIF (+ PNG still, + glTF) of ground truth | checkpoints |
-LBS only on one held-out sequence, coloured by per-vertex error."""
+"""``garmentgnn show``: an MP4/GIF (+ PNG still, + glTF, + with ``--html`` a viewer page)
+of ground truth | checkpoints | LBS only on one held-out sequence, coloured by per-vertex
+error."""
 from __future__ import annotations
 
 import argparse
@@ -10,7 +11,7 @@ from garmentgnn._argparse import HelpFormatter
 
 def add_parser(sub) -> argparse.ArgumentParser:
     s = sub.add_parser("show", help="animate ground truth | checkpoints | LBS on a held-out "
-                       "sequence (MP4, GIF, PNG, glTF)", description=__doc__,
+                       "sequence (MP4, GIF, PNG, glTF, HTML viewer)", description=__doc__,
                        formatter_class=HelpFormatter)
     s.add_argument("--data", required=True, help="generated dataset folder (manifest.json)")
     s.add_argument("--ckpt", action="append", default=[], metavar="[NAME=]PATH",
@@ -36,6 +37,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    "diverge)")
     s.add_argument("--no-gif", action="store_true", help="write no GIF beside the MP4")
     s.add_argument("--no-gltf", action="store_true", help="write no glTF (.glb) file")
+    s.add_argument("--html", action="store_true",
+                   help="also write OUT.html, a single-file 3D viewer of the glTF (three.js; "
+                        "error colours, labels and colour bar as in the MP4)")
     return s
 
 
@@ -46,13 +50,19 @@ def main(args: argparse.Namespace) -> int:
                index=args.index, mode=args.mode, lbs=not args.no_lbs, history=args.history,
                num_landmarks=args.num_landmarks, max_frames=args.max_frames,
                predictions=dict(parse_named(args.pred, "--pred")), gltf=not args.no_gltf,
-               height=args.height, gif=not args.no_gif,
+               height=args.height, gif=not args.no_gif, html=args.html,
                clim=None if args.clim is None else (0.0, args.clim))
     a = res["animation"]
     for p in a.mean_error:
         print(f"{p}: mean E_dist {a.mean_error[p]:.3f} cm")
-    for path in (a.mp4, a.gif, a.still, res["gltf"]):
+    for path in (a.mp4, a.gif, a.still, res["gltf"], res["html"]):
         if path is not None:
             print(f"wrote {path}")
+    if a.still_error:
+        print(f"{a.still.name}: frame {a.still_frame + 1} of {a.frames}, the frame closest to "
+              f"the first prediction's median per-frame error; on it: "
+              + ", ".join(f"{k} {v:.3f} cm" for k, v in a.still_error.items()))
+    if a.diverged:
+        print(f"diverged (clipped, left out of the colour scale): {', '.join(a.diverged)}")
     print(f"{a.frames} frames at {a.size[0]}x{a.size[1]} in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -141,34 +141,65 @@ def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
          lbs: bool = True,
          history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
          predictions: Optional[Mapping[str, object]] = None, gltf: bool = True,
-         **render_kw) -> Dict[str, object]:
+         html: bool = False, **render_kw) -> Dict[str, object]:
     """Render the comparison of one held-out sequence to ``<out>.mp4/.gif/.png`` and,
-    with ``gltf``, export every panel with the body to ``<out>.glb``; returns
-    ``{"animation": Animation, "gltf": path or None, "comparison": Comparison}``."""
+    with ``gltf``, export every panel with the body to ``<out>.glb`` (error colours and
+    labels as in the animation), with ``html`` also the viewer page ``<out>.html``
+    (:func:`garmentgnn.viz.viewer.write_viewer`); returns ``{"animation": Animation,
+    "gltf": path or None, "html": path or None, "comparison": Comparison}``."""
     from garmentgnn.viz.animate import render_animation
     c = comparison(root, checkpoints, split, index, mode, lbs, history, num_landmarks,
                    max_frames, predictions)
     anim = render_animation(c.panels, c.faces, out, c.body_positions, c.body_faces, fps=c.fps,
                             caption=c.seq_id, frame_offset=int(c.frames[0]), **render_kw)
-    glb = None
+    if html and not gltf:
+        raise ValueError("`html`: the viewer page shows the glTF file; leave `gltf` on")
+    glb = page = None
     if gltf:
-        glb = export_comparison_gltf(c, Path(out).with_suffix(".glb"))
-    return {"animation": anim, "gltf": glb, "comparison": c}
+        glb = export_comparison_gltf(c, Path(out).with_suffix(".glb"), clim=anim.clim,
+                                     cmap=render_kw.get("cmap", "YlOrRd"))
+    if html:
+        from garmentgnn.viz.viewer import write_viewer
+        page = write_viewer(glb, Path(out).with_suffix(".html"), title=c.seq_id)
+    return {"animation": anim, "gltf": glb, "html": page, "comparison": c}
 
 
-def export_comparison_gltf(c: Comparison, path: PathLike, spacing: float = 0.0) -> Path:
+def export_comparison_gltf(c: Comparison, path: PathLike, spacing: float = 0.0,
+                           clim: Optional[Tuple[float, float]] = None,
+                           cmap: str = "YlOrRd") -> Path:
     """Every panel's garment and the body as one glTF 2.0 binary with morph-target
     animation; panel ``j`` (and a copy of the body) is moved ``j * spacing`` along X by
-    its node's translation (default: the garment's width x 1.6), the vertex data stay in
-    our order and coordinates."""
+    its node's translation (default: the body's width x 1.3), the vertex data stay in
+    our order and coordinates.  Predicted garments carry their per-vertex error as
+    colours of ``cmap`` over ``clim`` (cm; default as the animation's,
+    :func:`~garmentgnn.viz.animate.default_error_limit`), per frame and unlit; every
+    garment is labelled with its panel title and mean error, and the scene's extras
+    hold the colour bar (``colorbar``: ``min``, ``max``, ``label``, ``colors``)."""
+    from matplotlib import colormaps
+
     from garmentgnn.data.gltf import GltfMesh, write_gltf
-    width = float(np.ptp(c.panels[0].positions[..., 0])) if c.panels else 1.0
-    dx = spacing or 1.6 * max(width, 0.3)
+    from garmentgnn.viz.animate import default_error_limit
+    errs = [p.error for p in c.panels if p.error is not None]
+    if clim is None:
+        clim = (0.0, float(f"{max(default_error_limit(errs), 1e-3):.2g}"))
+    lo, hi = float(clim[0]), float(clim[1])
+    if not hi > lo:
+        raise ValueError(f"`clim`: expected (low, high) in cm with high > low, got {clim}")
+    cm = colormaps[cmap]
+    extent = c.body_positions[..., 0] if len(c.body_positions) else c.panels[0].positions[..., 0]
+    dx = spacing or 1.3 * max(float(np.ptp(extent)), 0.3)
     meshes = []
     for j, p in enumerate(c.panels):
         off = (j * dx, 0.0, 0.0)
         meshes.append(GltfMesh(f"body {j}" if j else "body", c.body_positions, c.body_faces,
                                (0.8, 0.8, 0.8), off))
-        meshes.append(GltfMesh(p.title, p.positions, c.faces, p.color if p.error is None
-                               else (0.85, 0.35, 0.25), off))
-    return write_gltf(path, meshes, fps=c.fps)
+        if p.error is None:
+            meshes.append(GltfMesh(p.title, p.positions, c.faces, p.color, off, label=p.title))
+            continue
+        colors = cm(np.clip((p.error - lo) / (hi - lo), 0.0, 1.0))[..., :3]
+        meshes.append(GltfMesh(p.title, p.positions, c.faces, p.color, off, colors=colors,
+                               label=f"{p.title}\nmean {p.error.mean():.2f} cm"))
+    bar = {"min": lo, "max": hi, "label": "distance to ground truth, E_dist (cm)",
+           "colors": ["#%02x%02x%02x" % tuple(int(round(255 * v)) for v in cm(x)[:3])
+                      for x in np.linspace(0.0, 1.0, 11)]} if errs else None
+    return write_gltf(path, meshes, fps=c.fps, extras={"colorbar": bar} if bar else None)

@@ -36,7 +36,9 @@ def bundle_path() -> Path:
 
 
 def write_viewer(glb: PathLike, out: PathLike, title: str = "") -> Path:
-    """Write ``out`` (.html): one page that shows and plays ``glb``; returns its path."""
+    """Write ``out`` (.html): one page that shows and plays ``glb``, with the labels and
+    colour bar the file carries (:mod:`garmentgnn.data.gltf`); returns its path.  When
+    WebGL is off or the file cannot be read, the page shows why in a red box."""
     from garmentgnn.data.store import atomic_write_bytes
     bundle = bundle_path()
     if not bundle.is_file():
@@ -52,9 +54,23 @@ def write_viewer(glb: PathLike, out: PathLike, title: str = "") -> Path:
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <title>{html.escape(title)}</title>
 <style>html,body{{margin:0;height:100%;overflow:hidden;background:#fff;font:14px sans-serif}}
-#status{{position:absolute;left:10px;top:8px;color:#333}}</style></head>
+#status{{position:absolute;left:10px;top:8px;color:#333}}
+#status.error{{left:50%;top:40%;transform:translateX(-50%);max-width:36em;padding:1em 1.4em;
+color:#900;background:#fee;border:2px solid #c00;border-radius:6px;font-size:18px}}
+.label{{position:absolute;transform:translate(-50%,-100%);white-space:pre;text-align:center;
+font-size:15px;color:#222;pointer-events:none}}
+#colorbar{{position:absolute;left:50%;bottom:10px;transform:translateX(-50%);width:min(60%,600px);
+text-align:center;font-size:13px}}
+#colorbar .ramp{{height:14px;border:1px solid #444}}
+#colorbar .ticks{{display:flex;justify-content:space-between}}</style></head>
 <body><div id="status">loading ...</div>
-<script>window.__title = {title_js};</script>
+<script>window.__title = {title_js};
+window.addEventListener("error", function (e) {{  // an error the viewer did not catch
+  var d = document.getElementById("status");
+  window.__error = String(e.message || e);
+  if (d && !window.__ready) {{ d.textContent = "The viewer failed: " + window.__error;
+    d.className = "error"; }}
+}});</script>
 <script id="glb" type="application/octet-stream">{base64.b64encode(data).decode()}</script>
 <script>{js}</script>
 </body></html>
