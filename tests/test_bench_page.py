@@ -60,6 +60,9 @@ def test_report_shows_the_heldout_animation(dataset, tmp_path, monkeypatch):  # 
     assert f"`{rec['id']}`" in section
     assert "simulated (ground truth) | GarTrans (SAT) | DA-style | LBS only" in section
     assert "DA-style 1.00 cm" in section  # exactly 1 cm off everywhere
+    # the still's rule and its numbers: DA-style is 1 cm off on that frame too
+    assert "closest to GarTrans (SAT)'s median per-frame error" in section
+    assert re.search(r"The picture is frame \d+, .*DA-style 1\.00 cm", section)
     assert "training seed 1" in section
     links = re.findall(r"\]\((media/[^)]+)\)", section)
     assert {"media/heldout.png", "media/heldout.gif", "media/heldout.mp4",

@@ -135,6 +135,8 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
         info = {"seq_id": c.seq_id, "panels": [p.title for p in c.panels],
                 "mean_error_cm": a.mean_error, "frames": a.frames, "size": list(a.size),
                 "fps": a.fps, "clim": list(a.clim), "seconds": a.seconds,
+                "still_frame": a.still_frame, "still_error_cm": a.still_error,
+                "diverged": a.diverged,
                 "files": {k: (None if v is None else Path(v).name) for k, v in
                           (("mp4", a.mp4), ("gif", a.gif), ("png", a.still),
                            ("glb", res["gltf"]))}}
@@ -152,6 +154,21 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
     return lines + _markdown(info, seed, models, preds)
 
 
+def _still(info: Dict[str, Any]) -> str:
+    """The still's frame and numbers, and the diverged panels, as a sentence."""
+    text = ""
+    if info.get("diverged"):
+        text += (f" Diverged (left the frame; clipped, labelled and left out of the colour "
+                 f"scale): {', '.join(info['diverged'])}.")
+    errs = info.get("still_error_cm") or {}
+    names = [p for p in info["panels"] if p in errs]  # the panels' order (the JSON sorts)
+    if names:
+        text += (f" The picture is frame {info['still_frame'] + 1}, the one closest to "
+                 f"{names[0]}'s median per-frame error; on it: "
+                 + ", ".join(f"{k} {errs[k]:.2f} cm" for k in names) + ".")
+    return text
+
+
 def _markdown(info: Dict[str, Any], seed: int, models: Mapping[str, str],
               preds: Mapping[str, str]) -> List[str]:
     f = {k: (f"{MEDIA}/{v}" if v else None) for k, v in info["files"].items()}
@@ -167,8 +184,8 @@ def _markdown(info: Dict[str, Any], seed: int, models: Mapping[str, str],
              f"{' | '.join(info['panels'])} (the models of training seed {seed}). Every "
              "predicted garment is coloured by its per-vertex distance to the simulation "
              f"(cm, shared scale {info['clim'][0]:g}-{info['clim'][1]:.2g} cm); mean over the "
-             f"shown frames: {errs}.{missing} Its error against run time is in the "
-             "learned methods' plot above (`pareto_learned.png`).", "",
+             f"shown frames: {errs}.{missing}{_still(info)} Its error against run time is in "
+             "the learned methods' plot above (`pareto_learned.png`).", "",
              f"[![{' | '.join(info['panels'])}]({f['png']})]({f['gif'] or f['mp4']})", "",
              links, ""]
     return lines
