@@ -116,6 +116,7 @@ def test_viewer_says_when_the_file_is_damaged(tmp_path):
     assert _status(dom(broken)).startswith("error: Could not load the model")
 
 
+@pytest.mark.slow
 @needs_browser[0]
 @needs_browser[1]
 def test_comparison_page_has_error_colours_labels_and_colour_bar(tmp_path):
