@@ -1,4 +1,4 @@
-"""Command-line helpers shared by ``garmentgnn``'s sub-commands and the scripts in
+"""Command-line parts shared by ``garmentgnn``'s sub-commands and the scripts in
 ``benchmarks/``: a help formatter that shows every option's default, and the
 ``--out`` / ``--commit`` pair of a benchmark script (results go to a cache folder unless
 the committed copy is asked for)."""
