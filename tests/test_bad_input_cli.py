@@ -1,6 +1,7 @@
 """Bad input on the command line: every failure of every verb is one ``error:`` line that
 names the flag (and the fix), with a non-zero exit status; ``--debug`` shows the
 traceback.  Each test runs one exact input through ``garmentgnn.cli.main``."""
+import fcntl
 import json
 import shutil
 from pathlib import Path
@@ -10,7 +11,6 @@ import pytest
 
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import generate, preset, read_manifest, store
-from garmentgnn.data.generate import output_lock
 from test_data import fake_simulate, files_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,9 +158,12 @@ def test_second_generate_into_one_folder_is_refused(tmp_path, capsys):
     out = tmp_path / "g"
     out.mkdir()
     argv = ["generate", "--out", str(out), "--workers", "0", "--limit", "1"] + GEN
-    with output_lock(out):  # a run in progress
+    with open(out / ".generate.lock", "a+") as f:  # a run in progress holds this lock
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        f.write("4242\n")
+        f.flush()
         rc = cli_main(argv)
-        one_error(capsys, rc, f"--out {out}", "another `garmentgnn generate`")
+        one_error(capsys, rc, f"--out {out}", "another `garmentgnn generate` (pid 4242)")
         assert not (out / store.MANIFEST).exists()
     assert cli_main(argv) == 0  # the lock goes with its holder
 

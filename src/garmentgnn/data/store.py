@@ -213,6 +213,10 @@ def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional
 #: order cannot match the rest garment's: cloth stretches a few percent, a reordered
 #: vertex list changes a typical edge by several hundred percent
 ORDER_TOLERANCE = 0.5
+#: median absolute deviation of ``log(uv edge / rest edge)`` beyond which the rest vertices
+#: cannot be in the faces' order (0 for the flat patterns the templates are cut from,
+#: about 0.3 for a reordered vertex list; up to their common scale, so any UV unit works)
+UV_ORDER_TOLERANCE = 0.2
 
 
 def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Optional[str]:
@@ -221,10 +225,10 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
     (``positions [T, V, 3]`` with ``V`` the rest garment's vertices and ``T`` the
     metadata's frames; faces in range), NaN/inf frames (named), and the vertex order:
     the edge lengths of the first, middle and last frame against the rest garment's
-    (``garment_vertices`` on ``garment_faces``), and the rest edges against the
-    per-corner UVs (``garment_face_uv``, which do not depend on the vertex order; up to
-    their scale).  A median relative difference over :data:`ORDER_TOLERANCE` means the
-    vertices were reordered.  The one check of sequence files, used by ``manifest``,
+    (``garment_vertices`` on ``garment_faces``: a median relative difference over
+    :data:`ORDER_TOLERANCE`), and the rest edges against the per-corner UVs
+    (``garment_face_uv``, which do not depend on the vertex order; up to their scale:
+    :data:`UV_ORDER_TOLERANCE`).  The one check of sequence files, used by ``manifest``,
     ``generate`` (resume), ``export`` and every loader of a manifest's records."""
     missing = [k for k in SEQUENCE_KEYS if k not in seq]
     if missing:
@@ -264,12 +268,13 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
         uv = np.concatenate([np.linalg.norm(FU[:, i] - FU[:, (i + 1) % 3], axis=1)
                              for i in range(3)])[keep]
         with np.errstate(all="ignore"):
-            scale = float(np.median(uv / rest))
-            off = float(np.median(np.abs(uv / (rest * scale) - 1.0)))
-        if np.isfinite(scale) and scale > 0 and off > ORDER_TOLERANCE:
+            ratio = np.log(uv / rest)
+        ratio = ratio[np.isfinite(ratio)]
+        spread = float(np.median(np.abs(ratio - np.median(ratio)))) if ratio.size else 0.0
+        if spread > UV_ORDER_TOLERANCE:
             return (f"vertex order of garment_vertices does not match garment_faces: the "
-                    f"rest edges differ from the per-corner UV edges by {100 * off:.0f}% "
-                    f"(median)")
+                    f"rest edges do not follow the per-corner UV edges (typical deviation "
+                    f"{100 * (np.exp(spread) - 1):.0f}%)")
     return None
 
 
