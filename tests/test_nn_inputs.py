@@ -203,3 +203,18 @@ def test_feature_checks_leave_lazy_widths_and_float64_layers_alone():
     layer = SATConv(8, 4, 2, edge_dim=3).double()
     assert layer(x.double(), ei, e.double()).dtype == torch.float64
     assert SATConv(-1, 4, 2, edge_dim=3)(x[:, :7], ei, e).shape == (6, 8)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_more_parallel_edges_than_node_pairs_match_the_message_route(name):
+    """Three self-loops on one node (found by the fuzz suite): torch's sparse sampling
+    raised ``only sparse compressed tensors with the same number of specified elements``.
+    Oracle: the message route (no sparse kernels)."""
+    from garmentgnn.nn._sparse import csr_kernels
+    torch.manual_seed(0)
+    layer = LAYERS[name](8, 4, 2, edge_dim=3).eval()
+    x, ei, e = torch.randn(1, 8), torch.zeros(2, 3, dtype=torch.long), torch.randn(3, 3)
+    out = layer(x, ei, e)
+    with csr_kernels(False):
+        ref = layer(x, ei, e)
+    torch.testing.assert_close(out, ref)

@@ -240,7 +240,10 @@ class AttentionConv(LayerContract):
 
     def route(self, g: Graph, *operands: Tensor) -> Route:
         plan, H = g.plan, self.heads
+        # more edges than (source, target) pairs: multi-edges that torch's sparse CSR
+        # sampling cannot hold (it needs nnz <= rows * cols); the message route can
         if (plan is None or not kernels_enabled() or plan.num_edges == 0 or self.observed()
+                or plan.num_edges > plan.num_src * plan.num_dst
                 or any(t.dtype not in CSR_DTYPES for t in operands)):
             return Route(None, H, g.edge_index[1], None, g.num_dst, None)
         pat = head_pattern(plan, H)
