@@ -75,6 +75,16 @@ def test_show_with_a_foreign_or_truncated_checkpoint_blames_ckpt(dataset, tmp_pa
     one_error(capsys, rc, f"--ckpt {ckpt}", "unreadable checkpoint")
 
 
+@pytest.mark.slow  # renders before it writes (~15 s)
+def test_show_out_below_a_file_blames_out(dataset, tmp_path, capsys):
+    """A file where --out needs a folder: a NotADirectoryError traceback before."""
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "cmp"
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(out), "--no-gif", "--no-gltf",
+                   "--max-frames", "2", "--height", "720"])
+    one_error(capsys, rc, f"--out {out}", "a file is in the way", "name a folder")
+
+
 def test_debug_flag_and_variable_show_the_traceback(dataset, tmp_path, monkeypatch):
     argv = ["show", "--data", str(dataset), "--out", str(tmp_path / "s"), "--index", "99"]
     with pytest.raises(ValueError, match="`index`"):
