@@ -230,24 +230,25 @@ def check_inputs(layer: Any, x: Any, edge_index: Any, edge_attr: Any) -> None:
     if xs[0].dtype != xs[-1].dtype:
         raise TypeError(f"`x`: source features are {xs[0].dtype} but target features are "
                         f"{xs[-1].dtype}; give both the same dtype")
-    in_ch = layer.in_channels
+    in_ch = getattr(layer, "in_channels", -1)
     in_src, in_dst = in_ch if isinstance(in_ch, (tuple, list)) else (in_ch, in_ch)
     _width("x", xs[0], in_src, "in_channels")
     _width("x", xs[-1], in_dst, "in_channels")
     dtype = xs[0].dtype
+    autocast = torch.is_autocast_enabled(xs[0].device.type)  # per-op dtypes: any mix works
     if param is not None and param.dtype != dtype and param.dtype.is_floating_point \
-            and not torch.is_autocast_enabled(xs[0].device.type):
+            and not autocast:
         raise TypeError(f"`x`: features are {dtype} but the layer's weights are {param.dtype}; "
                         f"convert one, e.g. x.to({param.dtype}) or layer.to({dtype})")
     tensors = [("x", t) for t in xs]
     if isinstance(edge_index, Tensor):
         tensors.append(("edge_index", edge_index))
-    if layer.edge_dim is not None and isinstance(edge_attr, Tensor):
+    if getattr(layer, "edge_dim", None) is not None and isinstance(edge_attr, Tensor):
         tensors.append(("edge_attr", edge_attr))
         if not edge_attr.is_floating_point():
             raise TypeError(f"`edge_attr`: expected floating-point edge features, got "
                             f"{edge_attr.dtype}; convert them, e.g. edge_attr.float()")
-        if edge_attr.dtype != dtype:
+        if edge_attr.dtype != dtype and not autocast:
             raise TypeError(f"`edge_attr`: dtype {edge_attr.dtype} differs from x's {dtype}; "
                             f"give both the same dtype, e.g. edge_attr.to({dtype})")
     device = param.device if param is not None else xs[0].device
