@@ -198,11 +198,14 @@ def test_feature_dtype_width_and_device_are_named(name, case, error, words):
 
 
 def test_feature_checks_leave_lazy_widths_and_float64_layers_alone():
-    """Oracle: a float64 layer on float64 inputs and a lazy (-1) layer run as before."""
+    """Oracle: a float64 layer on float64 inputs, a lazy (-1) layer and mixed dtypes
+    under autocast run as before."""
     x, ei, e = _inputs()
     layer = SATConv(8, 4, 2, edge_dim=3).double()
     assert layer(x.double(), ei, e.double()).dtype == torch.float64
     assert SATConv(-1, 4, 2, edge_dim=3)(x[:, :7], ei, e).shape == (6, 8)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # ops pick their dtypes: a mix is fine
+        assert SATConv(8, 4, 2, edge_dim=3)(x, ei, e.bfloat16()).shape == (6, 8)
 
 
 @pytest.mark.parametrize("name", NAMES)

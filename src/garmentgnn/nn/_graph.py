@@ -235,7 +235,10 @@ def check_inputs(layer: Any, x: Any, edge_index: Any, edge_attr: Any) -> None:
     _width("x", xs[0], in_src, "in_channels")
     _width("x", xs[-1], in_dst, "in_channels")
     dtype = xs[0].dtype
-    autocast = torch.is_autocast_enabled(xs[0].device.type)  # per-op dtypes: any mix works
+    try:  # under autocast the ops pick their dtypes: any mix works
+        autocast = torch.is_autocast_enabled(xs[0].device.type)
+    except RuntimeError:  # a device type without autocast (meta)
+        autocast = False
     if param is not None and param.dtype != dtype and param.dtype.is_floating_point \
             and not autocast:
         raise TypeError(f"`x`: features are {dtype} but the layer's weights are {param.dtype}; "
