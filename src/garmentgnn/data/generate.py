@@ -139,7 +139,10 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     another dataset raises :class:`SpecMismatch` unless ``force``.  Pool workers end
     when this process does, even when it is killed with ``SIGKILL``.
     ``backend="ray"`` runs one Ray task per item instead (:mod:`garmentgnn.data.ray_backend`;
-    ``workers`` CPUs of a local cluster, or the cluster at ``address``).
+    ``workers`` CPUs of a local cluster, or the cluster at ``address``; ``address``
+    without ``backend="ray"``, negative ``workers`` or ``limit`` are a ``ValueError``).
+    The run holds :func:`output_lock` on ``out``: a second run into the same folder
+    is refused while this one works.
     """
     if backend not in ("local", "ray"):
         raise ValueError(f"`backend`: 'local' or 'ray', got {backend!r}")
