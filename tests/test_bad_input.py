@@ -351,3 +351,92 @@ def test_version_flag():
                        capture_output=True, text=True, env=env(), timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == f"garmentgnn {garmentgnn.__version__}"
 
+
+
+# ------------------------------------------------------------------ units, builders, OBJ
+@pytest.mark.parametrize("scale, advice", [
+    (83.0, "looks like centimetres: scale the vertices by 0.01 (e.g. garment.vertices * 0.01)"),
+    (3000.0, "looks like millimetres: scale the vertices by 0.001 (e.g. garment.vertices * "
+             "0.001)"),
+    (20.0, "looks like inches: scale the vertices by 0.0254"),
+    (2.1e6, "the unit cannot be told from the size"),
+])
+def test_unit_advice_gives_one_factor_that_fits(scale, advice):
+    """A 0.3 m patch 24.8 units across was told "centimetres ... by 0.01 (e.g. * 0.001)";
+    one 6.3e5 units across "by 0.001", still 630 m.  Oracle: the advised factor brings the
+    garment to 0.1-2.5 m."""
+    g = patch(size=0.3, at=(0, 0, 0.31))
+    big = Garment(g.vertices * scale, g.faces, g.uv)
+    with pytest.raises(ValueError) as info:
+        simulate(big, None, still(2), material("silk"))
+    msg = str(info.value)
+    assert advice in msg and msg.count("0.0") <= 2, msg
+    if "by " in msg:
+        factor = float(msg.split("by ")[1].split()[0])
+        assert 0.1 <= 0.3 * scale * factor <= 2.5
+
+
+def test_make_garment_without_a_body_names_body():
+    """Was AttributeError: 'NoneType' object has no attribute 'skeleton'."""
+    from garmentgnn.garments import make_garment
+    with pytest.raises(TypeError, match="`body`: expected a Body"):
+        make_garment("dress", None)
+
+
+def test_obj_quads_sharing_an_edge_through_copies_of_vertices_warn(tmp_path, caplog):
+    """Two quads meeting along x = 0.1 with that edge's vertices written twice: two
+    separate pieces, without a word before; now a warning with the count, and
+    repair=True welds them (oracle: one connected piece, 6 vertices)."""
+    import logging
+    p = tmp_path / "quads.obj"
+    p.write_text("v 0 0 0.3\nv 0.1 0 0.3\nv 0.1 0.1 0.3\nv 0 0.1 0.3\n"
+                 "v 0.1 0 0.3\nv 0.2 0 0.3\nv 0.2 0.1 0.3\nv 0.1 0.1 0.3\n"
+                 "f 1 2 3 4\nf 5 6 7 8\n")
+    with caplog.at_level(logging.WARNING, logger="garmentgnn.garments.io"):
+        g = load_garment(p)
+    assert len(g.vertices) == 8
+    assert "2 vertices lie on another vertex" in caplog.text and "repair=True" in caplog.text
+    welded = load_garment(p, repair=True)
+    tm = trimesh.Trimesh(welded.vertices.numpy(), welded.faces.numpy(), process=False)
+    assert len(welded.vertices) == 6 and len(tm.split(only_watertight=False)) == 1
+
+
+# ------------------------------------------------------------------ sequence files, manifests
+def test_sequence_check_catches_each_reordering(root):  # noqa: F811
+    """Oracle: the file as written passes; positions reordered, or rest vertices and
+    positions reordered together (faces left), or one vertex short, each do not."""
+    rec = next(r for r in read_manifest(root)["items"] if r["status"] == "ok")
+    seq = store.load_record_sequence(root, rec)
+    assert store.check_sequence(seq, rec["id"]) is None
+    perm = np.random.default_rng(1).permutation(seq["garment_vertices"].shape[0])
+    moved = dict(seq, positions=seq["positions"][:, perm])
+    assert "vertex order of positions" in store.check_sequence(moved)
+    both = dict(seq, positions=seq["positions"][:, perm],
+                garment_vertices=seq["garment_vertices"][perm])
+    assert "vertex order of garment_vertices" in store.check_sequence(both)
+    short = dict(seq, positions=seq["positions"][:, :-1])
+    assert "positions have shape" in store.check_sequence(short)
+
+
+def test_obj_writer_refuses_faces_past_the_vertex_list(tmp_path):
+    from garmentgnn.data.export import write_obj_sequence
+    P, F = np.zeros((2, 3, 3)), np.array([[0, 1, 3]])
+    with pytest.raises(ValueError, match="`faces`: reference vertices 0..3 but `positions`"):
+        write_obj_sequence(tmp_path / "o", P, F)
+    assert not (tmp_path / "o").exists()
+
+
+def test_duplicate_manifest_ids_are_refused_not_trained_on(root, tmp_path):  # noqa: F811
+    """The data module trained on every listed copy (195 -> 240 chunks) before."""
+    import json
+    import shutil
+
+    from garmentgnn.training.datamodule import SequenceChunks
+    out = tmp_path / "d"
+    shutil.copytree(root, out)
+    doc = json.loads((out / store.MANIFEST).read_text())
+    doc["items"] = doc["items"] + doc["items"][:1]
+    (out / store.MANIFEST).write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=rf"1 id\(s\) listed more than once \('"
+                                         rf"{doc['items'][0]['id']}' x2\)"):
+        SequenceChunks(out, None, chunk=4, history=2, nystrom_dim=NY)

@@ -130,3 +130,94 @@ def test_no_process_wide_warning_filters_from_import_or_calls():
     layer = SATConv(6, 4, 2, edge_dim=3)
     layer(torch.randn(10, 6), ei, torch.randn(ei.size(1), 3)).sum().backward()
     assert warnings.filters == before
+
+
+_BAD_INDEX = """
+import torch
+from garmentgnn.nn import LAYERS
+for name in sorted(LAYERS):
+    for bad in (-1, 5, 100000):
+        layer = LAYERS[name](8, 4, 2, edge_dim=3, validate=False)
+        ei = torch.tensor([[0, 1, bad], [1, 2, 3]])
+        try:
+            layer(torch.randn(5, 8), ei, torch.randn(3, 3))
+            print(name, bad, "no error")
+        except ValueError as e:
+            print(name, bad, e)
+"""
+
+
+def test_out_of_range_index_with_validate_false_is_an_error_not_a_crash():
+    """``validate=False``, index -1 / 5 / 100000 on 5 nodes: SATConv died with SIGSEGV
+    (-1) or returned numbers read past the node features (5).  In a subprocess, so a
+    crash fails this test instead of ending the run."""
+    import subprocess
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, "-c", _BAD_INDEX], capture_output=True, text=True,
+                       timeout=300, env={"PYTHONPATH": str(root / "src"), "OMP_NUM_THREADS": "1",
+                                         "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr[-800:]
+    lines = r.stdout.splitlines()
+    assert len(lines) == 3 * len(NAMES), r.stdout
+    for line in lines:
+        name, bad, msg = line.split(" ", 2)
+        assert msg.startswith("`edge_index`: source indices span"), line
+        assert bad + "]" in msg or "[" + bad + "," in msg, line
+
+
+def _inputs():
+    torch.manual_seed(0)
+    ei = random_graph(6, 14, seed=2)
+    return torch.randn(6, 8), ei, torch.randn(ei.size(1), 3)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("case, error, words", [
+    ("x float64, edge_attr float32", TypeError, ["`x`", "float64", "weights are torch.float32"]),
+    ("edge_attr float64", TypeError, ["`edge_attr`", "float64", "x's torch.float32"]),
+    ("7 columns for in_channels=8", ValueError, ["`x`", "7 columns", "in_channels=8"]),
+    ("integer features", TypeError, ["`x`", "floating-point", "torch.int64"]),
+    ("integer edge features", TypeError, ["`edge_attr`", "floating-point"]),
+    ("x on meta, layer on cpu", ValueError, ["`x`", "meta", "cpu"]),
+])
+def test_feature_dtype_width_and_device_are_named(name, case, error, words):
+    """Where torch said ``mat1 and mat2 must have the same dtype`` or ``shapes cannot be
+    multiplied``, the layer names the argument and the width / dtype it expects."""
+    layer = LAYERS[name](8, 4, 2, edge_dim=3)
+    x, ei, e = _inputs()
+    x, e = {"x float64, edge_attr float32": (x.double(), e),
+            "edge_attr float64": (x, e.double()),
+            "7 columns for in_channels=8": (x[:, :7], e),
+            "integer features": (x.long(), e),
+            "integer edge features": (x, e.long()),
+            "x on meta, layer on cpu": (x.to("meta"), e)}[case]
+    with pytest.raises(error) as info:
+        layer(x, ei, e)
+    msg = str(info.value)
+    assert all(w in msg for w in words), msg
+
+
+def test_feature_checks_leave_lazy_widths_and_float64_layers_alone():
+    """Oracle: a float64 layer on float64 inputs, a lazy (-1) layer and mixed dtypes
+    under autocast run as before."""
+    x, ei, e = _inputs()
+    layer = SATConv(8, 4, 2, edge_dim=3).double()
+    assert layer(x.double(), ei, e.double()).dtype == torch.float64
+    assert SATConv(-1, 4, 2, edge_dim=3)(x[:, :7], ei, e).shape == (6, 8)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # ops pick their dtypes: a mix is fine
+        assert SATConv(8, 4, 2, edge_dim=3)(x, ei, e.bfloat16()).shape == (6, 8)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_more_parallel_edges_than_node_pairs_match_the_message_route(name):
+    """Three self-loops on one node (found by the fuzz suite): torch's sparse sampling
+    raised ``only sparse compressed tensors with the same number of specified elements``.
+    Oracle: the message route (no sparse kernels)."""
+    from garmentgnn.nn._sparse import csr_kernels
+    torch.manual_seed(0)
+    layer = LAYERS[name](8, 4, 2, edge_dim=3).eval()
+    x, ei, e = torch.randn(1, 8), torch.zeros(2, 3, dtype=torch.long), torch.randn(3, 3)
+    out = layer(x, ei, e)
+    with csr_kernels(False):
+        ref = layer(x, ei, e)
+    torch.testing.assert_close(out, ref)

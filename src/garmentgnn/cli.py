@@ -6,11 +6,17 @@
 
 Each sub-command is a pair ``add_parser(subparsers)`` / ``main(args) -> exit status``
 (:data:`COMMANDS`): the data commands are here, ``bench`` and ``show`` in their
-packages' ``cli`` modules.  Nothing in the package imports this module."""
+packages' ``cli`` modules.  Nothing in the package imports this module.
+
+Every failure of every sub-command ends in one ``error: ...`` line naming the flag (and
+the fix) and a non-zero exit status (:func:`run_command`); ``--debug`` before the
+sub-command, or ``GARMENTGNN_DEBUG=1``, shows the traceback instead."""
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import shlex
 import sys
 import warnings
 from pathlib import Path
@@ -81,6 +87,7 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
 def generate_main(args: argparse.Namespace) -> int:
     """Generate (or resume) the preset; 1 when items failed, 2 for bad arguments."""
     from garmentgnn.data import SpecMismatch, generate, preset
+    out = args.out
     try:
         sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
         spec = preset(args.preset, seed=args.seed, engine=args.engine)
@@ -94,10 +101,27 @@ def generate_main(args: argparse.Namespace) -> int:
                            progress=not args.no_progress, estimate=args.estimate,
                            force=args.force, backend=args.backend, address=args.address)
     except (SpecMismatch, ValueError, RuntimeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_flag_message(str(exc), args)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return _interrupted(out, args)
     print(summary)
     return 1 if summary.failed else 0
+
+
+def _interrupted(out, args: argparse.Namespace) -> int:
+    """Ctrl-C during ``generate``: what was kept and the command that resumes (130)."""
+    from garmentgnn.data.store import read_manifest
+    try:
+        counts = read_manifest(out)["counts"] if out is not None else {}
+    except (OSError, ValueError):
+        counts = {}
+    kept = counts.get("ok", 0)
+    total = sum(counts.values())
+    argv = getattr(args, "argv", None) or ["generate", "--out", str(out)]
+    print(f"\ninterrupted: {kept} of {total} sequences are saved in {out} (finished items "
+          f"are never lost); resume with: garmentgnn {shlex.join(argv)}", file=sys.stderr)
+    return 130
 
 
 def add_export_parser(sub) -> argparse.ArgumentParser:
@@ -130,6 +154,10 @@ def export_main(args: argparse.Namespace) -> int:
         print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
               f"dataset made by `garmentgnn generate`)", file=sys.stderr)
         return 2
+    if args.format == "obj" and Path(args.out).exists() and not Path(args.out).is_dir():
+        print(f"error: --out {args.out}: is a file, and --format obj writes a folder of "
+              f"OBJs; name a folder", file=sys.stderr)
+        return 2
     if args.format in ("abc", "blend") and Path(args.out).suffix.lower() != f".{args.format}":
         print(f"error: --out {args.out}: --format {args.format} writes a file whose "
               f"name must end in .{args.format}", file=sys.stderr)
@@ -137,7 +165,7 @@ def export_main(args: argparse.Namespace) -> int:
     try:
         paths = export_sequence(args.seq, args.format, args.out,
                                 start_frame=args.start_frame, body=not args.no_body)
-    except (ValueError, KeyError, OSError) as exc:
+    except (ValueError, KeyError) as exc:
         print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
               file=sys.stderr)
         return 2
@@ -171,6 +199,14 @@ def manifest_main(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"rebuilt {args.out}/manifest.json: {doc['counts']}")
+    for line in doc.get("invalid", []):
+        print(f"invalid: {args.out}/sequences/{line}", file=sys.stderr)
+    if doc.get("invalid"):
+        print(f"error: --out {args.out}: {len(doc['invalid'])} sequence file(s) failed the "
+              f"checks (listed above) and are counted as pending; delete them and rerun "
+              f"`garmentgnn generate --out {args.out}` to simulate them again",
+              file=sys.stderr)
+        return 1
     return 0
 
 
@@ -216,19 +252,117 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0],
                                 formatter_class=HelpFormatter)
     p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
+    p.add_argument("--debug", action="store_true",
+                   help="show the full traceback of an error (also GARMENTGNN_DEBUG=1)")
     sub = p.add_subparsers(dest="command", required=True)
     for add_parser, _ in COMMANDS.values():
         add_parser(sub)
     return p
 
 
+def _flags(args: argparse.Namespace) -> Dict[str, str]:
+    """``--flag -> value`` of the parsed arguments (and of ``train``'s Lightning ones)."""
+    given = {k: v for k, v in vars(args).items() if k not in ("command", "argv", "debug")}
+    flags = {f"--{k.replace('_', '-')}": str(v) for k, v in given.items()
+             if isinstance(v, (str, int, float, os.PathLike)) and not isinstance(v, bool)}
+    for k, v in given.items():
+        if isinstance(v, list) and k != "lightning_args":
+            for item in v:
+                flags.setdefault(f"--{k.replace('_', '-')}", str(item).split("=")[-1])
+    rest = list(getattr(args, "lightning_args", None) or [])
+    for i, a in enumerate(rest):
+        if a.startswith("--") and "=" in a:
+            flags[a.split("=", 1)[0]] = a.split("=", 1)[1]
+        elif a.startswith("--") and i + 1 < len(rest) and not rest[i + 1].startswith("--"):
+            flags[a] = rest[i + 1]
+    return flags
+
+
+def _flag_message(msg: str, args: argparse.Namespace) -> str:
+    """``msg`` with a leading `` `name`: `` (the API's argument) turned into the flag
+    ``--name`` when the sub-command has one."""
+    if msg.startswith("`") and "`" in msg[1:]:
+        name, rest = msg[1:].split("`", 1)
+        flag = "--" + name.replace("_", "-")
+        if flag in _flags(args):
+            return flag + rest
+    return msg
+
+
+_OS_FIX = {PermissionError: "not writable (or readable) by you; pick another path",
+           NotADirectoryError: "a file is in the way where a folder is needed; name a folder",
+           FileExistsError: "a file is in the way where a folder is needed; name a folder",
+           IsADirectoryError: "is a folder where a file is needed; name a file",
+           FileNotFoundError: "no such file or folder"}
+
+
+def _os_message(exc: OSError, args: argparse.Namespace) -> Optional[str]:
+    """The flag whose path holds the file ``exc`` is about, the problem and the fix."""
+    target = getattr(exc, "filename", None)
+    if not target:
+        return None
+    target = Path(os.fspath(target)).absolute()
+    for flag, value in _flags(args).items():
+        try:
+            path = Path(value).absolute()
+        except (TypeError, ValueError):
+            continue
+        if path == target or path in target.parents or target in path.parents:
+            fix = next((f for t, f in _OS_FIX.items() if isinstance(exc, t)), exc.strerror)
+            return f"{flag} {value}: {target}: {fix}"
+    return None
+
+
+def error_line(exc: BaseException, args: argparse.Namespace) -> str:
+    """The one ``error:`` line for an exception that ended a sub-command."""
+    cause = exc.__cause__
+    while isinstance(cause, Exception) and str(cause) and str(cause) in str(exc):
+        exc, cause = cause, cause.__cause__  # a wrapper repeating it (e.g. jsonargparse's)
+    lines = str(exc).strip().splitlines()
+    msg = lines[0] if lines else type(exc).__name__
+    if isinstance(exc, OSError):
+        msg = _os_message(exc, args) or f"{type(exc).__name__}: {msg}"
+    elif not isinstance(exc, (ValueError, TypeError, RuntimeError)):
+        msg = f"{type(exc).__name__}: {msg}"
+    msg = _flag_message(msg, args)
+    for flag, value in _flags(args).items():  # "PATH: ..." about a flag's file
+        if len(value) > 1 and msg.startswith(value) and flag not in msg:
+            msg = f"{flag} {msg}"
+            break
+    if not any(flag in msg for flag in _flags(args)) and not isinstance(exc, OSError):
+        msg += " (rerun with --debug for the traceback)"
+    return f"error: {msg}"
+
+
+def run_command(args: argparse.Namespace, debug: bool = False) -> int:
+    """Run ``args.command``; any exception becomes one ``error:`` line on stderr (exit
+    status 2; 130 for Ctrl-C), or, with ``debug``, propagates with its traceback."""
+    try:
+        return COMMANDS[args.command][1](args)
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print("\nerror: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 -- the one place every failure is reported
+        if debug:
+            raise
+        print(error_line(exc, args), file=sys.stderr)
+        return 2
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     """Parse ``argv`` (default ``sys.argv[1:]``) and run its sub-command; the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    debug = os.environ.get("GARMENTGNN_DEBUG", "") not in ("", "0")
+    while argv[:1] == ["--debug"]:
+        debug, argv = True, argv[1:]
     if argv[:1] == ["train"]:  # everything after `train` belongs to LightningCLI, --help too
-        return train_main(argparse.Namespace(command="train", lightning_args=argv[1:]))
-    args = build_parser().parse_args(argv)
-    return COMMANDS[args.command][1](args)
+        args = argparse.Namespace(command="train", lightning_args=argv[1:])
+    else:
+        args = build_parser().parse_args(argv)
+        args.argv = argv
+    return run_command(args, debug or bool(getattr(args, "debug", False)))
 
 
 if __name__ == "__main__":

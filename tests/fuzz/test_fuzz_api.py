@@ -221,3 +221,37 @@ def test_simulate_odd_garments(scale, offset, special, frames, fps, names, body,
         assert res.positions.shape == (frames, 9, 3) or not res.ok
         assert torch.isfinite(res.positions).all()
         assert res.penetration.shape[0] == res.positions.shape[0]
+
+
+# ------------------------------------------------------------------ layers
+LAYER_NAMES = st.sampled_from(["sat", "gt", "gt_edge", "structure_aware", "gat"])
+
+
+@FUZZ
+@given(name=LAYER_NAMES, nodes=st.integers(0, 6), width=st.sampled_from([8, 7, 9]),
+       edges=st.lists(st.tuples(st.integers(-2, 7), st.integers(-2, 7)), max_size=10),
+       x_dtype=DTYPES, e_dtype=DTYPES, e_width=st.sampled_from([3, 2]),
+       validate=st.booleans(), special=st.booleans(), valid=st.booleans(), data=st.data())
+def test_fuzz_layers(name, nodes, width, edges, x_dtype, e_dtype, e_width, validate, special,
+                     valid, data):
+    """Every layer of ``garmentgnn.nn`` (built for 8 input and 3 edge columns, float32)
+    with node and edge features of any dtype and width, indices from -2 to 7 (on 0-6
+    nodes), ``validate`` on or off, and NaN / inf / 1e30 values: a clear error naming the
+    argument, or (finite, in-range, float32 inputs of the built widths) a finite output
+    of shape ``[nodes, 8]`` -- never a crash or torch's own message."""
+    from garmentgnn.nn import LAYERS
+    if valid:  # half the cases well-formed, so the oracle of the results is exercised
+        x_dtype = e_dtype = torch.float32
+        width, e_width = 8, 3
+        edges = [(a % nodes, b % nodes) for a, b in edges] if nodes else []
+    torch.manual_seed(0)
+    layer = LAYERS[name](8, 4, 2, edge_dim=3, validate=validate)
+    x = data.draw(tensors(shape=(nodes, width))).to(x_dtype) if special else \
+        torch.randn(nodes, width).to(x_dtype)
+    ei = torch.tensor(edges, dtype=torch.long).reshape(-1, 2).t().contiguous()
+    e = torch.randn(ei.size(1), e_width).to(e_dtype)
+    out = outcome("nn layers", layer, x, ei, e)
+    if out is not None:
+        assert x_dtype == e_dtype == torch.float32 and width == 8 and e_width == 3
+        assert ei.numel() == 0 or (0 <= int(ei.min()) and int(ei.max()) < nodes)
+        assert out.shape == (nodes, 8) and torch.isfinite(out).all()

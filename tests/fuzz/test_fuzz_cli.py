@@ -5,6 +5,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -91,7 +92,8 @@ def test_cli_generate(tmp_path_factory, dataset, capsys, monkeypatch, data):
 
 
 @FUZZ
-@given(seq=st.sampled_from(["good", "missing", "corrupt", "empty", ""]),
+@given(seq=st.sampled_from(["good", "missing", "corrupt", "empty", "", "shuffled", "short",
+                            "nan"]),
        fmt=st.sampled_from(["pc2", "obj", "xyz"]), out=st.sampled_from(["x.pc2", "objs", ""]),
        start=st.sampled_from(["0", "nan", "inf", "-2", "z"]), data=st.data())
 def test_cli_export(tmp_path_factory, dataset, capsys, seq, fmt, out, start, data):
@@ -102,9 +104,22 @@ def test_cli_export(tmp_path_factory, dataset, capsys, seq, fmt, out, start, dat
         path.write_bytes(data.draw(mutations(good.read_bytes())))
     elif seq == "empty":
         path.write_bytes(b"")
+    elif seq in ("shuffled", "short", "nan"):  # valid files whose arrays do not fit together
+        arrays = store.load_sequence(good)
+        meta, P = arrays.pop("meta"), arrays["positions"].copy()
+        n = P.shape[1]
+        if seq == "shuffled":
+            P = P[:, np.random.default_rng(data.draw(st.integers(0, 99))).permutation(n)]
+        elif seq == "short":
+            P = P[:, :n - data.draw(st.integers(1, 3))]
+        else:
+            P[data.draw(st.integers(0, len(P) - 1)), data.draw(st.integers(0, n - 1))] = np.nan
+        store.write_sequence(path, dict(arrays, positions=P), meta)
     args = ["export", "--seq", str(path), "--format", fmt, "--out",
             str(tmp / out) if out else "", "--start-frame", start]
-    rc, _ = run_cli(args, capsys, "cli export")
+    rc, cap = run_cli(args, capsys, "cli export")
+    if seq in ("shuffled", "short", "nan"):  # never exported: a silent wrong answer
+        assert rc != 0 and any(f in cap.err for f in ("--seq", "--format", "--out")), cap.err
     if rc == 0 and fmt == "pc2":
         assert (tmp / out).stat().st_size > export.PC2_HEADER.size
 

@@ -10,7 +10,7 @@ from typing import List
 import numpy as np
 
 from garmentgnn.data.gltf import sequence_meshes, write_gltf
-from garmentgnn.data.store import PathLike, atomic_write_bytes, load_sequence
+from garmentgnn.data.store import PathLike, atomic_write_bytes, checked_sequence, load_sequence
 
 PC2_HEADER = struct.Struct("<12siiffi")
 
@@ -42,9 +42,16 @@ def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarra
     X = np.asarray(positions, dtype=np.float64)
     if X.ndim != 3 or X.shape[2] != 3 or not np.isfinite(X).all():
         raise ValueError(f"`positions`: expected finite [T, V, 3], got shape {X.shape}")
+    F = np.asarray(faces)
+    if F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer):
+        raise ValueError(f"`faces`: expected integer [F, 3], got {F.dtype} {F.shape}")
+    if F.size and (F.min() < 0 or F.max() >= X.shape[1]):
+        raise ValueError(f"`faces`: reference vertices {int(F.min())}..{int(F.max())} but "
+                         f"`positions` have {X.shape[1]} per frame; pass the faces of "
+                         f"these positions")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    F = np.asarray(faces, dtype=np.int64) + 1
+    F = F.astype(np.int64) + 1
     flines = "".join(f"f {a} {b} {c}\n" for a, b, c in F)
     paths = []
     for t, X in enumerate(np.asarray(positions, dtype=np.float64)):
@@ -70,16 +77,17 @@ def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: fl
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"`fmt`: expected one of {', '.join(map(repr, EXPORT_FORMATS))}, "
                          f"got {fmt!r}")
+    if fmt in ("abc", "blend"):  # the clear error before loading anything
+        from garmentgnn.sim.blender import require_blender
+        require_blender()
+    # the whole file, checked (shapes, faces in range, NaN frames, vertex order)
+    seq = checked_sequence(seq_path, load_sequence(seq_path))
     if fmt in ("gltf", "abc", "blend"):
-        if fmt in ("abc", "blend"):  # the clear error before loading anything
-            from garmentgnn.sim.blender import require_blender
-            require_blender()
-        meshes, fps = sequence_meshes(load_sequence(seq_path), body=body)
+        meshes, fps = sequence_meshes(seq, body=body)
         if fmt == "gltf":
             return [write_gltf(out, meshes, fps=fps)]
         from garmentgnn.data.blender_export import write_blender
         return write_blender(meshes, fps=fps, **{fmt: out})
-    seq = load_sequence(seq_path, ["positions", "garment_faces", "meta_json"])
     if fmt == "pc2":
         return [write_pc2(out, seq["positions"], start_frame=start_frame)]
     return write_obj_sequence(out, seq["positions"], seq["garment_faces"],

@@ -7,6 +7,7 @@ on which other items exist or on the order they run in.
 """
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import sys
@@ -15,7 +16,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 from garmentgnn.data import store
 from garmentgnn.data.presets import Spec, build_inputs
@@ -138,23 +139,79 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     another dataset raises :class:`SpecMismatch` unless ``force``.  Pool workers end
     when this process does, even when it is killed with ``SIGKILL``.
     ``backend="ray"`` runs one Ray task per item instead (:mod:`garmentgnn.data.ray_backend`;
-    ``workers`` CPUs of a local cluster, or the cluster at ``address``).
+    ``workers`` CPUs of a local cluster, or the cluster at ``address``; ``address``
+    without ``backend="ray"``, negative ``workers`` or ``limit`` are a ``ValueError``).
+    The run holds :func:`output_lock` on ``out``: a second run into the same folder
+    is refused while this one works.
     """
     if backend not in ("local", "ray"):
         raise ValueError(f"`backend`: 'local' or 'ray', got {backend!r}")
+    if address is not None and backend != "ray":
+        raise ValueError(f"`address`: {address!r} names a Ray cluster, which only "
+                         f"backend='ray' joins; add --backend ray, or drop --address")
+    if not isinstance(workers, int) or workers < 0:
+        raise ValueError(f"`workers`: expected 0 (in this process) or more worker "
+                         f"processes, got {workers!r}")
+    if limit is not None and (not isinstance(limit, int) or limit < 0):
+        raise ValueError(f"`limit`: expected 0 or more items to simulate in this run, got "
+                         f"{limit!r}; leave it out to simulate every pending item")
     if not str(out).strip():
         raise ValueError("`out`: empty path; name the output folder, e.g. --out data/tiny")
     if Path(out).exists() and not Path(out).is_dir():
         raise ValueError(f"`out`: {out} is a file; name a folder for the dataset")
-    t_start = time.perf_counter()
     if spec.engine == "blender" and simulate_fn is None:
         from garmentgnn.sim.blender import require_blender
         require_blender()  # before any file is written: say how to install `bpy`
+    Path(out, store.SEQUENCES).mkdir(parents=True, exist_ok=True)
+    with output_lock(out):
+        return _generate(spec, Path(out), workers, limit, simulate_fn, settings_fn,
+                         retry_failed, progress, estimate, log, force, backend, address)
+
+
+#: the lock file a running ``generate`` holds in its output folder
+LOCK = ".generate.lock"
+
+
+@contextlib.contextmanager
+def output_lock(out) -> Iterator[None]:
+    """An exclusive ``flock`` on ``OUT/.generate.lock`` for the duration: a second run
+    into the same folder is refused (``RuntimeError`` naming the folder and the other
+    run's pid) instead of simulating the same items.  The kernel drops the lock when the
+    holder ends, even by ``SIGKILL``, so a stale lock file never blocks a resume."""
+    try:
+        import fcntl
+    except ImportError:  # no flock (Windows): no lock
+        yield
+        return
+    path = Path(out) / LOCK
+    with open(path, "a+") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            pid = f.read().strip() or "?"
+            raise RuntimeError(f"--out {out}: another `garmentgnn generate` (pid {pid}) is "
+                               f"writing to this folder; wait for it to finish (rerun then "
+                               f"to resume), or use another --out") from None
+        try:
+            f.seek(0)
+            f.truncate()
+            f.write(f"{os.getpid()}\n")
+            f.flush()
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _generate(spec: Spec, out: Path, workers: int, limit: Optional[int],
+              simulate_fn: Optional[Callable], settings_fn: Optional[Callable],
+              retry_failed: bool, progress: bool, estimate: bool,
+              log: Optional[Callable[[str], None]], force: bool, backend: str,
+              address: Optional[str]) -> Summary:
+    t_start = time.perf_counter()
     if log is None:
         def log(msg: str) -> None:
             print(msg, flush=True)
-    out = Path(out)
-    (out / store.SEQUENCES).mkdir(parents=True, exist_ok=True)
     store.remove_stale_temporaries(out)
     store.remove_stale_temporaries(out / store.SEQUENCES)
     spec_json = spec.to_json()
@@ -192,7 +249,7 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
         records[it["id"]] = store.pending_record(it)
         todo.append(it)
     if limit is not None:
-        todo = todo[:max(0, limit)]
+        todo = todo[:limit]
 
     def flush():
         store.write_manifest(out, [records[it["id"]] for it in items], header)

@@ -194,28 +194,99 @@ def load_record_sequence(root: PathLike, record: Dict[str, Any],
         raise IntegrityError(f"{path}: SHA-256 differs from the manifest's (corrupt or "
                              f"changed file); delete it and rerun `garmentgnn generate` on "
                              f"{root}, or run `garmentgnn manifest --out {root}` to accept it")
+    if keys is None:  # a whole file: its arrays must fit together
+        return checked_sequence(path, load_sequence(path), record.get("id"))
     return load_sequence(path, keys)
 
 
 def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional[str]:
-    """``None`` if ``path`` is a complete, loadable sequence file (of ``item_id``),
-    otherwise a message saying what is wrong."""
+    """``None`` if ``path`` is a complete, loadable sequence file (of ``item_id``) that
+    passes :func:`check_sequence`, otherwise a message saying what is wrong."""
     try:
         seq = load_sequence(path)
     except Exception as e:  # corrupt zip, truncated member, bad JSON, ...
         return f"unreadable: {type(e).__name__}: {e}"
+    return check_sequence(seq, item_id)
+
+
+#: median relative edge-length change (over a frame's edges) beyond which a frame's vertex
+#: order cannot match the rest garment's: cloth stretches a few percent, a reordered
+#: vertex list changes a typical edge by several hundred percent
+ORDER_TOLERANCE = 0.5
+#: median absolute deviation of ``log(uv edge / rest edge)`` beyond which the rest vertices
+#: cannot be in the faces' order (0 for the flat patterns the templates are cut from,
+#: about 0.3 for a reordered vertex list; up to their common scale, so any UV unit works)
+UV_ORDER_TOLERANCE = 0.2
+
+
+def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Optional[str]:
+    """``None`` if the arrays of a loaded sequence file (:func:`load_sequence`) fit
+    together, otherwise what is wrong: missing arrays, another item's id, shapes
+    (``positions [T, V, 3]`` with ``V`` the rest garment's vertices and ``T`` the
+    metadata's frames; faces in range), NaN/inf frames (named), and the vertex order:
+    the edge lengths of the first, middle and last frame against the rest garment's
+    (``garment_vertices`` on ``garment_faces``: a median relative difference over
+    :data:`ORDER_TOLERANCE`), and the rest edges against the per-corner UVs
+    (``garment_face_uv``, which do not depend on the vertex order; up to their scale:
+    :data:`UV_ORDER_TOLERANCE`).  The one check of sequence files, used by ``manifest``,
+    ``generate`` (resume), ``export`` and every loader of a manifest's records."""
     missing = [k for k in SEQUENCE_KEYS if k not in seq]
     if missing:
         return f"missing arrays {missing}"
     meta = seq["meta"]
     if item_id is not None and meta.get("id") != item_id:
         return f"holds item {meta.get('id')!r}, expected {item_id!r}"
-    P, V = seq["positions"], seq["garment_vertices"]
+    P, V, F = seq["positions"], seq["garment_vertices"], seq["garment_faces"]
+    if V.ndim != 2 or V.shape[1:] != (3,) or F.ndim != 2 or F.shape[1:] != (3,):
+        return (f"garment_vertices {V.shape} / garment_faces {F.shape}: expected [V, 3] "
+                f"and [F, 3]")
     if P.ndim != 3 or P.shape[1:] != V.shape or P.shape[0] != meta.get("num_frames"):
         return f"positions have shape {P.shape}, expected [{meta.get('num_frames')}, {V.shape}]"
-    if not np.isfinite(P).all():
-        return "positions contain NaN/inf"
+    if not np.issubdtype(F.dtype, np.integer) or (F.size and (F.min() < 0 or F.max() >= len(V))):
+        return f"garment_faces reference vertices outside [0, {len(V)})"
+    bad = ~np.isfinite(P).reshape(len(P), -1).all(1)
+    if bad.any():
+        frames = np.flatnonzero(bad)
+        return (f"positions contain NaN/inf in {len(frames)} of {len(P)} frames (first: "
+                f"frame {int(frames[0])})")
+    if not F.size or not len(P):
+        return None
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
+    rest = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).astype(np.float64)
+    keep = rest > 0
+    if not keep.any():
+        return None
+    e, rest = e[keep], rest[keep]
+    for t in sorted({0, len(P) // 2, len(P) - 1}):
+        cur = np.linalg.norm(P[t, e[:, 0]] - P[t, e[:, 1]], axis=1)
+        off = float(np.median(np.abs(cur / rest - 1.0)))
+        if off > ORDER_TOLERANCE:
+            return (f"vertex order of positions does not match the rest garment: frame {t}'s "
+                    f"edges differ from the rest edges by {100 * off:.0f}% (median)")
+    FU = seq.get("garment_face_uv")
+    if FU is not None and FU.shape == (len(F), 3, 2):
+        uv = np.concatenate([np.linalg.norm(FU[:, i] - FU[:, (i + 1) % 3], axis=1)
+                             for i in range(3)])[keep]
+        with np.errstate(all="ignore"):
+            ratio = np.log(uv / rest)
+        ratio = ratio[np.isfinite(ratio)]
+        spread = float(np.median(np.abs(ratio - np.median(ratio)))) if ratio.size else 0.0
+        if spread > UV_ORDER_TOLERANCE:
+            return (f"vertex order of garment_vertices does not match garment_faces: the "
+                    f"rest edges do not follow the per-corner UV edges (typical deviation "
+                    f"{100 * (np.exp(spread) - 1):.0f}%)")
     return None
+
+
+def checked_sequence(path: PathLike, seq: Dict[str, Any],
+                     item_id: Optional[str] = None) -> Dict[str, Any]:
+    """``seq`` (loaded from ``path``) after :func:`check_sequence`;
+    :class:`IntegrityError` naming the path, the problem and the fix otherwise."""
+    msg = check_sequence(seq, item_id)
+    if msg is not None:
+        raise IntegrityError(f"{path}: {msg}; delete it and rerun `garmentgnn generate` on "
+                             f"its dataset folder")
+    return seq
 
 
 # --------------------------------------------------------------------------- manifest
@@ -274,7 +345,25 @@ def read_manifest(out: PathLike) -> Dict[str, Any]:
     if not isinstance(doc.get("items"), list):
         raise ValueError(f"{path}: no 'items' list; rebuild it with `garmentgnn manifest "
                          f"--out {out}`")
+    check_manifest_ids(doc["items"], path, out)
     return doc
+
+
+def check_manifest_ids(items: List[Any], path: PathLike, out: PathLike) -> None:
+    """Every record a JSON object with an ``id``, each id listed once: ``ValueError``
+    naming the duplicated ids (a loader would use those sequences several times)."""
+    seen: Dict[Any, int] = {}
+    for r in items:
+        if not isinstance(r, dict) or not isinstance(r.get("id"), str):
+            raise ValueError(f"{path}: a record without an 'id' ({str(r)[:60]}); rebuild it "
+                             f"with `garmentgnn manifest --out {out}`")
+        seen[r["id"]] = seen.get(r["id"], 0) + 1
+    dup = {k: n for k, n in seen.items() if n > 1}
+    if dup:
+        listed = ", ".join(f"{k!r} x{n}" for k, n in sorted(dup.items())[:5])
+        more = f" and {len(dup) - 5} more" if len(dup) > 5 else ""
+        raise ValueError(f"{path}: {len(dup)} id(s) listed more than once ({listed}{more}); "
+                         f"rebuild it with `garmentgnn manifest --out {out}`")
 
 
 def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> Dict[str, Any]:

@@ -366,6 +366,14 @@ def load_garment(path: PathLike, repair: bool = False, uv_fallback: str = "isome
         if not used.all():
             log.warning("%s: %d vertices are not used by any face (load with repair=True to "
                         "drop them)", path, int((~used).sum()))
+        fin = np.isfinite(V).all(1)
+        scale = max(float(np.ptp(V[fin], axis=0).max()), 1e-12) if fin.any() else 1.0
+        ndup = _merge_vertices(V[used], F[:0], merge_tolerance * scale)[2]
+        if ndup:  # faces meeting at copies of a vertex are not connected there
+            log.warning("%s: %d vertices lie on another vertex (closer than merge_tolerance "
+                        "%.3g x the mesh size), so the faces meeting there are separate "
+                        "pieces (cut along those edges); load with repair=True to weld them",
+                        path, ndup, merge_tolerance)
     info: Dict[str, object] = {"source": str(path)}
     if repair:
         info["repair"] = report

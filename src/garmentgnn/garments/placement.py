@@ -20,12 +20,21 @@ MIN_EXTENT = 0.02
 MAX_GAP = 0.25
 
 
+#: (name, metres per unit) of the units a garment file is likely in
+UNITS = (("centimetres", 0.01), ("inches", 0.0254), ("millimetres", 0.001))
+#: the extents (metres) a garment has once its unit is right: a bib to a long dress
+PLAUSIBLE = (0.1, 2.5)
+
+
 def _unit_hint(extent: float) -> str:
-    if extent > 200.0:
-        return "it looks like millimetres: scale the vertices by 0.001"
-    if extent > 20.0:
-        return "it looks like centimetres: scale the vertices by 0.01"
-    return "scale the vertices to metres"
+    """One factor: the unit that brings ``extent`` units to a plausible garment size
+    (the first of centimetres, inches, millimetres that does), else no guess."""
+    for name, factor in UNITS:
+        if PLAUSIBLE[0] <= extent * factor <= PLAUSIBLE[1]:
+            return (f"it looks like {name}: scale the vertices by {factor} "
+                    f"(e.g. garment.vertices * {factor})")
+    return ("the unit cannot be told from the size (no common unit gives a garment "
+            f"{PLAUSIBLE[0]}-{PLAUSIBLE[1]} m across); scale the vertices to metres")
 
 
 def check_placement(vertices: Tensor, body_vertices: Optional[Tensor] = None,
@@ -40,8 +49,7 @@ def check_placement(vertices: Tensor, body_vertices: Optional[Tensor] = None,
     extent = float((hi - lo).max())
     if extent > MAX_EXTENT:
         raise ValueError(f"`{name}`: the garment is {extent:.4g} units across; garmentgnn "
-                         f"works in metres and {_unit_hint(extent)} "
-                         f"(e.g. garment.vertices * 0.001)")
+                         f"works in metres and {_unit_hint(extent)}")
     if extent < MIN_EXTENT:
         raise ValueError(f"`{name}`: the garment is {extent:.3g} m across, smaller than "
                          f"{MIN_EXTENT} m; give the vertices in metres")

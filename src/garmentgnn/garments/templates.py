@@ -430,4 +430,7 @@ def make_garment(kind: str, body, **kwargs) -> Garment:
     """Build a template by name (``TEMPLATES``)."""
     if kind not in TEMPLATES:
         raise ValueError(f"`kind`: unknown garment {kind!r}; use one of {list(TEMPLATES)}")
+    if not (hasattr(body, "skeleton") and hasattr(body, "vertices")):
+        raise TypeError(f"`body`: expected a Body (the garment is fitted to it), got "
+                        f"{type(body).__name__}; e.g. garmentgnn.body.make_body('capsule')")
     return TEMPLATES[kind](body, **kwargs)

@@ -15,8 +15,8 @@ from torch_geometric.nn.dense.linear import Linear
 from torch_geometric.nn.inits import reset
 from torch_geometric.typing import Adj, OptTensor
 
-from garmentgnn.nn._graph import (CSRPlan, Graph, PairTensor, check_outputs, edge_softmax,
-                                  prepare_graph)
+from garmentgnn.nn._graph import (CSRPlan, Graph, PairTensor, check_inputs, check_outputs,
+                                  edge_softmax, prepare_graph)
 from garmentgnn.nn._sparse import (CSR_DTYPES, Pattern, head_pattern, incidence_pattern,
                                    kernels_enabled, sddmm, spmm)
 
@@ -104,6 +104,8 @@ class LayerContract(MessagePassing):
             ``(x_out, (edge_index, alpha))`` with ``return_attention_weights``;
             ``(x_out, edge_attr_out, (edge_index, alpha))`` with both.
         """
+        if not is_compiling():
+            check_inputs(self, x, edge_index, edge_attr)
         g = prepare_graph(x, edge_index, edge_attr, self.edge_dim,
                           require_edge_attr=self.requires_edge_attr, validate=self.validate)
         out, e_out, attention = self.compute(x, g)
@@ -238,7 +240,10 @@ class AttentionConv(LayerContract):
 
     def route(self, g: Graph, *operands: Tensor) -> Route:
         plan, H = g.plan, self.heads
+        # more edges than (source, target) pairs: multi-edges that torch's sparse CSR
+        # sampling cannot hold (it needs nnz <= rows * cols); the message route can
         if (plan is None or not kernels_enabled() or plan.num_edges == 0 or self.observed()
+                or plan.num_edges > plan.num_src * plan.num_dst
                 or any(t.dtype not in CSR_DTYPES for t in operands)):
             return Route(None, H, g.edge_index[1], None, g.num_dst, None)
         pat = head_pattern(plan, H)

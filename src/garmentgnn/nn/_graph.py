@@ -190,16 +190,76 @@ def build_plan(edge_index: Tensor, num_src: int, num_dst: int, sorted_: bool = F
 
 
 def _check_range(edge_index: Tensor, num_src: int, num_dst: int) -> None:
-    if edge_index.size(1) == 0:
+    """Every index in ``[0, num_nodes)``: one ``aminmax`` pass and one host sync."""
+    if edge_index.size(1) == 0 or edge_index.device.type == "meta":
         return
-    lo_s, hi_s = int(edge_index[0].min()), int(edge_index[0].max())
-    lo_d, hi_d = int(edge_index[1].min()), int(edge_index[1].max())
+    lo, hi = torch.aminmax(edge_index, dim=1)
+    (lo_s, lo_d), (hi_s, hi_d) = lo.tolist(), hi.tolist()
     if lo_s < 0 or hi_s >= num_src:
         _fail("edge_index", f"source indices span [{lo_s}, {hi_s}] but x has {num_src} nodes; "
                             "indices must lie in [0, num_nodes)")
     if lo_d < 0 or hi_d >= num_dst:
         _fail("edge_index", f"target indices span [{lo_d}, {hi_d}] but x has {num_dst} nodes; "
                             "indices must lie in [0, num_nodes)")
+
+
+def _width(name: str, t: Tensor, want: Any, what: str) -> None:
+    if isinstance(want, int) and want > 0 and t.size(-1) != want:
+        _fail(name, f"has {t.size(-1)} columns but the layer was built with {what}={want}; "
+                    f"pass [num_nodes, {want}] features or build the layer with "
+                    f"{what}={t.size(-1)} (or -1 to infer it)")
+
+
+def check_inputs(layer: Any, x: Any, edge_index: Any, edge_attr: Any) -> None:
+    """The feature checks every layer runs before :func:`prepare_graph`: floating-point
+    ``x`` of the layer's ``in_channels`` width, ``edge_attr`` of ``x``'s dtype, and every
+    tensor on the parameters' device (metadata only: no pass over the values).
+
+    Raises ``TypeError`` / ``ValueError`` naming the argument and the expected width or
+    dtype, where torch would say ``mat1 and mat2 must have the same dtype`` or
+    ``shapes cannot be multiplied``.  Non-tensor arguments are left to
+    :func:`prepare_graph`."""
+    xs = tuple(x) if isinstance(x, (tuple, list)) else (x,)
+    if not all(isinstance(t, Tensor) and t.dim() == 2 for t in xs) or len(xs) > 2:
+        return  # prepare_graph names the problem
+    param = next(layer.parameters(), None)
+    for t in xs:
+        if not t.is_floating_point():
+            raise TypeError(f"`x`: expected floating-point node features, got {t.dtype}; "
+                            f"convert them, e.g. x.float()")
+    if xs[0].dtype != xs[-1].dtype:
+        raise TypeError(f"`x`: source features are {xs[0].dtype} but target features are "
+                        f"{xs[-1].dtype}; give both the same dtype")
+    in_ch = getattr(layer, "in_channels", -1)
+    in_src, in_dst = in_ch if isinstance(in_ch, (tuple, list)) else (in_ch, in_ch)
+    _width("x", xs[0], in_src, "in_channels")
+    _width("x", xs[-1], in_dst, "in_channels")
+    dtype = xs[0].dtype
+    try:  # under autocast the ops pick their dtypes: any mix works
+        autocast = torch.is_autocast_enabled(xs[0].device.type)
+    except RuntimeError:  # a device type without autocast (meta)
+        autocast = False
+    if param is not None and param.dtype != dtype and param.dtype.is_floating_point \
+            and not autocast:
+        raise TypeError(f"`x`: features are {dtype} but the layer's weights are {param.dtype}; "
+                        f"convert one, e.g. x.to({param.dtype}) or layer.to({dtype})")
+    tensors = [("x", t) for t in xs]
+    if isinstance(edge_index, Tensor):
+        tensors.append(("edge_index", edge_index))
+    if getattr(layer, "edge_dim", None) is not None and isinstance(edge_attr, Tensor):
+        tensors.append(("edge_attr", edge_attr))
+        if not edge_attr.is_floating_point():
+            raise TypeError(f"`edge_attr`: expected floating-point edge features, got "
+                            f"{edge_attr.dtype}; convert them, e.g. edge_attr.float()")
+        if edge_attr.dtype != dtype and not autocast:
+            raise TypeError(f"`edge_attr`: dtype {edge_attr.dtype} differs from x's {dtype}; "
+                            f"give both the same dtype, e.g. edge_attr.to({dtype})")
+    device = param.device if param is not None else xs[0].device
+    for name, t in tensors:
+        if t.device != device:
+            raise ValueError(f"`{name}`: on {t.device} but the layer's weights are on "
+                             f"{device}; move the inputs and the layer to one device "
+                             f"(e.g. {name}.to('{device}'))")
 
 
 def prepare_graph(
@@ -219,8 +279,11 @@ def prepare_graph(
         edge_attr: ``[E, edge_dim]`` edge features, or ``None``.
         edge_dim: the layer's declared edge feature width (``None`` = ignores edges).
         require_edge_attr: raise if the layer needs edge features and none came.
-        validate: check the index range (once per cached graph; skipped under
-            ``torch.compile``, where it would need a host sync).
+        validate: kept for the layers' signature: outside ``torch.compile`` the index
+            range is checked whenever a graph's CSR plan is built (once per cached
+            graph), whatever ``validate`` says, because the sparse kernels index memory
+            unchecked; under ``torch.compile`` no check runs (a host sync) and torch's
+            own gather raises on a bad index.
     """
     if isinstance(x, (tuple, list)):
         if len(x) != 2:
@@ -267,14 +330,12 @@ def prepare_graph(
         if not compiling:
             plan = _cached_plan(key_obj, num_src, num_dst)
             if plan is None:
-                if validate:
-                    _check_range(edge_index, num_src, num_dst)
-                plan = build_plan(edge_index, num_src, num_dst)
-                plan.validated = validate
-                _store_plan(key_obj, plan)
-            elif validate and not plan.validated:
+                # always, validate or not: the CSR kernels index memory without bound
+                # checks, and an index out of range would crash the interpreter
                 _check_range(edge_index, num_src, num_dst)
+                plan = build_plan(edge_index, num_src, num_dst)
                 plan.validated = True
+                _store_plan(key_obj, plan)
     else:
         raise TypeError(f"`edge_index`: expected a LongTensor [2, E] or a sparse adjacency, "
                         f"got {type(edge_index).__name__}")

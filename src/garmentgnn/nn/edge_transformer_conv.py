@@ -61,7 +61,8 @@ class EdgeTransformerConv(AttentionConv):
             features; defaults to ``edge_dim`` (identity edge skip).
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check that edge indices lie in range (once per graph).
+        validate (bool): kept for PyG-style signatures: the index range is
+            checked once per graph either way (the sparse kernels need it).
         check_finite (bool): raise ``ValueError`` when an output holds NaN/inf.
 
     Shapes:

@@ -57,7 +57,8 @@ class GATBaselineConv(LayerContract):
             are required and enter the attention scores.
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check that edge indices lie in range (once per graph).
+        validate (bool): kept for PyG-style signatures: the index range is
+            checked once per graph either way (the sparse kernels need it).
         check_finite (bool): raise ``ValueError`` when the output holds NaN/inf.
         add_self_loops (bool): let ``GATv2Conv`` add self-loops.
         **kwargs: passed to ``GATv2Conv`` (e.g. ``negative_slope``,

@@ -53,7 +53,8 @@ class GraphTransformerConv(AttentionConv):
             from the shape check of ``edge_attr``.
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check that edge indices lie in range (once per graph).
+        validate (bool): kept for PyG-style signatures: the index range is
+            checked once per graph either way (the sparse kernels need it).
         check_finite (bool): raise ``ValueError`` when the output holds NaN/inf.
 
     Shapes:

@@ -78,7 +78,8 @@ class SATConv(AttentionConv):
             incoming edge per node and head is always kept, so no NaN appears
             even at ``attn_mask_p=1``.
         bias (bool): learn additive biases.
-        validate (bool): check that edge indices lie in range (once per graph).
+        validate (bool): kept for PyG-style signatures: the index range is
+            checked once per graph either way (the sparse kernels need it).
         check_finite (bool): raise ``ValueError`` when the output holds
             NaN/inf, naming the bad input or the overflow (one host sync per
             call; skipped under ``torch.compile``).

@@ -74,7 +74,8 @@ class StructureAwareTransformerConv(AttentionConv):
             features required) over GIN (edges ignored).
         dropout (float): dropout on the attention coefficients (training).
         bias (bool): learn additive biases.
-        validate (bool): check that edge indices lie in range (once per graph).
+        validate (bool): kept for PyG-style signatures: the index range is
+            checked once per graph either way (the sparse kernels need it).
         check_finite (bool): raise ``ValueError`` when the output holds NaN/inf.
         k_hops (int): number of GIN layers :math:`k` of the extractor.
         hidden_channels (int, optional): width of the extractor; defaults to

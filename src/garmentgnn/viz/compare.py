@@ -55,7 +55,14 @@ def load_checkpoint(path: PathLike):
     from garmentgnn.training import GarTransModule
     if not Path(path).is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
-    return GarTransModule.load_from_checkpoint(str(path), map_location="cpu").eval()
+    try:
+        return GarTransModule.load_from_checkpoint(str(path), map_location="cpu").eval()
+    except (ValueError, TypeError):
+        raise
+    except Exception:  # a truncated or foreign file: the error naming it and the fix
+        from garmentgnn.training.integrity import load_checkpoint_file
+        load_checkpoint_file(path)
+        raise
 
 
 def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str] = "test",

@@ -1,0 +1,195 @@
+"""Bad input on the command line: every failure of every verb is one ``error:`` line that
+names the flag (and the fix), with a non-zero exit status; ``--debug`` shows the
+traceback.  Each test runs one exact input through ``garmentgnn.cli.main``."""
+import fcntl
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from garmentgnn.cli import main as cli_main
+from garmentgnn.data import generate, preset, read_manifest, store
+from test_data import fake_simulate, files_of
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = str(ROOT / "src" / "garmentgnn" / "configs" / "gartrans.yaml")
+GEN = ["--engine", "torch", "--no-estimate", "--no-progress", "--simulate-fn", "test_data:fake_simulate"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """The tiny preset made with the simulator double (8 sequences, 3 s)."""
+    out = tmp_path_factory.mktemp("ref")
+    assert generate(preset("tiny"), out, workers=0, simulate_fn=fake_simulate,
+                    progress=False).done == 8
+    return out
+
+
+def copy(dataset, tmp_path) -> Path:
+    out = tmp_path / "d"
+    shutil.copytree(dataset, out)
+    return out
+
+
+def one_error(capsys, rc, *words):
+    """Exit status non-zero, stderr's last line an ``error:`` naming ``words``, and no
+    traceback anywhere."""
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert rc != 0 and last.startswith("error: "), err[-800:]
+    assert "Traceback" not in err
+    assert all(w in last for w in words), last
+    return last
+
+
+def edit_sequence(path: Path, **arrays):
+    """Rewrite a sequence file with some arrays replaced (the manifest's hash then
+    differs: these tests run `manifest`, which rebuilds it, or `export`, which has none)."""
+    seq = store.load_sequence(path)
+    meta = seq.pop("meta")
+    seq.update(arrays)
+    store.write_sequence(path, seq, meta)
+
+
+def first_file(out: Path) -> Path:
+    return sorted((out / store.SEQUENCES).glob("*.npz"))[0]
+
+
+# ------------------------------------------------------------------ show
+@pytest.mark.parametrize("argv, flag", [(["--index", "99"], "--index"),
+                                        (["--split", "nosuch"], "--split")])
+def test_show_with_a_bad_index_or_split_is_one_line(dataset, tmp_path, capsys, argv, flag):
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(tmp_path / "s")] + argv)
+    one_error(capsys, rc, flag)
+
+
+@pytest.mark.parametrize("content", [b"junk\n", b"PK\x03\x04" + b"\0" * 40])
+def test_show_with_a_foreign_or_truncated_checkpoint_blames_ckpt(dataset, tmp_path, capsys,
+                                                                 content):
+    ckpt = tmp_path / "model.ckpt"
+    ckpt.write_bytes(content)
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(tmp_path / "s"),
+                   "--ckpt", str(ckpt)])
+    one_error(capsys, rc, f"--ckpt {ckpt}", "unreadable checkpoint")
+
+
+@pytest.mark.slow  # renders before it writes (~15 s)
+def test_show_out_below_a_file_blames_out(dataset, tmp_path, capsys):
+    """A file where --out needs a folder: a NotADirectoryError traceback before."""
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "cmp"
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(out), "--no-gif", "--no-gltf",
+                   "--max-frames", "2", "--height", "720"])
+    one_error(capsys, rc, f"--out {out}", "a file is in the way", "name a folder")
+
+
+def test_debug_flag_and_variable_show_the_traceback(dataset, tmp_path, monkeypatch):
+    argv = ["show", "--data", str(dataset), "--out", str(tmp_path / "s"), "--index", "99"]
+    with pytest.raises(ValueError, match="`index`"):
+        cli_main(["--debug"] + argv)
+    monkeypatch.setenv("GARMENTGNN_DEBUG", "1")
+    with pytest.raises(ValueError, match="`index`"):
+        cli_main(argv)
+
+
+# ------------------------------------------------------------------ train, manifests
+def test_train_on_a_manifest_with_duplicate_ids_names_them(dataset, tmp_path, capsys):
+    """The same ids listed twice: the data module trained on the duplicates."""
+    out = copy(dataset, tmp_path)
+    doc = json.loads((out / store.MANIFEST).read_text())
+    doc["items"] = doc["items"] + doc["items"][:2]
+    (out / store.MANIFEST).write_text(json.dumps(doc))
+    rc = cli_main(["train", "fit", "--config", CONFIG, "--data.root", str(out),
+                   "--trainer.max_epochs", "1"])
+    last = one_error(capsys, rc, "--data.root", "listed more than once",
+                     "garmentgnn manifest --out")
+    assert doc["items"][0]["id"] in last
+
+
+# ------------------------------------------------------------------ export
+def test_export_out_pointing_at_a_file_blames_out(dataset, tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    seq = str(first_file(dataset))
+    rc = cli_main(["export", "--seq", seq, "--format", "obj", "--out", str(afile)])
+    one_error(capsys, rc, f"--out {afile}", "name a folder")
+    rc = cli_main(["export", "--seq", seq, "--format", "pc2", "--out", str(afile / "x.pc2")])
+    last = one_error(capsys, rc, f"--out {afile / 'x.pc2'}")
+    assert "--seq" not in last
+
+
+def test_export_obj_of_positions_one_vertex_short_is_refused(dataset, tmp_path, capsys):
+    """Exit 0 and OBJs whose faces pointed past the vertex list before."""
+    seq = tmp_path / "s.npz"
+    shutil.copy(first_file(dataset), seq)
+    edit_sequence(seq, positions=store.load_sequence(seq)["positions"][:, :-1])
+    rc = cli_main(["export", "--seq", str(seq), "--format", "obj", "--out",
+                   str(tmp_path / "objs")])
+    one_error(capsys, rc, f"--seq {seq}", "positions have shape")
+    assert not (tmp_path / "objs").exists()
+
+
+# ------------------------------------------------------------------ manifest
+def test_manifest_names_shuffled_vertex_order_and_nan_frames(dataset, tmp_path, capsys):
+    """A shuffled vertex order came back `ok`; NaN frames quietly `pending`."""
+    out = copy(dataset, tmp_path)
+    a, b = sorted((out / store.SEQUENCES).glob("*.npz"))[:2]
+    P = store.load_sequence(a)["positions"]
+    edit_sequence(a, positions=P[:, np.random.default_rng(0).permutation(P.shape[1])])
+    Q = store.load_sequence(b)["positions"].copy()
+    Q[3:5, 7] = np.nan
+    edit_sequence(b, positions=Q)
+    rc = cli_main(["manifest", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 1 and err.strip().splitlines()[-1].startswith("error: --out")
+    assert f"{a.name}: vertex order of positions does not match" in err
+    assert f"{b.name}: positions contain NaN/inf in 2 of 8 frames (first: frame 3)" in err
+    status = {r["id"]: r["status"] for r in read_manifest(out)["items"]}
+    assert status[a.stem] == status[b.stem] == "pending"
+    assert sum(s == "ok" for s in status.values()) == 6
+
+
+# ------------------------------------------------------------------ generate
+@pytest.mark.parametrize("argv, flag", [
+    (["--backend", "local", "--address", "127.0.0.1:6379"], "--address"),
+    (["--limit", "-2"], "--limit"),
+    (["--workers", "-3"], "--workers"),
+])
+def test_generate_flags_out_of_range_are_errors(tmp_path, capsys, argv, flag):
+    rc = cli_main(["generate", "--out", str(tmp_path / "g")] + GEN + argv)
+    one_error(capsys, rc, flag)
+    assert not (tmp_path / "g" / store.MANIFEST).exists()
+
+
+def test_second_generate_into_one_folder_is_refused(tmp_path, capsys):
+    """Both runs simulated the same items before."""
+    out = tmp_path / "g"
+    out.mkdir()
+    argv = ["generate", "--out", str(out), "--workers", "0", "--limit", "1"] + GEN
+    with open(out / ".generate.lock", "a+") as f:  # a run in progress holds this lock
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        f.write("4242\n")
+        f.flush()
+        rc = cli_main(argv)
+        one_error(capsys, rc, f"--out {out}", "another `garmentgnn generate` (pid 4242)")
+        assert not (out / store.MANIFEST).exists()
+    assert cli_main(argv) == 0  # the lock goes with its holder
+
+
+def test_interrupted_generate_says_what_was_kept_and_how_to_resume(dataset, tmp_path, capsys,
+                                                                   monkeypatch):
+    out = tmp_path / "g"
+    monkeypatch.setenv("GG_CALLS", str(tmp_path / "calls.txt"))
+    monkeypatch.setenv("GG_CRASH_AFTER", "3")  # Ctrl-C during the 4th item
+    argv = ["generate", "--out", str(out), "--workers", "0"] + GEN
+    rc = cli_main(argv)
+    err = capsys.readouterr().err
+    assert rc == 130 and "Traceback" not in err
+    assert f"interrupted: 3 of 8 sequences are saved in {out}" in err
+    resume = err.split("resume with: ", 1)[1].strip()
+    assert resume.startswith("garmentgnn generate --out")
+    monkeypatch.delenv("GG_CRASH_AFTER")
+    assert cli_main(resume.split()[1:]) == 0
+    assert files_of(out) == files_of(dataset)  # nothing lost: as an uninterrupted run
