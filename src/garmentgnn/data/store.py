@@ -213,10 +213,11 @@ def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional
 #: order cannot match the rest garment's: cloth stretches a few percent, a reordered
 #: vertex list changes a typical edge by several hundred percent
 ORDER_TOLERANCE = 0.5
-#: median absolute deviation of ``log(uv edge / rest edge)`` beyond which the rest vertices
-#: cannot be in the faces' order (0 for the flat patterns the templates are cut from,
-#: about 0.3 for a reordered vertex list; up to their common scale, so any UV unit works)
-UV_ORDER_TOLERANCE = 0.2
+#: median rest edge over the median distance of a rest vertex to its nearest neighbour
+#: beyond which the rest vertices cannot be in the faces' order: about 1 to 1.5 on a mesh
+#: (an edge joins near neighbours), tens on a reordered vertex list (an "edge" joins two
+#: vertices anywhere on the garment); independent of the UVs and of the unit
+REST_ORDER_TOLERANCE = 4.0
 
 
 def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Optional[str]:
@@ -226,9 +227,8 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
     metadata's frames; faces in range), NaN/inf frames (named), and the vertex order:
     the edge lengths of the first, middle and last frame against the rest garment's
     (``garment_vertices`` on ``garment_faces``: a median relative difference over
-    :data:`ORDER_TOLERANCE`), and the rest edges against the per-corner UVs
-    (``garment_face_uv``, which do not depend on the vertex order; up to their scale:
-    :data:`UV_ORDER_TOLERANCE`).  The one check of sequence files, used by ``manifest``,
+    :data:`ORDER_TOLERANCE`), and the rest edges against the distances between nearest
+    rest vertices (:data:`REST_ORDER_TOLERANCE`).  The one check of sequence files, used by ``manifest``,
     ``generate`` (resume), ``export`` and every loader of a manifest's records."""
     missing = [k for k in SEQUENCE_KEYS if k not in seq]
     if missing:
@@ -263,18 +263,14 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
         if off > ORDER_TOLERANCE:
             return (f"vertex order of positions does not match the rest garment: frame {t}'s "
                     f"edges differ from the rest edges by {100 * off:.0f}% (median)")
-    FU = seq.get("garment_face_uv")
-    if FU is not None and FU.shape == (len(F), 3, 2):
-        uv = np.concatenate([np.linalg.norm(FU[:, i] - FU[:, (i + 1) % 3], axis=1)
-                             for i in range(3)])[keep]
-        with np.errstate(all="ignore"):
-            ratio = np.log(uv / rest)
-        ratio = ratio[np.isfinite(ratio)]
-        spread = float(np.median(np.abs(ratio - np.median(ratio)))) if ratio.size else 0.0
-        if spread > UV_ORDER_TOLERANCE:
-            return (f"vertex order of garment_vertices does not match garment_faces: the "
-                    f"rest edges do not follow the per-corner UV edges (typical deviation "
-                    f"{100 * (np.exp(spread) - 1):.0f}%)")
+    from scipy.spatial import cKDTree
+    nn = cKDTree(V).query(V, k=2)[0][:, 1]
+    nn = nn[nn > 0]
+    ratio = float(np.median(rest) / np.median(nn)) if nn.size else 1.0
+    if ratio > REST_ORDER_TOLERANCE:
+        return (f"vertex order of garment_vertices does not match garment_faces: the median "
+                f"rest edge is {ratio:.0f}x the median distance between nearest vertices "
+                f"(a mesh's edges join near neighbours)")
     return None
 
 
