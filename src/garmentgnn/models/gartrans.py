@@ -103,6 +103,12 @@ def cached_batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tenso
 
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
 BLEND_UNIT = 0.01
+#: ``garment_state``: the offset from the coarse mesh carried from frame to frame is
+#: ``STATE_BOUND tanh(d / STATE_BOUND)`` (metres; nearly ``d`` for offsets of a few
+#: centimetres), and the state features are ``tanh(d_1 / STATE_BOUND)`` and
+#: ``tanh((d_1 - d_2) / STATE_STEP)``: bounded inputs and a bounded carry, so an
+#: autoregressive rollout cannot feed its own error back without limit
+STATE_BOUND, STATE_STEP = 0.2, 0.02
 
 
 class AttentionStack(nn.Module):
@@ -135,7 +141,8 @@ class AttentionStack(nn.Module):
         parameter receives a gradient) works without ``find_unused_parameters``."""
         x = torch.randn(3, in_channels)
         ei = torch.tensor([[0, 1, 2, 1], [1, 2, 0, 0]])
-        self.forward(x, ei, torch.randn(4, edge_dim)).sum().backward()
+        with torch.enable_grad():  # also when the model is built under torch.no_grad()
+            self.forward(x, ei, torch.randn(4, edge_dim)).sum().backward()
         for p in self.layers[-1].parameters():
             if p.grad is None:
                 p.requires_grad_(False)
@@ -199,6 +206,21 @@ class GarTrans(nn.Module):
             Provot's strain limiting); ``0`` (the paper): none.
         compile_search: ``torch.compile`` the projection's nearest-face search (``compiled``
             of :func:`garmentgnn.geometry.signed_distance`: same result, faster on CPU).
+        gate_init: the value the ``lbs_start`` gates start from.  ``0`` makes the
+            untrained model exactly LBS but gives every branch behind a gate an exactly
+            zero gradient until the gates have moved; a small value (``0.1``) starts
+            near LBS with a gradient in every branch (``benchmarks/learning.py``).
+        accel_unit: metres of displacement per unit of the dynamic stack's output;
+            ``None`` (the paper): an acceleration, ``a dt^2``.
+        garment_state: not in the paper: the dynamic graph also sees where the garment
+            *is* -- its offsets from the coarse mesh at frames ``t-1`` and ``t-2``,
+            ``d_1 = x_{t-1} - M^{t-1,c}`` and ``d_1 - d_2`` (bounded, see
+            :data:`STATE_BOUND`), given as ``forward(state=...)`` -- and the output keeps
+            the previous offset, ``M^{t,d} = M^{t,c} + b tanh(d_1 / b) + g_a a``.  Without
+            a state (``state=None``) the offsets are zero and the model is the paper's
+            frame-parallel one.
+            :meth:`rollout` feeds its own predictions back as the state; training feeds
+            the simulated frames (``GarTransModule``).  Needs a pose history ``H >= 3``.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -206,8 +228,19 @@ class GarTrans(nn.Module):
                  heads: int = 4, fps: float = 30.0, edge_dim: int = 4,
                  lbs_start: bool = False, collision_projection: Optional[float] = None,
                  blend_shape: bool = True, strain_limit: int = 0,
-                 compile_search: bool = False) -> None:
+                 compile_search: bool = False, gate_init: float = 0.0,
+                 accel_unit: Optional[float] = None, garment_state: bool = False) -> None:
         super().__init__()
+        self.garment_state = bool(garment_state)
+        if not gate_init >= 0:
+            raise ValueError(f"`gate_init`: expected a value >= 0, got {gate_init}")
+        if accel_unit is not None and not accel_unit > 0:
+            raise ValueError(f"`accel_unit`: expected metres per output unit > 0 or None, "
+                             f"got {accel_unit}")
+        self.gate_init = float(gate_init)
+        #: metres of displacement per unit of the dynamic stack's output (``None``: the
+        #: paper's acceleration, ``dt^2``)
+        self.accel_unit = accel_unit
         if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
             raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got {strain_limit!r}")
         self.strain_limit, self.compile_search = strain_limit, bool(compile_search)
@@ -229,7 +262,9 @@ class GarTrans(nn.Module):
         self.gru_out = nn.Linear(128, S)
         self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
                                     last_act=False) if blend_shape else None
-        self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S, [32, 64, 64, 64, 32, 3], heads,
+        state_dim = 6 if self.garment_state else 0
+        self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S + state_dim,
+                                      [32, 64, 64, 64, 32, 3], heads,
                                       edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
         self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
@@ -248,7 +283,7 @@ class GarTrans(nn.Module):
             if stack is not None:
                 stack.reset_parameters()
         if self.gates is not None:
-            nn.init.zeros_(self.gates)
+            nn.init.constant_(self.gates, self.gate_init)
 
     def _gate(self, i: int, x: Tensor) -> Tensor:
         return x if self.gates is None else self.gates[i] * x
@@ -316,12 +351,12 @@ class GarTrans(nn.Module):
 
     def coarse(self, static: StaticFeatures, rest_pos: Tensor, edge_index: Tensor,
                rest_joints: Tensor, parents: Tensor, rotations: Tensor, translation: Tensor,
-               rest_edge_attr: Optional[Tensor] = None):
-        """Coarse meshes ``M^{t,c}`` for the last two frames of each history:
-        ``[B, 2, V, 3]`` (previous, current), plus the skinning weights ``[B, V, S]``
-        and the posed joints ``[B, S, 3]`` of frame t.  ``rest_edge_attr``: the rest
-        graph's :func:`edge_features` ``[E, 4]`` when the caller has them (computed
-        here otherwise)."""
+               rest_edge_attr: Optional[Tensor] = None, frames: int = 2):
+        """Coarse meshes ``M^{t,c}`` for the last ``frames`` frames of each history:
+        ``[B, frames, V, 3]`` (oldest first, current last), plus the skinning weights
+        ``[B, V, S]`` and the posed joints ``[B, S, 3]`` of frame t.  ``rest_edge_attr``:
+        the rest graph's :func:`edge_features` ``[E, 4]`` when the caller has them
+        (computed here otherwise)."""
         B, H = rotations.shape[:2]
         V = rest_pos.shape[0]
         x3 = static.x2.unsqueeze(0) * self.motion_code(rotations, translation).unsqueeze(1)
@@ -335,19 +370,20 @@ class GarTrans(nn.Module):
             # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so
             # a freshly initialised model starts near its skinned rest garment, not ~30 cm off
             template = template + self._gate(1, BLEND_UNIT * blend.view(B, V, 3))
-        rot2 = rotations[:, -2:].reshape(B * 2, *rotations.shape[2:])
-        tr2 = translation[:, -2:].reshape(B * 2, 3)
+        k = frames
+        rot2 = rotations[:, -k:].reshape(B * k, *rotations.shape[2:])
+        tr2 = translation[:, -k:].reshape(B * k, 3)
         A, joints = forward_kinematics(rot2, rest_joints, parents, tr2)
-        # Eq. 1 with the frame's own template and weights, for frames t-1 and t
-        verts = linear_blend_skinning(template.repeat_interleave(2, 0),
-                                      W.repeat_interleave(2, 0), A)
-        return verts.view(B, 2, V, 3), W, joints.view(B, 2, -1, 3)[:, 1]
+        # Eq. 1 with the frame's own template and weights, for the last k frames
+        verts = linear_blend_skinning(template.repeat_interleave(k, 0),
+                                      W.repeat_interleave(k, 0), A)
+        return verts.view(B, k, V, 3), W, joints.view(B, k, -1, 3)[:, -1]
 
     def forward(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
                 edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
                 translation: Tensor, prev_final: Optional[Tensor] = None,
                 body_pos: Optional[Tensor] = None, body_faces: Optional[Tensor] = None,
-                rest_edge_attr: Optional[Tensor] = None):
+                rest_edge_attr: Optional[Tensor] = None, state: Optional[Tensor] = None):
         """Predict ``M^{t,d}`` for a batch of frames (frame-parallel).
 
         Args:
@@ -362,6 +398,9 @@ class GarTrans(nn.Module):
             rest_edge_attr: ``edge_features(rest_pos, edge_index)`` ``[E, 4]``, when the
                 caller keeps them across calls (:meth:`predict_sequence`); computed
                 here otherwise.
+            state: ``garment_state`` only: ``[B, 2, V, 3]`` the garment at frames
+                ``t-2`` and ``t-1``; ``None``: the coarse meshes of those frames (zero
+                offsets: the frame-parallel model).
 
         Returns:
             dict with ``final [B, V, 3]``, ``coarse [B, V, 3]``, ``accel [B, V, 3]``,
@@ -371,9 +410,29 @@ class GarTrans(nn.Module):
             raise ValueError(f"`rotations`: expected [B, H>=2, S, 3], got {tuple(rotations.shape)}")
         B = rotations.shape[0]
         V = rest_pos.shape[0]
-        coarse2, W, joints = self.coarse(static, rest_pos, edge_index, rest_joints, parents,
-                                         rotations, translation, rest_edge_attr)
-        prev, cur = coarse2[:, 0], coarse2[:, 1]
+        if state is not None and not self.garment_state:
+            raise ValueError("`state`: this model has no garment state (build it with "
+                             "`garment_state=True`)")
+        if self.garment_state and rotations.shape[1] < 3:
+            raise ValueError(f"`rotations`: a model with `garment_state` needs a pose history "
+                             f"of H >= 3 frames, got {tuple(rotations.shape)}")
+        k = 3 if self.garment_state else 2
+        coarse_k, W, joints = self.coarse(static, rest_pos, edge_index, rest_joints, parents,
+                                          rotations, translation, rest_edge_attr, frames=k)
+        prev, cur = coarse_k[:, -2], coarse_k[:, -1]
+        offset = None
+        if self.garment_state:
+            if state is None:
+                d = cur.new_zeros(B, 2, V, 3)
+            else:
+                if state.shape != (B, 2, V, 3):
+                    raise ValueError(f"`state`: expected [{B}, 2, {V}, 3] (the garment at "
+                                     f"frames t-2, t-1), got {tuple(state.shape)}")
+                d = state - coarse_k[:, :2]  # offsets from the coarse mesh, t-2 and t-1
+            # bounded: a rollout whose state drifts far stays bounded (no feedback loop)
+            offset = STATE_BOUND * torch.tanh(d[:, 1] / STATE_BOUND)
+            extra = torch.cat([torch.tanh(d[:, 1] / STATE_BOUND),
+                               torch.tanh((d[:, 1] - d[:, 0]) / STATE_STEP)], -1)
         if prev_final is not None:
             if prev_final.shape != cur.shape:
                 raise ValueError(f"`prev_final`: expected {tuple(cur.shape)}, got "
@@ -382,11 +441,15 @@ class GarTrans(nn.Module):
         vel = (cur - prev) * self.fps
         n = vertex_normals(cur, faces)
         dj = torch.cdist(cur, joints)
-        x = torch.cat([vel, n, dj], -1).reshape(B * V, -1)
+        feats = [vel, n, dj] + ([extra] if offset is not None else [])
+        x = torch.cat(feats, -1).reshape(B * V, -1)
         ei = cached_batch_edges(edge_index, B, V)
         e = edge_features(cur.reshape(B * V, 3), ei)
         accel = self.dynamic(x, ei, e).view(B, V, 3)
-        final = cur + self._gate(2, accel / self.fps ** 2)
+        unit = self.fps ** -2 if self.accel_unit is None else self.accel_unit
+        final = cur + self._gate(2, accel * unit)
+        if offset is not None:
+            final = final + offset
         if self.strain_limit:
             edges, lengths = static.strain_edges, static.strain_lengths
             if edges is None:  # static features made before strain_limit was switched on
@@ -404,20 +467,38 @@ class GarTrans(nn.Module):
     def rollout(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
                 edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
                 translation: Tensor, first: Optional[Tensor] = None,
-                body_pos: Optional[Tensor] = None, body_faces: Optional[Tensor] = None):
+                body_pos: Optional[Tensor] = None, body_faces: Optional[Tensor] = None,
+                state: Optional[Tensor] = None):
         """Autoregressive inference: the ``T`` frames one after another, the dynamic
         graph's velocity taken from the model's own previous prediction (``first``
         ``[V, 3]``: the garment before frame 0; default: the coarse mesh).  Same inputs
         and outputs as :meth:`forward` with ``B = T`` consecutive frames; ``T`` times
-        the calls of the frame-parallel mode, and errors can accumulate."""
+        the calls of the frame-parallel mode, and errors can accumulate.
+
+        With ``garment_state`` the state of frame ``t`` is the model's own frames
+        ``t-2, t-1``; before them ``state`` ``[2, V, 3]`` (the garment at the two frames
+        before frame 0), else ``first`` twice, else no state at frame 0 and frame 0
+        twice at frame 1 (as the data module clamps histories at the first frame)."""
         outs = []
         prev = None if first is None else first.unsqueeze(0)
+        past = [] if first is None else [first]
+        if state is not None:
+            if not self.garment_state or state.shape != (2,) + tuple(rest_pos.shape):
+                raise ValueError(f"`state`: expected [2, {rest_pos.shape[0]}, 3] for a model "
+                                 f"with `garment_state`, got {tuple(state.shape)}")
+            past = [state[0], state[1]]
         for t in range(rotations.shape[0]):
+            state = None
+            if self.garment_state:
+                state = torch.stack([past[max(len(past) - 2, 0)], past[-1]])[None] \
+                    if past else None
             o = self.forward(static, rest_pos, faces, edge_index, rest_joints, parents,
-                             rotations[t:t + 1], translation[t:t + 1], prev_final=prev,
+                             rotations[t:t + 1], translation[t:t + 1],
+                             prev_final=None if self.garment_state else prev,
                              body_pos=None if body_pos is None else body_pos[t:t + 1],
-                             body_faces=body_faces)
+                             body_faces=body_faces, state=state)
             prev = o["final"]
+            past.append(prev[0])
             outs.append(o)
         return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}
 

@@ -22,7 +22,9 @@ Keys (``V`` garment vertices, ``S`` joints, ``Vb`` body vertices, ``B`` frames,
 * per frame: ``rotations [B, H, S, 3]``, ``translation [B, H, 3]`` (the poses of frames
   ``t - history .. t``; frame 0 repeated before the start), ``body_pos [B, Vb, 3]``
   (the posed body), ``frames [B]``, optionally ``gt [B, V, 3]`` (the simulated
-  garment: absent where no ground truth exists), and ``seq_id`` (str).
+  garment: absent where no ground truth exists), optionally ``gt_prev [B, 2, V, 3]`` (the
+  simulated garment at frames ``t-2, t-1``, clamped at frame 0: the state a model with a
+  garment state is trained on; never an input at test time), and ``seq_id`` (str).
 """
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ __all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "chec
            "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
-FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames")
+FRAME_KEYS = ("rotations", "translation", "gt", "gt_prev", "body_pos", "frames")
 
 
 class GarmentInputs(Data):
@@ -218,7 +220,8 @@ def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tens
 
 def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translation: Tensor,
                 frames: Tensor, history: int, gt: Optional[Tensor] = None,
-                seq_id: Optional[str] = None) -> GarmentInputs:
+                seq_id: Optional[str] = None, gt_prev: Optional[Tensor] = None
+                ) -> GarmentInputs:
     """``static`` plus frames ``frames`` of a motion.
 
     Args:
@@ -227,6 +230,8 @@ def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translatio
         frames: ``[B]`` frame indices.
         history: previous poses per frame (``H = history + 1 >= 2``).
         gt: ``[B, V, 3]`` the simulated garment of those frames, or ``None``.
+        gt_prev: ``[B, 2, V, 3]`` the simulated garment at frames ``t-2, t-1`` (clamped
+            at 0), or ``None``.
     """
     if not isinstance(history, int) or history < 1:
         raise ValueError(f"`history`: expected an int >= 1 (GarTrans needs H >= 2), got "
@@ -250,6 +255,12 @@ def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translatio
             raise ValueError(f"`gt`: expected [{frames.shape[0]}, {static.num_vertices}, 3], "
                              f"got {tuple(gt.shape)}")
         out.gt = gt
+    if gt_prev is not None:
+        gt_prev = torch.as_tensor(gt_prev).float()
+        if gt_prev.shape != (frames.shape[0], 2, static.num_vertices, 3):
+            raise ValueError(f"`gt_prev`: expected [{frames.shape[0]}, 2, "
+                             f"{static.num_vertices}, 3], got {tuple(gt_prev.shape)}")
+        out.gt_prev = gt_prev
     if seq_id is not None:
         out.seq_id = seq_id
     return out

@@ -51,18 +51,21 @@ class SequenceChunks(Dataset):
             ``nystrom_dim``).
         cache_size, static_cache: sequence files / static inputs kept (LRU).
         ids: keep only these sequence ids (e.g. one garment's sequences).
+        previous_frames: add ``gt_prev``, the simulated garment at frames ``t-2, t-1``
+            (the state a model with a garment state trains on).
     """
 
     def __init__(self, root, split: str | None = "train", chunk: int = 8, history: int = 3,
                  nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
                  cache_size: int = 4, static_cache: int = 64,
-                 ids: Sequence[str] | None = None) -> None:
+                 ids: Sequence[str] | None = None, previous_frames: bool = False) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
         if history < 1:
             raise ValueError(f"`history`: expected >= 1 (GarTrans needs H >= 2), got {history}")
         self.root = Path(root)
         self.split, self.chunk, self.history = split, chunk, history
+        self.previous_frames = previous_frames
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
         manifest = store.read_manifest(self.root)
@@ -134,12 +137,16 @@ class SequenceChunks(Dataset):
         seq, (st, body) = self.sequence(i), self._static_and_body(i)
         rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
         tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
-        pos = seq["positions"]
-        gt = (torch.from_numpy(np.asarray(pos[t0:t0 + n], np.float32))
-              if np.asarray(pos).shape[1:2] == (st.num_vertices,) else None)
+        pos = np.asarray(seq["positions"])
+        gt = gt_prev = None
+        if pos.shape[1:2] == (st.num_vertices,):
+            gt = torch.from_numpy(np.asarray(pos[t0:t0 + n], np.float32))
+            if self.previous_frames:
+                prev = np.clip(np.arange(t0, t0 + n)[:, None] + np.array([-2, -1]), 0, None)
+                gt_prev = torch.from_numpy(np.asarray(pos[prev], np.float32))
         return with_frames(st, body, rot, tr,
                            torch.arange(t0, t0 + n), self.history, gt=gt,
-                           seq_id=self.records[i]["id"])
+                           seq_id=self.records[i]["id"], gt_prev=gt_prev)
 
 
 class EpochShuffleSampler(DistributedSampler):
@@ -232,14 +239,18 @@ class GarmentDataModule(L.LightningDataModule):
     def load_state_dict(self, state: dict[str, int]) -> None:
         self.start_epoch = int(state.get("next_epoch", 0))
 
-    def _make(self, split, ids: Sequence[str] | None = None) -> SequenceChunks:
+    def _make(self, split, ids: Sequence[str] | None = None,
+              previous_frames: bool = False) -> SequenceChunks:
         return SequenceChunks(self.root, split, self.chunk, self.history, self.nystrom_dim,
                               self.num_landmarks, drop_last=self.drop_last,
-                              cache_size=self.cache_size, ids=ids)
+                              cache_size=self.cache_size, ids=ids,
+                              previous_frames=previous_frames)
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is None:
-            self.train_set = self._make(self.train_split, self.train_ids)
+            # training chunks carry the simulated previous frames (``gt_prev``: the
+            # state a model with a garment state is trained on)
+            self.train_set = self._make(self.train_split, self.train_ids, previous_frames=True)
         if self.val_set is None and self.val_split is not None:
             self.val_set = self._make(self.val_split)
 

@@ -36,6 +36,10 @@ def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
                       mass=inp.get("mass"), rest=inp.get("rest"), predicted=predicted, dt=dt)
 
 
+#: ``optimizer`` choices (the paper: Adamax)
+OPTIMIZERS = {"adamax": torch.optim.Adamax, "adam": torch.optim.Adam,
+              "adamw": torch.optim.AdamW}
+
 #: the rest-pose processing submodule frozen in the third phase (§4.1)
 REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
 
@@ -64,6 +68,18 @@ class GarTransModule(L.LightningModule):
         strain_limit: sweeps of GarTrans's strain-limiting step (``0``: none).
         compile_search: ``torch.compile`` the nearest-body-face search of the collision
             projection and the collision loss (same results; see docs/model.md).
+        gate_init, accel_unit, garment_state: :class:`GarTrans` settings.
+        optimizer: ``"adamax"`` (the paper), ``"adam"`` or ``"adamw"``.
+        state_noise: ``garment_state`` training: the standard deviation (metres) of the
+            Gaussian noise added to the simulated frame ``t-1`` given as the state
+            (MeshGraphNets' and HOOD's noise injection: the model learns to correct the
+            errors its own rollout makes).
+        state_dropout: ``garment_state`` training: the share of training chunks given no
+            state (the frame-parallel inputs), so that a rollout can start from no state.
+        state_rollout: ``garment_state`` training on the model's own rollout of each
+            chunk (:meth:`GarTrans.rollout` from the simulated frames before the chunk,
+            gradients through every step) instead of the simulated previous frames of
+            every frame (teacher forcing).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -74,7 +90,10 @@ class GarTransModule(L.LightningModule):
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
                  use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True,
                  collision_projection: float | None = None, blend_shape: bool = True,
-                 strain_limit: int = 0, compile_search: bool = False) -> None:
+                 strain_limit: int = 0, compile_search: bool = False, gate_init: float = 0.0,
+                 accel_unit: float | None = None, optimizer: str = "adamax",
+                 garment_state: bool = False, state_noise: float = 0.0,
+                 state_dropout: float = 0.0, state_rollout: bool = False) -> None:
         super().__init__()
         if lbs_start and not skin_prior:
             raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
@@ -86,7 +105,16 @@ class GarTransModule(L.LightningModule):
                               dynamic_layer=dynamic_layer, heads=heads, fps=fps,
                               lbs_start=lbs_start, collision_projection=collision_projection,
                               blend_shape=blend_shape, strain_limit=strain_limit,
-                              compile_search=compile_search)
+                              compile_search=compile_search, gate_init=gate_init,
+                              accel_unit=accel_unit, garment_state=garment_state)
+        if not 0.0 <= state_dropout <= 1.0:
+            raise ValueError(f"`state_dropout`: expected a share in [0, 1], got {state_dropout}")
+        if not state_noise >= 0.0:
+            raise ValueError(f"`state_noise`: expected a standard deviation >= 0 (metres), "
+                             f"got {state_noise}")
+        if optimizer not in OPTIMIZERS:
+            raise ValueError(f"`optimizer`: expected one of {sorted(OPTIMIZERS)}, got "
+                             f"{optimizer!r}")
         # only one of the body code paths is ever used; freeze the other (DDP requires
         # every trainable parameter to receive a gradient)
         unused = self.model.body_default if use_body else self.model.body_fc
@@ -122,22 +150,47 @@ class GarTransModule(L.LightningModule):
             inp.skin_weights if hp.get("skin_prior", False) else None)
 
     def forward(self, inp: GarmentInputs, static: StaticFeatures | None = None,
-                autoregressive: bool = False) -> dict[str, torch.Tensor]:
+                autoregressive: bool | None = None) -> dict[str, torch.Tensor]:
         """GarTrans on every frame of ``inp``: frame-parallel (the paper's mode), or
-        ``autoregressive`` (:meth:`GarTrans.rollout`).  ``static``: a cached
-        :meth:`encode_static` of the same garment (default: computed here)."""
+        ``autoregressive`` (:meth:`GarTrans.rollout`; the default with ``garment_state``,
+        frame-parallel otherwise).  ``static``: a cached :meth:`encode_static` of the same
+        garment (default: computed here)."""
         static = self.encode_static(inp) if static is None else static
+        if autoregressive is None:
+            autoregressive = self.model.garment_state
         run = self.model.rollout if autoregressive else self.model
         return run(static, inp.rest_pos, inp.faces, inp.edge_index, inp.rest_joints,
                    inp.parents, inp.rotations, inp.translation, body_pos=inp.get("body_pos"),
                    body_faces=inp.get("body_faces"))
+
+    def teacher_forced(self, inp: GarmentInputs) -> dict[str, torch.Tensor]:
+        """``garment_state`` training: every frame of ``inp`` in parallel, the state the
+        simulated frames ``t-2, t-1`` (``inp.gt_prev``) with ``state_noise`` on frame
+        ``t-1``, or no state for a ``state_dropout`` share of the chunks."""
+        hp = self.hparams
+        state = inp.get("gt_prev")
+        if state is None:
+            raise ValueError("`inp`: a model with `garment_state` trains on chunks with "
+                             "`gt_prev` (the simulated frames t-2, t-1; GarmentDataModule's "
+                             "training chunks carry them)")
+        if hp.state_dropout and float(torch.rand(())) < hp.state_dropout:
+            state = None
+        elif hp.state_noise:
+            noise = torch.randn_like(state[:, 1]) * hp.state_noise
+            state = torch.stack([state[:, 0], state[:, 1] + noise], 1)
+        args = (self.encode_static(inp), inp.rest_pos, inp.faces, inp.edge_index,
+                inp.rest_joints, inp.parents, inp.rotations, inp.translation)
+        kw = dict(body_pos=inp.get("body_pos"), body_faces=inp.get("body_faces"))
+        if hp.get("state_rollout", False):
+            return self.model.rollout(*args, state=None if state is None else state[0], **kw)
+        return self.model(*args, state=state, **kw)
 
     def compute_loss(self, batch: GarmentInputs, out: dict[str, torch.Tensor]):
         inp = loss_inputs(batch, out["final"], dt=1.0 / self.hparams.fps)
         return self.loss_fn(inp)  # NaN/inf raises NonFiniteLossError naming the term
 
     def training_step(self, batch: GarmentInputs, batch_idx: int):
-        out = self(batch)
+        out = self.teacher_forced(batch) if self.model.garment_state else self(batch)
         B = out["final"].shape[0]
         # raises NonFiniteLossError naming the term; Trainer.fit re-raises it (stops)
         total, terms = self.compute_loss(batch, out)
@@ -179,7 +232,8 @@ class GarTransModule(L.LightningModule):
         verify_checkpoint(checkpoint)
 
     def configure_optimizers(self):
-        opt = torch.optim.Adamax(self.parameters(), lr=self.hparams.lr)
+        opt = OPTIMIZERS[self.hparams.get("optimizer", "adamax")](self.parameters(),
+                                                                   lr=self.hparams.lr)
         t_max = self.hparams.t_max
         if t_max is None:
             me = getattr(self.trainer, "max_epochs", None) if self._trainer is not None else None

@@ -1,0 +1,347 @@
+"""Do the learned methods learn?  Step-0 gradients, one-chunk overfit, equal-step curves.
+
+Three parts, each on a generated dataset (``--data``, e.g. ``garmentgnn generate --preset
+small --engine blender``), every method built from its packaged configuration the way
+``garmentgnn bench`` builds it (:mod:`garmentgnn.bench.methods`) and trained through the
+same Lightning ``Trainer``:
+
+* ``grad``: one backward pass of each method's phase-1 training loss on the first
+  training chunk; per branch the trainable parameter tensors, how many got a non-zero
+  gradient and the gradient norm (:func:`garmentgnn.training.diagnostics.branch_gradients`).
+* ``overfit``: each method trained on that one chunk alone for ``--steps`` steps; its
+  E_dist on the chunk against steps, and LBS's.
+* ``curves``: GarTrans settings (``--variants``, :data:`VARIANTS`) trained for the same
+  ``--steps`` on the training split; E_dist on the training and test sequences every
+  ``--every`` steps, as a ratio to LBS's on the same sequences.
+
+Each writes ``<part>.json`` and ``<part>.md`` (curves also ``<part>.png``) into
+``~/.cache/garmentgnn/benchmarks/learning``, ``--out``, or with ``--commit`` the committed
+copy ``docs/results/learning``::
+
+    python benchmarks/learning.py grad overfit curves --data ~/.cache/garmentgnn/datasets/small-blender
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import lightning as L
+import torch
+
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn.bench.methods import BASELINES, DA, DATA, GARTRANS, HOOD, NCS, variant_settings
+from garmentgnn.bench.tables import table
+from garmentgnn.metrics.garment_metrics import vertex_distance
+from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule, SequenceChunks
+from garmentgnn.training.diagnostics import branch_gradients, dead_branches
+
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "learning"
+
+#: GarTrans settings compared by ``curves``: model overrides of the packaged config and
+#: Trainer arguments
+VARIANTS: Dict[str, Dict[str, Any]] = {
+    "config": {},
+    "gate 0.1": {"model": {"gate_init": 0.1}},
+    "gate 1": {"model": {"gate_init": 1.0}},
+    "gate 0.1, cm": {"model": {"gate_init": 0.1, "accel_unit": 0.01}},
+    "gate 0.1, cm, adam 1e-3": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
+                                          "optimizer": "adam", "lr": 1e-3}},
+    "gate 0.1, cm, 4 chunks/step": {"model": {"gate_init": 0.1, "accel_unit": 0.01},
+                                    "trainer": {"accumulate_grad_batches": 4}},
+    "gate 0.1, cm, vert only": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
+                                          "loss_weights": {"edge": 0.0, "norm": 0.0,
+                                                           "curv": 0.0}}},
+    "gate 0.1, cm, no limit/projection": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
+                                                    "strain_limit": 0,
+                                                    "collision_projection": None}},
+    "state, noise 3 mm": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
+                                    "garment_state": True, "state_noise": 0.003,
+                                    "state_dropout": 0.25}},
+    "state, noise 1 cm": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
+                                    "garment_state": True, "state_noise": 0.01,
+                                    "state_dropout": 0.25}},
+    "state, rollout training": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
+                                          "garment_state": True, "state_noise": 0.003,
+                                          "state_dropout": 0.25, "state_rollout": True}},
+}
+
+
+# ------------------------------------------------------------------ building methods
+def datamodule(root: Path, seed: int = 0, split: str = "train") -> GarmentDataModule:
+    return GarmentDataModule(root, val_split=None, seed=seed, train_split=split, cache_size=64,
+                             **DATA)
+
+
+def gartrans(dims: Dict[str, int], method: str = "GarTrans (SAT)",
+             overrides: Optional[Dict[str, Any]] = None) -> GarTransModule:
+    hp, _ = variant_settings(method)
+    return GarTransModule(**dims, **dict(hp, **(overrides or {})))
+
+
+def baseline(method: str, dims: Dict[str, int], num_vertices: int) -> BaselineModule:
+    cfg = BASELINES[method]
+    return BaselineModule(num_joints=dims["num_joints"], num_vertices=num_vertices,
+                          fps=30.0, history=DATA["history"], **cfg)
+
+
+def methods(dims: Dict[str, int], num_vertices: int) -> Dict[str, Callable[[], L.LightningModule]]:
+    """Every learned method of the bench, freshly built (phase-1 losses for GarTrans)."""
+    out: Dict[str, Callable[[], L.LightningModule]] = {
+        m: (lambda m=m: gartrans(dims, m)) for m in GARTRANS}
+    for m in (DA, HOOD, NCS):
+        out[m] = lambda m=m: baseline(m, dims, num_vertices)
+    return out
+
+
+class _Fixed(torch.utils.data.Dataset):
+    """One chunk, ``n`` times (an epoch of ``n`` steps on the same chunk)."""
+
+    def __init__(self, item, n: int) -> None:
+        self.item, self.n = item, n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i):
+        return self.item
+
+
+def _trainer(steps: int, callbacks=(), **kw) -> L.Trainer:
+    return L.Trainer(max_steps=steps, accelerator="cpu", devices=1, logger=False,
+                     enable_checkpointing=False, enable_progress_bar=False,
+                     enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
+                     callbacks=list(callbacks), **kw)
+
+
+def predict(module: L.LightningModule, item) -> torch.Tensor:
+    with torch.no_grad():
+        out = module(item)
+    return out["final"] if isinstance(out, dict) else out
+
+
+class Probe(L.Callback):
+    """E_dist (cm) of ``sets`` (name -> list of whole-sequence items) every ``every``
+    optimizer steps, and at step 0."""
+
+    def __init__(self, sets: Dict[str, List[Any]], every: int, label: str = "") -> None:
+        self.sets, self.every, self.label = sets, every, label
+        self.rows: List[Dict[str, Any]] = []
+        self.t0 = time.perf_counter()
+        self.train_seconds = 0.0
+
+    def measure(self, module: L.LightningModule, step: int) -> None:
+        t = time.perf_counter()
+        was = module.training
+        module.eval()
+        row: Dict[str, Any] = {"step": step, "train_seconds": self.train_seconds}
+        for name, items in self.sets.items():
+            errs = [float(vertex_distance(predict(module, it), it.gt).mean()) * it.gt.shape[0]
+                    for it in items]
+            row[name] = sum(errs) / sum(it.gt.shape[0] for it in items)
+        module.train(was)
+        self.rows.append(row)
+        print(f"  {self.label} step {step}: " + ", ".join(f"{k} {row[k]:.3f} cm"
+                                                      for k in self.sets), flush=True)
+        self.t0 += time.perf_counter() - t  # evaluation is not training time
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self.t0 = time.perf_counter()
+        self.measure(pl_module, 0)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.train_seconds = time.perf_counter() - self.t0
+        step = trainer.global_step
+        if step % self.every == 0 and (not self.rows or self.rows[-1]["step"] != step):
+            self.measure(pl_module, step)
+
+
+def lbs_error(items: Sequence[Any]) -> float:
+    num = sum(float(vertex_distance(it.skinned(), it.gt).mean()) * it.gt.shape[0] for it in items)
+    return num / sum(it.gt.shape[0] for it in items)
+
+
+# ------------------------------------------------------------------------- the parts
+def part_grad(root: Path, out: Path, only: Optional[Sequence[str]] = None) -> Dict[str, Any]:
+    dm = datamodule(root)
+    dims = dm.dims
+    item = dm.train_set[0]
+    res: Dict[str, Any] = {}
+    for name, make in methods(dims, item.num_vertices).items():
+        if only is not None and name not in only:
+            continue
+        torch.manual_seed(0)
+        rep = branch_gradients(make(), item)
+        res[name] = {"branches": rep, "dead": dead_branches(rep)}
+    rows = []
+    for name, r in res.items():
+        for b, g in r["branches"].items():
+            rows.append([name, b, str(g["trainable"]), str(g["with_grad"]), f"{g['norm']:.3g}"])
+    lines = table(["method", "branch", "trainable tensors", "with gradient", "gradient norm"],
+                  rows)
+    dead = {k: r["dead"] for k, r in res.items() if r["dead"]}
+    lines += ["", "Branches without any gradient at step 0: " +
+              (json.dumps(dead) if dead else "none")]
+    return {"results": res, "markdown": lines}
+
+
+def part_overfit(root: Path, out: Path, steps: int, every: int,
+                 only: Optional[Sequence[str]] = None,
+                 variants: Sequence[str] = ()) -> Dict[str, Any]:
+    dm = datamodule(root)
+    dims = dm.dims
+    item = dm.train_set[0]
+    lbs = lbs_error([item])
+    res: Dict[str, Any] = {"chunk": {"seq_id": item.seq_id, "frames": item.num_frames,
+                                     "vertices": item.num_vertices}, "lbs": lbs, "methods": {}}
+    todo = {k: v for k, v in methods(dims, item.num_vertices).items()
+            if only is None or k in only}
+    for v in variants:  # GarTrans with other settings
+        todo[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
+    for name, make in todo.items():
+        torch.manual_seed(0)
+        module = make()
+        probe = Probe({"chunk": [item]}, every, name)
+        loader = torch.utils.data.DataLoader(_Fixed(item, steps), batch_size=None,
+                                             collate_fn=lambda x: x)
+        t = time.perf_counter()
+        try:
+            _trainer(steps, [probe]).fit(module, loader)
+            status = "ok"
+        except Exception as err:  # a method that fails is reported, not hidden
+            status = f"{type(err).__name__}: {err}"
+        res["methods"][name] = {"curve": probe.rows, "status": status,
+                                "seconds": time.perf_counter() - t}
+        last = probe.rows[-1]["chunk"] if probe.rows else math.nan
+        print(f"overfit {name}: {last:.3f} cm after {steps} steps (LBS {lbs:.3f})", flush=True)
+    rows = []
+    for name, r in res["methods"].items():
+        c = r["curve"]
+        pick = {row["step"]: row["chunk"] for row in c}
+        cells = [name] + [f"{pick[s] / lbs:.3f}" if s in pick else "—"
+                          for s in (0, steps // 3, 2 * steps // 3, steps)]
+        best = min((row["chunk"] for row in c), default=math.nan)
+        rows.append(cells + [f"{best / lbs:.3f}", r["status"] if r["status"] != "ok" else ""])
+    lines = [f"One chunk ({item.num_frames} frames of `{item.seq_id}`, {item.num_vertices} "
+             f"vertices), LBS E_dist {lbs:.3f} cm; E_dist / LBS's:", ""]
+    lines += table(["method", "step 0", f"step {steps // 3}", f"step {2 * steps // 3}",
+                    f"step {steps}", "best", "failure"], rows)
+    return {"results": res, "markdown": lines}
+
+
+def part_curves(root: Path, out: Path, steps: int, every: int, variants: Sequence[str],
+                train_sequences: int, seed: int) -> Dict[str, Any]:
+    dm = datamodule(root, seed)
+    dims = dm.dims
+    kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
+              num_landmarks=DATA["num_landmarks"], cache_size=64)
+    test = SequenceChunks(root, "test", **kw)
+    train = SequenceChunks(root, "train", **kw)
+    pick = torch.linspace(0, len(train) - 1, min(train_sequences, len(train))).round().long()
+    sets = {"train": [train[int(i)] for i in pick.unique()],
+            "test": [test[i] for i in range(len(test))]}
+    lbs = {k: lbs_error(v) for k, v in sets.items()}
+    res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seed": seed, "variants": {}}
+    for name in variants:
+        v = VARIANTS[name]
+        L.seed_everything(seed, verbose=False)
+        module = gartrans(dims, overrides=v.get("model"))
+        probe = Probe(sets, every, name)
+        t = time.perf_counter()
+        try:
+            _trainer(steps, [probe], **v.get("trainer", {})).fit(module, datamodule(root, seed))
+            status = "ok"
+        except Exception as err:
+            status = f"{type(err).__name__}: {err}"
+        res["variants"][name] = {"settings": v, "curve": probe.rows, "status": status,
+                                 "seconds": time.perf_counter() - t}
+        last = probe.rows[-1] if probe.rows else {}
+        print(f"curves {name}: " + ", ".join(f"{k} {last.get(k, math.nan) / lbs[k]:.3f}"
+                                            for k in sets) + f" x LBS ({status})", flush=True)
+    rows = []
+    for name, r in res["variants"].items():
+        c = r["curve"]
+        if not c:
+            rows.append([name, "—", "—", "—", "—", r["status"]])
+            continue
+        best = min(c, key=lambda row: row["test"])
+        rows.append([name, str(c[-1]["step"]), f"{c[-1]['train'] / lbs['train']:.3f}",
+                     f"{c[-1]['test'] / lbs['test']:.3f}",
+                     f"{best['test'] / lbs['test']:.3f} @ {best['step']}",
+                     "" if r["status"] == "ok" else r["status"]])
+    lines = [f"E_dist / LBS's (LBS: train {lbs['train']:.3f} cm over {len(sets['train'])} "
+             f"sequences, test {lbs['test']:.3f} cm over {len(sets['test'])}), seed {seed}:", ""]
+    lines += table(["variant", "steps", "train", "test", "best test", "failure"], rows)
+    return {"results": res, "markdown": lines}
+
+
+def plot_curves(res: Dict[str, Any], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, split in zip(axes, ("train", "test")):
+        for name, r in res["variants"].items():
+            c = r["curve"]
+            if c:
+                ax.plot([row["step"] for row in c], [row[split] / res["lbs"][split] for row in c],
+                        label=name)
+        ax.axhline(1.0, color="k", lw=0.8, ls="--")
+        ax.set_title(f"{split} sequences")
+        ax.set_xlabel("optimizer steps")
+    axes[0].set_ylabel("E_dist / LBS")
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
+    ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves"),
+                    help="what to run")
+    ap.add_argument("--data", required=True, help="a generated dataset folder")
+    add_output_args(ap, RESULTS, "folder for <part>.json, .md and .png")
+    ap.add_argument("--steps", type=int, default=300, help="optimizer steps (overfit, curves)")
+    ap.add_argument("--every", type=int, default=50, help="steps between measurements")
+    ap.add_argument("--variants", nargs="+", default=None, choices=list(VARIANTS),
+                    help="GarTrans settings compared by `curves` (default: all) and added to "
+                         "`overfit` (default: none)")
+    ap.add_argument("--methods", nargs="+", default=None,
+                    help="the methods `grad` and `overfit` run (default: every learned "
+                         "method of the bench)")
+    ap.add_argument("--train-sequences", type=int, default=6,
+                    help="training sequences measured by `curves` (evenly spaced)")
+    ap.add_argument("--seed", type=int, default=0, help="training seed (curves)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    args = ap.parse_args(argv)
+    if args.steps < 1 or args.every < 1:
+        raise SystemExit("error: --steps and --every must be >= 1")
+    torch.set_num_threads(args.threads)
+    root, out = Path(args.data), output_path(args, RESULTS)
+    out.mkdir(parents=True, exist_ok=True)
+    command = "python benchmarks/learning.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    for part in args.parts:
+        if part == "grad":
+            r = part_grad(root, out, args.methods)
+        elif part == "overfit":
+            r = part_overfit(root, out, args.steps, args.every, args.methods,
+                             args.variants or ())
+        else:
+            r = part_curves(root, out, args.steps, args.every, args.variants or list(VARIANTS),
+                            args.train_sequences, args.seed)
+            plot_curves(r["results"], out / f"{part}.png")
+        (out / f"{part}.json").write_text(json.dumps({"command": command, **r["results"]},
+                                                     indent=1))
+        (out / f"{part}.md").write_text(f"# {part}\n\n`{command}`\n\n" +
+                                        "\n".join(r["markdown"]) + "\n")
+        print("\n".join(r["markdown"]), flush=True)
+
+
+if __name__ == "__main__":
+    main()

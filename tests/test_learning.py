@@ -1,0 +1,167 @@
+"""Learning diagnostics and the garment state: every active branch of every method gets a
+gradient at step 0; the state model's inputs and rollout against hand-built oracles."""
+import copy
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from conftest import lbs_simulate
+from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
+from garmentgnn.data import Spec, generate, motion_key, store
+from garmentgnn.models.gartrans import STATE_BOUND
+from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
+from garmentgnn.training.diagnostics import branch_gradients, dead_branches
+
+NY = 8
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    out = tmp_path_factory.mktemp("learning")
+    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
+    b = [{"model": "capsule", "shape": "regular"}]
+    m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
+    spec = Spec("t", g, b, m, ["silk"], held_out={"val": {"motions": [motion_key(m[1])]}})
+    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    assert s.done == 2 and s.failed == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def dm(root):
+    d = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16, seed=0)
+    d.setup()
+    return d
+
+
+def gartrans(dm, method="GarTrans (SAT)", **kw):
+    hp, _ = variant_settings(method)
+    L.seed_everything(0)
+    return GarTransModule(**dm.dims, **dict(hp, compile_search=False, **kw))
+
+
+@pytest.mark.parametrize("method", list(GARTRANS) + [DA, HOOD, NCS])
+def test_every_branch_gets_a_gradient_at_step_0(dm, method):
+    item = dm.train_set[1]
+    if method in GARTRANS:
+        module = gartrans(dm, method)
+    else:
+        cfg = dict(BASELINES[method])
+        cfg["loss"] = dict(cfg["loss"], compile_search=False)
+        module = BaselineModule(num_joints=dm.dims["num_joints"], num_vertices=item.num_vertices,
+                                history=3, **cfg)
+    rep = branch_gradients(module, item)
+    assert rep and dead_branches(rep) == []
+    assert all(r["with_grad"] == r["trainable"] for r in rep.values()), rep
+
+
+def test_zero_gates_leave_the_gated_branches_without_gradient(dm):
+    """The diagnostic finds what it is for: gates started at exactly 0 multiply every
+    learned branch, so only the gates move at first."""
+    rep = branch_gradients(gartrans(dm, gate_init=0.0), dm.train_set[1])
+    assert set(dead_branches(rep)) == {"rest_fc", "rest_attn", "nystrom_fc", "body_fc", "gru",
+                                       "gru_out", "dynamic"}
+    assert rep["gates"]["with_grad"] == 1
+
+
+def test_previous_frames_are_the_simulated_frames_before(root, dm):
+    item = dm.train_set[1]  # frames 4..7 of the first training sequence
+    seq = store.load_record_sequence(root, dm.train_set.records[0])
+    pos = np.asarray(seq["positions"], np.float32)
+    for b, t in enumerate(range(4, 8)):
+        np.testing.assert_array_equal(item.gt_prev[b, 0].numpy(), pos[t - 2])
+        np.testing.assert_array_equal(item.gt_prev[b, 1].numpy(), pos[t - 1])
+    first = dm.train_set[0]  # clamped at frame 0
+    np.testing.assert_array_equal(first.gt_prev[0, 0].numpy(), pos[0])
+    np.testing.assert_array_equal(first.gt_prev[1, 0].numpy(), pos[0])
+    np.testing.assert_array_equal(first.gt_prev[1, 1].numpy(), pos[0])
+
+
+def clamped(item):
+    """``item`` skinned with the weights GarTrans's skinning prior holds (clamped at 1e-4
+    and renormalised)."""
+    out = copy.copy(item)
+    w = item.skin_weights.clamp_min(1e-4)
+    out.skin_weights = w / w.sum(-1, keepdim=True)
+    return out
+
+
+def _plain(**kw):
+    return dict(gate_init=0.0, strain_limit=0, collision_projection=None, garment_state=True,
+                **kw)
+
+
+def test_state_model_with_closed_gates_is_previous_frame_plus_lbs_motion(dm):
+    """With the gates at 0 the state model keeps the previous offset from the skinned
+    garment: ``x_t = LBS(t) + b tanh((x_{t-1} - LBS(t-1)) / b)``, nearly
+    ``x_{t-1} + LBS(t) - LBS(t-1)`` (computed here with plain skinning)."""
+    module = gartrans(dm, **_plain()).eval()
+    item = dm.train_set[1]
+    with torch.no_grad():
+        out = module.model(module.encode_static(item), item.rest_pos, item.faces,
+                           item.edge_index, item.rest_joints, item.parents, item.rotations,
+                           item.translation, state=item.gt_prev)
+    lbs = clamped(item)
+    d = item.gt_prev[:, 1] - lbs.history_slot(-2).skinned()
+    oracle = lbs.skinned() + STATE_BOUND * torch.tanh(d / STATE_BOUND)
+    torch.testing.assert_close(out["final"], oracle, atol=1e-5, rtol=0)
+    # the bound: a state 10 m off is carried as at most STATE_BOUND
+    far = module.model(module.encode_static(item), item.rest_pos, item.faces, item.edge_index,
+                       item.rest_joints, item.parents, item.rotations, item.translation,
+                       state=item.gt_prev + 10.0)["final"]
+    assert float((far - lbs.skinned()).abs().max()) <= STATE_BOUND + 1e-5
+
+
+def test_state_rollout_with_closed_gates_stays_lbs_and_feeds_its_own_frames(dm):
+    module = gartrans(dm, **_plain()).eval()
+    item = dm.train_set[0]
+    with torch.no_grad():
+        torch.testing.assert_close(module(item)["final"], clamped(item).skinned(), atol=1e-5,
+                                   rtol=0)
+        # opened gates: frame t of the rollout is forward() on the rollout's frames t-2, t-1
+        module.model.gates.fill_(0.5)
+        roll = module(item)["final"]
+        static = module.encode_static(item)
+        for t in (2, 3):
+            one = item.select(torch.tensor([t]))
+            o = module.model(static, item.rest_pos, item.faces, item.edge_index,
+                             item.rest_joints, item.parents, one.rotations, one.translation,
+                             state=roll[t - 2:t][None])
+            torch.testing.assert_close(o["final"][0], roll[t], atol=1e-5, rtol=0)
+
+
+def test_teacher_forcing_noise_and_dropout(dm):
+    item = dm.train_set[1]
+    module = gartrans(dm, **_plain(state_dropout=1.0))
+    with torch.no_grad():
+        none = module.model(module.encode_static(item), item.rest_pos, item.faces,
+                            item.edge_index, item.rest_joints, item.parents, item.rotations,
+                            item.translation)["final"]
+        torch.testing.assert_close(module.teacher_forced(item)["final"], none)
+        noisy = gartrans(dm, **_plain(state_noise=0.01))
+        # closed gates: the prediction is the (noisy) previous frame + LBS motion
+        lbs = clamped(item)
+        d = noisy.teacher_forced(item)["final"] - (item.gt_prev[:, 1] + lbs.skinned()
+                                                  - lbs.history_slot(-2).skinned())
+        assert 0.007 < float(d.std()) < 0.013  # the noise (1 cm), nearly unchanged
+    bare = copy.copy(item)
+    del bare.gt_prev
+    with pytest.raises(ValueError, match="gt_prev"):
+        module.teacher_forced(bare)
+
+
+def test_state_arguments_are_checked(dm):
+    with pytest.raises(ValueError, match="state_dropout"):
+        gartrans(dm, garment_state=True, state_dropout=1.5)
+    with pytest.raises(ValueError, match="state_noise"):
+        gartrans(dm, garment_state=True, state_noise=-1.0)
+    with pytest.raises(ValueError, match="gate_init"):
+        gartrans(dm, gate_init=-0.1)
+    plain = gartrans(dm, garment_state=False)
+    item = dm.train_set[1]
+    with pytest.raises(ValueError, match="garment_state"):
+        plain.model(plain.encode_static(item), item.rest_pos, item.faces, item.edge_index,
+                    item.rest_joints, item.parents, item.rotations, item.translation,
+                    state=item.gt_prev)
