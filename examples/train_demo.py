@@ -39,7 +39,7 @@ def main() -> None:
 
     data = out / "data_tiny"
     summary = generate(preset("tiny"), data, workers=args.workers, progress=True)
-    print(f"[1/4] dataset: {summary} ({time.time() - t0:.0f} s)")
+    print(f"[1/4] dataset ({time.time() - t0:.0f} s): {summary}")
 
     t1 = time.time()
     L.seed_everything(0, workers=True)
@@ -58,7 +58,10 @@ def main() -> None:
 
     module = GarTransModule.load_from_checkpoint(ckpt).eval()
     res = evaluate_split(module, data, "test", history=3, num_landmarks=64)
-    print(f"[3/4] held-out test split ({res['lbs']['frames']} frames):")
+    # the numbers hold for this content hash; another CPU's floating point gives another
+    # dataset (docs/dataset.md: the ground truth's noise floor)
+    print(f"[3/4] held-out test split ({res['lbs']['frames']} frames) of the dataset with "
+          f"content SHA-256 {summary.content_sha256}:")
     print(markdown_table(res))
     reason = renderer_unavailable()
     if reason is None:
