@@ -132,7 +132,8 @@ def plot(runs, path):
     import matplotlib.pyplot as plt
 
     engines = sorted({r["engine"] for r in runs})
-    fig, axes = plt.subplots(1, len(engines), figsize=(6.2 * len(engines), 4.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(engines), figsize=(5.4 * len(engines) + 2.4, 4.4),
+                             squeeze=False)
     keys = sorted({(r["what"], r["scale_m"]) for r in runs if r["what"] != "repeat"})
     colours = {k: plt.get_cmap("tab10")(i) for i, k in enumerate(keys)}
     for ax, engine in zip(axes[0], engines):
@@ -156,7 +157,8 @@ def plot(runs, path):
         ax.set_title(f"{nf.ENGINE_NAMES[engine]} ({PRESETS[engine]}, {seqs} sequence"
                      f"{'s' if seqs > 1 else ''})")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+    axes[0][-1].legend(*axes[0][0].get_legend_handles_labels(), fontsize=7, loc="upper left",
+                       bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.suptitle("Divergence from a perturbed input per frame: mean over vertices and "
                  "sequences (solid), largest (dashed)", fontsize=10)
     fig.tight_layout()
