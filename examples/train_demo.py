@@ -60,8 +60,9 @@ def main() -> None:
     res = evaluate_split(module, data, "test", history=3, num_landmarks=64)
     # the numbers hold for this content hash; another CPU's floating point gives another
     # dataset (docs/dataset.md: the ground truth's noise floor)
-    print(f"[3/4] held-out test split ({res['lbs']['frames']} frames) of the dataset with "
-          f"content SHA-256 {summary.content_sha256}:")
+    print(f"[3/4] held-out test split ({res['lbs']['frames']} frames; "
+          f"{res['lbs']['excluded_frames']} the simulator did not converge on left out) of "
+          f"the dataset with content SHA-256 {summary.content_sha256}:")
     print(markdown_table(res))
     reason = renderer_unavailable()
     if reason is None:
