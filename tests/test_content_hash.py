@@ -72,3 +72,11 @@ def test_one_changed_file_changes_it_and_manifest_prints_it(made, tmp_path, caps
     # the untouched copy's manifest, rebuilt from its files, keeps the generated hash
     assert store.rebuild_manifest(made[0], write=False)["items"] and \
         store.content_sha256(store.rebuild_manifest(made[0], write=False)["items"]) == before
+
+
+def test_bench_dataset_info_quotes_it(made):
+    from garmentgnn.bench.learned import prepare_dataset
+    info = prepare_dataset(made[0])
+    assert info.content_sha256 == recompute(made[0])
+    assert info.to_json()["content_sha256"] == info.content_sha256
+    assert info.to_json()["root"] == str(made[0])
