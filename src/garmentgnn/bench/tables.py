@@ -85,6 +85,8 @@ def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str,
     for i, (name, y) in enumerate(sorted(bands, key=lambda b: -b[1])):
         ax.axhspan(bottom, y, color=("0.55", "tab:cyan", "tab:olive")[i % 3], alpha=0.18,
                    zorder=1, label=f"{name}: {y:.3g} cm")
+    if bands:  # the bands reach down to the axis
+        ax.set_ylim(bottom, ax.get_ylim()[1])
     ax.set_xscale("log")
     ax.set_xlabel(xlabel)
     ax.set_ylabel("E_dist (cm" + (", log)" if ax.get_yscale() == "log" else ")"))
