@@ -68,3 +68,9 @@ def numbers(obj):
             yield from numbers(v)
     elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
         yield obj
+
+
+#: below this a UV area counts as zero: (1 um)^2, a millionth of the ``sliver_face``
+#: stability case's 1.7e-6 m^2 on the tiny preset (a collapsed face gives 0, or ~1e-20
+#: where a BLAS code path rounds differently)
+ZERO_AREA_M2 = 1e-12

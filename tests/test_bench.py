@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import numbers
+from conftest import ZERO_AREA_M2, numbers
 from garmentgnn.bench import harness, precision, presets, report, stability, tables, timing
 from garmentgnn.cli import main as cli_main
 
@@ -210,13 +210,14 @@ def test_stability_verdicts_and_plugged_predictor():
         stability.stability_sequence("nope", item, 0)
 
 
+@pytest.mark.float_sensitive
 def test_degenerate_and_extreme_cases_are_what_they_claim():
     item = presets.preset("tiny").stability_item
     seq, info = stability.stability_sequence("zero_area_face", item, 0)
-    assert info["uv_area_m2"] == 0.0
+    assert 0.0 <= info["uv_area_m2"] < ZERO_AREA_M2
     assert not bool(seq.rest.valid[info["face"]])
     seq, info = stability.stability_sequence("sliver_face", item, 0)
-    assert 0 < info["uv_area_m2"] and bool(seq.rest.valid[info["face"]])
+    assert info["uv_area_m2"] > 1e3 * ZERO_AREA_M2 and bool(seq.rest.valid[info["face"]])
     seq, info = stability.stability_sequence("extreme_pose", item, 0)
     from garmentgnn.motion import within_limits
     assert info["joint_frames_clamped"] > 0
@@ -225,6 +226,7 @@ def test_degenerate_and_extreme_cases_are_what_they_claim():
     assert seq.num_frames == 1000 == info["num_frames"] and seq.body_frames.shape[0] == 1000
 
 
+@pytest.mark.float_sensitive
 def test_degenerate_case_on_a_pattern_laid_flat_per_face():
     """A T-shirt's face_uv is laid flat per face (no vertex whose UV corners all agree):
     the sliver still has 1/1000 of its face's UV area and the zero-area face exactly 0,
@@ -243,7 +245,7 @@ def test_degenerate_case_on_a_pattern_laid_flat_per_face():
     assert torch.allclose(step, step[:1].expand_as(step), atol=1e-7) and step.abs().max() > 0
     assert torch.equal(seq.garment.face_uv[~mask], base.face_uv[~mask])
     seq, info = stability.stability_sequence("zero_area_face", item, 0)
-    assert info["uv_area_m2"] == 0.0 and not bool(seq.rest.valid[info["face"]])
+    assert 0.0 <= info["uv_area_m2"] < ZERO_AREA_M2 and not bool(seq.rest.valid[info["face"]])
 
 
 def test_register_and_cli_arguments(tmp_path):

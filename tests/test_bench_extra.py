@@ -193,6 +193,7 @@ def test_leaveout_detection_fails_when_a_branch_runs(seq, monkeypatch):
 
 
 # --------------------------------------------------------------------------- precision
+@pytest.mark.float_sensitive
 def test_precision_rows_lbs(seq):
     rec = precision.run_record(seq, "lbs", warmup=0, repeats=1)
     assert rec["status"] == "ok", rec.get("traceback")
@@ -216,6 +217,7 @@ def test_precision_rows_lbs(seq):
     assert all(math.isfinite(x) for x in _numbers(rec))
 
 
+@pytest.mark.float_sensitive
 def test_precision_rows_gartrans_never_crash(seq):
     rec = precision.run_record(seq, "gartrans", warmup=0, repeats=1, **KW)
     assert rec["status"] == "ok", rec.get("traceback")

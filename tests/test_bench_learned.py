@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import lbs_simulate, numbers
+from conftest import ZERO_AREA_M2, lbs_simulate, numbers
 from garmentgnn.bench import harness, learned, methods, presets, report, scoring, tables
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, motion_key, store
@@ -259,7 +259,7 @@ def test_learned_stability_records(flow, data):
     for r in recs:
         assert r["status"] == "ok" and r["case"] == "zero_area_face", (r["method"], r["message"])
         assert r["verdict"] in ("stable", "degraded", "failed") and r["seed"] == 0
-        assert r["sequence"] == test_id and r["info"]["uv_area_m2"] == 0.0
+        assert r["sequence"] == test_id and 0.0 <= r["info"]["uv_area_m2"] < ZERO_AREA_M2
         assert r["metrics"]["frames"] == 4 and r["metrics"]["nonfinite"] == 0
         assert all(math.isfinite(x) for x in numbers(r["metrics"])), r["method"]
     md = (out / "report.md").read_text()

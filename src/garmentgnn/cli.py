@@ -198,7 +198,8 @@ def manifest_main(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"rebuilt {args.out}/manifest.json: {doc['counts']}")
+    print(f"rebuilt {args.out}/manifest.json: {doc['counts']}\n"
+          f"dataset content SHA-256: {doc['content_sha256']}")
     for line in doc.get("invalid", []):
         print(f"invalid: {args.out}/sequences/{line}", file=sys.stderr)
     if doc.get("invalid"):

@@ -216,7 +216,7 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
     try:
         seq = store.load_record_sequence(root, item, ["positions", "garment_vertices",
                                                       "garment_faces", "motion_rotations",
-                                                      "motion_translation"])
+                                                      "motion_translation", "converged"])
         # the generator's seeding (garmentgnn.data.worker.run_item)
         torch.manual_seed(item["seed"])
         np.random.seed(item["seed"])
@@ -249,12 +249,18 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
                                f"holds {tuple(gt.shape)}")
         if not torch.isfinite(pred).all():
             raise RuntimeError(f"{int((~torch.isfinite(pred)).sum())} non-finite coordinates")
-        m = evaluate(pred, gt, garment.faces)
+        # the ground truth's non-converged frames are left out (and counted)
+        keep = torch.from_numpy(np.asarray(seq["converged"][:n], dtype=bool))
+        if not bool(keep.any()):
+            raise RuntimeError("no frame of the sequence file converged: nothing to score")
+        m = evaluate(pred[keep], gt[keep], garment.faces)
         # the collision metric in float32, as the learned methods are scored
         # (evaluate_inputs)
-        body_pos = body.pose(motion.rotations, motion.translation)[0].float()
-        m["collision_rate"] = float(collision_rate(pred.float(), body_pos, body.faces).mean())
-        rec.update(status="ok", message=str(res.message or "ok"), metrics=m)
+        body_pos = body.pose(motion.rotations, motion.translation)[0].float()[keep]
+        m["collision_rate"] = float(collision_rate(pred[keep].float(), body_pos,
+                                                   body.faces).mean())
+        rec.update(status="ok", message=str(res.message or "ok"), metrics=m,
+                   excluded_frames=n - int(keep.sum()))
     except Exception as err:
         rec.update(status="failed", message=f"{type(err).__name__}: {err}",
                    traceback=traceback.format_exc(limit=4))

@@ -32,7 +32,7 @@ import logging
 import time
 import traceback
 import warnings
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -71,14 +71,15 @@ SIMULATOR_SKIPS: Tuple[str, ...] = ("long_1000",)
 @dataclass
 class DatasetInfo:
     """A generated dataset's folder, spec name, fingerprint (of its ok items' ids,
-    splits, frame counts and generating code versions) and ok sequence / frame counts
-    per split."""
+    splits, frame counts and generating code versions), ok sequence / frame counts per
+    split and content hash (``garmentgnn.data.store.content_sha256``)."""
 
     root: Path
     name: str
     fingerprint: str
     sequences: Dict[str, int]
     frames: Dict[str, int]
+    content_sha256: Optional[str] = None
 
     @property
     def case(self) -> str:
@@ -86,8 +87,7 @@ class DatasetInfo:
         return f"{self.name}-{self.fingerprint[:8]}/test"
 
     def to_json(self) -> Dict[str, Any]:
-        return {"root": str(self.root), "name": self.name, "fingerprint": self.fingerprint,
-                "sequences": dict(self.sequences), "frames": dict(self.frames)}
+        return dict(asdict(self), root=str(self.root))
 
 
 def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
@@ -119,7 +119,8 @@ def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
     digest = hashlib.sha1(json.dumps(sorted(
         (r["id"], r["split"], int(r["num_frames"]), str((r.get("code") or {}).get("version")))
         for r in ok)).encode())
-    return DatasetInfo(root, str(man.get("name", root.name)), digest.hexdigest(), seqs, frames)
+    return DatasetInfo(root, str(man.get("name", root.name)), digest.hexdigest(), seqs, frames,
+                       store.content_sha256(ok))
 
 
 # --------------------------------------------------------------------------- helpers
@@ -295,8 +296,8 @@ class LearnedRunner:
         return rec
 
     def evaluate(self, pred: _Predictor) -> Dict[str, Any]:
-        """``metrics`` (frame-weighted means over every frame of every test sequence),
-        ``groups`` (the same per held-out group), ``per_sequence`` and ``test_frames``
+        """``metrics`` (frame-weighted means over the converged frames of every test
+        sequence), ``groups`` (per held-out group), ``per_sequence`` and ``test_frames``
         (:mod:`garmentgnn.bench.scoring`)."""
         per_seq = scoring.score(lambda i, item: pred.predict(self.test, i, item), self.test)
         agg = scoring.aggregate(per_seq)

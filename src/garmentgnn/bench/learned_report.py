@@ -30,8 +30,13 @@ def _scored(rs: Sequence[Dict[str, Any]]) -> str:
     """What the learned records were scored on, in words."""
     n = {len(r["per_sequence"]) for r in rs if r.get("per_sequence")}
     frames = {r.get("test_frames") for r in rs if r.get("per_sequence")}
+    excluded = {sum(s.get("excluded_frames", 0) for s in r["per_sequence"])
+                for r in rs if r.get("per_sequence")}
     if len(n) == 1 and len(frames) == 1:
-        return f"the same {n.pop()} test sequences ({frames.pop()} frames)"
+        left = excluded.pop() if len(excluded) == 1 else None
+        return (f"the same {n.pop()} test sequences ({frames.pop()} frames"
+                + (f"; {left} frames the engine did not converge on left out" if left else "")
+                + ")")
     return "every test sequence"
 
 
@@ -62,12 +67,14 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
     ds = next((r.get("dataset") for r in rs if r.get("dataset")), {}) or {}
     lines = ["## Held-out test split (learned methods; shaped like Tables 1 and 3)", "",
              f"Dataset `{ds.get('name')}` (`{ds.get('root')}`, fingerprint "
-             f"{str(ds.get('fingerprint'))[:8]}): {ds.get('sequences', {}).get('train')} train / "
+             f"{str(ds.get('fingerprint'))[:8]}, content SHA-256 "
+             f"`{str(ds.get('content_sha256'))[:16]}`): "
+             f"{ds.get('sequences', {}).get('train')} train / "
              f"{ds.get('sequences', {}).get('test')} test sequences, "
              f"{ds.get('frames', {}).get('test')} test frames. Every method is trained on "
              "the train split (NCS-style: one model per test garment, on that garment's own "
              "test poses, physics terms only -- never its simulated positions) and scored "
-             f"on every frame of {_scored(rs)} against the simulation (frame-weighted "
+             f"on the converged frames of {_scored(rs)} against the simulation (frame-weighted "
              "means). A different case set from the simulator tables above: these rows are "
              "not comparable with them. Mean ± std over training seeds. latency: ms per "
              "frame at batch 1; throughput: frames/s at the best batch; train: wall time of "
@@ -102,10 +109,13 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
     return lines
 
 
-def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
+def plot(records: Sequence[Dict[str, Any]], path,
+         bands: Sequence[Tuple[str, float]] = ()) -> Optional[Path]:
     """``pareto_learned.png``: log latency (batch 1) against E_dist of the learned
-    methods' means; ``None`` without ok records."""
-    return plot_summary(summary(records), path, "Held-out test split: error against run time")
+    methods' means, ``bands`` (the ground truth's noise floors) shaded; ``None`` without
+    ok records."""
+    return plot_summary(summary(records), path, "Held-out test split: error against run time",
+                        bands=bands)
 
 
 # --------------------------------------------------------------------------- comparison

@@ -30,6 +30,7 @@ import statistics
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
+from garmentgnn.bench import noise_floor
 from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
@@ -170,8 +171,10 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                     meta: Optional[Dict[str, Any]] = None, pareto_png: Optional[str] = None,
                     scaling_png: Optional[str] = None,
                     learned_png: Optional[str] = None,
-                    engines_png: Optional[str] = None) -> str:
-    """The ``report.md`` text."""
+                    engines_png: Optional[str] = None,
+                    floor: Optional[Dict[str, Any]] = None) -> str:
+    """The ``report.md`` text; ``floor``: a :func:`garmentgnn.bench.noise_floor.load_floor`
+    result, printed beside the method rows and in its own section."""
     meta = meta or {}
     lines = ["# Benchmark report", ""]
     if meta:
@@ -211,6 +214,9 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
             if e["failed"]:
                 row[0] += f" ({e['failed']}/{e['records']} failed)"
             rows.append(row)
+        for name, cm in noise_floor.bands(floor):  # E_dist below it: not decided by the GT
+            rows.append([f"*{name}*"] + [f"{cm:.3g}" if m == "E_dist" else "—"
+                                         for m in METRICS] + ["—"] * 3)
         lines += table(["method"] + metric_hdr + ["latency (ms)", "throughput (fps)",
                                                    "peak mem (MB)"], rows) + [""]
     else:
@@ -240,6 +246,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                   "from rest (the cloth is stiff in stretch: a few % of edge strain is tens "
                   "of joules), not a blow-up over time; compare max energy with the "
                   "simulator's row.", ""] + _stabilitytable(lstab)
+    lines += noise_floor.markdown(floor)
     # they import this module
     from garmentgnn.bench import learned_report, leaveout, precision, scaling
     lines += learned_report.markdown(records, learned_png)
@@ -270,25 +277,32 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
 
 
 # --------------------------------------------------------------------------- plots
-def plot_pareto(records: Sequence[Dict[str, Any]], path: Path) -> Optional[Path]:
-    """:func:`plot_summary` of the accuracy records (:func:`summarize`)."""
-    return plot_summary(summarize(records), path, "Error against run time")
+def plot_pareto(records: Sequence[Dict[str, Any]], path: Path,
+                floor: Optional[Dict[str, Any]] = None) -> Optional[Path]:
+    """:func:`plot_summary` of the accuracy records (:func:`summarize`), with ``floor``'s
+    engines as bands (:func:`garmentgnn.bench.noise_floor.bands`)."""
+    return plot_summary(summarize(records), path, "Error against run time",
+                        bands=noise_floor.bands(floor))
 
 
 # --------------------------------------------------------------------------- entry point
 def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] = (),
-                 meta: Optional[Dict[str, Any]] = None) -> Dict[str, Path]:
+                 meta: Optional[Dict[str, Any]] = None, floor=None) -> Dict[str, Path]:
     """Validate ``records`` and write ``results.json``, ``report.md`` and ``pareto.png``
     (when there is something to plot) into ``out``, and the animation of a held-out
     sequence into ``out/media`` when the run trained GarTrans
-    (:func:`garmentgnn.bench.page.write_media`); returns their paths."""
+    (:func:`garmentgnn.bench.page.write_media`); returns their paths.  ``floor``: the
+    ground truth's noise floor, a ``benchmarks/gt_noise.py`` results file (default
+    :func:`garmentgnn.bench.noise_floor.load_floor`'s: ``$GARMENTGNN_NOISE_FLOOR`` or the
+    committed one; none there: no floor shown)."""
     if isinstance(records, dict):
         raise ValueError("`records`: expected a list of records, got a dict")
     clean = [check_record(r) for r in records]
+    loaded = noise_floor.load_floor(floor)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths: Dict[str, Path] = {}
-    png = plot_pareto(clean, out / "pareto.png")
+    png = plot_pareto(clean, out / "pareto.png", loaded)
     if png is not None:
         paths["pareto"] = png
     from garmentgnn.bench import scaling
@@ -296,7 +310,8 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     if scaling_png is not None:
         paths["scaling"] = scaling_png
     from garmentgnn.bench import learned_report
-    learned_png = learned_report.plot(clean, out / "pareto_learned.png")
+    learned_png = learned_report.plot(clean, out / "pareto_learned.png",
+                                      noise_floor.bands(loaded))
     if learned_png is not None:
         paths["pareto_learned"] = learned_png
     engines_png = learned_report.plot_engines(clean, out / "pareto_engines.png")
@@ -308,7 +323,8 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     text = render_markdown(clean, not_run, meta, "pareto.png" if png is not None else None,
                            "scaling.png" if scaling_png is not None else None,
                            "pareto_learned.png" if learned_png is not None else None,
-                           "pareto_engines.png" if engines_png is not None else None)
+                           "pareto_engines.png" if engines_png is not None else None,
+                           loaded)
     # -- the animation of a held-out sequence (garmentgnn.bench.page), appended ----
     from garmentgnn.bench.page import write_media
     media = write_media(clean, out)

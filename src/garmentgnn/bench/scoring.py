@@ -61,9 +61,10 @@ def stratified(records: Sequence[Dict[str, Any]], n: int) -> List[str]:
 def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
     """Per test sequence: ``predict(i, item)`` (the garment ``[T, V, 3]`` of item ``i``
     of ``test``, a whole-sequence :class:`~garmentgnn.training.SequenceChunks`) scored
-    against its simulation.  Metrics are frame means over the sequence (``collision``
-    renamed ``collision_rate``); raises ``RuntimeError``
-    for a prediction of the wrong shape or with non-finite coordinates."""
+    against its simulation.  Metrics are frame means over the sequence's frames the engine
+    converged on (``frames``; the others are counted in ``excluded_frames``; a sequence
+    with none is left out), ``collision`` renamed ``collision_rate``; raises
+    ``RuntimeError`` for a prediction of the wrong shape or with non-finite coordinates."""
     out = []
     for i in range(len(test)):
         item = test[i]
@@ -76,13 +77,17 @@ def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
         if not torch.isfinite(P).all():
             raise RuntimeError(f"{int((~torch.isfinite(P)).sum())} non-finite coordinates "
                                f"predicted for {item.seq_id}")
-        m = evaluate_inputs(P, item)  # per-frame metrics averaged over the T frames
+        keep = test.converged(i)  # the ground truth's non-converged frames are left out
+        if not bool(keep.any()):
+            continue
+        m = evaluate_inputs(P, item, keep)  # per-frame metrics averaged over kept frames
         m["collision_rate"] = m.pop("collision", float("nan"))
-        split = split_inputs(P, item)
+        split = split_inputs(P, item, keep)
         m.update({k: split[k] for k in SPLIT_METRICS})
         rec = test.records[test.index[i][0]]
-        out.append({"sequence": item.seq_id, "frames": T, "held_out": list(rec.get("held_out", [])),
-                    "metrics": m})
+        out.append({"sequence": item.seq_id, "frames": int(keep.sum()),
+                    "excluded_frames": T - int(keep.sum()),
+                    "held_out": list(rec.get("held_out", [])), "metrics": m})
     return out
 
 

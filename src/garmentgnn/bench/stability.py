@@ -153,8 +153,11 @@ def _degenerate(seq: BenchSequence, fraction: float) -> Tuple[Garment, Dict[str,
         face_uv[f, c] = face_uv[f, order[1]]
     new = Garment(verts, g.faces.clone(), uv, face_uv, name=g.name + "-degenerate", kind=g.kind,
                   pinned=g.pinned, panel=g.panel, info=dict(g.info))
-    area = 0.5 * torch.linalg.det(torch.stack([face_uv[f, 1] - face_uv[f, 0],
-                                               face_uv[f, 2] - face_uv[f, 0]]).double()).abs()
+    # in Python floats (IEEE double, no BLAS): float32 corners' differences and their
+    # products are exact there, so two equal corners give exactly 0 on any CPU (a LAPACK
+    # determinant gave 2e-20 m^2 on one MKL code path and 0 on another)
+    (u0, v0), (u1, v1), (u2, v2) = face_uv[f].double().tolist()
+    area = 0.5 * abs((u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0))
     return new, {"face": f, "vertex": v, "uv_area_m2": float(area),
                  "uv_corner_spread_m": float(spread[v])}
 

@@ -40,24 +40,28 @@ def table(header: List[str], rows: List[List[str]]) -> List[str]:
     return lines
 
 
-def plot_summary(summ: Dict[str, Dict[str, Any]], path, title: str) -> Optional[Path]:
+def plot_summary(summ: Dict[str, Dict[str, Any]], path, title: str,
+                 bands: Sequence[Tuple[str, float]] = ()) -> Optional[Path]:
     """``log latency`` vs ``E_dist`` of per-method means ``{method: {"latency_ms":
     {"mean": ...}, "E_dist": {"mean": ...}}}`` (Pareto front joined); ``None`` if no
-    method has both numbers."""
+    method has both numbers.  ``bands``: see :func:`plot_points`."""
     pts = [(m, e["latency_ms"]["mean"], e["E_dist"]["mean"]) for m, e in summ.items()
            if "latency_ms" in e and "E_dist" in e and e["latency_ms"]["mean"] > 0]
     if not pts:
         return None
-    return plot_points(pts, path, title)
+    return plot_points(pts, path, title, bands=bands)
 
 
 def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str,
-                xlabel: str = "latency per frame at batch 1 (ms, log)") -> Path:
+                xlabel: str = "latency per frame at batch 1 (ms, log)",
+                bands: Sequence[Tuple[str, float]] = ()) -> Path:
     """Scatter ``(name, time ms, E_dist cm)`` points on a log time axis, the Pareto front
     joined, into the PNG ``path``.  Each point has its own marker and colour and is named,
     with its error, in a legend beside the axes (text labels overlap when methods sit
     close together); the error axis turns logarithmic when the errors span more than a
-    factor 5, so that one diverged method does not flatten the rest."""
+    factor 5, so that one diverged method does not flatten the rest.  ``bands``: ``(name,
+    E_dist cm)`` drawn as shaded horizontal bands from the axis' bottom up to that error
+    (the ground truth's noise floors, :mod:`garmentgnn.bench.noise_floor`)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -74,9 +78,15 @@ def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str,
     if len(fp) > 1:
         ax.step([p[0] for p in fp], [p[1] for p in fp], where="post", color="C3", alpha=0.5,
                 label="Pareto front")
-    ys = [y for _, _, y in pts if y > 0]
+    ys = [y for _, _, y in pts if y > 0] + [y for _, y in bands if y > 0]
     if ys and max(ys) > 5 * min(ys):
         ax.set_yscale("log")
+    bottom = 0.0 if ax.get_yscale() == "linear" else 0.5 * min(ys)
+    for i, (name, y) in enumerate(sorted(bands, key=lambda b: -b[1])):
+        ax.axhspan(bottom, y, color=("0.55", "tab:cyan", "tab:olive")[i % 3], alpha=0.18,
+                   zorder=1, label=f"{name}: {y:.3g} cm")
+    if bands:  # the bands reach down to the axis
+        ax.set_ylim(bottom, ax.get_ylim()[1])
     ax.set_xscale("log")
     ax.set_xlabel(xlabel)
     ax.set_ylabel("E_dist (cm" + (", log)" if ax.get_yscale() == "log" else ")"))

@@ -75,10 +75,13 @@ class Summary:
     pending: int = 0
     seconds: float = 0.0
     failures: List[str] = field(default_factory=list)
+    #: the manifest's :func:`garmentgnn.data.store.content_sha256` after the run
+    content_sha256: Optional[str] = None
 
     def __str__(self) -> str:
         s = (f"{self.total} items: {self.done} simulated, {self.skipped} skipped (already "
-             f"done), {self.failed} failed, {self.pending} pending; {self.seconds:.1f} s")
+             f"done), {self.failed} failed, {self.pending} pending; {self.seconds:.1f} s"
+             f"\ndataset content SHA-256: {self.content_sha256}")
         for f in self.failures[:10]:
             s += f"\n  FAILED {f}"
         return s
@@ -318,4 +321,5 @@ def _generate(spec: Spec, out: Path, workers: int, limit: Optional[int],
         flush()
         summary.seconds = time.perf_counter() - t_start
         summary.pending = sum(r["status"] == "pending" for r in records.values())
+        summary.content_sha256 = store.content_sha256(records.values())
     return summary

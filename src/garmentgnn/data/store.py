@@ -306,13 +306,29 @@ def code_version() -> Dict[str, Optional[str]]:
     return dict(_GIT)
 
 
+def content_sha256(records: Iterable[Dict[str, Any]]) -> Optional[str]:
+    """The dataset's content hash: hex SHA-256 of the lines ``"<id> <sha256>\\n"`` of its
+    ok records, sorted by id (so independent of item order; one changed sequence file
+    changes it).  Two datasets with the same spec but different simulated positions (another
+    CPU's floating point) get different hashes.  ``None`` when an ok record has no
+    ``sha256`` (a manifest written before hashes were kept: rebuild it)."""
+    ok = [r for r in records if r.get("status") == "ok"]
+    if any(not r.get("sha256") for r in ok):
+        return None
+    h = hashlib.sha256()
+    for rid, sha in sorted((str(r["id"]), str(r["sha256"])) for r in ok):
+        h.update(f"{rid} {sha}\n".encode())
+    return h.hexdigest()
+
+
 def write_manifest(out: PathLike, records: List[Dict[str, Any]], header: Dict[str, Any]) -> Path:
-    """Atomically (re)write ``OUT/manifest.json``."""
+    """Atomically (re)write ``OUT/manifest.json`` (with its :func:`content_sha256`)."""
     counts: Dict[str, int] = {}
     for r in records:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
     doc = dict(header)
-    doc.update(format_version=FORMAT_VERSION, counts=counts, items=records)
+    doc.update(format_version=FORMAT_VERSION, counts=counts, items=records,
+               content_sha256=content_sha256(records))
     return atomic_write_json(Path(out) / MANIFEST, doc)
 
 

@@ -120,10 +120,32 @@ def evaluate(pred: Tensor, gt: Tensor, faces: Tensor, body_pos: Optional[Tensor]
     return res
 
 
-def evaluate_inputs(pred: Tensor, inp) -> Dict[str, float]:
+def frame_mask(keep: Optional[Tensor], frames: int) -> Optional[Tensor]:
+    """``keep`` as a ``[frames]`` bool tensor with at least one frame kept (``None``
+    passes through); ``ValueError`` naming ``keep`` otherwise."""
+    if keep is None:
+        return None
+    keep = torch.as_tensor(keep)
+    if keep.dtype != torch.bool or keep.shape != (frames,):
+        raise ValueError(f"`keep`: expected a [{frames}] bool mask of the frames to score, "
+                         f"got {keep.dtype} {tuple(keep.shape)}")
+    if not bool(keep.any()):
+        raise ValueError("`keep`: no frame to score (every frame masked out); leave the "
+                         "sequence out instead")
+    return keep
+
+
+def evaluate_inputs(pred: Tensor, inp, keep: Optional[Tensor] = None) -> Dict[str, float]:
     """:func:`evaluate` of ``pred [B, V, 3]`` against a model input's ``gt`` (a
     :class:`~garmentgnn.models.inputs.GarmentInputs`: its faces, posed body and
-    simulated garment)."""
+    simulated garment); ``keep``: a ``[B]`` bool mask, only those frames are scored (the
+    ground truth's converged frames, :meth:`garmentgnn.training.SequenceChunks.converged`)."""
     if inp.get("gt") is None:
         raise ValueError("`inp`: has no ground truth `gt` to score against")
-    return evaluate(pred.float(), inp.gt, inp.faces, inp.get("body_pos"), inp.get("body_faces"))
+    gt, body_pos = inp.gt, inp.get("body_pos")
+    keep = frame_mask(keep, gt.shape[0])
+    if keep is not None:
+        pred, gt = pred[keep], gt[keep]
+        if body_pos is not None and body_pos.dim() == 3 and body_pos.shape[0] == keep.shape[0]:
+            body_pos = body_pos[keep]
+    return evaluate(pred.float(), gt, inp.faces, body_pos, inp.get("body_faces"))

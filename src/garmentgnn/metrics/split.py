@@ -21,7 +21,7 @@ nothing else has ``E_static ~ 0`` and ``E_dynamic`` = LBS's.
 """
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Optional
 
 import torch
 from torch import Tensor
@@ -123,10 +123,17 @@ def static_dynamic_split(pred: Tensor, gt: Tensor, transforms: Tensor) -> Dict[s
             "E_dist": cm(p - x)}
 
 
-def split_inputs(pred: Tensor, inp) -> Dict[str, float]:
+def split_inputs(pred: Tensor, inp, keep: Optional[Tensor] = None) -> Dict[str, float]:
     """:func:`static_dynamic_split` of ``pred [B, V, 3]`` against a model input's ``gt``
     (a :class:`~garmentgnn.models.inputs.GarmentInputs`, whose
-    :meth:`~garmentgnn.models.inputs.GarmentInputs.skinning_transforms` give ``M_t``)."""
+    :meth:`~garmentgnn.models.inputs.GarmentInputs.skinning_transforms` give ``M_t``);
+    ``keep``: a ``[B]`` bool mask of the frames to score (as in
+    :func:`~garmentgnn.metrics.evaluate_inputs`)."""
+    from garmentgnn.metrics.garment_metrics import frame_mask
     if inp.get("gt") is None:
         raise ValueError("`inp`: has no ground truth `gt` to score against")
-    return static_dynamic_split(pred, inp.gt, inp.skinning_transforms(torch.float64))
+    gt, M = inp.gt, inp.skinning_transforms(torch.float64)
+    keep = frame_mask(keep, gt.shape[0])
+    if keep is not None:
+        pred, gt, M = pred[keep], gt[keep], M[keep]
+    return static_dynamic_split(pred, gt, M)

@@ -92,6 +92,16 @@ class SequenceChunks(Dataset):
     def __len__(self) -> int:
         return len(self.index)
 
+    def converged(self, idx: int) -> torch.Tensor:
+        """``[n]`` bool: which frames of item ``idx`` the engine converged on (the sequence
+        file's ``converged``); metrics leave the others out
+        (:func:`garmentgnn.metrics.evaluate_inputs`'s ``keep``)."""
+        i, t0, n = self.index[idx]
+        conv = self.sequence(i).get("converged")
+        if conv is None:
+            return torch.ones(n, dtype=torch.bool)
+        return torch.from_numpy(np.asarray(conv[t0:t0 + n], dtype=bool))
+
     # -- caches -----------------------------------------------------------------
     def sequence(self, i: int) -> dict[str, Any]:
         rec = self.records[i]

@@ -10,8 +10,10 @@ Modes, each over whole sequences of a split:
 * ``"lbs"``: the rest garment skinned with the simulator's transferred weights (Eq. 1),
   no learning.
 
-Metrics are frame-weighted means over the split; ``ms_per_frame`` is wall time per
-frame of each mode (static branch included), measured in the same loop.
+Metrics are frame-weighted means over the split's frames the engine converged on (the
+sequence files' ``converged``; ``excluded_frames`` counts the others, which are still
+predicted and timed); ``ms_per_frame`` is wall time per frame of each mode (static branch
+included), measured in the same loop.
 """
 from __future__ import annotations
 
@@ -54,25 +56,31 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
     was_training = module.training
     module.eval()
     sums: dict[str, dict[str, float]] = {m: {} for m in modes}
-    frames, seconds = 0, {m: 0.0 for m in modes}
+    frames, predicted, seconds = 0, 0, {m: 0.0 for m in modes}
     try:
         for idx in range(len(ds)):
             item = ds[idx]
-            B = item["gt"].shape[0]
+            keep = ds.converged(idx)
+            B = int(keep.sum())
             frames += B
+            predicted += item["gt"].shape[0]
             for mode in modes:
                 t0 = time.perf_counter()
                 pred = predict(module, item, mode)
                 seconds[mode] += time.perf_counter() - t0
-                res = evaluate_inputs(pred, item)
-                for k, v in res.items():
-                    sums[mode][k] = sums[mode].get(k, 0.0) + v * B
+                if B:
+                    res = evaluate_inputs(pred, item, keep)
+                    for k, v in res.items():
+                        sums[mode][k] = sums[mode].get(k, 0.0) + v * B
     finally:
         module.train(was_training)
+    if not frames:
+        raise ValueError(f"`split`: no converged frame in the {split!r} sequences under {root}")
     out = {}
     for mode in modes:
         out[mode] = {k: v / frames for k, v in sums[mode].items()}
-        out[mode].update(frames=frames, ms_per_frame=1e3 * seconds[mode] / frames)
+        out[mode].update(frames=frames, excluded_frames=predicted - frames,
+                         ms_per_frame=1e3 * seconds[mode] / predicted)
     return out
 
 

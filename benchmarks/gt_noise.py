@@ -1,0 +1,210 @@
+"""The ground truth's noise floor: each engine simulates a few sequences again with its
+input moved by a rounding error, and the distance to the unperturbed run is measured per
+frame (:mod:`garmentgnn.bench.noise_floor`).
+
+Per sequence: the unperturbed run, a plain rerun (must be 0: the engines are
+deterministic), then the rest garment's vertices and, separately, the body motion's root
+translation moved by each ``--scales`` distance (default 1e-7 and 1e-4 m) in random
+directions.  Blender runs ``small`` sequences (fast), the torch simulator ``tiny`` ones
+(slow).  Writes JSON, markdown and a PNG of divergence against frame into a cache folder;
+``--write-results`` writes the committed ``benchmarks/results/gt_noise.{json,md,png}``
+instead (which the bench report reads)::
+
+    OMP_NUM_THREADS=1 python benchmarks/gt_noise.py                      # both engines
+    OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --engines torch --sequences 1
+    OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --write-results
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import random
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from garmentgnn.bench import noise_floor as nf
+from garmentgnn.bench.tables import save_figure, table
+from garmentgnn.data import preset
+from garmentgnn.data.presets import build_inputs
+from garmentgnn.data.store import atomic_write_bytes, atomic_write_json, code_version
+from garmentgnn.data.worker import default_simulate, item_settings
+
+HERE = Path(__file__).resolve().parent
+CACHE = Path.home() / ".cache" / "garmentgnn" / "bench" / "gt_noise"
+PRESETS = {"blender": "small", "torch": "tiny"}
+
+
+def pick(engine: str, n: int, seed: int = 0):
+    """``n`` items of the engine's preset, spread over garment kinds (the first of each
+    kind in spec order, then the next ones)."""
+    items = preset(PRESETS[engine], engine=engine).items()
+    by_kind = {}
+    for it in items:
+        by_kind.setdefault(it["garment"]["kind"], []).append(it)
+    out, i = [], 0
+    while len(out) < n and any(i < len(v) for v in by_kind.values()):
+        out += [v[i] for v in by_kind.values() if i < len(v)]
+        i += 1
+    return out[:n]
+
+
+def simulate(item, garment, body, motion, material):
+    """The item's engine at the item's settings, seeded as the dataset worker seeds it."""
+    seed = item["seed"]
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+    t0 = time.perf_counter()
+    res = default_simulate(item.get("engine", "torch"))(garment, body, motion, material,
+                                                        settings=item_settings(item),
+                                                        progress=None)
+    if not getattr(res, "ok", True):
+        raise RuntimeError(getattr(res, "message", "not ok"))
+    conv = getattr(res, "converged", None)
+    return (torch.as_tensor(res.positions).detach().double(), time.perf_counter() - t0,
+            None if conv is None else int((~torch.as_tensor(conv).bool()).sum()))
+
+
+def runs_of(engine: str, item, scales, log=print):
+    """The run records of one item: the rerun, then every (input, scale)."""
+    garment, body, motion, material = build_inputs(item)
+    base, secs, nonconv = simulate(item, garment, body, motion, material)
+    log(f"{engine:7s} {item['id']}: unperturbed {secs:.1f} s ({base.shape[0]} frames, "
+        f"{base.shape[1]} vertices, {nonconv} non-converged)")
+    cases = [("repeat", 0.0)] + [(w, s) for w in ("garment", "body") for s in scales]
+    out = []
+    for k, (what, scale) in enumerate(cases):
+        g, m = garment, motion
+        if what == "garment":
+            g = nf.perturbed_garment(garment, scale, seed=1000 + k)
+        elif what == "body":
+            m = nf.perturbed_motion(motion, scale, seed=1000 + k)
+        rec = {"engine": engine, "preset": PRESETS[engine], "sequence": item["id"],
+               "what": what, "scale_m": scale, "frames": int(base.shape[0]),
+               "vertices": int(base.shape[1])}
+        try:
+            pos, secs, nc = simulate(item, g, body, m, material)
+            mean, mx = nf.divergence(pos, base)
+            rec.update(status="ok", seconds=round(secs, 2), mean_cm=mean, max_cm=mx,
+                       nonconverged_frames=nc, base_nonconverged_frames=nonconv)
+            log(f"{engine:7s} {item['id']}: {what:7s} {scale:g} m -> mean "
+                f"{sum(mean) / len(mean):.4f} cm, max {max(mx):.3f} cm ({secs:.1f} s)")
+        except Exception as e:  # a run that fails is a result too (recorded, not fatal)
+            rec.update(status="failed", message=f"{type(e).__name__}: {e}")
+            log(f"{engine:7s} {item['id']}: {what} {scale:g} m FAILED {e}")
+        out.append(rec)
+    return out
+
+
+def markdown(runs, floor, header):
+    rows = []
+    for r in runs:
+        if r["status"] != "ok":
+            rows.append([nf.ENGINE_NAMES[r["engine"]], r["sequence"], r["what"],
+                         f"{r['scale_m']:g}", "-", "-", "-", "failed: " + r["message"][:80]])
+            continue
+        per = r["max_cm"]
+        marks = sorted({0, len(per) // 4, len(per) // 2, 3 * len(per) // 4, len(per) - 1})
+        rows.append([nf.ENGINE_NAMES[r["engine"]], r["sequence"], r["what"],
+                     f"{r['scale_m']:g}", f"{sum(r['mean_cm']) / len(r['mean_cm']):.4f}",
+                     f"{max(per):.3f}",
+                     " / ".join(f"{per[i]:.2f}" for i in marks) +
+                     f" (frames {', '.join(map(str, marks))})", f"{r['seconds']:.1f}"])
+    lines = [header, "", "Per run: mean over frames of the mean per-vertex distance to the "
+             "unperturbed run, the largest per-vertex distance over the sequence, and that "
+             "largest distance at a few frames (cm).", ""]
+    lines += table(["engine", "sequence", "perturbed", "by (m)", "mean (cm)", "max (cm)",
+                    "max at frames (cm)", "s"], rows)
+    lines += [""] + nf.markdown({"path": "gt_noise.json", "floor": floor})[2:]
+    return "\n".join(lines) + "\n"
+
+
+def plot(runs, path):
+    """Per frame, the mean over sequences of the mean distance (solid) and the largest
+    distance over sequences (dashed), one panel per engine, a colour per perturbation;
+    log distance axis."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    engines = sorted({r["engine"] for r in runs})
+    fig, axes = plt.subplots(1, len(engines), figsize=(5.4 * len(engines) + 2.4, 4.4),
+                             squeeze=False)
+    keys = sorted({(r["what"], r["scale_m"]) for r in runs if r["what"] != "repeat"})
+    colours = {k: plt.get_cmap("tab10")(i) for i, k in enumerate(keys)}
+    for ax, engine in zip(axes[0], engines):
+        for key in keys:
+            rs = [r for r in runs if r["engine"] == engine and (r["what"], r["scale_m"]) == key
+                  and r["status"] == "ok"]
+            if not rs:
+                continue
+            n = min(len(r["mean_cm"]) for r in rs)
+            mean = np.mean([r["mean_cm"][:n] for r in rs], axis=0)
+            mx = np.max([r["max_cm"][:n] for r in rs], axis=0)
+            lab = f"{key[0]} ±{key[1]:g} m"
+            ax.plot(range(n), np.maximum(mean, 1e-7), color=colours[key], lw=1.5,
+                    label=lab + " (mean)")
+            ax.plot(range(n), np.maximum(mx, 1e-7), color=colours[key], lw=1.0, ls="--",
+                    alpha=0.8, label=lab + " (max)")
+        seqs = len({r["sequence"] for r in runs if r["engine"] == engine})
+        ax.set_yscale("log")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("distance to the unperturbed run (cm, log)")
+        ax.set_title(f"{nf.ENGINE_NAMES[engine]} ({PRESETS[engine]}, {seqs} sequence"
+                     f"{'s' if seqs > 1 else ''})")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][-1].legend(*axes[0][0].get_legend_handles_labels(), fontsize=7, loc="upper left",
+                       bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+    fig.suptitle("Divergence from a perturbed input per frame: mean over vertices and "
+                 "sequences (solid), largest (dashed)", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--engines", nargs="+", choices=tuple(PRESETS), default=list(PRESETS))
+    ap.add_argument("--sequences", type=int, default=None,
+                    help="sequences per engine (default 6 for Blender, 2 for torch)")
+    ap.add_argument("--scales", type=float, nargs="+", default=[1e-7, 1e-4],
+                    help="perturbation distances (m)")
+    ap.add_argument("--out", default=str(CACHE / "gt_noise"),
+                    help="writes OUT.json, OUT.md and OUT.png (default in the cache folder)")
+    ap.add_argument("--write-results", action="store_true",
+                    help="write the committed benchmarks/results/gt_noise.* instead of --out")
+    a = ap.parse_args(argv)
+    if a.sequences is not None and a.sequences < 1:
+        raise SystemExit(f"--sequences: expected >= 1, got {a.sequences}")
+    if any(not (s > 0) for s in a.scales):
+        raise SystemExit(f"--scales: expected distances > 0 m, got {a.scales}")
+    out = HERE / "results" / "gt_noise" if a.write_results else Path(a.out)
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    runs = []
+    for engine in a.engines:
+        n = a.sequences or (6 if engine == "blender" else 2)
+        for item in pick(engine, n):
+            runs += runs_of(engine, item, a.scales)
+    floor = nf.summarize(runs)
+    command = "python benchmarks/gt_noise.py " + " ".join(argv if argv is not None else
+                                                           __import__("sys").argv[1:])
+    meta = {"command": command.strip(), "machine": platform.processor() or platform.machine(),
+            "torch_threads": torch.get_num_threads(), "code": code_version(),
+            "seconds": round(time.perf_counter() - t0, 1)}
+    header = (f"`{meta['command']}`: {len(runs)} runs in {meta['seconds']:.0f} s, "
+              f"{meta['torch_threads']} torch thread(s), {platform.machine()}.")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out.with_suffix(".json"), {"meta": meta, "floor": floor, "runs": runs})
+    text = markdown(runs, floor, header)
+    atomic_write_bytes(out.with_suffix(".md"), text.encode())
+    plot(runs, out.with_suffix(".png"))
+    print(text)
+    print(f"wrote {out}.json, .md, .png")
+
+
+if __name__ == "__main__":
+    main()
