@@ -7,12 +7,12 @@ deterministic), then the rest garment's vertices and, separately, the body motio
 translation moved by each ``--scales`` distance (default 1e-7 and 1e-4 m) in random
 directions.  Blender runs ``small`` sequences (fast), the torch simulator ``tiny`` ones
 (slow).  Writes JSON, markdown and a PNG of divergence against frame into a cache folder;
-``--write-results`` writes the committed ``benchmarks/results/gt_noise.{json,md,png}``
+``--commit`` writes the committed ``benchmarks/results/gt_noise.{json,md,png}``
 instead (which the bench report reads)::
 
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py                      # both engines
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --engines torch --sequences 1
-    OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --write-results
+    OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --commit
 """
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.bench import noise_floor as nf
 from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.data import preset
@@ -34,7 +35,7 @@ from garmentgnn.data.store import atomic_write_bytes, atomic_write_json, code_ve
 from garmentgnn.data.worker import default_simulate, item_settings
 
 HERE = Path(__file__).resolve().parent
-CACHE = Path.home() / ".cache" / "garmentgnn" / "bench" / "gt_noise"
+COMMITTED = HERE / "results" / "gt_noise"
 PRESETS = {"blender": "small", "torch": "tiny"}
 
 
@@ -166,22 +167,21 @@ def plot(runs, path):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--engines", nargs="+", choices=tuple(PRESETS), default=list(PRESETS))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
+    ap.add_argument("--engines", nargs="+", choices=tuple(PRESETS), default=list(PRESETS),
+                    help="the engines to perturb and simulate again")
     ap.add_argument("--sequences", type=int, default=None,
                     help="sequences per engine (default 6 for Blender, 2 for torch)")
     ap.add_argument("--scales", type=float, nargs="+", default=[1e-7, 1e-4],
                     help="perturbation distances (m)")
-    ap.add_argument("--out", default=str(CACHE / "gt_noise"),
-                    help="writes OUT.json, OUT.md and OUT.png (default in the cache folder)")
-    ap.add_argument("--write-results", action="store_true",
-                    help="write the committed benchmarks/results/gt_noise.* instead of --out")
+    add_output_args(ap, COMMITTED, "writes OUT.json, OUT.md and OUT.png")
     a = ap.parse_args(argv)
     if a.sequences is not None and a.sequences < 1:
         raise SystemExit(f"--sequences: expected >= 1, got {a.sequences}")
     if any(not (s > 0) for s in a.scales):
         raise SystemExit(f"--scales: expected distances > 0 m, got {a.scales}")
-    out = HERE / "results" / "gt_noise" if a.write_results else Path(a.out)
+    out = output_path(a, COMMITTED)
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     runs = []

@@ -27,7 +27,7 @@ from torch import Tensor
 WHATS = ("garment", "body", "repeat")
 #: the perturbation the floor is quoted at (a float32 rounding error at metre scale)
 FLOOR_SCALE_M = 1e-7
-#: where ``benchmarks/gt_noise.py --write-results`` puts the committed results
+#: where ``benchmarks/gt_noise.py --commit`` puts the committed results
 COMMITTED = Path(__file__).resolve().parents[3] / "benchmarks" / "results" / "gt_noise.json"
 #: an environment variable naming another results file for the bench report
 ENV = "GARMENTGNN_NOISE_FLOOR"
