@@ -46,9 +46,16 @@ RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "learning"
 #: Trainer arguments
 VARIANTS: Dict[str, Dict[str, Any]] = {
     "config": {},
+    "former config (gates at 0, acceleration)": {"model": {"gate_init": 0.0,
+                                                           "accel_unit": None}},
     "gate 0.1": {"model": {"gate_init": 0.1}},
     "gate 1": {"model": {"gate_init": 1.0}},
     "gate 0.1, cm": {"model": {"gate_init": 0.1, "accel_unit": 0.01}},
+    "gate 1, cm": {"model": {"gate_init": 1.0, "accel_unit": 0.01}},
+    "gate 1, cm, adam 1e-3": {"model": {"gate_init": 1.0, "accel_unit": 0.01,
+                                        "optimizer": "adam", "lr": 1e-3}},
+    "gate 1, cm, 4 chunks/step": {"model": {"gate_init": 1.0, "accel_unit": 0.01},
+                                  "trainer": {"accumulate_grad_batches": 4}},
     "gate 0.1, cm, adam 1e-3": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
                                           "optimizer": "adam", "lr": 1e-3}},
     "gate 0.1, cm, 4 chunks/step": {"model": {"gate_init": 0.1, "accel_unit": 0.01},

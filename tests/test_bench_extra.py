@@ -12,6 +12,7 @@ import torch
 from garmentgnn.bench import leaveout, precision, report, scaling
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import build_scene, case_item, make_sequence
+from garmentgnn.models import PAPER_FORM
 from garmentgnn.bench.timing import num_threads
 from garmentgnn.data import Spec, generate
 from garmentgnn.body.factory import build_body
@@ -221,7 +222,7 @@ def test_precision_rows_lbs(seq):
 def test_precision_rows_gartrans_never_crash(seq):
     rec = precision.run_record(seq, "gartrans", warmup=0, repeats=1, **KW)
     assert rec["status"] == "ok", rec.get("traceback")
-    assert rec["module_kwargs"] == {"lbs_start": False}
+    assert rec["module_kwargs"] == PAPER_FORM
     rows = {(r["dtype"], r["mode"]): r for r in rec["rows"]}
     assert rows["float32", "reference"]["max_dev_m"] == 0.0
     for r in rec["rows"]:  # each low-precision row either ran or says why not

@@ -165,3 +165,29 @@ def test_state_arguments_are_checked(dm):
         plain.model(plain.encode_static(item), item.rest_pos, item.faces, item.edge_index,
                     item.rest_joints, item.parents, item.rotations, item.translation,
                     state=item.gt_prev)
+
+
+#: the model switches whose defaults must agree in GarTrans, GarTransModule and the
+#: packaged config (``compile_search`` is a speed switch, on in the config only)
+SWITCHES = ("lbs_start", "gate_init", "collision_projection", "blend_shape", "strain_limit",
+            "accel_unit", "garment_state")
+
+
+def test_model_module_and_config_defaults_agree():
+    import inspect
+
+    from garmentgnn.models import PAPER_FORM, GarTrans
+    from garmentgnn.training.configs import load_config
+
+    def defaults(fn):
+        return {k: p.default for k, p in inspect.signature(fn).parameters.items()
+                if p.default is not inspect.Parameter.empty}
+
+    model, module = defaults(GarTrans.__init__), defaults(GarTransModule.__init__)
+    config = load_config("gartrans")["model"]
+    for name in SWITCHES:
+        assert model[name] == module[name] == config[name], name
+    assert set(PAPER_FORM) == set(SWITCHES)
+    assert all(PAPER_FORM[k] != model[k] for k in SWITCHES if k not in ("gate_init",
+                                                                           "garment_state"))
+    assert module["skin_prior"] is True and config.get("skin_prior", True) is True

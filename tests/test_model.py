@@ -6,7 +6,7 @@ import torch
 from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.garments import make_garment
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
-from garmentgnn.models import GarTrans
+from garmentgnn.models import PAPER_FORM, GarTrans
 from garmentgnn.motion import make_motion
 
 
@@ -27,7 +27,7 @@ def scene():
 def build(body, ny, **kw):
     torch.manual_seed(0)
     return GarTrans(body.skeleton.num_joints, body.vertices.shape[0], nystrom_dim=ny.shape[1],
-                    **kw)
+                    **dict(PAPER_FORM, **kw))
 
 
 def run(model, scene, static=None, rots=None, tr=None):

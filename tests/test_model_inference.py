@@ -6,8 +6,8 @@ import torch
 from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.garments import make_garment
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
-from garmentgnn.models import GarTrans
-from garmentgnn.models.gartrans import batch_edges, cached_batch_edges
+from garmentgnn.models import PAPER_FORM, GarTrans
+from garmentgnn.models.blocks import batch_edges, cached_batch_edges
 from garmentgnn.motion import make_motion
 
 T, HISTORY = 7, 2
@@ -23,7 +23,7 @@ def scene():
     m = make_motion("walk", body.skeleton, num_frames=T, rest_joints=body.joints)
     torch.manual_seed(0)
     model = GarTrans(body.skeleton.num_joints, body.vertices.shape[0],
-                     nystrom_dim=ny.shape[1]).eval()
+                     nystrom_dim=ny.shape[1], **PAPER_FORM).eval()
     with torch.no_grad():
         static = model.encode_static(g.vertices, g.faces, ei, body.joints, ny, bd)
     args = (static, g.vertices, g.faces, ei, body.joints, body.skeleton.parents)

@@ -15,10 +15,9 @@ non-finite output count, the largest absolute deviation from the float32 output
 (metres), latency (median ms of one call / frames), and a verdict from
 :class:`PrecisionThresholds`.
 
-GarTrans here is untrained and in the paper's form (``lbs_start=False``; with the
-default zero gates an untrained model's output would be plain LBS, hiding the
-networks' own round-off), so the deviations are those of randomly initialised
-weights; a trained model's can differ.
+GarTrans here is untrained and in the paper's form (:data:`~garmentgnn.models.PAPER_FORM`:
+no gates, whose small start would hide the networks' own round-off), so the deviations
+are those of randomly initialised weights; a trained model's can differ.
 
 **Long sequence** (:func:`run_long`): an autoregressive :meth:`GarTrans.rollout` over
 a long procedural motion (1000 frames in the ``small`` preset) on a small garment:
@@ -44,6 +43,7 @@ from garmentgnn.bench import stability as stab
 from garmentgnn.bench.tables import table
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.timing import measure
+from garmentgnn.models import PAPER_FORM
 
 DTYPES: Dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16,
                                   "float16": torch.float16}
@@ -52,8 +52,9 @@ MODES = ("autocast", "cast")
 METHODS = {"gartrans": "GarTrans (untrained)", "lbs": "lbs"}
 #: method name of the long-sequence records
 LONG_METHOD = "GarTrans (untrained, autoregressive)"
-#: the untrained GarTrans of this module: the paper's form (no zero gates)
-MODULE_KWARGS: Dict[str, Any] = {"lbs_start": False}
+#: the untrained GarTrans of this module: the paper's form (no gates, no projection or
+#: strain limit; with the skinning prior)
+MODULE_KWARGS: Dict[str, Any] = dict(PAPER_FORM)
 
 
 @dataclass(frozen=True)
@@ -312,7 +313,7 @@ def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
     if not recs:
         return lines + ["Not run in this preset.", ""]
     lines += ["Every frame of the sequence in one call (GarTrans: static branch included; "
-              "untrained, paper form `lbs_start=False`).  *autocast*: `torch.autocast(\"cpu\", "
+              "untrained, paper form).  *autocast*: `torch.autocast(\"cpu\", "
               "dtype)`; *cast*: model and inputs cast.  Deviation: max |output - float32 "
               "output| over all frames and vertices.", ""]
     lines += _th_line(next((r.get("thresholds") for r in recs if r.get("thresholds")), None),

@@ -27,78 +27,16 @@ learned per-joint code for ``b^[1]``) and the GRU (a still pose history: ``Θ^[1
 """
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
                                 push_outside, unique_edges, vertex_normals)
-from garmentgnn.nn import make_layer
-
-
-def mlp(sizes: Sequence[int], act: nn.Module, last_act: bool = True) -> nn.Sequential:
-    layers: List[nn.Module] = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-        layers.append(nn.Linear(a, b))
-        if last_act or i < len(sizes) - 2:
-            layers.append(act)
-    return nn.Sequential(*layers)
-
-
-def geometric_init_(module: nn.Module) -> None:
-    """Geometric initialisation of linear layers (Atzmon & Lipman, SAL, the paper's
-    [56]): weights ~ N(0, sqrt(2 / fan_out)), zero bias."""
-    for m in module.modules():
-        if isinstance(m, nn.Linear):
-            nn.init.normal_(m.weight, 0.0, (2.0 / m.out_features) ** 0.5)
-            nn.init.zeros_(m.bias)
-
-
-def batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
-    """``copies`` disjoint copies of one graph (frames of a garment), like a PyG
-    ``Batch``; a target-sorted ``edge_index`` stays target-sorted (fast layer path)."""
-    offsets = torch.arange(copies, device=edge_index.device) * num_nodes
-    return (edge_index.unsqueeze(1) + offsets.view(1, -1, 1)).reshape(2, -1)
-
-
-#: batched copies of garment graphs: ``(id(edge_index), copies, num_nodes) ->
-#: (weakref to edge_index, its version, batched edge_index)``
-_BATCHED: Dict[Tuple[int, int, int], Tuple["weakref.ref", int, Tensor]] = {}
-_MAX_BATCHED = 16
-
-
-def cached_batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
-    """:func:`batch_edges`, cached per ``edge_index`` tensor (its identity and version),
-    copy count and node count; one copy is ``edge_index`` itself.
-
-    The batched tensor is built outside inference mode, so it carries a version counter
-    and the layers' CSR plans (:mod:`garmentgnn.nn._graph`) are cached for it too: a
-    sequence predicted in chunks sorts and indexes its batched graph once, not once per
-    layer and chunk.  An ``edge_index`` made in inference mode has no version counter
-    and is not cached (a fresh batch every call)."""
-    if copies == 1:
-        return edge_index
-    try:
-        version = edge_index._version
-    except RuntimeError:  # an inference tensor
-        version = None
-    key = (id(edge_index), copies, num_nodes)
-    hit = _BATCHED.get(key)
-    if hit is not None and hit[0]() is edge_index and hit[1] == version:
-        return hit[2]
-    with torch.inference_mode(False):
-        out = batch_edges(edge_index, copies, num_nodes)
-    if version is not None:
-        while len(_BATCHED) >= _MAX_BATCHED:
-            _BATCHED.pop(next(iter(_BATCHED)))
-        _BATCHED[key] = (weakref.ref(edge_index, lambda _, k=key: _BATCHED.pop(k, None)),
-                         version, out)
-    return out
+from garmentgnn.models.blocks import AttentionStack, cached_batch_edges, geometric_init_, mlp
 
 
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
@@ -110,58 +48,14 @@ BLEND_UNIT = 0.01
 #: autoregressive rollout cannot feed its own error back without limit
 STATE_BOUND, STATE_STEP = 0.2, 0.02
 
-
-class AttentionStack(nn.Module):
-    """Registry layers in series; hidden layers concatenate heads, the last averages."""
-
-    def __init__(self, layer: str, in_channels: int, widths: Sequence[int], heads: int,
-                 edge_dim: int, act: str, last_act: bool) -> None:
-        super().__init__()
-        self.layers = nn.ModuleList()
-        c = in_channels
-        for i, w in enumerate(widths):
-            last = i == len(widths) - 1
-            per_head = w if last else max(1, w // heads)
-            self.layers.append(make_layer(layer, c, per_head, edge_dim=edge_dim, heads=heads,
-                                          concat=not last, validate=False))
-            c = w if last else per_head * heads
-        self.out_channels = c
-        self.act = {"elu": F.elu, "tanh": torch.tanh}[act]
-        #: the same, in place (used when no gradient is recorded: saves an allocation
-        #: and a pass over the node features per layer)
-        self.act_ = {"elu": F.elu_, "tanh": torch.tanh_}[act]
-        self.last_act = last_act
-        self._freeze_dead_edge_output(in_channels, edge_dim)
-
-    def _freeze_dead_edge_output(self, in_channels: int, edge_dim: int) -> None:
-        """The stack returns node features only, so the last layer's edge-output weights
-        (``lin_edge_out`` etc. of edge-updating layers) never get a gradient; mark them
-        ``requires_grad=False`` -- found by one backward pass on a 3-node graph, so it
-        holds for any registry layer -- so that DDP (which insists that every trainable
-        parameter receives a gradient) works without ``find_unused_parameters``."""
-        x = torch.randn(3, in_channels)
-        ei = torch.tensor([[0, 1, 2, 1], [1, 2, 0, 0]])
-        with torch.enable_grad():  # also when the model is built under torch.no_grad()
-            self.forward(x, ei, torch.randn(4, edge_dim)).sum().backward()
-        for p in self.layers[-1].parameters():
-            if p.grad is None:
-                p.requires_grad_(False)
-        self.zero_grad(set_to_none=True)
-
-    def reset_parameters(self) -> None:
-        for layer in self.layers:
-            layer.reset_parameters()
-            for m in layer.modules():
-                if isinstance(m, nn.Linear):
-                    nn.init.kaiming_uniform_(m.weight, a=5 ** 0.5)
-
-    def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
-        e = edge_attr
-        for i, layer in enumerate(self.layers):
-            x, e = layer(x, edge_index, e, return_edge_attr=True)
-            if i < len(self.layers) - 1 or self.last_act:
-                x = self.act_(x) if not torch.is_grad_enabled() else self.act(x)
-        return x
+#: the :class:`GarTrans` arguments of the paper's own form (§3.1, §4.1), where the
+#: defaults (those of ``garmentgnn/configs/gartrans.yaml`` and :class:`GarTransModule`)
+#: differ: no gates, the blend shape, an acceleration output, no strain limit, no
+#: collision projection, no garment state (docs/model.md says why each default differs)
+PAPER_FORM: Dict[str, object] = {"lbs_start": False, "gate_init": 0.0,
+                                 "collision_projection": None, "blend_shape": True,
+                                 "strain_limit": 0, "accel_unit": None,
+                                 "garment_state": False}
 
 
 @dataclass
@@ -177,7 +71,10 @@ class StaticFeatures:
 
 class GarTrans(nn.Module):
     """The full model.  Layer slots take registry names (``sat``, ``gt``, ``gt_edge``,
-    ``structure_aware``, ``gat``), so the paper's ablations are one argument.
+    ``structure_aware``, ``gat``), so the paper's ablations are one argument.  The
+    defaults are the project's (the same in :class:`GarTransModule` and
+    ``garmentgnn/configs/gartrans.yaml``); ``GarTrans(..., **PAPER_FORM)`` is the paper's
+    form (:data:`PAPER_FORM`).
 
     Args:
         num_joints: ``S``.
@@ -187,31 +84,35 @@ class GarTrans(nn.Module):
         heads: attention heads (4 in the paper).
         fps: frame rate (for velocities and ``dt^2``).
         lbs_start: ReZero-style gates (Bachlechner et al., 2021), three learnable
-            scalars initialised to 0 that scale what each learned branch adds to plain
-            skinning: ``W^t = softmax(log W_prior + g_W x3)``,
-            ``T^t = T + g_B B^t``, ``M^{t,d} = M^{t,c} + g_a a dt^2``.  With a skinning
-            prior the untrained model is then exactly LBS with the prior weights, and
-            training moves away from it only as far as the losses ask (docs/model.md).
-            The layers keep the §4.1 initialisation.  ``False``: the paper's form.
+            scalars (started at ``gate_init``) that scale what each learned branch adds
+            to plain skinning: ``W^t = softmax(log W_prior + g_W x3)``,
+            ``T^t = T + g_B B^t``, ``M^{t,d} = M^{t,c} + g_a a u`` (``u``: ``accel_unit``).
+            With a skinning prior and gates at 0 the untrained model is exactly LBS with
+            the prior weights (docs/model.md).  The layers keep the §4.1 initialisation.
+            ``False``: the paper's form.
         collision_projection: margin ``eps`` (metres) of a last, differentiable step that
             moves the vertices of ``M^{t,d}`` closer than ``eps`` to the body (or inside
             it) to ``eps`` outside (:func:`garmentgnn.geometry.push_outside`); applied
             when :meth:`forward` gets the posed body.  ``None`` (the paper): no
             projection; the collision loss (Eq. 10) alone keeps the garment out.
-        blend_shape: ``False`` leaves out the blend shape ``B^t`` (``T^t = T``) and its
-            transformer stack; ``True`` is the paper.
+            Default 2 mm.
+        blend_shape: ``False`` (the default) leaves out the blend shape ``B^t``
+            (``T^t = T``) and its transformer stack; ``True`` is the paper.
         strain_limit: sweeps of a differentiable step, before the collision projection,
             that shortens the edges of ``M^{t,d}`` longer than on the rest garment
             (:func:`garmentgnn.geometry.project_edge_lengths` with ``stretch_only``:
-            Provot's strain limiting); ``0`` (the paper): none.
+            Provot's strain limiting); ``0`` (the paper): none.  Default 10.
         compile_search: ``torch.compile`` the projection's nearest-face search (``compiled``
             of :func:`garmentgnn.geometry.signed_distance`: same result, faster on CPU).
         gate_init: the value the ``lbs_start`` gates start from.  ``0`` makes the
             untrained model exactly LBS but gives every branch behind a gate an exactly
-            zero gradient until the gates have moved; a small value (``0.1``) starts
-            near LBS with a gradient in every branch (``benchmarks/learning.py``).
-        accel_unit: metres of displacement per unit of the dynamic stack's output;
-            ``None`` (the paper): an acceleration, ``a dt^2``.
+            zero gradient until the gates have moved; at ``1`` every branch learns from
+            the first step, and the untrained model is still within a few percent of
+            LBS (its learned logits and outputs start small; docs/model.md,
+            ``benchmarks/learning.py``).
+        accel_unit: metres of displacement per unit of the dynamic stack's output
+            (``0.01``: centimetres); ``None`` (the paper): an acceleration, ``a dt^2``
+            (at 30 fps, 1.1 mm per unit).
         garment_state: not in the paper: the dynamic graph also sees where the garment
             *is* -- its offsets from the coarse mesh at frames ``t-1`` and ``t-2``,
             ``d_1 = x_{t-1} - M^{t-1,c}`` and ``d_1 - d_2`` (bounded, see
@@ -226,10 +127,10 @@ class GarTrans(nn.Module):
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
                  heads: int = 4, fps: float = 30.0, edge_dim: int = 4,
-                 lbs_start: bool = False, collision_projection: Optional[float] = None,
-                 blend_shape: bool = True, strain_limit: int = 0,
-                 compile_search: bool = False, gate_init: float = 0.0,
-                 accel_unit: Optional[float] = None, garment_state: bool = False) -> None:
+                 lbs_start: bool = True, collision_projection: Optional[float] = 0.002,
+                 blend_shape: bool = False, strain_limit: int = 10,
+                 compile_search: bool = False, gate_init: float = 1.0,
+                 accel_unit: Optional[float] = 0.01, garment_state: bool = False) -> None:
         super().__init__()
         self.garment_state = bool(garment_state)
         if not gate_init >= 0:

@@ -45,7 +45,11 @@ REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
 
 
 class GarTransModule(L.LightningModule):
-    """Args:
+    """GarTrans trained by Lightning.  The model defaults are :class:`GarTrans`'s (and
+    ``garmentgnn/configs/gartrans.yaml``'s); ``GarTransModule(..., skin_prior=False,
+    **PAPER_FORM)`` is the paper's form.
+
+    Args:
         num_joints, num_body_vertices, nystrom_dim: model sizes (see
             :attr:`GarmentDataModule.dims`).
         rest_layer, blend_layer, dynamic_layer: registry names of the attention slots.
@@ -58,14 +62,15 @@ class GarTransModule(L.LightningModule):
         skin_prior: start the learned skinning weights from the body's weights
             transferred to the garment (``encode_static(skin_prior=...)``); ``False`` is
             the paper's from-scratch ``W^t``.
-        lbs_start: zero-initialised gates on what the learned branches add to LBS
-            (:class:`GarTrans`'s ``lbs_start``), so training starts from the "LBS only"
-            coarse garment; needs ``skin_prior``.  ``False``: the paper's form.
+        lbs_start: gates on what the learned branches add to LBS (:class:`GarTrans`'s
+            ``lbs_start``, started at ``gate_init``); needs ``skin_prior``.  ``False``:
+            the paper's form.
         collision_projection: margin (metres) of GarTrans's last step that moves
             garment vertices out of the body (:class:`GarTrans`); ``None``: off (the
             paper).  Applied in training and inference alike.
-        blend_shape: ``False`` leaves out GarTrans's blend shape ``B^t``.
-        strain_limit: sweeps of GarTrans's strain-limiting step (``0``: none).
+        blend_shape: ``False`` leaves out GarTrans's blend shape ``B^t`` (``True``: the
+            paper).
+        strain_limit: sweeps of GarTrans's strain-limiting step (``0``: none, the paper).
         compile_search: ``torch.compile`` the nearest-body-face search of the collision
             projection and the collision loss (same results; see docs/model.md).
         gate_init, accel_unit, garment_state: :class:`GarTrans` settings.
@@ -89,9 +94,9 @@ class GarTransModule(L.LightningModule):
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
                  use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True,
-                 collision_projection: float | None = None, blend_shape: bool = True,
-                 strain_limit: int = 0, compile_search: bool = False, gate_init: float = 0.0,
-                 accel_unit: float | None = None, optimizer: str = "adamax",
+                 collision_projection: float | None = 0.002, blend_shape: bool = False,
+                 strain_limit: int = 10, compile_search: bool = False, gate_init: float = 1.0,
+                 accel_unit: float | None = 0.01, optimizer: str = "adamax",
                  garment_state: bool = False, state_noise: float = 0.0,
                  state_dropout: float = 0.0, state_rollout: bool = False) -> None:
         super().__init__()

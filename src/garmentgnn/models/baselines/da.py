@@ -8,7 +8,7 @@ from torch import Tensor, nn
 
 from garmentgnn.geometry import edge_features, vertex_joint_distances, vertex_normals
 from garmentgnn.models.baselines.common import mlp, skin, small_init_
-from garmentgnn.models.gartrans import batch_edges
+from garmentgnn.models.blocks import batch_edges
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.nn import GATBaselineConv
 

@@ -12,7 +12,7 @@ from torch_geometric.utils import scatter
 
 from garmentgnn.geometry import farthest_point_sampling, vertex_normals
 from garmentgnn.models.baselines.common import mlp, small_init_
-from garmentgnn.models.gartrans import batch_edges
+from garmentgnn.models.blocks import batch_edges
 from garmentgnn.models.inputs import GarmentInputs
 
 __all__ = ["CoarseLevel", "HOODStyle", "MLPMessagePassing"]

@@ -1,0 +1,128 @@
+"""The building blocks of :class:`~garmentgnn.models.GarTrans`: MLPs with the §4.1
+geometric initialisation, stacks of registry attention layers, and batched copies of a
+garment graph (the frames of one garment as one PyG-style batch)."""
+from __future__ import annotations
+
+import weakref
+from typing import Dict, List, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from garmentgnn.nn import make_layer
+
+__all__ = ["AttentionStack", "batch_edges", "cached_batch_edges", "geometric_init_", "mlp"]
+
+
+def mlp(sizes: Sequence[int], act: nn.Module, last_act: bool = True) -> nn.Sequential:
+    layers: List[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b))
+        if last_act or i < len(sizes) - 2:
+            layers.append(act)
+    return nn.Sequential(*layers)
+
+
+def geometric_init_(module: nn.Module) -> None:
+    """Geometric initialisation of linear layers (Atzmon & Lipman, SAL, the paper's
+    [56]): weights ~ N(0, sqrt(2 / fan_out)), zero bias."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.normal_(m.weight, 0.0, (2.0 / m.out_features) ** 0.5)
+            nn.init.zeros_(m.bias)
+
+
+def batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
+    """``copies`` disjoint copies of one graph (frames of a garment), like a PyG
+    ``Batch``; a target-sorted ``edge_index`` stays target-sorted (fast layer path)."""
+    offsets = torch.arange(copies, device=edge_index.device) * num_nodes
+    return (edge_index.unsqueeze(1) + offsets.view(1, -1, 1)).reshape(2, -1)
+
+
+#: batched copies of garment graphs: ``(id(edge_index), copies, num_nodes) ->
+#: (weakref to edge_index, its version, batched edge_index)``
+_BATCHED: Dict[Tuple[int, int, int], Tuple["weakref.ref", int, Tensor]] = {}
+_MAX_BATCHED = 16
+
+
+def cached_batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
+    """:func:`batch_edges`, cached per ``edge_index`` tensor (its identity and version),
+    copy count and node count; one copy is ``edge_index`` itself.
+
+    The batched tensor is built outside inference mode, so it carries a version counter
+    and the layers' CSR plans (:mod:`garmentgnn.nn._graph`) are cached for it too: a
+    sequence predicted in chunks sorts and indexes its batched graph once, not once per
+    layer and chunk.  An ``edge_index`` made in inference mode has no version counter
+    and is not cached (a fresh batch every call)."""
+    if copies == 1:
+        return edge_index
+    try:
+        version = edge_index._version
+    except RuntimeError:  # an inference tensor
+        version = None
+    key = (id(edge_index), copies, num_nodes)
+    hit = _BATCHED.get(key)
+    if hit is not None and hit[0]() is edge_index and hit[1] == version:
+        return hit[2]
+    with torch.inference_mode(False):
+        out = batch_edges(edge_index, copies, num_nodes)
+    if version is not None:
+        while len(_BATCHED) >= _MAX_BATCHED:
+            _BATCHED.pop(next(iter(_BATCHED)))
+        _BATCHED[key] = (weakref.ref(edge_index, lambda _, k=key: _BATCHED.pop(k, None)),
+                         version, out)
+    return out
+
+
+class AttentionStack(nn.Module):
+    """Registry layers in series; hidden layers concatenate heads, the last averages."""
+
+    def __init__(self, layer: str, in_channels: int, widths: Sequence[int], heads: int,
+                 edge_dim: int, act: str, last_act: bool) -> None:
+        super().__init__()
+        self.layers = nn.ModuleList()
+        c = in_channels
+        for i, w in enumerate(widths):
+            last = i == len(widths) - 1
+            per_head = w if last else max(1, w // heads)
+            self.layers.append(make_layer(layer, c, per_head, edge_dim=edge_dim, heads=heads,
+                                          concat=not last, validate=False))
+            c = w if last else per_head * heads
+        self.out_channels = c
+        self.act = {"elu": F.elu, "tanh": torch.tanh}[act]
+        #: the same, in place (used when no gradient is recorded: saves an allocation
+        #: and a pass over the node features per layer)
+        self.act_ = {"elu": F.elu_, "tanh": torch.tanh_}[act]
+        self.last_act = last_act
+        self._freeze_dead_edge_output(in_channels, edge_dim)
+
+    def _freeze_dead_edge_output(self, in_channels: int, edge_dim: int) -> None:
+        """The stack returns node features only, so the last layer's edge-output weights
+        (``lin_edge_out`` etc. of edge-updating layers) never get a gradient; mark them
+        ``requires_grad=False`` -- found by one backward pass on a 3-node graph, so it
+        holds for any registry layer -- so that DDP (which insists that every trainable
+        parameter receives a gradient) works without ``find_unused_parameters``."""
+        x = torch.randn(3, in_channels)
+        ei = torch.tensor([[0, 1, 2, 1], [1, 2, 0, 0]])
+        with torch.enable_grad():  # also when the model is built under torch.no_grad()
+            self.forward(x, ei, torch.randn(4, edge_dim)).sum().backward()
+        for p in self.layers[-1].parameters():
+            if p.grad is None:
+                p.requires_grad_(False)
+        self.zero_grad(set_to_none=True)
+
+    def reset_parameters(self) -> None:
+        for layer in self.layers:
+            layer.reset_parameters()
+            for m in layer.modules():
+                if isinstance(m, nn.Linear):
+                    nn.init.kaiming_uniform_(m.weight, a=5 ** 0.5)
+
+    def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
+        e = edge_attr
+        for i, layer in enumerate(self.layers):
+            x, e = layer(x, edge_index, e, return_edge_attr=True)
+            if i < len(self.layers) - 1 or self.last_act:
+                x = self.act_(x) if not torch.is_grad_enabled() else self.act(x)
+        return x
