@@ -191,3 +191,29 @@ def test_model_module_and_config_defaults_agree():
     assert all(PAPER_FORM[k] != model[k] for k in SWITCHES if k not in ("gate_init",
                                                                            "garment_state"))
     assert module["skin_prior"] is True and config.get("skin_prior", True) is True
+
+
+@pytest.mark.parametrize("layer", ["sat", "gt", "gat"])
+def test_attention_stack_initialisation_is_kaiming(layer):
+    """§4.1: every linear map of the attention stacks, PyG ``Linear`` included, is
+    Kaiming-uniform with ``a = sqrt(5)``: within ``1 / sqrt(fan_in)``, with the uniform
+    distribution's standard deviation ``bound / sqrt(3)``."""
+    from torch_geometric.nn import Linear as PyGLinear
+
+    from garmentgnn.models.blocks import AttentionStack
+    torch.manual_seed(0)
+    stack = AttentionStack(layer, 64, [128, 128, 3], 4, 4, "elu", last_act=False)
+    with torch.no_grad():
+        for m in stack.modules():  # spoil every weight: reset_parameters must redo them
+            if isinstance(m, (torch.nn.Linear, PyGLinear)):
+                m.weight.fill_(7.0)
+    stack.reset_parameters()
+    seen = 0
+    for m in stack.modules():
+        if isinstance(m, (torch.nn.Linear, PyGLinear)) and m.weight.numel() >= 512:
+            w = m.weight.detach()
+            bound = 1.0 / w.shape[1] ** 0.5
+            assert float(w.abs().max()) <= bound + 1e-7
+            assert abs(float(w.std()) / (bound / 3 ** 0.5) - 1) < 0.15
+            seen += 1
+    assert seen >= 3

@@ -9,6 +9,8 @@ from typing import Dict, List, Sequence, Tuple
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch_geometric.nn import Linear as PyGLinear
+from torch.nn.parameter import UninitializedParameter
 
 from garmentgnn.nn import make_layer
 
@@ -113,10 +115,15 @@ class AttentionStack(nn.Module):
         self.zero_grad(set_to_none=True)
 
     def reset_parameters(self) -> None:
+        """§4.1: Kaiming initialisation (uniform, ``a = sqrt(5)``: bound
+        ``1 / sqrt(fan_in)``) of every linear map of every layer -- PyG's ``Linear`` (the
+        registry layers') and ``torch.nn.Linear`` alike -- after the layer's own reset
+        (which sets the biases and any other parameter)."""
         for layer in self.layers:
             layer.reset_parameters()
             for m in layer.modules():
-                if isinstance(m, nn.Linear):
+                if isinstance(m, (nn.Linear, PyGLinear)) and not isinstance(
+                        m.weight, UninitializedParameter):
                     nn.init.kaiming_uniform_(m.weight, a=5 ** 0.5)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
