@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -286,22 +288,33 @@ def part_curves(root: Path, out: Path, steps: int, every: int, variants: Sequenc
     return {"results": res, "markdown": lines}
 
 
+#: the curves plot's top (E_dist / LBS): a diverging variant is clipped there and says so
+#: in the legend, so that it does not flatten the differences near 1
+PLOT_TOP = 1.5
+
+
 def plot_curves(res: Dict[str, Any], path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    low = PLOT_TOP
     for ax, split in zip(axes, ("train", "test")):
         for name, r in res["variants"].items():
             c = r["curve"]
-            if c:
-                ax.plot([row["step"] for row in c], [row[split] / res["lbs"][split] for row in c],
-                        label=name)
+            if not c:
+                continue
+            y = [row[split] / res["lbs"][split] for row in c]
+            low = min(low, min(y))
+            label = name if max(y) <= PLOT_TOP else f"{name} (up to {max(y):.1f}x: clipped)"
+            ax.plot([row["step"] for row in c], [min(v, PLOT_TOP) for v in y], marker=".",
+                    label=label)
         ax.axhline(1.0, color="k", lw=0.8, ls="--")
-        ax.set_title(f"{split} sequences")
+        ax.set_title(f"{split} sequences (LBS {res['lbs'][split]:.2f} cm = 1)")
         ax.set_xlabel("optimizer steps")
+        ax.legend(fontsize=7, loc="upper left")
+    axes[0].set_ylim(max(0.0, low - 0.05), PLOT_TOP + 0.02)
     axes[0].set_ylabel("E_dist / LBS")
-    axes[1].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -332,7 +345,10 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     torch.set_num_threads(args.threads)
     root, out = Path(args.data), output_path(args, RESULTS)
     out.mkdir(parents=True, exist_ok=True)
-    command = "python benchmarks/learning.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    words = [w.replace(str(Path.home()), "~", 1) if w.startswith(str(Path.home())) else w
+             for w in (sys.argv[1:] if argv is None else argv)]
+    command = "python benchmarks/learning.py " + " ".join(
+        w if re.fullmatch(r"[\w@%+=:,./~-]+", w) else shlex.quote(w) for w in words)
     for part in args.parts:
         if part == "grad":
             r = part_grad(root, out, args.methods)
