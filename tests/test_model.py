@@ -119,10 +119,12 @@ def test_autoregressive_rollout_feeds_back_its_own_prediction(scene):
             torch.testing.assert_close(step["final"][0], ar["final"][t], atol=1e-5, rtol=1e-5)
         # the feedback path is live: a different garment before frame 0 changes frame 0
         # and, through it, frame 1
-        first = coarse_prev[0] + 0.01
+        # (each step passes a change on through the velocity times dt^2: 10 cm before
+        # frame 0 moves frame 0 by ~0.5 mm and frame 1 by ~1 um, 20 float32 ulps)
+        first = coarse_prev[0] + 0.1
         ar2 = model.rollout(*args, rots, tr, first=first)
-        assert not torch.allclose(ar2["final"][0], ar["final"][0], atol=1e-5)
-        assert not torch.allclose(ar2["final"][1], ar["final"][1], atol=1e-7)
+        assert not torch.allclose(ar2["final"][0], ar["final"][0], rtol=0, atol=1e-5)
+        assert not torch.allclose(ar2["final"][1], ar["final"][1], rtol=0, atol=1e-7)
         with pytest.raises(ValueError, match="prev_final"):
             model(*args, rots[:2], tr[:2], prev_final=ar["final"][:1])
 
