@@ -7,30 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import lbs_simulate
+from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
-from garmentgnn.data import Spec, generate, motion_key, store
+from garmentgnn.data import store
 from garmentgnn.models.gartrans import STATE_BOUND
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 
-NY = 8
-
 
 @pytest.fixture(scope="module")
-def root(tmp_path_factory):
-    out = tmp_path_factory.mktemp("learning")
-    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
-    b = [{"model": "capsule", "shape": "regular"}]
-    m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
-    spec = Spec("t", g, b, m, ["silk"], held_out={"val": {"motions": [motion_key(m[1])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
-    assert s.done == 2 and s.failed == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def dm(root):
+def dm(root):  # noqa: F811
     d = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16, seed=0)
     d.setup()
     return d
@@ -66,7 +52,7 @@ def test_zero_gates_leave_the_gated_branches_without_gradient(dm):
     assert rep["gates"]["with_grad"] == 1
 
 
-def test_previous_frames_are_the_simulated_frames_before(root, dm):
+def test_previous_frames_are_the_simulated_frames_before(root, dm):  # noqa: F811
     item = dm.train_set[1]  # frames 4..7 of the first training sequence
     seq = store.load_record_sequence(root, dm.train_set.records[0])
     pos = np.asarray(seq["positions"], np.float32)
@@ -139,17 +125,17 @@ def test_teacher_forcing_noise_and_dropout(dm):
         none = module.model(module.encode_static(item), item.rest_pos, item.faces,
                             item.edge_index, item.rest_joints, item.parents, item.rotations,
                             item.translation)["final"]
-        torch.testing.assert_close(module.teacher_forced(item)["final"], none)
+        torch.testing.assert_close(module.training_forward(item)["final"], none)
         noisy = gartrans(dm, **_plain(state_noise=0.01))
         # closed gates: the prediction is the (noisy) previous frame + LBS motion
         lbs = clamped(item)
-        d = noisy.teacher_forced(item)["final"] - (item.gt_prev[:, 1] + lbs.skinned()
+        d = noisy.training_forward(item)["final"] - (item.gt_prev[:, 1] + lbs.skinned()
                                                   - lbs.history_slot(-2).skinned())
         assert 0.007 < float(d.std()) < 0.013  # the noise (1 cm), nearly unchanged
     bare = copy.copy(item)
     del bare.gt_prev
     with pytest.raises(ValueError, match="gt_prev"):
-        module.teacher_forced(bare)
+        module.training_forward(bare)
 
 
 def test_state_arguments_are_checked(dm):
@@ -217,3 +203,26 @@ def test_attention_stack_initialisation_is_kaiming(layer):
             assert abs(float(w.std()) / (bound / 3 ** 0.5) - 1) < 0.15
             seen += 1
     assert seen >= 3
+
+
+def test_checkpoint_from_before_accel_unit_keeps_its_acceleration_output(dm, tmp_path):
+    """A checkpoint saved before ``accel_unit`` existed holds no such hyper-parameter;
+    its model output an acceleration.  Loaded with today's default (centimetres) it
+    would predict other positions without a word; it loads as it was saved."""
+    from garmentgnn.training.integrity import stamp_checkpoint
+    old = gartrans(dm, accel_unit=None).eval()
+    item = dm.train_set[1]
+    paths = {}
+    for name, drop in (("old", True), ("new", False)):
+        hp = {k: v for k, v in old.hparams.items() if not (drop and k == "accel_unit")}
+        ckpt = {"state_dict": old.state_dict(), "hyper_parameters": hp,
+                "pytorch-lightning_version": L.__version__}
+        stamp_checkpoint(ckpt)
+        paths[name] = tmp_path / f"{name}.ckpt"
+        torch.save(ckpt, paths[name])
+    loaded = GarTransModule.load_from_checkpoint(paths["old"]).eval()
+    assert loaded.model.accel_unit is None and loaded.hparams.accel_unit is None
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(item)["final"], old(item)["final"])
+    assert GarTransModule.load_from_checkpoint(paths["new"]).model.accel_unit is None
+    assert GarTransModule(**dm.dims).model.accel_unit == 0.01  # today's default

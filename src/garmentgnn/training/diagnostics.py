@@ -27,8 +27,7 @@ def training_loss(module: L.LightningModule, batch: Any) -> torch.Tensor:
     """The total loss of one training step of ``module`` on ``batch`` (its
     ``compute_loss``: GarTrans calls its forward first)."""
     if isinstance(module, GarTransModule):
-        out = module.teacher_forced(batch) if module.model.garment_state else module(batch)
-        total, _ = module.compute_loss(batch, out)
+        total, _ = module.compute_loss(batch, module.training_forward(batch))
     else:
         total, _ = module.compute_loss(batch)
     return total

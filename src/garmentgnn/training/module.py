@@ -168,10 +168,14 @@ class GarTransModule(L.LightningModule):
                    inp.parents, inp.rotations, inp.translation, body_pos=inp.get("body_pos"),
                    body_faces=inp.get("body_faces"))
 
-    def teacher_forced(self, inp: GarmentInputs) -> dict[str, torch.Tensor]:
-        """``garment_state`` training: every frame of ``inp`` in parallel, the state the
-        simulated frames ``t-2, t-1`` (``inp.gt_prev``) with ``state_noise`` on frame
-        ``t-1``, or no state for a ``state_dropout`` share of the chunks."""
+    def training_forward(self, inp: GarmentInputs) -> dict[str, torch.Tensor]:
+        """The prediction a training step scores: :meth:`forward` (frame-parallel), or
+        with ``garment_state`` every frame of ``inp`` given the simulated frames
+        ``t-2, t-1`` (``inp.gt_prev``) as its state, with ``state_noise`` on frame ``t-1``
+        (teacher forcing), or the model's own rollout of the chunk from the frames before
+        it (``state_rollout``); no state for a ``state_dropout`` share of the chunks."""
+        if not self.model.garment_state:
+            return self(inp)
         hp = self.hparams
         state = inp.get("gt_prev")
         if state is None:
@@ -195,7 +199,7 @@ class GarTransModule(L.LightningModule):
         return self.loss_fn(inp)  # NaN/inf raises NonFiniteLossError naming the term
 
     def training_step(self, batch: GarmentInputs, batch_idx: int):
-        out = self.teacher_forced(batch) if self.model.garment_state else self(batch)
+        out = self.training_forward(batch)
         B = out["final"].shape[0]
         # raises NonFiniteLossError naming the term; Trainer.fit re-raises it (stops)
         total, terms = self.compute_loss(batch, out)
@@ -235,6 +239,11 @@ class GarTransModule(L.LightningModule):
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         verify_checkpoint(checkpoint)
+        if "accel_unit" not in checkpoint.get("hyper_parameters", {"accel_unit": None}):
+            # saved before ``accel_unit`` existed: its dynamic output was an acceleration
+            # (``a dt^2``), not the centimetres of today's default
+            self.model.accel_unit = None
+            self.hparams.accel_unit = None
 
     def configure_optimizers(self):
         opt = OPTIMIZERS[self.hparams.get("optimizer", "adamax")](self.parameters(),
