@@ -175,14 +175,17 @@ def lbs_error(items: Sequence[Any]) -> float:
 
 
 # ------------------------------------------------------------------------- the parts
-def part_grad(root: Path, out: Path, only: Optional[Sequence[str]] = None) -> Dict[str, Any]:
+def part_grad(root: Path, out: Path, only: Optional[Sequence[str]] = None,
+              variants: Sequence[str] = ()) -> Dict[str, Any]:
     dm = datamodule(root)
     dims = dm.dims
     item = dm.train_set[0]
     res: Dict[str, Any] = {}
-    for name, make in methods(dims, item.num_vertices).items():
-        if only is not None and name not in only:
-            continue
+    todo = {k: v for k, v in methods(dims, item.num_vertices).items()
+            if only is None or k in only}
+    for v in variants:  # GarTrans with other settings
+        todo[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
+    for name, make in todo.items():
         torch.manual_seed(0)
         rep = branch_gradients(make(), item)
         res[name] = {"branches": rep, "dead": dead_branches(rep)}
@@ -331,7 +334,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     ap.add_argument("--every", type=int, default=50, help="steps between measurements")
     ap.add_argument("--variants", nargs="+", default=None, choices=list(VARIANTS),
                     help="GarTrans settings compared by `curves` (default: all) and added to "
-                         "`overfit` (default: none)")
+                         "`grad` and `overfit` (default: none)")
     ap.add_argument("--methods", nargs="+", default=None,
                     help="the methods `grad` and `overfit` run (default: every learned "
                          "method of the bench)")
@@ -351,7 +354,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         w if re.fullmatch(r"[\w@%+=:,./~-]+", w) else shlex.quote(w) for w in words)
     for part in args.parts:
         if part == "grad":
-            r = part_grad(root, out, args.methods)
+            r = part_grad(root, out, args.methods, args.variants or ())
         elif part == "overfit":
             r = part_overfit(root, out, args.steps, args.every, args.methods,
                              args.variants or ())
