@@ -12,7 +12,8 @@ same Lightning ``Trainer``:
   E_dist on the chunk against steps, and LBS's.
 * ``curves``: GarTrans settings (``--variants``, :data:`VARIANTS`) trained for the same
   ``--steps`` on the training split; E_dist on the training and test sequences every
-  ``--every`` steps, as a ratio to LBS's on the same sequences.
+  ``--every`` steps, as a ratio to LBS's on the same sequences (``--surface``: the
+  normal, edge-length and curvature errors too).
 
 Each writes ``<part>.json`` and ``<part>.md`` (curves also ``<part>.png``) into
 ``~/.cache/garmentgnn/benchmarks/learning``, ``--out``, or with ``--commit`` the committed
@@ -38,10 +39,12 @@ import torch
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.bench.methods import BASELINES, DA, DATA, GARTRANS, HOOD, NCS, variant_settings
 from garmentgnn.bench.tables import table
-from garmentgnn.metrics.garment_metrics import vertex_distance
+from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule, SequenceChunks
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 
+#: the surface metrics ``curves --surface`` adds (E_dist is always measured)
+SURFACE = ("E_vnorm", "E_fnorm", "E_len", "E_curv")
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "learning"
 
 #: GarTrans settings compared by ``curves``: model overrides of the packaged config and
@@ -137,8 +140,9 @@ class Probe(L.Callback):
     """E_dist (cm) of ``sets`` (name -> list of whole-sequence items) every ``every``
     optimizer steps, and at step 0."""
 
-    def __init__(self, sets: Dict[str, List[Any]], every: int, label: str = "") -> None:
-        self.sets, self.every, self.label = sets, every, label
+    def __init__(self, sets: Dict[str, List[Any]], every: int, label: str = "",
+                 surface: bool = False) -> None:
+        self.sets, self.every, self.label, self.surface = sets, every, label, surface
         self.rows: List[Dict[str, Any]] = []
         self.t0 = time.perf_counter()
         self.train_seconds = 0.0
@@ -149,14 +153,24 @@ class Probe(L.Callback):
         module.eval()
         row: Dict[str, Any] = {"step": step, "train_seconds": self.train_seconds}
         for name, items in self.sets.items():
-            errs = [float(vertex_distance(predict(module, it), it.gt).mean()) * it.gt.shape[0]
-                    for it in items]
+            preds = [predict(module, it) for it in items]
+            errs = [float(vertex_distance(p, it.gt).mean()) * it.gt.shape[0]
+                    for p, it in zip(preds, items)]
             row[name] = sum(errs) / sum(it.gt.shape[0] for it in items)
+            if self.surface:  # the other Table 3 metrics, frame-weighted
+                row[f"{name}_metrics"] = self.weighted(
+                    [(evaluate_inputs(p, it), it) for p, it in zip(preds, items)])
         module.train(was)
         self.rows.append(row)
         print(f"  {self.label} step {step}: " + ", ".join(f"{k} {row[k]:.3f} cm"
                                                       for k in self.sets), flush=True)
         self.t0 += time.perf_counter() - t  # evaluation is not training time
+
+    @staticmethod
+    def weighted(scored: List[Any]) -> Dict[str, float]:
+        """The :data:`SURFACE` metrics of ``(metrics, item)`` pairs, weighted by frames."""
+        frames = sum(it.gt.shape[0] for _, it in scored)
+        return {k: sum(m[k] * it.gt.shape[0] for m, it in scored) / frames for k in SURFACE}
 
     def on_train_start(self, trainer, pl_module) -> None:
         self.t0 = time.perf_counter()
@@ -246,7 +260,7 @@ def part_overfit(root: Path, out: Path, steps: int, every: int,
 
 
 def part_curves(root: Path, out: Path, steps: int, every: int, variants: Sequence[str],
-                train_sequences: int, seed: int) -> Dict[str, Any]:
+                train_sequences: int, seed: int, surface: bool = False) -> Dict[str, Any]:
     dm = datamodule(root, seed)
     dims = dm.dims
     kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
@@ -258,11 +272,14 @@ def part_curves(root: Path, out: Path, steps: int, every: int, variants: Sequenc
             "test": [test[i] for i in range(len(test))]}
     lbs = {k: lbs_error(v) for k, v in sets.items()}
     res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seed": seed, "variants": {}}
+    if surface:
+        res["lbs_metrics"] = {k: Probe.weighted([(evaluate_inputs(it.skinned(), it), it)
+                                                  for it in v]) for k, v in sets.items()}
     for name in variants:
         v = VARIANTS[name]
         L.seed_everything(seed, verbose=False)
         module = gartrans(dims, overrides=v.get("model"))
-        probe = Probe(sets, every, name)
+        probe = Probe(sets, every, name, surface)
         t = time.perf_counter()
         try:
             _trainer(steps, [probe], **v.get("trainer", {})).fit(module, datamodule(root, seed))
@@ -288,6 +305,15 @@ def part_curves(root: Path, out: Path, steps: int, every: int, variants: Sequenc
     lines = [f"E_dist / LBS's (LBS: train {lbs['train']:.3f} cm over {len(sets['train'])} "
              f"sequences, test {lbs['test']:.3f} cm over {len(sets['test'])}), seed {seed}:", ""]
     lines += table(["variant", "steps", "train", "test", "best test", "failure"], rows)
+    if surface:
+        lm = res["lbs_metrics"]["test"]
+        srows = [["LBS", "—"] + [f"{lm[k]:.4g}" for k in SURFACE]]
+        for name, r in res["variants"].items():
+            if r["curve"] and "test_metrics" in r["curve"][-1]:
+                m = r["curve"][-1]["test_metrics"]
+                srows.append([name, str(r["curve"][-1]["step"])] + [f"{m[k]:.4g}" for k in SURFACE])
+        lines += ["", "Test split at the last step (degrees, degrees, %, rad):", ""]
+        lines += table(["variant", "steps", *SURFACE], srows)
     return {"results": res, "markdown": lines}
 
 
@@ -341,6 +367,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     ap.add_argument("--train-sequences", type=int, default=6,
                     help="training sequences measured by `curves` (evenly spaced)")
     ap.add_argument("--seed", type=int, default=0, help="training seed (curves)")
+    ap.add_argument("--surface", action="store_true",
+                    help="curves: also the normal, edge-length and curvature errors")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     args = ap.parse_args(argv)
     if args.steps < 1 or args.every < 1:
@@ -360,7 +388,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
                              args.variants or ())
         else:
             r = part_curves(root, out, args.steps, args.every, args.variants or list(VARIANTS),
-                            args.train_sequences, args.seed)
+                            args.train_sequences, args.seed, args.surface)
             plot_curves(r["results"], out / f"{part}.png")
         (out / f"{part}.json").write_text(json.dumps({"command": command, **r["results"]},
                                                      indent=1))
