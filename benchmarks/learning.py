@@ -101,12 +101,17 @@ def baseline(method: str, dims: Dict[str, int], num_vertices: int) -> BaselineMo
                           fps=30.0, history=DATA["history"], **cfg)
 
 
-def methods(dims: Dict[str, int], num_vertices: int) -> Dict[str, Callable[[], L.LightningModule]]:
-    """Every learned method of the bench, freshly built (phase-1 losses for GarTrans)."""
+def methods(dims: Dict[str, int], num_vertices: int, only: Optional[Sequence[str]] = None,
+            variants: Sequence[str] = ()) -> Dict[str, Callable[[], L.LightningModule]]:
+    """Every learned method of the bench (or those named in ``only``), freshly built
+    (phase-1 losses for GarTrans), and GarTrans with each of ``variants``' settings."""
     out: Dict[str, Callable[[], L.LightningModule]] = {
         m: (lambda m=m: gartrans(dims, m)) for m in GARTRANS}
     for m in (DA, HOOD, NCS):
         out[m] = lambda m=m: baseline(m, dims, num_vertices)
+    out = {k: v for k, v in out.items() if only is None or k in only}
+    for v in variants:
+        out[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
     return out
 
 
@@ -189,17 +194,13 @@ def lbs_error(items: Sequence[Any]) -> float:
 
 
 # ------------------------------------------------------------------------- the parts
-def part_grad(root: Path, out: Path, only: Optional[Sequence[str]] = None,
+def part_grad(root: Path, only: Optional[Sequence[str]] = None,
               variants: Sequence[str] = ()) -> Dict[str, Any]:
     dm = datamodule(root)
     dims = dm.dims
     item = dm.train_set[0]
     res: Dict[str, Any] = {}
-    todo = {k: v for k, v in methods(dims, item.num_vertices).items()
-            if only is None or k in only}
-    for v in variants:  # GarTrans with other settings
-        todo[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
-    for name, make in todo.items():
+    for name, make in methods(dims, item.num_vertices, only, variants).items():
         torch.manual_seed(0)
         rep = branch_gradients(make(), item)
         res[name] = {"branches": rep, "dead": dead_branches(rep)}
@@ -215,7 +216,7 @@ def part_grad(root: Path, out: Path, only: Optional[Sequence[str]] = None,
     return {"results": res, "markdown": lines}
 
 
-def part_overfit(root: Path, out: Path, steps: int, every: int,
+def part_overfit(root: Path, steps: int, every: int,
                  only: Optional[Sequence[str]] = None,
                  variants: Sequence[str] = ()) -> Dict[str, Any]:
     dm = datamodule(root)
@@ -224,11 +225,7 @@ def part_overfit(root: Path, out: Path, steps: int, every: int,
     lbs = lbs_error([item])
     res: Dict[str, Any] = {"chunk": {"seq_id": item.seq_id, "frames": item.num_frames,
                                      "vertices": item.num_vertices}, "lbs": lbs, "methods": {}}
-    todo = {k: v for k, v in methods(dims, item.num_vertices).items()
-            if only is None or k in only}
-    for v in variants:  # GarTrans with other settings
-        todo[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
-    for name, make in todo.items():
+    for name, make in methods(dims, item.num_vertices, only, variants).items():
         torch.manual_seed(0)
         module = make()
         probe = Probe({"chunk": [item]}, every, name)
@@ -259,7 +256,7 @@ def part_overfit(root: Path, out: Path, steps: int, every: int,
     return {"results": res, "markdown": lines}
 
 
-def part_curves(root: Path, out: Path, steps: int, every: int, variants: Sequence[str],
+def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 train_sequences: int, seed: int, surface: bool = False) -> Dict[str, Any]:
     dm = datamodule(root, seed)
     dims = dm.dims
@@ -382,12 +379,12 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         w if re.fullmatch(r"[\w@%+=:,./~-]+", w) else shlex.quote(w) for w in words)
     for part in args.parts:
         if part == "grad":
-            r = part_grad(root, out, args.methods, args.variants or ())
+            r = part_grad(root, args.methods, args.variants or ())
         elif part == "overfit":
-            r = part_overfit(root, out, args.steps, args.every, args.methods,
+            r = part_overfit(root, args.steps, args.every, args.methods,
                              args.variants or ())
         else:
-            r = part_curves(root, out, args.steps, args.every, args.variants or list(VARIANTS),
+            r = part_curves(root, args.steps, args.every, args.variants or list(VARIANTS),
                             args.train_sequences, args.seed, args.surface)
             plot_curves(r["results"], out / f"{part}.png")
         (out / f"{part}.json").write_text(json.dumps({"command": command, **r["results"]},
