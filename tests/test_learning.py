@@ -226,3 +226,11 @@ def test_checkpoint_from_before_accel_unit_keeps_its_acceleration_output(dm, tmp
         torch.testing.assert_close(loaded(item)["final"], old(item)["final"])
     assert GarTransModule.load_from_checkpoint(paths["new"]).model.accel_unit is None
     assert GarTransModule(**dm.dims).model.accel_unit == 0.01  # today's default
+
+
+def test_model_can_be_built_under_no_grad(dm):
+    """Building GarTrans inside ``torch.no_grad()`` crashed ("element 0 of tensors does not
+    require grad"): the attention stacks find their dead edge outputs by a backward pass."""
+    with torch.no_grad():
+        module = gartrans(dm)
+    assert any(p.requires_grad for p in module.model.dynamic.parameters())
