@@ -239,7 +239,8 @@ class GarTransModule(L.LightningModule):
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         verify_checkpoint(checkpoint)
-        if "accel_unit" not in checkpoint.get("hyper_parameters", {"accel_unit": None}):
+        saved = checkpoint.get("hyper_parameters")
+        if saved is not None and "accel_unit" not in saved:
             # saved before ``accel_unit`` existed: its dynamic output was an acceleration
             # (``a dt^2``), not the centimetres of today's default
             self.model.accel_unit = None
