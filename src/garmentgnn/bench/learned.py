@@ -25,14 +25,13 @@ One bench run (:func:`garmentgnn.bench.harness.run`) with a preset that has a
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import io
 import json
 import logging
 import time
 import traceback
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -42,6 +41,8 @@ from torch import Tensor
 
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench import scoring
+from garmentgnn.bench.curves import LearningCurve
+from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
 from garmentgnn.bench.methods import (BASELINES, DATA, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
                                       METHOD_NAMES, NCS, LearnedBudget, variant_settings)
 from garmentgnn.bench.model_inputs import BenchChunks
@@ -65,62 +66,6 @@ SIMULATOR = "simulator (dataset settings)"
 STABILITY_CHUNK = 50
 #: stability cases the simulator leaves out there (``long_1000``: about 50 min)
 SIMULATOR_SKIPS: Tuple[str, ...] = ("long_1000",)
-
-
-# --------------------------------------------------------------------------- dataset
-@dataclass
-class DatasetInfo:
-    """A generated dataset's folder, spec name, fingerprint (of its ok items' ids,
-    splits, frame counts and generating code versions), ok sequence / frame counts per
-    split and content hash (``garmentgnn.data.store.content_sha256``)."""
-
-    root: Path
-    name: str
-    fingerprint: str
-    sequences: Dict[str, int]
-    frames: Dict[str, int]
-    content_sha256: Optional[str] = None
-
-    @property
-    def case(self) -> str:
-        """The records' ``case``: another dataset gives other records."""
-        return f"{self.name}-{self.fingerprint[:8]}/test"
-
-    def to_json(self) -> Dict[str, Any]:
-        return dict(asdict(self), root=str(self.root))
-
-
-def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
-                    progress: bool = True) -> DatasetInfo:
-    """The dataset under ``root``; with ``preset_name``, first generate (or finish
-    generating) that :func:`garmentgnn.data.generate.preset` there.
-
-    Raises ``ValueError`` naming ``data`` when ``root`` holds no manifest or no ok
-    ``train`` / ``test`` sequences."""
-    root = Path(root)
-    if preset_name is not None:
-        from garmentgnn.data import generate, preset
-        if not isinstance(workers, int) or workers < 0:
-            raise ValueError(f"`workers`: expected a non-negative int, got {workers!r}")
-        generate(preset(preset_name), root, workers=workers, progress=progress,
-                 log=None if progress else (lambda msg: None))
-    try:
-        man = store.read_manifest(root)
-    except (OSError, ValueError) as err:
-        raise ValueError(f"`data`: {root} is not a generated dataset (no readable "
-                         f"manifest.json: {err})") from err
-    ok = [r for r in man.get("items", []) if r.get("status") == "ok"]
-    seqs = {s: sum(r["split"] == s for r in ok) for s in ("train", "val", "test")}
-    frames = {s: sum(int(r["num_frames"]) for r in ok if r["split"] == s)
-              for s in ("train", "val", "test")}
-    for s in ("train", "test"):
-        if not seqs[s]:
-            raise ValueError(f"`data`: {root} has no ok {s!r} sequences ({man.get('counts')})")
-    digest = hashlib.sha1(json.dumps(sorted(
-        (r["id"], r["split"], int(r["num_frames"]), str((r.get("code") or {}).get("version")))
-        for r in ok)).encode())
-    return DatasetInfo(root, str(man.get("name", root.name)), digest.hexdigest(), seqs, frames,
-                       store.content_sha256(ok))
 
 
 # --------------------------------------------------------------------------- helpers
@@ -173,6 +118,9 @@ class _Predictor:
     predict: Callable[[SequenceChunks, int, GarmentInputs], Tensor]
     make_batch: Callable[[GarmentInputs, int], Callable[[], Any]]
     note: str
+    #: the trained module and its weights at the budget's ``equal_steps`` (if reached)
+    module: Optional[torch.nn.Module] = None
+    snapshot: Optional[Path] = None
 
 
 # --------------------------------------------------------------------------- runner
@@ -200,6 +148,12 @@ class LearnedRunner:
         if budget.test_sequences is not None:  # the same subset for every method
             ids = scoring.stratified(self.test.records, budget.test_sequences)
             self.test = SequenceChunks(data.root, "test", ids=ids, **kw)
+        self.val: Optional[SequenceChunks] = None
+        if budget.curve_every is not None:
+            if not data.sequences.get("val"):
+                raise ValueError(f"`budget`: curve_every needs a `val` split; {data.root} has "
+                                 "none (set curve_every=None)")
+            self.val = SequenceChunks(data.root, "val", **kw)
         self._trained: Dict[Tuple[str, int], Tuple[_Predictor, Dict[str, Any]]] = {}
         self._warm_up_compiled_search()
 
@@ -226,6 +180,8 @@ class LearnedRunner:
             pred, info = self.trained(method, seed)
             rec.update(info)
             rec.update(self.evaluate(pred))
+            if self.budget.equal_steps is not None and pred.module is not None:
+                rec["equal_steps"] = self.at_snapshot(pred)
             if method in BASELINES and seed == 0:
                 self.save_prediction(method, pred)
             rec["timing"] = self.timing(pred)
@@ -304,6 +260,32 @@ class LearnedRunner:
         return {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
                 "test_frames": sum(s["frames"] for s in per_seq)}
 
+    def at_snapshot(self, pred: _Predictor) -> Dict[str, Any]:
+        """:meth:`evaluate` of ``pred``'s weights after the budget's ``equal_steps``
+        (``reached: False`` when its training stopped before)."""
+        step = self.budget.equal_steps
+        if pred.snapshot is None or not pred.snapshot.exists():
+            return {"step": step, "reached": False}
+        state = torch.load(pred.snapshot, map_location="cpu", weights_only=False)
+        final = {k: v.clone() for k, v in pred.module.state_dict().items()}
+        pred.module.load_state_dict(state["state_dict"])
+        try:
+            res = self.evaluate(pred)
+        finally:
+            pred.module.load_state_dict(final)
+        return {"step": int(state["step"]), "reached": True, "metrics": res["metrics"],
+                "per_sequence": res["per_sequence"]}
+
+    def val_error(self, predict: Callable[[L.LightningModule, GarmentInputs], Tensor]
+                  ) -> Callable[[L.LightningModule], float]:
+        """The validation E_dist (cm) of a module: ``predict(module, item)`` scored on
+        every ``val`` sequence (:mod:`garmentgnn.bench.scoring`), on the module's device."""
+        def run(module: L.LightningModule) -> float:
+            per = scoring.score(lambda i, item: predict(module, item.to(module.device)).cpu(),
+                                self.val)
+            return scoring.aggregate(per)["all"]["E_dist"]
+        return run
+
     def timing(self, pred: _Predictor) -> Dict[str, Any]:
         """Latency at batch 1, throughput at the best batch, peak memory of predicting
         the first test sequence."""
@@ -339,15 +321,25 @@ class LearnedRunner:
         return folder
 
     def fit(self, module: L.LightningModule, dm: GarmentDataModule, folder: Path, epochs: int,
-            callbacks: Sequence[L.Callback] = (), minutes: Optional[float] = None
+            callbacks: Sequence[L.Callback] = (), minutes: Optional[float] = None,
+            predict: Optional[Callable[[L.LightningModule, GarmentInputs], Tensor]] = None
             ) -> Dict[str, Any]:
         """Fit ``module`` on ``dm`` for ``epochs`` (at most, with a ``minutes`` budget:
-        :class:`TimeBudget`) with one Lightning ``Trainer`` set-up (every method),
-        resuming from ``folder/last.ckpt``; returns the epochs and steps done, the
-        training wall time and the epoch it resumed from."""
+        :class:`TimeBudget`) with one Lightning ``Trainer`` set-up (every method, on the
+        accelerator Lightning picks), resuming from ``folder/last.ckpt``; with
+        ``predict(module, item)`` and the budget's ``curve_every``, its learning curve
+        (:class:`LearningCurve`) and ``equal_steps`` snapshot (``folder/equal_steps.pt``).
+        Returns the epochs and steps done, the training wall time (validation excluded),
+        the epoch it resumed from, the device and the curve; ``module`` ends on the CPU."""
         from lightning.pytorch.callbacks import ModelCheckpoint
         clock = TrainClock()
         budget = [TimeBudget(60.0 * minutes)] if minutes is not None else []
+        curve = None
+        if predict is not None and self.val is not None:
+            snap = self.budget.equal_steps
+            curve = LearningCurve(self.budget.curve_every, self.val_error(predict), snap,
+                                  None if snap is None else folder / "equal_steps.pt",
+                                  budget[0] if budget else None)
         # save_top_k=1 without a monitor keeps the latest epoch's checkpoint; last.ckpt
         # links to it (Lightning writes last.ckpt only along with a top-k checkpoint)
         ckpt = ModelCheckpoint(dirpath=folder, save_last="link", save_top_k=1,
@@ -359,18 +351,25 @@ class LearnedRunner:
             except Exception:
                 last.replace(folder / "last.ckpt.unreadable")
         with _quiet_lightning():
-            trainer = L.Trainer(max_epochs=epochs, accelerator="cpu", devices=1, logger=False,
+            trainer = L.Trainer(max_epochs=epochs, accelerator="auto", devices=1, logger=False,
                                 enable_checkpointing=True, enable_progress_bar=False,
                                 enable_model_summary=False,
-                                callbacks=[*callbacks, *budget, clock, ckpt], limit_val_batches=0,
+                                callbacks=[*callbacks, *budget, *([curve] if curve else []),
+                                           clock, ckpt], limit_val_batches=0,
                                 limit_train_batches=self.budget.epoch_chunks,
                                 num_sanity_val_steps=0, default_root_dir=folder)
             trainer.fit(module, dm, ckpt_path=str(last) if last.exists() else None)
-        module.eval()
+        device = str(trainer.strategy.root_device)
+        module.cpu().eval()
         info = {"epochs": clock.epochs, "train_seconds": clock.seconds,
-                "resumed_from_epoch": clock.restored_epochs, "checkpoint": str(last)}
+                "resumed_from_epoch": clock.restored_epochs, "checkpoint": str(last),
+                "device": device, "steps": int(trainer.global_step)}
         if budget:
-            info.update(budget_seconds=budget[0].seconds, steps=budget[0].steps)
+            info.update(budget_seconds=budget[0].seconds)
+        if curve is not None:
+            lbs = self.val_error(lambda m, item: item.skinned())(module)
+            info.update(curve=dict(curve.to_json(), lbs_E_dist=lbs),
+                        train_seconds=clock.seconds - curve.eval_seconds)
         return info
 
     def _datamodule(self, seed: int, split: str = "train",
@@ -397,7 +396,8 @@ class LearnedRunner:
         dm = self._datamodule(seed)
         module = GarTransModule(**dm.dims, **hp)
         sched = ProgressiveSchedule(**sched_kw)
-        info = self.fit(module, dm, folder, self.budget.epochs, [sched], minutes)
+        info = self.fit(module, dm, folder, self.budget.epochs, [sched], minutes,
+                        predict=lambda m, item: m(item)["final"])
 
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
             it = item.cycled(b)
@@ -409,8 +409,8 @@ class LearnedRunner:
                     transitions={str(k): e for k, e in sched.transitions.items()})
         return _Predictor(lambda ds, i, item: module(item)["final"], make_batch,
                           "frame-parallel forward of `batch` frames, static branch "
-                          "(encode_static) computed once per garment outside the timed call"
-                          ), info
+                          "(encode_static) computed once per garment outside the timed call",
+                          module, folder / "equal_steps.pt"), info
 
     # -- baselines --------------------------------------------------------------------
     def _baseline_module(self, method: str, dm: GarmentDataModule,
@@ -439,11 +439,12 @@ class LearnedRunner:
         folder = self._folder(method, seed, config)
         dm = self._datamodule(seed)
         module = self._baseline_module(method, dm)
-        info = self.fit(module, dm, folder, self.budget.epochs, minutes=self.budget.minutes)
+        info = self.fit(module, dm, folder, self.budget.epochs, minutes=self.budget.minutes,
+                        predict=lambda m, item: m(item))
         note = ("one autoregressive step of `batch` independent sequences per call"
                 if method == HOOD else "one call predicting `batch` frames")
-        return _Predictor(lambda ds, i, item: module(item), self._batch_fn(module), note), \
-            dict(info, config=config)
+        return _Predictor(lambda ds, i, item: module(item), self._batch_fn(module), note,
+                          module, folder / "equal_steps.pt"), dict(info, config=config)
 
     def _ncs(self, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
         groups: Dict[Tuple[str, str], List[str]] = {}  # (garment, body) -> sequence ids

@@ -65,6 +65,7 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
     if not rs:
         return []
     ds = next((r.get("dataset") for r in rs if r.get("dataset")), {}) or {}
+    devices = sorted({r["device"] for r in rs if r.get("device")})
     lines = ["## Held-out test split (learned methods; shaped like Tables 1 and 3)", "",
              f"Dataset `{ds.get('name')}` (`{ds.get('root')}`, fingerprint "
              f"{str(ds.get('fingerprint'))[:8]}, content SHA-256 "
@@ -78,7 +79,8 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
              "means). A different case set from the simulator tables above: these rows are "
              "not comparable with them. Mean ± std over training seeds. latency: ms per "
              "frame at batch 1; throughput: frames/s at the best batch; train: wall time of "
-             "the training epochs.", ""]
+             "the training epochs."
+             + (f" Trained on: {', '.join(devices)}." if devices else ""), ""]
     rows = []
     for method in _ordered(rs):
         mine = [r for r in rs if r["method"] == method]

@@ -109,6 +109,12 @@ class LearnedBudget:
         test_sequences: score every method on this many test sequences, the same for
             all, drawn evenly from the held-out groups
             (:func:`garmentgnn.bench.scoring.stratified`); ``None``: all of them.
+        curve_every: record the validation E_dist every this many optimizer steps
+            (:class:`garmentgnn.bench.curves.LearningCurve`; needs a ``val`` split);
+            ``None``: no learning curves.
+        equal_steps: also score every method trained on the train split (not NCS-style)
+            with its weights after this many optimizer steps, so that the methods are
+            compared at equal steps as well as at equal time; ``None``: not.
     """
 
     seeds: int = 1
@@ -122,6 +128,8 @@ class LearnedBudget:
     seed_methods: Optional[Tuple[str, ...]] = None
     long_minutes: Optional[float] = None
     test_sequences: Optional[int] = None
+    curve_every: Optional[int] = None
+    equal_steps: Optional[int] = None
 
     def __post_init__(self) -> None:
         for name in ("seeds", "epochs", "window", "ncs_epochs"):
@@ -133,7 +141,7 @@ class LearnedBudget:
             if v is not None and not (isinstance(v, (int, float)) and 0 < v < float("inf")):
                 raise ValueError(f"`{name}`: expected a positive number of minutes or None, "
                                  f"got {v!r}")
-        for name in ("epoch_chunks", "test_sequences"):
+        for name in ("epoch_chunks", "test_sequences", "curve_every", "equal_steps"):
             c = getattr(self, name)
             if c is not None and (not isinstance(c, int) or isinstance(c, bool) or c < 1):
                 raise ValueError(f"`{name}`: expected a positive int or None, got {c!r}")

@@ -1,6 +1,6 @@
 """The ``garmentgnn bench`` presets: which cases, simulator budgets, extra reports and
 learned-method budget one run covers (``tiny``: the CI smoke test; ``small``: a quick
-run; see docs/bench.md)."""
+run; ``medium``, ``converge``: the learned methods; see docs/bench.md)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -97,7 +97,9 @@ def preset(name: str) -> Preset:
     """``tiny`` (a smoke test: about 5 min on 2 cores, 2 of them generating its dataset),
     ``small`` (about 70 min, half of it generating its dataset) or ``medium`` (the
     learned methods on equal wall-clock budgets, seeds and held-out groups, with the
-    engines; about 150 min on 2 cores with an existing dataset; see docs/bench.md)."""
+    engines; about 150 min on 2 cores with an existing dataset) or ``converge`` (every
+    learned method to a validation plateau on ``small``, learning curves, equal steps and
+    equal time; about 3.2 h on 2 cores; see docs/bench.md)."""
     if name == "tiny":
         return Preset(
             name="tiny",
@@ -155,10 +157,22 @@ def preset(name: str) -> Preset:
                 epoch_chunks=50, seed_methods=(next(iter(methods.GARTRANS)),),
                 long_minutes=25.0, test_sequences=40),
             engines=True, engine_per_group=1, engine_frames=20)
+    if name == "converge":
+        # every learned method to a validation plateau on the Blender `small` dataset
+        # (generate it with --engine blender, pass it with --data), the same wall time
+        # and the same step snapshot for all: sized in docs/bench.md ("converge")
+        return Preset(
+            name="converge", cases=(), seeds=1, reference=SimBudget(8, 50), budgets=(),
+            methods=(), batches=(1, 8, 32), warmup=1, repeats=3, threads=2,
+            dataset="small", data_workers=2,
+            learned=methods.LearnedBudget(
+                seeds=3, epochs=1000, window=3, ncs_epochs=1000, minutes=10.0,
+                seed_methods=(next(iter(methods.GARTRANS)),), curve_every=100,
+                equal_steps=500))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 
-PRESET_NAMES = ("tiny", "small", "medium")
+PRESET_NAMES = ("tiny", "small", "medium", "converge")
 #: the scaling garment (its resolution is replaced per size): a knee skirt, walking
 _SCALING_ITEM = case_item("scaling-skirt-walk", "skirt", 1000, "walk", 8, {"length": "knee"})
 

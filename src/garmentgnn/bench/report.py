@@ -30,7 +30,7 @@ import statistics
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
-from garmentgnn.bench import noise_floor
+from garmentgnn.bench import curves, noise_floor
 from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
@@ -251,6 +251,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
     from garmentgnn.bench import learned_report, leaveout, precision, scaling
     lines += learned_report.markdown(records, learned_png)
     lines += learned_report.comparison_markdown(records, engines_png)
+    lines += curves.markdown(records, CURVES_PNG)
     lines += scaling.markdown(records, scaling_png)
     lines += leaveout.markdown(records)
     lines += precision.markdown(records)
@@ -277,6 +278,10 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
 
 
 # --------------------------------------------------------------------------- plots
+#: the learning curves' plot (:func:`garmentgnn.bench.curves.plot`), beside report.md
+CURVES_PNG = "learning_curves.png"
+
+
 def plot_pareto(records: Sequence[Dict[str, Any]], path: Path,
                 floor: Optional[Dict[str, Any]] = None) -> Optional[Path]:
     """:func:`plot_summary` of the accuracy records (:func:`summarize`), with ``floor``'s
@@ -317,6 +322,9 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     engines_png = learned_report.plot_engines(clean, out / "pareto_engines.png")
     if engines_png is not None:
         paths["pareto_engines"] = engines_png
+    curves_png = curves.plot(clean, out / CURVES_PNG)
+    if curves_png is not None:
+        paths["learning_curves"] = curves_png
     results = {"meta": meta or {}, "summary": summarize(clean), "not_run": list(not_run),
                "records": clean}
     paths["results"] = atomic_write_json(out / "results.json", results)

@@ -10,9 +10,10 @@ rate to an epoch-based scheduler, which cannot know how many epochs the time all
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, Iterator, List, Optional
 
 import lightning as L
 
@@ -61,6 +62,17 @@ class TimeBudget(L.Callback):
                              f"the checkpoint's ({state['seconds']} s); resume with the same "
                              "budget or start a new run")
         self.spent, self.steps = float(state["spent"]), int(state["steps"])
+
+    @contextlib.contextmanager
+    def paused(self) -> Iterator[None]:
+        """Time spent inside the block (e.g. a validation between two steps) does not
+        count against the budget."""
+        t = _now()
+        try:
+            yield
+        finally:
+            if self._t0 is not None:
+                self._t0 += _now() - t
 
     @property
     def fraction(self) -> float:

@@ -1,0 +1,69 @@
+"""The dataset a ``garmentgnn bench`` run trains and scores its learned methods on
+(:mod:`garmentgnn.bench.learned`): generated (resumably) or given, with its fingerprint
+and content hash."""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Dict, Optional
+
+from garmentgnn.data import store
+
+__all__ = ["DatasetInfo", "prepare_dataset"]
+
+
+@dataclass
+class DatasetInfo:
+    """A generated dataset's folder, spec name, fingerprint (of its ok items' ids,
+    splits, frame counts and generating code versions), ok sequence / frame counts per
+    split and content hash (``garmentgnn.data.store.content_sha256``)."""
+
+    root: Path
+    name: str
+    fingerprint: str
+    sequences: Dict[str, int]
+    frames: Dict[str, int]
+    content_sha256: Optional[str] = None
+
+    @property
+    def case(self) -> str:
+        """The records' ``case``: another dataset gives other records."""
+        return f"{self.name}-{self.fingerprint[:8]}/test"
+
+    def to_json(self) -> Dict[str, Any]:
+        return dict(asdict(self), root=str(self.root))
+
+
+def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
+                    progress: bool = True) -> DatasetInfo:
+    """The dataset under ``root``; with ``preset_name``, first generate (or finish
+    generating) that :func:`garmentgnn.data.generate.preset` there.
+
+    Raises ``ValueError`` naming ``data`` when ``root`` holds no manifest or no ok
+    ``train`` / ``test`` sequences."""
+    root = Path(root)
+    if preset_name is not None:
+        from garmentgnn.data import generate, preset
+        if not isinstance(workers, int) or workers < 0:
+            raise ValueError(f"`workers`: expected a non-negative int, got {workers!r}")
+        generate(preset(preset_name), root, workers=workers, progress=progress,
+                 log=None if progress else (lambda msg: None))
+    try:
+        man = store.read_manifest(root)
+    except (OSError, ValueError) as err:
+        raise ValueError(f"`data`: {root} is not a generated dataset (no readable "
+                         f"manifest.json: {err})") from err
+    ok = [r for r in man.get("items", []) if r.get("status") == "ok"]
+    seqs = {s: sum(r["split"] == s for r in ok) for s in ("train", "val", "test")}
+    frames = {s: sum(int(r["num_frames"]) for r in ok if r["split"] == s)
+              for s in ("train", "val", "test")}
+    for s in ("train", "test"):
+        if not seqs[s]:
+            raise ValueError(f"`data`: {root} has no ok {s!r} sequences ({man.get('counts')})")
+    digest = hashlib.sha1(json.dumps(sorted(
+        (r["id"], r["split"], int(r["num_frames"]), str((r.get("code") or {}).get("version")))
+        for r in ok)).encode())
+    return DatasetInfo(root, str(man.get("name", root.name)), digest.hexdigest(), seqs, frames,
+                       store.content_sha256(ok))

@@ -1,0 +1,180 @@
+"""Learning curves and the equal-step snapshot of ``garmentgnn bench``
+(:mod:`garmentgnn.bench.curves`).
+
+Oracles: a fit stopped by ``max_steps`` at the snapshot's step (the snapshot must hold
+exactly its weights); a validation that sleeps a known time (it must not count as
+training time, nor against a :class:`TimeBudget`); for the bench flow, a snapshot taken
+at the last step must score exactly like the final model."""
+import dataclasses
+import json
+import time
+
+import lightning as L
+import pytest
+import torch
+
+from garmentgnn.bench import curves, harness, learned, methods, presets
+from garmentgnn.data import Spec, generate, motion_key
+from garmentgnn.training import GarTransModule, TimeBudget
+from garmentgnn.training.evaluate import evaluate_split
+
+from conftest import lbs_simulate
+
+
+# --------------------------------------------------------------------------- plateau
+def _pts(errors, every=10):
+    return [{"step": i * every, "epoch": i, "seconds": float(i), "E_dist": e}
+            for i, e in enumerate(errors)]
+
+
+def test_plateau_reached_when_the_last_quarter_does_not_improve():
+    flat = curves.plateau(_pts([9.0, 6.0, 5.0, 4.0, 3.9, 3.95, 3.92, 3.91, 3.93]))
+    assert flat["reached"] and flat["best"] == 3.9 and flat["best_step"] == 40
+    assert flat["best_epoch"] == 4 and flat["gain"] == pytest.approx((3.9 - 3.91) / 3.9)
+    falling = curves.plateau(_pts([9.0, 8.0, 7.0, 6.0, 5.0, 4.0, 3.0, 2.0, 1.0]))
+    # last quarter: steps > 60, best 1.0 against 3.0 before
+    assert not falling["reached"] and falling["gain"] == pytest.approx(2.0 / 3.0)
+    with pytest.raises(ValueError, match="points"):
+        curves.plateau(_pts([3.0, 2.0, 1.0]))
+
+
+# --------------------------------------------------------------------------- callback
+class _Line(L.LightningModule):
+    """Least squares on a fixed random problem: deterministic, a few ms per step."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.lin = torch.nn.Linear(4, 1)
+
+    def training_step(self, batch, batch_idx):
+        x, y = batch
+        return torch.nn.functional.mse_loss(self.lin(x), y)
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def _loader():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(64, 4, generator=g)
+    y = x @ torch.tensor([[1.0], [-2.0], [0.5], [3.0]]) + 0.1
+    return torch.utils.data.DataLoader(torch.utils.data.TensorDataset(x, y), batch_size=8)
+
+
+def _fit(callbacks, **kw):
+    torch.manual_seed(0)
+    module = _Line()
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False,
+                        callbacks=callbacks, **kw)
+    trainer.fit(module, _loader())
+    return module
+
+
+def test_curve_points_snapshot_and_excluded_validation_time(tmp_path):
+    pause = 0.05
+
+    def evaluate(module):
+        assert not module.training and not torch.is_grad_enabled()
+        time.sleep(pause)
+        return float(module.lin.weight.abs().sum())
+
+    budget = TimeBudget(3600.0, anneal=False)
+    curve = curves.LearningCurve(4, evaluate, snapshot_step=5, snapshot_path=tmp_path / "s.pt",
+                                 budget=budget)
+    t0 = time.perf_counter()
+    module = _fit([budget, curve], max_epochs=2)  # 8 batches per epoch: 16 steps
+    total = time.perf_counter() - t0
+    assert [p["step"] for p in curve.points] == [0, 4, 8, 12, 16]
+    assert [p["epoch"] for p in curve.points] == [0, 0, 0, 1, 1]
+    last = float(module.lin.weight.detach().abs().sum())
+    assert curve.points[-1]["E_dist"] == pytest.approx(last)
+    # 5 validations of >= 50 ms each: counted apart, neither as training nor in the budget
+    assert curve.eval_seconds >= 5 * pause
+    assert curve.seconds + curve.eval_seconds <= total
+    assert budget.spent < total - 5 * pause
+    assert curve.seconds == pytest.approx(budget.spent, abs=0.05)
+    # the snapshot holds the weights of a fit stopped after 5 steps
+    snap = torch.load(tmp_path / "s.pt", weights_only=False)
+    ref = _fit([], max_steps=5)
+    assert snap["step"] == 5
+    for k, v in ref.state_dict().items():
+        assert torch.equal(snap["state_dict"][k], v), k
+    assert not torch.equal(snap["state_dict"]["lin.weight"], module.lin.weight)
+
+
+def test_curve_state_round_trips_and_a_resumed_fit_adds_no_step_zero_point():
+    curve = curves.LearningCurve(4, lambda m: 1.0)
+    _fit([curve], max_steps=8)
+    again = curves.LearningCurve(4, lambda m: 2.0)
+    again.load_state_dict(json.loads(json.dumps(curve.state_dict())))
+    assert again.points == curve.points and again.seconds == curve.seconds
+    again.on_train_start(None, None)  # a resumed fit: its curve already has step 0
+    assert len(again.points) == len(curve.points) == 3
+
+
+def test_curve_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="every"):
+        curves.LearningCurve(0, lambda m: 0.0)
+    with pytest.raises(ValueError, match="snapshot_step"):
+        curves.LearningCurve(2, lambda m: 0.0, snapshot_step=3)
+    with pytest.raises(ValueError, match="snapshot_step"):
+        curves.LearningCurve(2, lambda m: 0.0, snapshot_step=0, snapshot_path=tmp_path / "x")
+    with pytest.raises(ValueError, match="curve_every"):
+        methods.LearnedBudget(curve_every=0)
+
+
+def test_converge_preset():
+    p = presets.preset("converge")
+    b = p.learned
+    assert p.dataset == "small" and b.minutes and b.curve_every and b.equal_steps
+    assert set(b.methods) == set(methods.METHOD_NAMES) and b.seeds == 3
+
+
+# --------------------------------------------------------------------------- the bench
+@pytest.fixture(scope="module")
+def data_with_val(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data")
+    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
+    b = [{"model": "capsule", "shape": "regular"}]
+    m = [{"name": n, "num_frames": 4, "speed": 1.0, "amplitude": 1.0}
+         for n in ("walk", "run", "arm_swing", "jump")]
+    spec = Spec("mini", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[2])]},
+                                                    "val": {"motions": [motion_key(m[3])]}})
+    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    assert s.done == 4 and s.failed == 0
+    return out
+
+
+@pytest.mark.slow
+def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, tmp_path):
+    full, da = next(iter(methods.GARTRANS)), methods.DA
+    p = presets.preset("tiny")
+    p = dataclasses.replace(
+        p, cases=(), budgets=(), stability_cases=(), scaling_item=None, leaveout=False,
+        precision_methods=(), long_item=None,
+        # 2 train sequences of 4 frames: one chunk each, 2 steps per epoch
+        learned=dataclasses.replace(p.learned, methods=(full, da, methods.LBS), epochs=2,
+                                    stability_cases=(), curve_every=1, equal_steps=4))
+    summary = harness.run(p, tmp_path, data=data_with_val, progress=False)
+    recs = {r["method"]: r for r in json.loads((tmp_path / "results.json").read_text())["records"]
+            if r["kind"] == learned.KIND}
+    assert summary.failed == 0
+    for m in (full, da):
+        r = recs[m]
+        assert r["steps"] == 4 and r["device"] == "cpu"
+        assert [q["step"] for q in r["curve"]["points"]] == [0, 1, 2, 3, 4]
+        # the snapshot after the last step is the final model
+        assert r["equal_steps"]["reached"] and r["equal_steps"]["step"] == 4
+        assert r["equal_steps"]["metrics"]["E_dist"] == pytest.approx(r["metrics"]["E_dist"])
+    assert "curve" not in recs[methods.LBS]
+    # the last point and the LBS line scored by evaluate_split (its own loop) on `val`
+    module = GarTransModule.load_from_checkpoint(recs[full]["checkpoint"], map_location="cpu")
+    ref = evaluate_split(module, data_with_val, "val", modes=("gartrans", "lbs"), history=3,
+                         nystrom_dim=16, num_landmarks=64)
+    assert recs[full]["curve"]["points"][-1]["E_dist"] == pytest.approx(
+        ref["gartrans"]["E_dist"], rel=1e-4)
+    assert recs[full]["curve"]["lbs_E_dist"] == pytest.approx(ref["lbs"]["E_dist"], rel=1e-4)
+    text = (tmp_path / "report.md").read_text()
+    assert "## Learning curves (validation split) and equal steps" in text
+    assert "E_dist at 4 steps (cm)" in text and (tmp_path / "learning_curves.png").exists()
