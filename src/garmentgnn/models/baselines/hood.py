@@ -47,8 +47,9 @@ class CoarseLevel:
         Z = max(2, V // ratio)
         if Z > V:
             raise ValueError(f"`rest_pos`: needs at least 2 vertices, got {V}")
-        idx, dist = farthest_point_sampling(rest_pos.detach().double().numpy(),
-                                            faces.numpy(), Z, seed=seed)
+        device = rest_pos.device  # the sampling runs on the CPU (numpy, scipy)
+        idx, dist = farthest_point_sampling(rest_pos.detach().cpu().double().numpy(),
+                                            faces.cpu().numpy(), Z, seed=seed)
         d = dist.numpy()  # [Z, V]
         d = np.where(np.isfinite(d), d, 1e30)  # disconnected panels: far apart
         assign = torch.from_numpy(d.argmin(0))
@@ -62,7 +63,8 @@ class CoarseLevel:
                           axis=0)
         order = np.lexsort((pairs[:, 0], pairs[:, 1]))  # sort by target, then source
         ei = torch.from_numpy(pairs[order].T.copy()).long()
-        return cls(landmarks=idx.long(), assign=assign.long(), edge_index=ei)
+        return cls(landmarks=idx.long().to(device), assign=assign.long().to(device),
+                   edge_index=ei.to(device))
 
     @property
     def num_nodes(self) -> int:
@@ -182,7 +184,8 @@ class HOODStyle(nn.Module):
         for block in self.fine_down:
             h, e = block(h, ei, e)
         Z = coarse.num_nodes
-        cluster = (coarse.assign.view(1, V) + Z * torch.arange(B).view(B, 1)).reshape(-1)
+        cluster = (coarse.assign.view(1, V)
+                   + Z * torch.arange(B, device=h.device).view(B, 1)).reshape(-1)
         hc = scatter(h, cluster, dim=0, dim_size=B * Z, reduce="mean")
         lm = coarse.landmarks
         eic = batch_edges(coarse.edge_index, B, Z)
