@@ -231,8 +231,10 @@ class GarmentDataModule(L.LightningDataModule):
         super().__init__()
         if not (Path(root) / store.MANIFEST).is_file():
             store.read_manifest(root)  # raises: which path, and the command that makes it
+        # plain types in the hyper-parameters: checkpoints load with weights_only=True
+        root = str(root)
         if train_ids is not None:
-            train_ids = list(train_ids)
+            train_ids = [str(i) for i in train_ids]
         self.save_hyperparameters()
         self.root = Path(root)
         self.train_set: Optional[SequenceChunks] = None

@@ -67,6 +67,8 @@ DEFAULT_MODEL = "garmentgnn.training.GarTransModule"
 SPECIAL_CKPT = ("last", "best", "hpc", "registry")
 #: the model sizes linked from :attr:`GarmentDataModule.dims` when the classes are built
 LINKED_DIMS = ("num_joints", "num_body_vertices", "num_vertices")
+#: every module argument linked from the data module
+LINKED = LINKED_DIMS + ("nystrom_dim", "history")
 
 
 def _plain(ns: Any) -> Dict[str, Any]:
@@ -173,15 +175,21 @@ class GarmentCLI(LightningCLI):
 
     def parse_arguments(self, parser: Any, args: Any) -> None:
         super().parse_arguments(parser, args)
-        self.check_checkpoint_flags()
+        cls_path = self.check_checkpoint_flags()
+        if cls_path is not None:
+            # Lightning rebuilds the model from the checkpoint's hyper-parameters next;
+            # a checkpoint written outside LightningCLI does not name its class, which is
+            # then the configured one (not the parser's default)
+            parser.set_defaults({f"{self.config.subcommand}.model": {"class_path": cls_path}})
 
-    def check_checkpoint_flags(self) -> None:
+    def check_checkpoint_flags(self) -> Optional[str]:
         """Refuse a ``--ckpt_path`` that does not match the configured module (see the
-        class docstring)."""
+        class docstring); returns the configured module's class path when a checkpoint
+        file is given."""
         sub = self.config.get("subcommand") if self.config is not None else None
         ckpt_path = self.config[sub].get("ckpt_path") if sub else None
         if not ckpt_path or ckpt_path in SPECIAL_CKPT:
-            return
+            return None
         ckpt = load_checkpoint_file(ckpt_path)
         stored = dict(ckpt.get("hyper_parameters") or {})
         stored.pop("_instantiator", None)
@@ -197,13 +205,18 @@ class GarmentCLI(LightningCLI):
                                   f"give the --config of the method it was trained with")
         defaults = {k: p.default for k, p in params.items()
                     if p.default is not inspect.Parameter.empty}
-        bad = hparam_conflicts(_plain(model.get("init_args")), defaults, stored)
+        # a size linked from the data that the checkpoint's module was built without
+        # (``None``: accepted and ignored, as a bench-built baseline's) is no conflict
+        given = {k: v for k, v in _plain(model.get("init_args")).items()
+                 if not (k in LINKED and stored.get(k, 0) is None)}
+        bad = hparam_conflicts(given, defaults, stored)
         if bad:
             what = ", ".join(f"--model.{k} {v!r} (checkpoint: {c!r})"
                              for k, (v, c) in sorted(bad.items()))
             raise CheckpointError(f"{ckpt_path}: {what}; the model is rebuilt from the "
                                   f"checkpoint's hyper-parameters, so drop the flag(s), or "
                                   f"start a new run without --ckpt_path")
+        return cls_path
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """Lightning's trainer, with a TensorBoard logger beside the CSV one
