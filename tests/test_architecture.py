@@ -354,7 +354,8 @@ def test_checker_finds_oversized_modules(tmp_path):
 def test_checker_finds_lightning_private_names(tmp_path):
     root = make_package(tmp_path, {
         "training/m.py": "class M:\n    def f(self):\n        return self._trainer is None\n"
-                         "    def g(self):\n        return self._trainer_kwargs  # _trainer\n",
+                         "    def g(self):\n"
+                         "        return self._trainer_kwargs  # _trainer\n",
         "training/cli.py": "class C:\n    def _parse_ckpt_path(self):\n        pass\n",
         "training/dm.py": "x = t._accelerator_connector.use_distributed_sampler\n"
                           "y = cli._subcommand_parsers['fit']\n"})

@@ -213,8 +213,9 @@ def manifest_main(args: argparse.Namespace) -> int:
 
 def add_train_parser(sub) -> argparse.ArgumentParser:
     """The ``train`` sub-command: every argument after it goes to LightningCLI."""
-    t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
-                       "gartrans --data.root DIR (see `garmentgnn train --help`)",
+    t = sub.add_parser("train", help="LightningCLI over every method: garmentgnn train "
+                       "fit|validate|test|predict --config gartrans|ablations/NAME|"
+                       "baselines/da|hood|ncs --data.root DIR (see `garmentgnn train --help`)",
                        add_help=False)
     t.add_argument("lightning_args", nargs=argparse.REMAINDER)
     return t
@@ -222,7 +223,8 @@ def add_train_parser(sub) -> argparse.ArgumentParser:
 
 def train_main(args: argparse.Namespace) -> int:
     """Run LightningCLI on ``args.lightning_args``; 2 (one line naming the file and the
-    fix) for a missing or damaged dataset or checkpoint."""
+    fix) for a missing or damaged dataset or checkpoint.  (Imports here: Lightning and
+    torch load only for ``train``, which keeps the other sub-commands' start-up short.)"""
     from garmentgnn.data.store import IntegrityError
     from garmentgnn.training.integrity import CheckpointError
     from garmentgnn.training.lightning_cli import main as lightning_main
