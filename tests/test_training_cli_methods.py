@@ -77,9 +77,9 @@ def _oracle(module, root, split):  # noqa: F811
     return {k: v / frames for k, v in sums.items()}, lbs
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name,cls", [("baselines/da", BaselineModule),
-                                      ("ablations/wo_gating", GarTransModule)])
+@pytest.mark.parametrize("name,cls", [
+    ("baselines/da", BaselineModule),  # 4 s
+    pytest.param("ablations/wo_gating", GarTransModule, marks=pytest.mark.slow)])  # 24 s
 def test_fit_then_test_any_method_through_the_command_line(root, tmp_path, capsys,  # noqa: F811
                                                             name, cls):
     args = _config_args(name) + _test_args(root, tmp_path)
@@ -113,8 +113,8 @@ def _bench_style_checkpoint(module, dm, path):
     torch.save(ck, path)
 
 
-def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(  # noqa: F811
-        root, tmp_path, capsys):
+def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
+        root, tmp_path, capsys):  # noqa: F811
     dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16)
     L.seed_everything(0)
     da = BaselineModule(num_joints=dm.dims["num_joints"], fps=30.0, history=3,

@@ -143,7 +143,8 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
                    help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true",
                    help="glTF, Alembic, .blend: the garment only")
-    e.add_argument("--start-frame", type=float, default=0.0, help="PC2: the frame number of the first sample")
+    e.add_argument("--start-frame", type=float, default=0.0,
+                   help="PC2: the frame number of the first sample")
     return e
 
 
