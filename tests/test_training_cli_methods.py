@@ -79,6 +79,7 @@ def _oracle(module, root, split):  # noqa: F811
 
 @pytest.mark.parametrize("name,cls", [
     ("baselines/da", BaselineModule),  # 4 s
+    pytest.param("baselines/ncs", BaselineModule, marks=pytest.mark.slow),
     pytest.param("ablations/wo_gating", GarTransModule, marks=pytest.mark.slow)])  # 24 s
 def test_fit_then_test_any_method_through_the_command_line(root, tmp_path, capsys,  # noqa: F811
                                                             name, cls):
@@ -89,7 +90,8 @@ def test_fit_then_test_any_method_through_the_command_line(root, tmp_path, capsy
     capsys.readouterr()
     cli = train_main(["test"] + args + ["--ckpt_path", str(last)])
     out = capsys.readouterr().out
-    row = "| DA-style |" if cls is BaselineModule else "| GarTrans (gt_edge) |"
+    row = {"baselines/da": "| DA-style |", "baselines/ncs": "| NCS-style |"}.get(
+        name, "| GarTrans (gt_edge) |")
     assert row in out and "| LBS only |" in out
     got = {k: float(v) for k, v in cli.trainer.callback_metrics.items()}
     method, lbs = _oracle(module, root, "val")
