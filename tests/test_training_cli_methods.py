@@ -87,6 +87,9 @@ def test_fit_then_test_any_method_through_the_command_line(root, tmp_path, capsy
     assert cli_main(["train", "fit"] + args) == 0
     (last,) = tmp_path.rglob("last.ckpt")
     module = cls.load_from_checkpoint(str(last), map_location="cpu").eval()
+    # the data module's arguments travel with the checkpoint (save_hyperparameters)
+    dm = GarmentDataModule.load_from_checkpoint(str(last))
+    assert (dm.hparams.root, dm.hparams.chunk, dm.hparams.history) == (str(root), 4, 3)
     capsys.readouterr()
     cli = train_main(["test"] + args + ["--ckpt_path", str(last)])
     out = capsys.readouterr().out
