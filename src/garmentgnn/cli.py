@@ -24,6 +24,9 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 from garmentgnn._argparse import HelpFormatter
 from garmentgnn.bench import cli as bench_cli
+from garmentgnn.data.store import IntegrityError
+from garmentgnn.training.integrity import CheckpointError
+from garmentgnn.training.lightning_cli import main as lightning_main
 from garmentgnn.viz import cli as viz_cli
 
 
@@ -224,11 +227,7 @@ def add_train_parser(sub) -> argparse.ArgumentParser:
 
 def train_main(args: argparse.Namespace) -> int:
     """Run LightningCLI on ``args.lightning_args``; 2 (one line naming the file and the
-    fix) for a missing or damaged dataset or checkpoint.  (Imports here: Lightning and
-    torch load only for ``train``, which keeps the other sub-commands' start-up short.)"""
-    from garmentgnn.data.store import IntegrityError
-    from garmentgnn.training.integrity import CheckpointError
-    from garmentgnn.training.lightning_cli import main as lightning_main
+    fix) for a missing or damaged dataset or checkpoint."""
     try:
         with warnings.catch_warnings():  # the args *are* the command line's, after `train`
             warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
