@@ -11,7 +11,8 @@ import json
 from pathlib import Path
 
 from garmentgnn.training import GarTransModule
-from garmentgnn.training.evaluate import evaluate_split, markdown_table, render_strip
+from garmentgnn.training.evaluate import evaluate_split, markdown_table
+from garmentgnn.viz.strip import render_strip
 
 
 def main() -> None:

@@ -24,8 +24,9 @@ import lightning as L
 
 from garmentgnn.data import generate, preset
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
-from garmentgnn.training.evaluate import evaluate_split, markdown_table, render_strip
+from garmentgnn.training.evaluate import evaluate_split, markdown_table
 from garmentgnn.viz.animate import renderer_unavailable
+from garmentgnn.viz.strip import render_strip
 
 
 def main() -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import functools
+import re
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
@@ -183,6 +184,26 @@ def private_imports(root: Path) -> List[str]:
     return bad
 
 
+#: Lightning internals (private names) the package must not touch: they change without
+#: notice between Lightning releases; each has a public way (docs/model.md)
+LIGHTNING_PRIVATE = ("_trainer", "_accelerator_connector", "_parse_ckpt_path",
+                     "_subcommand_parsers")
+_LIGHTNING_PRIVATE_RE = re.compile(r"\.(%s)\b|\bdef (%s)\b" % (
+    "|".join(LIGHTNING_PRIVATE), "|".join(LIGHTNING_PRIVATE)))
+
+
+def lightning_private_names(root: Path) -> List[str]:
+    """Attribute uses (``x._trainer``) and overrides (``def _parse_ckpt_path``) of
+    :data:`LIGHTNING_PRIVATE` in the package's source."""
+    bad = []
+    for path in sorted(root.rglob("*.py")):
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            for m in _LIGHTNING_PRIVATE_RE.finditer(line.split("#")[0]):
+                bad.append(f"{path.relative_to(root).as_posix()}:{n} uses "
+                           f"{m.group(1) or m.group(2)}")
+    return bad
+
+
 def oversized(root: Path, limit: int = MAX_LINES) -> Dict[str, int]:
     """Modules (relative paths) over ``limit`` lines, with their line counts."""
     sizes = {p.relative_to(root).as_posix(): len(p.read_text().splitlines())
@@ -215,6 +236,7 @@ def test_no_import_cycles_between_modules():
     ("models", "sim"),  # models never import the simulator
     ("losses", "metrics"),  # a loss never depends on a metric
     ("*", "cli"),  # nothing imports the command line
+    ("training", "viz"),  # viz draws trained models: it imports training, not the reverse
 ])
 def test_no_wrong_way_imports(importer, target):
     assert not wrong_way_imports(SRC, importer, target)
@@ -234,6 +256,10 @@ def test_no_private_imports_across_modules_outside_bench():
 
 def test_bench_modules_do_not_import_each_others_private_names():
     assert not [v for v in private_imports(SRC) if v.startswith("garmentgnn.bench.")]
+
+
+def test_lightning_public_api_only():
+    assert not lightning_private_names(SRC)
 
 
 def test_module_size():
@@ -303,7 +329,8 @@ def test_checker_finds_function_level_imports(tmp_path):
         "sim/s.py": "from pkg.garments import g\n\nclass S:\n    def run(self):\n"
                     "        import numpy\n        from pkg.garments.g import f\n",
         "garments/g.py": "def f():\n    pass\n"})
-    assert function_level_imports(root, "sim") == ["pkg.sim.s:6 imports pkg.garments.g in a function"]
+    assert function_level_imports(root, "sim") == [
+        "pkg.sim.s:6 imports pkg.garments.g in a function"]
     assert function_level_imports(root, "garments") == []
 
 
@@ -323,3 +350,16 @@ def test_checker_finds_private_imports(tmp_path):
 def test_checker_finds_oversized_modules(tmp_path):
     root = make_package(tmp_path, {"a/long.py": "x = 1\n" * 12, "a/short.py": "x = 1\n" * 10})
     assert oversized(root, limit=10) == {"a/long.py": 12}
+
+
+def test_checker_finds_lightning_private_names(tmp_path):
+    root = make_package(tmp_path, {
+        "training/m.py": "class M:\n    def f(self):\n        return self._trainer is None\n"
+                         "    def g(self):\n"
+                         "        return self._trainer_kwargs  # _trainer\n",
+        "training/cli.py": "class C:\n    def _parse_ckpt_path(self):\n        pass\n",
+        "training/dm.py": "x = t._accelerator_connector.use_distributed_sampler\n"
+                          "y = cli._subcommand_parsers['fit']\n"})
+    assert lightning_private_names(root) == [
+        "training/cli.py:2 uses _parse_ckpt_path", "training/dm.py:1 uses _accelerator_connector",
+        "training/dm.py:2 uses _subcommand_parsers", "training/m.py:3 uses _trainer"]

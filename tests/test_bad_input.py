@@ -312,17 +312,22 @@ def test_sim_settings_validated_at_construction(kw, name):
         SimSettings(**kw)
 
 
-def test_train_test_works_and_predict_is_not_offered(root, tmp_path, capsys):  # noqa: F811
+def test_train_test_prints_lbs_beside_the_method_and_predict_writes(root, tmp_path,  # noqa: F811
+                                                                     capsys):
     args = ["--config", CONFIG, "--data.root", str(root), "--data.chunk", "4",
             "--data.history", "2", "--data.nystrom_dim", str(NY), "--data.num_landmarks",
             "16", "--data.test_split", "val", "--trainer.limit_test_batches", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir",
             str(tmp_path), "--trainer.logger.init_args.save_dir", str(tmp_path)]
     assert cli_main(["train", "test"] + args) == 0
-    assert "test/" in capsys.readouterr().out
-    with pytest.raises(SystemExit) as e:
-        cli_main(["train", "predict"] + args)
-    assert e.value.code == 2
+    out = capsys.readouterr().out
+    assert "test/" in out and "| GarTrans (sat) |" in out and "| LBS only |" in out
+    assert cli_main(["train", "predict"] + args) == 0
+    (npz,) = tmp_path.rglob("predictions/*.npz")
+    got = np.load(npz)
+    seq = store.load_sequence(root / "sequences" / npz.name)
+    assert got["positions"].shape == np.asarray(seq["positions"]).shape
+    assert got["frames"].tolist() == list(range(len(seq["positions"])))
 
 
 # ------------------------------------------------------------------ OBJ encodings

@@ -163,14 +163,14 @@ def test_model_module_and_config_defaults_agree():
     import inspect
 
     from garmentgnn.models import PAPER_FORM, GarTrans
-    from garmentgnn.training.configs import load_config
+    from garmentgnn.training.configs import load_config, model_args
 
     def defaults(fn):
         return {k: p.default for k, p in inspect.signature(fn).parameters.items()
                 if p.default is not inspect.Parameter.empty}
 
     model, module = defaults(GarTrans.__init__), defaults(GarTransModule.__init__)
-    config = load_config("gartrans")["model"]
+    config = model_args(load_config("gartrans"))
     for name in SWITCHES:
         assert model[name] == module[name] == config[name], name
     assert set(PAPER_FORM) == set(SWITCHES)

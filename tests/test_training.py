@@ -175,7 +175,7 @@ def test_checkpoint_resume_is_exact(root, tmp_path):
     trainer(4, callbacks=[s_full], **kw).fit(full, dm)
     # interrupted after 1 epoch (phase 1, one epoch of history), resumed to 4; the chunk
     # order of epoch 1 differs from epoch 0's, so replaying epoch 0's order would show
-    sampler = EpochShuffleSampler(len(dm.train_set), dm.seed)
+    sampler = EpochShuffleSampler(len(dm.train_set), dm.hparams.seed)
     epoch0 = list(sampler)
     sampler.set_epoch(1)
     assert list(sampler) != epoch0

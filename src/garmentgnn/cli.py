@@ -24,6 +24,9 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 from garmentgnn._argparse import HelpFormatter
 from garmentgnn.bench import cli as bench_cli
+from garmentgnn.data.store import IntegrityError
+from garmentgnn.training.integrity import CheckpointError
+from garmentgnn.training.lightning_cli import main as lightning_main
 from garmentgnn.viz import cli as viz_cli
 
 
@@ -143,7 +146,8 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
                    help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true",
                    help="glTF, Alembic, .blend: the garment only")
-    e.add_argument("--start-frame", type=float, default=0.0, help="PC2: the frame number of the first sample")
+    e.add_argument("--start-frame", type=float, default=0.0,
+                   help="PC2: the frame number of the first sample")
     return e
 
 
@@ -213,8 +217,9 @@ def manifest_main(args: argparse.Namespace) -> int:
 
 def add_train_parser(sub) -> argparse.ArgumentParser:
     """The ``train`` sub-command: every argument after it goes to LightningCLI."""
-    t = sub.add_parser("train", help="LightningCLI: garmentgnn train fit --config "
-                       "gartrans --data.root DIR (see `garmentgnn train --help`)",
+    t = sub.add_parser("train", help="LightningCLI over every method: garmentgnn train "
+                       "fit|validate|test|predict --config gartrans|ablations/NAME|"
+                       "baselines/da|hood|ncs --data.root DIR (see `garmentgnn train --help`)",
                        add_help=False)
     t.add_argument("lightning_args", nargs=argparse.REMAINDER)
     return t
@@ -223,9 +228,6 @@ def add_train_parser(sub) -> argparse.ArgumentParser:
 def train_main(args: argparse.Namespace) -> int:
     """Run LightningCLI on ``args.lightning_args``; 2 (one line naming the file and the
     fix) for a missing or damaged dataset or checkpoint."""
-    from garmentgnn.data.store import IntegrityError
-    from garmentgnn.training.integrity import CheckpointError
-    from garmentgnn.training.lightning_cli import main as lightning_main
     try:
         with warnings.catch_warnings():  # the args *are* the command line's, after `train`
             warnings.filterwarnings("ignore", message="LightningCLI's args parameter")

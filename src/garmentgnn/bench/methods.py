@@ -17,15 +17,15 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 from garmentgnn.bench import stability as stab
-from garmentgnn.training.configs import load_config, schedule_args
+from garmentgnn.training.configs import load_config, model_args, schedule_args
 from garmentgnn.training.schedule import ProgressiveSchedule
 
 __all__ = ["BASELINES", "DATA", "GARTRANS", "GARTRANS_MODEL", "LBS", "LONG", "METHOD_NAMES", "NCS",
            "HOOD", "DA", "SEED_FREE", "LearnedBudget", "Variant", "seed_plan", "variant_settings"]
 
 _BASE = load_config("gartrans")
-#: ``configs/gartrans.yaml``'s ``model:`` section
-GARTRANS_MODEL: Dict[str, Any] = dict(_BASE["model"])
+#: ``configs/gartrans.yaml``'s module arguments (``model: init_args:``)
+GARTRANS_MODEL: Dict[str, Any] = model_args(_BASE)
 #: ``configs/gartrans.yaml``'s ``data:`` section without ``root`` and ``num_workers``
 DATA: Dict[str, Any] = {k: v for k, v in _BASE["data"].items()
                         if k not in ("root", "num_workers")}
@@ -56,10 +56,10 @@ NCS, HOOD, DA, LBS = "NCS-style", "HOOD-style", "DA-style", "LBS only"
 METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, LBS)
 #: methods without training or randomness: run for the first seed only
 SEED_FREE: Tuple[str, ...] = (LBS,)
-#: each baseline's ``configs/baselines/<name>.yaml`` ``model:`` section
-#: (:class:`~garmentgnn.training.BaselineModule` arguments)
+#: each baseline's ``configs/baselines/<name>.yaml`` module arguments
+#: (:class:`~garmentgnn.training.BaselineModule` arguments, ``model: init_args:``)
 BASELINES: Dict[str, Dict[str, Any]] = {
-    name: load_config(f"baselines/{cfg}")["model"]
+    name: model_args(load_config(f"baselines/{cfg}"))
     for name, cfg in ((DA, "da"), (HOOD, "hood"), (NCS, "ncs"))}
 
 
@@ -69,7 +69,7 @@ def variant_settings(method: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
     LightningCLI merges two ``--config`` files (a list, like ``callbacks``, replaces)."""
     v = GARTRANS[method]
     cfg = load_config(f"ablations/{v.config}") if v.config else {}
-    model = dict(GARTRANS_MODEL, **(cfg.get("model") or {}))
+    model = dict(GARTRANS_MODEL, **model_args(cfg))
     sched = schedule_args(cfg)
     sched = schedule_args(_BASE) if sched is None else sched
     full = dict(_SCHEDULE_DEFAULTS, **sched)
@@ -153,7 +153,8 @@ class LearnedBudget:
             raise ValueError(f"`seed_methods`: {unknown} are not in `methods`")
         unknown = [c for c in self.stability_cases if c not in stab.CASES]
         if unknown:
-            raise ValueError(f"`stability_cases`: unknown {unknown}; choose from {list(stab.CASES)}")
+            raise ValueError(f"`stability_cases`: unknown {unknown}; choose from "
+                             f"{list(stab.CASES)}")
 
 
 def seed_plan(budget: LearnedBudget, seed0: Dict[str, float]) -> Dict[str, int]:

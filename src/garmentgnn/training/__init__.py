@@ -1,11 +1,12 @@
-"""Lightning training: chunked sequence data, the GarTrans and baseline LightningModules,
-the progressive schedule callback (paper §4.1), a wall-clock training budget and the
-packaged configurations."""
+"""Lightning training: chunked sequence data, the GarTrans and baseline LightningModules
+(both :class:`GarmentModule`), the progressive schedule callback (paper §4.1), a
+wall-clock training budget and the packaged configurations."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
            GarmentDataModule,
            SequenceChunks,
 )
+from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.baselines import BaselineModule
 from garmentgnn.training.budget import TimeBudget
 from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
@@ -17,6 +18,7 @@ __all__ = [
            "BaselineModule",
            "EpochShuffleSampler",
            "GarTransModule",
+           "GarmentModule",
            "GarmentDataModule",
            "ProgressiveSchedule",
            "SequenceChunks",

@@ -15,20 +15,20 @@ is a model plus its losses plus a configuration (``garmentgnn/configs/baselines/
 * ``ncs`` (:class:`~garmentgnn.models.baselines.NCSStyle`): garment-specific and
   self-supervised -- the physics terms on its own predictions of three consecutive
   frames; the chunks' simulated positions are removed before the loss ever sees them.
-  One module per garment (``num_vertices``).
+  One module per garment (``num_vertices``): ``garmentgnn train`` links it from the data
+  module, whose training sequences must then all show one garment on one body.
 """
 from __future__ import annotations
 
 from typing import Any, Dict, Optional, Tuple
 
-import lightning as L
 import torch
 from torch import Tensor
 
-from garmentgnn.losses.gartrans_loss import NonFiniteLossError, GarTransLoss
+from garmentgnn.losses.gartrans_loss import GarTransLoss
 from garmentgnn.models.baselines import CoarseLevel, DAStyle, HOODStyle, NCSStyle
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.integrity import stamp_checkpoint, verify_checkpoint
+from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.module import loss_inputs
 
 __all__ = ["BASELINE_METHODS", "BaselineModule"]
@@ -37,7 +37,7 @@ __all__ = ["BASELINE_METHODS", "BaselineModule"]
 BASELINE_METHODS = ("da", "hood", "ncs")
 
 
-class BaselineModule(L.LightningModule):
+class BaselineModule(GarmentModule):
     """Args:
         method: ``"da"``, ``"hood"`` or ``"ncs"``.
         num_joints: ``S`` (from :attr:`GarmentDataModule.dims`).
@@ -71,7 +71,10 @@ class BaselineModule(L.LightningModule):
         else:
             if not isinstance(num_vertices, int) or num_vertices < 1:
                 raise ValueError(f"`num_vertices`: the NCS-style model is garment-specific; "
-                                 f"give the garment's vertex count, got {num_vertices!r}")
+                                 f"give the garment's vertex count, got {num_vertices!r} "
+                                 f"(garmentgnn train links it from the data module when "
+                                 f"its training sequences show one garment on one body: "
+                                 f"select them with --data.train_ids)")
             h = int(kw.get("history", 1))
             if history + 1 < h + 3:
                 raise ValueError(f"`history`: NCS with model history {h} needs a data "
@@ -94,6 +97,15 @@ class BaselineModule(L.LightningModule):
         """(rotations ``[B, h + 1, S, 3]``, translation ``[B, 3]``) ending at history
         slot ``j`` of ``inp``."""
         h = self.model.history
+        if inp.num_vertices != self.hparams.num_vertices:
+            raise ValueError(f"`inp`: this NCS-style model is specific to a garment of "
+                             f"{self.hparams.num_vertices} vertices, sequence "
+                             f"{inp.get('seq_id')!r} has {inp.num_vertices}; give the data "
+                             f"module one garment's sequences (--data.train_ids)")
+        if inp.rotations.shape[1] < h + 3:
+            raise ValueError(f"`inp`: NCS with model history {h} needs a pose history of "
+                             f"{h + 3} frames, the data gives {inp.rotations.shape[1]} "
+                             f"(--data.history {h + 2})")
         end = inp.rotations.shape[1] + j + 1
         return inp.rotations[:, end - h - 1:end], inp.translation[:, end - 1]
 
@@ -111,6 +123,9 @@ class BaselineModule(L.LightningModule):
             raise ValueError("`inp`: a HOOD-style rollout needs at least 2 frames")
         return self.model.rollout(inp, self.coarse_level(inp), lbs[0], lbs[1], inp.body_pos,
                                   pinned_targets=lbs)
+
+    def predict_garment(self, batch: GarmentInputs) -> Tensor:
+        return self(batch)
 
     # -- training -------------------------------------------------------------------
     def compute_loss(self, inp: GarmentInputs) -> Tuple[Tensor, Dict[str, Tensor]]:
@@ -139,21 +154,8 @@ class BaselineModule(L.LightningModule):
 
     def training_step(self, batch: GarmentInputs, batch_idx: int) -> Tensor:
         total, terms = self.compute_loss(batch)
-        if not torch.isfinite(total):
-            raise NonFiniteLossError(f"loss 'total' is {float(total)}")
-        B = batch.num_frames
-        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B,
-                 sync_dist=True)
-        for k, v in terms.items():
-            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B, sync_dist=True)
+        self.log_training_step(total, terms, batch.num_frames)
         return total
 
     def configure_optimizers(self):
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
-
-    # -- checkpoint integrity (garmentgnn.training.integrity) ---------------------------
-    def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
-        stamp_checkpoint(checkpoint)
-
-    def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
-        verify_checkpoint(checkpoint)

@@ -5,7 +5,11 @@ and by the bench alike, so a method's settings are written down once.
 * ``gartrans.yaml``: the full model, its data module, trainer and schedule;
 * ``ablations/<name>.yaml``: what each Table 1 ablation changes on top of it;
 * ``baselines/<name>.yaml``: the :class:`~garmentgnn.training.BaselineModule` settings
-  of the DA-, HOOD- and NCS-style baselines.
+  of the DA-, HOOD- and NCS-style baselines, with their data module and trainer.
+
+Each file's ``model:`` names the module (``class_path``) and its arguments
+(``init_args``; an ablation gives only the ``init_args`` it changes):
+:func:`model_args` reads them.
 
 ``garmentgnn train fit --config gartrans --config ablations/wo_gating`` names packaged
 files without their folder or ``.yaml`` (:func:`resolve_config_args`).
@@ -20,7 +24,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import yaml
 
-__all__ = ["available", "config_path", "load_config", "resolve_config_args",
+__all__ = ["available", "config_path", "load_config", "model_args", "resolve_config_args",
            "schedule_args"]
 
 _ROOT = resources.files("garmentgnn") / "configs"
@@ -52,6 +56,16 @@ def _load(name: str) -> Dict[str, Any]:
 def load_config(name: str) -> Dict[str, Any]:
     """Packaged configuration ``name`` as a plain dict (a fresh copy on every call)."""
     return copy.deepcopy(_load(name))
+
+
+def model_args(config: Dict[str, Any]) -> Dict[str, Any]:
+    """The module arguments of a configuration (its ``model: init_args:``; ``{}`` when
+    it has none)."""
+    model = config.get("model") or {}
+    if not isinstance(model, dict) or set(model) - {"class_path", "init_args"}:
+        raise ValueError(f"`config`: expected `model:` with `class_path` and `init_args`, "
+                         f"got {model!r}")
+    return dict(model.get("init_args") or {})
 
 
 def schedule_args(config: Dict[str, Any]) -> Optional[Dict[str, Any]]:

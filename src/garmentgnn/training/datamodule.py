@@ -19,9 +19,8 @@ motion are cached per sequence file (``cache_size`` files, LRU).
 """
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import lightning as L
 import numpy as np
@@ -29,8 +28,9 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 from torch.utils.data.distributed import DistributedSampler
 
-from garmentgnn.data import store
 from garmentgnn.body.factory import build_body
+from garmentgnn.data import store
+from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.models.inputs import GarmentInputs, build_static, with_frames
 
@@ -55,10 +55,10 @@ class SequenceChunks(Dataset):
             (the state a model with a garment state trains on).
     """
 
-    def __init__(self, root, split: str | None = "train", chunk: int = 8, history: int = 3,
+    def __init__(self, root, split: Optional[str] = "train", chunk: int = 8, history: int = 3,
                  nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
                  cache_size: int = 4, static_cache: int = 64,
-                 ids: Sequence[str] | None = None, previous_frames: bool = False) -> None:
+                 ids: Optional[Sequence[str]] = None, previous_frames: bool = False) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
         if history < 1:
@@ -77,7 +77,7 @@ class SequenceChunks(Dataset):
             found = {r["id"] for r in self.records}
             raise ValueError(f"`ids`: not ok {split!r} sequences under {root}: "
                              f"{sorted(keep - found)[:5]}")
-        self.index: list[tuple[int, int, int]] = []  # (record, first frame, frames)
+        self.index: List[Tuple[int, int, int]] = []  # (record, first frame, frames)
         for i, r in enumerate(self.records):
             T = int(r["num_frames"])
             for t0 in range(0, T, chunk):
@@ -103,10 +103,10 @@ class SequenceChunks(Dataset):
         return torch.from_numpy(np.asarray(conv[t0:t0 + n], dtype=bool))
 
     # -- caches -----------------------------------------------------------------
-    def sequence(self, i: int) -> dict[str, Any]:
+    def sequence(self, i: int) -> Dict[str, Any]:
         rec = self.records[i]
 
-        def load() -> dict[str, Any]:
+        def load() -> Dict[str, Any]:
             self.num_file_loads += 1
             return store.load_record_sequence(self.root, rec)
 
@@ -116,10 +116,10 @@ class SequenceChunks(Dataset):
         """The per-sequence static inputs (cached)."""
         return self._static_and_body(i)[0]
 
-    def _static_and_body(self, i: int) -> tuple[GarmentInputs, Any]:
+    def _static_and_body(self, i: int) -> Tuple[GarmentInputs, Any]:
         return self._static.get_or_build(self.records[i]["id"], lambda: self._build_static(i))
 
-    def _build_static(self, i: int) -> tuple[GarmentInputs, Any]:
+    def _build_static(self, i: int) -> Tuple[GarmentInputs, Any]:
         seq = self.sequence(i)
         meta = seq["meta"]
         rest_pos = torch.from_numpy(np.asarray(seq["garment_vertices"], np.float32))
@@ -185,7 +185,7 @@ class EpochShuffleSampler(DistributedSampler):
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
-    def order(self) -> list[int]:
+    def order(self) -> List[int]:
         """The epoch's order of all ``n`` chunks (before sharding)."""
         if not self.order_shuffle:
             return list(range(self.n))
@@ -208,8 +208,13 @@ def _identity(x):
 class GarmentDataModule(L.LightningDataModule):
     """Train/val/test chunks from the manifest's splits (one chunk per step).
 
-    ``num_joints`` / ``num_body_vertices`` (for building the model) are read from
-    the first training chunk.
+    The arguments are the data module's hyper-parameters (``self.hparams``, stored in
+    every checkpoint).  :meth:`setup` builds only what a stage reads: ``fit`` the
+    training and validation chunks, ``validate`` the validation chunks, ``test`` the
+    ``test_split`` chunks, ``predict`` the ``predict_split`` chunks (default: the test
+    split) in order.
+
+    :attr:`dims` (for building a model) are read from the first training chunk.
 
     Resuming: the epoch to continue with is kept in the checkpoint
     (:meth:`state_dict`) and the training sampler starts there, because Lightning
@@ -217,28 +222,28 @@ class GarmentDataModule(L.LightningDataModule):
     sampler's ``set_epoch``, which would replay epoch 0's chunk order.
     """
 
-    def __init__(self, root, chunk: int = 8, history: int = 3, num_workers: int = 0,
-                 nystrom_dim: int = 16, num_landmarks: int = 64, train_split: str = "train",
-                 val_split: str | None = "val", shuffle: bool = True, seed: int = 0,
-                 drop_last: bool = False, test_split: str = "test",
-                 train_ids: Sequence[str] | None = None, cache_size: int = 4) -> None:
+    def __init__(self, root: Union[str, Path], chunk: int = 8, history: int = 3,
+                 num_workers: int = 0, nystrom_dim: int = 16, num_landmarks: int = 64,
+                 train_split: str = "train", val_split: Optional[str] = "val",
+                 shuffle: bool = True, seed: int = 0, drop_last: bool = False,
+                 test_split: str = "test", train_ids: Optional[Sequence[str]] = None,
+                 cache_size: int = 4, predict_split: Optional[str] = None) -> None:
         super().__init__()
         if not (Path(root) / store.MANIFEST).is_file():
             store.read_manifest(root)  # raises: which path, and the command that makes it
-        self.root, self.chunk, self.history = Path(root), chunk, history
-        self.num_workers, self.nystrom_dim, self.num_landmarks = num_workers, nystrom_dim, \
-            num_landmarks
-        self.train_split, self.val_split, self.test_split = train_split, val_split, \
-            test_split
-        self.test_set: SequenceChunks | None = None
-        self.shuffle, self.seed, self.drop_last = shuffle, seed, drop_last
-        self.train_set: SequenceChunks | None = None
-        self.val_set: SequenceChunks | None = None
+        # plain types in the hyper-parameters: checkpoints load with weights_only=True
+        root = str(root)
+        if train_ids is not None:
+            train_ids = [str(i) for i in train_ids]
+        self.save_hyperparameters()
+        self.root = Path(root)
+        self.train_set: Optional[SequenceChunks] = None
+        self.val_set: Optional[SequenceChunks] = None
+        self.test_set: Optional[SequenceChunks] = None
+        self.predict_set: Optional[SequenceChunks] = None
         self.start_epoch = 0  # the epoch a resumed fit continues with
-        self.train_ids = None if train_ids is None else list(train_ids)
-        self.cache_size = cache_size
 
-    def state_dict(self) -> dict[str, int]:
+    def state_dict(self) -> Dict[str, int]:
         trainer = getattr(self, "trainer", None)
         if trainer is None:
             return {}
@@ -246,62 +251,93 @@ class GarmentDataModule(L.LightningDataModule):
         # on_train_epoch_end or after fit); a resumed fit starts with the next one
         return {"next_epoch": int(trainer.fit_loop.epoch_progress.current.processed)}
 
-    def load_state_dict(self, state: dict[str, int]) -> None:
+    def load_state_dict(self, state: Dict[str, int]) -> None:
         self.start_epoch = int(state.get("next_epoch", 0))
 
-    def _make(self, split, ids: Sequence[str] | None = None,
+    def _make(self, split: Optional[str], ids: Optional[Sequence[str]] = None,
               previous_frames: bool = False) -> SequenceChunks:
-        return SequenceChunks(self.root, split, self.chunk, self.history, self.nystrom_dim,
-                              self.num_landmarks, drop_last=self.drop_last,
-                              cache_size=self.cache_size, ids=ids,
+        hp = self.hparams
+        return SequenceChunks(self.root, split, hp.chunk, hp.history, hp.nystrom_dim,
+                              hp.num_landmarks, drop_last=hp.drop_last,
+                              cache_size=hp.cache_size, ids=ids,
                               previous_frames=previous_frames)
 
-    def setup(self, stage: str | None = None) -> None:
+    def _train(self) -> SequenceChunks:
         if self.train_set is None:
             # training chunks carry the simulated previous frames (``gt_prev``: the
             # state a model with a garment state is trained on)
-            self.train_set = self._make(self.train_split, self.train_ids, previous_frames=True)
-        if self.val_set is None and self.val_split is not None:
-            self.val_set = self._make(self.val_split)
+            self.train_set = self._make(self.hparams.train_split, self.hparams.train_ids,
+                                        previous_frames=True)
+        return self.train_set
+
+    def setup(self, stage: Optional[str] = None) -> None:
+        """Build the chunks ``stage`` reads (``"fit"``, ``"validate"``, ``"test"``,
+        ``"predict"``; ``None``: all of them)."""
+        hp = self.hparams
+        if stage not in (None, "fit", "validate", "test", "predict"):
+            raise ValueError(f"`stage`: expected fit, validate, test, predict or None, "
+                             f"got {stage!r}")
+        if stage in (None, "fit"):
+            self._train()
+        if stage in (None, "fit", "validate") and self.val_set is None \
+                and hp.val_split is not None:
+            self.val_set = self._make(hp.val_split)
+        if stage in (None, "test") and self.test_set is None:
+            self.test_set = self._make(hp.test_split)
+        if stage in (None, "predict") and self.predict_set is None:
+            split = hp.test_split if hp.predict_split is None else hp.predict_split
+            self.predict_set = self._make(split)
 
     @property
-    def dims(self) -> dict[str, int]:
-        self.setup()
-        if not len(self.train_set):
-            raise ValueError(f"no {self.train_split!r} chunks under {self.root}")
-        st = self.train_set.static(self.train_set.index[0][0])
+    def dims(self) -> Dict[str, Optional[int]]:
+        """The model sizes of the data: ``num_joints``, ``num_body_vertices``,
+        ``nystrom_dim`` and ``num_vertices`` (the garment's vertex count when every
+        training sequence shows one garment on one body, else ``None``: what a
+        garment-specific model such as NCS-style is built for)."""
+        train = self._train()
+        if not len(train):
+            raise ValueError(f"no {self.hparams.train_split!r} chunks under {self.root}")
+        st = train.static(train.index[0][0])
+        pairs = {(garment_key(r["garment"]), body_key(r["body"])) for r in train.records}
         return {"num_joints": st["rest_joints"].shape[0],
                 "num_body_vertices": st["body_joint_dists"].shape[0],
-                "nystrom_dim": self.nystrom_dim}
+                "nystrom_dim": self.hparams.nystrom_dim,
+                "num_vertices": st.num_vertices if len(pairs) == 1 else None}
 
     def _loader(self, ds: SequenceChunks, shuffle: bool, num_replicas: int = 1,
                 rank: int = 0) -> DataLoader:
-        sampler = EpochShuffleSampler(len(ds), self.seed, shuffle, num_replicas, rank)
+        hp = self.hparams
+        sampler = EpochShuffleSampler(len(ds), hp.seed, shuffle, num_replicas, rank)
         return DataLoader(ds, batch_size=None, sampler=sampler,
-                          num_workers=self.num_workers, collate_fn=_identity,
-                          persistent_workers=self.num_workers > 0)
+                          num_workers=hp.num_workers, collate_fn=_identity,
+                          persistent_workers=hp.num_workers > 0)
 
     def train_dataloader(self) -> DataLoader:
-        self.setup()
         trainer = getattr(self, "trainer", None)
-        world, rank = 1, 0
-        if trainer is not None and trainer._accelerator_connector.use_distributed_sampler:
-            world, rank = trainer.world_size, trainer.global_rank  # DDP: this replica's share
-        dl = self._loader(self.train_set, self.shuffle, world, rank)
+        # DDP: this replica's share (Trainer.distributed_sampler_kwargs is None for a
+        # strategy that does not shard the data)
+        shard = trainer.distributed_sampler_kwargs if trainer is not None else None
+        world, rank = (shard["num_replicas"], shard["rank"]) if shard else (1, 0)
+        dl = self._loader(self._train(), self.hparams.shuffle, world, rank)
         dl.sampler.set_epoch(self.start_epoch)
         return dl
 
-    def val_dataloader(self):
-        self.setup()
+    def val_dataloader(self) -> Union[DataLoader, List[DataLoader]]:
+        self.setup("validate")
         if self.val_set is None:
             return []
         return self._loader(self.val_set, False)
 
     def test_dataloader(self) -> DataLoader:
         """Chunks of ``test_split`` in order (``garmentgnn train test``)."""
-        if self.test_set is None:
-            self.test_set = self._make(self.test_split)
+        self.setup("test")
         return self._loader(self.test_set, False)
+
+    def predict_dataloader(self) -> DataLoader:
+        """Chunks of ``predict_split`` (default: ``test_split``) in order
+        (``garmentgnn train predict``)."""
+        self.setup("predict")
+        return self._loader(self.predict_set, False)
 
 
 __all__ = ["EpochShuffleSampler", "GarmentDataModule", "SequenceChunks"]

@@ -12,7 +12,7 @@ active branch to get a gradient.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Dict, List
 
 import lightning as L
 import torch
@@ -33,8 +33,8 @@ def training_loss(module: L.LightningModule, batch: Any) -> torch.Tensor:
     return total
 
 
-def _branches(model: nn.Module) -> dict[str, list[nn.Parameter]]:
-    out: dict[str, list[nn.Parameter]] = {}
+def _branches(model: nn.Module) -> Dict[str, List[nn.Parameter]]:
+    out: Dict[str, List[nn.Parameter]] = {}
     for name, p in model.named_parameters(recurse=False):
         out[name] = [p]
     for name, child in model.named_children():
@@ -44,7 +44,7 @@ def _branches(model: nn.Module) -> dict[str, list[nn.Parameter]]:
     return out
 
 
-def branch_gradients(module: L.LightningModule, batch: Any) -> dict[str, dict[str, Any]]:
+def branch_gradients(module: L.LightningModule, batch: Any) -> Dict[str, Dict[str, Any]]:
     """Per branch of ``module.model``: ``trainable`` (parameter tensors that require a
     gradient), ``with_grad`` (those whose gradient has a non-zero entry), ``norm`` (the
     gradient's L2 norm over the branch) after one backward pass of the training loss on
@@ -58,7 +58,7 @@ def branch_gradients(module: L.LightningModule, batch: Any) -> dict[str, dict[st
     if not torch.isfinite(loss):
         raise FloatingPointError(f"the training loss is {float(loss)} at step 0")
     loss.backward()
-    report: dict[str, dict[str, Any]] = {}
+    report: Dict[str, Dict[str, Any]] = {}
     for name, params in _branches(module.model).items():
         live = [p for p in params if p.requires_grad]
         grads = [p.grad for p in live if p.grad is not None]
@@ -70,7 +70,7 @@ def branch_gradients(module: L.LightningModule, batch: Any) -> dict[str, dict[st
     return report
 
 
-def dead_branches(report: dict[str, dict[str, Any]]) -> list[str]:
+def dead_branches(report: Dict[str, Dict[str, Any]]) -> List[str]:
     """The branches of a :func:`branch_gradients` report that have trainable parameters
     but received no gradient at all."""
     return [k for k, r in report.items() if r["trainable"] and r["with_grad"] == 0]

@@ -18,11 +18,11 @@ included), measured in the same loop.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from typing import Dict, Optional, Sequence
 
 import torch
 
-from garmentgnn.metrics import evaluate_inputs
+from garmentgnn.metrics import METRIC_UNITS, evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.datamodule import SequenceChunks
 
@@ -40,8 +40,8 @@ def predict(module, item: GarmentInputs, mode: str) -> torch.Tensor:
 
 @torch.no_grad()
 def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MODES,
-                   history: int | None = None, nystrom_dim: int | None = None,
-                   num_landmarks: int = 64) -> dict[str, dict[str, float]]:
+                   history: Optional[int] = None, nystrom_dim: Optional[int] = None,
+                   num_landmarks: int = 64) -> Dict[str, Dict[str, float]]:
     """``{mode: {metric: frame-weighted mean, ..., "frames": n, "ms_per_frame": t}}``
     over every sequence of ``split`` under ``root``."""
     for mode in modes:
@@ -55,7 +55,7 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
         raise ValueError(f"`split`: no {split!r} sequences under {root}")
     was_training = module.training
     module.eval()
-    sums: dict[str, dict[str, float]] = {m: {} for m in modes}
+    sums: Dict[str, Dict[str, float]] = {m: {} for m in modes}
     frames, predicted, seconds = 0, 0, {m: 0.0 for m in modes}
     try:
         for idx in range(len(ds)):
@@ -84,39 +84,20 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
     return out
 
 
-def markdown_table(results: dict[str, dict[str, float]]) -> str:
-    """The output of :func:`evaluate_split` as a markdown table (one row per mode)."""
-    from garmentgnn.metrics import METRIC_UNITS
-    metrics = ["E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision"]
-    lines = ["| method | " + " | ".join(f"{m} ({METRIC_UNITS.get(m, '')})" for m in metrics)
-             + " | ms/frame |", "|---" * (len(metrics) + 2) + "|"]
+#: the paper's metrics (Tables 1 and 3), in the order of their columns
+TABLE_METRICS = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision")
+
+
+def markdown_table(results: Dict[str, Dict[str, float]]) -> str:
+    """The output of :func:`evaluate_split` (or any ``{row: {metric: value}}``) as a
+    markdown table, one row per mode; the ``ms/frame`` column when every row has
+    ``ms_per_frame``, a missing metric as ``-``."""
+    timed = all("ms_per_frame" in res for res in results.values())
+    head = [f"{m} ({METRIC_UNITS.get(m, '')})" for m in TABLE_METRICS]
+    head += ["ms/frame"] if timed else []
+    lines = ["| method | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
     for mode, res in results.items():
-        lines.append(f"| {mode} | " + " | ".join(f"{res[m]:.4g}" for m in metrics if m in res)
-                     + f" | {res['ms_per_frame']:.1f} |")
+        cells = [f"{res[m]:.4g}" if m in res else "-" for m in TABLE_METRICS]
+        cells += [f"{res['ms_per_frame']:.1f}"] if timed else []
+        lines.append(f"| {mode} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-@torch.no_grad()
-def render_strip(module, root, split: str, path, index: int = 0, history: int = 3,
-                 num_landmarks: int = 64, num_frames: int = 4):
-    """PNG: rows simulated / GarTrans / LBS only, columns evenly spaced frames of the
-    ``index``-th sequence of ``split``; returns ``(path, sequence id)``."""
-    from garmentgnn.viz import render_grid
-    ds = SequenceChunks(root, split, chunk=10 ** 9, history=history,
-                        nystrom_dim=module.hparams.nystrom_dim, num_landmarks=num_landmarks)
-    item = ds[index]
-    was_training = module.training
-    module.eval()
-    try:
-        rows = [("simulated", item["gt"], (0.30, 0.55, 0.35)),
-                ("GarTrans", predict(module, item, "gartrans"), (0.25, 0.45, 0.80)),
-                ("LBS only", predict(module, item, "lbs"), (0.60, 0.60, 0.60))]
-    finally:
-        module.train(was_training)
-    T = item["gt"].shape[0]
-    frames = sorted({round(1 + i * (T - 2) / max(1, num_frames - 1)) for i in range(num_frames)})
-    body_rgb = (0.82, 0.70, 0.60)
-    cells = [[[(item["body_pos"][t], item["body_faces"], body_rgb), (P[t], item["faces"], rgb)]
-              for t in frames] for _, P, rgb in rows]
-    titles = [[f"{name}, frame {t}" for t in frames] for name, _, _ in rows]
-    return render_grid(cells, path, titles=titles, elev=12, azim=-70), item["seq_id"]

@@ -1,21 +1,32 @@
-"""``garmentgnn train``: Lightning's own CLI over :class:`GarTransModule` and
-:class:`GarmentDataModule`, configured by the YAML files packaged in
-``garmentgnn/configs/`` (named without folder or suffix, or given as paths).
+"""``garmentgnn train``: Lightning's own CLI over every trained method -- any
+:class:`~garmentgnn.training.base.GarmentModule` (``subclass_mode_model``: GarTrans and
+its Table 1 variants, :class:`GarTransModule`; the DA-, HOOD- and NCS-style baselines,
+:class:`BaselineModule`) -- and :class:`GarmentDataModule`, configured by the YAML files
+packaged in ``garmentgnn/configs/`` (named without folder or suffix, or given as paths).
+Each config names its module (``model: class_path: ...``, ``init_args: ...``).
 
 The model sizes that depend on the data (number of joints, body vertices, Nyström
-width) are linked from the data module, so a config only says *what* to train::
+width, the garment's vertex count) are linked from the data module, so a config only
+says *what* to train::
 
     garmentgnn train fit --config gartrans --data.root data/small
     garmentgnn train fit --config gartrans --config ablations/wo_gating ...
+    garmentgnn train fit --config baselines/da --data.root data/small
     garmentgnn train fit --config gartrans --ckpt_path last   # resume
+    garmentgnn train test --config baselines/da --ckpt_path X.ckpt
+
+``test`` prints the paper's metrics of the checkpoint's method and of "LBS only" on the
+same frames side by side (:func:`metrics_table`); ``predict`` writes the predicted
+garment of every sequence of ``--data.predict_split`` (default: the test split) to
+``<log dir>/predictions/<sequence id>.npz`` (:class:`PredictionWriter`).
 
 Every option of the module, the data module, the trainer and its callbacks is a flag
-(``garmentgnn train fit --help``); ``--print_config`` shows the merged configuration.
-At the end of ``fit`` the loss terms and validation metrics per epoch are drawn into
-``<log dir>/training_curves.png`` (:class:`~garmentgnn.training.plots.TrainingPlots`).
-Beside the configured ``CSVLogger`` every run also logs to TensorBoard (when the
-``tensorboard`` package is installed): the same values go to
-``<log dir>/tensorboard/events.out.tfevents.*`` (``tensorboard --logdir runs``).
+(``garmentgnn train fit --help``, ``--model.help GarTransModule``); ``--print_config``
+shows the merged configuration.  At the end of ``fit`` the loss terms and validation
+metrics per epoch are drawn into ``<log dir>/training_curves.png``
+(:class:`~garmentgnn.training.plots.TrainingPlots`).  Beside the configured
+``CSVLogger`` every run also logs to TensorBoard (when the ``tensorboard`` package is
+installed): the same values go to ``<log dir>/tensorboard/events.out.tfevents.*``.
 
 Where it all goes: the loggers' ``save_dir`` is linked to ``--trainer.default_root_dir``
 (a ``save_dir`` of their own is overridden), so ``--trainer.default_root_dir DIR`` puts
@@ -25,32 +36,46 @@ checkpoints, in ``DIR/checkpoints``.  The packaged configs set ``runs/<name>``.
 """
 from __future__ import annotations
 
+import importlib
 import importlib.util
+import inspect
 import os
 import sys
-from typing import Any, Optional, Sequence
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
 
-from lightning.pytorch import Trainer
+import numpy as np
+import torch
+from lightning.pytorch import LightningModule, Trainer
+from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
-from lightning.pytorch.utilities import rank_zero_warn
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
+from garmentgnn.training.base import LBS_PREFIX, GarmentModule
 from garmentgnn.training.configs import resolve_config_args
 from garmentgnn.training.datamodule import GarmentDataModule
+from garmentgnn.training.evaluate import markdown_table
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
-from garmentgnn.training.module import GarTransModule
 from garmentgnn.training.plots import TrainingPlots
 
+#: TensorBoard's event files go into this sub-folder of the CSV logger's run folder
+TENSORBOARD_SUBDIR = "tensorboard"
+#: the module a config without ``model: class_path`` trains
+DEFAULT_MODEL = "garmentgnn.training.GarTransModule"
+#: Lightning's special ``--ckpt_path`` values (not files)
+SPECIAL_CKPT = ("last", "best", "hpc", "registry")
+#: the model sizes linked from :attr:`GarmentDataModule.dims` when the classes are built
+LINKED_DIMS = ("num_joints", "num_body_vertices", "num_vertices")
+#: every module argument linked from the data module
+LINKED = LINKED_DIMS + ("nystrom_dim", "history")
 
-def _plain(ns) -> dict:
+
+def _plain(ns: Any) -> Dict[str, Any]:
     """A jsonargparse Namespace (or None) as a plain dict."""
     if ns is None:
         return {}
     return ns.as_dict() if hasattr(ns, "as_dict") else dict(ns)
-
-
-#: TensorBoard's event files go into this sub-folder of the CSV logger's run folder
-TENSORBOARD_SUBDIR = "tensorboard"
 
 
 def add_tensorboard(trainer: Trainer) -> Optional[TensorBoardLogger]:
@@ -72,42 +97,126 @@ def add_tensorboard(trainer: Trainer) -> Optional[TensorBoardLogger]:
     return tb
 
 
+def method_name(model: LightningModule) -> str:
+    """The table row name of a trained module: ``"DA-style"``, ``"GarTrans (sat)"``..."""
+    method = model.hparams.get("method")
+    if method is not None:
+        return {"da": "DA-style", "hood": "HOOD-style", "ncs": "NCS-style"}.get(method, method)
+    layer = model.hparams.get("dynamic_layer")
+    return f"GarTrans ({layer})" if layer else type(model).__name__
+
+
+def metrics_table(metrics: Dict[str, Any], name: str, prefix: str = "test") -> str:
+    """The logged ``<prefix>/<metric>`` (the method, row ``name``) and
+    ``test_lbs/<metric>`` (row ``LBS only``) values as a markdown table."""
+    rows: Dict[str, Dict[str, float]] = {}
+    for row, pre in ((name, prefix), ("LBS only", LBS_PREFIX)):
+        vals = {k[len(pre) + 1:]: float(v) for k, v in metrics.items()
+                if k.startswith(pre + "/")}
+        if vals:
+            rows[row] = vals
+    return markdown_table(rows)
+
+
+class PredictionWriter(BasePredictionWriter):
+    """``predict``: the garment of every predicted sequence to
+    ``<folder>/<sequence id>.npz`` (``positions [T, V, 3]`` float32 metres and
+    ``frames [T]``, in frame order); ``folder`` default: ``<log dir>/predictions``
+    (``<default_root_dir>/predictions`` without a logger)."""
+
+    def __init__(self, folder: Optional[str] = None) -> None:
+        super().__init__(write_interval="epoch")
+        self.folder = folder
+        self.written: List[Path] = []
+
+    def write_on_epoch_end(self, trainer: Trainer, pl_module: LightningModule,
+                           predictions: Sequence[Any], batch_indices: Sequence[Any]) -> None:
+        base = trainer.log_dir if trainer.loggers else trainer.default_root_dir
+        folder = Path(self.folder or Path(base) / "predictions")
+        folder.mkdir(parents=True, exist_ok=True)
+        seqs: Dict[str, List[Dict[str, Any]]] = {}
+        for out in predictions[0] if predictions and isinstance(predictions[0], list) \
+                else predictions:
+            seqs.setdefault(str(out["seq_id"]), []).append(out)
+        for seq_id, outs in seqs.items():
+            frames = torch.cat([o["frames"] for o in outs]).cpu().numpy()
+            pos = torch.cat([o["positions"] for o in outs]).float().cpu().numpy()
+            order = np.argsort(frames, kind="stable")
+            path = folder / f"{seq_id}.npz"
+            np.savez(path, positions=pos[order], frames=frames[order])
+            self.written.append(path)
+        rank_zero_info(f"predictions: {len(seqs)} sequence(s) in {folder}")
+
+
 def _dim(name: str):
-    def get(data: GarmentDataModule) -> int:
+    def get(data: GarmentDataModule) -> Optional[int]:
         return data.dims[name]
     return get
 
 
-class GarTransCLI(LightningCLI):
-    """LightningCLI with the data-dependent model sizes linked from the data module.
+def _import(class_path: str) -> type:
+    module, _, name = class_path.rpartition(".")
+    return getattr(importlib.import_module(module), name)
 
-    Subcommands: ``fit``, ``validate`` and ``test`` (the test split's metrics);
-    Lightning's ``predict`` is not offered (use ``examples/evaluate_checkpoint.py``).
-    ``--ckpt_path X`` is checked first: an unreadable or changed file, or a
-    ``--model.*`` flag (or config value) that differs from X's hyper-parameters, is a
-    :class:`~garmentgnn.training.integrity.CheckpointError`."""
 
-    @staticmethod
-    def subcommands() -> dict[str, set[str]]:
-        subs = LightningCLI.subcommands()
-        return {k: subs[k] for k in ("fit", "validate", "test")}
+class GarmentCLI(LightningCLI):
+    """LightningCLI over every :class:`GarmentModule` with the data-dependent model sizes
+    linked from the data module; subcommands ``fit``, ``validate``, ``test`` (the
+    method's and LBS's metrics, :func:`metrics_table`) and ``predict``.
 
-    def _parse_ckpt_path(self) -> None:
+    ``--ckpt_path X`` is checked first: an unreadable or changed file, a checkpoint of
+    another module class, or a ``--model.*`` flag (or config value) that differs from
+    X's hyper-parameters, is a :class:`~garmentgnn.training.integrity.CheckpointError`
+    (the model is rebuilt from X's hyper-parameters)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("subclass_mode_model", True)
+        super().__init__(*args, **kwargs)
+
+    def parse_arguments(self, parser: Any, args: Any) -> None:
+        super().parse_arguments(parser, args)
+        cls_path = self.check_checkpoint_flags()
+        if cls_path is not None:
+            # Lightning rebuilds the model from the checkpoint's hyper-parameters next;
+            # a checkpoint written outside LightningCLI does not name its class, which is
+            # then the configured one (not the parser's default)
+            parser.set_defaults({f"{self.config.subcommand}.model": {"class_path": cls_path}})
+
+    def check_checkpoint_flags(self) -> Optional[str]:
+        """Refuse a ``--ckpt_path`` that does not match the configured module (see the
+        class docstring); returns the configured module's class path when a checkpoint
+        file is given."""
         sub = self.config.get("subcommand") if self.config is not None else None
         ckpt_path = self.config[sub].get("ckpt_path") if sub else None
-        if not ckpt_path or ckpt_path in ("last", "best", "hpc", "registry"):
-            return super()._parse_ckpt_path()
+        if not ckpt_path or ckpt_path in SPECIAL_CKPT:
+            return None
         ckpt = load_checkpoint_file(ckpt_path)
-        given = _plain(self.config[sub].get("model"))
-        defaults = _plain(self._subcommand_parsers[sub].get_defaults().get("model"))
-        bad = hparam_conflicts(given, defaults, ckpt.get("hyper_parameters") or {})
+        stored = dict(ckpt.get("hyper_parameters") or {})
+        stored.pop("_instantiator", None)
+        model = _plain(self.config[sub].get("model"))
+        cls_path = model.get("class_path") or DEFAULT_MODEL
+        saved_cls = stored.pop("_class_path", None)
+        params = inspect.signature(_import(cls_path).__init__).parameters
+        foreign = sorted(k for k in stored if k not in params)
+        if (saved_cls and saved_cls.rsplit(".", 1)[-1] != cls_path.rsplit(".", 1)[-1]) \
+                or foreign:
+            what = saved_cls or f"a module with {foreign}"
+            raise CheckpointError(f"{ckpt_path}: a checkpoint of {what}, not of {cls_path}; "
+                                  f"give the --config of the method it was trained with")
+        defaults = {k: p.default for k, p in params.items()
+                    if p.default is not inspect.Parameter.empty}
+        # a size linked from the data that the checkpoint's module was built without
+        # (``None``: accepted and ignored, as a bench-built baseline's) is no conflict
+        given = {k: v for k, v in _plain(model.get("init_args")).items()
+                 if not (k in LINKED and stored.get(k, 0) is None)}
+        bad = hparam_conflicts(given, defaults, stored)
         if bad:
             what = ", ".join(f"--model.{k} {v!r} (checkpoint: {c!r})"
                              for k, (v, c) in sorted(bad.items()))
             raise CheckpointError(f"{ckpt_path}: {what}; the model is rebuilt from the "
                                   f"checkpoint's hyper-parameters, so drop the flag(s), or "
                                   f"start a new run without --ckpt_path")
-        return super()._parse_ckpt_path()
+        return cls_path
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """Lightning's trainer, with a TensorBoard logger beside the CSV one
@@ -116,31 +225,40 @@ class GarTransCLI(LightningCLI):
         add_tensorboard(trainer)
         return trainer
 
-    def add_arguments_to_parser(self, parser) -> None:
-        parser.link_arguments("data.nystrom_dim", "model.nystrom_dim")
+    def add_arguments_to_parser(self, parser: Any) -> None:
+        parser.set_defaults({"model": {"class_path": DEFAULT_MODEL}})
+        for name in ("nystrom_dim", "history"):
+            parser.link_arguments(f"data.{name}", f"model.init_args.{name}")
         # every logger writes under the trainer's root folder (the current folder when it
         # is unset, as in Lightning), so --trainer.default_root_dir moves logs,
         # checkpoints, TensorBoard events and curve plots together
         parser.link_arguments("trainer.default_root_dir", "trainer.logger.init_args.save_dir",
                               compute_fn=lambda d: d or os.getcwd())
-        for name in ("num_joints", "num_body_vertices"):
-            parser.link_arguments("data", f"model.{name}", apply_on="instantiate",
+        for name in LINKED_DIMS:
+            parser.link_arguments("data", f"model.init_args.{name}", apply_on="instantiate",
                                   compute_fn=_dim(name))
+
+    def after_test(self) -> None:
+        """Print the method's and LBS's test metrics side by side."""
+        if self.trainer.is_global_zero:
+            table = metrics_table(self.trainer.callback_metrics, method_name(self.model))
+            print(f"\ntest split {self.datamodule.hparams.test_split!r}, frame-weighted "
+                  f"means:\n{table}")
 
 
 def main(args: Optional[Sequence[str]] = None, run: bool = True,
-         prog: Optional[str] = None) -> GarTransCLI:
+         prog: Optional[str] = None) -> GarmentCLI:
     """Run the CLI (``args`` default: ``sys.argv[1:]``; ``--config NAME`` may name a
     packaged configuration, :func:`~garmentgnn.training.configs.resolve_config_args`;
     ``prog``: the program name its usage lines show); returns the CLI object.  Every
-    run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder) and
-    a TensorBoard log (:func:`add_tensorboard`)."""
+    run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder),
+    :class:`PredictionWriter` and a TensorBoard log (:func:`add_tensorboard`)."""
     args = resolve_config_args(sys.argv[1:] if args is None else args)
-    return GarTransCLI(GarTransModule, GarmentDataModule, args=args,
-                       run=run, seed_everything_default=0,
-                       parser_kwargs={"prog": prog} if prog else None,
-                       save_config_kwargs={"overwrite": True},
-                       trainer_defaults={"callbacks": [TrainingPlots()]})
+    return GarmentCLI(GarmentModule, GarmentDataModule, args=args,
+                      run=run, seed_everything_default=0,
+                      parser_kwargs={"prog": prog} if prog else None,
+                      save_config_kwargs={"overwrite": True},
+                      trainer_defaults={"callbacks": [TrainingPlots(), PredictionWriter()]})
 
 
 if __name__ == "__main__":  # pragma: no cover

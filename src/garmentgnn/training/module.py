@@ -8,26 +8,19 @@ the supervised scale and whether the rest-pose branch is frozen are switched by
 """
 from __future__ import annotations
 
-from collections.abc import Iterable
-from typing import Any
+from typing import Any, Dict, Iterable, Iterator, Optional
 
-import lightning as L
 import torch
 
-from garmentgnn.losses.gartrans_loss import (
-    SUPERVISED,
-    GarTransLoss,
-    LossInputs,
-    NonFiniteLossError,
-    vertex_loss,
-)
-from garmentgnn.metrics.garment_metrics import evaluate_inputs
+from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs, vertex_loss
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.integrity import stamp_checkpoint, verify_checkpoint
+from garmentgnn.training.base import GarmentModule
+
 
 def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
-                predicted: torch.Tensor | None = None, ground_truth: bool = True) -> LossInputs:
+                predicted: Optional[torch.Tensor] = None, ground_truth: bool = True
+                ) -> LossInputs:
     """The :class:`LossInputs` of a prediction ``pred [B, V, 3]`` of ``inp``'s frames;
     ``predicted``: the inertial prediction ``2 x_{t-1} - x_{t-2}`` (inertia term);
     ``ground_truth=False`` leaves the simulated garment out (self-supervised methods)."""
@@ -44,7 +37,7 @@ OPTIMIZERS = {"adamax": torch.optim.Adamax, "adam": torch.optim.Adam,
 REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
 
 
-class GarTransModule(L.LightningModule):
+class GarTransModule(GarmentModule):
     """GarTrans trained by Lightning.  The model defaults are :class:`GarTrans`'s (and
     ``garmentgnn/configs/gartrans.yaml``'s); ``GarTransModule(..., skin_prior=False,
     **PAPER_FORM)`` is the paper's form.
@@ -85,20 +78,24 @@ class GarTransModule(L.LightningModule):
             chunk (:meth:`GarTrans.rollout` from the simulated frames before the chunk,
             gradients through every step) instead of the simulated previous frames of
             every frame (teacher forcing).
+        num_vertices, history: accepted (and ignored) so that the data module's sizes
+            are linked to every method alike (:class:`BaselineModule` reads them).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
-                 heads: int = 4, fps: float = 30.0, lr: float = 3e-3, t_max: int | None = None,
-                 eta_min: float = 0.0, loss_weights: dict[str, float] | None = None,
+                 heads: int = 4, fps: float = 30.0, lr: float = 3e-3,
+                 t_max: Optional[int] = None, eta_min: float = 0.0,
+                 loss_weights: Optional[Dict[str, float]] = None,
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
                  use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True,
-                 collision_projection: float | None = 0.002, blend_shape: bool = False,
+                 collision_projection: Optional[float] = 0.002, blend_shape: bool = False,
                  strain_limit: int = 10, compile_search: bool = False, gate_init: float = 1.0,
-                 accel_unit: float | None = 0.01, optimizer: str = "adamax",
+                 accel_unit: Optional[float] = 0.01, optimizer: str = "adamax",
                  garment_state: bool = False, state_noise: float = 0.0,
-                 state_dropout: float = 0.0, state_rollout: bool = False) -> None:
+                 state_dropout: float = 0.0, state_rollout: bool = False,
+                 num_vertices: Optional[int] = None, history: Optional[int] = None) -> None:
         super().__init__()
         if lbs_start and not skin_prior:
             raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
@@ -141,7 +138,7 @@ class GarTransModule(L.LightningModule):
                 if frozen:
                     p.grad = None
 
-    def rest_branch_parameters(self):
+    def rest_branch_parameters(self) -> Iterator[torch.nn.Parameter]:
         for name in REST_BRANCH:
             yield from getattr(self.model, name).parameters()
 
@@ -154,8 +151,8 @@ class GarTransModule(L.LightningModule):
             inp.get("body_joint_dists") if hp.use_body else None,
             inp.skin_weights if hp.get("skin_prior", False) else None)
 
-    def forward(self, inp: GarmentInputs, static: StaticFeatures | None = None,
-                autoregressive: bool | None = None) -> dict[str, torch.Tensor]:
+    def forward(self, inp: GarmentInputs, static: Optional[StaticFeatures] = None,
+                autoregressive: Optional[bool] = None) -> Dict[str, torch.Tensor]:
         """GarTrans on every frame of ``inp``: frame-parallel (the paper's mode), or
         ``autoregressive`` (:meth:`GarTrans.rollout`; the default with ``garment_state``,
         frame-parallel otherwise).  ``static``: a cached :meth:`encode_static` of the same
@@ -168,7 +165,12 @@ class GarTransModule(L.LightningModule):
                    inp.parents, inp.rotations, inp.translation, body_pos=inp.get("body_pos"),
                    body_faces=inp.get("body_faces"))
 
-    def training_forward(self, inp: GarmentInputs) -> dict[str, torch.Tensor]:
+    def predict_garment(self, batch: GarmentInputs) -> torch.Tensor:
+        """:meth:`forward`'s garment ``[B, V, 3]`` (frame-parallel, or the rollout with
+        ``garment_state``): what ``validate``, ``test`` and ``predict`` score."""
+        return self(batch)["final"]
+
+    def training_forward(self, inp: GarmentInputs) -> Dict[str, torch.Tensor]:
         """The prediction a training step scores: :meth:`forward` (frame-parallel), or
         with ``garment_state`` every frame of ``inp`` given the simulated frames
         ``t-2, t-1`` (``inp.gt_prev``) as its state, with ``state_noise`` on frame ``t-1``
@@ -194,7 +196,7 @@ class GarTransModule(L.LightningModule):
             return self.model.rollout(*args, state=None if state is None else state[0], **kw)
         return self.model(*args, state=state, **kw)
 
-    def compute_loss(self, batch: GarmentInputs, out: dict[str, torch.Tensor]):
+    def compute_loss(self, batch: GarmentInputs, out: Dict[str, torch.Tensor]):
         inp = loss_inputs(batch, out["final"], dt=1.0 / self.hparams.fps)
         return self.loss_fn(inp)  # NaN/inf raises NonFiniteLossError naming the term
 
@@ -205,40 +207,13 @@ class GarTransModule(L.LightningModule):
         total, terms = self.compute_loss(batch, out)
         with torch.no_grad():
             vert_err = vertex_loss(out["final"], batch["gt"]).mean()  # metres, unscaled
-        if not torch.isfinite(total):
-            raise NonFiniteLossError(f"loss 'total' is {float(total)}")
-        # DDP: epoch means over every replica's chunks (a no-op on one process)
-        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=B,
-                 sync_dist=True)
-        self.log("train/vert_err", vert_err, on_step=False, on_epoch=True, batch_size=B,
-                 sync_dist=True)
-        for k, v in terms.items():
-            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=B,
-                     sync_dist=True)
+        self.log_training_step(total, terms, B, extra={"vert_err": vert_err})
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
 
-    def _eval_step(self, batch: GarmentInputs, prefix: str):
-        out = self(batch)
-        B = out["final"].shape[0]
-        metrics = evaluate_inputs(out["final"], batch)
-        for k, v in metrics.items():
-            self.log(f"{prefix}/{k}", v, on_epoch=True, batch_size=B)
-        return metrics
-
-    def validation_step(self, batch: GarmentInputs, batch_idx: int):
-        return self._eval_step(batch, "val")
-
-    def test_step(self, batch: GarmentInputs, batch_idx: int):
-        """The validation metrics on the data module's test split (``test/...``)."""
-        return self._eval_step(batch, "test")
-
-    # -- checkpoint integrity (garmentgnn.training.integrity) ---------------------------
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        stamp_checkpoint(checkpoint)
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        verify_checkpoint(checkpoint)
+    # -- checkpoints (integrity: GarmentModule) ----------------------------------------
+    def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
         saved = checkpoint.get("hyper_parameters")
         if saved is not None and "accel_unit" not in saved:
             # saved before ``accel_unit`` existed: its dynamic output was an acceleration
@@ -251,7 +226,10 @@ class GarTransModule(L.LightningModule):
                                                                    lr=self.hparams.lr)
         t_max = self.hparams.t_max
         if t_max is None:
-            me = getattr(self.trainer, "max_epochs", None) if self._trainer is not None else None
+            try:
+                me = self.trainer.max_epochs
+            except RuntimeError:  # not attached to a Trainer
+                me = None
             t_max = me if me and me > 0 else 100
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(t_max),
                                                            eta_min=self.hparams.eta_min)

@@ -18,6 +18,8 @@ from typing import Any, Dict, List, Optional, Union
 
 import lightning as L
 
+from garmentgnn.metrics import METRIC_UNITS
+
 PathLike = Union[str, os.PathLike]
 FILENAME = "training_curves.png"
 
@@ -48,8 +50,6 @@ def plot_training_curves(history: List[Dict[str, float]], path: PathLike,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
-
-    from garmentgnn.metrics import METRIC_UNITS
 
     keys = sorted({k for row in history for k in row if k != "epoch"})
     train = [k for k in keys if k.startswith("train/")]

@@ -19,8 +19,7 @@ run resumed from a checkpoint continues in exactly the same phase.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
+from typing import Any, Dict, List, Optional, Sequence
 
 import lightning as L
 import torch
@@ -47,7 +46,7 @@ class ProgressiveSchedule(L.Callback):
     """
 
     def __init__(self, window: int = 50, threshold: float = 0.03,
-                 window2: int | None = None, threshold2: float | None = None,
+                 window2: Optional[int] = None, threshold2: Optional[float] = None,
                  supervised_scale: float = 0.05, start_phase: int = 1, max_phase: int = 3,
                  extra_terms: Sequence[str] = (), extra_from: int = 3) -> None:
         if window < 1:
@@ -67,16 +66,16 @@ class ProgressiveSchedule(L.Callback):
         self.supervised_scale = supervised_scale
         self.max_phase = max_phase
         self.phase = start_phase
-        self.history: list[float] = []  # epoch means of the monitored value of this phase
-        self.transitions: dict[int, int] = {}  # phase -> epoch at whose end it began
+        self.history: List[float] = []  # epoch means of the monitored value of this phase
+        self.transitions: Dict[int, int] = {}  # phase -> epoch at whose end it began
         self._sum, self._n = 0.0, 0
 
     # -- state ------------------------------------------------------------------------
-    def state_dict(self) -> dict[str, Any]:
+    def state_dict(self) -> Dict[str, Any]:
         return {"phase": self.phase, "history": list(self.history),
                 "transitions": {str(k): v for k, v in self.transitions.items()}}
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
         self.phase = int(state["phase"])
         self.history = [float(x) for x in state["history"]]
         self.transitions = {int(k): int(v) for k, v in state.get("transitions", {}).items()}
@@ -96,7 +95,7 @@ class ProgressiveSchedule(L.Callback):
     def on_train_epoch_start(self, trainer, pl_module) -> None:
         self._sum, self._n = 0.0, 0
 
-    def _monitored(self, outputs) -> float | None:
+    def _monitored(self, outputs) -> Optional[float]:
         if not isinstance(outputs, dict):
             return None
         if self.phase == 1:

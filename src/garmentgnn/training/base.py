@@ -1,0 +1,80 @@
+"""What every trained method shares: :class:`GarmentModule`, the LightningModule base of
+:class:`~garmentgnn.training.GarTransModule` and :class:`~garmentgnn.training.BaselineModule`.
+
+It holds the parts that do not depend on the method: the checkpoint integrity hooks
+(:mod:`garmentgnn.training.integrity`), the training-step logging, the held-out metrics
+of ``validate``/``test`` (:func:`garmentgnn.metrics.evaluate_inputs`; ``test`` scores
+"LBS only" on the same frames beside the method, ``test_lbs/...``) and ``predict``.  A
+method only says how it predicts a chunk (:meth:`GarmentModule.predict_garment`) and how
+it trains (``training_step``, ``configure_optimizers``).
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from garmentgnn.losses.gartrans_loss import NonFiniteLossError
+from garmentgnn.metrics import evaluate_inputs
+from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.training.integrity import stamp_checkpoint, verify_checkpoint
+
+__all__ = ["LBS_PREFIX", "GarmentModule"]
+
+#: the prefix of the "LBS only" metrics that ``test`` logs beside the method's ``test/...``
+LBS_PREFIX = "test_lbs"
+
+
+class GarmentModule(L.LightningModule):
+    """Base of the garment methods trained by ``garmentgnn train`` (one chunk per step,
+    :class:`~garmentgnn.training.GarmentDataModule`)."""
+
+    def predict_garment(self, batch: GarmentInputs) -> Tensor:
+        """The garment ``[B, V, 3]`` of every frame of ``batch``."""
+        raise NotImplementedError(f"{type(self).__name__}: define predict_garment")
+
+    # -- training ---------------------------------------------------------------------
+    def log_training_step(self, total: Tensor, terms: Dict[str, Tensor], batch_size: int,
+                          extra: Optional[Dict[str, Tensor]] = None) -> None:
+        """Log a step's loss (``train/loss``, per step and epoch), its terms and ``extra``
+        values (``train/<name>``, epoch means); a non-finite total raises
+        :class:`NonFiniteLossError`.  DDP: epoch means over every replica's chunks."""
+        if not torch.isfinite(total):
+            raise NonFiniteLossError(f"loss 'total' is {float(total)}")
+        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True,
+                 batch_size=batch_size, sync_dist=True)
+        for k, v in {**(extra or {}), **terms}.items():
+            self.log(f"train/{k}", v, on_step=False, on_epoch=True, batch_size=batch_size,
+                     sync_dist=True)
+
+    # -- held-out metrics -------------------------------------------------------------
+    def _score(self, pred: Tensor, batch: GarmentInputs, prefix: str) -> Dict[str, float]:
+        metrics = evaluate_inputs(pred, batch)
+        for k, v in metrics.items():
+            self.log(f"{prefix}/{k}", v, on_epoch=True, batch_size=pred.shape[0])
+        return metrics
+
+    def validation_step(self, batch: GarmentInputs, batch_idx: int) -> Dict[str, float]:
+        """The paper's metrics of the prediction (``val/...``, frame-weighted epoch means)."""
+        return self._score(self.predict_garment(batch), batch, "val")
+
+    def test_step(self, batch: GarmentInputs, batch_idx: int) -> Dict[str, float]:
+        """The paper's metrics on the data module's test split: the method's (``test/...``)
+        and, on the same frames, the rest garment skinned by LBS (``test_lbs/...``)."""
+        self._score(batch.skinned(), batch, LBS_PREFIX)
+        return self._score(self.predict_garment(batch), batch, "test")
+
+    def predict_step(self, batch: GarmentInputs, batch_idx: int,
+                     dataloader_idx: int = 0) -> Dict[str, Any]:
+        """``{"seq_id", "frames" [B], "positions" [B, V, 3]}`` of one chunk."""
+        return {"seq_id": batch.get("seq_id"), "frames": batch.get("frames"),
+                "positions": self.predict_garment(batch).detach()}
+
+    # -- checkpoint integrity (garmentgnn.training.integrity) ---------------------------
+    def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        stamp_checkpoint(checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        verify_checkpoint(checkpoint)

@@ -1,0 +1,173 @@
+"""``garmentgnn train`` for every method: each packaged config builds the module it names
+with the config's own arguments (the YAML file is the oracle), ``fit`` then ``test`` of a
+baseline and an ablation through the command line, the test metrics against an
+independent whole-sequence evaluation, and checkpoints in the layout written before
+the CLI covered every method."""
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+import yaml
+
+from garmentgnn.cli import main as cli_main
+from garmentgnn.metrics import evaluate_inputs
+from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
+from garmentgnn.training.configs import available, config_path, model_args
+from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.training.lightning_cli import main as train_main
+from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
+from test_training_cli import fast_args
+
+CLASSES = {"garmentgnn.training.GarTransModule": GarTransModule,
+           "garmentgnn.training.BaselineModule": BaselineModule}
+
+
+def _config_args(name):
+    """The ``--config`` flags of packaged config ``name`` (an ablation on top of GarTrans)."""
+    base = ["--config", "gartrans"] if name.startswith("ablations/") else []
+    return base + ["--config", name]
+
+
+def _test_args(data_root, tmp_path):
+    # the toy dataset's held-out split is `val`; the baselines' pose history is 3
+    return fast_args(data_root, tmp_path) + ["--data.test_split", "val",
+                                             "--data.history", "3"]
+
+
+def test_every_method_has_a_packaged_config():
+    assert [n for n in available() if not n.startswith("ablations/")] == [
+        "baselines/da", "baselines/hood", "baselines/ncs", "gartrans"]
+
+
+@pytest.mark.parametrize("name", available())
+def test_each_packaged_config_builds_its_module(root, tmp_path, name):  # noqa: F811
+    cli = train_main(_config_args(name) + _test_args(root, tmp_path), run=False)
+    cfg = yaml.safe_load(config_path("gartrans" if name.startswith("ablations/")
+                                     else name).read_text())
+    assert isinstance(cli.model, CLASSES[cfg["model"]["class_path"]])
+    assert isinstance(cli.datamodule, GarmentDataModule)
+    expected = dict(model_args(cfg), **model_args(yaml.safe_load(config_path(name).read_text())))
+    hp = dict(cli.model.hparams)
+    for k, v in expected.items():
+        assert hp[k] == (sorted(v) if k == "enabled" else v), k
+    dims = cli.datamodule.dims
+    assert hp["num_joints"] == dims["num_joints"] and hp["history"] == 3
+    if name == "baselines/ncs":  # one garment on one body: the garment-specific size
+        assert hp["num_vertices"] == dims["num_vertices"] == cli.datamodule.train_set.static(
+            0).num_vertices
+
+
+def _oracle(module, root, split):  # noqa: F811
+    """Frame-weighted metrics of ``module`` and of LBS over whole sequences of ``split``
+    (one call per sequence, not the CLI's chunks): ``evaluate_split`` for LBS,
+    :func:`evaluate_inputs` of the module's prediction for the method."""
+    lbs = evaluate_split(module, root, split, modes=("lbs",), history=3,
+                         nystrom_dim=NY, num_landmarks=16)["lbs"]
+    ds = SequenceChunks(root, split, chunk=10 ** 6, history=3, nystrom_dim=NY,
+                        num_landmarks=16)
+    sums, frames = {}, 0
+    with torch.no_grad():
+        for item in ds:
+            B = item.num_frames
+            frames += B
+            for k, v in evaluate_inputs(module.predict_garment(item), item).items():
+                sums[k] = sums.get(k, 0.0) + v * B
+    return {k: v / frames for k, v in sums.items()}, lbs
+
+
+@pytest.mark.parametrize("name,cls", [
+    ("baselines/da", BaselineModule),  # 4 s
+    pytest.param("baselines/ncs", BaselineModule, marks=pytest.mark.slow),
+    pytest.param("ablations/wo_gating", GarTransModule, marks=pytest.mark.slow)])  # 24 s
+def test_fit_then_test_any_method_through_the_command_line(root, tmp_path, capsys,  # noqa: F811
+                                                            name, cls):
+    args = _config_args(name) + _test_args(root, tmp_path)
+    assert cli_main(["train", "fit"] + args) == 0
+    (last,) = tmp_path.rglob("last.ckpt")
+    module = cls.load_from_checkpoint(str(last), map_location="cpu").eval()
+    # the data module's arguments travel with the checkpoint (save_hyperparameters)
+    dm = GarmentDataModule.load_from_checkpoint(str(last))
+    assert (dm.hparams.root, dm.hparams.chunk, dm.hparams.history) == (str(root), 4, 3)
+    capsys.readouterr()
+    cli = train_main(["test"] + args + ["--ckpt_path", str(last)])
+    out = capsys.readouterr().out
+    row = {"baselines/da": "| DA-style |", "baselines/ncs": "| NCS-style |"}.get(
+        name, "| GarTrans (gt_edge) |")
+    assert row in out and "| LBS only |" in out
+    got = {k: float(v) for k, v in cli.trainer.callback_metrics.items()}
+    method, lbs = _oracle(module, root, "val")
+    for k in ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision"):
+        assert got[f"test/{k}"] == pytest.approx(method[k], rel=1e-4, abs=1e-7), k
+        assert got[f"test_lbs/{k}"] == pytest.approx(lbs[k], rel=1e-4, abs=1e-7), k
+
+
+def _bench_style_checkpoint(module, dm, path):
+    """A checkpoint as the bench and the code before the every-method CLI wrote it: the
+    module built outside LightningCLI (no ``_class_path``), no data module
+    hyper-parameters."""
+    trainer = L.Trainer(max_epochs=1, limit_train_batches=1, limit_val_batches=0,
+                        accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(module, dm)
+    trainer.save_checkpoint(path)
+    ck = torch.load(path, weights_only=False)
+    ck.pop("datamodule_hyper_parameters", None)
+    assert "_class_path" not in ck["hyper_parameters"]
+    torch.save(ck, path)
+
+
+def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
+        root, tmp_path, capsys):  # noqa: F811
+    dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16)
+    L.seed_everything(0)
+    da = BaselineModule(num_joints=dm.dims["num_joints"], fps=30.0, history=3,
+                        **model_args(yaml.safe_load(config_path("baselines/da").read_text())))
+    _bench_style_checkpoint(da, dm, tmp_path / "da.ckpt")
+    args = _test_args(root, tmp_path / "run") + ["--trainer.limit_test_batches", "1"]
+    cli = train_main(["test", "--config", "baselines/da", "--ckpt_path",
+                      str(tmp_path / "da.ckpt")] + args)
+    assert isinstance(cli.model, BaselineModule) and cli.model.hparams.method == "da"
+    saved = torch.load(tmp_path / "da.ckpt", weights_only=False)["state_dict"]
+    assert saved.keys() == cli.model.state_dict().keys()
+    assert all(torch.equal(v, saved[k]) for k, v in cli.model.state_dict().items())
+    assert "test/E_dist" in cli.trainer.callback_metrics
+    capsys.readouterr()
+    rc = cli_main(["train", "test", "--config", "gartrans", "--ckpt_path",
+                   str(tmp_path / "da.ckpt")] + args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1
+    assert "not of garmentgnn.training.GarTransModule" in err[0] and "--config" in err[0]
+
+
+def test_ncs_refuses_a_data_module_of_several_garments(root, tmp_path):  # noqa: F811
+    dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16)
+    assert dm.dims["num_vertices"] is not None  # one garment on one body
+    V = dm.dims["num_vertices"]
+    ncs = BaselineModule("ncs", num_joints=dm.dims["num_joints"], num_vertices=V + 1,
+                         model={"history": 1, "hidden": 8})
+    with pytest.raises(ValueError, match="--data.train_ids"):
+        ncs.compute_loss(dm.train_set[0])
+    short = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
+    ncs = BaselineModule("ncs", num_joints=dm.dims["num_joints"], num_vertices=V,
+                         model={"history": 1, "hidden": 8})
+    short.setup("fit")
+    with pytest.raises(ValueError, match="--data.history 3"):
+        ncs(short.train_set[0])
+
+
+def test_data_module_keeps_its_arguments_and_sets_up_per_stage(root):  # noqa: F811
+    dm = GarmentDataModule(Path(root), chunk=4, history=2, nystrom_dim=NY, num_landmarks=16,
+                           test_split="val")
+    assert dm.hparams.root == str(root) and dm.hparams.chunk == 4
+    dm.setup("test")
+    assert dm.test_set is not None and dm.train_set is None and dm.val_set is None
+    dm.setup("validate")
+    assert dm.val_set is not None and dm.train_set is None
+    dm.setup("fit")
+    assert dm.train_set is not None and dm.predict_set is None
+    dm.setup("predict")
+    assert [r["id"] for r in dm.predict_set.records] == [r["id"] for r in dm.test_set.records]
+    with pytest.raises(ValueError, match="`stage`"):
+        dm.setup("train")
