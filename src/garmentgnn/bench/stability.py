@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import time
 import traceback
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
@@ -319,10 +319,3 @@ def run_case(case: str, item: Dict[str, Any], seed: int, predict: Predictor,
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
-
-def with_thresholds(**changes: float) -> Thresholds:
-    """:data:`THRESHOLDS` with some fields changed (``ValueError`` for unknown names)."""
-    unknown = set(changes) - set(asdict(THRESHOLDS))
-    if unknown:
-        raise ValueError(f"`changes`: unknown threshold(s) {sorted(unknown)}")
-    return replace(THRESHOLDS, **changes)

@@ -67,9 +67,6 @@ class Spec:
         if self.engine not in ENGINES:
             raise ValueError(f"`engine`: unknown {self.engine!r}; choose one of {ENGINES}")
 
-    def split_of(self, garment: Dict, body: Dict, motion: Dict) -> str:
-        return self.held_out_parts(garment, body, motion)[0]
-
     def held_out_parts(self, garment: Dict, body: Dict, motion: Dict) -> Tuple[str, List[str]]:
         """The item's split and which of its parts (``garment``, ``body``, ``motion``)
         are held out for it: reports break the test split down by these."""

@@ -45,13 +45,6 @@ def ring_perimeter(ring: np.ndarray) -> float:
     return float(np.linalg.norm(ring - np.roll(ring, -1, 0), axis=1).sum())
 
 
-def _arc_samples(ts: np.ndarray, ys: np.ndarray, h: float, min_n: int = 1) -> np.ndarray:
-    """Parameters ``t`` spaced ~``h`` apart along the polyline ``(ts, ys)``."""
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(ts), np.diff(ys)))])
-    n = max(min_n, int(np.ceil(s[-1] / h)))
-    return np.interp(np.linspace(0.0, s[-1], n + 1), s, ts)
-
-
 def armpit_height(fit: BodyFit, ease: float, margin: float) -> float:
     """Highest height whose torso ring (grown by ``ease``) clears both arms by a little
     more than ``margin`` (a deep armhole makes a big sleeve cap)."""

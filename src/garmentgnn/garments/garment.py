@@ -142,10 +142,6 @@ class Garment:
         inv, _ = self.rest_frame()
         return geometry_deformation_gradient(p, self.faces, inv.to(p.dtype))
 
-    def to_trimesh(self):
-        import trimesh
-        return trimesh.Trimesh(self.vertices.double().numpy(), self.faces.numpy(), process=False)
-
     def __repr__(self) -> str:
         return (f"Garment(name={self.name!r}, kind={self.kind!r}, V={self.num_vertices}, "
                 f"F={self.num_faces})")
