@@ -318,4 +318,3 @@ def run_case(case: str, item: Dict[str, Any], seed: int, predict: Predictor,
                    traceback=traceback.format_exc(limit=4))
     rec["seconds"] = time.perf_counter() - t0
     return rec
-
