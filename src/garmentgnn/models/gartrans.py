@@ -37,6 +37,7 @@ from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
                                 push_outside, unique_edges, vertex_normals)
 from garmentgnn.models.blocks import AttentionStack, cached_batch_edges, geometric_init_, mlp
+from garmentgnn.models.inputs import check_history, history_frames
 
 
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
@@ -451,9 +452,7 @@ class GarTrans(nn.Module):
         if not isinstance(translation, Tensor) or tuple(translation.shape) != (T, 3):
             got = tuple(translation.shape) if isinstance(translation, Tensor) else type(translation)
             raise ValueError(f"`translation`: expected [{T}, 3], got {got}")
-        if not isinstance(history, int) or isinstance(history, bool) or history < 1:
-            raise ValueError(f"`history`: expected an int >= 1 (H = history + 1 >= 2), got "
-                             f"{history!r}")
+        check_history(history)
         if batch_size is not None and (not isinstance(batch_size, int)
                                        or isinstance(batch_size, bool) or batch_size < 1):
             raise ValueError(f"`batch_size`: expected a positive int or None, got {batch_size!r}")
@@ -468,11 +467,10 @@ class GarTrans(nn.Module):
         b = min(b, T)
         with torch.inference_mode():
             rest_e = edge_features(rest_pos, edge_index)
-            offsets = torch.arange(-history, 1, device=rotations.device)
             out = {k: rest_pos.new_empty(T, V, S if k == "weights" else 3) for k in outputs}
             for t0 in range(0, T, b):  # chunks of frames, each predicted in one batch
                 frames = torch.arange(t0, min(t0 + b, T), device=rotations.device)
-                hist = (frames.unsqueeze(1) + offsets).clamp_min(0)  # [n, H]
+                hist = history_frames(frames, history)  # [n, H]
                 o = self.forward(static, rest_pos, faces, edge_index, rest_joints, parents,
                                  rotations[hist], translation[hist],
                                  body_pos=None if body_pos is None else body_pos[frames],
