@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._plotting import pyplot
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import case_item, make_sequence
 from garmentgnn.bench.timing import measure, peak_memory
@@ -313,9 +314,7 @@ def table(rows: List[Dict[str, Any]]) -> str:
 
 
 def plot(rows: List[Dict[str, Any]], path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for method, style in (("GarTrans", "o-"), ("GarTrans, no blend shape", "o--"),
                           ("Blender", "s-"), ("LBS", "^-"), ("torch simulator", "x")):

@@ -1,10 +1,12 @@
 """Side-by-side animations: what the frames show (panel colours from the colour map,
 motion between frames), the files (MP4 and GIF read back by imageio), the error
 against the metric, the comparison of checkpoints and ``garmentgnn show``."""
+import matplotlib
 import numpy as np
 import pytest
 import torch
 
+from garmentgnn._plotting import pyplot
 from garmentgnn.viz.animate import Panel, renderer_unavailable, vertex_error_cm
 from test_viz_export import dataset  # noqa: F401  (module-scoped toy dataset)
 
@@ -226,3 +228,8 @@ def test_show_cli_from_a_checkpoint(dataset, tmp_path, capsys):  # noqa: F811
     assert Image.open(out.with_suffix(".png")).size[1] >= 720
     assert out.with_suffix(".mp4").stat().st_size > 1000 and not out.with_suffix(".gif").exists()
     assert out.with_suffix(".png").is_file() and out.with_suffix(".glb").is_file()
+
+
+def test_plots_draw_on_the_off_screen_backend_whatever_was_selected():
+    matplotlib.use("svg")
+    assert pyplot().get_backend().lower() == "agg"

@@ -32,6 +32,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import torch
 
+from garmentgnn._plotting import pyplot
 from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.bench.sequences import make_sequence
 from garmentgnn.bench.timing import peak_memory, side_by_side
@@ -198,9 +199,7 @@ def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Any]:
     ok = _ok(records)
     if not ok:
         return None
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     V = [r["num_vertices"] for r in ok]
     fig, axes = plt.subplots(1, 2, figsize=(9.6, 4.0))

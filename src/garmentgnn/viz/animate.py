@@ -38,6 +38,8 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from garmentgnn._plotting import pyplot
+
 PathLike = Union[str, os.PathLike]
 RGB = Tuple[float, float, float]
 
@@ -241,15 +243,12 @@ def frame_view(panels: Sequence["Panel"], body: Optional[np.ndarray], elev: floa
 def colorbar_image(width: int, height: int, clim: Tuple[float, float], cmap: str,
                    label: str) -> np.ndarray:
     """``[height, width, 3]`` uint8: a horizontal matplotlib colour bar."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import Normalize
+    plt = pyplot()
 
     dpi = 100
     fig = plt.figure(figsize=(width / dpi, height / dpi), dpi=dpi)
     ax = fig.add_axes((0.04, 0.52, 0.92, 0.22))
-    cb = fig.colorbar(matplotlib.cm.ScalarMappable(Normalize(*clim), cmap), cax=ax,
+    cb = fig.colorbar(plt.cm.ScalarMappable(plt.Normalize(*clim), cmap), cax=ax,
                       orientation="horizontal", extend="max")
     cb.set_label(label, fontsize=13)
     cb.ax.tick_params(labelsize=12)

@@ -11,6 +11,8 @@ from typing import Iterable, List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
+from garmentgnn._plotting import pyplot
+
 ArrayLike = Union[np.ndarray, torch.Tensor]
 Mesh = Tuple[ArrayLike, ArrayLike, Sequence[float]]  # vertices [V,3], faces [F,3], RGB
 
@@ -54,10 +56,7 @@ def render_grid(cells: List[List[List[Mesh]]], path: Union[str, Path],
                 titles: Optional[List[List[str]]] = None, cell_size: float = 2.6,
                 dpi: int = 110, **view) -> Path:
     """Render a rows x cols grid of scenes (each a list of meshes) into one PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows, cols = len(cells), max(len(r) for r in cells)
     fig = plt.figure(figsize=(cell_size * cols, cell_size * 1.25 * rows))
