@@ -1,5 +1,6 @@
 """``garmentgnn train`` (LightningCLI + configs/) and DDP on 2 CPU processes (gloo)."""
 from pathlib import Path
+from typing import List, Optional
 
 import lightning as L
 import pytest
@@ -62,7 +63,7 @@ def test_cli_fit_writes_checkpoint_and_resumes(root, tmp_path):  # noqa: F811
     assert ck2["epoch"] == 1
 
 
-def _files(folder: Path) -> list[str]:
+def _files(folder: Path) -> List[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
 
 
@@ -177,7 +178,7 @@ def _weights_close(a: torch.Tensor, b: torch.Tensor, lr: float) -> bool:
     return float(off.float().mean()) <= 0.01 and bool(((a - b).abs() <= 2 * lr).all())
 
 
-def _close(a: torch.Tensor, b: torch.Tensor, scale: float | None = None) -> bool:
+def _close(a: torch.Tensor, b: torch.Tensor, scale: Optional[float] = None) -> bool:
     """Equal up to rounding: the all-reduce sums in another order than accumulation
     (seen: 3.5e-10 on an entry of a gradient whose largest entry is ~1e-4, and ~1e-13
     noise on the attention keys' bias, whose exact gradient is zero), so the absolute

@@ -104,7 +104,7 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0,
     blob = bytearray()
     doc = g.GLTF2(asset=g.Asset(generator="garmentgnn", version="2.0"), scene=0)
 
-    def add(array: np.ndarray, kind: str, target: int | None, minmax: bool = False) -> int:
+    def add(array: np.ndarray, kind: str, target: Optional[int], minmax: bool = False) -> int:
         a = np.ascontiguousarray(array)
         ctype = g.UNSIGNED_INT if a.dtype == np.uint32 else g.FLOAT
         doc.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(blob),

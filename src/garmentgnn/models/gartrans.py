@@ -28,7 +28,7 @@ learned per-joint code for ``b^[1]``) and the GRU (a still pose history: ``Θ^[1
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -228,7 +228,7 @@ class GarTrans(nn.Module):
         return static
 
     @staticmethod
-    def _strain_targets(rest_pos: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+    def _strain_targets(rest_pos: Tensor, faces: Tensor) -> Tuple[Tensor, Tensor]:
         """The strain limit's unique edges ``[E, 2]`` and their rest lengths ``[E]``."""
         edges = unique_edges(faces, rest_pos.shape[0]).edges
         return edges, edge_lengths(rest_pos, edges)
