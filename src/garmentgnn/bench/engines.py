@@ -39,6 +39,8 @@ from garmentgnn.data import store
 from garmentgnn.data.presets import ENGINES, build_inputs
 from garmentgnn.data.worker import default_simulate
 from garmentgnn.metrics import collision_rate, evaluate
+from garmentgnn.sim import SimSettings
+from garmentgnn.sim.blender import BlenderSettings, require_blender
 
 KIND = "engine"
 #: the held-out groups :func:`pick_sequences` draws from, in report order
@@ -54,10 +56,8 @@ def settings_class(engine: str):
     """The settings dataclass of ``engine``: :class:`garmentgnn.sim.SimSettings`
     (``torch``) or :class:`garmentgnn.sim.blender.BlenderSettings` (``blender``)."""
     if engine == "blender":
-        from garmentgnn.sim.blender import BlenderSettings
         return BlenderSettings
     if engine == "torch":
-        from garmentgnn.sim import SimSettings
         return SimSettings
     raise ValueError(f"`engine`: unknown {engine!r}; choose one of {ENGINES}")
 
@@ -229,7 +229,6 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
               seq["motion_translation"][:n])
         simulate = default_simulate(setting.engine)
         if setting.engine == "blender":  # finds the worker's interpreter (cached) untimed
-            from garmentgnn.sim.blender import require_blender
             require_blender()
         t0 = time.perf_counter()
         res = simulate(garment, body, motion, material, settings=st, progress=None)

@@ -44,6 +44,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from garmentgnn.bench import engines, leaveout, precision, scaling
 from garmentgnn.bench import learned as learned_mod
@@ -355,8 +356,6 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     The learned methods (``p.learned``, unless ``learned=False``) train on the dataset
     ``data`` (a generated dataset folder) or, by default, on ``p.dataset`` generated
     (resumably) under ``OUT/data``.  ``command``: the command line, for the report."""
-    from tqdm.auto import tqdm
-
     if not isinstance(p, Preset):
         raise ValueError(f"`p`: expected a Preset, got {type(p).__name__}")
     n = p.seeds if seeds is None else seeds

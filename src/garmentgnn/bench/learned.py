@@ -37,7 +37,9 @@ from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import lightning as L
+import numpy as np
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 from torch import Tensor
 
 from garmentgnn.bench import stability as stab
@@ -45,9 +47,10 @@ from garmentgnn.bench import scoring
 from garmentgnn.bench.methods import (BASELINES, DATA, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
                                       METHOD_NAMES, NCS, LearnedBudget, variant_settings)
 from garmentgnn.bench.model_inputs import BenchChunks
+from garmentgnn.bench.page import MEDIA
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.timing import batch_sweep, peak_memory
-from garmentgnn.data import store
+from garmentgnn.data import generate, preset, store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.geometry import push_outside
 from garmentgnn.models.inputs import GarmentInputs
@@ -99,7 +102,6 @@ def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
     ``train`` / ``test`` sequences."""
     root = Path(root)
     if preset_name is not None:
-        from garmentgnn.data import generate, preset
         if not isinstance(workers, int) or workers < 0:
             raise ValueError(f"`workers`: expected a non-negative int, got {workers!r}")
         generate(preset(preset_name), root, workers=workers, progress=progress,
@@ -240,8 +242,6 @@ class LearnedRunner:
         """``OUT/media/predictions/<method>.npy``: ``method``'s ``[T, V, 3]`` prediction
         of the first test sequence, a panel of the report's animation
         (:mod:`garmentgnn.bench.page`)."""
-        import numpy as np
-        from garmentgnn.bench.page import MEDIA
         item = self.test[0]
         with torch.no_grad():
             P = pred.predict(self.test, 0, item).float().numpy()
@@ -345,7 +345,6 @@ class LearnedRunner:
         :class:`TimeBudget`) with one Lightning ``Trainer`` set-up (every method),
         resuming from ``folder/last.ckpt``; returns the epochs and steps done, the
         training wall time and the epoch it resumed from."""
-        from lightning.pytorch.callbacks import ModelCheckpoint
         clock = TrainClock()
         budget = [TimeBudget(60.0 * minutes)] if minutes is not None else []
         # save_top_k=1 without a monitor keeps the latest epoch's checkpoint; last.ckpt

@@ -35,9 +35,11 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from garmentgnn.bench.tables import table
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import BenchSequence
+from garmentgnn.bench.tables import table
 from garmentgnn.bench.timing import side_by_side
+from garmentgnn.training import PHASE_TERMS
 
 #: the method name of leave-out records
 METHOD = "GarTrans (untrained)"
@@ -118,9 +120,6 @@ def run_record(seq: BenchSequence, gt: Tensor, seed: int = 0, warmup: int = 2,
             run or what they cost.
         seed: model initialisation seed; the rest as :func:`scaling.run_record`.
     """
-    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-    from garmentgnn.training import PHASE_TERMS
-
     rec: Dict[str, Any] = {"kind": "leaveout", "method": METHOD, "case": seq.name,
                            "seed": seed}
     t0 = time.perf_counter()

@@ -40,10 +40,13 @@ import torch
 from torch import Tensor
 
 from garmentgnn.bench import stability as stab
-from garmentgnn.bench.tables import table
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
+from garmentgnn.bench.tables import table
 from garmentgnn.bench.timing import measure
 from garmentgnn.models import PAPER_FORM
+from garmentgnn.models.baselines import LBSBaseline
+from garmentgnn.training.evaluate import predict
 
 DTYPES: Dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16,
                                   "float16": torch.float16}
@@ -131,9 +134,6 @@ def _predictors(seq: BenchSequence, method: str, seed: int, history: int, nystro
                            Dict[str, Any]]:
     """``(float32 predictor, dtype -> cast-mode predictor, facts)`` of ``method``."""
     if method == "gartrans":
-        from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-        from garmentgnn.training.evaluate import predict
-
         item = BenchChunks(seq, history=history, nystrom_dim=nystrom_dim,
                            num_landmarks=num_landmarks)[0]
         kw = dict(MODULE_KWARGS, **(module_kwargs or {}))
@@ -144,8 +144,6 @@ def _predictors(seq: BenchSequence, method: str, seed: int, history: int, nystro
             return lambda: predict(m, it, "gartrans")
         return lambda: predict(module, item, "gartrans"), cast, {"module_kwargs": kw}
     if method == "lbs":
-        from garmentgnn.models.baselines import LBSBaseline
-
         lbs = LBSBaseline()
         rot, tr = seq.motion.rotations, seq.motion.translation
 
@@ -269,8 +267,6 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = 3, nystrom_dim:
              thresholds: LongThresholds = LONG_THRESHOLDS) -> Dict[str, Any]:
     """Autoregressive rollout of an untrained GarTrans over ``item``'s whole motion (a
     :func:`~garmentgnn.bench.sequences.case_item`); a ``kind="long_sequence"`` record."""
-    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-
     rec: Dict[str, Any] = {"kind": "long_sequence", "method": LONG_METHOD,
                            "case": item.get("name"), "seed": seed,
                            "thresholds": asdict(thresholds)}

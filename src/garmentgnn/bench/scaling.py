@@ -33,9 +33,11 @@ from typing import Any, Dict, List, Optional, Sequence
 import torch
 
 from garmentgnn._plotting import pyplot
-from garmentgnn.bench.tables import save_figure, table
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import make_sequence
+from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.bench.timing import peak_memory, side_by_side
+from garmentgnn.geometry import geodesic_nystrom_features
 
 #: the method name of scaling records
 METHOD = "GarTrans (untrained)"
@@ -73,9 +75,6 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
         history, nystrom_dim, num_landmarks: data-module settings (``garmentgnn/configs/gartrans.yaml``).
         module_kwargs: further :class:`GarTransModule` arguments.
     """
-    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-    from garmentgnn.geometry import geodesic_nystrom_features
-
     rec: Dict[str, Any] = {"kind": "scaling", "method": METHOD, "case": item.get("name"),
                            "seed": seed, "resolution": item["garment"]["resolution"]}
     t0 = time.perf_counter()

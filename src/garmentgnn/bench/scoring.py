@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import torch
+from scipy.stats import wilcoxon as _wilcoxon
 from torch import Tensor
 
 from garmentgnn.metrics import evaluate_inputs, split_inputs
@@ -117,7 +118,6 @@ def wilcoxon(a: Dict[str, float], b: Dict[str, float]) -> Dict[str, Any]:
     ``{sequence: value}`` over the sequences both have (scipy); ``median_diff`` is the
     median of ``a - b`` (negative: ``a`` lower), ``wins`` the share of sequences where
     ``a`` is lower."""
-    from scipy.stats import wilcoxon as _wilcoxon
     common = sorted(set(a) & set(b))
     if len(common) < 2:
         raise ValueError(f"`a`, `b`: need at least 2 common sequences, got {len(common)}")

@@ -43,10 +43,11 @@ from torch import Tensor
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import boundary_vertex_mask, signed_distance
-from garmentgnn.metrics import physics_energy
 from garmentgnn.geometry.rotations import euler_to_matrix, matrix_to_axis_angle
+from garmentgnn.metrics import physics_energy
 from garmentgnn.motion import (Motion, clamp_to_limits, joint_limits, limit_violation,
                               slerp_rotations)
+from garmentgnn.sim import SimSettings, simulate
 
 Predictor = Callable[[BenchSequence], Any]
 
@@ -205,8 +206,6 @@ CASES: Dict[str, str] = {
 def simulator_predictor(**settings: Any) -> Predictor:
     """The reference simulator as a predictor; ``settings`` are :class:`SimSettings`
     keyword arguments (``fps`` is taken from the motion)."""
-    from garmentgnn.sim import SimSettings, simulate
-
     def predict(seq: BenchSequence):
         st = SimSettings(**dict(settings, fps=float(seq.motion.fps)))
         return simulate(seq.garment, seq.body, seq.motion, seq.material, st,

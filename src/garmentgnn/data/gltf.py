@@ -28,7 +28,9 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
+import torch
 
+from garmentgnn.body.factory import build_body
 from garmentgnn.data.store import atomic_write_bytes
 
 PathLike = Union[str, os.PathLike]
@@ -90,7 +92,7 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0,
     """Write ``meshes`` (same frame count ``T`` each) as a ``.glb`` with one morph target
     per frame and one ``STEP`` animation (see the module doc); ``extras`` (JSON) go into
     the scene; returns the path."""
-    import pygltflib as g
+    import pygltflib as g  # noqa: PLC0415 (optional: the viz extra)
 
     if not meshes:
         raise ValueError("`meshes`: need at least one mesh")
@@ -182,9 +184,6 @@ def sequence_meshes(seq: dict, body: bool = True) -> Tuple[List[GltfMesh], float
         meta.get("garment"), dict) else "garment"
     meshes = [GltfMesh(name, seq["positions"], seq["garment_faces"], (0.30, 0.50, 0.78))]
     if body:
-        import torch
-
-        from garmentgnn.body.factory import build_body
         b = build_body(meta["body"])
         dt = b.vertices.dtype
         with torch.no_grad():

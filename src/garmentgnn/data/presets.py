@@ -27,8 +27,14 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
+import torch
 
+from garmentgnn.body.factory import body_model, build_body
 from garmentgnn.data.keys import body_key, garment_key, motion_key
+from garmentgnn.garments import make_garment
+from garmentgnn.motion import make_motion
+from garmentgnn.physics.materials import MATERIALS
+from garmentgnn.sim.blender import blender_available
 
 # --------------------------------------------------------------------------- spec
 #: garment: {"kind", "params" (template kwargs), "resolution"}
@@ -129,7 +135,6 @@ def resolve_engine(name: str = "auto") -> str:
     """``torch`` or ``blender``; ``auto`` is ``blender`` where its worker can run (see
     :func:`garmentgnn.sim.blender.blender_available`), else ``torch``."""
     if name == "auto":
-        from garmentgnn.sim.blender import blender_available
         return "blender" if blender_available() else "torch"
     if name not in ENGINES:
         raise ValueError(f"`engine`: unknown {name!r}; choose 'auto' or one of {ENGINES}")
@@ -274,13 +279,6 @@ def _medium(seed: int) -> Spec:
 # --------------------------------------------------------------------------- one item
 def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
     """``(garment, body, motion, material)`` of an item."""
-    import torch
-
-    from garmentgnn.body.factory import body_model, build_body
-    from garmentgnn.garments import make_garment
-    from garmentgnn.motion import make_motion
-    from garmentgnn.physics.materials import MATERIALS
-
     body = build_body(item["body"])
     g = item["garment"]
     garment = make_garment(g["kind"], body, resolution=g["resolution"], **g.get("params", {}))

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Callable, Dict, Union
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from garmentgnn.garments._fit import (HEAD, L_ARM, L_LEG, R_ARM, R_LEG, TORSO, BodyFit,
                                       hull_polygon, polar_radius, quarter_ring)
@@ -111,7 +112,6 @@ def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: floa
     rho = np.linalg.norm(P, axis=1)
     ok = rho > 1e-9
     P, rho = P[ok], rho[ok]
-    from scipy.spatial import cKDTree
     tree = cKDTree(P / rho[:, None])
     lists = tree.query_ball_point(dirs, 2 * np.sin(cone / 2))
     out = np.zeros(len(dirs))

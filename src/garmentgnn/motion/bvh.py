@@ -43,6 +43,7 @@ from torch import Tensor
 from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, matrix_to_axis_angle,
                                            matrix_to_euler, unwrap_axis_angle)
+from garmentgnn.motion.retarget import guess_roles
 from garmentgnn.motion.sequence import Motion
 
 _CHANNELS = {f"{a}{kind}": (kind, a) for a in "XYZ" for kind in ("position", "rotation")}
@@ -91,7 +92,6 @@ class BVHHierarchy:
         """A :class:`Skeleton`; ``roles`` default to those guessed from common
         joint-naming schemes (CMU, Mixamo, SMPL), see
         :func:`garmentgnn.motion.retarget.guess_roles`."""
-        from garmentgnn.motion.retarget import guess_roles
         return Skeleton(list(self.joint_names), self.parents.clone(),
                         guess_roles(self.joint_names) if roles is None else dict(roles))
 

@@ -19,6 +19,7 @@ function, :func:`blender_config`; ``docs/simulator.md`` has the table.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -124,7 +125,6 @@ def find_blender_python() -> Optional[str]:
     candidate = Path(sys.prefix) / "bpy" / "bin" / "python"
     if candidate.exists():
         return str(candidate)
-    import importlib.util
     if importlib.util.find_spec("bpy") is not None:  # looks for it, does not import it
         return sys.executable
     return None

@@ -44,7 +44,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from garmentgnn.viz.compare import parse_named, show
+    # start-up: the `show` parser is built without loading the training package (lightning)
+    from garmentgnn.viz.compare import parse_named, show  # noqa: PLC0415
     t0 = time.perf_counter()
     res = show(args.data, dict(parse_named(args.ckpt)), args.out, split=args.split,
                index=args.index, mode=args.mode, lbs=not args.no_lbs, history=args.history,

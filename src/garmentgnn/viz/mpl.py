@@ -25,7 +25,8 @@ def draw_meshes(ax, meshes: Iterable[Mesh], elev: float = 10.0, azim: float = -9
                 light: Sequence[float] = (0.3, -0.8, 0.6)) -> None:
     """Draw shaded meshes into a matplotlib 3D axis (Z up; the default view looks
     at the body's front, which faces -Y)."""
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    # matplotlib: loaded on the first figure, not with the package
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: PLC0415
 
     light_dir = np.asarray(light, dtype=float)
     light_dir /= np.linalg.norm(light_dir)

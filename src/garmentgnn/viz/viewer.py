@@ -20,6 +20,8 @@ import os
 from pathlib import Path
 from typing import Union
 
+from garmentgnn.data.store import atomic_write_bytes
+
 PathLike = Union[str, os.PathLike]
 
 _REPO = Path(__file__).resolve().parents[3]
@@ -39,7 +41,6 @@ def write_viewer(glb: PathLike, out: PathLike, title: str = "") -> Path:
     """Write ``out`` (.html): one page that shows and plays ``glb``, with the labels and
     colour bar the file carries (:mod:`garmentgnn.data.gltf`); returns its path.  When
     WebGL is off or the file cannot be read, the page shows why in a red box."""
-    from garmentgnn.data.store import atomic_write_bytes
     bundle = bundle_path()
     if not bundle.is_file():
         raise FileNotFoundError(f"the viewer bundle {bundle} is missing: {BUILD_HINT}")
