@@ -98,8 +98,8 @@ class EngineSetting:
 def default_settings() -> Tuple[EngineSetting, ...]:
     """The ladder the medium bench runs: Blender at three ``quality`` settings (cloth
     steps per frame) below the medium dataset's 5 (its ground truth; the collision
-    quality stays the dataset's 2) and the torch simulator at three budgets (substeps per frame, Newton iterations per
-    substep, no retries)."""
+    quality stays the dataset's 2) and the torch simulator at three budgets (substeps per
+    frame, Newton iterations per substep, no retries)."""
     return (
         EngineSetting("blender", "Blender q=2", {"quality": 2}),
         EngineSetting("blender", "Blender q=3", {"quality": 3}),

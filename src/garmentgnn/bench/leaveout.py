@@ -172,8 +172,8 @@ def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
     lines += ["Measured with forward hooks on every GarTrans child module and the loss terms "
               "`GarTransLoss` returned (all terms of the last training phase enabled), on one "
               "frame-parallel step (encode_static + forward + loss, no backward).  "
-              "*should skip*: what the scene does not need; *skipped* / **computed**: what the code "
-              "did.  Time saved: the step on the scene against the step with the left-out "
+              "*should skip*: what the scene does not need; *skipped* / **computed**: what the "
+              "code did.  Time saved: the step on the scene against the step with the left-out "
               "input put back (the full scene), all scenes timed interleaved; untrained model.", ""]
     for r in recs:
         lines += [f"### {r['case']} ({r.get('frames', '?')} frames, "

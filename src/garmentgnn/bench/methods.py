@@ -145,7 +145,8 @@ class LearnedBudget:
             raise ValueError(f"`seed_methods`: {unknown} are not in `methods`")
         unknown = [c for c in self.stability_cases if c not in stab.CASES]
         if unknown:
-            raise ValueError(f"`stability_cases`: unknown {unknown}; choose from {list(stab.CASES)}")
+            raise ValueError(f"`stability_cases`: unknown {unknown}; choose from "
+                             f"{list(stab.CASES)}")
 
 
 def seed_plan(budget: LearnedBudget, seed0: Dict[str, float]) -> Dict[str, int]:

@@ -46,8 +46,8 @@ COMPONENTS = ("nystrom", "static_inputs", "encode_static", "forward")
 
 
 def scaling_items(template: Dict[str, Any], resolutions: Sequence[int]) -> List[Dict[str, Any]]:
-    """One :func:`~garmentgnn.bench.sequences.case_item` per resolution: ``template`` with the garment's
-    ``resolution`` replaced and ``name`` ``"<template name>@<resolution>"``."""
+    """One :func:`~garmentgnn.bench.sequences.case_item` per resolution: ``template`` with
+    the garment's ``resolution`` replaced and ``name`` ``"<template name>@<resolution>"``."""
     if not isinstance(template, dict) or "garment" not in template:
         raise ValueError(f"`template`: expected a case_item dict, got {template!r}")
     out = []
@@ -72,7 +72,8 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
             :func:`scaling_items`); its motion needs at least 2 frames.
         seed: motion seed and model initialisation seed.
         warmup, repeats: :func:`side_by_side` settings.
-        history, nystrom_dim, num_landmarks: data-module settings (``garmentgnn/configs/gartrans.yaml``).
+        history, nystrom_dim, num_landmarks: data-module settings
+            (``garmentgnn/configs/gartrans.yaml``).
         module_kwargs: further :class:`GarTransModule` arguments.
     """
     rec: Dict[str, Any] = {"kind": "scaling", "method": METHOD, "case": item.get("name"),

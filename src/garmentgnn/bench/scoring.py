@@ -93,7 +93,8 @@ def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
 
 
 def aggregate(per_sequence: Sequence[Dict[str, Any]],
-              keep: Optional[Callable[[Dict[str, Any]], bool]] = None) -> Dict[str, Dict[str, float]]:
+              keep: Optional[Callable[[Dict[str, Any]], bool]] = None
+              ) -> Dict[str, Dict[str, float]]:
     """Frame-weighted means of the per-sequence metrics: ``{"all": ..., <group>: ...}``
     (groups without sequences left out); ``keep`` filters the sequences first."""
     seqs = [s for s in per_sequence if keep is None or keep(s)]

@@ -174,7 +174,8 @@ def stability_sequence(case: str, item: Dict[str, Any], seed: int
     if case == "baseline":
         return base, {}
     if case == "stiff_x1000":
-        return make_sequence(item, seed, material=base.material.scaled(1000.0)), {"stiffness": 1000.0}
+        return (make_sequence(item, seed, material=base.material.scaled(1000.0)),
+                {"stiffness": 1000.0})
     if case == "extreme_pose":
         motion, info = _extreme_pose(base)
         return make_sequence(item, seed, motion=motion), info

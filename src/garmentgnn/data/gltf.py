@@ -60,7 +60,8 @@ class GltfMesh:
         if p.ndim == 2:
             p = p[None]
         if p.ndim != 3 or p.shape[2] != 3 or p.shape[0] < 1:
-            raise ValueError(f"GltfMesh {self.name!r}: `positions` must be [T, V, 3], got {p.shape}")
+            raise ValueError(f"GltfMesh {self.name!r}: `positions` must be [T, V, 3], got "
+                             f"{p.shape}")
         if not np.isfinite(p).all():
             raise ValueError(f"GltfMesh {self.name!r}: `positions` contain NaN/inf")
         if f.ndim != 2 or f.shape[1] != 3 or f.min() < 0 or f.max() >= p.shape[1]:

@@ -63,7 +63,8 @@ class Spec:
     bodies: List[Dict[str, Any]]
     motions: List[Dict[str, Any]]
     materials: List[str]
-    settings: Dict[str, Any] = field(default_factory=lambda: {"fps": 30.0, "substeps": 4, "preroll_frames": 6})
+    settings: Dict[str, Any] = field(
+        default_factory=lambda: {"fps": 30.0, "substeps": 4, "preroll_frames": 6})
     held_out: Dict[str, Dict[str, List[str]]] = field(default_factory=dict)
     seed: int = 0
     sample: Optional[int] = None
@@ -240,14 +241,18 @@ def _medium(seed: int) -> Spec:
     workers on two cores (docs/dataset.md)."""
     n, res = 60, 1500
     garments = [
-        _g("skirt", res, length="knee", flare="a-line"), _g("skirt", res, length="mini", flare="flared"),
-        _g("skirt", res, length="midi", flare="pencil"), _g("skirt", res, length="long", flare="full"),
-        _g("dress", res, length="knee", flare="a-line"), _g("dress", res, length="midi", flare="flared"),
+        _g("skirt", res, length="knee", flare="a-line"),
+        _g("skirt", res, length="mini", flare="flared"),
+        _g("skirt", res, length="midi", flare="pencil"),
+        _g("skirt", res, length="long", flare="full"),
+        _g("dress", res, length="knee", flare="a-line"),
+        _g("dress", res, length="midi", flare="flared"),
         _g("dress", res, length="long", flare="full", top="sleeveless"),
-        _g("tshirt", res, sleeves="short", ease=0.02), _g("tshirt", res, sleeves="none", length="waist",
-                                                          neckline="scoop", ease=0.05),
+        _g("tshirt", res, sleeves="short", ease=0.02),
+        _g("tshirt", res, sleeves="none", length="waist", neckline="scoop", ease=0.05),
         _g("tshirt", res, sleeves="long", ease=0.04),
-        _g("trousers", res, length="shorts", ease=0.03), _g("trousers", res, length="knee", ease=0.05),
+        _g("trousers", res, length="shorts", ease=0.03),
+        _g("trousers", res, length="knee", ease=0.05),
         _g("trousers", res, length="long", ease=0.02),
         _g("jumpsuit", res, length="knee", sleeves="none", ease=0.03),
         _g("jumpsuit", res, length="long", sleeves="short", ease=0.02),
@@ -292,4 +297,5 @@ def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
     return garment, body, motion, material
 
 
-__all__ = ["BLENDER_SETTINGS", "ENGINES", "PRESETS", "Spec", "build_inputs", "preset", "resolve_engine"]
+__all__ = ["BLENDER_SETTINGS", "ENGINES", "PRESETS", "Spec", "build_inputs", "preset",
+           "resolve_engine"]

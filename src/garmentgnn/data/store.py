@@ -231,8 +231,9 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
     the edge lengths of the first, middle and last frame against the rest garment's
     (``garment_vertices`` on ``garment_faces``: a median relative difference over
     :data:`ORDER_TOLERANCE`), and the rest edges against the distances between nearest
-    rest vertices (:data:`REST_ORDER_TOLERANCE`).  The one check of sequence files, used by ``manifest``,
-    ``generate`` (resume), ``export`` and every loader of a manifest's records."""
+    rest vertices (:data:`REST_ORDER_TOLERANCE`).  The one check of sequence files, used by
+    ``manifest``, ``generate`` (resume), ``export`` and every loader of a manifest's
+    records."""
     missing = [k for k in SEQUENCE_KEYS if k not in seq]
     if missing:
         return f"missing arrays {missing}"

@@ -105,7 +105,7 @@ def neck_level(fit: BodyFit):
     return best[0], best[1], c
 
 
-def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: float,
+def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: float,  # noqa: E741
               cone: float = 0.06) -> np.ndarray:
     """Largest extent of the body (``labels``, below ``z_max``) along rays from ``O``."""
     P = fit.select(labels, -np.inf, z_max) - O
@@ -121,7 +121,7 @@ def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: floa
     return out
 
 
-def inflate_envelope(fit: BodyFit, O: np.ndarray, P: np.ndarray, ease: float, labels,
+def inflate_envelope(fit: BodyFit, O: np.ndarray, P: np.ndarray, ease: float, labels,  # noqa: E741
              z_max: float) -> np.ndarray:
     """Move points outward along rays from ``O`` until they are ``ease`` beyond the body."""
     shape = P.shape

@@ -97,7 +97,8 @@ class Garment:
         if not torch.isfinite(self.face_uv).all():
             raise ValueError(f"Garment {self.name!r}: `face_uv` contains NaN/inf")
         if self.kind not in KINDS:
-            raise ValueError(f"Garment {self.name!r}: unknown kind {self.kind!r}; use one of {KINDS}")
+            raise ValueError(f"Garment {self.name!r}: unknown kind {self.kind!r}; use one of "
+                             f"{KINDS}")
         if self.pinned is not None:
             self.pinned = _as(self.pinned, torch.bool)
             if self.pinned.shape != (V,):

@@ -259,7 +259,8 @@ def _validate(path, V, F, finite: bool = True) -> None:
         _fail(path, f"empty mesh ({len(V)} vertices, {len(F)} faces)")
     if F.min() < 0 or F.max() >= len(V):
         f = int(np.nonzero((F < 0).any(1) | (F >= len(V)).any(1))[0][0])
-        _fail(path, f"face {f} references vertex {int(F[f].max()) + 1 if F[f].max() >= len(V) else int(F[f].min()) + 1} "
+        bad = int(F[f].max()) + 1 if F[f].max() >= len(V) else int(F[f].min()) + 1
+        _fail(path, f"face {f} references vertex {bad} "
                     f"but the file has only {len(V)} vertices (index out of range)")
     bad = ~np.isfinite(V).all(1)
     if finite and bad.any():

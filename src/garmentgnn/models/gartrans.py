@@ -144,7 +144,8 @@ class GarTrans(nn.Module):
         #: paper's acceleration, ``dt^2``)
         self.accel_unit = accel_unit
         if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
-            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got {strain_limit!r}")
+            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got "
+                             f"{strain_limit!r}")
         self.strain_limit, self.compile_search = strain_limit, bool(compile_search)
         if collision_projection is not None and not collision_projection >= 0:
             raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
@@ -215,7 +216,8 @@ class GarTrans(nn.Module):
         x = self.rest_fc(torch.cat([rest_pos, n, dj], -1))
         x = self.rest_attn(x, edge_index, edge_features(rest_pos, edge_index))
         x1 = x * self.nystrom_fc(nystrom)  # x' = x̄^[1] ⊙ u^[1]
-        b = self.body_default if body_joint_dists is None else self.body_fc(body_joint_dists.t()).t()
+        b = (self.body_default if body_joint_dists is None
+             else self.body_fc(body_joint_dists.t()).t())
         log_prior = None
         if skin_prior is not None:
             if skin_prior.shape != (rest_pos.shape[0], self.num_joints):

@@ -33,8 +33,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--max-frames", type=int, default=None,
                    help="show at most this many frames (default: the whole sequence)")
     s.add_argument("--height", type=int, default=896, help="frame height in px (>= 720)")
-    s.add_argument("--clim", type=float, default=None, help="top of the error scale in cm (default: from the panels that did not "
-                   "diverge)")
+    s.add_argument("--clim", type=float, default=None,
+                   help="top of the error scale in cm (default: from the panels that did not "
+                        "diverge)")
     s.add_argument("--no-gif", action="store_true", help="write no GIF beside the MP4")
     s.add_argument("--no-gltf", action="store_true", help="write no glTF (.glb) file")
     s.add_argument("--html", action="store_true",

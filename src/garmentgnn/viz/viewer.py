@@ -6,8 +6,10 @@ The page embeds the ``.glb`` (base64) and the three.js bundle, so it opens from
 (``build/viewer/viewer.bundle.js``: ``viewer/viewer.js`` + three.js from npm, bundled by
 esbuild) is built by ``make install``; by hand::
 
-    mkdir -p build/viewer && cp viewer/package.json viewer/package-lock.json viewer/viewer.js build/viewer/
-    cd build/viewer && npm ci && npx esbuild viewer.js --bundle --format=iife --minify --outfile=viewer.bundle.js
+    mkdir -p build/viewer
+    cp viewer/package.json viewer/package-lock.json viewer/viewer.js build/viewer/
+    cd build/viewer && npm ci
+    npx esbuild viewer.js --bundle --format=iife --minify --outfile=viewer.bundle.js
 
 ``GARMENTGNN_VIEWER_BUNDLE`` may point at a bundle elsewhere.
 """

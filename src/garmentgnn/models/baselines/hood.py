@@ -169,7 +169,8 @@ class HOODStyle(nn.Module):
         if body.dim() != 3 or body.shape[0] != B or body.shape[2] != 3:
             raise ValueError(f"`body`: expected [{B}, Vb, 3], got {tuple(body.shape)}")
         if coarse.assign.shape != (V,):
-            raise ValueError(f"`coarse`: built for {coarse.assign.shape[0]} vertices, scene has {V}")
+            raise ValueError(f"`coarse`: built for {coarse.assign.shape[0]} vertices, scene has "
+                             f"{V}")
         dtype = self.decoder[-1].weight.dtype
         x_prev, x_curr, body = x_prev.to(dtype), x_curr.to(dtype), body.to(dtype)
         rest = scene.rest_pos.to(dtype)
@@ -221,9 +222,11 @@ class HOODStyle(nn.Module):
         """
         V = scene.num_vertices
         if x0.shape != (V, 3) or x1.shape != (V, 3):
-            raise ValueError(f"`x0`/`x1`: expected [{V}, 3], got {tuple(x0.shape)}, {tuple(x1.shape)}")
+            raise ValueError(f"`x0`/`x1`: expected [{V}, 3], got {tuple(x0.shape)}, "
+                             f"{tuple(x1.shape)}")
         if body_frames.dim() != 3 or body_frames.shape[0] < 2 or body_frames.shape[2] != 3:
-            raise ValueError(f"`body_frames`: expected [T >= 2, Vb, 3], got {tuple(body_frames.shape)}")
+            raise ValueError(f"`body_frames`: expected [T >= 2, Vb, 3], got "
+                             f"{tuple(body_frames.shape)}")
         T = body_frames.shape[0]
         if pinned_targets is not None and pinned_targets.shape != (T, V, 3):
             raise ValueError(f"`pinned_targets`: expected [{T}, {V}, 3], got "
