@@ -19,7 +19,8 @@ Each writes ``<part>.json`` and ``<part>.md`` (curves also ``<part>.png``) into
 ``~/.cache/garmentgnn/benchmarks/learning``, ``--out``, or with ``--commit`` the committed
 copy ``docs/results/learning``::
 
-    python benchmarks/learning.py grad overfit curves --data ~/.cache/garmentgnn/datasets/small-blender
+    python benchmarks/learning.py grad overfit curves \
+        --data ~/.cache/garmentgnn/datasets/small-blender
 """
 from __future__ import annotations
 

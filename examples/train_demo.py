@@ -26,6 +26,7 @@ from garmentgnn.data import generate, preset
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
 from garmentgnn.training.evaluate import evaluate_split, markdown_table, render_strip
 from garmentgnn.viz.animate import renderer_unavailable
+from garmentgnn.viz.compare import show
 
 
 def main() -> None:
@@ -67,7 +68,6 @@ def main() -> None:
     print(markdown_table(res))
     reason = renderer_unavailable()
     if reason is None:
-        from garmentgnn.viz.compare import show
         t3 = time.time()
         r = show(data, {"GarTrans": module}, out / "gartrans_demo", split="test", history=3,
                  num_landmarks=64)

@@ -303,7 +303,8 @@ def test_checker_finds_function_level_imports(tmp_path):
         "sim/s.py": "from pkg.garments import g\n\nclass S:\n    def run(self):\n"
                     "        import numpy\n        from pkg.garments.g import f\n",
         "garments/g.py": "def f():\n    pass\n"})
-    assert function_level_imports(root, "sim") == ["pkg.sim.s:6 imports pkg.garments.g in a function"]
+    assert function_level_imports(root, "sim") == [
+        "pkg.sim.s:6 imports pkg.garments.g in a function"]
     assert function_level_imports(root, "garments") == []
 
 
