@@ -10,6 +10,7 @@ import torch
 
 from garmentgnn.bench import harness, precision, presets, report, stability, tables, timing
 from garmentgnn.bench.cli import _command
+from garmentgnn.bench.records import NOT_RUN, failure, section
 from garmentgnn.bench.sequences import case_item, make_sequence
 from garmentgnn.cli import build_parser, main as cli_main
 from garmentgnn.data import store
@@ -272,3 +273,15 @@ def test_report_command_is_the_command_line(line):
     args = build_parser().parse_args(line.split()[1:])
     assert _command(args) == line
     assert build_parser().parse_args(_command(args).split()[1:]) == args
+
+
+def test_failed_record_fields_and_report_section_start():
+    try:
+        raise RuntimeError("boom")
+    except RuntimeError as err:
+        fields = failure(err)
+    assert fields["status"] == "failed" and fields["message"] == "RuntimeError: boom"
+    assert "RuntimeError: boom" in fields["traceback"]
+    recs, lines = section([{"kind": "a", "i": 0}, {"kind": "b"}, {"kind": "a", "i": 1}], "a", "A")
+    assert [r["i"] for r in recs] == [0, 1] and lines == ["## A", ""]
+    assert section([{"kind": "b"}], "a", "A") == ([], ["## A", "", NOT_RUN, ""])

@@ -27,7 +27,6 @@ import math
 import os
 import random
 import time
-import traceback
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -35,6 +34,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from garmentgnn.bench.records import failure
 from garmentgnn.data import store
 from garmentgnn.data.presets import ENGINES, build_inputs
 from garmentgnn.data.worker import default_simulate
@@ -261,8 +261,7 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
         rec.update(status="ok", message=str(res.message or "ok"), metrics=m,
                    excluded_frames=n - int(keep.sum()))
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     for k in ("seconds", "seconds_per_frame"):
         v = rec.get(k)
         if v is not None and not math.isfinite(v):

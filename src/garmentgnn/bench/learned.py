@@ -30,7 +30,6 @@ import io
 import json
 import logging
 import time
-import traceback
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -48,6 +47,7 @@ from garmentgnn.bench.methods import (BASELINES, DATA, GARTRANS, GARTRANS_MODEL,
                                       METHOD_NAMES, NCS, LearnedBudget, variant_settings)
 from garmentgnn.bench.model_inputs import BenchChunks
 from garmentgnn.bench.page import MEDIA
+from garmentgnn.bench.records import failure
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.timing import batch_sweep, peak_memory
 from garmentgnn.data import generate, preset, store
@@ -233,8 +233,7 @@ class LearnedRunner:
             rec["timing"] = self.timing(pred)
             rec.update(status="ok", message="ok")
         except Exception as err:
-            rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                       traceback=traceback.format_exc(limit=6))
+            rec.update(failure(err, limit=6))
         rec["seconds"] = time.perf_counter() - t0
         return rec
 

@@ -29,13 +29,13 @@ from __future__ import annotations
 
 import copy
 import time
-import traceback
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
 from garmentgnn.bench.sequences import BenchSequence
 from garmentgnn.bench.tables import table
 from garmentgnn.bench.timing import side_by_side
@@ -157,18 +157,17 @@ def run_record(seq: BenchSequence, gt: Tensor, seed: int = 0, warmup: int = 2,
                                      for k, v in e["check"].items() if v == "computed")
         rec.update(status="ok", message="ok")
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
 
 def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
     """The report's "Leave-out" section (lines)."""
-    recs = [r for r in records if r["kind"] == "leaveout"]
-    lines = ["## Leave-out: what a scene without body / motion / UVs skips", ""]
+    recs, lines = section(records, "leaveout",
+                          "Leave-out: what a scene without body / motion / UVs skips")
     if not recs:
-        return lines + ["Not run in this preset.", ""]
+        return lines
     lines += ["Measured with forward hooks on every GarTrans child module and the loss terms "
               "`GarTransLoss` returned (all terms of the last training phase enabled), on one "
               "frame-parallel step (encode_static + forward + loss, no backward).  "

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import copy
 import time
-import traceback
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -41,6 +40,7 @@ from torch import Tensor
 
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.tables import table
 from garmentgnn.bench.timing import measure
@@ -209,8 +209,7 @@ def run_record(seq: BenchSequence, method: str, seed: int = 0, warmup: int = 2,
                          "note": "median ms of one call predicting every frame / frames"}
         rec.update(status="ok", message="ok")
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -289,9 +288,7 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = 3, nystrom_dim:
         v, reason = long_verdict(m, thresholds)
         rec.update(status="ok", message="ok", metrics=m, verdict=v, reason=reason)
     except Exception as err:
-        rec.update(status="failed", verdict="failed", metrics={}, reason=f"raised: {err}",
-                   message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err), verdict="failed", metrics={}, reason=f"raised: {err}")
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -304,10 +301,9 @@ def _th_line(th: Optional[Dict[str, Any]], cls: str) -> List[str]:
 
 def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
     """The report's "Reduced precision" section (lines)."""
-    recs = [r for r in records if r["kind"] == "precision"]
-    lines = ["## Reduced precision (bfloat16 / float16)", ""]
+    recs, lines = section(records, "precision", "Reduced precision (bfloat16 / float16)")
     if not recs:
-        return lines + ["Not run in this preset.", ""]
+        return lines
     lines += ["Every frame of the sequence in one call (GarTrans: static branch included; "
               "untrained, paper form).  *autocast*: `torch.autocast(\"cpu\", "
               "dtype)`; *cast*: model and inputs cast.  Deviation: max |output - float32 "

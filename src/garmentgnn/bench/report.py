@@ -32,6 +32,7 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from garmentgnn.bench import learned_report, leaveout, noise_floor, precision, scaling
 from garmentgnn.bench.page import write_media
+from garmentgnn.bench.records import NOT_RUN
 from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
@@ -221,7 +222,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
         lines += table(["method"] + metric_hdr + ["latency (ms)", "throughput (fps)",
                                                    "peak mem (MB)"], rows) + [""]
     else:
-        lines += ["Not run in this preset.", ""]
+        lines += [NOT_RUN, ""]
     stab = [r for r in records if r["kind"] == "stability"]
     lines += ["## Stability", ""]
     th = next((r.get("thresholds") for r in records
@@ -231,7 +232,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                   " (see `garmentgnn.bench.stability.Thresholds`).", ""]
     lines += (["The simulator on the bench's stability item (a garment on the capsule "
                "body), per motion seed.", ""] + _stabilitytable(stab) if stab
-              else ["Not run in this preset.", ""])
+              else [NOT_RUN, ""])
     lstab = [r for r in records if r["kind"] == "learned_stability"]
     if lstab:
         seqs = sorted({str(r.get("sequence")) for r in lstab})

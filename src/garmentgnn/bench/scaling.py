@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import copy
 import time
-import traceback
 from typing import Any, Dict, List, Optional, Sequence
 
 import torch
 
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
 from garmentgnn.bench.sequences import make_sequence
 from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.bench.timing import peak_memory, side_by_side
@@ -138,8 +138,7 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
         rec["max_abs_diff_cached_vs_uncached_m"] = diff
         rec.update(status="ok", message="ok")
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -152,10 +151,9 @@ def _ok(records: Sequence[Dict[str, Any]]) -> List[Dict[str, Any]]:
 
 def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> List[str]:
     """The report's "Scaling" section (lines)."""
-    recs = [r for r in records if r["kind"] == "scaling"]
-    lines = ["## Scaling: latency and memory against vertex count", ""]
+    recs, lines = section(records, "scaling", "Scaling: latency and memory against vertex count")
     if not recs:
-        return lines + ["Not run in this preset.", ""]
+        return lines
     lines += ["Untrained GarTrans (the weights' values do not change the cost), one frame at "
               "batch 1 on the capsule body.  *cached*: `encode_static` once, only `forward` "
               "per frame; *uncached*: the data module's static inputs (Nyström features, "

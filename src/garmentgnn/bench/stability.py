@@ -33,13 +33,13 @@ The verdict thresholds are in :class:`Thresholds`.
 from __future__ import annotations
 
 import time
-import traceback
 from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
 
+from garmentgnn.bench.records import failure
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import boundary_vertex_mask, signed_distance
@@ -313,8 +313,6 @@ def run_case(case: str, item: Dict[str, Any], seed: int, predict: Predictor,
         rec.update(status="ok", metrics=m, verdict=v, reason=reason,
                    message=message if not ok else "ok")
     except Exception as err:  # a crash is a result of this suite, not an error of it
-        rec.update(status="failed", verdict="failed", metrics={}, reason=f"raised: {err}",
-                   message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err), verdict="failed", metrics={}, reason=f"raised: {err}")
     rec["seconds"] = time.perf_counter() - t0
     return rec
