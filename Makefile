@@ -64,11 +64,13 @@ demo: install
 	$(PY) examples/layer_demo.py
 	$(PY) examples/train_demo.py --out demo_out
 
-# The whole suite with torch-scatter, then the fast suite again with it hidden
+# The linter first (ruff, configured in pyproject.toml), then the whole suite with
+# torch-scatter, then the fast suite again with it hidden
 # (PyG's native scatter path).  Slow tests run too; `make test-fast` skips them.
 # Last, the tests marked `float_sensitive` under two other MKL code paths (~20 s each), so
 # a comparison that holds on this CPU's path only fails here too, not on a user's CPU.
 test: install
+	$(PY) -m ruff check src tests benchmarks examples
 	GARMENTGNN_EXPECT_SCATTER=1 GARMENTGNN_EXPECT_BLENDER=$(EXPECT_BLENDER) $(PY) -m pytest $(PYTEST_ARGS)
 	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 	for path in AVX2 COMPATIBLE; do \

@@ -52,7 +52,8 @@ def main(argv=None) -> None:
         oracle = EngineSetting(item_engine(item), "dataset's own settings (oracle)")
         ladder = [s for s in default_settings() if a.engine in (None, s.engine)]
         for setting in [oracle] + ladder:
-            rec = engine_record(a.data, item, setting, frames=min(a.frames, item["motion"]["num_frames"]))
+            frames = min(a.frames, item["motion"]["num_frames"])
+            rec = engine_record(a.data, item, setting, frames=frames)
             rec.pop("traceback", None)
             records.append(rec)
             e = rec.get("metrics", {}).get("E_dist")

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import trimesh
 
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.data.presets import BLENDER_SETTINGS, build_inputs, preset
@@ -76,7 +77,8 @@ def metrics(P: torch.Tensor, rest: torch.Tensor, faces: torch.Tensor, fps: float
     L0 = (rest[e[:, 0]] - rest[e[:, 1]]).double().norm(dim=-1)
     strain = ((P[:, e[:, 0]] - P[:, e[:, 1]]).norm(dim=-1) / L0 - 1).abs()
     v = (P[-1] - P[-2]) * fps
-    out = {"strain_mean_pct": 100 * float(strain.mean()), "strain_max_pct": 100 * float(strain.max()),
+    out = {"strain_mean_pct": 100 * float(strain.mean()),
+           "strain_max_pct": 100 * float(strain.max()),
            "kinetic_J_per_kg": 0.5 * float((v * v).sum(-1).mean()),
            "finite": bool(torch.isfinite(P).all())}
     if body is not None:
@@ -132,7 +134,6 @@ def case_hang(V: int, frames: int, mat, torch_max: int) -> list:
 
 
 def case_drape(V: int, frames: int, mat, torch_max: int) -> list:
-    import trimesh
     n = max(2, int(round(math.sqrt(V))))
     pos, faces = grid_mesh(n, n, (1.0, 1.0))
     pos = pos - torch.tensor([0.5, 0.5, -0.35])
@@ -189,7 +190,8 @@ def case_anny(frames: int) -> list:
 
 
 COLUMNS = [("case", "{}"), ("engine", "{}"), ("vertices", "{}"), ("seconds_per_frame", "{:.3f}"),
-           ("vertex_substeps_per_s", "{:,.0f}"), ("pen_max_mm", "{:.1f}"), ("pen_mean_mm", "{:.2f}"),
+           ("vertex_substeps_per_s", "{:,.0f}"), ("pen_max_mm", "{:.1f}"),
+           ("pen_mean_mm", "{:.2f}"),
            ("pen_share_pct", "{:.3f}"), ("strain_mean_pct", "{:.4f}"), ("strain_max_pct", "{:.3f}"),
            ("kinetic_J_per_kg", "{:.2e}"), ("engines_apart_cm_mean", "{:.2f}"),
            ("engines_apart_cm_last", "{:.2f}"), ("note", "{}")]

@@ -17,7 +17,6 @@ instead (which the bench report reads)::
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import random
 import time
@@ -27,6 +26,7 @@ import numpy as np
 import torch
 
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._plotting import pyplot
 from garmentgnn.bench import noise_floor as nf
 from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.data import preset
@@ -128,9 +128,7 @@ def plot(runs, path):
     """Per frame, the mean over sequences of the mean distance (solid) and the largest
     distance over sequences (dashed), one panel per engine, a colour per perturbation;
     log distance axis."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     engines = sorted({r["engine"] for r in runs})
     fig, axes = plt.subplots(1, len(engines), figsize=(5.4 * len(engines) + 2.4, 4.4),

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import json
 import os
 import platform
@@ -46,13 +47,20 @@ from typing import Any, Callable, Dict, List
 
 import numpy as np
 import torch
+from torch.profiler import ProfilerActivity, profile, record_function
 
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._plotting import pyplot
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import case_item, make_sequence
 from garmentgnn.bench.timing import measure, peak_memory
+from garmentgnn.data.presets import BLENDER_SETTINGS
 from garmentgnn.models import gartrans as gartrans_mod
 from garmentgnn.models.baselines import LBSBaseline
+from garmentgnn.motion import Motion
+from garmentgnn.sim import SimSettings, simulate
+from garmentgnn.sim.blender import BlenderSettings, blender_available, blender_config, run_worker
+from garmentgnn.sim.simulator import trajectories
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "inference"
@@ -127,10 +135,6 @@ def lbs_row(seq, repeats: int) -> Dict[str, Any]:
 
 
 def blender_row(seq, frames: int, preroll: int, cores: int) -> Dict[str, Any]:
-    from garmentgnn.data.presets import BLENDER_SETTINGS
-    from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker
-    from garmentgnn.sim.simulator import trajectories
-
     st = BlenderSettings(**dict(BLENDER_SETTINGS, preroll_frames=preroll))
     motion = seq.motion
     g, body = seq.garment, seq.body
@@ -153,9 +157,6 @@ def blender_row(seq, frames: int, preroll: int, cores: int) -> Dict[str, Any]:
 
 
 def torch_sim_row(seq, frames: int) -> Dict[str, Any]:
-    from garmentgnn.motion import Motion
-    from garmentgnn.sim import SimSettings, simulate
-
     m = seq.motion
     short = Motion(m.rotations[:frames], m.translation[:frames], m.joint_names, m.fps)
     st = SimSettings(fps=m.fps, substeps=4, preroll_frames=1)
@@ -175,7 +176,6 @@ MODULES = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc", "gru", "gru_out", "b
 @contextlib.contextmanager
 def labelled(model):
     """Name the model's submodules and the geometry steps of ``gartrans`` in the profile."""
-    from torch.profiler import record_function
     handles, saved = [], {}
     for name in MODULES:
         mod = getattr(model, name, None)
@@ -206,7 +206,6 @@ def labelled(model):
 
 
 def profile_rows(it, seq) -> Dict[str, Any]:
-    from torch.profiler import ProfilerActivity, profile
     module = untrained_module(it, 0)
     model = module.model
     rot, tr = motion_tensors(seq)
@@ -255,7 +254,6 @@ def experiments(seq, it, repeats: int) -> Dict[str, Any]:
         res["float32_ms_per_frame"] = measure(base, 1, repeats)["median_ms"] / T
     # bfloat16: weights and inputs cast (the layers take their message route in half types)
     try:
-        import copy
         m16 = copy.deepcopy(model).to(torch.bfloat16)
         cast = lambda x: x.to(torch.bfloat16) if x.is_floating_point() else x  # noqa: E731
         st16 = type(static)(**{k: (None if v is None else cast(v))
@@ -313,9 +311,7 @@ def table(rows: List[Dict[str, Any]]) -> str:
 
 
 def plot(rows: List[Dict[str, Any]], path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for method, style in (("GarTrans", "o-"), ("GarTrans, no blend shape", "o--"),
                           ("Blender", "s-"), ("LBS", "^-"), ("torch simulator", "x")):
@@ -368,7 +364,6 @@ def main(argv=None) -> int:
     args.out = str(output_path(args, RESULTS))
     torch.set_num_threads(args.threads)
     args.blender_cores = args.blender_cores or args.threads
-    from garmentgnn.sim.blender import blender_available
     have_blender = not args.no_blender and blender_available()
     doc: Dict[str, Any] = {
         "command": " ".join(["python", "benchmarks/inference.py"] + (argv or sys.argv[1:])),

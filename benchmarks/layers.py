@@ -112,7 +112,8 @@ def run(args) -> dict:
                                      fwd_bwd_min_ratio=min(fb[name]) / b0_min))
                 sat = rows[-len(layers) + list(layers).index("sat")] if "sat" in layers else None
                 if sat is not None:
-                    print(f"[layers] D={edge_dim} {heads}x{channels} {order:8s} {threads}t: sat fwd "
+                    print(f"[layers] D={edge_dim} {heads}x{channels} {order:8s} {threads}t: "
+                          f"sat fwd "
                           f"{sat['fwd_ratio']:.2f}x ({sat['fwd_min_ratio']:.2f}x best)  fwd+bwd "
                           f"{sat['fwd_bwd_ratio']:.2f}x ({sat['fwd_bwd_min_ratio']:.2f}x best) TC",
                           flush=True)

@@ -19,7 +19,8 @@ Each writes ``<part>.json`` and ``<part>.md`` (curves also ``<part>.png``) into
 ``~/.cache/garmentgnn/benchmarks/learning``, ``--out``, or with ``--commit`` the committed
 copy ``docs/results/learning``::
 
-    python benchmarks/learning.py grad overfit curves --data ~/.cache/garmentgnn/datasets/small-blender
+    python benchmarks/learning.py grad overfit curves \
+        --data ~/.cache/garmentgnn/datasets/small-blender
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ import lightning as L
 import torch
 
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._plotting import pyplot
 from garmentgnn.bench.methods import BASELINES, DA, DATA, GARTRANS, HOOD, NCS, variant_settings
 from garmentgnn.bench.tables import table
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
@@ -320,9 +322,7 @@ PLOT_TOP = 1.5
 
 
 def plot_curves(res: Dict[str, Any], path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     low = PLOT_TOP
     for ax, split in zip(axes, ("train", "test")):

@@ -2,10 +2,10 @@
 
 A square sheet pinned along one edge swings under gravity (no body, so the numbers
 isolate the cloth solve): thread counts and stiffness multipliers at the smallest
-size, vertex counts at the largest thread count.  Each configuration simulates ``--frames`` frames at 30 fps after one
-warm-up frame; the table reports seconds per frame, frames per second,
-vertex-substeps per second, mean Newton iterations per frame and whether every
-frame converged.  Writes ``simulator.{json,md}``
+size, vertex counts at the largest thread count.  Each configuration simulates
+``--frames`` frames at 30 fps after one warm-up frame; the table reports seconds per
+frame, frames per second, vertex-substeps per second, mean Newton iterations per frame
+and whether every frame converged.  Writes ``simulator.{json,md}``
 into a cache folder (``--out`` elsewhere; ``--commit``: the committed ``benchmarks/results/``).
 
     python benchmarks/simulator.py                       # 1K, 5K, 10K vertices

@@ -46,11 +46,13 @@ RESULTS = HERE / "results" / "train_speed"
 
 def child(args: argparse.Namespace) -> None:
     """Runs inside a variant's process: train ``warmup + steps`` steps, print JSON."""
-    import lightning as L
-    import torch
+    # imported here: the child runs the variant's checkout (its PYTHONPATH), whose
+    # garmentgnn may lack what the parent imports
+    import lightning as L  # noqa: PLC0415
+    import torch  # noqa: PLC0415
 
-    from garmentgnn.training import GarmentDataModule, GarTransModule
-    from garmentgnn.training.configs import load_config
+    from garmentgnn.training import GarmentDataModule, GarTransModule  # noqa: PLC0415
+    from garmentgnn.training.configs import load_config  # noqa: PLC0415
 
     torch.set_num_threads(args.threads)
     cfg = load_config("gartrans")
@@ -134,7 +136,7 @@ def main() -> None:
     a = ap.parse_args()
     if a.child:
         return child(a)
-    from garmentgnn._argparse import output_path
+    from garmentgnn._argparse import output_path  # noqa: PLC0415  (parent only: see child)
     a.out = str(output_path(a, RESULTS))
     if a.steps < 1 or a.warmup < 1 or a.repeats < 1:
         ap.error("--steps, --warmup and --repeats must be positive")

@@ -27,6 +27,7 @@ from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSc
 from garmentgnn.training.evaluate import evaluate_split, markdown_table
 from garmentgnn.viz.animate import renderer_unavailable
 from garmentgnn.viz.strip import render_strip
+from garmentgnn.viz.compare import show
 
 
 def main() -> None:
@@ -68,7 +69,6 @@ def main() -> None:
     print(markdown_table(res))
     reason = renderer_unavailable()
     if reason is None:
-        from garmentgnn.viz.compare import show
         t3 = time.time()
         r = show(data, {"GarTrans": module}, out / "gartrans_demo", split="test", history=3,
                  num_landmarks=64)

@@ -9,9 +9,13 @@ if os.environ.get("GARMENTGNN_NO_SCATTER") == "1":
 # tests/test_bench_page.py turns it on
 os.environ.setdefault("GARMENTGNN_BENCH_MEDIA", "0")
 
+from types import SimpleNamespace  # noqa: E402
+
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning  # noqa: E402
+from garmentgnn.garments.skinning import transfer_skinning_weights  # noqa: E402
 from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh  # noqa: E402
 
 
@@ -42,10 +46,6 @@ def mesh_graph():
 
 def lbs_simulate(garment, body, motion, material, settings=None, progress=None):
     """Test double of the simulator: LBS-skinned garment + a deterministic smooth wobble."""
-    from types import SimpleNamespace
-
-    from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
-    from garmentgnn.garments.skinning import transfer_skinning_weights
     W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
     A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
                               body.skeleton.parents, motion.translation.to(body.vertices.dtype))

@@ -1,7 +1,10 @@
 """Bad or odd input is never silent: each test feeds one input a careless or hostile user
 would give (contact, units, motion files, checkpoints, dataset folders, jobs, settings,
 OBJ encodings, the CLI) and checks the correct result or a clear error."""
+import json
+import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -15,13 +18,15 @@ import torch
 import trimesh
 
 import garmentgnn
+from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.body.body import Body
 from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, SpecMismatch, generate, preset, read_manifest
 from garmentgnn.data import store
+from garmentgnn.data.export import write_obj_sequence
 from garmentgnn.data.worker import run_item
-from garmentgnn.garments import load_garment
+from garmentgnn.garments import load_garment, make_garment
 from garmentgnn.garments.garment import Garment
 from garmentgnn.geometry import grid_mesh, penetration_depth, signed_distance
 from garmentgnn.motion import load_bvh, make_motion, save_bvh
@@ -29,7 +34,10 @@ from garmentgnn.motion.sequence import Motion, match_joints
 from garmentgnn.physics import material
 from garmentgnn.sim import SimSettings, simulate
 from garmentgnn.training import GarTransModule
+from garmentgnn.training.datamodule import SequenceChunks
 from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
+
+from test_data import fake_simulate
 from test_training import NY, root  # noqa: F401  (module-scoped toy dataset)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -145,7 +153,6 @@ def test_garment_in_millimetres_or_far_away_is_refused():
 
 # ------------------------------------------------------------------ BVH joint order
 def test_bvh_roundtrip_is_matched_by_name():
-    from garmentgnn.body import CapsuleBodyModel
     model = CapsuleBodyModel()
     body = model()
     motion = make_motion("walk", model.skeleton, num_frames=5, fps=30.0, seed=0,
@@ -214,7 +221,6 @@ def test_flag_conflicting_with_checkpoint_is_an_error(tmp_path, capsys):
 
 # ------------------------------------------------------------------ dataset folders
 def test_generate_refuses_to_clobber_and_empty_paths(tmp_path, capsys):
-    from test_data import fake_simulate
     other = tmp_path / "other"
     spec = Spec("x", preset("tiny").garments[:1], preset("tiny").bodies[:1],
                 preset("tiny").motions[:1], ["silk"], seed=7)
@@ -239,7 +245,6 @@ def test_generate_refuses_to_clobber_and_empty_paths(tmp_path, capsys):
 
 
 def test_changed_sequence_file_is_an_integrity_error(root):  # noqa: F811
-    from garmentgnn.training.datamodule import SequenceChunks
     rec = read_manifest(root)["items"][0]
     path = store.sequence_path(root, rec)
     good = path.read_bytes()
@@ -383,7 +388,6 @@ def test_unit_advice_gives_one_factor_that_fits(scale, advice):
 
 def test_make_garment_without_a_body_names_body():
     """Was AttributeError: 'NoneType' object has no attribute 'skeleton'."""
-    from garmentgnn.garments import make_garment
     with pytest.raises(TypeError, match="`body`: expected a Body"):
         make_garment("dress", None)
 
@@ -392,7 +396,6 @@ def test_obj_quads_sharing_an_edge_through_copies_of_vertices_warn(tmp_path, cap
     """Two quads meeting along x = 0.1 with that edge's vertices written twice: two
     separate pieces, without a word before; now a warning with the count, and
     repair=True welds them (oracle: one connected piece, 6 vertices)."""
-    import logging
     p = tmp_path / "quads.obj"
     p.write_text("v 0 0 0.3\nv 0.1 0 0.3\nv 0.1 0.1 0.3\nv 0 0.1 0.3\n"
                  "v 0.1 0 0.3\nv 0.2 0 0.3\nv 0.2 0.1 0.3\nv 0.1 0.1 0.3\n"
@@ -424,7 +427,6 @@ def test_sequence_check_catches_each_reordering(root):  # noqa: F811
 
 
 def test_obj_writer_refuses_faces_past_the_vertex_list(tmp_path):
-    from garmentgnn.data.export import write_obj_sequence
     P, F = np.zeros((2, 3, 3)), np.array([[0, 1, 3]])
     with pytest.raises(ValueError, match="`faces`: reference vertices 0..3 but `positions`"):
         write_obj_sequence(tmp_path / "o", P, F)
@@ -433,10 +435,6 @@ def test_obj_writer_refuses_faces_past_the_vertex_list(tmp_path):
 
 def test_duplicate_manifest_ids_are_refused_not_trained_on(root, tmp_path):  # noqa: F811
     """The data module trained on every listed copy (195 -> 240 chunks) before."""
-    import json
-    import shutil
-
-    from garmentgnn.training.datamodule import SequenceChunks
     out = tmp_path / "d"
     shutil.copytree(root, out)
     doc = json.loads((out / store.MANIFEST).read_text())

@@ -15,7 +15,8 @@ from test_data import fake_simulate, files_of
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = str(ROOT / "src" / "garmentgnn" / "configs" / "gartrans.yaml")
-GEN = ["--engine", "torch", "--no-estimate", "--no-progress", "--simulate-fn", "test_data:fake_simulate"]
+GEN = ["--engine", "torch", "--no-estimate", "--no-progress",
+       "--simulate-fn", "test_data:fake_simulate"]
 
 
 @pytest.fixture(scope="module")

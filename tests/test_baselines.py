@@ -3,8 +3,8 @@ rollout, and LBS == the simulator's initial skinned state."""
 import pytest
 import torch
 
-from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.bench.sequences import build_scene
+from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.garments import make_garment
 from garmentgnn.losses import GarTransLoss, LossInputs
 from garmentgnn.models.baselines import (CoarseLevel, DAStyle, HOODStyle, LBSBaseline,
@@ -12,6 +12,7 @@ from garmentgnn.models.baselines import (CoarseLevel, DAStyle, HOODStyle, LBSBas
 from garmentgnn.models.inputs import GarmentInputs, build_garment
 from garmentgnn.motion import make_motion
 from garmentgnn.physics import MATERIALS, ClothRest
+from garmentgnn.sim import SimSettings, simulate
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +52,6 @@ def test_scene_validates(setup):
 
 
 def test_lbs_equals_simulator_initial_state(setup):
-    from garmentgnn.sim import SimSettings, simulate
     body, g, motion, scene = setup
     one = type(motion)(motion.rotations[:1], motion.translation[:1], motion.joint_names,
                        motion.fps)

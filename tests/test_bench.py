@@ -8,9 +8,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import ZERO_AREA_M2, numbers
 from garmentgnn.bench import harness, precision, presets, report, stability, tables, timing
-from garmentgnn.cli import main as cli_main
+from garmentgnn.bench.cli import _command
+from garmentgnn.bench.records import NOT_RUN, failure, section
+from garmentgnn.bench.sequences import case_item, make_sequence
+from garmentgnn.cli import build_parser, main as cli_main
+from garmentgnn.data import store
+from garmentgnn.models.baselines import LBSBaseline
+from garmentgnn.motion import within_limits
+
+from conftest import ZERO_AREA_M2, numbers
 
 
 
@@ -119,7 +126,6 @@ def test_deleted_record_is_rerun_and_leftovers_removed(tiny_run):
 def test_record_is_never_half_written(tmp_path, monkeypatch):
     """A crash between writing and renaming leaves no record (and no temporary)."""
     path = harness.record_path(tmp_path, "accuracy", "m", "c", 0)
-    from garmentgnn.data import store
 
     def crash(src, dst):
         raise OSError("killed before rename")
@@ -194,7 +200,6 @@ def test_stability_verdicts_and_plugged_predictor():
     item = presets.preset("tiny").stability_item
 
     def exploding(seq):  # a learned method that blows up
-        from garmentgnn.models.baselines import LBSBaseline
         pos = LBSBaseline()(seq.scene, seq.motion.rotations, seq.motion.translation)
         pos[-1, 0, 0] = float("nan")
         return pos
@@ -219,7 +224,6 @@ def test_degenerate_and_extreme_cases_are_what_they_claim():
     seq, info = stability.stability_sequence("sliver_face", item, 0)
     assert info["uv_area_m2"] > 1e3 * ZERO_AREA_M2 and bool(seq.rest.valid[info["face"]])
     seq, info = stability.stability_sequence("extreme_pose", item, 0)
-    from garmentgnn.motion import within_limits
     assert info["joint_frames_clamped"] > 0
     assert within_limits(seq.motion.rotations, seq.body.skeleton, tol_deg=1e-2)
     seq, info = stability.stability_sequence("long_1000", item, 0)
@@ -231,7 +235,6 @@ def test_degenerate_case_on_a_pattern_laid_flat_per_face():
     """A T-shirt's face_uv is laid flat per face (no vertex whose UV corners all agree):
     the sliver still has 1/1000 of its face's UV area and the zero-area face exactly 0,
     every UV corner of the moved vertex shifted by the same step."""
-    from garmentgnn.bench.sequences import case_item, make_sequence
     item = case_item("t", "tshirt", 200, "walk", 3, {"sleeves": "none"})
     base = make_sequence(item, 0).garment
     seq, info = stability.stability_sequence("sliver_face", item, 0)
@@ -267,8 +270,18 @@ def test_register_and_cli_arguments(tmp_path):
     "garmentgnn bench --preset tiny --out o --seeds 2 --no-learned --retry-failed --no-progress"])
 def test_report_command_is_the_command_line(line):
     """The command the report quotes parses back to the same arguments."""
-    from garmentgnn.bench.cli import _command
-    from garmentgnn.cli import build_parser
     args = build_parser().parse_args(line.split()[1:])
     assert _command(args) == line
     assert build_parser().parse_args(_command(args).split()[1:]) == args
+
+
+def test_failed_record_fields_and_report_section_start():
+    try:
+        raise RuntimeError("boom")
+    except RuntimeError as err:
+        fields = failure(err)
+    assert fields["status"] == "failed" and fields["message"] == "RuntimeError: boom"
+    assert "RuntimeError: boom" in fields["traceback"]
+    recs, lines = section([{"kind": "a", "i": 0}, {"kind": "b"}, {"kind": "a", "i": 1}], "a", "A")
+    assert [r["i"] for r in recs] == [0, 1] and lines == ["## A", ""]
+    assert section([{"kind": "b"}], "a", "A") == ([], ["## A", "", NOT_RUN, ""])

@@ -15,7 +15,7 @@ from garmentgnn.data import store
 from garmentgnn.data.generate import generate
 from garmentgnn.data.keys import motion_key
 from garmentgnn.data.presets import BLENDER_SETTINGS, Spec
-from garmentgnn.sim import SimSettings
+from garmentgnn.sim import SimSettings, simulate as real
 from garmentgnn.sim.blender import BlenderSettings, blender_available
 
 from conftest import numbers
@@ -125,7 +125,6 @@ def test_failing_engine_gives_a_failed_record(torch_data, monkeypatch):
 
 def test_nan_positions_give_a_failed_record(torch_data, monkeypatch):
     root, item = torch_data
-    from garmentgnn.sim import simulate as real
 
     def nan_engine(engine):
         def simulate(*args, **kwargs):

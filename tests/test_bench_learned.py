@@ -8,6 +8,7 @@ seconds.  Oracles: :func:`garmentgnn.training.evaluate.evaluate_split` (an indep
 scoring path) for LBS and for the trained GarTrans checkpoint; an uninterrupted training
 for the resumed one; a copy of the dataset with altered test positions for NCS."""
 import dataclasses
+import importlib
 import json
 import math
 import shutil
@@ -16,13 +17,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 
-from conftest import ZERO_AREA_M2, lbs_simulate, numbers
-from garmentgnn.bench import harness, learned, methods, presets, report, scoring, tables
+from garmentgnn.bench import harness, learned, methods, presets, report, scoring, stability, tables
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, motion_key, store
-from garmentgnn.training import GarTransModule
+from garmentgnn.models import gartrans
+from garmentgnn.models.baselines import DAStyle
+from garmentgnn.training import BaselineModule, GarTransModule, GarmentDataModule
 from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.training.lightning_cli import main as train_main
+
+from conftest import ZERO_AREA_M2, lbs_simulate, numbers
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -165,7 +171,6 @@ def test_second_run_is_a_no_op(flow, data):
 
 
 def test_interrupted_gartrans_training_resumes_from_last_ckpt(data, tmp_path, monkeypatch):
-    from lightning.pytorch.callbacks import ModelCheckpoint
     p = learned_only(methods=("GarTrans (SAT)",), epochs=2)
     straight = harness.run(p, tmp_path / "straight", data=data, progress=False)
     assert straight.failed == 0
@@ -194,8 +199,6 @@ def test_interrupted_gartrans_training_resumes_from_last_ckpt(data, tmp_path, mo
 
 
 def test_nan_loss_gives_a_failed_record_then_retry(data, tmp_path, monkeypatch):
-    from garmentgnn.models import gartrans
-    from garmentgnn.models.baselines import DAStyle
     p = learned_only(methods=("GarTrans (SAT)", methods.DA))
     inner, da = gartrans.GarTrans.forward, DAStyle.forward
 
@@ -275,7 +278,6 @@ def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch)
     over the generated file): the suite tests the trained models on their own inputs.
     The frame-parallel methods are called on chunks of 3 frames here, the whole-sequence
     prediction being the oracle."""
-    from garmentgnn.bench import stability
     monkeypatch.setattr(learned, "STABILITY_CHUNK", 3)
     out, _ = flow
     runner = learned.LearnedRunner(learned.prepare_dataset(data), learned_only().learned, out,
@@ -298,7 +300,6 @@ def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch)
 
 
 def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
-    import importlib
     worker = importlib.import_module("garmentgnn.data.worker")
     monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": lbs_simulate)
     p = dataclasses.replace(learned_only(methods=(methods.LBS,)), data_workers=0)
@@ -316,7 +317,6 @@ def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
     """The bench's settings of each GarTrans variant are the ones LightningCLI builds from
     the same packaged files (``garmentgnn train --config gartrans --config ablations/X``):
     jsonargparse's own merge is the oracle for :func:`methods.variant_settings`."""
-    from garmentgnn.training.lightning_cli import main as train_main
     v = methods.GARTRANS[name]
     args = ["--config", "gartrans"] + (["--config", f"ablations/{v.config}"] if v.config else [])
     cli = train_main(args + ["--data.root", str(data), "--trainer.logger", "false",
@@ -334,7 +334,6 @@ def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
 
 
 def test_baseline_configs_build_their_modules(data):
-    from garmentgnn.training import BaselineModule, GarmentDataModule
     dm = GarmentDataModule(data, val_split=None, **methods.DATA)
     for name, cfg in methods.BASELINES.items():
         extra = {"num_vertices": 5} if name == methods.NCS else {}

@@ -4,12 +4,18 @@ prediction whose error is known exactly (the simulation moved by 1 cm)."""
 import json
 import re
 
+import lightning as L
 import numpy as np
 import pytest
+from PIL import Image
 
 from garmentgnn.bench import report
 from garmentgnn.bench.page import ENV_VAR, MEDIA, write_media
+from garmentgnn.data import store
+from garmentgnn.training import GarTransModule, GarmentDataModule
 from garmentgnn.viz.animate import renderer_unavailable
+from garmentgnn.viz.compare import comparison
+
 from test_viz_export import dataset  # noqa: F401  (the shared two-sequence toy dataset)
 
 WHY = renderer_unavailable()
@@ -17,9 +23,6 @@ METRICS = dict.fromkeys(report.METRICS, 1.0)
 
 
 def _checkpoint(root, path):
-    import lightning as L
-
-    from garmentgnn.training import GarmentDataModule, GarTransModule
     dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=8, num_landmarks=16,
                            val_split=None)
     module = GarTransModule(**dm.dims)
@@ -44,9 +47,6 @@ def _records(root, ckpt):
 
 @pytest.mark.skipif(WHY is not None, reason=f"no off-screen renderer: {WHY}")
 def test_report_shows_the_heldout_animation(dataset, tmp_path, monkeypatch):  # noqa: F811
-    from PIL import Image
-
-    from garmentgnn.data import store
     monkeypatch.setenv(ENV_VAR, "1")
     ckpt = _checkpoint(dataset, tmp_path / "models" / "m.ckpt")
     out = tmp_path / "bench"
@@ -101,7 +101,6 @@ def test_animation_shows_the_sequence_the_predictions_were_made_on(dataset, tmp_
     """The learned methods score a subset of the split (``test_sequences``) whose first
     sequence -- the one the saved baseline predictions show -- need not be the split's
     first; the animation must be of that sequence, not of index 0."""
-    from garmentgnn.data import store
     monkeypatch.setenv(ENV_VAR, "1")
     ckpt = _checkpoint(dataset, tmp_path / "models" / "m.ckpt")
     items = store.read_manifest(dataset)["items"]
@@ -119,8 +118,6 @@ def test_animation_shows_the_sequence_the_predictions_were_made_on(dataset, tmp_
 
 
 def test_comparison_selects_a_sequence_by_id(dataset):  # noqa: F811
-    from garmentgnn.data import store
-    from garmentgnn.viz.compare import comparison
     items = store.read_manifest(dataset)["items"]
     for k, rec in enumerate(items):
         assert comparison(dataset, {}, split=None, index=rec["id"]).seq_id == rec["id"]

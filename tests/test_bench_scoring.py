@@ -3,7 +3,7 @@ frame-weighted means, the paired Wilcoxon test (exact small-sample p-values writ
 out here) and which methods get every seed."""
 import pytest
 
-from garmentgnn.bench import methods, scoring
+from garmentgnn.bench import learned, learned_report, methods, scoring, tables
 
 
 def seq(name, frames, held, e):
@@ -78,7 +78,6 @@ def test_stratified_subset():
 
 
 def _record(method, per_seq, seed=0):
-    from garmentgnn.bench import learned, tables
     seqs = [{"sequence": f"s{i}", "frames": 10, "held_out": ["motion"],
              "metrics": {**{k: v for k in tables.METRICS}, "E_static": v, "E_dynamic": v}}
             for i, v in enumerate(per_seq)]
@@ -92,7 +91,6 @@ def test_report_verdicts_from_paired_tests():
     """Full GarTrans lower than an ablation on all 8 sequences: the exact two-sided p is
     2/256, so the Table 1 ordering is "shown"; equal to LBS on half and higher on the
     rest: the LBS targets are "missed"."""
-    from garmentgnn.bench import learned_report
     full, abl = list(methods.GARTRANS)[:2]
     base = [5.0 + i for i in range(8)]
     recs = [_record(full, [v - 0.1 * (i + 1) for i, v in enumerate(base)]),

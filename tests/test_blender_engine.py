@@ -18,7 +18,8 @@ import trimesh
 
 from garmentgnn.data import store
 from garmentgnn.data.generate import generate
-from garmentgnn.data.presets import BLENDER_SETTINGS, build_inputs, preset
+from garmentgnn.data.presets import BLENDER_SETTINGS, Spec, build_inputs, preset
+from garmentgnn.geometry import signed_distance
 from garmentgnn.physics.materials import MATERIALS
 from garmentgnn.sim.blender import (BLENDER_TIME_UNIT, BlenderSettings, blender_available,
                                     blender_config, require_blender, run_worker,
@@ -91,8 +92,9 @@ def _sheet(n=5, size=0.2, z=2.0):
     xs = np.linspace(0, size, n)
     X, Y = np.meshgrid(xs, xs)
     V = np.stack([X.ravel(), Y.ravel(), np.full(n * n, z)], 1)
-    F = [[i * n + j, i * n + j + 1, (i + 1) * n + j + 1] for i in range(n - 1) for j in range(n - 1)]
-    F += [[i * n + j, (i + 1) * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)]
+    cells = [(i, j) for i in range(n - 1) for j in range(n - 1)]
+    F = [[i * n + j, i * n + j + 1, (i + 1) * n + j + 1] for i, j in cells]
+    F += [[i * n + j, (i + 1) * n + j + 1, (i + 1) * n + j] for i, j in cells]
     return V.astype(np.float32), np.array(F, np.int64)
 
 
@@ -151,7 +153,6 @@ def test_pins_follow_the_body_and_the_rest_falls_free():
     free = (P[:, ~g.pinned] - sk[st.preroll_frames:, ~g.pinned]).norm(dim=-1)
     assert float(free.mean()) > 1e-3  # the cloth moved on its own
     # the garment stays outside the body (its collider) by about the collision distance
-    from garmentgnn.geometry import signed_distance
     d = signed_distance(P[-1], bf[-1], b.faces)
     d = d[0] if isinstance(d, tuple) else d
     assert float(d.min()) > 0
@@ -170,7 +171,6 @@ def _slow_first(item):
 
 @needs_blender
 def test_a_failed_sequence_is_recorded_and_retried(tmp_path):
-    from garmentgnn.data.presets import Spec
     spec = preset("tiny", engine="blender")
     spec = Spec(**{**spec.__dict__, "sample": 2})
     items = spec.items()

@@ -1,6 +1,7 @@
 """Bodies: forward kinematics and LBS against analytic poses, the capsule body, and
 the anny adapter against anny's own forward pass."""
 import math
+import pickle
 import time
 
 import numpy as np
@@ -9,7 +10,9 @@ import torch
 import trimesh
 
 from garmentgnn.body import Body, Skeleton, forward_kinematics, linear_blend_skinning
+from garmentgnn.body.anny_body import AnnyBodyModel, PHENOTYPES
 from garmentgnn.body.capsule import CapsuleBodyModel
+from garmentgnn.body.smpl_body import SMPLBodyModel, Y_UP_TO_Z_UP, landmark_ids
 from garmentgnn.geometry.rotations import axis_angle_to_matrix
 
 
@@ -107,16 +110,14 @@ def test_body_rejects_bad_input():
 @pytest.fixture(scope="module")
 def anny_model():
     pytest.importorskip("anny")
-    from garmentgnn.body.anny_body import AnnyBodyModel
     return AnnyBodyModel(dtype=torch.float64, ground=False)
 
 
 @pytest.mark.slow
 def test_anny_lbs_matches_anny_forward(anny_model):
     """Our LBS (Eq. 1) on the adapter's body equals anny's own local-ref forward pass."""
-    import anny
+    import anny  # noqa: PLC0415 (optional: the human extra)
 
-    from garmentgnn.body.anny_body import PHENOTYPES
     body = anny_model("fat")
     m = anny.Anny(rig="cmu_mb", topology="notoes_collapse10pc", skinning_method="lbs")
     S = body.skeleton.num_joints
@@ -134,7 +135,6 @@ def test_anny_lbs_matches_anny_forward(anny_model):
 
 @pytest.mark.slow
 def test_anny_shapes_and_cache(anny_model):
-    from garmentgnn.body.anny_body import AnnyBodyModel
     vols = []
     for name in ["thin", "regular", "fat"]:
         body = anny_model(name)
@@ -153,7 +153,6 @@ def test_anny_shapes_and_cache(anny_model):
 
 
 def test_anny_rejects_bad_shape():
-    from garmentgnn.body.anny_body import AnnyBodyModel
     with pytest.raises(ValueError, match="shape"):
         AnnyBodyModel.phenotype({"weight": 2.0})
     with pytest.raises(ValueError, match="shape"):
@@ -165,7 +164,6 @@ def test_anny_rejects_bad_shape():
 # --- SMPL through smplx, with a tiny SMPL-format file the test writes itself ---------
 
 def tiny_smpl_file(path, num_verts=60, seed=0):
-    import pickle
     rng = np.random.default_rng(seed)
     J = 24
     parents = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21]
@@ -185,7 +183,6 @@ def tiny_smpl_file(path, num_verts=60, seed=0):
 
 def test_smpl_adapter_matches_smplx(tmp_path):
     smplx = pytest.importorskip("smplx")
-    from garmentgnn.body.smpl_body import Y_UP_TO_Z_UP, SMPLBodyModel, landmark_ids
     path = tmp_path / "SMPL_NEUTRAL.pkl"
     tiny_smpl_file(path)
     model = SMPLBodyModel(path, dtype=torch.float64)

@@ -7,9 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from garmentgnn.bench.learned import prepare_dataset
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import generate, preset, read_manifest
 from garmentgnn.data import store
+
 from test_data import fake_simulate
 
 
@@ -75,7 +77,6 @@ def test_one_changed_file_changes_it_and_manifest_prints_it(made, tmp_path, caps
 
 
 def test_bench_dataset_info_quotes_it(made):
-    from garmentgnn.bench.learned import prepare_dataset
     info = prepare_dataset(made[0])
     assert info.content_sha256 == recompute(made[0])
     assert info.to_json()["content_sha256"] == info.content_sha256

@@ -2,6 +2,8 @@
 manifest rebuild, PC2/OBJ export, the lazy PyG dataset, the CLI, and one real run."""
 import importlib.util
 import os
+import pickle
+import shutil
 import struct
 import subprocess
 import sys
@@ -11,11 +13,18 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+import trimesh
 
+from garmentgnn.body.factory import build_body
+from garmentgnn.cli import main
 from garmentgnn.data import (Spec, SpecMismatch, body_key,
                              garment_key, generate, motion_key, preset, read_manifest,
                              rebuild_manifest)
 from garmentgnn.data import store
+from garmentgnn.data.store import LRUCache
+from garmentgnn.garments.skinning import transfer_skinning_weights
+from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.training import SequenceChunks
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_SIM = importlib.util.find_spec("garmentgnn.sim") is not None and \
@@ -209,7 +218,6 @@ def test_spec_mismatch_refused(clean_run):
 
 
 def test_manifest_rebuild(clean_run, tmp_path):
-    import shutil
     out = tmp_path / "copy"
     shutil.copytree(clean_run, out)
     before = read_manifest(out)
@@ -235,7 +243,6 @@ def read_pc2(path):
 
 
 def test_pc2_and_obj_export(clean_run, tmp_path):
-    from garmentgnn.cli import main
     seq_path = sorted((clean_run / "sequences").glob("*.npz"))[0]
     seq = store.load_sequence(seq_path)
     assert main(["export", "--seq", str(seq_path), "--format", "pc2",
@@ -247,7 +254,6 @@ def test_pc2_and_obj_export(clean_run, tmp_path):
                  "--out", str(tmp_path / "objs")]) == 0
     objs = sorted((tmp_path / "objs").glob("*.obj"))
     assert len(objs) == seq["positions"].shape[0]
-    import trimesh
     m = trimesh.load(objs[3], process=False)
     np.testing.assert_allclose(m.vertices, seq["positions"][3], atol=1e-5)
     np.testing.assert_array_equal(m.faces, seq["garment_faces"])
@@ -257,10 +263,6 @@ def test_pc2_and_obj_export(clean_run, tmp_path):
 def test_skinning_weights_are_stored_and_read_back(clean_run, tmp_path):
     """Each file holds the weights the engine skinned its garment with (oracle: the same
     transfer recomputed), and the model inputs read them from the file."""
-    import shutil
-    from garmentgnn.body.factory import build_body
-    from garmentgnn.garments.skinning import transfer_skinning_weights
-    from garmentgnn.training import SequenceChunks
     rec = read_manifest(clean_run)["items"][0]
     seq = store.load_sequence(store.sequence_path(clean_run, rec))
     body = build_body(seq["meta"]["body"])
@@ -282,8 +284,6 @@ def test_skinning_weights_are_stored_and_read_back(clean_run, tmp_path):
 def test_sequence_chunks_items_and_lazy_loading(clean_run):
     """The model inputs read from the files: poses, history, simulated garment and the
     posed body of each frame, loaded lazily (the index comes from the manifest alone)."""
-    from garmentgnn.models.inputs import GarmentInputs
-    from garmentgnn.training import SequenceChunks
     ds = SequenceChunks(clean_run, split="train", chunk=1, history=2, cache_size=1)
     assert ds.num_file_loads == 0
     assert len(ds) == 4 * 8  # 4 train sequences x 8 frames
@@ -305,7 +305,6 @@ def test_sequence_chunks_items_and_lazy_loading(clean_run):
     assert (ei[1, 1:] >= ei[1, :-1]).all()
     assert d3.faces.shape[1] == 3 and d3.face_uv.shape == (d3.faces.shape[0], 3, 2)
     # the posed body, recomputed from the body model + the stored motion
-    from garmentgnn.body.factory import build_body
     body = build_body(seq["meta"]["body"])
     bv, _ = body.pose(R[3:4], torch.from_numpy(seq["motion_translation"][3:4]))
     torch.testing.assert_close(d3.body_pos, bv.float())
@@ -327,7 +326,6 @@ def test_cli_help():
     r = subprocess.run([sys.executable, "-m", "garmentgnn.cli", "generate", "--help"],
                        capture_output=True, text=True, env=_env(), timeout=120)
     assert r.returncode == 0 and "--preset" in r.stdout and "--limit" in r.stdout
-    from garmentgnn.cli import main
     for argv in (["--help"], ["export", "--help"], ["manifest", "--help"]):
         with pytest.raises(SystemExit) as e:
             main(argv)
@@ -341,7 +339,6 @@ def test_cli_generate_with_double(tmp_path, monkeypatch, capsys):
     r = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=120)
     assert r.returncode == 0, r.stderr
     assert "3 simulated" in r.stdout and "5 pending" in r.stdout
-    from garmentgnn.cli import main
     monkeypatch.setenv("GG_FAIL_KIND", "tshirt")
     assert main(cmd[3:-2]) == 1  # in-process: 5 more items, the 4 tshirts fail
     out = capsys.readouterr().out
@@ -375,7 +372,6 @@ def test_cli_generate_tiny_real_simulator(tmp_path):
             assert x["message"] and not (tmp_path / "sequences" / f"{x['id']}.npz").exists()
     oks = [x for x in done if x["status"] == "ok"]
     if oks:
-        from garmentgnn.training import SequenceChunks
         ds = SequenceChunks(tmp_path, split=None, chunk=1)
         assert len(ds) == 8 * len(oks) and torch.isfinite(ds[len(ds) - 1].gt).all()
     # rerun: nothing simulated again
@@ -384,9 +380,6 @@ def test_cli_generate_tiny_real_simulator(tmp_path):
 
 
 def test_lru_cache_bound_and_pickles_empty():
-    import pickle
-
-    from garmentgnn.data.store import LRUCache
     c = LRUCache(2)
     built = []
     for k in (1, 2, 1, 3):  # 1 is used again, so 2 is the least recent when 3 arrives

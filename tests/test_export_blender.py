@@ -15,8 +15,10 @@ import pytest
 
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import export, store
-from garmentgnn.data.gltf import GltfMesh
+from garmentgnn.data.blender_export import write_blender
+from garmentgnn.data.gltf import GltfMesh, sequence_meshes
 from garmentgnn.sim.blender import ENV_VAR, blender_available, find_blender_python
+
 from test_viz_export import dataset  # noqa: F401  (the shared two-sequence toy dataset)
 
 HAVE_BLENDER = blender_available()
@@ -104,7 +106,6 @@ def test_gltf_sequence_opens_in_blender(dataset, tmp_path):  # noqa: F811
 @needs_blender
 @pytest.mark.parametrize("fmt", ["abc", "blend"])
 def test_alembic_and_blend_round_trip(dataset, tmp_path, fmt):  # noqa: F811
-    from garmentgnn.data.gltf import sequence_meshes
     seq_path = sorted((dataset / store.SEQUENCES).glob("*.npz"))[0]
     seq = store.load_sequence(seq_path)
     meshes, fps = sequence_meshes(seq, body=True)  # the garment and the posed body
@@ -131,7 +132,6 @@ def test_alembic_and_blend_round_trip(dataset, tmp_path, fmt):  # noqa: F811
 
 def test_alembic_and_blend_without_bpy_say_how_to_install(dataset, tmp_path, monkeypatch,  # noqa: F811
                                                           capsys):
-    from garmentgnn.data.blender_export import write_blender
     seq_path = sorted((dataset / store.SEQUENCES).glob("*.npz"))[0]
     monkeypatch.setenv(ENV_VAR, str(tmp_path / "no-such-python"))
     for fmt in ("abc", "blend"):

@@ -4,12 +4,16 @@ Oracles are independent of the code under test: the analytic capsule distance of
 ``CapsuleBodyModel.capsules`` and a brute-force point-to-triangle distance for collisions,
 trimesh for topology, deformation gradients computed here with numpy.
 """
+import copy
 import logging
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import torch
 import trimesh
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull
 
 from garmentgnn.body.capsule import CapsuleBodyModel
 from garmentgnn.garments import (Garment, dress, jumpsuit, load_garment, make_garment,
@@ -111,8 +115,6 @@ def boundary_loops(F):
     b = u[c == 1]
     if len(b) == 0:
         return 0
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
     n = F.max() + 1
     g = sp.coo_matrix((np.ones(len(b)), (b[:, 0], b[:, 1])), shape=(n, n))
     _, lab = connected_components(g, directed=False)
@@ -232,7 +234,8 @@ def test_margin_and_ease_are_respected(bodies):
     assert capsule_distance(g.vertices.double().numpy(), "regular").min() >= 0.03 - 0.007
     loose = skirt(bodies["regular"], resolution="low", ease=0.05)
     tight = skirt(bodies["regular"], resolution="low", ease=0.015)
-    assert _band_perimeter(loose, loose.info["waist_z"]) > _band_perimeter(tight, tight.info["waist_z"]) + 0.1
+    assert (_band_perimeter(loose, loose.info["waist_z"])
+            > _band_perimeter(tight, tight.info["waist_z"]) + 0.1)
 
 
 # -- templates: material coordinates ---------------------------------------------------
@@ -297,7 +300,6 @@ def _band_perimeter(g, z, half=0.012):
     m = np.abs(V[:, 2] - z) <= half
     hull = trimesh.convex.convex_hull(np.concatenate([V[m], V[m] + [0, 0, 1e-3]]))
     xy = hull.vertices[:, :2]
-    from scipy.spatial import ConvexHull
     h = ConvexHull(xy)
     return h.area  # perimeter in 2D
 
@@ -375,7 +377,6 @@ def test_template_arguments_are_checked(bodies, fn, kwargs, match):
 
 
 def test_body_without_roles_is_rejected(bodies):
-    import copy
     b = copy.copy(bodies["regular"])
     sk = copy.copy(b.skeleton)
     sk.roles = {k: v for k, v in sk.roles.items() if k != "l_knee"}

@@ -12,6 +12,7 @@ import torch
 import trimesh
 
 from garmentgnn import geometry as G
+from garmentgnn.geometry import distance as dist_mod
 
 D = torch.float64
 
@@ -348,8 +349,6 @@ def test_compiled_candidate_search_matches_eager():
 def test_compiled_search_falls_back_to_eager_with_a_warning(monkeypatch):
     """Where torch.compile cannot build the search (e.g. no C++ compiler), the call
     warns once and returns the eager result."""
-    from garmentgnn.geometry import distance as dist_mod
-
     def broken_compile(fn, **kw):
         def run(*a, **k):
             raise RuntimeError("no compiler")

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from garmentgnn import geometry as G
+from garmentgnn.geometry import flat_triangles
 
 D = torch.float64
 
@@ -131,7 +132,6 @@ def test_uv_bad_input():
 
 
 def test_flat_triangles_are_isometric_and_counter_clockwise():
-    from garmentgnn.geometry import flat_triangles
     tri = torch.randn(50, 3, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     flat = flat_triangles(tri)
     for a, b in [(0, 1), (1, 2), (2, 0)]:

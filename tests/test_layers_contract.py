@@ -144,9 +144,11 @@ def test_bad_input_raises_value_error_naming_argument(name):
     with pytest.raises(ValueError, match="`x`"):
         layer(bad_x, ei, e)
     with pytest.raises(ValueError, match="`edge_index`"):
-        layer(x, torch.cat([ei, torch.tensor([[0], [N]])], 1), torch.randn(ei.size(1) + 1, EDGE_DIM))
+        layer(x, torch.cat([ei, torch.tensor([[0], [N]])], 1),
+              torch.randn(ei.size(1) + 1, EDGE_DIM))
     with pytest.raises(ValueError, match="`edge_index`"):
-        layer(x, torch.cat([ei, torch.tensor([[-1], [0]])], 1), torch.randn(ei.size(1) + 1, EDGE_DIM))
+        layer(x, torch.cat([ei, torch.tensor([[-1], [0]])], 1),
+              torch.randn(ei.size(1) + 1, EDGE_DIM))
     with pytest.raises(ValueError, match="`edge_index`"):
         layer(x, ei[0], e)
     if name in USES_EDGES:

@@ -1,18 +1,25 @@
 """Learning diagnostics and the garment state: every active branch of every method gets a
 gradient at step 0; the state model's inputs and rollout against hand-built oracles."""
 import copy
+import inspect
 
 import lightning as L
 import numpy as np
 import pytest
 import torch
+from torch_geometric.nn import Linear as PyGLinear
 
-from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
 from garmentgnn.data import store
+from garmentgnn.models import GarTrans, PAPER_FORM
+from garmentgnn.models.blocks import AttentionStack
 from garmentgnn.models.gartrans import STATE_BOUND
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
+from garmentgnn.training.configs import load_config, model_args
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
+from garmentgnn.training.integrity import stamp_checkpoint
+
+from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 
 
 @pytest.fixture(scope="module")
@@ -160,11 +167,6 @@ SWITCHES = ("lbs_start", "gate_init", "collision_projection", "blend_shape", "st
 
 
 def test_model_module_and_config_defaults_agree():
-    import inspect
-
-    from garmentgnn.models import PAPER_FORM, GarTrans
-    from garmentgnn.training.configs import load_config, model_args
-
     def defaults(fn):
         return {k: p.default for k, p in inspect.signature(fn).parameters.items()
                 if p.default is not inspect.Parameter.empty}
@@ -184,9 +186,6 @@ def test_attention_stack_initialisation_is_kaiming(layer):
     """§4.1: every linear map of the attention stacks, PyG ``Linear`` included, is
     Kaiming-uniform with ``a = sqrt(5)``: within ``1 / sqrt(fan_in)``, with the uniform
     distribution's standard deviation ``bound / sqrt(3)``."""
-    from torch_geometric.nn import Linear as PyGLinear
-
-    from garmentgnn.models.blocks import AttentionStack
     torch.manual_seed(0)
     stack = AttentionStack(layer, 64, [128, 128, 3], 4, 4, "elu", last_act=False)
     with torch.no_grad():
@@ -209,7 +208,6 @@ def test_checkpoint_from_before_accel_unit_keeps_its_acceleration_output(dm, tmp
     """A checkpoint saved before ``accel_unit`` existed holds no such hyper-parameter;
     its model output an acceleration.  Loaded with today's default (centimetres) it
     would predict other positions without a word; it loads as it was saved."""
-    from garmentgnn.training.integrity import stamp_checkpoint
     old = gartrans(dm, accel_unit=None).eval()
     item = dm.train_set[1]
     paths = {}

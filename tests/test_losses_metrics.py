@@ -3,8 +3,9 @@ import math
 
 import pytest
 import torch
+import trimesh
 
-from garmentgnn.geometry import grid_mesh, unique_edges
+from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
 from garmentgnn.losses import (PAPER_WEIGHTS, GarTransLoss, LossInputs, NonFiniteLossError,
                                edge_loss, normal_loss, vertex_loss)
 from garmentgnn.metrics import (collision_rate, curvature_error, edge_length_error, evaluate,
@@ -153,7 +154,6 @@ def test_collision_term_with_candidate_faces_equals_the_exact_search():
     """The loss searches only the faces around the nearest body vertices; for a cloth
     close to a convex body that is the exact nearest face, so the term (and its
     gradient) equals the brute-force one."""
-    import trimesh
     ico = trimesh.creation.icosphere(subdivisions=3, radius=0.2)
     bv = torch.tensor(ico.vertices, dtype=torch.float64)
     bf = torch.tensor(ico.faces, dtype=torch.long)
@@ -177,8 +177,6 @@ def test_collision_rate_closed_body_matches_exact_signed_distance(batch):
     """Closed bodies are scored by winding number: the same share as the exact
     nearest-face sign (``signed_distance(...) < 0``), on points around a closed,
     outward mesh (trimesh's icosphere), batched or not."""
-    import trimesh
-    from garmentgnn.geometry import signed_distance
     ico = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
     body = torch.tensor(ico.vertices, dtype=D)
     body_faces = torch.tensor(ico.faces, dtype=torch.long)

@@ -1,11 +1,16 @@
 """GarTrans: shapes, frame-parallel batching, static-branch reuse, leaving out unused
 branches, and every registry layer in every slot."""
+from dataclasses import replace
+
 import pytest
 import torch
+import trimesh
 
 from garmentgnn.body import CapsuleBodyModel
+from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.garments import make_garment
-from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
+from garmentgnn.geometry import (edge_lengths, faces_to_edge_index, geodesic_nystrom_features,
+                                 project_edge_lengths, signed_distance, unique_edges)
 from garmentgnn.models import PAPER_FORM, GarTrans
 from garmentgnn.motion import make_motion
 
@@ -131,7 +136,6 @@ def test_autoregressive_rollout_feeds_back_its_own_prediction(scene):
 
 def test_skin_prior_is_the_starting_point_of_the_learned_weights(scene):
     """W^t = softmax(x3 + log prior): with the learned features zeroed, W^t is the prior."""
-    from dataclasses import replace
     body, g, ei, ny, bd, rots, tr = scene
     model = build(body, ny).eval()
     V, S = g.vertices.shape[0], body.skeleton.num_joints
@@ -151,7 +155,6 @@ def test_lbs_start_is_exactly_lbs_until_the_gates_open(scene):
     """``lbs_start``: the untrained model is LBS of the rest garment with the prior
     weights (Eq. 1, no blend shape, no acceleration); the zero gates still get gradient,
     and once open, every branch does."""
-    from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
     body, g, ei, ny, bd, rots, tr = scene
     model = build(body, ny, lbs_start=True)
     V, S = g.vertices.shape[0], body.skeleton.num_joints
@@ -179,9 +182,6 @@ def test_collision_projection_moves_only_what_is_inside_or_too_close(scene):
     """``collision_projection``: the final mesh ends ``eps`` outside the body where it was
     closer (exact signed distance as the oracle); every other vertex is the unprojected
     prediction; without a body the model is unchanged."""
-    import trimesh
-
-    from garmentgnn.geometry import signed_distance
     body, g, ei, ny, bd, rots, tr = scene
     plain, proj = build(body, ny), build(body, ny, collision_projection=0.004)
     proj.load_state_dict(plain.state_dict())
@@ -214,7 +214,6 @@ def test_strain_limit_is_the_edge_projection_of_the_prediction(scene):
     """``strain_limit=k``: the final mesh is the unlimited prediction after ``k``
     stretch-only sweeps toward the rest garment's edge lengths (the geometry function
     as the oracle)."""
-    from garmentgnn.geometry import edge_lengths, project_edge_lengths, unique_edges
     body, g, ei, ny, bd, rots, tr = scene
     plain, lim = build(body, ny, lbs_start=True), build(body, ny, lbs_start=True, strain_limit=4)
     # the acceleration gate opened wide, so that the prediction has stretched edges
@@ -227,7 +226,10 @@ def test_strain_limit_is_the_edge_projection_of_the_prediction(scene):
         ref = run(plain, scene)["final"]
         out = run(lim, scene)["final"]
     torch.testing.assert_close(out, project_edge_lengths(ref, edges, rest, 4, stretch_only=True))
-    over = lambda p: float((edge_lengths(p, edges) / rest - 1).clamp_min(0).mean())
+
+    def over(p):
+        return float((edge_lengths(p, edges) / rest - 1).clamp_min(0).mean())
+
     assert over(out) < 0.7 * over(ref)
     with pytest.raises(ValueError, match="strain_limit"):
         build(body, ny, strain_limit=-2)
@@ -236,7 +238,6 @@ def test_strain_limit_is_the_edge_projection_of_the_prediction(scene):
 def test_strain_limit_targets_are_static(scene):
     """The strain limit's edges and rest lengths come with the static features, once
     per garment; static features made without them give the same prediction."""
-    from garmentgnn.geometry import edge_lengths, unique_edges
     body, g, ei, ny, bd, rots, tr = scene
     model = build(body, ny, lbs_start=True, strain_limit=3).eval()
     with torch.no_grad():
@@ -253,7 +254,6 @@ def test_strain_limit_targets_are_static(scene):
 def test_blend_shape_can_be_left_out(scene):
     """``blend_shape=False``: no blend stack, the coarse mesh is LBS of the rest garment
     with the learned weights ``W^t`` (Eq. 1 with ``T^t = T``)."""
-    from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
     body, g, ei, ny, bd, rots, tr = scene
     model = build(body, ny, blend_shape=False).eval()
     assert model.blend is None

@@ -8,6 +8,7 @@ from garmentgnn.garments import make_garment
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
 from garmentgnn.models import PAPER_FORM, GarTrans
 from garmentgnn.models.blocks import batch_edges, cached_batch_edges
+from garmentgnn.models.inputs import check_history, history_frames
 from garmentgnn.motion import make_motion
 
 T, HISTORY = 7, 2
@@ -97,3 +98,15 @@ def test_bad_arguments_name_the_argument(scene, kw, arg):
         call["rotations"] = rots[:0]
     with pytest.raises(ValueError, match=f"`{arg}`"):
         model.predict_sequence(*args, **call)
+
+
+def test_history_frames_are_the_clamped_window_before_each_frame():
+    frames = torch.tensor([0, 1, 5])
+    expected = [[max(0, t - k) for k in range(HISTORY, -1, -1)] for t in frames.tolist()]
+    assert history_frames(frames, HISTORY).tolist() == expected
+
+
+@pytest.mark.parametrize("history", [0, -1, 1.0, True, "2"])
+def test_check_history_names_the_argument(history):
+    with pytest.raises(ValueError, match="`history`"):
+        check_history(history)

@@ -2,6 +2,7 @@
 arguments, the per-graph CSR plan, and no import-time side effects."""
 from __future__ import annotations
 
+import subprocess
 import sys
 import types
 import warnings
@@ -9,10 +10,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import random_graph
 
 import garmentgnn.nn
 from garmentgnn.nn import LAYERS, SATConv, _graph
+from garmentgnn.nn._sparse import csr_kernels
+
+from conftest import random_graph
 
 NAMES = sorted(LAYERS)
 
@@ -151,7 +154,6 @@ def test_out_of_range_index_with_validate_false_is_an_error_not_a_crash():
     """``validate=False``, index -1 / 5 / 100000 on 5 nodes: SATConv died with SIGSEGV
     (-1) or returned numbers read past the node features (5).  In a subprocess, so a
     crash fails this test instead of ending the run."""
-    import subprocess
     root = Path(__file__).resolve().parents[1]
     r = subprocess.run([sys.executable, "-c", _BAD_INDEX], capture_output=True, text=True,
                        timeout=300, env={"PYTHONPATH": str(root / "src"), "OMP_NUM_THREADS": "1",
@@ -213,7 +215,6 @@ def test_more_parallel_edges_than_node_pairs_match_the_message_route(name):
     """Three self-loops on one node (found by the fuzz suite): torch's sparse sampling
     raised ``only sparse compressed tensors with the same number of specified elements``.
     Oracle: the message route (no sparse kernels)."""
-    from garmentgnn.nn._sparse import csr_kernels
     torch.manual_seed(0)
     layer = LAYERS[name](8, 4, 2, edge_dim=3).eval()
     x, ei, e = torch.randn(1, 8), torch.zeros(2, 3, dtype=torch.long), torch.randn(3, 3)

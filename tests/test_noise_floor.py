@@ -21,7 +21,8 @@ def _garment():
 def test_offsets_have_the_asked_length_and_are_seeded():
     d = nf.random_offsets(500, 1e-4, seed=3)
     assert d.dtype == torch.float64 and d.shape == (500, 3)
-    assert torch.allclose(d.norm(dim=-1), torch.full((500,), 1e-4, dtype=torch.float64), rtol=1e-12, atol=0)
+    assert torch.allclose(d.norm(dim=-1), torch.full((500,), 1e-4, dtype=torch.float64),
+                          rtol=1e-12, atol=0)
     assert torch.equal(d, nf.random_offsets(500, 1e-4, seed=3))
     assert not torch.equal(d, nf.random_offsets(500, 1e-4, seed=4))
     # directions spread over the sphere: the mean direction is near 0

@@ -5,12 +5,14 @@ import math
 import pytest
 import torch
 
-from conftest import lbs_simulate
 from garmentgnn.bench import scoring
 from garmentgnn.data import generate, preset
 from garmentgnn.metrics import evaluate, evaluate_inputs
 from garmentgnn.metrics.split import split_inputs
-from garmentgnn.training import SequenceChunks
+from garmentgnn.training import GarTransModule, GarmentDataModule, SequenceChunks
+from garmentgnn.training.evaluate import evaluate_split
+
+from conftest import lbs_simulate
 
 BAD = (2, 5)  # the frames the double flags as non-converged
 
@@ -36,7 +38,8 @@ def test_split(tmp_path_factory):
 def test_sequence_chunks_read_the_flags(test_split, tmp_path):
     keep = test_split.converged(0)
     assert keep.dtype == torch.bool and keep.tolist() == [t not in BAD for t in range(8)]
-    chunks = SequenceChunks(test_split.root, "test", chunk=3, history=3, num_landmarks=64, nystrom_dim=16)
+    chunks = SequenceChunks(test_split.root, "test", chunk=3, history=3, num_landmarks=64,
+                            nystrom_dim=16)
     assert [chunks.converged(i).tolist() for i in range(3)] == \
         [[True, True, False], [True, True, False], [True, True]]
 
@@ -74,8 +77,6 @@ def test_keep_is_checked(test_split):
 
 
 def test_evaluate_split_leaves_them_out(test_split):
-    from garmentgnn.training import GarmentDataModule, GarTransModule
-    from garmentgnn.training.evaluate import evaluate_split
     dm = GarmentDataModule(test_split.root, chunk=4, history=3, nystrom_dim=16,
                            num_landmarks=64, val_split=None)
     module = GarTransModule(**dm.dims)

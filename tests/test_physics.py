@@ -40,7 +40,8 @@ def test_uniform_stretch_and_shear_analytic():
     assert float(stretch_energy(p, rest, 10.0)) == pytest.approx(10.0 * area * (s - 1) ** 2)
     assert float(shear_energy(p, rest, 10.0)) == pytest.approx(0.0, abs=1e-12)
     g = (s * s - 1) / 2  # StVK: G = diag(g, 0)
-    assert float(stvk_energy(p, rest, 3.0, 5.0)) == pytest.approx(area * (3.0 * g * g + 2.5 * g * g))
+    assert float(stvk_energy(p, rest, 3.0, 5.0)) == pytest.approx(
+        area * (3.0 * g * g + 2.5 * g * g))
     gam = 0.2  # simple shear: W^u = (1, 0, 0), W^v = (gam, 1, 0)
     p = apply(pos, torch.tensor([[1.0, gam], [0.0, 1.0], [0.0, 0.0]], dtype=D))
     assert float(shear_energy(p, rest, 7.0)) == pytest.approx(7.0 * area * gam ** 2)

@@ -6,12 +6,16 @@ import pytest
 import torch
 import trimesh
 
+import garmentgnn.sim.system as S
 from garmentgnn.body.body import Body
+from garmentgnn.body.capsule import CapsuleBodyModel
 from garmentgnn.body.skeleton import Skeleton
+from garmentgnn.garments import make_garment
 from garmentgnn.garments.garment import Garment
 from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
+from garmentgnn.motion import make_motion
 from garmentgnn.motion.sequence import Motion
-from garmentgnn.physics import Material, material
+from garmentgnn.physics import Material, inertia_energy, material, shear_energy, stretch_energy
 from garmentgnn.sim import ClothSystem, SimSettings, simulate, step
 
 G = 9.81
@@ -165,14 +169,12 @@ def test_hessian_matches_autograd():
                        settings=SimSettings(hessian="autograd"))
     x = g.vertices.double() + 1e-3 * torch.randn(25, 3, generator=torch.Generator().manual_seed(0),
                                                   dtype=torch.float64)
-    import garmentgnn.sim.system as S
     proj = S._project_psd
     try:
         S._project_psd = lambda H: H
         H = torch.tensor(sysm.hessian(x, 0.01, None).toarray())
     finally:
         S._project_psd = proj
-    from garmentgnn.physics import inertia_energy
     f = lambda y: (sysm.internal_energy(y.view(-1, 3))  # noqa: E731
                    + inertia_energy(y.view(-1, 3), x, sysm.mass, 0.01))
     Hd = torch.autograd.functional.hessian(f, x.reshape(-1))
@@ -183,14 +185,12 @@ def test_analytic_membrane_hessian_matches_autograd():
     """Closed-form Baraff-Witkin blocks: exact = autograd of the physics energies, also
     for compressed and sheared faces; projected = PSD, and equal to the exact one on a
     face stretched along u and v with no shear."""
-    import garmentgnn.sim.system as S
-    from garmentgnn.physics import shear_energy, stretch_energy
     g = sheet(4, 0.2)
     sysm = ClothSystem(g.vertices, g.faces, material("silk"))
     fr = sysm.face_rest
     gen = torch.Generator().manual_seed(1)
-    X = g.vertices.double()[sysm.faces] * (0.9 + 0.2 * torch.rand(sysm.faces.shape[0], 1, 3,
-                                                                   generator=gen, dtype=torch.float64))
+    scale = 0.9 + 0.2 * torch.rand(sysm.faces.shape[0], 1, 3, generator=gen, dtype=torch.float64)
+    X = g.vertices.double()[sysm.faces] * scale
     X = X + 0.01 * torch.randn(X.shape, generator=gen, dtype=torch.float64)
     ks, kh = 23600.0, 8000.0
     f = lambda Y: (stretch_energy(Y, fr, ks, reduce="none")  # noqa: E731
@@ -246,9 +246,6 @@ def test_step_converges_from_perturbed_state(hessian):
 # end to end ------------------------------------------------------------------
 @pytest.mark.slow
 def test_skirt_walk_end_to_end():
-    from garmentgnn.body.capsule import CapsuleBodyModel
-    from garmentgnn.garments import make_garment
-    from garmentgnn.motion import make_motion
     body = CapsuleBodyModel()("regular")
     g = make_garment("skirt", body, resolution="low")
     m = make_motion("walk", body.skeleton, num_frames=6, rest_joints=body.joints)

@@ -225,7 +225,8 @@ def test_analytic_sdfs_against_definitions():
     c = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
     sd = sphere_distance(p, c, 0.5)
     assert torch.allclose(sd.distance, (p - c).norm(dim=-1) - 0.5)
-    assert torch.allclose((sd.closest - c).norm(dim=-1), torch.full((50,), 0.5, dtype=torch.float64))
+    assert torch.allclose((sd.closest - c).norm(dim=-1),
+                          torch.full((50,), 0.5, dtype=torch.float64))
     (grad,) = torch.autograd.grad(sd.distance.sum(), p)
     assert torch.allclose(grad, sd.normal)
     pd = plane_distance(p, c, (0.0, 0.0, 2.0))

@@ -6,8 +6,8 @@ import lightning as L
 import pytest
 import torch
 
-from conftest import lbs_simulate
 from garmentgnn.data import Spec, generate, motion_key
+from garmentgnn.geometry import signed_distance
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.training import (
     PHASE_TERMS,
@@ -18,6 +18,9 @@ from garmentgnn.training import (
     ProgressiveSchedule,
     SequenceChunks,
 )
+from garmentgnn.training.evaluate import evaluate_split
+
+from conftest import lbs_simulate
 
 NY = 8
 
@@ -142,7 +145,6 @@ def test_schedule_extra_terms_join_from_their_phase(root):
 def test_collision_projection_runs_in_training_and_keeps_the_garment_out(root):
     """With ``collision_projection`` the module's prediction (what the losses see) is
     the projected one: no vertex of a training batch closer than eps to the body."""
-    from garmentgnn.geometry import signed_distance
     dm, module = make(root, collision_projection=0.003)
     dm.setup("fit")
     batch = next(iter(dm.train_dataloader()))
@@ -213,7 +215,6 @@ def test_nan_prediction_stops_training_naming_the_term(root):
 def test_evaluate_split_lbs_matches_the_known_wobble_and_modes_are_finite(root):
     """The toy "simulation" is LBS + 0.003 sin(0.7 t + 8 x), so the LBS mode's E_dist must
     equal the mean wobble amplitude exactly (same skinning weights)."""
-    from garmentgnn.training.evaluate import evaluate_split
     dm, module = make(root)
     res = evaluate_split(module, root, "val", history=2, num_landmarks=16)
     ds = SequenceChunks(root, "val", chunk=100, history=2, nystrom_dim=NY, num_landmarks=16)

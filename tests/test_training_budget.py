@@ -90,5 +90,6 @@ def test_state_survives_a_checkpoint(tmp_path):
 @pytest.mark.parametrize("kw", [{"seconds": 0}, {"seconds": float("inf")}, {"seconds": "5"},
                                 {"seconds": 1, "eta_min": -1}])
 def test_bad_arguments(kw):
-    with pytest.raises(ValueError, match=f"`{next(k for k in kw if k != 'seconds' or len(kw) == 1)}`"):
+    named = next(k for k in kw if k != "seconds" or len(kw) == 1)
+    with pytest.raises(ValueError, match=f"`{named}`"):
         TimeBudget(**kw)

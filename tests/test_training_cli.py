@@ -1,13 +1,17 @@
 """``garmentgnn train`` (LightningCLI + configs/) and DDP on 2 CPU processes (gloo)."""
 from pathlib import Path
+from typing import List, Optional
 
 import lightning as L
 import pytest
 import torch
+import torch.distributed as dist
+from lightning.pytorch.strategies import DDPStrategy
 
 from garmentgnn.cli import main as cli_main
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
 from garmentgnn.training.lightning_cli import main as train_main
+
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "src" / "garmentgnn" / "configs"
@@ -62,7 +66,7 @@ def test_cli_fit_writes_checkpoint_and_resumes(root, tmp_path):  # noqa: F811
     assert ck2["epoch"] == 1
 
 
-def _files(folder: Path) -> list[str]:
+def _files(folder: Path) -> List[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
 
 
@@ -93,7 +97,6 @@ def test_cli_fit_writes_only_under_default_root_dir(root, tmp_path, monkeypatch,
 
 class _ReplicasEqual(L.Callback):
     def on_train_end(self, trainer, pl_module):
-        import torch.distributed as dist
         assert dist.is_initialized() and dist.get_world_size() == 2
         assert dist.get_backend() == "gloo"
         # DDP keeps replicas identical: gather a parameter checksum from both ranks
@@ -108,7 +111,6 @@ class _ReplicasEqual(L.Callback):
 def test_ddp_two_cpu_processes_gloo(root, tmp_path, phase):  # noqa: F811
     """Plain DDP (every trainable parameter gets a gradient) in phase 1; phase 3 freezes
     the rest branch mid-run, which DDP only allows with ``find_unused_parameters``."""
-    from lightning.pytorch.strategies import DDPStrategy
     dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
     module = GarTransModule(**dm.dims)
     with torch.no_grad():  # open the lbs_start gates so every branch gets gradient at once
@@ -150,7 +152,6 @@ class _Record(L.Callback):
 
 
 def _fit_recorded(root, tmp_path, init, devices, accumulate):  # noqa: F811
-    from lightning.pytorch.strategies import DDPStrategy
     tmp_path.mkdir()
     dm = GarmentDataModule(root, chunk=2, history=2, nystrom_dim=NY, num_landmarks=16, seed=0)
     module = GarTransModule(**dm.dims)
@@ -177,7 +178,7 @@ def _weights_close(a: torch.Tensor, b: torch.Tensor, lr: float) -> bool:
     return float(off.float().mean()) <= 0.01 and bool(((a - b).abs() <= 2 * lr).all())
 
 
-def _close(a: torch.Tensor, b: torch.Tensor, scale: float | None = None) -> bool:
+def _close(a: torch.Tensor, b: torch.Tensor, scale: Optional[float] = None) -> bool:
     """Equal up to rounding: the all-reduce sums in another order than accumulation
     (seen: 3.5e-10 on an entry of a gradient whose largest entry is ~1e-4, and ~1e-13
     noise on the attention keys' bias, whose exact gradient is zero), so the absolute

@@ -1,11 +1,26 @@
 """Side-by-side animations: what the frames show (panel colours from the colour map,
 motion between frames), the files (MP4 and GIF read back by imageio), the error
 against the metric, the comparison of checkpoints and ``garmentgnn show``."""
+import lightning as L
+import matplotlib
 import numpy as np
 import pytest
 import torch
+import trimesh
+from PIL import Image
+from trimesh.transformations import rotation_matrix
 
-from garmentgnn.viz.animate import Panel, renderer_unavailable, vertex_error_cm
+from garmentgnn._plotting import pyplot
+from garmentgnn.cli import main
+from garmentgnn.data import store
+from garmentgnn.metrics import vertex_distance
+from garmentgnn.training import GarTransModule, GarmentDataModule
+from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.viz.animate import (Panel, _FOOTER, _HEADER, default_error_limit, render_animation,
+                                    renderer_unavailable, vertex_error_cm)
+from garmentgnn.viz.compare import comparison
+from garmentgnn.viz.viewer import bundle_path
+
 from test_viz_export import dataset  # noqa: F401  (module-scoped toy dataset)
 
 REASON = renderer_unavailable()
@@ -13,7 +28,6 @@ needs_renderer = pytest.mark.skipif(REASON is not None, reason=f"no off-screen r
 
 
 def test_vertex_error_matches_the_metric():
-    from garmentgnn.metrics import vertex_distance
     g = torch.Generator().manual_seed(0)
     gt, pred = torch.randn(4, 30, 3, generator=g), torch.randn(4, 30, 3, generator=g)
     e = vertex_error_cm(pred, gt)
@@ -24,7 +38,6 @@ def test_vertex_error_matches_the_metric():
 
 
 def test_default_error_limit_ignores_one_diverged_panel():
-    from garmentgnn.viz.animate import default_error_limit
     ramp = np.linspace(0.0, 10.0, 1001)  # 99th percentile: 9.9 cm exactly
     assert default_error_limit([ramp]) == pytest.approx(9.9)
     # three close methods and one 200 cm off: the median panel sets the range, not the
@@ -45,7 +58,6 @@ def test_panel_checks_its_input():
 
 def scene(T=3):
     """A sphere 'body' and an open tube 'garment' around it moving along x."""
-    import trimesh
     body = trimesh.creation.icosphere(subdivisions=2, radius=0.10)
     tube = trimesh.creation.cylinder(radius=0.15, height=0.30, sections=24)
     shift = np.array([0.04, 0.0, 0.0])
@@ -56,9 +68,8 @@ def scene(T=3):
 
 @needs_renderer
 def test_render_animation_frames_and_files(tmp_path):
-    import imageio.v2 as imageio
-    import imageio.v3 as iio
-    from garmentgnn.viz.animate import _FOOTER, _HEADER, render_animation
+    import imageio.v2 as imageio  # noqa: PLC0415 (optional: the viz extra)
+    import imageio.v3 as iio  # noqa: PLC0415 (optional: the viz extra)
     G, F, B, BF = scene()
     T, V = G.shape[:2]
     panels = [Panel("truth", G), Panel("exact", G, np.zeros((T, V))),
@@ -97,8 +108,6 @@ def test_render_animation_frames_and_files(tmp_path):
 def person(T=3):
     """A 1.9 m 'body' (legs, torso, head, raised arms) and a 1 m long dress-like frustum
     around it, swaying along x."""
-    import trimesh
-    from trimesh.transformations import rotation_matrix
     parts = [trimesh.creation.cylinder(radius=0.06, height=0.8, sections=12)
              .apply_translation([x, 0, 0.4]) for x in (-0.1, 0.1)]
     parts.append(trimesh.creation.cylinder(radius=0.16, height=0.65, sections=16)
@@ -124,8 +133,7 @@ def test_render_frames_the_body_and_clips_a_diverged_panel(tmp_path):
     old shared camera followed the diverged garment and left each other garment a
     quarter of its panel), the diverged one is labelled, and the colour scale comes
     from the panels that stayed."""
-    import imageio.v3 as iio
-    from garmentgnn.viz.animate import _FOOTER, _HEADER, render_animation
+    import imageio.v3 as iio  # noqa: PLC0415 (optional: the viz extra)
     G, F, B, BF = person()
     T = G.shape[0]
     rng = np.random.default_rng(0)
@@ -159,11 +167,6 @@ def test_render_frames_the_body_and_clips_a_diverged_panel(tmp_path):
 
 
 def test_comparison_against_evaluate_split(dataset, tmp_path):  # noqa: F811
-    from garmentgnn.data import store
-    from garmentgnn.metrics import vertex_distance
-    from garmentgnn.training import GarmentDataModule, GarTransModule
-    from garmentgnn.training.evaluate import evaluate_split
-    from garmentgnn.viz.compare import comparison
     dm = GarmentDataModule(dataset, chunk=4, history=2, nystrom_dim=8, num_landmarks=16,
                            val_split=None)
     module = GarTransModule(**dm.dims)
@@ -189,10 +192,6 @@ def test_comparison_against_evaluate_split(dataset, tmp_path):  # noqa: F811
 
 @needs_renderer
 def test_show_cli_from_a_checkpoint(dataset, tmp_path, capsys):  # noqa: F811
-    import lightning as L
-
-    from garmentgnn.cli import main
-    from garmentgnn.training import GarmentDataModule, GarTransModule
     dm = GarmentDataModule(dataset, chunk=4, history=2, nystrom_dim=8, num_landmarks=16,
                            val_split=None)
     module = GarTransModule(**dm.dims)
@@ -203,12 +202,10 @@ def test_show_cli_from_a_checkpoint(dataset, tmp_path, capsys):  # noqa: F811
     ckpt = tmp_path / "m.ckpt"
     trainer.save_checkpoint(ckpt)
     # a precomputed prediction: the simulation moved 1 cm along x, so exactly 1 cm off
-    from garmentgnn.data import store
     rec = [r for r in store.read_manifest(dataset)["items"] if r["split"] == "test"][0]
     gt = store.load_sequence(store.sequence_path(dataset, rec))["positions"]
     np.save(tmp_path / "shifted.npy", gt + np.array([0.01, 0.0, 0.0], np.float32))
     out = tmp_path / "show" / "cmp"
-    from garmentgnn.viz.viewer import bundle_path
     viewer = bundle_path().is_file()
     capsys.readouterr()
     assert main(["show", "--data", str(dataset), "--ckpt", f"mine={ckpt}", "--out", str(out),
@@ -222,7 +219,11 @@ def test_show_cli_from_a_checkpoint(dataset, tmp_path, capsys):  # noqa: F811
     assert out.with_suffix(".html").is_file() == viewer
     if viewer:
         assert f"wrote {out.with_suffix('.html')}" in printed
-    from PIL import Image
     assert Image.open(out.with_suffix(".png")).size[1] >= 720
     assert out.with_suffix(".mp4").stat().st_size > 1000 and not out.with_suffix(".gif").exists()
     assert out.with_suffix(".png").is_file() and out.with_suffix(".glb").is_file()
+
+
+def test_plots_draw_on_the_off_screen_backend_whatever_was_selected():
+    matplotlib.use("svg")
+    assert pyplot().get_backend().lower() == "agg"

@@ -6,13 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import lbs_simulate
 from garmentgnn.body.factory import build_body
+from garmentgnn.cli import main
 from garmentgnn.data import generate, store
 from garmentgnn.data.export import export_sequence
 from garmentgnn.data.gltf import GltfMesh, write_gltf
 from garmentgnn.data.keys import motion_key
 from garmentgnn.data.presets import Spec
+
+from conftest import lbs_simulate
 
 vtk = pytest.importorskip("vtk", reason='VTK is not installed: pip install "garmentgnn[viz]"')
 pytest.importorskip("pygltflib", reason='pygltflib is not installed: pip install "garmentgnn[viz]"')
@@ -69,7 +71,6 @@ def vtk_read(path, times):
 
 
 def test_gltf_export_round_trip_with_body(dataset, tmp_path):
-    from garmentgnn.cli import main
     seq_path = sorted((dataset / "sequences").glob("*.npz"))[0]
     seq = store.load_sequence(seq_path)
     out = tmp_path / "seq.glb"

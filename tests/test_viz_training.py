@@ -6,17 +6,20 @@ from pathlib import Path
 
 import pytest
 from lightning.pytorch.loggers import TensorBoardLogger
+from matplotlib.figure import Figure
 
 from garmentgnn.training.lightning_cli import main as train_main
 from garmentgnn.training.plots import (TrainingPlots, plot_training_curves,
                                        read_metrics_csv)
+
 from test_training import root  # noqa: F401  (the module-scoped toy dataset fixture)
 from test_training_cli import CONFIGS, fast_args
 
 
 def _tensorboard_scalars(folder):
     """{tag: [(step, value)]} of the event files in ``folder``, read by TensorBoard."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    # optional: tensorboard comes with the viz extra
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: PLC0415
     acc = EventAccumulator(str(folder), size_guidance={"scalars": 0})
     acc.Reload()
     return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
@@ -74,7 +77,6 @@ def test_plot_training_curves_input(tmp_path):
 def test_short_run_epoch_ticks_are_integers(tmp_path, monkeypatch, epochs):
     """A run of a few epochs: every epoch tick shown is a whole number (matplotlib's
     default locator puts 0.25 steps between two epochs)."""
-    from matplotlib.figure import Figure
     saved = []
     orig = Figure.savefig
     monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: (saved.append(fig),

@@ -3,13 +3,19 @@
 (frames at two times differ); a comparison shows the error colours of the colour map
 exactly (unlit), the panel labels and the colour bar; with WebGL off or a damaged file
 the page says so in a visible box."""
+import re
 import shutil
 import subprocess
 
 import numpy as np
 import pytest
+import trimesh
+from matplotlib import colormaps
+from PIL import Image
 
 from garmentgnn.data.gltf import GltfMesh, write_gltf
+from garmentgnn.viz.animate import Panel, vertex_error_cm
+from garmentgnn.viz.compare import Comparison, export_comparison_gltf
 from garmentgnn.viz.viewer import bundle_path, write_viewer
 
 CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-headless-shell",
@@ -26,7 +32,6 @@ def _chromium(*args):
 def screenshot(html, png, t, size=(480, 360), *flags):
     _chromium(*flags, f"--window-size={size[0]},{size[1]}", f"--screenshot={png}",
               f"file://{html}#t={t}")
-    from PIL import Image
     return np.asarray(Image.open(png).convert("RGB")).astype(int)
 
 
@@ -43,7 +48,6 @@ needs_browser = [
 
 
 def _status(page: str) -> str:
-    import re
     m = re.search(r'<div id="status"( class="error")?>([^<]*)<', page)
     assert m, page[:500]
     return ("error: " if m.group(1) else "") + m.group(2)
@@ -52,7 +56,6 @@ def _status(page: str) -> str:
 @needs_browser[0]
 @needs_browser[1]
 def test_viewer_renders_and_animates_in_chromium(tmp_path):
-    import trimesh
     body = trimesh.creation.capsule(height=1.2, radius=0.15)  # Z up, like our bodies
     skirt = trimesh.creation.cylinder(radius=0.25, height=0.3, sections=32)
     T = 4
@@ -83,7 +86,6 @@ def test_write_viewer_input_checks(tmp_path, monkeypatch):
 
 
 def _skirt_glb(path):
-    import trimesh
     skirt = trimesh.creation.cylinder(radius=0.25, height=0.3, sections=32)
     G = np.stack([skirt.vertices + [0.1 * t, 0.0, 0.0] for t in range(3)])
     return write_gltf(path, [GltfMesh("skirt", G, skirt.faces, (0.2, 0.4, 0.9))], fps=3)
@@ -122,11 +124,6 @@ def test_viewer_says_when_the_file_is_damaged(tmp_path):
 def test_comparison_page_has_error_colours_labels_and_colour_bar(tmp_path):
     """A prediction 5 cm off everywhere on a 0-5 cm scale: on screen it has the colour
     map's top colour exactly (unlit, as in the MP4), next to the lit blue truth."""
-    import trimesh
-    from matplotlib import colormaps
-
-    from garmentgnn.viz.animate import Panel, vertex_error_cm
-    from garmentgnn.viz.compare import Comparison, export_comparison_gltf
     body = trimesh.creation.capsule(height=1.2, radius=0.15)
     skirt = trimesh.creation.cylinder(radius=0.25, height=0.3, sections=32)
     T = 3

@@ -3,15 +3,22 @@ import math
 
 import numpy as np
 import torch
+import trimesh
 from hypothesis import given
 from hypothesis import strategies as st
 
-from _fuzz import FUZZ, outcome
+from garmentgnn.body.body import Body
+from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.data import export
+from garmentgnn.garments.garment import Garment
 from garmentgnn.geometry import (edge_features, faces_to_edge_index, grid_mesh,
                                  penetration_depth, signed_distance, vertex_normals)
 from garmentgnn.motion.sequence import Motion, match_joints
-from garmentgnn.sim import SimSettings
+from garmentgnn.nn import LAYERS
+from garmentgnn.physics import material
+from garmentgnn.sim import SimSettings, simulate
+
+from _fuzz import FUZZ, outcome
 
 SPECIAL = st.sampled_from([0.0, -0.0, 1.0, -1.0, 1e-30, 1e30, 1e20, float("nan"),
                            float("inf"), -float("inf")])
@@ -189,13 +196,6 @@ def test_write_pc2(tmp_path_factory, P, start):
        names=st.sampled_from([["root"], ["Root"], ["root", "x"]]),
        body=st.booleans(), bad_face=st.booleans())
 def test_simulate_odd_garments(scale, offset, special, frames, fps, names, body, bad_face):
-    import trimesh
-
-    from garmentgnn.body.body import Body
-    from garmentgnn.body.skeleton import Skeleton
-    from garmentgnn.garments.garment import Garment
-    from garmentgnn.physics import material
-    from garmentgnn.sim import simulate
     pos, faces = grid_mesh(3, 3, (0.2, 0.2), dtype=torch.float32)
     uv = pos[:, :2].clone()
     pos = (pos + torch.tensor([-0.1, -0.1, 0.16])) * scale + torch.tensor([offset, 0.0, 0.0])
@@ -239,7 +239,6 @@ def test_fuzz_layers(name, nodes, width, edges, x_dtype, e_dtype, e_width, valid
     nodes), ``validate`` on or off, and NaN / inf / 1e30 values: a clear error naming the
     argument, or (finite, in-range, float32 inputs of the built widths) a finite output
     of shape ``[nodes, 8]`` -- never a crash or torch's own message."""
-    from garmentgnn.nn import LAYERS
     if valid:  # half the cases well-formed, so the oracle of the results is exercised
         x_dtype = e_dtype = torch.float32
         width, e_width = 8, 3

@@ -8,11 +8,14 @@ from __future__ import annotations
 import argparse
 import sys
 
+from garmentgnn._argparse import HelpFormatter
+from garmentgnn.bench.harness import run
+from garmentgnn.bench.presets import PRESET_NAMES, preset
+from garmentgnn.data import SpecMismatch
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``bench`` sub-command to an ``argparse`` sub-parsers object."""
-    from garmentgnn._argparse import HelpFormatter
-    from garmentgnn.bench.presets import PRESET_NAMES
     b = subparsers.add_parser(
         "bench", help="benchmark: accuracy vs a reference simulation, run time, memory, "
                       "stability (resumable; writes OUT/report.md)",
@@ -50,15 +53,12 @@ def _command(args: argparse.Namespace) -> str:
 def main(args: argparse.Namespace) -> int:
     """Run the bench sub-command; returns the exit status (0 when the run completed --
     failed records are results and are listed in the report; 2 for bad arguments)."""
-    from garmentgnn.bench.harness import run
-    from garmentgnn.bench.presets import preset
     if args.seeds is not None and args.seeds < 1:
         print(f"error: --seeds must be positive, got {args.seeds}", file=sys.stderr)
         return 2
     if args.data is not None and args.no_learned:
         print("error: --data and --no-learned exclude each other", file=sys.stderr)
         return 2
-    from garmentgnn.data import SpecMismatch
     try:
         summary = run(preset(args.preset), args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,

@@ -19,6 +19,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
+from garmentgnn._plotting import pyplot
 from garmentgnn.bench import scoring
 from garmentgnn.bench.tables import fmt, save_figure, table
 from garmentgnn.data import store
@@ -221,10 +222,7 @@ def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
     rs = _curved(records)
     if not rs:
         return None
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     first: Dict[str, Dict[str, Any]] = {}
     for r in sorted(rs, key=lambda r: r["seed"]):
         first.setdefault(r["method"], r)

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Dict, Optional
 
-from garmentgnn.data import store
+from garmentgnn.data import generate, preset, store
 
 __all__ = ["DatasetInfo", "prepare_dataset"]
 
@@ -45,7 +45,6 @@ def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
     ``train`` / ``test`` sequences."""
     root = Path(root)
     if preset_name is not None:
-        from garmentgnn.data import generate, preset
         if not isinstance(workers, int) or workers < 0:
             raise ValueError(f"`workers`: expected a non-negative int, got {workers!r}")
         generate(preset(preset_name), root, workers=workers, progress=progress,

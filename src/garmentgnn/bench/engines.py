@@ -27,7 +27,6 @@ import math
 import os
 import random
 import time
-import traceback
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -35,10 +34,13 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from garmentgnn.bench.records import failure
 from garmentgnn.data import store
 from garmentgnn.data.presets import ENGINES, build_inputs
 from garmentgnn.data.worker import default_simulate
 from garmentgnn.metrics import collision_rate, evaluate
+from garmentgnn.sim import SimSettings
+from garmentgnn.sim.blender import BlenderSettings, require_blender
 
 KIND = "engine"
 #: the held-out groups :func:`pick_sequences` draws from, in report order
@@ -54,10 +56,8 @@ def settings_class(engine: str):
     """The settings dataclass of ``engine``: :class:`garmentgnn.sim.SimSettings`
     (``torch``) or :class:`garmentgnn.sim.blender.BlenderSettings` (``blender``)."""
     if engine == "blender":
-        from garmentgnn.sim.blender import BlenderSettings
         return BlenderSettings
     if engine == "torch":
-        from garmentgnn.sim import SimSettings
         return SimSettings
     raise ValueError(f"`engine`: unknown {engine!r}; choose one of {ENGINES}")
 
@@ -98,8 +98,8 @@ class EngineSetting:
 def default_settings() -> Tuple[EngineSetting, ...]:
     """The ladder the medium bench runs: Blender at three ``quality`` settings (cloth
     steps per frame) below the medium dataset's 5 (its ground truth; the collision
-    quality stays the dataset's 2) and the torch simulator at three budgets (substeps per frame, Newton iterations per
-    substep, no retries)."""
+    quality stays the dataset's 2) and the torch simulator at three budgets (substeps per
+    frame, Newton iterations per substep, no retries)."""
     return (
         EngineSetting("blender", "Blender q=2", {"quality": 2}),
         EngineSetting("blender", "Blender q=3", {"quality": 3}),
@@ -229,7 +229,6 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
               seq["motion_translation"][:n])
         simulate = default_simulate(setting.engine)
         if setting.engine == "blender":  # finds the worker's interpreter (cached) untimed
-            from garmentgnn.sim.blender import require_blender
             require_blender()
         t0 = time.perf_counter()
         res = simulate(garment, body, motion, material, settings=st, progress=None)
@@ -262,8 +261,7 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
         rec.update(status="ok", message=str(res.message or "ok"), metrics=m,
                    excluded_frames=n - int(keep.sum()))
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     for k in ("seconds", "seconds_per_frame"):
         v = rec.get(k)
         if v is not None and not math.isfinite(v):

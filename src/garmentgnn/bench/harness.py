@@ -37,19 +37,20 @@ import json
 import os
 import platform
 import time
-import traceback
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from garmentgnn.bench import engines, leaveout, precision, scaling
 from garmentgnn.bench import learned as learned_mod
 from garmentgnn.bench import methods
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.presets import Preset, SimBudget
+from garmentgnn.bench.records import failure
 from garmentgnn.bench.report import STATUSES, check_record, write_report
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
@@ -268,8 +269,7 @@ def _accuracy_record(ctx: _Context, method: str, item: Dict[str, Any], seed: int
         m["collision_rate"] = m.pop("collision")
         rec.update(status="ok", message="ok", metrics=m)
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -355,8 +355,6 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     The learned methods (``p.learned``, unless ``learned=False``) train on the dataset
     ``data`` (a generated dataset folder) or, by default, on ``p.dataset`` generated
     (resumably) under ``OUT/data``.  ``command``: the command line, for the report."""
-    from tqdm.auto import tqdm
-
     if not isinstance(p, Preset):
         raise ValueError(f"`p`: expected a Preset, got {type(p).__name__}")
     n = p.seeds if seeds is None else seeds

@@ -29,14 +29,15 @@ import io
 import json
 import logging
 import time
-import traceback
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import lightning as L
+import numpy as np
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 from torch import Tensor
 
 from garmentgnn.bench import stability as stab
@@ -46,6 +47,8 @@ from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
 from garmentgnn.bench.methods import (BASELINES, DATA, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
                                       METHOD_NAMES, NCS, LearnedBudget, variant_settings)
 from garmentgnn.bench.model_inputs import BenchChunks
+from garmentgnn.bench.page import MEDIA
+from garmentgnn.bench.records import failure
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.timing import batch_sweep, peak_memory
 from garmentgnn.data import store
@@ -187,8 +190,7 @@ class LearnedRunner:
             rec["timing"] = self.timing(pred)
             rec.update(status="ok", message="ok")
         except Exception as err:
-            rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                       traceback=traceback.format_exc(limit=6))
+            rec.update(failure(err, limit=6))
         rec["seconds"] = time.perf_counter() - t0
         return rec
 
@@ -196,8 +198,6 @@ class LearnedRunner:
         """``OUT/media/predictions/<method>.npy``: ``method``'s ``[T, V, 3]`` prediction
         of the first test sequence, a panel of the report's animation
         (:mod:`garmentgnn.bench.page`)."""
-        import numpy as np
-        from garmentgnn.bench.page import MEDIA
         item = self.test[0]
         with torch.no_grad():
             P = pred.predict(self.test, 0, item).float().numpy()
@@ -331,7 +331,6 @@ class LearnedRunner:
         (:class:`LearningCurve`) and ``equal_steps`` snapshot (``folder/equal_steps.pt``).
         Returns the epochs and steps done, the training wall time (validation excluded),
         the epoch it resumed from, the device and the curve; ``module`` ends on the CPU."""
-        from lightning.pytorch.callbacks import ModelCheckpoint
         clock = TrainClock()
         budget = [TimeBudget(60.0 * minutes)] if minutes is not None else []
         curve = None

@@ -246,7 +246,8 @@ def _targets(records: Sequence[Dict[str, Any]], groups: Sequence[str]) -> List[s
                  f"**{'met' if ok30 else 'missed'}** ("
                  + ", ".join(f"{g}: {100 * c:.0f}%" for g, c in cuts.items()) + ")")
     better = [k for k in METRICS[:5] if m(full, k) < m(lbs, k)]
-    lines.append(f"- lower than LBS on all five metrics: **{'met' if len(better) == 5 else 'missed'}**"
+    met = "met" if len(better) == 5 else "missed"
+    lines.append(f"- lower than LBS on all five metrics: **{met}**"
                  f" (lower on {', '.join(better) or 'none'})")
     for b in BASELINES_ORDER:
         rb = _ok(records, b)

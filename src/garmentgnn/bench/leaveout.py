@@ -29,15 +29,17 @@ from __future__ import annotations
 
 import copy
 import time
-import traceback
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
-from garmentgnn.bench.tables import table
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
 from garmentgnn.bench.sequences import BenchSequence
+from garmentgnn.bench.tables import table
 from garmentgnn.bench.timing import side_by_side
+from garmentgnn.training import PHASE_TERMS
 
 #: the method name of leave-out records
 METHOD = "GarTrans (untrained)"
@@ -118,9 +120,6 @@ def run_record(seq: BenchSequence, gt: Tensor, seed: int = 0, warmup: int = 2,
             run or what they cost.
         seed: model initialisation seed; the rest as :func:`scaling.run_record`.
     """
-    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-    from garmentgnn.training import PHASE_TERMS
-
     rec: Dict[str, Any] = {"kind": "leaveout", "method": METHOD, "case": seq.name,
                            "seed": seed}
     t0 = time.perf_counter()
@@ -158,23 +157,22 @@ def run_record(seq: BenchSequence, gt: Tensor, seed: int = 0, warmup: int = 2,
                                      for k, v in e["check"].items() if v == "computed")
         rec.update(status="ok", message="ok")
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
 
 def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
     """The report's "Leave-out" section (lines)."""
-    recs = [r for r in records if r["kind"] == "leaveout"]
-    lines = ["## Leave-out: what a scene without body / motion / UVs skips", ""]
+    recs, lines = section(records, "leaveout",
+                          "Leave-out: what a scene without body / motion / UVs skips")
     if not recs:
-        return lines + ["Not run in this preset.", ""]
+        return lines
     lines += ["Measured with forward hooks on every GarTrans child module and the loss terms "
               "`GarTransLoss` returned (all terms of the last training phase enabled), on one "
               "frame-parallel step (encode_static + forward + loss, no backward).  "
-              "*should skip*: what the scene does not need; *skipped* / **computed**: what the code "
-              "did.  Time saved: the step on the scene against the step with the left-out "
+              "*should skip*: what the scene does not need; *skipped* / **computed**: what the "
+              "code did.  Time saved: the step on the scene against the step with the left-out "
               "input put back (the full scene), all scenes timed interleaved; untrained model.", ""]
     for r in recs:
         lines += [f"### {r['case']} ({r.get('frames', '?')} frames, "

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from garmentgnn.bench.sequences import BenchSequence
 from garmentgnn.data import store
+from garmentgnn.models.inputs import check_history
 from garmentgnn.training import GarTransModule, SequenceChunks
 
 
@@ -44,8 +45,7 @@ class BenchChunks(SequenceChunks):
         chunk = T if chunk is None else chunk
         if not isinstance(chunk, int) or chunk < 1:
             raise ValueError(f"`chunk`: expected a positive int, got {chunk!r}")
-        if not isinstance(history, int) or history < 1:
-            raise ValueError(f"`history`: expected >= 1 (GarTrans needs H >= 2), got {history!r}")
+        check_history(history)
         if gt is not None and tuple(gt.shape) != (T, V, 3):
             raise ValueError(f"`gt`: expected [{T}, {V}, 3], got {tuple(gt.shape)}")
         # the attributes SequenceChunks.__init__ sets (it reads a manifest, so is not called)

@@ -28,6 +28,11 @@ import os
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
+from garmentgnn.data.store import atomic_write_json
+from garmentgnn.viz.animate import renderer_unavailable
+from garmentgnn.viz.compare import show
+from garmentgnn.viz.viewer import write_viewer
+
 PathLike = Union[str, os.PathLike]
 MEDIA = "media"
 STEM = "heldout"
@@ -109,7 +114,6 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
     preds: Dict[str, str] = {p.stem: str(p) for p in sorted((media / "predictions").glob("*.npy"))}
     preds.update({k: str(v) for k, v in (predictions or {}).items()})
     lines = ["## Animation of a held-out sequence", ""]
-    from garmentgnn.viz.animate import renderer_unavailable
     why = renderer_unavailable()
     if why is not None:
         return lines + [f"Not rendered here: {why}.", ""]
@@ -124,7 +128,6 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
     except (OSError, ValueError):
         old = None
     if force or old is None or old.get("stamp") != stamp or not base.with_suffix(".png").is_file():
-        from garmentgnn.viz.compare import show
         try:
             res = show(root, models, base, split=split, index=index, mode="gartrans",
                        history=options["history"], num_landmarks=options["num_landmarks"],
@@ -142,12 +145,10 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
                            ("glb", res["gltf"]))}}
         html = None
         try:
-            from garmentgnn.viz.viewer import write_viewer
             html = write_viewer(res["gltf"], base.with_suffix(".html"), title=c.seq_id)
         except (OSError, RuntimeError, FileNotFoundError):
             pass  # the viewer bundle is not built: the .glb is still linked
         info["files"]["html"] = None if html is None else Path(html).name
-        from garmentgnn.data.store import atomic_write_json
         atomic_write_json(stamp_path, {"stamp": stamp, "info": info})
     else:
         info = old["info"]

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import copy
 import time
-import traceback
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -40,10 +39,14 @@ import torch
 from torch import Tensor
 
 from garmentgnn.bench import stability as stab
-from garmentgnn.bench.tables import table
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
+from garmentgnn.bench.tables import table
 from garmentgnn.bench.timing import measure
 from garmentgnn.models import PAPER_FORM
+from garmentgnn.models.baselines import LBSBaseline
+from garmentgnn.training.evaluate import predict
 
 DTYPES: Dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16,
                                   "float16": torch.float16}
@@ -131,9 +134,6 @@ def _predictors(seq: BenchSequence, method: str, seed: int, history: int, nystro
                            Dict[str, Any]]:
     """``(float32 predictor, dtype -> cast-mode predictor, facts)`` of ``method``."""
     if method == "gartrans":
-        from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-        from garmentgnn.training.evaluate import predict
-
         item = BenchChunks(seq, history=history, nystrom_dim=nystrom_dim,
                            num_landmarks=num_landmarks)[0]
         kw = dict(MODULE_KWARGS, **(module_kwargs or {}))
@@ -144,8 +144,6 @@ def _predictors(seq: BenchSequence, method: str, seed: int, history: int, nystro
             return lambda: predict(m, it, "gartrans")
         return lambda: predict(module, item, "gartrans"), cast, {"module_kwargs": kw}
     if method == "lbs":
-        from garmentgnn.models.baselines import LBSBaseline
-
         lbs = LBSBaseline()
         rot, tr = seq.motion.rotations, seq.motion.translation
 
@@ -211,8 +209,7 @@ def run_record(seq: BenchSequence, method: str, seed: int = 0, warmup: int = 2,
                          "note": "median ms of one call predicting every frame / frames"}
         rec.update(status="ok", message="ok")
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -269,8 +266,6 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = 3, nystrom_dim:
              thresholds: LongThresholds = LONG_THRESHOLDS) -> Dict[str, Any]:
     """Autoregressive rollout of an untrained GarTrans over ``item``'s whole motion (a
     :func:`~garmentgnn.bench.sequences.case_item`); a ``kind="long_sequence"`` record."""
-    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-
     rec: Dict[str, Any] = {"kind": "long_sequence", "method": LONG_METHOD,
                            "case": item.get("name"), "seed": seed,
                            "thresholds": asdict(thresholds)}
@@ -293,9 +288,7 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = 3, nystrom_dim:
         v, reason = long_verdict(m, thresholds)
         rec.update(status="ok", message="ok", metrics=m, verdict=v, reason=reason)
     except Exception as err:
-        rec.update(status="failed", verdict="failed", metrics={}, reason=f"raised: {err}",
-                   message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err), verdict="failed", metrics={}, reason=f"raised: {err}")
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -308,10 +301,9 @@ def _th_line(th: Optional[Dict[str, Any]], cls: str) -> List[str]:
 
 def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:
     """The report's "Reduced precision" section (lines)."""
-    recs = [r for r in records if r["kind"] == "precision"]
-    lines = ["## Reduced precision (bfloat16 / float16)", ""]
+    recs, lines = section(records, "precision", "Reduced precision (bfloat16 / float16)")
     if not recs:
-        return lines + ["Not run in this preset.", ""]
+        return lines
     lines += ["Every frame of the sequence in one call (GarTrans: static branch included; "
               "untrained, paper form).  *autocast*: `torch.autocast(\"cpu\", "
               "dtype)`; *cast*: model and inputs cast.  Deviation: max |output - float32 "

@@ -30,7 +30,10 @@ import statistics
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
-from garmentgnn.bench import curves, noise_floor
+from garmentgnn.bench import (curves, learned_report, leaveout, noise_floor, precision,
+                              scaling)
+from garmentgnn.bench.page import write_media
+from garmentgnn.bench.records import NOT_RUN
 from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
@@ -220,7 +223,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
         lines += table(["method"] + metric_hdr + ["latency (ms)", "throughput (fps)",
                                                    "peak mem (MB)"], rows) + [""]
     else:
-        lines += ["Not run in this preset.", ""]
+        lines += [NOT_RUN, ""]
     stab = [r for r in records if r["kind"] == "stability"]
     lines += ["## Stability", ""]
     th = next((r.get("thresholds") for r in records
@@ -230,7 +233,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                   " (see `garmentgnn.bench.stability.Thresholds`).", ""]
     lines += (["The simulator on the bench's stability item (a garment on the capsule "
                "body), per motion seed.", ""] + _stabilitytable(stab) if stab
-              else ["Not run in this preset.", ""])
+              else [NOT_RUN, ""])
     lstab = [r for r in records if r["kind"] == "learned_stability"]
     if lstab:
         seqs = sorted({str(r.get("sequence")) for r in lstab})
@@ -247,8 +250,6 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                   "of joules), not a blow-up over time; compare max energy with the "
                   "simulator's row.", ""] + _stabilitytable(lstab)
     lines += noise_floor.markdown(floor)
-    # they import this module
-    from garmentgnn.bench import learned_report, leaveout, precision, scaling
     lines += learned_report.markdown(records, learned_png)
     lines += learned_report.comparison_markdown(records, engines_png)
     lines += curves.markdown(records, CURVES_PNG)
@@ -310,11 +311,9 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     png = plot_pareto(clean, out / "pareto.png", loaded)
     if png is not None:
         paths["pareto"] = png
-    from garmentgnn.bench import scaling
     scaling_png = scaling.plot(clean, out / "scaling.png")
     if scaling_png is not None:
         paths["scaling"] = scaling_png
-    from garmentgnn.bench import learned_report
     learned_png = learned_report.plot(clean, out / "pareto_learned.png",
                                       noise_floor.bands(loaded))
     if learned_png is not None:
@@ -334,7 +333,6 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
                            "pareto_engines.png" if engines_png is not None else None,
                            loaded)
     # -- the animation of a held-out sequence (garmentgnn.bench.page), appended ----
-    from garmentgnn.bench.page import write_media
     media = write_media(clean, out)
     if media:
         text += "\n" + "\n".join(media)

@@ -27,14 +27,17 @@ from __future__ import annotations
 
 import copy
 import time
-import traceback
 from typing import Any, Dict, List, Optional, Sequence
 
 import torch
 
-from garmentgnn.bench.tables import save_figure, table
+from garmentgnn._plotting import pyplot
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
 from garmentgnn.bench.sequences import make_sequence
+from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.bench.timing import peak_memory, side_by_side
+from garmentgnn.geometry import geodesic_nystrom_features
 
 #: the method name of scaling records
 METHOD = "GarTrans (untrained)"
@@ -43,8 +46,8 @@ COMPONENTS = ("nystrom", "static_inputs", "encode_static", "forward")
 
 
 def scaling_items(template: Dict[str, Any], resolutions: Sequence[int]) -> List[Dict[str, Any]]:
-    """One :func:`~garmentgnn.bench.sequences.case_item` per resolution: ``template`` with the garment's
-    ``resolution`` replaced and ``name`` ``"<template name>@<resolution>"``."""
+    """One :func:`~garmentgnn.bench.sequences.case_item` per resolution: ``template`` with
+    the garment's ``resolution`` replaced and ``name`` ``"<template name>@<resolution>"``."""
     if not isinstance(template, dict) or "garment" not in template:
         raise ValueError(f"`template`: expected a case_item dict, got {template!r}")
     out = []
@@ -69,12 +72,10 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
             :func:`scaling_items`); its motion needs at least 2 frames.
         seed: motion seed and model initialisation seed.
         warmup, repeats: :func:`side_by_side` settings.
-        history, nystrom_dim, num_landmarks: data-module settings (``garmentgnn/configs/gartrans.yaml``).
+        history, nystrom_dim, num_landmarks: data-module settings
+            (``garmentgnn/configs/gartrans.yaml``).
         module_kwargs: further :class:`GarTransModule` arguments.
     """
-    from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
-    from garmentgnn.geometry import geodesic_nystrom_features
-
     rec: Dict[str, Any] = {"kind": "scaling", "method": METHOD, "case": item.get("name"),
                            "seed": seed, "resolution": item["garment"]["resolution"]}
     t0 = time.perf_counter()
@@ -137,8 +138,7 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
         rec["max_abs_diff_cached_vs_uncached_m"] = diff
         rec.update(status="ok", message="ok")
     except Exception as err:
-        rec.update(status="failed", message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -151,10 +151,9 @@ def _ok(records: Sequence[Dict[str, Any]]) -> List[Dict[str, Any]]:
 
 def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> List[str]:
     """The report's "Scaling" section (lines)."""
-    recs = [r for r in records if r["kind"] == "scaling"]
-    lines = ["## Scaling: latency and memory against vertex count", ""]
+    recs, lines = section(records, "scaling", "Scaling: latency and memory against vertex count")
     if not recs:
-        return lines + ["Not run in this preset.", ""]
+        return lines
     lines += ["Untrained GarTrans (the weights' values do not change the cost), one frame at "
               "batch 1 on the capsule body.  *cached*: `encode_static` once, only `forward` "
               "per frame; *uncached*: the data module's static inputs (Nyström features, "
@@ -198,9 +197,7 @@ def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Any]:
     ok = _ok(records)
     if not ok:
         return None
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     V = [r["num_vertices"] for r in ok]
     fig, axes = plt.subplots(1, 2, figsize=(9.6, 4.0))

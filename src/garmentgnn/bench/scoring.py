@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import torch
+from scipy.stats import wilcoxon as _wilcoxon
 from torch import Tensor
 
 from garmentgnn.metrics import evaluate_inputs, split_inputs
@@ -92,7 +93,8 @@ def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
 
 
 def aggregate(per_sequence: Sequence[Dict[str, Any]],
-              keep: Optional[Callable[[Dict[str, Any]], bool]] = None) -> Dict[str, Dict[str, float]]:
+              keep: Optional[Callable[[Dict[str, Any]], bool]] = None
+              ) -> Dict[str, Dict[str, float]]:
     """Frame-weighted means of the per-sequence metrics: ``{"all": ..., <group>: ...}``
     (groups without sequences left out); ``keep`` filters the sequences first."""
     seqs = [s for s in per_sequence if keep is None or keep(s)]
@@ -117,7 +119,6 @@ def wilcoxon(a: Dict[str, float], b: Dict[str, float]) -> Dict[str, Any]:
     ``{sequence: value}`` over the sequences both have (scipy); ``median_diff`` is the
     median of ``a - b`` (negative: ``a`` lower), ``wins`` the share of sequences where
     ``a`` is lower."""
-    from scipy.stats import wilcoxon as _wilcoxon
     common = sorted(set(a) & set(b))
     if len(common) < 2:
         raise ValueError(f"`a`, `b`: need at least 2 common sequences, got {len(common)}")

@@ -33,20 +33,21 @@ The verdict thresholds are in :class:`Thresholds`.
 from __future__ import annotations
 
 import time
-import traceback
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
 
+from garmentgnn.bench.records import failure
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import boundary_vertex_mask, signed_distance
-from garmentgnn.metrics import physics_energy
 from garmentgnn.geometry.rotations import euler_to_matrix, matrix_to_axis_angle
+from garmentgnn.metrics import physics_energy
 from garmentgnn.motion import (Motion, clamp_to_limits, joint_limits, limit_violation,
                               slerp_rotations)
+from garmentgnn.sim import SimSettings, simulate
 
 Predictor = Callable[[BenchSequence], Any]
 
@@ -173,7 +174,8 @@ def stability_sequence(case: str, item: Dict[str, Any], seed: int
     if case == "baseline":
         return base, {}
     if case == "stiff_x1000":
-        return make_sequence(item, seed, material=base.material.scaled(1000.0)), {"stiffness": 1000.0}
+        return (make_sequence(item, seed, material=base.material.scaled(1000.0)),
+                {"stiffness": 1000.0})
     if case == "extreme_pose":
         motion, info = _extreme_pose(base)
         return make_sequence(item, seed, motion=motion), info
@@ -205,8 +207,6 @@ CASES: Dict[str, str] = {
 def simulator_predictor(**settings: Any) -> Predictor:
     """The reference simulator as a predictor; ``settings`` are :class:`SimSettings`
     keyword arguments (``fps`` is taken from the motion)."""
-    from garmentgnn.sim import SimSettings, simulate
-
     def predict(seq: BenchSequence):
         st = SimSettings(**dict(settings, fps=float(seq.motion.fps)))
         return simulate(seq.garment, seq.body, seq.motion, seq.material, st,
@@ -313,16 +313,6 @@ def run_case(case: str, item: Dict[str, Any], seed: int, predict: Predictor,
         rec.update(status="ok", metrics=m, verdict=v, reason=reason,
                    message=message if not ok else "ok")
     except Exception as err:  # a crash is a result of this suite, not an error of it
-        rec.update(status="failed", verdict="failed", metrics={}, reason=f"raised: {err}",
-                   message=f"{type(err).__name__}: {err}",
-                   traceback=traceback.format_exc(limit=4))
+        rec.update(failure(err), verdict="failed", metrics={}, reason=f"raised: {err}")
     rec["seconds"] = time.perf_counter() - t0
     return rec
-
-
-def with_thresholds(**changes: float) -> Thresholds:
-    """:data:`THRESHOLDS` with some fields changed (``ValueError`` for unknown names)."""
-    unknown = set(changes) - set(asdict(THRESHOLDS))
-    if unknown:
-        raise ValueError(f"`changes`: unknown threshold(s) {sorted(unknown)}")
-    return replace(THRESHOLDS, **changes)

@@ -7,6 +7,8 @@ import statistics
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Any
 
+from garmentgnn._plotting import pyplot
+
 __all__ = ["METRICS", "UNITS", "fmt", "slug", "mean_std", "pareto_front", "plot_points",
            "plot_summary", "save_figure", "table"]
 
@@ -62,9 +64,7 @@ def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str,
     factor 5, so that one diverged method does not flatten the rest.  ``bands``: ``(name,
     E_dist cm)`` drawn as shaded horizontal bands from the axis' bottom up to that error
     (the ground truth's noise floors, :mod:`garmentgnn.bench.noise_floor`)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     front = set(pareto_front(pts))
     markers = "osD^vP*Xh<>p"
@@ -99,7 +99,7 @@ def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str,
 
 def save_figure(fig, path) -> Path:
     """Write a matplotlib figure to ``path`` (PNG, write-then-rename) and close it."""
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -38,6 +38,7 @@ import threading
 import time
 from typing import Any, Callable, Dict, Iterator, List, Mapping, Sequence
 
+import psutil
 import torch
 
 MiB = float(1 << 20)
@@ -162,7 +163,6 @@ def peak_memory(fn: Callable[[], Any]) -> Dict[str, Any]:
         peak = _status_kb("VmHWM")
         return {"result": result, "peak_mb": max(0, peak - before) * 1024 / MiB,
                 "method": "linux VmHWM delta" + (" after malloc_trim" if trimmed else "")}
-    import psutil
 
     proc = psutil.Process(os.getpid())
     before = proc.memory_info().rss

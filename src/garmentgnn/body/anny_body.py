@@ -123,7 +123,7 @@ class AnnyBodyModel:
 
     def _build(self, pheno: np.ndarray) -> Dict[str, np.ndarray]:
         try:
-            import anny
+            import anny  # noqa: PLC0415 (optional: the human extra)
         except ImportError as exc:  # pragma: no cover - exercised where anny is absent
             raise ImportError("AnnyBodyModel needs the `anny` package: pip install "
                               "'garmentgnn[human]' (or use CapsuleBodyModel)") from exc

@@ -79,7 +79,8 @@ class CapsuleBodyModel:
 
     def __init__(self, resolution: int = 12, dtype: torch.dtype = torch.float32) -> None:
         if resolution < 4:
-            raise ValueError(f"`resolution`: at least 4 segments per capsule ring, got {resolution}")
+            raise ValueError(f"`resolution`: at least 4 segments per capsule ring, got "
+                             f"{resolution}")
         self.resolution = resolution
         self.dtype = dtype
         self.skeleton = capsule_skeleton()
@@ -89,7 +90,8 @@ class CapsuleBodyModel:
             return self.SHAPES["regular"]
         if isinstance(shape, str):
             if shape not in self.SHAPES:
-                raise ValueError(f"`shape`: unknown preset {shape!r}; use one of {list(self.SHAPES)}")
+                raise ValueError(f"`shape`: unknown preset {shape!r}; use one of "
+                                 f"{list(self.SHAPES)}")
             return self.SHAPES[shape]
         s = torch.as_tensor(shape, dtype=torch.float64).flatten()
         if s.numel() != 2 or not torch.isfinite(s).all() or (s <= 0).any():

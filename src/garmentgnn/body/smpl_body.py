@@ -41,7 +41,7 @@ Y_UP_TO_Z_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
 def landmark_ids(num_verts: int) -> dict:
     """smplx's extra-landmark vertex ids, kept in range for files with fewer vertices
     (the landmarks are not used by the adapter)."""
-    from smplx.vertex_ids import vertex_ids
+    from smplx.vertex_ids import vertex_ids  # noqa: PLC0415 (optional: the smpl extra)
 
     return {k: (v if v < num_verts else 0) for k, v in vertex_ids["smplh"].items()}
 
@@ -59,7 +59,7 @@ class SMPLBodyModel:
     def __init__(self, model_path: Union[str, Path], gender: str = "neutral",
                  num_betas: int = 10, dtype: torch.dtype = torch.float32) -> None:
         try:
-            import smplx
+            import smplx  # noqa: PLC0415 (optional: the smpl extra)
         except ImportError as exc:
             raise ImportError("SMPLBodyModel needs `smplx` (pip install smplx) and your own "
                               "SMPL model files") from exc
@@ -67,7 +67,7 @@ class SMPLBodyModel:
         if not path.exists():
             raise ValueError(f"`model_path`: {path} does not exist; SMPL files are licensed "
                              "and must be downloaded by you from the SMPL website")
-        from smplx.utils import Struct
+        from smplx.utils import Struct  # noqa: PLC0415 (optional: the smpl extra)
 
         file = path if path.is_file() else path / f"SMPL_{gender.upper()}.pkl"
         with open(file, "rb") as f:  # as smplx itself loads it (the file is the user's own)

@@ -22,6 +22,8 @@ from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
+from garmentgnn.sim.blender import require_blender, run_blender_script
+
 PathLike = Union[str, os.PathLike]
 WORKER = Path(__file__).parents[1] / "sim" / "_blender_export_worker.py"
 #: the file suffix of each format
@@ -34,8 +36,6 @@ def write_blender(meshes: Sequence, fps: float = 30.0, abc: Optional[PathLike] =
     number of frames) as an Alembic file ``abc`` and/or a ``.blend`` file ``blend``;
     returns the paths written.  Needs the ``bpy`` package in the Blender engine's
     interpreter: ``RuntimeError`` saying how to install it otherwise."""
-    from garmentgnn.sim.blender import require_blender, run_blender_script
-
     if abc is None and blend is None:
         raise ValueError("`abc`/`blend`: give at least one output path")
     if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):

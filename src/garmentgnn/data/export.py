@@ -9,8 +9,10 @@ from typing import List
 
 import numpy as np
 
+from garmentgnn.data.blender_export import write_blender
 from garmentgnn.data.gltf import sequence_meshes, write_gltf
 from garmentgnn.data.store import PathLike, atomic_write_bytes, checked_sequence, load_sequence
+from garmentgnn.sim.blender import require_blender
 
 PC2_HEADER = struct.Struct("<12siiffi")
 
@@ -78,7 +80,6 @@ def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: fl
         raise ValueError(f"`fmt`: expected one of {', '.join(map(repr, EXPORT_FORMATS))}, "
                          f"got {fmt!r}")
     if fmt in ("abc", "blend"):  # the clear error before loading anything
-        from garmentgnn.sim.blender import require_blender
         require_blender()
     # the whole file, checked (shapes, faces in range, NaN frames, vertex order)
     seq = checked_sequence(seq_path, load_sequence(seq_path))
@@ -86,7 +87,6 @@ def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: fl
         meshes, fps = sequence_meshes(seq, body=body)
         if fmt == "gltf":
             return [write_gltf(out, meshes, fps=fps)]
-        from garmentgnn.data.blender_export import write_blender
         return write_blender(meshes, fps=fps, **{fmt: out})
     if fmt == "pc2":
         return [write_pc2(out, seq["positions"], start_frame=start_frame)]

@@ -18,10 +18,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
+import torch
+from tqdm.auto import tqdm
+
 from garmentgnn.data import store
 from garmentgnn.data.presets import Spec, build_inputs
+from garmentgnn.data.ray_backend import run_on_ray
 from garmentgnn.data.worker import (default_simulate, engine_info, init_worker, item_settings,
                                     plain_settings, run_item)
+from garmentgnn.garments import RESOLUTIONS
+from garmentgnn.sim.blender import require_blender
 
 
 # --------------------------------------------------------------------------- estimate
@@ -34,9 +40,6 @@ def estimate_seconds(items: Sequence[Dict[str, Any]], workers: int,
     ``sum(T - 1) * seconds_per_frame / workers``.  Returns ``(estimate_s,
     seconds_per_frame)``.  Ignores per-item setup and worker start-up; over-estimates for
     garments smaller than the calibration one."""
-    import torch
-
-    from garmentgnn.garments import RESOLUTIONS
     if not items:
         return 0.0, 0.0
 
@@ -163,7 +166,6 @@ def generate(spec: Spec, out, workers: int = 1, limit: Optional[int] = None,
     if Path(out).exists() and not Path(out).is_dir():
         raise ValueError(f"`out`: {out} is a file; name a folder for the dataset")
     if spec.engine == "blender" and simulate_fn is None:
-        from garmentgnn.sim.blender import require_blender
         require_blender()  # before any file is written: say how to install `bpy`
     Path(out, store.SEQUENCES).mkdir(parents=True, exist_ok=True)
     with output_lock(out):
@@ -182,7 +184,7 @@ def output_lock(out) -> Iterator[None]:
     run's pid) instead of simulating the same items.  The kernel drops the lock when the
     holder ends, even by ``SIGKILL``, so a stale lock file never blocks a resume."""
     try:
-        import fcntl
+        import fcntl  # noqa: PLC0415 (POSIX only)
     except ImportError:  # no flock (Windows): no lock
         yield
         return
@@ -266,7 +268,6 @@ def _generate(spec: Spec, out: Path, workers: int, limit: Optional[int],
 
     bar = None
     if progress and todo:
-        from tqdm.auto import tqdm
         bar = tqdm(total=len(todo), desc=f"generate {spec.name}", unit="seq",
                    file=sys.stderr)
 
@@ -284,11 +285,9 @@ def _generate(spec: Spec, out: Path, workers: int, limit: Optional[int],
 
     try:
         if backend == "ray":
-            from garmentgnn.data.ray_backend import run_on_ray
             run_on_ray(todo, str(out), finish, simulate_fn, settings_fn, workers=workers,
                        address=address)
         elif workers <= 0:
-            import torch
             n_threads = torch.get_num_threads()
             torch.set_num_threads(1)
             try:

@@ -28,7 +28,9 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
+import torch
 
+from garmentgnn.body.factory import build_body
 from garmentgnn.data.store import atomic_write_bytes
 
 PathLike = Union[str, os.PathLike]
@@ -58,7 +60,8 @@ class GltfMesh:
         if p.ndim == 2:
             p = p[None]
         if p.ndim != 3 or p.shape[2] != 3 or p.shape[0] < 1:
-            raise ValueError(f"GltfMesh {self.name!r}: `positions` must be [T, V, 3], got {p.shape}")
+            raise ValueError(f"GltfMesh {self.name!r}: `positions` must be [T, V, 3], got "
+                             f"{p.shape}")
         if not np.isfinite(p).all():
             raise ValueError(f"GltfMesh {self.name!r}: `positions` contain NaN/inf")
         if f.ndim != 2 or f.shape[1] != 3 or f.min() < 0 or f.max() >= p.shape[1]:
@@ -90,7 +93,7 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0,
     """Write ``meshes`` (same frame count ``T`` each) as a ``.glb`` with one morph target
     per frame and one ``STEP`` animation (see the module doc); ``extras`` (JSON) go into
     the scene; returns the path."""
-    import pygltflib as g
+    import pygltflib as g  # noqa: PLC0415 (optional: the viz extra)
 
     if not meshes:
         raise ValueError("`meshes`: need at least one mesh")
@@ -104,7 +107,7 @@ def write_gltf(path: PathLike, meshes: Sequence[GltfMesh], fps: float = 30.0,
     blob = bytearray()
     doc = g.GLTF2(asset=g.Asset(generator="garmentgnn", version="2.0"), scene=0)
 
-    def add(array: np.ndarray, kind: str, target: int | None, minmax: bool = False) -> int:
+    def add(array: np.ndarray, kind: str, target: Optional[int], minmax: bool = False) -> int:
         a = np.ascontiguousarray(array)
         ctype = g.UNSIGNED_INT if a.dtype == np.uint32 else g.FLOAT
         doc.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(blob),
@@ -182,9 +185,6 @@ def sequence_meshes(seq: dict, body: bool = True) -> Tuple[List[GltfMesh], float
         meta.get("garment"), dict) else "garment"
     meshes = [GltfMesh(name, seq["positions"], seq["garment_faces"], (0.30, 0.50, 0.78))]
     if body:
-        import torch
-
-        from garmentgnn.body.factory import build_body
         b = build_body(meta["body"])
         dt = b.vertices.dtype
         with torch.no_grad():

@@ -27,8 +27,14 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
+import torch
 
+from garmentgnn.body.factory import body_model, build_body
 from garmentgnn.data.keys import body_key, garment_key, motion_key
+from garmentgnn.garments import make_garment
+from garmentgnn.motion import make_motion
+from garmentgnn.physics.materials import MATERIALS
+from garmentgnn.sim.blender import blender_available
 
 # --------------------------------------------------------------------------- spec
 #: garment: {"kind", "params" (template kwargs), "resolution"}
@@ -57,7 +63,8 @@ class Spec:
     bodies: List[Dict[str, Any]]
     motions: List[Dict[str, Any]]
     materials: List[str]
-    settings: Dict[str, Any] = field(default_factory=lambda: {"fps": 30.0, "substeps": 4, "preroll_frames": 6})
+    settings: Dict[str, Any] = field(
+        default_factory=lambda: {"fps": 30.0, "substeps": 4, "preroll_frames": 6})
     held_out: Dict[str, Dict[str, List[str]]] = field(default_factory=dict)
     seed: int = 0
     sample: Optional[int] = None
@@ -66,9 +73,6 @@ class Spec:
     def __post_init__(self) -> None:
         if self.engine not in ENGINES:
             raise ValueError(f"`engine`: unknown {self.engine!r}; choose one of {ENGINES}")
-
-    def split_of(self, garment: Dict, body: Dict, motion: Dict) -> str:
-        return self.held_out_parts(garment, body, motion)[0]
 
     def held_out_parts(self, garment: Dict, body: Dict, motion: Dict) -> Tuple[str, List[str]]:
         """The item's split and which of its parts (``garment``, ``body``, ``motion``)
@@ -132,7 +136,6 @@ def resolve_engine(name: str = "auto") -> str:
     """``torch`` or ``blender``; ``auto`` is ``blender`` where its worker can run (see
     :func:`garmentgnn.sim.blender.blender_available`), else ``torch``."""
     if name == "auto":
-        from garmentgnn.sim.blender import blender_available
         return "blender" if blender_available() else "torch"
     if name not in ENGINES:
         raise ValueError(f"`engine`: unknown {name!r}; choose 'auto' or one of {ENGINES}")
@@ -238,14 +241,18 @@ def _medium(seed: int) -> Spec:
     workers on two cores (docs/dataset.md)."""
     n, res = 60, 1500
     garments = [
-        _g("skirt", res, length="knee", flare="a-line"), _g("skirt", res, length="mini", flare="flared"),
-        _g("skirt", res, length="midi", flare="pencil"), _g("skirt", res, length="long", flare="full"),
-        _g("dress", res, length="knee", flare="a-line"), _g("dress", res, length="midi", flare="flared"),
+        _g("skirt", res, length="knee", flare="a-line"),
+        _g("skirt", res, length="mini", flare="flared"),
+        _g("skirt", res, length="midi", flare="pencil"),
+        _g("skirt", res, length="long", flare="full"),
+        _g("dress", res, length="knee", flare="a-line"),
+        _g("dress", res, length="midi", flare="flared"),
         _g("dress", res, length="long", flare="full", top="sleeveless"),
-        _g("tshirt", res, sleeves="short", ease=0.02), _g("tshirt", res, sleeves="none", length="waist",
-                                                          neckline="scoop", ease=0.05),
+        _g("tshirt", res, sleeves="short", ease=0.02),
+        _g("tshirt", res, sleeves="none", length="waist", neckline="scoop", ease=0.05),
         _g("tshirt", res, sleeves="long", ease=0.04),
-        _g("trousers", res, length="shorts", ease=0.03), _g("trousers", res, length="knee", ease=0.05),
+        _g("trousers", res, length="shorts", ease=0.03),
+        _g("trousers", res, length="knee", ease=0.05),
         _g("trousers", res, length="long", ease=0.02),
         _g("jumpsuit", res, length="knee", sleeves="none", ease=0.03),
         _g("jumpsuit", res, length="long", sleeves="short", ease=0.02),
@@ -277,13 +284,6 @@ def _medium(seed: int) -> Spec:
 # --------------------------------------------------------------------------- one item
 def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
     """``(garment, body, motion, material)`` of an item."""
-    import torch
-
-    from garmentgnn.body.factory import body_model, build_body
-    from garmentgnn.garments import make_garment
-    from garmentgnn.motion import make_motion
-    from garmentgnn.physics.materials import MATERIALS
-
     body = build_body(item["body"])
     g = item["garment"]
     garment = make_garment(g["kind"], body, resolution=g["resolution"], **g.get("params", {}))
@@ -297,4 +297,5 @@ def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
     return garment, body, motion, material
 
 
-__all__ = ["BLENDER_SETTINGS", "ENGINES", "PRESETS", "Spec", "build_inputs", "preset", "resolve_engine"]
+__all__ = ["BLENDER_SETTINGS", "ENGINES", "PRESETS", "Spec", "build_inputs", "preset",
+           "resolve_engine"]

@@ -18,6 +18,8 @@ import logging
 import os
 from typing import Any, Callable, Dict, List, Optional
 
+from garmentgnn.data.worker import init_worker, run_item
+
 _INITIALISED = False
 
 
@@ -25,7 +27,6 @@ def _task(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable],
           settings_fn: Optional[Callable]) -> Dict[str, Any]:
     """A Ray task: one item, in a worker with one torch thread."""
     global _INITIALISED
-    from garmentgnn.data.worker import init_worker, run_item
     if not _INITIALISED:
         init_worker()
         _INITIALISED = True
@@ -34,7 +35,7 @@ def _task(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable],
 
 def import_ray():
     try:
-        import ray
+        import ray  # noqa: PLC0415 (optional: the ray extra)
     except ImportError as e:
         raise RuntimeError("--backend ray needs Ray: `pip install 'garmentgnn[ray]'` "
                            "(`make install` installs it)") from e

@@ -25,6 +25,9 @@ from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, List, Optional, Union
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+import garmentgnn
 
 PathLike = Union[str, os.PathLike]
 
@@ -228,8 +231,9 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
     the edge lengths of the first, middle and last frame against the rest garment's
     (``garment_vertices`` on ``garment_faces``: a median relative difference over
     :data:`ORDER_TOLERANCE`), and the rest edges against the distances between nearest
-    rest vertices (:data:`REST_ORDER_TOLERANCE`).  The one check of sequence files, used by ``manifest``,
-    ``generate`` (resume), ``export`` and every loader of a manifest's records."""
+    rest vertices (:data:`REST_ORDER_TOLERANCE`).  The one check of sequence files, used by
+    ``manifest``, ``generate`` (resume), ``export`` and every loader of a manifest's
+    records."""
     missing = [k for k in SEQUENCE_KEYS if k not in seq]
     if missing:
         return f"missing arrays {missing}"
@@ -263,7 +267,6 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
         if off > ORDER_TOLERANCE:
             return (f"vertex order of positions does not match the rest garment: frame {t}'s "
                     f"edges differ from the rest edges by {100 * off:.0f}% (median)")
-    from scipy.spatial import cKDTree
     nn = cKDTree(V).query(V, k=2)[0][:, 1]
     nn = nn[nn > 0]
     ratio = float(np.median(rest) / np.median(nn)) if nn.size else 1.0
@@ -293,7 +296,6 @@ def code_version() -> Dict[str, Optional[str]]:
     """``garmentgnn.__version__`` and, where available, ``git rev-parse HEAD``."""
     global _GIT
     if _GIT is None:
-        import garmentgnn
         commit = None
         try:
             r = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,

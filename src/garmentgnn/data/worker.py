@@ -12,19 +12,21 @@ from pathlib import Path
 from typing import Any, Callable, Dict, Optional
 
 import numpy as np
+import torch
 
 from garmentgnn.data import store
+from garmentgnn.data._lifeline import watch_parent
 from garmentgnn.data.presets import build_inputs
 from garmentgnn.garments.skinning import transfer_skinning_weights
+from garmentgnn.sim import SimSettings, simulate
+from garmentgnn.sim.blender import BlenderSettings, blender_version, simulate_blender
 
 
 def default_simulate(engine: str = "torch"):
     """The engine's simulate function: :func:`garmentgnn.sim.simulate` (``torch``) or
     :func:`garmentgnn.sim.blender.simulate_blender` (``blender``)."""
     if engine == "blender":
-        from garmentgnn.sim.blender import simulate_blender
         return simulate_blender
-    from garmentgnn.sim import simulate
     return simulate
 
 
@@ -32,9 +34,7 @@ def item_settings(item: Dict[str, Any]):
     """The engine's settings object of an item: :class:`garmentgnn.sim.SimSettings` or
     :class:`garmentgnn.sim.blender.BlenderSettings`."""
     if item.get("engine", "torch") == "blender":
-        from garmentgnn.sim.blender import BlenderSettings
         return BlenderSettings(**item["settings"])
-    from garmentgnn.sim import SimSettings
     return SimSettings(**item["settings"])
 
 
@@ -42,7 +42,6 @@ def engine_info(engine: str, settings: Dict[str, Any]) -> Dict[str, Any]:
     """What the manifest and each sequence file record of the engine: name, version
     (the ``bpy`` package for Blender, garmentgnn's for the torch simulator), settings."""
     if engine == "blender":
-        from garmentgnn.sim.blender import blender_version
         version = blender_version()
     else:
         version = store.code_version()["version"]
@@ -60,7 +59,6 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
 
     Exceptions from building or simulating are reported as ``status="failed"`` (nothing
     is written); only ``BaseException``\\ s such as ``KeyboardInterrupt`` propagate."""
-    import torch
     t0 = time.perf_counter()
     seed = item["seed"]
     torch.manual_seed(seed)
@@ -140,9 +138,6 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
 def init_worker(parent_pid: Optional[int] = None) -> None:
     """Set up a worker process: one torch thread, and (given ``parent_pid``) exit when
     that process does."""
-    import torch
-
-    from garmentgnn.data._lifeline import watch_parent
     if parent_pid is not None:  # die with the parent, even when it is SIGKILLed
         watch_parent(parent_pid)
     torch.set_num_threads(1)

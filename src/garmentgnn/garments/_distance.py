@@ -184,7 +184,7 @@ class BodyDistance:
         r = 0.05
         while len(todo):
             lists = self.tree.query_ball_point(p[todo], r)
-            allid = np.unique(np.concatenate([np.asarray(l, dtype=np.int64) for l in lists]))
+            allid = np.unique(np.concatenate([np.asarray(ids, dtype=np.int64) for ids in lists]))
             vis = np.zeros(len(self.samples), bool)
             vis[allid[self._exposure(allid)]] = True
             pi, fi, again = [], [], []

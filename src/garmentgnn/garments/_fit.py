@@ -91,7 +91,7 @@ class BodyFit:
                            for k in range(len(bones))])
         near = (D - radius).argmin(1)
         self.core = ~np.array([e for _, _, _, e in bones])[near]
-        return np.array([l for _, _, l, _ in bones])[near]
+        return np.array([label for _, _, label, _ in bones])[near]
 
     # -- queries -----------------------------------------------------------------------
     def select(self, labels: Sequence[int], z_lo: float = -np.inf, z_hi: float = np.inf

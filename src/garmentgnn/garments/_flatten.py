@@ -84,7 +84,8 @@ def arap_flatten(tri3d: np.ndarray, corner: np.ndarray, n: int, init: np.ndarray
     cot = face_cotangents(torch.from_numpy(np.ascontiguousarray(tri3d, dtype=np.float64)
                                            ).reshape(-1, 3), torch.arange(3 * F).view(F, 3))
     cot = np.clip(cot.numpy(), 1e-3, 1e3)
-    I = np.stack([corner[:, 1], corner[:, 2], corner[:, 0]], 1)  # edge k = (k+1 -> k+2)
+    # edge k = (k+1 -> k+2)
+    I = np.stack([corner[:, 1], corner[:, 2], corner[:, 0]], 1)  # noqa: E741
     J = np.stack([corner[:, 2], corner[:, 0], corner[:, 1]], 1)
     W = 0.5 * cot
     rows = np.concatenate([I.ravel(), J.ravel(), I.ravel(), J.ravel()])

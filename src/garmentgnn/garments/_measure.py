@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Callable, Dict, Union
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from garmentgnn.garments._fit import (HEAD, L_ARM, L_LEG, R_ARM, R_LEG, TORSO, BodyFit,
                                       hull_polygon, polar_radius, quarter_ring)
@@ -43,13 +44,6 @@ def section_ring(poly: np.ndarray, centre: np.ndarray, Q: int, z: float) -> np.n
 
 def ring_perimeter(ring: np.ndarray) -> float:
     return float(np.linalg.norm(ring - np.roll(ring, -1, 0), axis=1).sum())
-
-
-def _arc_samples(ts: np.ndarray, ys: np.ndarray, h: float, min_n: int = 1) -> np.ndarray:
-    """Parameters ``t`` spaced ~``h`` apart along the polyline ``(ts, ys)``."""
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(ts), np.diff(ys)))])
-    n = max(min_n, int(np.ceil(s[-1] / h)))
-    return np.interp(np.linspace(0.0, s[-1], n + 1), s, ts)
 
 
 def armpit_height(fit: BodyFit, ease: float, margin: float) -> float:
@@ -111,14 +105,13 @@ def neck_level(fit: BodyFit):
     return best[0], best[1], c
 
 
-def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: float,
+def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: float,  # noqa: E741
               cone: float = 0.06) -> np.ndarray:
     """Largest extent of the body (``labels``, below ``z_max``) along rays from ``O``."""
     P = fit.select(labels, -np.inf, z_max) - O
     rho = np.linalg.norm(P, axis=1)
     ok = rho > 1e-9
     P, rho = P[ok], rho[ok]
-    from scipy.spatial import cKDTree
     tree = cKDTree(P / rho[:, None])
     lists = tree.query_ball_point(dirs, 2 * np.sin(cone / 2))
     out = np.zeros(len(dirs))
@@ -128,7 +121,7 @@ def _envelope(fit: BodyFit, O: np.ndarray, dirs: np.ndarray, labels, z_max: floa
     return out
 
 
-def inflate_envelope(fit: BodyFit, O: np.ndarray, P: np.ndarray, ease: float, labels,
+def inflate_envelope(fit: BodyFit, O: np.ndarray, P: np.ndarray, ease: float, labels,  # noqa: E741
              z_max: float) -> np.ndarray:
     """Move points outward along rays from ``O`` until they are ``ease`` beyond the body."""
     shape = P.shape

@@ -253,7 +253,7 @@ def add_upper_body(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h
     ring = P[ring_idx]
     z_a = ring[0, 2]
     cxy = ring[:, :2].mean(0)
-    O = np.array([cxy[0], cxy[1], z_a - 0.05])
+    O = np.array([cxy[0], cxy[1], z_a - 0.05])  # noqa: E741
     C = 2 * Q
     front_cols = np.concatenate([np.arange(2 * Q, 4 * Q), [0]])  # right side -> CF -> left side
     back_cols = np.arange(0, 2 * Q + 1)  # left side -> CB -> right side
@@ -445,7 +445,7 @@ def add_straps(fit: BodyFit, B: MeshBuilder, ring_idx: np.ndarray, Q: int, h: fl
     ring = P[ring_idx]
     z_a = ring[0, 2]
     cxy = ring[:, :2].mean(0)
-    O = np.array([cxy[0], cxy[1], z_a - 0.05])
+    O = np.array([cxy[0], cxy[1], z_a - 0.05])  # noqa: E741
     z_head = min(fit.J["head"][2], neck_level(fit)[0] + 0.01)
     N = 4 * Q
     W = max(1, int(round(width / h)))

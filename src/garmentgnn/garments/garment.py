@@ -97,7 +97,8 @@ class Garment:
         if not torch.isfinite(self.face_uv).all():
             raise ValueError(f"Garment {self.name!r}: `face_uv` contains NaN/inf")
         if self.kind not in KINDS:
-            raise ValueError(f"Garment {self.name!r}: unknown kind {self.kind!r}; use one of {KINDS}")
+            raise ValueError(f"Garment {self.name!r}: unknown kind {self.kind!r}; use one of "
+                             f"{KINDS}")
         if self.pinned is not None:
             self.pinned = _as(self.pinned, torch.bool)
             if self.pinned.shape != (V,):
@@ -141,10 +142,6 @@ class Garment:
         p = self.vertices if positions is None else positions
         inv, _ = self.rest_frame()
         return geometry_deformation_gradient(p, self.faces, inv.to(p.dtype))
-
-    def to_trimesh(self):
-        import trimesh
-        return trimesh.Trimesh(self.vertices.double().numpy(), self.faces.numpy(), process=False)
 
     def __repr__(self) -> str:
         return (f"Garment(name={self.name!r}, kind={self.kind!r}, V={self.num_vertices}, "

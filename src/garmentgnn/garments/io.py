@@ -23,8 +23,13 @@ import logging
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Union
 
+import meshio
 import numpy as np
 import torch
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from garmentgnn.garments._flatten import first_corner_uv, flat_triangles, rigid_align
 from garmentgnn.garments.garment import KINDS, Garment
@@ -142,7 +147,6 @@ def _read_obj(path: Path) -> _Raw:
 
 
 def _read_trimesh(path: Path) -> _Raw:
-    import trimesh
     try:
         m = trimesh.load(str(path), force="mesh", process=False)
     except Exception as e:  # trimesh raises many kinds
@@ -161,7 +165,6 @@ def _read_trimesh(path: Path) -> _Raw:
 
 
 def _read_meshio(path: Path) -> _Raw:
-    import meshio
     try:
         m = meshio.read(str(path))
     except Exception as e:
@@ -191,7 +194,6 @@ def _read(path: Path) -> _Raw:
     ext = path.suffix.lower().lstrip(".")
     if ext == "obj":
         return _read_obj(path)
-    import trimesh
     if ext in trimesh.available_formats():
         return _read_trimesh(path)
     return _read_meshio(path)
@@ -229,9 +231,6 @@ def _nonmanifold_edges(F: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 def _merge_vertices(V: np.ndarray, F: np.ndarray, tol: float) -> Tuple[np.ndarray, np.ndarray, int]:
     """Merge vertices closer than ``tol`` (``0``: identical positions); non-finite
     vertices are never merged.  Returns ``(vertices, faces, number removed)``."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
     n = len(V)
     finite = np.nonzero(np.isfinite(V).all(1))[0]
     if tol > 0:
@@ -260,7 +259,8 @@ def _validate(path, V, F, finite: bool = True) -> None:
         _fail(path, f"empty mesh ({len(V)} vertices, {len(F)} faces)")
     if F.min() < 0 or F.max() >= len(V):
         f = int(np.nonzero((F < 0).any(1) | (F >= len(V)).any(1))[0][0])
-        _fail(path, f"face {f} references vertex {int(F[f].max()) + 1 if F[f].max() >= len(V) else int(F[f].min()) + 1} "
+        bad = int(F[f].max()) + 1 if F[f].max() >= len(V) else int(F[f].min()) + 1
+        _fail(path, f"face {f} references vertex {bad} "
                     f"but the file has only {len(V)} vertices (index out of range)")
     bad = ~np.isfinite(V).all(1)
     if finite and bad.any():

@@ -20,7 +20,8 @@ def transfer_skinning_weights(garment_vertices: Tensor, garment_faces: Tensor,
     skinning weights ``W^t`` on top of such a template (Eqs. 1-2).
     """
     if garment_vertices.dim() != 2 or garment_vertices.shape[1] != 3:
-        raise ValueError(f"`garment_vertices`: expected [V, 3], got {tuple(garment_vertices.shape)}")
+        raise ValueError(f"`garment_vertices`: expected [V, 3], got "
+                         f"{tuple(garment_vertices.shape)}")
     if body_weights.shape[0] != body_vertices.shape[0]:
         raise ValueError("`body_weights`: one row per body vertex expected")
     k = min(k, body_vertices.shape[0])

@@ -53,8 +53,8 @@ import torch
 from garmentgnn.garments._fit import L_LEG, R_LEG, TORSO, BodyFit, MeshBuilder
 from garmentgnn.garments._flatten import build_pattern
 from garmentgnn.garments._measure import (SKIRT_LENGTHS, TROUSER_LENGTHS, Length, armpit_height,
-                                          crotch_height, hem_height, ring_perimeter, section_ring, torso_section,
-                                          waist_height)
+                                          crotch_height, hem_height, ring_perimeter, section_ring,
+                                          torso_section, waist_height)
 from garmentgnn.garments._parts import (add_legs, skirt_rings, add_sleeve, add_straps, torso_rings,
                                         tube_grid, add_upper_body)
 from garmentgnn.garments.garment import Garment

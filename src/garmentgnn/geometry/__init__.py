@@ -36,7 +36,8 @@ __all__ = [
     "boundary_vertex_mask", "EdgeTopology", "FaceAdjacency",
     # normals / measures
     "face_normals", "face_areas", "face_angles", "vertex_normals",
-    "scatter_faces_to_vertices", "edge_lengths", "project_edge_lengths", "dihedral_angles", "face_cotangents",
+    "scatter_faces_to_vertices", "edge_lengths", "project_edge_lengths", "dihedral_angles",
+    "face_cotangents",
     "mixed_voronoi_areas", "angle_defect", "angle_defect_difference", "gaussian_curvature",
     # UV deformation gradient (Eq. 14)
     "uv_deformation_gradient", "uv_rest_frame", "deformation_gradient", "flat_triangles",

@@ -19,8 +19,8 @@ from torch import Tensor
 
 from ._validate import check_faces, check_mesh, check_points
 
-__all__ = ["flat_triangles", "UVFrame", "DeformationGradient", "uv_rest_frame", "uv_deformation_gradient",
-           "deformation_gradient"]
+__all__ = ["flat_triangles", "UVFrame", "DeformationGradient", "uv_rest_frame",
+           "uv_deformation_gradient", "deformation_gradient"]
 
 
 class UVFrame(NamedTuple):

@@ -95,7 +95,8 @@ def collision_rate(pos: Tensor, body_pos: Tensor, body_faces: Tensor) -> Tensor:
     return 100.0 * inside.to(pos.dtype).mean(-1).reshape(batch)
 
 
-def physics_energy(pos: Tensor, rest: ClothRest, material: Material, mass: Tensor) -> Dict[str, Tensor]:
+def physics_energy(pos: Tensor, rest: ClothRest, material: Material,
+                   mass: Tensor) -> Dict[str, Tensor]:
     """Membrane, bending and gravity energy (J) of a result, per batch element."""
     out = {"stretch": stretch_energy(pos, rest, material.stretch),
            "shear": shear_energy(pos, rest, material.shear),
@@ -116,7 +117,8 @@ def evaluate(pred: Tensor, gt: Tensor, faces: Tensor, body_pos: Optional[Tensor]
     res = {k: float(v.double().mean()) for k, v in out.items()}
     bad = [k for k, v in res.items() if not math.isfinite(v)]
     if bad:
-        raise ValueError(f"non-finite metric(s) {bad}: check `pred` for NaN/inf or degenerate faces")
+        raise ValueError(f"non-finite metric(s) {bad}: check `pred` for NaN/inf or degenerate "
+                         "faces")
     return res
 
 

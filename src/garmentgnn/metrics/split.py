@@ -26,6 +26,8 @@ from typing import Dict, Optional
 import torch
 from torch import Tensor
 
+from garmentgnn.metrics.garment_metrics import frame_mask
+
 __all__ = ["posed", "split_inputs", "static_dynamic_split", "to_rest_frame"]
 
 
@@ -129,7 +131,6 @@ def split_inputs(pred: Tensor, inp, keep: Optional[Tensor] = None) -> Dict[str, 
     :meth:`~garmentgnn.models.inputs.GarmentInputs.skinning_transforms` give ``M_t``);
     ``keep``: a ``[B]`` bool mask of the frames to score (as in
     :func:`~garmentgnn.metrics.evaluate_inputs`)."""
-    from garmentgnn.metrics.garment_metrics import frame_mask
     if inp.get("gt") is None:
         raise ValueError("`inp`: has no ground truth `gt` to score against")
     gt, M = inp.gt, inp.skinning_transforms(torch.float64)

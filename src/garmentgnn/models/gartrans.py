@@ -28,7 +28,7 @@ learned per-joint code for ``b^[1]``) and the GRU (a still pose history: ``Θ^[1
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -37,6 +37,7 @@ from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
                                 push_outside, unique_edges, vertex_normals)
 from garmentgnn.models.blocks import AttentionStack, cached_batch_edges, geometric_init_, mlp
+from garmentgnn.models.inputs import check_history, history_frames
 
 
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
@@ -143,7 +144,8 @@ class GarTrans(nn.Module):
         #: paper's acceleration, ``dt^2``)
         self.accel_unit = accel_unit
         if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
-            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got {strain_limit!r}")
+            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got "
+                             f"{strain_limit!r}")
         self.strain_limit, self.compile_search = strain_limit, bool(compile_search)
         if collision_projection is not None and not collision_projection >= 0:
             raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
@@ -214,7 +216,8 @@ class GarTrans(nn.Module):
         x = self.rest_fc(torch.cat([rest_pos, n, dj], -1))
         x = self.rest_attn(x, edge_index, edge_features(rest_pos, edge_index))
         x1 = x * self.nystrom_fc(nystrom)  # x' = x̄^[1] ⊙ u^[1]
-        b = self.body_default if body_joint_dists is None else self.body_fc(body_joint_dists.t()).t()
+        b = (self.body_default if body_joint_dists is None
+             else self.body_fc(body_joint_dists.t()).t())
         log_prior = None
         if skin_prior is not None:
             if skin_prior.shape != (rest_pos.shape[0], self.num_joints):
@@ -227,7 +230,7 @@ class GarTrans(nn.Module):
         return static
 
     @staticmethod
-    def _strain_targets(rest_pos: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+    def _strain_targets(rest_pos: Tensor, faces: Tensor) -> Tuple[Tensor, Tensor]:
         """The strain limit's unique edges ``[E, 2]`` and their rest lengths ``[E]``."""
         edges = unique_edges(faces, rest_pos.shape[0]).edges
         return edges, edge_lengths(rest_pos, edges)
@@ -451,9 +454,7 @@ class GarTrans(nn.Module):
         if not isinstance(translation, Tensor) or tuple(translation.shape) != (T, 3):
             got = tuple(translation.shape) if isinstance(translation, Tensor) else type(translation)
             raise ValueError(f"`translation`: expected [{T}, 3], got {got}")
-        if not isinstance(history, int) or isinstance(history, bool) or history < 1:
-            raise ValueError(f"`history`: expected an int >= 1 (H = history + 1 >= 2), got "
-                             f"{history!r}")
+        check_history(history)
         if batch_size is not None and (not isinstance(batch_size, int)
                                        or isinstance(batch_size, bool) or batch_size < 1):
             raise ValueError(f"`batch_size`: expected a positive int or None, got {batch_size!r}")
@@ -468,11 +469,10 @@ class GarTrans(nn.Module):
         b = min(b, T)
         with torch.inference_mode():
             rest_e = edge_features(rest_pos, edge_index)
-            offsets = torch.arange(-history, 1, device=rotations.device)
             out = {k: rest_pos.new_empty(T, V, S if k == "weights" else 3) for k in outputs}
             for t0 in range(0, T, b):  # chunks of frames, each predicted in one batch
                 frames = torch.arange(t0, min(t0 + b, T), device=rotations.device)
-                hist = (frames.unsqueeze(1) + offsets).clamp_min(0)  # [n, H]
+                hist = history_frames(frames, history)  # [n, H]
                 o = self.forward(static, rest_pos, faces, edge_index, rest_joints, parents,
                                  rotations[hist], translation[hist],
                                  body_pos=None if body_pos is None else body_pos[frames],

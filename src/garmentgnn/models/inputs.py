@@ -40,8 +40,8 @@ from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_ble
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
 from garmentgnn.physics import ClothRest
 
-__all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "check_pose", "skin",
-           "with_frames"]
+__all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "check_history",
+           "check_pose", "history_frames", "skin", "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
 FRAME_KEYS = ("rotations", "translation", "gt", "gt_prev", "body_pos", "frames")
@@ -111,6 +111,22 @@ class GarmentInputs(Data):
         if "gt" in out:
             del out.gt
         return out
+
+
+def check_history(history: int) -> int:
+    """``history`` (previous poses per frame, ``H = history + 1``) if it is an int >= 1
+    (GarTrans needs ``H >= 2``), else a ``ValueError``."""
+    if not isinstance(history, int) or isinstance(history, bool) or history < 1:
+        raise ValueError(f"`history`: expected an int >= 1 (GarTrans needs H = history + 1 >= 2), "
+                         f"got {history!r}")
+    return history
+
+
+def history_frames(frames: Tensor, history: int) -> Tensor:
+    """``[B, H]`` indices of the frames ``t - history .. t`` for each ``t`` of ``frames [B]``
+    (frame 0 repeated before the start of the motion)."""
+    offsets = torch.arange(-history, 1, device=frames.device)
+    return (frames.view(-1, 1) + offsets).clamp_min(0)
 
 
 def check_pose(scene: GarmentInputs, rotations: Tensor, translation: Optional[Tensor],
@@ -233,16 +249,14 @@ def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translatio
         gt_prev: ``[B, 2, V, 3]`` the simulated garment at frames ``t-2, t-1`` (clamped
             at 0), or ``None``.
     """
-    if not isinstance(history, int) or history < 1:
-        raise ValueError(f"`history`: expected an int >= 1 (GarTrans needs H >= 2), got "
-                         f"{history!r}")
+    check_history(history)
     rotations, translation = rotations.float(), translation.float()
     T = rotations.shape[0]
     frames = torch.as_tensor(frames).long()
     if frames.numel() and not (0 <= int(frames.min()) and int(frames.max()) < T):
         raise ValueError(f"`frames`: indices must lie in [0, {T}), got "
                          f"[{int(frames.min())}, {int(frames.max())}]")
-    hist = (frames.view(-1, 1) + torch.arange(-history, 1).view(1, -1)).clamp_min(0)  # [B, H]
+    hist = history_frames(frames, history)  # [B, H]
     with torch.no_grad():
         dt = body.vertices.dtype
         bpos, _ = body.pose(rotations[frames].to(dt), translation[frames].to(dt))

@@ -10,7 +10,8 @@ from garmentgnn.motion.sequence import Motion
 
 __all__ = [
     "BVHHierarchy", "GRAVITY", "JOINT_LIMITS", "JointLimit", "MOTIONS", "Motion",
-    "ROLE_ALIASES", "arm_swing", "blend", "clamp_to_limits", "concat", "guess_roles", "joint_limits",
+    "ROLE_ALIASES", "arm_swing", "blend", "clamp_to_limits", "concat", "guess_roles",
+    "joint_limits",
     "joint_mapping", "jump", "kick", "limit_violation", "load_bvh", "make_motion", "retarget",
     "run", "save_bvh", "sit_stand", "slerp_rotations", "twirl", "walk", "within_limits",
 ]

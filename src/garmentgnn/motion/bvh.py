@@ -43,6 +43,7 @@ from torch import Tensor
 from garmentgnn.body.skeleton import Skeleton
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, matrix_to_axis_angle,
                                            matrix_to_euler, unwrap_axis_angle)
+from garmentgnn.motion.retarget import guess_roles
 from garmentgnn.motion.sequence import Motion
 
 _CHANNELS = {f"{a}{kind}": (kind, a) for a in "XYZ" for kind in ("position", "rotation")}
@@ -91,7 +92,6 @@ class BVHHierarchy:
         """A :class:`Skeleton`; ``roles`` default to those guessed from common
         joint-naming schemes (CMU, Mixamo, SMPL), see
         :func:`garmentgnn.motion.retarget.guess_roles`."""
-        from garmentgnn.motion.retarget import guess_roles
         return Skeleton(list(self.joint_names), self.parents.clone(),
                         guess_roles(self.joint_names) if roles is None else dict(roles))
 
@@ -162,7 +162,7 @@ def parse_bvh(text: str) -> Tuple[List[str], List[int], np.ndarray, List[List[st
     """Low-level parse in file units and axes: names, parents, offsets ``[S, 3]``,
     channels, end sites, frame data ``[T, C]`` and the frame time."""
     lines = text.splitlines()
-    motion_line = next((i for i, l in enumerate(lines) if l.strip().upper() == "MOTION"), None)
+    motion_line = next((i for i, s in enumerate(lines) if s.strip().upper() == "MOTION"), None)
     if motion_line is None:
         raise ValueError("BVH: no MOTION section found; is this a BVH file?")
     names: List[str] = []
@@ -264,8 +264,8 @@ def parse_bvh(text: str) -> Tuple[List[str], List[int], np.ndarray, List[List[st
         raise _err(motion_line + 1, "MOTION before the hierarchy's braces were closed")
 
     # MOTION section
-    rest = [(i + 1, l.strip()) for i, l in enumerate(lines[motion_line + 1:], motion_line + 1)]
-    rest = [(n, l) for n, l in rest if l]
+    rest = [(i + 1, s.strip()) for i, s in enumerate(lines[motion_line + 1:], motion_line + 1)]
+    rest = [(n, s) for n, s in rest if s]
     if len(rest) < 2:
         raise _err(motion_line + 1, "MOTION needs 'Frames:' and 'Frame Time:' lines")
     (n1, l1), (n2, l2) = rest[0], rest[1]
@@ -287,8 +287,8 @@ def parse_bvh(text: str) -> Tuple[List[str], List[int], np.ndarray, List[List[st
         raise _err(n1, f"'Frames: {num_frames}' but the file has {len(data_lines)} frame lines")
     C = sum(len(c) for c in channels)
     data = np.zeros((num_frames, C))
-    for f, (n, l) in enumerate(data_lines):
-        toks = l.split()
+    for f, (n, line) in enumerate(data_lines):
+        toks = line.split()
         if len(toks) != C:
             raise _err(n, f"frame {f} has {len(toks)} values, the hierarchy has {C} channels")
         data[f] = _floats(n, toks, f"frame {f}")

@@ -36,7 +36,8 @@ class Motion:
         if len(self.joint_names) != S:
             raise ValueError(f"`joint_names`: {len(self.joint_names)} names for {S} joints")
         if self.translation.shape != (T, 3):
-            raise ValueError(f"`translation`: expected [{T}, 3], got {tuple(self.translation.shape)}")
+            raise ValueError(f"`translation`: expected [{T}, 3], got "
+                             f"{tuple(self.translation.shape)}")
         if not (torch.isfinite(self.rotations).all() and torch.isfinite(self.translation).all()):
             raise ValueError("`rotations`/`translation`: contain NaN/inf")
         if not self.fps > 0:

@@ -84,9 +84,9 @@ class ClothRest:
         coordinates ``face_uv [F, 3, 2]`` (metres; default: each rest triangle laid
         flat with its first edge along u, so the rest shape is stress-free but the
         u/v directions -- which matter for the anisotropic Eqs. 12-13 -- vary from
-        face to face; pass a real sewing pattern for warp/weft behaviour).  ``flat_rest=True`` sets the rest
-        dihedral angles to 0 (a garment sewn from flat panels) instead of the rest
-        mesh's angles."""
+        face to face; pass a real sewing pattern for warp/weft behaviour).
+        ``flat_rest=True`` sets the rest dihedral angles to 0 (a garment sewn from flat
+        panels) instead of the rest mesh's angles."""
         faces = faces.long()
         F = faces.size(0)
         if face_uv is None:

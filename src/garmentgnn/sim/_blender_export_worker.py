@@ -53,7 +53,7 @@ def _animate(obj, frames):
 
 def run(inp, out):
     t_start = time.perf_counter()
-    import bpy  # noqa: E402  (imported here: only this process loads Blender)
+    import bpy  # noqa: E402, PLC0415  (imported here: only this process loads Blender)
     data = np.load(inp, allow_pickle=False)
     cfg = json.loads(data["config_json"].tobytes().decode())
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -62,7 +62,7 @@ def _set(target, props, where):
 
 def run(inp, out):
     t_start = time.perf_counter()
-    import bpy  # noqa: E402  (imported here: only this process loads Blender)
+    import bpy  # noqa: E402, PLC0415  (imported here: only this process loads Blender)
     t_import = time.perf_counter() - t_start
     data = np.load(inp, allow_pickle=False)
     cfg = json.loads(data["config_json"].tobytes().decode())

@@ -19,6 +19,7 @@ function, :func:`blender_config`; ``docs/simulator.md`` has the table.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -124,7 +125,6 @@ def find_blender_python() -> Optional[str]:
     candidate = Path(sys.prefix) / "bpy" / "bin" / "python"
     if candidate.exists():
         return str(candidate)
-    import importlib.util
     if importlib.util.find_spec("bpy") is not None:  # looks for it, does not import it
         return sys.executable
     return None
@@ -133,8 +133,8 @@ def find_blender_python() -> Optional[str]:
 @lru_cache(maxsize=None)
 def _bpy_version(python: str) -> Optional[str]:
     try:
-        r = subprocess.run([python, "-c", "import importlib.metadata as m; print(m.version('bpy'))"],
-                           capture_output=True, text=True, timeout=60)
+        code = "import importlib.metadata as m; print(m.version('bpy'))"
+        r = subprocess.run([python, "-c", code], capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.SubprocessError):
         return None
     return r.stdout.strip() if r.returncode == 0 else None
@@ -322,7 +322,8 @@ def simulate_blender(garment, body, motion, material: Material,
     deep = torch.nonzero(depth > st.max_penetration).flatten()
     if deep.numel():
         message += (f"; {deep.numel()} frame(s) deeper than {st.max_penetration * 1e3:.1f} mm "
-                    f"in the body, first: frame {int(deep[0])} ({float(depth[deep[0]]) * 1e3:.1f} mm)")
+                    f"in the body, first: frame {int(deep[0])} "
+                    f"({float(depth[deep[0]]) * 1e3:.1f} mm)")
     if progress is not None:
         progress(T - 1, T)
     return SimResult(X, torch.ones(T, dtype=torch.bool), torch.zeros(T, dtype=torch.long),

@@ -117,7 +117,8 @@ class SimSettings:
         if self.hessian not in ("analytic", "autograd"):
             raise ValueError(f"`settings.hessian`: 'analytic' or 'autograd', got {self.hessian!r}")
         if self.membrane not in ("baraff_witkin", "stvk"):
-            raise ValueError(f"`settings.membrane`: 'baraff_witkin' or 'stvk', got {self.membrane!r}")
+            raise ValueError(f"`settings.membrane`: 'baraff_witkin' or 'stvk', got "
+                             f"{self.membrane!r}")
         if not (self.collision_stiffness >= 0):
             raise ValueError("`settings.collision_stiffness`: must be non-negative")
         if self.collision_power not in (2, 3):

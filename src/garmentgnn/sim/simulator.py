@@ -32,8 +32,8 @@ from garmentgnn.sim.settings import DTYPE, SimResult, SimSettings, StepResult
 from garmentgnn.sim.system import ClothSystem, Contact, check_colliders
 from garmentgnn.sim.trajectory import check_finite, trajectories
 
-__all__ = ["ClothSystem", "Collider", "Contact", "DTYPE", "Plane", "SimResult", "Sphere", "SimSettings", "StepResult", "simulate", "step",
-           "trajectories"]
+__all__ = ["ClothSystem", "Collider", "Contact", "DTYPE", "Plane", "SimResult", "Sphere",
+           "SimSettings", "StepResult", "simulate", "step", "trajectories"]
 
 
 def simulate(garment, body: Optional[Body], motion, material: Material,
@@ -110,7 +110,10 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
             bq = None if b0 is None else (1 - w_prev) * b0 + w_prev * b1
             pp = (1 - w) * p0 + w * p1
             fp, fq = (1 - w) * f0 + w * f1, (1 - w_prev) * f0 + w_prev * f1
-            planes = (lambda y: system.contact_planes(y, bp, radius, fp, bq, fq))
+
+            def planes(y: Tensor) -> Contact:
+                return system.contact_planes(y, bp, radius, fp, bq, fq)
+
             contact = planes(x) if touching else None
             for _ in range(3):
                 r = step(system, x, v, h, bp, pp, contact)
@@ -152,7 +155,8 @@ def simulate(garment, body: Optional[Body], motion, material: Material,
                 return out + (sub,)
             msg = out[5] or "Newton did not converge"
             sub *= 2
-        return None, None, out[2], out[3], False, f"{label}: {msg} (also with {sub // 2} substeps)", sub
+        why = f"{label}: {msg} (also with {sub // 2} substeps)"
+        return None, None, out[2], out[3], False, why, sub
 
     bf = (lambda t: None) if body_frames is None else (lambda t: body_frames[t])
     warmup = [(t - 1, t, f"pre-roll frame {t}") for t in range(1, P + 1)] \

@@ -37,6 +37,11 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
+import torch
+from PIL import Image, ImageDraw, ImageFont
+
+from garmentgnn._plotting import pyplot
+from garmentgnn.geometry import vertex_normals
 
 PathLike = Union[str, os.PathLike]
 RGB = Tuple[float, float, float]
@@ -112,10 +117,10 @@ def renderer_unavailable(probe: bool = True) -> Optional[str]:
     With ``probe`` (default) a tiny render runs once in a subprocess: VTK segfaults
     instead of raising when the GL libraries are incomplete (e.g. ``libegl1`` without
     ``libgl1-mesa-dri``), and that must not take the calling process down."""
-    try:
-        import imageio  # noqa: F401
-        import imageio_ffmpeg  # noqa: F401
-        import pyvista  # noqa: F401
+    try:  # the viz extra's optional packages, imported only to see that they are there
+        import imageio  # noqa: F401, PLC0415
+        import imageio_ffmpeg  # noqa: F401, PLC0415
+        import pyvista  # noqa: F401, PLC0415
     except ImportError as e:
         return f"{e.name} is not installed: {_INSTALL}"
     if not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL") is None:
@@ -138,21 +143,17 @@ def _pyvista():
     reason = renderer_unavailable(probe=False)
     if reason:
         raise ImportError(reason)
-    import pyvista
+    import pyvista  # noqa: PLC0415 (optional: the viz extra)
     return pyvista
 
 
 def _normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals ``[V, 3]`` (smooth shading of a moving mesh)."""
-    import torch
-
-    from garmentgnn.geometry import vertex_normals
     return vertex_normals(torch.from_numpy(points), torch.from_numpy(faces)).numpy()
 
 
 def _font(size: int):
-    from matplotlib import font_manager
-    from PIL import ImageFont
+    from matplotlib import font_manager  # noqa: PLC0415 (matplotlib: loaded on the first figure)
     return ImageFont.truetype(font_manager.findfont("DejaVu Sans"), size)
 
 
@@ -241,15 +242,12 @@ def frame_view(panels: Sequence["Panel"], body: Optional[np.ndarray], elev: floa
 def colorbar_image(width: int, height: int, clim: Tuple[float, float], cmap: str,
                    label: str) -> np.ndarray:
     """``[height, width, 3]`` uint8: a horizontal matplotlib colour bar."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import Normalize
+    plt = pyplot()
 
     dpi = 100
     fig = plt.figure(figsize=(width / dpi, height / dpi), dpi=dpi)
     ax = fig.add_axes((0.04, 0.52, 0.92, 0.22))
-    cb = fig.colorbar(matplotlib.cm.ScalarMappable(Normalize(*clim), cmap), cax=ax,
+    cb = fig.colorbar(plt.cm.ScalarMappable(plt.Normalize(*clim), cmap), cax=ax,
                       orientation="horizontal", extend="max")
     cb.set_label(label, fontsize=13)
     cb.ax.tick_params(labelsize=12)
@@ -335,8 +333,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
         if body.ndim != 3 or body.shape[0] != T:
             raise ValueError(f"`body_positions`: expected [T={T}, Vb, 3], got {body.shape}")
     pv = _pyvista()
-    import imageio.v2 as imageio
-    from PIL import Image, ImageDraw
+    import imageio.v2 as imageio  # noqa: PLC0415 (optional: the viz extra)
     t_start = time.perf_counter()
 
     view = frame_view(panels, body, elev, azim)
@@ -465,7 +462,7 @@ def render_animation(panels: Sequence[Panel], faces, out: PathLike,
             writer.close()
         plotter.close()
     if gif_path is not None:
-        import imageio.v3 as iio
+        import imageio.v3 as iio  # noqa: PLC0415 (optional: the viz extra)
         iio.imwrite(gif_path, np.stack(gif_frames), duration=1000.0 / play_fps, loop=0)
     return Animation(mp4=mp4_path, gif=gif_path, still=still_path, frames=T, size=(W, H),
                      fps=play_fps, clim=tuple(clim), seconds=time.perf_counter() - t_start,

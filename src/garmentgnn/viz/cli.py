@@ -33,8 +33,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--max-frames", type=int, default=None,
                    help="show at most this many frames (default: the whole sequence)")
     s.add_argument("--height", type=int, default=896, help="frame height in px (>= 720)")
-    s.add_argument("--clim", type=float, default=None, help="top of the error scale in cm (default: from the panels that did not "
-                   "diverge)")
+    s.add_argument("--clim", type=float, default=None,
+                   help="top of the error scale in cm (default: from the panels that did not "
+                        "diverge)")
     s.add_argument("--no-gif", action="store_true", help="write no GIF beside the MP4")
     s.add_argument("--no-gltf", action="store_true", help="write no glTF (.glb) file")
     s.add_argument("--html", action="store_true",
@@ -44,7 +45,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from garmentgnn.viz.compare import parse_named, show
+    # start-up: the `show` parser is built without loading the training package (lightning)
+    from garmentgnn.viz.compare import parse_named, show  # noqa: PLC0415
     t0 = time.perf_counter()
     res = show(args.data, dict(parse_named(args.ckpt)), args.out, split=args.split,
                index=args.index, mode=args.mode, lbs=not args.no_lbs, history=args.history,

@@ -15,7 +15,15 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from garmentgnn.viz.animate import GT_COLOR, Panel, vertex_error_cm
+from garmentgnn.data import store
+from garmentgnn.data.gltf import GltfMesh, write_gltf
+from garmentgnn.training import GarTransModule
+from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.training.evaluate import predict
+from garmentgnn.training.integrity import load_checkpoint_file
+from garmentgnn.viz.animate import (GT_COLOR, Panel, default_error_limit, render_animation,
+                                    vertex_error_cm)
+from garmentgnn.viz.viewer import write_viewer
 
 PathLike = Union[str, os.PathLike]
 
@@ -52,7 +60,6 @@ def parse_named(specs: Sequence[str], option: str = "--ckpt") -> List[Tuple[str,
 
 def load_checkpoint(path: PathLike):
     """A :class:`GarTransModule` from a Lightning checkpoint, on the CPU, in eval mode."""
-    from garmentgnn.training import GarTransModule
     if not Path(path).is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     try:
@@ -60,7 +67,6 @@ def load_checkpoint(path: PathLike):
     except (ValueError, TypeError):
         raise
     except Exception:  # a truncated or foreign file: the error naming it and the fix
-        from garmentgnn.training.integrity import load_checkpoint_file
         load_checkpoint_file(path)
         raise
 
@@ -95,10 +101,6 @@ def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str
 
 def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames,
                 predictions) -> Comparison:
-    from garmentgnn.data import store
-    from garmentgnn.training.datamodule import SequenceChunks
-    from garmentgnn.training.evaluate import predict
-
     nys = {int(m.hparams.nystrom_dim) for m in loaded.values()} or {16}
     if len(nys) > 1:
         raise ValueError(f"`models`: checkpoints disagree on nystrom_dim {sorted(nys)}")
@@ -154,7 +156,6 @@ def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
     labels as in the animation), with ``html`` also the viewer page ``<out>.html``
     (:func:`garmentgnn.viz.viewer.write_viewer`); returns ``{"animation": Animation,
     "gltf": path or None, "html": path or None, "comparison": Comparison}``."""
-    from garmentgnn.viz.animate import render_animation
     c = comparison(root, checkpoints, split, index, mode, lbs, history, num_landmarks,
                    max_frames, predictions)
     anim = render_animation(c.panels, c.faces, out, c.body_positions, c.body_faces, fps=c.fps,
@@ -166,7 +167,6 @@ def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
         glb = export_comparison_gltf(c, Path(out).with_suffix(".glb"), clim=anim.clim,
                                      cmap=render_kw.get("cmap", "YlOrRd"))
     if html:
-        from garmentgnn.viz.viewer import write_viewer
         page = write_viewer(glb, Path(out).with_suffix(".html"), title=c.seq_id)
     return {"animation": anim, "gltf": glb, "html": page, "comparison": c}
 
@@ -182,10 +182,8 @@ def export_comparison_gltf(c: Comparison, path: PathLike, spacing: float = 0.0,
     :func:`~garmentgnn.viz.animate.default_error_limit`), per frame and unlit; every
     garment is labelled with its panel title and mean error, and the scene's extras
     hold the colour bar (``colorbar``: ``min``, ``max``, ``label``, ``colors``)."""
-    from matplotlib import colormaps
+    from matplotlib import colormaps  # noqa: PLC0415 (matplotlib: loaded on the first figure)
 
-    from garmentgnn.data.gltf import GltfMesh, write_gltf
-    from garmentgnn.viz.animate import default_error_limit
     errs = [p.error for p in c.panels if p.error is not None]
     if clim is None:
         clim = (0.0, float(f"{max(default_error_limit(errs), 1e-3):.2g}"))

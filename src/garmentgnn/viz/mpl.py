@@ -11,6 +11,8 @@ from typing import Iterable, List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
+from garmentgnn._plotting import pyplot
+
 ArrayLike = Union[np.ndarray, torch.Tensor]
 Mesh = Tuple[ArrayLike, ArrayLike, Sequence[float]]  # vertices [V,3], faces [F,3], RGB
 
@@ -23,7 +25,8 @@ def draw_meshes(ax, meshes: Iterable[Mesh], elev: float = 10.0, azim: float = -9
                 light: Sequence[float] = (0.3, -0.8, 0.6)) -> None:
     """Draw shaded meshes into a matplotlib 3D axis (Z up; the default view looks
     at the body's front, which faces -Y)."""
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    # matplotlib: loaded on the first figure, not with the package
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: PLC0415
 
     light_dir = np.asarray(light, dtype=float)
     light_dir /= np.linalg.norm(light_dir)
@@ -54,10 +57,7 @@ def render_grid(cells: List[List[List[Mesh]]], path: Union[str, Path],
                 titles: Optional[List[List[str]]] = None, cell_size: float = 2.6,
                 dpi: int = 110, **view) -> Path:
     """Render a rows x cols grid of scenes (each a list of meshes) into one PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows, cols = len(cells), max(len(r) for r in cells)
     fig = plt.figure(figsize=(cell_size * cols, cell_size * 1.25 * rows))

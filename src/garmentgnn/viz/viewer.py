@@ -6,8 +6,10 @@ The page embeds the ``.glb`` (base64) and the three.js bundle, so it opens from
 (``build/viewer/viewer.bundle.js``: ``viewer/viewer.js`` + three.js from npm, bundled by
 esbuild) is built by ``make install``; by hand::
 
-    mkdir -p build/viewer && cp viewer/package.json viewer/package-lock.json viewer/viewer.js build/viewer/
-    cd build/viewer && npm ci && npx esbuild viewer.js --bundle --format=iife --minify --outfile=viewer.bundle.js
+    mkdir -p build/viewer
+    cp viewer/package.json viewer/package-lock.json viewer/viewer.js build/viewer/
+    cd build/viewer && npm ci
+    npx esbuild viewer.js --bundle --format=iife --minify --outfile=viewer.bundle.js
 
 ``GARMENTGNN_VIEWER_BUNDLE`` may point at a bundle elsewhere.
 """
@@ -19,6 +21,8 @@ import json
 import os
 from pathlib import Path
 from typing import Union
+
+from garmentgnn.data.store import atomic_write_bytes
 
 PathLike = Union[str, os.PathLike]
 
@@ -39,7 +43,6 @@ def write_viewer(glb: PathLike, out: PathLike, title: str = "") -> Path:
     """Write ``out`` (.html): one page that shows and plays ``glb``, with the labels and
     colour bar the file carries (:mod:`garmentgnn.data.gltf`); returns its path.  When
     WebGL is off or the file cannot be read, the page shows why in a red box."""
-    from garmentgnn.data.store import atomic_write_bytes
     bundle = bundle_path()
     if not bundle.is_file():
         raise FileNotFoundError(f"the viewer bundle {bundle} is missing: {BUILD_HINT}")

@@ -11,10 +11,11 @@ descriptions (no code copied), small enough to train on a CPU.
 
 Every model reads the one model-input type, :class:`~garmentgnn.models.inputs.GarmentInputs`
 (rest mesh, skinning weights, skeleton, pinned mask, poses); this package never builds
-garments or runs the simulator.  Training losses are not re-implemented here: the physics-trained baselines
-(HOOD, NCS) are meant to be trained with :class:`garmentgnn.losses.GarTransLoss` with
-only its physics terms enabled (collision, gravity, stretch, shear, bending, and
-inertia for the dynamic ones); DA with its supervised terms.
+garments or runs the simulator.  Training losses are not re-implemented here: the
+physics-trained baselines (HOOD, NCS) are meant to be trained with
+:class:`garmentgnn.losses.GarTransLoss` with only its physics terms enabled (collision,
+gravity, stretch, shear, bending, and inertia for the dynamic ones); DA with its
+supervised terms.
 """
 from garmentgnn.models.baselines.common import LBSBaseline, skin
 from garmentgnn.models.baselines.da import DAStyle

@@ -1,26 +1,15 @@
-"""What the baselines share: small MLPs and the LBS baseline (skinning itself is
+"""What the baselines share: output-layer initialisation and the LBS baseline (skinning itself is
 :func:`garmentgnn.models.inputs.skin`, re-exported here)."""
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Optional
 
 import torch
 from torch import Tensor, nn
 
 from garmentgnn.models.inputs import GarmentInputs, check_pose, skin
 
-__all__ = ["LBSBaseline", "check_pose", "mlp", "skin", "small_init_"]
-
-
-def mlp(sizes: Sequence[int], act: type = nn.ELU, norm: bool = False) -> nn.Sequential:
-    layers = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-        layers.append(nn.Linear(a, b))
-        if i < len(sizes) - 2:
-            layers.append(act())
-    if norm:
-        layers.append(nn.LayerNorm(sizes[-1]))
-    return nn.Sequential(*layers)
+__all__ = ["LBSBaseline", "check_pose", "skin", "small_init_"]
 
 
 def small_init_(linear: nn.Linear, scale: float = 1e-2) -> None:

@@ -7,8 +7,8 @@ import torch
 from torch import Tensor, nn
 
 from garmentgnn.geometry import edge_features, vertex_joint_distances, vertex_normals
-from garmentgnn.models.baselines.common import mlp, skin, small_init_
-from garmentgnn.models.blocks import batch_edges
+from garmentgnn.models.baselines.common import skin, small_init_
+from garmentgnn.models.blocks import batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.nn import GATBaselineConv
 
@@ -48,12 +48,12 @@ class DAStyle(nn.Module):
         if num_layers < 1:
             raise ValueError(f"`num_layers`: must be positive, got {num_layers}")
         self.num_joints = num_joints
-        self.encoder = mlp([9 + num_joints, hidden, hidden])
+        self.encoder = mlp([9 + num_joints, hidden, hidden], nn.ELU(), last_act=False)
         self.layers = nn.ModuleList(
             GATBaselineConv(hidden, hidden // heads, edge_dim=4, heads=heads, concat=True)
             for _ in range(num_layers))
         self.act = nn.ELU()
-        self.decoder = mlp([hidden, hidden, 3])
+        self.decoder = mlp([hidden, hidden, 3], nn.ELU(), last_act=False)
         small_init_(self.decoder[-1])
 
     def features(self, scene: GarmentInputs, skinned: Tensor, joints: Tensor) -> Tensor:

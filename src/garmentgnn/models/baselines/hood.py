@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -11,8 +11,8 @@ from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter
 
 from garmentgnn.geometry import farthest_point_sampling, vertex_normals
-from garmentgnn.models.baselines.common import mlp, small_init_
-from garmentgnn.models.blocks import batch_edges
+from garmentgnn.models.baselines.common import small_init_
+from garmentgnn.models.blocks import batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
 
 __all__ = ["CoarseLevel", "HOODStyle", "MLPMessagePassing"]
@@ -71,14 +71,19 @@ class CoarseLevel:
         return self.landmarks.shape[0]
 
 
+def _mlp_ln(sizes: Sequence[int]) -> nn.Sequential:
+    """An ELU MLP ending in ``LayerNorm`` (MeshGraphNets' encoder and block MLPs)."""
+    return mlp(sizes, nn.ELU(), last_act=False).append(nn.LayerNorm(sizes[-1]))
+
+
 class MLPMessagePassing(MessagePassing):
     """One MeshGraphNets-style block: ``e' = e + f_e([h_i, h_j, e])``,
     ``h' = h + f_v([h, sum_j e'_ji])`` (residual MLPs with LayerNorm)."""
 
     def __init__(self, hidden: int) -> None:
         super().__init__(aggr="sum")
-        self.edge_mlp = mlp([3 * hidden, hidden, hidden], norm=True)
-        self.node_mlp = mlp([2 * hidden, hidden, hidden], norm=True)
+        self.edge_mlp = _mlp_ln([3 * hidden, hidden, hidden])
+        self.node_mlp = _mlp_ln([2 * hidden, hidden, hidden])
 
     def forward(self, h: Tensor, edge_index: Tensor, e: Tensor) -> Tuple[Tensor, Tensor]:
         src, dst = edge_index
@@ -131,13 +136,13 @@ class HOODStyle(nn.Module):
         if not dt > 0:
             raise ValueError(f"`dt`: must be positive, got {dt}")
         self.dt = float(dt)
-        self.node_enc = mlp([self.NODE_IN, hidden, hidden], norm=True)
-        self.edge_enc = mlp([self.EDGE_IN, hidden, hidden], norm=True)
-        self.coarse_edge_enc = mlp([self.EDGE_IN, hidden, hidden], norm=True)
+        self.node_enc = _mlp_ln([self.NODE_IN, hidden, hidden])
+        self.edge_enc = _mlp_ln([self.EDGE_IN, hidden, hidden])
+        self.coarse_edge_enc = _mlp_ln([self.EDGE_IN, hidden, hidden])
         self.fine_down = nn.ModuleList(MLPMessagePassing(hidden) for _ in range(fine_blocks))
         self.coarse = nn.ModuleList(MLPMessagePassing(hidden) for _ in range(coarse_blocks))
         self.fine_up = nn.ModuleList(MLPMessagePassing(hidden) for _ in range(fine_blocks))
-        self.decoder = mlp([hidden, hidden, 3])
+        self.decoder = mlp([hidden, hidden, 3], nn.ELU(), last_act=False)
         small_init_(self.decoder[-1])
 
     @staticmethod
@@ -166,7 +171,8 @@ class HOODStyle(nn.Module):
         if body.dim() != 3 or body.shape[0] != B or body.shape[2] != 3:
             raise ValueError(f"`body`: expected [{B}, Vb, 3], got {tuple(body.shape)}")
         if coarse.assign.shape != (V,):
-            raise ValueError(f"`coarse`: built for {coarse.assign.shape[0]} vertices, scene has {V}")
+            raise ValueError(f"`coarse`: built for {coarse.assign.shape[0]} vertices, scene has "
+                             f"{V}")
         dtype = self.decoder[-1].weight.dtype
         x_prev, x_curr, body = x_prev.to(dtype), x_curr.to(dtype), body.to(dtype)
         rest = scene.rest_pos.to(dtype)
@@ -219,9 +225,11 @@ class HOODStyle(nn.Module):
         """
         V = scene.num_vertices
         if x0.shape != (V, 3) or x1.shape != (V, 3):
-            raise ValueError(f"`x0`/`x1`: expected [{V}, 3], got {tuple(x0.shape)}, {tuple(x1.shape)}")
+            raise ValueError(f"`x0`/`x1`: expected [{V}, 3], got {tuple(x0.shape)}, "
+                             f"{tuple(x1.shape)}")
         if body_frames.dim() != 3 or body_frames.shape[0] < 2 or body_frames.shape[2] != 3:
-            raise ValueError(f"`body_frames`: expected [T >= 2, Vb, 3], got {tuple(body_frames.shape)}")
+            raise ValueError(f"`body_frames`: expected [T >= 2, Vb, 3], got "
+                             f"{tuple(body_frames.shape)}")
         T = body_frames.shape[0]
         if pinned_targets is not None and pinned_targets.shape != (T, V, 3):
             raise ValueError(f"`pinned_targets`: expected [{T}, {V}, 3], got "

@@ -6,7 +6,8 @@ from typing import Optional
 from torch import Tensor, nn
 
 from garmentgnn.geometry.rotations import axis_angle_to_matrix
-from garmentgnn.models.baselines.common import mlp, skin, small_init_
+from garmentgnn.models.baselines.common import skin, small_init_
+from garmentgnn.models.blocks import mlp
 from garmentgnn.models.inputs import GarmentInputs
 
 __all__ = ["NCSStyle"]
@@ -50,7 +51,7 @@ class NCSStyle(nn.Module):
             raise ValueError(f"`hidden`: must be positive, got {hidden}")
         self.num_vertices, self.num_joints, self.history = num_vertices, num_joints, history
         self.mlp = mlp([(history + 1) * (num_joints - 1) * 9, hidden, hidden, num_vertices * 3],
-                        act=nn.Tanh)
+                       nn.Tanh(), last_act=False)
         small_init_(self.mlp[-1])
 
     def offsets(self, rotations: Tensor) -> Tensor:
