@@ -22,9 +22,14 @@ import warnings
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
+import garmentgnn
 from garmentgnn._argparse import HelpFormatter
 from garmentgnn.bench import cli as bench_cli
-from garmentgnn.data.store import IntegrityError
+from garmentgnn.data import SpecMismatch, generate, preset
+from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
+from garmentgnn.data.presets import ENGINES, PRESETS
+from garmentgnn.data.store import (SEQUENCES, IntegrityError, data_root, read_manifest,
+                                   rebuild_manifest)
 from garmentgnn.training.integrity import CheckpointError
 from garmentgnn.training.lightning_cli import main as lightning_main
 from garmentgnn.viz import cli as viz_cli
@@ -52,7 +57,6 @@ def _path(text: str) -> str:
 
 def add_generate_parser(sub) -> argparse.ArgumentParser:
     """The ``generate`` sub-command: simulate a dataset preset into a folder."""
-    from garmentgnn.data.presets import ENGINES, PRESETS
     g = sub.add_parser("generate", help="simulate a dataset preset into a folder (resumable)",
                        description="Simulate a dataset preset into a folder: one sequence "
                        "file per item and a manifest; rerun to resume.",
@@ -89,14 +93,12 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
 
 def generate_main(args: argparse.Namespace) -> int:
     """Generate (or resume) the preset; 1 when items failed, 2 for bad arguments."""
-    from garmentgnn.data import SpecMismatch, generate, preset
     out = args.out
     try:
         sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
         spec = preset(args.preset, seed=args.seed, engine=args.engine)
         out = args.out
         if out is None:
-            from garmentgnn.data.store import data_root
             out = data_root() / f"{spec.name}-{spec.engine}"
             print(f"writing to {out}", flush=True)
         summary = generate(spec, out, workers=args.workers, limit=args.limit,
@@ -114,7 +116,6 @@ def generate_main(args: argparse.Namespace) -> int:
 
 def _interrupted(out, args: argparse.Namespace) -> int:
     """Ctrl-C during ``generate``: what was kept and the command that resumes (130)."""
-    from garmentgnn.data.store import read_manifest
     try:
         counts = read_manifest(out)["counts"] if out is not None else {}
     except (OSError, ValueError):
@@ -138,7 +139,6 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
                        "whose frame rate is the sequence's.",
                        formatter_class=HelpFormatter)
     e.add_argument("--seq", required=True, type=_path, help="OUT/sequences/<id>.npz")
-    from garmentgnn.data.export import EXPORT_FORMATS
     e.add_argument("--format", choices=EXPORT_FORMATS, required=True,
                    help="file format; abc keeps time in seconds: import it into a scene at "
                         "the sequence's fps (Blender's default is 24), the .blend opens at it")
@@ -153,7 +153,6 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
 
 def export_main(args: argparse.Namespace) -> int:
     """Export one sequence file; 2 when it is missing or unreadable."""
-    from garmentgnn.data.export import export_sequence
     if not Path(args.seq).is_file():
         print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
               f"dataset made by `garmentgnn generate`)", file=sys.stderr)
@@ -191,7 +190,6 @@ def add_manifest_parser(sub) -> argparse.ArgumentParser:
 
 def manifest_main(args: argparse.Namespace) -> int:
     """Rebuild the manifest from the sequence files; 2 when the folder is no dataset."""
-    from garmentgnn.data.store import SEQUENCES, rebuild_manifest
     if not (Path(args.out) / SEQUENCES).is_dir():
         what = "no such folder" if not Path(args.out).is_dir() else f"no {SEQUENCES}/ in it"
         print(f"error: --out {args.out}: {what}; a dataset folder is made by "
@@ -251,7 +249,6 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``garmentgnn`` parser with every sub-command of :data:`COMMANDS`."""
-    import garmentgnn
     p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0],
                                 formatter_class=HelpFormatter)
     p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")

@@ -32,7 +32,7 @@ from garmentgnn.body.factory import build_body
 from garmentgnn.data import store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.garments.skinning import transfer_skinning_weights
-from garmentgnn.models.inputs import GarmentInputs, build_static, with_frames
+from garmentgnn.models.inputs import GarmentInputs, build_static, check_history, with_frames
 
 #: surface density used when a sequence file carries no material parameters (kg/m^2)
 DEFAULT_DENSITY = 0.15
@@ -61,8 +61,7 @@ class SequenceChunks(Dataset):
                  ids: Optional[Sequence[str]] = None, previous_frames: bool = False) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
-        if history < 1:
-            raise ValueError(f"`history`: expected >= 1 (GarTrans needs H >= 2), got {history}")
+        check_history(history)
         self.root = Path(root)
         self.split, self.chunk, self.history = split, chunk, history
         self.previous_frames = previous_frames

@@ -18,6 +18,7 @@ from typing import Any, Dict, List, Optional, Union
 
 import lightning as L
 
+from garmentgnn._plotting import pyplot
 from garmentgnn.metrics import METRIC_UNITS
 
 PathLike = Union[str, os.PathLike]
@@ -46,10 +47,8 @@ def plot_training_curves(history: List[Dict[str, float]], path: PathLike,
     """One PNG: the training loss and its terms (log scale) in the first panel, then one
     panel per validation metric, against the epoch.  Returns ``None`` if ``history``
     holds no metric."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
+    plt = pyplot()
+    from matplotlib.ticker import MaxNLocator  # noqa: PLC0415  (loaded with the first figure)
 
     keys = sorted({k for row in history for k in row if k != "epoch"})
     train = [k for k in keys if k.startswith("train/")]
@@ -124,7 +123,7 @@ class TrainingPlots(L.Callback):
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         row: Dict[str, float] = {"epoch": trainer.current_epoch}
         for k, v in trainer.callback_metrics.items():
-            if k.endswith("_step") or not (k.startswith("train/") or k.startswith("val/")):
+            if k.endswith("_step") or not k.startswith(("train/", "val/")):
                 continue
             row[k[:-6] if k.endswith("_epoch") else k] = float(v)
         self.history = [r for r in self.history if r["epoch"] != row["epoch"]] + [row]
