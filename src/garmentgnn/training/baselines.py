@@ -86,8 +86,8 @@ class BaselineModule(GarmentModule):
 
     # -- pieces ---------------------------------------------------------------------
     def coarse_level(self, inp: GarmentInputs) -> CoarseLevel:
-        """HOOD's coarse level of ``inp``'s garment (built once per sequence)."""
-        key = inp.get("seq_id") or str(id(inp.rest_pos))
+        """HOOD's coarse level of ``inp``'s garment (built once per sequence and device)."""
+        key = f"{inp.get('seq_id') or id(inp.rest_pos)}@{inp.rest_pos.device}"
         if key not in self._coarse:
             c = self.hparams.coarse or {}
             self._coarse[key] = CoarseLevel.build(inp.rest_pos, inp.faces, **c)
