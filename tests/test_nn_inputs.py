@@ -13,6 +13,7 @@ from conftest import random_graph
 
 import garmentgnn.nn
 from garmentgnn.nn import LAYERS, SATConv, _graph
+from garmentgnn.nn.functional import csr_kernels
 
 NAMES = sorted(LAYERS)
 
@@ -213,7 +214,6 @@ def test_more_parallel_edges_than_node_pairs_match_the_message_route(name):
     """Three self-loops on one node (found by the fuzz suite): torch's sparse sampling
     raised ``only sparse compressed tensors with the same number of specified elements``.
     Oracle: the message route (no sparse kernels)."""
-    from garmentgnn.nn._sparse import csr_kernels
     torch.manual_seed(0)
     layer = LAYERS[name](8, 4, 2, edge_dim=3).eval()
     x, ei, e = torch.randn(1, 8), torch.zeros(2, 3, dtype=torch.long), torch.randn(3, 3)
