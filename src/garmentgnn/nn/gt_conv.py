@@ -113,7 +113,8 @@ class GraphTransformerConv(AttentionConv):
         """Run the layer; arguments and return values as in
         :class:`~garmentgnn.nn._base.LayerContract`."""
         g = self.prepare(x, edge_index, edge_attr)  # checks; edges sorted once per graph
-        # q_i = W_q x_i / sqrt(d_a),  k_j = W_k x_j,  v_j = W_v x_j  (one matmul)
+        # Eqs. (3)-(4): q_i = W_q x_i + b_q,  k_j = W_k x_j + b_k,  v_j = W_v x_j + b_v
+        # (one matmul; q_i comes scaled by 1/sqrt(d_a))
         q, k, v, x_dst = self.project_qkv(x)
         r = self.route(g, q)  # sparse kernels, or propagate() with message()
 

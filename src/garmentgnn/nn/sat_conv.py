@@ -91,7 +91,7 @@ class SATConv(AttentionConv):
           ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
           ``edge_attr`` :math:`(|E|, D)`
         - **output:** :math:`(|V|, H C)` (or :math:`(|V|, C)`); see
-          :meth:`~garmentgnn.nn._base.LayerContract.forward` for
+          :class:`~garmentgnn.nn._base.LayerContract` for
           ``return_edge_attr`` (edge features :math:`(|E|, D')`) and
           ``return_attention_weights`` (:math:`(|E|, H)`).
     """
@@ -162,7 +162,8 @@ class SATConv(AttentionConv):
         e = g.edge_attr
         assert e is not None
         H, C = self.heads, self.out_channels
-        # q_i = W_q x_i / sqrt(d_a),  k_j = W_k x_j,  v_j = W_v x_j  (one matmul)
+        # Eqs. (3)-(4): q_i = W_q x_i + b_q,  k_j = W_k x_j + b_k,  v_j = W_v x_j + b_v
+        # (one matmul; q_i comes scaled by 1/sqrt(d_a))
         q, k, v, x_dst = self.project_qkv(x)
         r = self.route(g, q, e)  # sparse kernels, or propagate() with message()
 
@@ -170,14 +171,15 @@ class SATConv(AttentionConv):
         p = self.lin_edge_gate(e)
         # Eq. (5): h_ij = q_i^T k_j / sqrt(d_a) * sigmoid(p_ij)
         h = edge_dot(q, k, g, r) * r.edges_in(torch.sigmoid(p))
-        # random attention masking while training: -inf on a few scores (§3.2)
+        # random attention masking while training: -inf on a few scores (§3.3)
         logits = random_edge_mask(h, self.attn_mask_p, r) \
             if self.training and self.attn_mask_p > 0 else h
         # Eq. (5): alpha_ij = exp(h_ij) / sum_{u in N(i)} exp(h_iu)
         alpha = edge_softmax(logits, r)
         alpha_drop = F.dropout(alpha, p=self.dropout, training=self.training)
 
-        # Eq. (6): x_hat_i = sum_{j in N(i)} alpha_ij (v_j + q_ij),  q_ij = W_q' e_ij + b_q'
+        # Eq. (6): x_hat_i = sum_{j in N(i)} alpha_ij (v_j + q_ij)
+        #          with Eq. (5)'s q_ij = W_q' e_ij + b_q'
         if r.fused:
             x_hat = self.aggregate_fused(alpha_drop, v, e, g, r)
         else:
