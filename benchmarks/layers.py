@@ -7,8 +7,9 @@ channels (4x16, 1x64, 4x64), edge order (sorted by target as
 ``faces_to_edge_index`` gives it, and randomly shuffled) and thread count (1, 2),
 every layer is timed forward (inference, no autograd) and forward+backward
 (training mode, loss on the node output), rounds interleaved so machine noise
-hits every layer alike.  Each time is also given as a ratio to
-``TransformerConv(64, C, heads=H, edge_dim=D)`` measured in the same round-robin.
+hits every layer alike (every other round in the opposite order).  Each time is also
+given as a ratio to ``TransformerConv(64, C, heads=H, edge_dim=D)`` measured in the same
+round-robin.
 Layers run with their defaults (input checks and the finite-output check on).
 
     python benchmarks/layers.py                   # full size
@@ -109,8 +110,12 @@ def build_layers(width: int, heads: int, channels: int, edge_dim: int, ours: lis
     return layers
 
 
-def time_round(layers: dict, x, ei, e, fwd: dict, fb: dict, record: bool) -> None:
-    for name, layer in layers.items():
+def time_round(layers: dict, x, ei, e, fwd: dict, fb: dict, record: bool,
+               reverse: bool = False) -> None:
+    """One timed call of every layer; ``reverse`` runs them in the opposite order (every
+    other round), so that no layer always follows the same one."""
+    for name in reversed(list(layers)) if reverse else list(layers):
+        layer = layers[name]
         layer.eval()
         with torch.inference_mode():
             t0 = time.perf_counter()
@@ -152,7 +157,7 @@ def run(args) -> dict:
                 fwd = {k: [] for k in layers}
                 fb = {k: [] for k in layers}
                 for r in range(args.warmup + args.reps):
-                    time_round(layers, x, ei, e, fwd, fb, r >= args.warmup)
+                    time_round(layers, x, ei, e, fwd, fb, r >= args.warmup, r % 2 == 1)
                 f0, b0 = statistics.median(fwd[ANCHOR]), statistics.median(fb[ANCHOR])
                 f0_min, b0_min = min(fwd[ANCHOR]), min(fb[ANCHOR])
                 for name in layers:

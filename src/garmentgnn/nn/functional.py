@@ -1,8 +1,11 @@
 """The graph-attention steps the layers are written with, as PyG's convs use
 :func:`torch_geometric.utils.softmax` and :func:`torch_geometric.utils.spmm`.
 
-A layer picks a :class:`Route` per call with :func:`attention_route`, then writes its
-equation with these functions:
+A layer turns its inputs into a :class:`Graph` with :func:`prepare_graph` (which also
+builds, or finds in its cache, the graph's :class:`CSRPlan`: the edges sorted by target,
+once per ``edge_index`` tensor; :func:`build_plan` builds one directly), picks a
+:class:`Route` per call with :func:`attention_route`, then writes its equation with
+these functions:
 
 =========================  ==================================================  ===================
 function                   computes, per edge ``j -> i`` and head             fused route kernel
@@ -40,13 +43,13 @@ import torch
 from torch import Tensor
 from torch_geometric.utils import scatter, softmax
 
-from garmentgnn.nn._graph import CSRPlan, Graph
+from garmentgnn.nn._graph import CSRPlan, Graph, build_plan, prepare_graph
 from garmentgnn.nn._sparse import (CSR_DTYPES, Pattern, csr_kernels, head_pattern,
                                    incidence_pattern, kernels_enabled, sddmm, spmm)
 
-__all__ = ["Route", "attention_route", "edge_dot", "edge_softmax", "random_edge_mask",
-           "attention_spmm", "edge_rows_spmm", "segment_softmax", "keep_one_mask",
-           "csr_kernels", "sddmm", "spmm"]
+__all__ = ["Graph", "CSRPlan", "prepare_graph", "build_plan", "Route", "attention_route",
+           "edge_dot", "edge_softmax", "random_edge_mask", "attention_spmm", "edge_rows_spmm",
+           "segment_softmax", "keep_one_mask", "csr_kernels", "sddmm", "spmm"]
 
 
 class Route(NamedTuple):
