@@ -13,7 +13,7 @@ import torch
 
 import garmentgnn.nn
 from garmentgnn.nn import LAYERS, SATConv, _graph
-from garmentgnn.nn._sparse import csr_kernels
+from garmentgnn.nn.functional import csr_kernels
 
 from conftest import random_graph
 

@@ -3,8 +3,7 @@ geometric initialisation, stacks of registry attention layers, and batched copie
 garment graph (the frames of one garment as one PyG-style batch)."""
 from __future__ import annotations
 
-import weakref
-from typing import Dict, List, Sequence, Tuple
+from typing import List, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -12,7 +11,7 @@ from torch import Tensor, nn
 from torch_geometric.nn import Linear as PyGLinear
 from torch.nn.parameter import UninitializedParameter
 
-from garmentgnn.nn import make_layer
+from garmentgnn.nn import TensorCache, make_layer
 
 __all__ = ["AttentionStack", "batch_edges", "cached_batch_edges", "geometric_init_", "mlp"]
 
@@ -42,10 +41,8 @@ def batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
     return (edge_index.unsqueeze(1) + offsets.view(1, -1, 1)).reshape(2, -1)
 
 
-#: batched copies of garment graphs: ``(id(edge_index), copies, num_nodes) ->
-#: (weakref to edge_index, its version, batched edge_index)``
-_BATCHED: Dict[Tuple[int, int, int], Tuple["weakref.ref", int, Tensor]] = {}
-_MAX_BATCHED = 16
+#: batched copies of garment graphs, per ``edge_index`` tensor, copy and node count
+_BATCHED = TensorCache(maxsize=16)
 
 
 def cached_batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:
@@ -59,21 +56,11 @@ def cached_batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tenso
     and is not cached (a fresh batch every call)."""
     if copies == 1:
         return edge_index
-    try:
-        version = edge_index._version
-    except RuntimeError:  # an inference tensor
-        version = None
-    key = (id(edge_index), copies, num_nodes)
-    hit = _BATCHED.get(key)
-    if hit is not None and hit[0]() is edge_index and hit[1] == version:
-        return hit[2]
-    with torch.inference_mode(False):
-        out = batch_edges(edge_index, copies, num_nodes)
-    if version is not None:
-        while len(_BATCHED) >= _MAX_BATCHED:
-            _BATCHED.pop(next(iter(_BATCHED)))
-        _BATCHED[key] = (weakref.ref(edge_index, lambda _, k=key: _BATCHED.pop(k, None)),
-                         version, out)
+    out = _BATCHED.lookup(edge_index, copies, num_nodes)
+    if out is None:
+        with torch.inference_mode(False):
+            out = batch_edges(edge_index, copies, num_nodes)
+        _BATCHED.store(edge_index, out, copies, num_nodes)
     return out
 
 

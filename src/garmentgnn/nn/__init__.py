@@ -1,4 +1,5 @@
 """Attention layers for garment meshes, all behind one contract (see :mod:`.registry`)."""
+from garmentgnn.nn._graph import TensorCache
 from garmentgnn.nn.edge_transformer_conv import EdgeTransformerConv
 from garmentgnn.nn.gat_conv import GATBaselineConv
 from garmentgnn.nn.gt_conv import GraphTransformerConv
@@ -14,4 +15,5 @@ __all__ = [
     "GATBaselineConv",
     "make_layer",
     "LAYERS",
+    "TensorCache",
 ]

@@ -25,16 +25,14 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, field
-from typing import Any, Dict, NamedTuple, Optional, Tuple, Union
+from typing import Any, Dict, Hashable, NamedTuple, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
 from torch_geometric import EdgeIndex, is_compiling
 from torch_geometric.index import index2ptr
-from torch_geometric.typing import SparseTensor
-from torch_geometric.utils import is_sparse, scatter, softmax, to_edge_index
-
-PairTensor = Tuple[Tensor, Tensor]
+from torch_geometric.typing import PairTensor, SparseTensor
+from torch_geometric.utils import is_sparse, to_edge_index
 
 
 @dataclass(eq=False)
@@ -60,10 +58,6 @@ class CSRPlan:
     @property
     def num_edges(self) -> int:
         return self.src.numel()
-
-    def to_csr(self, t: Tensor) -> Tensor:
-        """Per-edge rows from the caller's order to CSR order."""
-        return t if self.perm is None else t.index_select(0, self.perm)
 
     def to_caller(self, t: Tensor) -> Tensor:
         """Per-edge rows from CSR order back to the caller's order."""
@@ -141,37 +135,61 @@ def check_edge_out_channels(edge_out_channels: Optional[int]) -> None:
         _channels("edge_out_channels", edge_out_channels, lazy=False)
 
 
-# --------------------------------------------------------------------------- CSR plan cache
-_PLANS: Dict[int, Tuple["weakref.ref", int, CSRPlan]] = {}
-_MAX_PLANS = 32
-
-
-def _version(t: Tensor) -> Optional[int]:
+# --------------------------------------------------------------------------- tensor caches
+def tensor_version(t: Tensor) -> Optional[int]:
+    """``t``'s version counter (bumped by every in-place edit); ``None`` for inference
+    tensors, which carry none."""
     try:
         return t._version
-    except RuntimeError:  # inference tensors carry no version counter: not cached
+    except RuntimeError:
         return None
+
+
+class TensorCache(Dict[Hashable, Tuple["weakref.ref", int, Any]]):
+    """Values derived from a tensor, keyed by its identity (plus optional ``extra`` key
+    parts) and checked against its version counter: an in-place edit of the tensor
+    misses, and its entries are dropped when it is freed.  At most ``maxsize`` entries,
+    oldest dropped first; inference tensors (no version counter) are never stored.
+
+    The dict maps ``id(t)`` (or ``(id(t), *extra)``) to ``(weakref to t, version,
+    value)``."""
+
+    def __init__(self, maxsize: int) -> None:
+        super().__init__()
+        self.maxsize = maxsize
+
+    @staticmethod
+    def key(t: Tensor, extra: Tuple[Hashable, ...]) -> Hashable:
+        return (id(t),) + extra if extra else id(t)
+
+    def lookup(self, t: Tensor, *extra: Hashable) -> Optional[Any]:
+        """The value stored for ``t`` (and ``extra``), or ``None`` when there is none or
+        ``t`` was edited in place since."""
+        entry = self.get(self.key(t, extra))
+        if entry is None:
+            return None
+        ref, version, value = entry
+        return value if ref() is t and version == tensor_version(t) else None
+
+    def store(self, t: Tensor, value: Any, *extra: Hashable) -> None:
+        version = tensor_version(t)
+        if version is None:
+            return
+        key = self.key(t, extra)
+        while len(self) >= self.maxsize:
+            self.pop(next(iter(self)))
+        self[key] = (weakref.ref(t, lambda _, k=key: self.pop(k, None)), version, value)
+
+
+#: CSR plans of ``edge_index`` tensors (see :func:`prepare_graph`)
+_PLANS = TensorCache(maxsize=32)
 
 
 def _cached_plan(obj: Tensor, num_src: int, num_dst: int) -> Optional[CSRPlan]:
-    entry = _PLANS.get(id(obj))
-    if entry is None:
-        return None
-    ref, version, plan = entry
-    if ref() is not obj or version != _version(obj) or (plan.num_src, plan.num_dst) != (
-            num_src, num_dst):
+    plan = _PLANS.lookup(obj)
+    if plan is None or (plan.num_src, plan.num_dst) != (num_src, num_dst):
         return None
     return plan
-
-
-def _store_plan(obj: Tensor, plan: CSRPlan) -> None:
-    version = _version(obj)
-    if version is None:
-        return
-    key = id(obj)
-    while len(_PLANS) >= _MAX_PLANS:
-        _PLANS.pop(next(iter(_PLANS)))
-    _PLANS[key] = (weakref.ref(obj, lambda _, k=key: _PLANS.pop(k, None)), version, plan)
 
 
 @torch.inference_mode(False)  # a plan built in inference mode is reused with autograd later
@@ -335,7 +353,7 @@ def prepare_graph(
                 _check_range(edge_index, num_src, num_dst)
                 plan = build_plan(edge_index, num_src, num_dst)
                 plan.validated = True
-                _store_plan(key_obj, plan)
+                _PLANS.store(key_obj, plan)
     else:
         raise TypeError(f"`edge_index`: expected a LongTensor [2, E] or a sparse adjacency, "
                         f"got {type(edge_index).__name__}")
@@ -386,34 +404,3 @@ def check_outputs(layer: str, outputs: Tuple[Optional[Tensor], ...],
     _fail("x", f"the inputs are finite ({peaks}) but {layer}'s output is not: the attention "
                "scores overflowed the floating-point range; normalise the features (e.g. a "
                "LayerNorm before the layer) or pass check_finite=False to get the raw values")
-
-
-def keep_one_mask(mask: Tensor, index: Tensor, num_nodes: int) -> Tensor:
-    """Random attention mask that never removes every incoming edge of a node.
-
-    ``mask`` is a boolean ``[E, H]`` tensor of edges to drop.  For every
-    (target, head) one incoming edge -- drawn uniformly at random -- is always
-    kept, so a softmax over the masked scores never sees only ``-inf``.
-    """
-    r = torch.rand(mask.shape, device=mask.device)
-    r_max = scatter(r, index, dim=0, dim_size=num_nodes, reduce="max")
-    keep = r == r_max.index_select(0, index)
-    return mask & ~keep
-
-
-def edge_softmax(src: Tensor, index: Tensor, num_dst: int, ptr: Optional[Tensor] = None) -> Tensor:
-    """Softmax of ``src [E, H]`` over the incoming edges of each target node.
-
-    With a CSR pointer (edges sorted by target) the maximum runs on
-    :func:`torch.segment_reduce` (several times faster on CPU than a scatter);
-    the sums use ``index_add``, which, unlike ``segment_reduce``, can be
-    differentiated twice.  Without one it is PyG's :func:`softmax`, which
-    scatters.  Entries of ``-inf`` get weight 0 as long as their segment holds
-    a finite one.
-    """
-    if ptr is None:
-        return softmax(src, index, None, num_dst)
-    peak = torch.segment_reduce(src.detach(), "max", offsets=ptr, axis=0, unsafe=True)
-    out = (src - peak.index_select(0, index)).exp()
-    total = out.new_zeros((num_dst,) + tuple(out.shape[1:])).index_add_(0, index, out)
-    return out / (total.index_select(0, index) + 1e-16)

@@ -6,10 +6,11 @@ from typing import Optional, Tuple, Union
 import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import PairTensor
+from torch_geometric.typing import Adj, OptTensor, PairTensor
 
-from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import Graph, check_edge_out_channels, check_layer_args
+from garmentgnn.nn._base import AttentionConv, LayerOutput
+from garmentgnn.nn._graph import check_edge_out_channels, check_layer_args
+from garmentgnn.nn.functional import attention_spmm, edge_softmax
 
 
 class EdgeTransformerConv(AttentionConv):
@@ -122,26 +123,51 @@ class EdgeTransformerConv(AttentionConv):
                               else Linear(edge_dim, self.edge_out_channels, bias=bias))
         self.reset_parameters()
 
-    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
+    def forward(
+        self,
+        x: Union[Tensor, PairTensor],
+        edge_index: Adj,
+        edge_attr: OptTensor = None,
+        return_attention_weights: Optional[bool] = None,
+        return_edge_attr: bool = False,
+    ) -> LayerOutput:
+        """Run the layer; arguments and return values as in
+        :class:`~garmentgnn.nn._base.LayerContract`."""
+        g = self.prepare(x, edge_index, edge_attr)  # checks; edges sorted once per graph
         src, dst = g.edge_index[0], g.edge_index[1]
         e = g.edge_attr
         assert e is not None
         H, C, E = self.heads, self.out_channels, g.edge_index.size(1)
+        # q_i = W_q x_i / sqrt(C),  k_j = W_k x_j,  v_j = W_v x_j  (one matmul)
         q, k, v, x_dst = self.project_qkv(x)
-        r = self.route(g, q)
+        r = self.route(g, q)  # sparse kernels, or propagate() with message()
 
         # w_hat_ij = (q_i * k_j / sqrt(C)) * W_E e_ij, per channel: [E, H, C] in the caller's
         # order (the per-channel edge product needs it; it is also the new edge state)
         q_i, k_j = q.contiguous().index_select(0, dst), k.contiguous().index_select(0, src)
         w_hat = q_i * k_j * self.lin_edge(e).view(E, H, C)
-        alpha = self.softmax(r.edges_in(w_hat.sum(-1)), r)
-        alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-        out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
+        # alpha_ij = softmax_{j in N(i)} sum_c w_hat_ij,c
+        alpha = edge_softmax(r.edges_in(w_hat.sum(-1)), r)
+        alpha_drop = F.dropout(alpha, p=self.dropout, training=self.training)
+        # x_hat_i = sum_{j in N(i)} alpha_ij v_j
+        if r.fused:
+            x_hat = attention_spmm(alpha_drop, v, g, r)
+        else:
+            x_hat = self.propagate(g.edge_index, v=v, alpha=alpha_drop,
+                                   size=(g.num_src, g.num_dst))
+        # x_i' = W_o x_hat_i + skip(x_i)
+        out = self.merge_heads(x_hat, x_dst)
 
+        # e_ij' = W_eo heads(w_hat_ij) + skip(e_ij)
         w_hat = w_hat.reshape(E, H * C) if self.concat else w_hat.mean(1)
         e_out = self.lin_edge_out(w_hat)
         e_out = e_out + (e if self.lin_edge_skip is None else self.lin_edge_skip(e))
-        return out, e_out, (g.edge_index, r.edges_out(alpha))
+        return self.outputs(x, g, edge_attr, out, e_out, (g.edge_index, r.edges_out(alpha)),
+                            return_attention_weights, return_edge_attr)
+
+    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:  # type: ignore[override]
+        # one edge: alpha_ij v_j
+        return v_j * alpha.unsqueeze(-1)
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -6,10 +6,10 @@ from typing import Optional, Tuple, Union
 from torch import Tensor
 from torch_geometric.nn.conv import GATv2Conv
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import PairTensor
+from torch_geometric.typing import Adj, OptTensor, PairTensor
 
-from garmentgnn.nn._base import LayerContract
-from garmentgnn.nn._graph import Graph, check_layer_args
+from garmentgnn.nn._base import LayerContract, LayerOutput
+from garmentgnn.nn._graph import check_layer_args
 
 
 class GATBaselineConv(LayerContract):
@@ -120,12 +120,26 @@ class GATBaselineConv(LayerContract):
         if self.lin_skip is not None:
             self.lin_skip.reset_parameters()
 
-    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
+    def forward(
+        self,
+        x: Union[Tensor, PairTensor],
+        edge_index: Adj,
+        edge_attr: OptTensor = None,
+        return_attention_weights: Optional[bool] = None,
+        return_edge_attr: bool = False,
+    ) -> LayerOutput:
+        """Run the layer; arguments and return values as in
+        :class:`~garmentgnn.nn._base.LayerContract`."""
+        g = self.prepare(x, edge_index, edge_attr)  # checks; edges sorted once per graph
         x_dst = x if isinstance(x, Tensor) else x[1]
         e = g.edge_attr if self.edge_dim is not None else None
-        out, (ei, alpha) = self.gat(x, g.edge_index, e, return_attention_weights=True)
-        out = out + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
-        return out, None, (ei, alpha)
+        # alpha_ij = softmax_{j in N(i)} a^T LeakyReLU(W_s x_i + W_t x_j + W_e e_ij),
+        # x_hat_i = ||_h sum_{j in N(i)} alpha_ij W_t x_j + b: GATv2Conv's forward and message
+        x_hat, (ei, alpha) = self.gat(x, g.edge_index, e, return_attention_weights=True)
+        # x_i' = x_hat_i + skip(x_i)
+        out = x_hat + (x_dst if self.lin_skip is None else self.lin_skip(x_dst))
+        return self.outputs(x, g, edge_attr, out, None, (ei, alpha),
+                            return_attention_weights, return_edge_attr)
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

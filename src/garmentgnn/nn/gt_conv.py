@@ -6,10 +6,11 @@ from typing import Optional, Tuple, Union
 import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import PairTensor
+from torch_geometric.typing import Adj, OptTensor, PairTensor
 
-from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import Graph, check_layer_args
+from garmentgnn.nn._base import AttentionConv, LayerOutput
+from garmentgnn.nn._graph import check_layer_args
+from garmentgnn.nn.functional import attention_spmm, edge_dot, edge_softmax
 
 
 class GraphTransformerConv(AttentionConv):
@@ -101,15 +102,41 @@ class GraphTransformerConv(AttentionConv):
         self.lin_skip = self.skip_layer(in_dst, out_width, bias)
         self.reset_parameters()
 
-    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
+    def forward(
+        self,
+        x: Union[Tensor, PairTensor],
+        edge_index: Adj,
+        edge_attr: OptTensor = None,
+        return_attention_weights: Optional[bool] = None,
+        return_edge_attr: bool = False,
+    ) -> LayerOutput:
+        """Run the layer; arguments and return values as in
+        :class:`~garmentgnn.nn._base.LayerContract`."""
+        g = self.prepare(x, edge_index, edge_attr)  # checks; edges sorted once per graph
+        # Eqs. (3)-(4): q_i = W_q x_i + b_q,  k_j = W_k x_j + b_k,  v_j = W_v x_j + b_v
+        # (one matmul; q_i comes scaled by 1/sqrt(d_a))
         q, k, v, x_dst = self.project_qkv(x)
-        r = self.route(g, q)
-        # Eq. (3): scaled dot-product scores, one per edge and head.
-        alpha = self.softmax(self.edge_scores(q, k, g, r), r)
-        alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-        # Eq. (4): x_i' = W_o heads(sum_j alpha_ij v_j) + skip(x_i)
-        out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
-        return out, None, (g.edge_index, r.edges_out(alpha))
+        r = self.route(g, q)  # sparse kernels, or propagate() with message()
+
+        # Eq. (3): h_ij = q_i^T k_j / sqrt(d_a)
+        h = edge_dot(q, k, g, r)
+        # Eq. (3): alpha_ij = softmax_{j in N(i)} h_ij
+        alpha = edge_softmax(h, r)
+        alpha_drop = F.dropout(alpha, p=self.dropout, training=self.training)
+        # Eq. (4): x_hat_i = sum_{j in N(i)} alpha_ij v_j
+        if r.fused:
+            x_hat = attention_spmm(alpha_drop, v, g, r)
+        else:
+            x_hat = self.propagate(g.edge_index, v=v, alpha=alpha_drop,
+                                   size=(g.num_src, g.num_dst))
+        # Eq. (4): x_i' = W_o x_hat_i + skip(x_i)
+        out = self.merge_heads(x_hat, x_dst)
+        return self.outputs(x, g, edge_attr, out, None, (g.edge_index, r.edges_out(alpha)),
+                            return_attention_weights, return_edge_attr)
+
+    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:  # type: ignore[override]
+        # Eq. (4), one edge: alpha_ij v_j
+        return v_j * alpha.unsqueeze(-1)
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

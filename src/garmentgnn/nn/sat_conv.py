@@ -7,10 +7,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import PairTensor
+from torch_geometric.typing import Adj, OptTensor, PairTensor
 
-from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import Graph, check_edge_out_channels, check_layer_args, keep_one_mask
+from garmentgnn.nn._base import AttentionConv, LayerOutput
+from garmentgnn.nn._graph import Graph, check_edge_out_channels, check_layer_args
+from garmentgnn.nn.functional import (Route, attention_spmm, edge_dot, edge_rows_spmm,
+                                      edge_softmax, random_edge_mask)
 
 
 class SATConv(AttentionConv):
@@ -89,7 +91,7 @@ class SATConv(AttentionConv):
           ``edge_index`` :math:`(2, |E|)` or sparse ``adj_t``,
           ``edge_attr`` :math:`(|E|, D)`
         - **output:** :math:`(|V|, H C)` (or :math:`(|V|, C)`); see
-          :meth:`~garmentgnn.nn._base.LayerContract.forward` for
+          :class:`~garmentgnn.nn._base.LayerContract` for
           ``return_edge_attr`` (edge features :math:`(|E|, D')`) and
           ``return_attention_weights`` (:math:`(|E|, H)`).
     """
@@ -146,57 +148,85 @@ class SATConv(AttentionConv):
                               else Linear(edge_dim, self.edge_out_channels, bias=bias))
         self.reset_parameters()
 
-    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
+    def forward(
+        self,
+        x: Union[Tensor, PairTensor],
+        edge_index: Adj,
+        edge_attr: OptTensor = None,
+        return_attention_weights: Optional[bool] = None,
+        return_edge_attr: bool = False,
+    ) -> LayerOutput:
+        """Run the layer; arguments and return values as in
+        :class:`~garmentgnn.nn._base.LayerContract`."""
+        g = self.prepare(x, edge_index, edge_attr)  # checks; edges sorted once per graph
         e = g.edge_attr
         assert e is not None
-        H, C, D = self.heads, self.out_channels, self.edge_dim
+        H, C = self.heads, self.out_channels
+        # Eqs. (3)-(4): q_i = W_q x_i + b_q,  k_j = W_k x_j + b_k,  v_j = W_v x_j + b_v
+        # (one matmul; q_i comes scaled by 1/sqrt(d_a))
         q, k, v, x_dst = self.project_qkv(x)
-        r = self.route(g, q, e)
+        r = self.route(g, q, e)  # sparse kernels, or propagate() with message()
 
-        # Eq. (5): h_ij = (q_i . k_j / sqrt(C)) * sigmoid(W_p e_ij), one per edge and head
-        h = self.edge_scores(q, k, g, r) * r.edges_in(torch.sigmoid(self.lin_edge_gate(e)))
-        logits = h
-        if self.training and self.attn_mask_p > 0:
-            drop = torch.rand_like(h) < self.attn_mask_p
-            logits = h.masked_fill(keep_one_mask(drop, r.index, r.num_segments), float("-inf"))
-        alpha = self.softmax(logits, r)
-        alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
+        # Eq. (5): p_ij = W_p e_ij + b_p  (one gate per head)
+        p = self.lin_edge_gate(e)
+        # Eq. (5): h_ij = q_i^T k_j / sqrt(d_a) * sigmoid(p_ij)
+        h = edge_dot(q, k, g, r) * r.edges_in(torch.sigmoid(p))
+        # random attention masking while training: -inf on a few scores (§3.3)
+        logits = random_edge_mask(h, self.attn_mask_p, r) \
+            if self.training and self.attn_mask_p > 0 else h
+        # Eq. (5): alpha_ij = exp(h_ij) / sum_{u in N(i)} exp(h_iu)
+        alpha = edge_softmax(logits, r)
+        alpha_drop = F.dropout(alpha, p=self.dropout, training=self.training)
 
-        if r.plan is not None:
-            # Eq. (6), by linearity of W_q':
-            #   sum_j alpha (v_j + W_q' e_ij + b) = sum_j alpha v_j + W_q' sum_j alpha e_ij
-            #                                       + b sum_j alpha
-            #                                     = sum_j alpha v_j + [W_q' | b] sum_j alpha [e_ij | 1]
-            # so only the narrow [E, D+1] edge rows are aggregated, never [E, H, C] values;
-            # the ones column gives the attention mass sum_j alpha_ij that the bias needs.
-            out = self.aggregate_values(alpha_used, v, g, r)  # [N, H, C], head-major storage
-            b_q = self.lin_edge_value.bias
-            rows = e if b_q is None else F.pad(e, (0, 1), value=1.0)
-            agg_e = self.aggregate_edge_rows(alpha_used, rows, g, r)  # [N, H, D(+1)]
-            w = self.lin_edge_value.weight.view(H, C, D)
-            if b_q is not None:
-                w = torch.cat([w, b_q.view(H, C, 1)], 2)
-            # one batched matmul over the heads, in the kernels' head-major layout
-            out = torch.baddbmm(out.transpose(0, 1), agg_e.transpose(0, 1),
-                                w.transpose(1, 2)).transpose(0, 1)
-        else:  # the messages alpha_ij (v_j + q^e_ij), as hooks and explainers see them
+        # Eq. (6): x_hat_i = sum_{j in N(i)} alpha_ij (v_j + q_ij)
+        #          with Eq. (5)'s q_ij = W_q' e_ij + b_q'
+        if r.fused:
+            x_hat = self.aggregate_fused(alpha_drop, v, e, g, r)
+        else:
             qe = self.lin_edge_value(e).view(e.size(0), H, C)
-            out = self.aggregate_values(alpha_used, v, g, r, qe=qe)
-        out = self.merge_heads(out, x_dst)
+            x_hat = self.propagate(g.edge_index, v=v, alpha=alpha_drop, qe=qe,
+                                   size=(g.num_src, g.num_dst))
+        # Eq. (6): x_i' = W_o x_hat_i + skip(x_i)
+        out = self.merge_heads(x_hat, x_dst)
+        # Eq. (6): e_ij' = W_e h_ij + skip(e_ij)  (the unmasked scores)
+        e_out = self.update_edges(r.edges_out(h), e)
+        return self.outputs(x, g, edge_attr, out, e_out, (g.edge_index, r.edges_out(alpha)),
+                            return_attention_weights, return_edge_attr)
 
-        # e_ij' = W_e h_ij + skip(e_ij), from the unmasked scores
-        h = r.edges_out(h)
+    def message(self, v_j: Tensor, alpha: Tensor, qe: Tensor) -> Tensor:  # type: ignore[override]
+        # Eq. (6), one edge: alpha_ij (v_j + q_ij)
+        return (v_j + qe) * alpha.unsqueeze(-1)
+
+    def aggregate_fused(self, alpha: Tensor, v: Tensor, e: Tensor, g: Graph,
+                        r: Route) -> Tensor:
+        """Eq. (6)'s sum on the sparse kernels, ``[N_dst, H, C]``, by linearity of ``W_q'``::
+
+            sum_j alpha_ij (v_j + W_q' e_ij + b_q')
+                = sum_j alpha_ij v_j + [W_q' | b_q'] sum_j alpha_ij [e_ij | 1]
+
+        so only the narrow ``[E, D+1]`` edge rows are summed, never ``[E, H, C]``
+        values; the ones column gives the attention mass that the bias needs (exact
+        also when dropout makes the weights not sum to 1)."""
+        H, C, D = self.heads, self.out_channels, self.edge_dim
+        out = attention_spmm(alpha, v, g, r)  # sum_j alpha_ij v_j, head-major storage
+        b_q = self.lin_edge_value.bias
+        rows = e if b_q is None else F.pad(e, (0, 1), value=1.0)
+        agg_e = edge_rows_spmm(alpha, rows, g, r)  # sum_j alpha_ij [e_ij | 1]: [N, H, D(+1)]
+        w = self.lin_edge_value.weight.view(H, C, D)
+        if b_q is not None:
+            w = torch.cat([w, b_q.view(H, C, 1)], 2)
+        # one batched matmul over the heads, in the kernels' head-major layout
+        return torch.baddbmm(out.transpose(0, 1), agg_e.transpose(0, 1),
+                             w.transpose(1, 2)).transpose(0, 1)
+
+    def update_edges(self, h: Tensor, e: Tensor) -> Tensor:
+        """``W_e h_ij + skip(e_ij)`` for scores ``h [E, H]`` in the caller's order."""
         if self.lin_edge_skip is None:  # one pass over the [E, D] output: e + [h | 1] [W_e | b]^T
             w_e, b_e = self.lin_edge_out.weight, self.lin_edge_out.bias
             if b_e is not None:
                 h, w_e = F.pad(h, (0, 1), value=1.0), torch.cat([w_e, b_e.unsqueeze(1)], 1)
-            e_out = torch.addmm(e, h, w_e.t())
-        else:
-            e_out = self.lin_edge_out(h) + self.lin_edge_skip(e)
-        return out, e_out, (g.edge_index, r.edges_out(alpha))
-
-    def message(self, v_j: Tensor, alpha: Tensor, qe: Tensor) -> Tensor:  # type: ignore[override]
-        return (v_j + qe) * alpha.unsqueeze(-1)
+            return torch.addmm(e, h, w_e.t())
+        return self.lin_edge_out(h) + self.lin_edge_skip(e)
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

@@ -8,10 +8,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch_geometric.nn.conv import GINConv, GINEConv
 from torch_geometric.nn.dense.linear import Linear
-from torch_geometric.typing import OptTensor, PairTensor
+from torch_geometric.typing import Adj, OptTensor, PairTensor
 
-from garmentgnn.nn._base import AttentionConv
-from garmentgnn.nn._graph import Graph, check_layer_args
+from garmentgnn.nn._base import AttentionConv, LayerOutput
+from garmentgnn.nn._graph import check_layer_args
+from garmentgnn.nn.functional import attention_spmm, edge_dot, edge_softmax
 
 
 class StructureAwareTransformerConv(AttentionConv):
@@ -177,9 +178,20 @@ class StructureAwareTransformerConv(AttentionConv):
             h = conv(h, ei) if self.edge_dim is None else conv(h, ei, edge_attr)
         return h if n_src is None else (h[:n_src], h[n_src:])
 
-    def compute(self, x: Union[Tensor, PairTensor], g: Graph):
+    def forward(
+        self,
+        x: Union[Tensor, PairTensor],
+        edge_index: Adj,
+        edge_attr: OptTensor = None,
+        return_attention_weights: Optional[bool] = None,
+        return_edge_attr: bool = False,
+    ) -> LayerOutput:
+        """Run the layer; arguments and return values as in
+        :class:`~garmentgnn.nn._base.LayerContract`."""
+        g = self.prepare(x, edge_index, edge_attr)  # checks; edges sorted once per graph
+        # phi = GIN_k(... ReLU(GIN_1(x, e))): the k-subtree structure embedding
         phi = self.extract(x, g.edge_index, g.edge_attr)
-        # queries and keys see the k-hop structure (phi); values are the plain features
+        # q_i = W_q phi_i / sqrt(C),  k_j = W_k phi_j,  v_j = W_v x_j
         if isinstance(x, Tensor):
             q, k = self.project(phi, (self.lin_query, self.lin_key), True)
             (v,) = self.project(x, (self.lin_value,))
@@ -189,11 +201,25 @@ class StructureAwareTransformerConv(AttentionConv):
             (k,) = self.project(phi[0], (self.lin_key,))
             (v,) = self.project(x[0], (self.lin_value,))
             x_dst = x[1]
-        r = self.route(g, q)
-        alpha = self.softmax(self.edge_scores(q, k, g, r), r)
-        alpha_used = F.dropout(alpha, p=self.dropout, training=self.training)
-        out = self.merge_heads(self.aggregate_values(alpha_used, v, g, r), x_dst)
-        return out, None, (g.edge_index, r.edges_out(alpha))
+        r = self.route(g, q)  # sparse kernels, or propagate() with message()
+
+        # alpha_ij = softmax_{j in N(i)} q_i^T k_j / sqrt(C)
+        alpha = edge_softmax(edge_dot(q, k, g, r), r)
+        alpha_drop = F.dropout(alpha, p=self.dropout, training=self.training)
+        # x_hat_i = sum_{j in N(i)} alpha_ij v_j
+        if r.fused:
+            x_hat = attention_spmm(alpha_drop, v, g, r)
+        else:
+            x_hat = self.propagate(g.edge_index, v=v, alpha=alpha_drop,
+                                   size=(g.num_src, g.num_dst))
+        # x_i' = W_o x_hat_i + skip(x_i)
+        out = self.merge_heads(x_hat, x_dst)
+        return self.outputs(x, g, edge_attr, out, None, (g.edge_index, r.edges_out(alpha)),
+                            return_attention_weights, return_edge_attr)
+
+    def message(self, v_j: Tensor, alpha: Tensor) -> Tensor:  # type: ignore[override]
+        # one edge: alpha_ij v_j
+        return v_j * alpha.unsqueeze(-1)
 
     def __repr__(self) -> str:
         return (f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "

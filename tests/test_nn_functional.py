@@ -1,0 +1,111 @@
+"""The attention steps of :mod:`garmentgnn.nn.functional` against plain gathers and
+scatters, the tensor cache the layers and models share, and the layer files' shape
+(each layer's equation in its own ``forward``/``message``)."""
+from __future__ import annotations
+
+import inspect
+
+import pytest
+import torch
+from conftest import random_graph
+from torch_geometric.utils import scatter, softmax
+
+from garmentgnn.nn import LAYERS, GraphTransformerConv, SATConv, TensorCache
+from garmentgnn.nn._base import AttentionConv
+from garmentgnn.nn._graph import prepare_graph
+from garmentgnn.nn.functional import (attention_route, attention_spmm, csr_kernels, edge_dot,
+                                      edge_rows_spmm, edge_softmax, segment_softmax)
+
+N, H, C, D = 9, 3, 5, 4
+
+
+def graph_and_features(sort: bool):
+    ei = random_graph(N, 30, seed=7, sort=sort)
+    g = torch.Generator().manual_seed(8)
+    q, k, v = (torch.randn(N, H, C, generator=g, dtype=torch.float64) for _ in range(3))
+    y = torch.randn(ei.size(1), D, generator=g, dtype=torch.float64)
+    x = torch.zeros(N, 1, dtype=torch.float64)
+    return prepare_graph(x, ei, None, None, require_edge_attr=False, validate=True), q, k, v, y
+
+
+@pytest.mark.parametrize("sort", [True, False])
+@pytest.mark.parametrize("kernels", [True, False])
+def test_attention_steps_match_gathers_and_scatters(sort, kernels):
+    """Oracle: per-edge gathers, PyG's ``softmax`` and ``scatter`` sums in the caller's
+    edge order, written out here without the module's code."""
+    g, q, k, v, y = graph_and_features(sort)
+    src, dst = g.edge_index
+    want_s = (q[dst] * k[src]).sum(-1)  # [E, H]
+    want_a = softmax(want_s, dst, num_nodes=N)
+    want_out = scatter(want_a.unsqueeze(-1) * v[src], dst, 0, dim_size=N, reduce="sum")
+    want_rows = scatter(want_a.unsqueeze(-1) * y[:, None, :], dst, 0, dim_size=N, reduce="sum")
+    with csr_kernels(kernels):
+        r = attention_route(g, H, q)
+    assert r.fused == kernels
+    s = edge_dot(q, k, g, r)
+    alpha = edge_softmax(s, r)
+    torch.testing.assert_close(r.edges_out(s), want_s)
+    torch.testing.assert_close(r.edges_out(alpha), want_a)
+    torch.testing.assert_close(r.edges_in(want_a), alpha)
+    if kernels:
+        torch.testing.assert_close(attention_spmm(alpha, v, g, r), want_out)
+        torch.testing.assert_close(edge_rows_spmm(alpha, y, g, r), want_rows)
+    else:
+        with pytest.raises(ValueError, match="`r`"):
+            attention_spmm(alpha, v, g, r)
+        with pytest.raises(ValueError, match="`r`"):
+            edge_rows_spmm(alpha, y, g, r)
+
+
+def test_segment_softmax_with_pointer_equals_pyg_softmax():
+    """The segment-max route (sorted segments with a CSR pointer) against PyG's
+    ``softmax``, with ``-inf`` entries (weight 0) and an empty segment."""
+    index = torch.tensor([0, 0, 0, 2, 2, 3])
+    ptr = torch.tensor([0, 3, 3, 5, 6])
+    src = torch.randn(6, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    src[1, 0] = float("-inf")
+    out = segment_softmax(src, index, 4, ptr)
+    torch.testing.assert_close(out, softmax(src, index, num_nodes=4))
+    assert out[1, 0] == 0
+
+
+def test_tensor_cache_follows_identity_version_and_lifetime():
+    cache = TensorCache(maxsize=2)
+    a, b = torch.arange(4), torch.arange(3)
+    cache.store(a, "a3", 3)
+    cache.store(a, "a5", 5)
+    assert cache.lookup(a, 3) == "a3" and cache.lookup(a, 5) == "a5"
+    assert cache.lookup(a) is None and cache.lookup(b, 3) is None
+    cache.store(b, "b")  # over maxsize: the oldest entry goes
+    assert cache.lookup(a, 3) is None and cache.lookup(a, 5) == "a5"
+    b.add_(1)  # an in-place edit bumps the version: a miss
+    assert cache.lookup(b) is None
+    key = id(b)
+    del b  # freed with its tensor
+    assert key not in cache
+    with torch.inference_mode():  # no version counter: never stored
+        c = torch.arange(2)
+        cache.store(c, "c")
+        assert cache.lookup(c) is None
+
+
+@pytest.mark.parametrize("name", sorted(LAYERS))
+def test_each_layer_writes_its_own_forward_and_message(name):
+    """A reader finds the layer's computation where PyG's convs have it: ``forward`` in
+    the layer's own class and, for the attention layers, which sum with ``propagate``,
+    their own ``message``."""
+    cls = LAYERS[name]
+    assert "forward" in vars(cls)
+    assert not hasattr(cls, "compute")
+    if issubclass(cls, AttentionConv):
+        assert "message" in vars(cls)
+    assert list(inspect.signature(cls.forward).parameters) == [
+        "self", "x", "edge_index", "edge_attr", "return_attention_weights", "return_edge_attr"]
+
+
+@pytest.mark.parametrize("cls, numbers", [(SATConv, ("(5)", "(6)")),
+                                          (GraphTransformerConv, ("(3)", "(4)"))])
+def test_paper_equations_are_numbered_in_forward(cls, numbers):
+    source = inspect.getsource(cls.forward)
+    for number in numbers:
+        assert f"Eq. {number}" in source
