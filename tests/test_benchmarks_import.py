@@ -1,7 +1,10 @@
 """Every script in ``benchmarks/`` imports against the current package (its module level
 runs; ``main`` does not): a renamed or removed function breaks this test, not a user's
 benchmark run weeks later."""
+import json
 import runpy
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,3 +16,22 @@ SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py
 def test_benchmark_script_imports(path):
     ns = runpy.run_path(str(path), run_name="benchmark_import_check")
     assert callable(ns.get("main")), f"{path.name} has no main()"
+
+
+def test_layer_benchmark_runs_and_matches_a_baseline_of_the_same_source(tmp_path):
+    """``benchmarks/layers.py`` end to end on a 6 x 6 mesh, every layer, with this very
+    source as ``--baseline``: the same weights through the same code give the same
+    outputs (max abs diff exactly 0), and every row has a time."""
+    root = Path(__file__).resolve().parents[1]
+    layers = ["sat", "gt", "gt_edge", "structure_aware", "gat"]
+    subprocess.run([sys.executable, str(root / "benchmarks" / "layers.py"), "--nx", "6",
+                    "--reps", "1", "--warmup", "0", "--threads", "1", "--edge-dims", "4",
+                    "--layers", *layers, "--baseline", str(root / "src"), "--out",
+                    str(tmp_path)], check=True, capture_output=True, timeout=300)
+    rows = json.loads((tmp_path / "layers.json").read_text())["rows"]
+    names = {r["layer"] for r in rows}
+    assert names >= set(layers) | {f"{n}@base" for n in layers} | {"TransformerConv"}
+    assert all(r["fwd_ms"] > 0 and r["fwd_bwd_ms"] > 0 for r in rows)
+    diffs = [r["max_abs_diff"] for r in rows if r["layer"].endswith("@base")]
+    assert len(diffs) == sum(r["layer"] in layers for r in rows)  # one per layer row
+    assert diffs and all(d == 0.0 for d in diffs)
