@@ -10,7 +10,8 @@ same Lightning ``Trainer``:
   gradient and the gradient norm (:func:`garmentgnn.training.diagnostics.branch_gradients`).
 * ``overfit``: each method trained on that one chunk alone for ``--steps`` steps; its
   E_dist on the chunk against steps, and LBS's.
-* ``curves``: GarTrans settings (``--variants``, :data:`VARIANTS`) trained for the same
+* ``curves``: GarTrans settings and the DA- and HOOD-style baselines (``--variants``,
+  :data:`VARIANTS`; NCS-style trains per garment on test poses) trained for the same
   ``--steps`` on the training split; E_dist on the training and test sequences every
   ``--every`` steps, as a ratio to LBS's on the same sequences (``--surface``: the
   normal, edge-length and curvature errors too).
@@ -82,6 +83,11 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "state, rollout training": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
                                           "garment_state": True, "state_noise": 0.003,
                                           "state_dropout": 0.25, "state_rollout": True}},
+    # the baselines on the same curves (``baseline``: the method, ``module``: overrides of
+    # its packaged configuration)
+    "DA-style": {"baseline": DA},
+    "HOOD-style": {"baseline": HOOD},
+    "HOOD-style, lr 1e-4": {"baseline": HOOD, "module": {"lr": 1e-4}},
 }
 
 
@@ -97,8 +103,9 @@ def gartrans(dims: Dict[str, int], method: str = "GarTrans (SAT)",
     return GarTransModule(**dims, **dict(hp, **(overrides or {})))
 
 
-def baseline(method: str, dims: Dict[str, int], num_vertices: int) -> BaselineModule:
-    cfg = BASELINES[method]
+def baseline(method: str, dims: Dict[str, int], num_vertices: Optional[int] = None,
+             overrides: Optional[Dict[str, Any]] = None) -> BaselineModule:
+    cfg = dict(BASELINES[method], **(overrides or {}))
     return BaselineModule(num_joints=dims["num_joints"], num_vertices=num_vertices,
                           fps=30.0, history=DATA["history"], **cfg)
 
@@ -113,7 +120,11 @@ def methods(dims: Dict[str, int], num_vertices: int, only: Optional[Sequence[str
         out[m] = lambda m=m: baseline(m, dims, num_vertices)
     out = {k: v for k, v in out.items() if only is None or k in only}
     for v in variants:
-        out[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
+        if "baseline" in VARIANTS[v]:  # a baseline's own settings: see `only`
+            out[v] = lambda v=v: baseline(VARIANTS[v]["baseline"], dims, num_vertices,
+                                          VARIANTS[v].get("module"))
+        else:
+            out[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
     return out
 
 
@@ -277,7 +288,8 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
     for name in variants:
         v = VARIANTS[name]
         L.seed_everything(seed, verbose=False)
-        module = gartrans(dims, overrides=v.get("model"))
+        module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
+                  else gartrans(dims, overrides=v.get("model")))
         probe = Probe(sets, every, name, surface)
         t = time.perf_counter()
         try:
