@@ -122,6 +122,8 @@ def test_curve_bad_arguments(tmp_path):
         curves.LearningCurve(2, lambda m: 0.0, snapshot_step=0, snapshot_path=tmp_path / "x")
     with pytest.raises(ValueError, match="curve_every"):
         methods.LearnedBudget(curve_every=0)
+    with pytest.raises(ValueError, match="equal_steps"):
+        methods.LearnedBudget(equal_steps=10)
 
 
 def test_converge_preset():

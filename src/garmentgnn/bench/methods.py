@@ -114,7 +114,8 @@ class LearnedBudget:
             ``None``: no learning curves.
         equal_steps: also score every method trained on the train split (not NCS-style)
             with its weights after this many optimizer steps, so that the methods are
-            compared at equal steps as well as at equal time; ``None``: not.
+            compared at equal steps as well as at equal time (needs ``curve_every``);
+            ``None``: not.
     """
 
     seeds: int = 1
@@ -145,6 +146,9 @@ class LearnedBudget:
             c = getattr(self, name)
             if c is not None and (not isinstance(c, int) or isinstance(c, bool) or c < 1):
                 raise ValueError(f"`{name}`: expected a positive int or None, got {c!r}")
+        if self.equal_steps is not None and self.curve_every is None:
+            raise ValueError("`equal_steps`: the snapshot is taken by the learning curve; "
+                             "set `curve_every` too")
         unknown = [m for m in self.methods if m not in METHOD_NAMES]
         if unknown or not self.methods:
             raise ValueError(f"`methods`: unknown {unknown} or empty; choose from {METHOD_NAMES}")
