@@ -85,3 +85,27 @@ def test_evaluate_split_leaves_them_out(test_split):
     assert res["frames"] == 4 * 6 and res["excluded_frames"] == 4 * 2
     want = scoring.aggregate(scoring.score(lambda i, item: item.skinned(), test_split))["all"]
     assert res["E_dist"] == pytest.approx(want["E_dist"], rel=1e-6) and res["E_dist"] < 25.0
+
+
+def test_train_test_step_leaves_them_out(test_split):
+    """``garmentgnn train test``'s step (:class:`GarmentModule`) scores the chunk's
+    converged frames only, for the method and for LBS: the metric functions on those
+    frames alone are the oracle, and a chunk of non-converged frames only is not scored."""
+    chunks = SequenceChunks(test_split.root, "test", chunk=3, history=3, num_landmarks=64,
+                            nystrom_dim=16)
+    item = chunks[0]  # frames 0, 1, 2: frame 2 flagged
+    assert item.converged.tolist() == [True, True, False]
+    module = GarTransModule(num_joints=item.rotations.shape[2],
+                            num_body_vertices=item.body_pos.shape[1], nystrom_dim=16)
+    module.log = lambda *a, **k: None  # outside a Trainer
+    with torch.no_grad():
+        got = module.test_step(item, 0)
+        pred = module.predict_garment(item)
+    keep = torch.tensor([True, True, False])
+    want = evaluate(pred[keep].float(), item.gt[keep], item.faces, item.body_pos[keep],
+                    item.body_faces)
+    for k, v in want.items():
+        assert got[k] == pytest.approx(v, rel=1e-5, abs=1e-9), k
+    assert got["E_dist"] < 25.0  # the flagged frame is 1 m off
+    only_bad = item.select(torch.tensor([2]))
+    assert module._score(only_bad.gt, only_bad, "test") == {}

@@ -24,7 +24,9 @@ Keys (``V`` garment vertices, ``S`` joints, ``Vb`` body vertices, ``B`` frames,
   (the posed body), ``frames [B]``, optionally ``gt [B, V, 3]`` (the simulated
   garment: absent where no ground truth exists), optionally ``gt_prev [B, 2, V, 3]`` (the
   simulated garment at frames ``t-2, t-1``, clamped at frame 0: the state a model with a
-  garment state is trained on; never an input at test time), and ``seq_id`` (str).
+  garment state is trained on; never an input at test time), optionally ``converged
+  [B]`` (bool: the frames whose simulation converged, the only ones metrics score), and
+  ``seq_id`` (str).
 """
 from __future__ import annotations
 
@@ -44,7 +46,7 @@ __all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "chec
            "check_pose", "history_frames", "skin", "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
-FRAME_KEYS = ("rotations", "translation", "gt", "gt_prev", "body_pos", "frames")
+FRAME_KEYS = ("rotations", "translation", "gt", "gt_prev", "body_pos", "frames", "converged")
 
 
 class GarmentInputs(Data):

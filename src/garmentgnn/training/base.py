@@ -3,7 +3,8 @@
 
 It holds the parts that do not depend on the method: the checkpoint integrity hooks
 (:mod:`garmentgnn.training.integrity`), the training-step logging, the held-out metrics
-of ``validate``/``test`` (:func:`garmentgnn.metrics.evaluate_inputs`; ``test`` scores
+of ``validate``/``test`` (:func:`garmentgnn.metrics.evaluate_inputs` on the frames the
+engine converged on, as every metric that reads the data; ``test`` scores
 "LBS only" on the same frames beside the method, ``test_lbs/...``) and ``predict``.  A
 method only says how it predicts a chunk (:meth:`GarmentModule.predict_garment`) and how
 it trains (``training_step``, ``configure_optimizers``).
@@ -51,9 +52,15 @@ class GarmentModule(L.LightningModule):
 
     # -- held-out metrics -------------------------------------------------------------
     def _score(self, pred: Tensor, batch: GarmentInputs, prefix: str) -> Dict[str, float]:
-        metrics = evaluate_inputs(pred, batch)
+        """The metrics of the frames the engine converged on (``batch.converged``; a
+        chunk with none is not scored), logged as frame-weighted epoch means."""
+        keep = batch.get("converged")
+        frames = pred.shape[0] if keep is None else int(keep.sum())
+        if frames == 0:
+            return {}
+        metrics = evaluate_inputs(pred, batch, keep)
         for k, v in metrics.items():
-            self.log(f"{prefix}/{k}", v, on_epoch=True, batch_size=pred.shape[0])
+            self.log(f"{prefix}/{k}", v, on_epoch=True, batch_size=frames)
         return metrics
 
     def validation_step(self, batch: GarmentInputs, batch_idx: int) -> Dict[str, float]:

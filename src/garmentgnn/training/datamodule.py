@@ -153,9 +153,11 @@ class SequenceChunks(Dataset):
             if self.previous_frames:
                 prev = np.clip(np.arange(t0, t0 + n)[:, None] + np.array([-2, -1]), 0, None)
                 gt_prev = torch.from_numpy(np.asarray(pos[prev], np.float32))
-        return with_frames(st, body, rot, tr,
-                           torch.arange(t0, t0 + n), self.history, gt=gt,
+        item = with_frames(st, body, rot, tr, torch.arange(t0, t0 + n), self.history, gt=gt,
                            seq_id=self.records[i]["id"], gt_prev=gt_prev)
+        if gt is not None:  # which frames the metrics may score
+            item.converged = self.converged(idx)
+        return item
 
 
 class EpochShuffleSampler(DistributedSampler):
