@@ -38,6 +38,18 @@ def test_plateau_reached_when_the_last_quarter_does_not_improve():
         curves.plateau(_pts([3.0, 2.0, 1.0]))
 
 
+def test_report_when_no_method_reached_the_equal_step_snapshot():
+    """Every run stopped by its time before the snapshot: the section names them and
+    shows no equal-step table (this crashed the report once)."""
+    rec = {"kind": "learned", "status": "ok", "method": "GarTrans (SAT)", "seed": 0,
+           "epochs": 1, "steps": 40, "metrics": {"E_dist": 9.5},
+           "curve": {"every": 20, "points": _pts([2.2, 2.1, 2.05], every=20), "lbs_E_dist": 1.9},
+           "equal_steps": {"step": 500, "reached": False}}
+    text = "\n".join(curves.markdown([rec]))
+    assert "Stopped by the time budget before 500 steps" in text and "GarTrans (SAT)" in text
+    assert "E_dist at 500 steps" not in text and "too few points" in text
+
+
 # --------------------------------------------------------------------------- callback
 class _Line(L.LightningModule):
     """Least squares on a fixed random problem: deterministic, a few ms per step."""

@@ -185,10 +185,12 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
     if png:
         lines += [f"![learning curves]({png})", ""]
     snap = [r for r in rs if r.get("equal_steps")]
+    short: List[str] = []
     if snap:
         step = snap[0]["equal_steps"]["step"]
         short = sorted({r["method"] for r in snap if not r["equal_steps"]["reached"]})
         snap = [r for r in snap if r["equal_steps"]["reached"]]
+    if snap:
         lines += [f"Test E_dist at equal steps (the weights after {step} optimizer steps) and "
                   "at equal wall time (the end of the budget), mean ± std over seeds:", ""]
         rows = []
@@ -208,9 +210,9 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
         lines += table(["method", f"E_dist at {step} steps (cm)", "E_dist at equal time (cm)",
                         "steps in the time", "seeds", f"p vs {methods[0]} at {step} steps"],
                        rows) + [""]
-        if short:
-            lines += [f"Stopped by the time budget before {step} steps (no equal-step "
-                      f"score): {', '.join(short)}.", ""]
+    if short:
+        lines += [f"Stopped by the time budget before {step} steps (no equal-step "
+                  f"score): {', '.join(short)}.", ""]
     return lines
 
 
