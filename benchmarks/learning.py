@@ -15,6 +15,9 @@ same Lightning ``Trainer``:
   ``--steps`` on the training split; E_dist on the training and test sequences every
   ``--every`` steps, as a ratio to LBS's on the same sequences (``--surface``: the
   normal, edge-length and curvature errors too).
+* ``energy``: the HOOD- and NCS-style models a ``garmentgnn bench`` run trained
+  (``--bench``): their own objective, the physics terms they were trained on, on their
+  test predictions against the same objective on the LBS garment, beside E_dist.
 
 Each writes ``<part>.json`` and ``<part>.md`` (curves also ``<part>.png``) into
 ``~/.cache/garmentgnn/benchmarks/learning``, ``--out``, or with ``--commit`` the committed
@@ -43,13 +46,17 @@ from garmentgnn._plotting import pyplot
 from garmentgnn.bench.methods import BASELINES, DA, DATA, GARTRANS, HOOD, NCS, variant_settings
 from garmentgnn.bench.tables import table
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
+from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule, SequenceChunks
+from garmentgnn.training.module import loss_inputs
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 
 #: the surface metrics ``curves --surface`` adds (E_dist is always measured)
 SURFACE = ("E_vnorm", "E_fnorm", "E_len", "E_curv")
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "learning"
 
+#: HOOD-style's configuration before it started from its own states with normalised inputs
+_HOOD_FORMER: Dict[str, Any] = {"start_state": "lbs", "model": {"normalize": False}}
 #: GarTrans settings compared by ``curves``: model overrides of the packaged config and
 #: Trainer arguments
 VARIANTS: Dict[str, Dict[str, Any]] = {
@@ -88,6 +95,16 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "DA-style": {"baseline": DA},
     "HOOD-style": {"baseline": HOOD},
     "HOOD-style, lr 1e-4": {"baseline": HOOD, "module": {"lr": 1e-4}},
+    "HOOD-style, LBS start": {"baseline": HOOD, "module": {"start_state": "lbs"}},
+    "HOOD-style, raw inputs": {"baseline": HOOD, "module": {"model": {"normalize": False}}},
+    "HOOD-style, accelerations x10": {"baseline": HOOD, "module": {
+        "model": {"accel_scale": 10.0}}},
+    # before its configuration started from its own states with normalised inputs
+    "HOOD-style, former recipe": {"baseline": HOOD, "module": _HOOD_FORMER},
+    "HOOD-style, former recipe, lr 1e-4": {"baseline": HOOD, "module": dict(
+        _HOOD_FORMER, lr=1e-4)},
+    "HOOD-style, former recipe, accelerations x10": {"baseline": HOOD, "module": dict(
+        _HOOD_FORMER, model={"normalize": False, "accel_scale": 10.0})},
 }
 
 
@@ -105,7 +122,9 @@ def gartrans(dims: Dict[str, int], method: str = "GarTrans (SAT)",
 
 def baseline(method: str, dims: Dict[str, int], num_vertices: Optional[int] = None,
              overrides: Optional[Dict[str, Any]] = None) -> BaselineModule:
-    cfg = dict(BASELINES[method], **(overrides or {}))
+    cfg = dict(BASELINES[method])
+    for k, v in (overrides or {}).items():  # a section (``model``, ``loss``) is merged
+        cfg[k] = dict(cfg[k], **v) if isinstance(v, dict) and isinstance(cfg.get(k), dict) else v
     return BaselineModule(num_joints=dims["num_joints"], num_vertices=num_vertices,
                           fps=30.0, history=DATA["history"], **cfg)
 
@@ -328,31 +347,105 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
     return {"results": res, "markdown": lines}
 
 
+def own_objective(module: BaselineModule, item: Any, pred: torch.Tensor) -> Dict[str, float]:
+    """A physics-trained baseline's own training loss (its physics terms, inertia against
+    ``2 p_{t-1} - p_{t-2}``) on the garment trajectory ``pred [T, V, 3]`` of ``item``'s
+    frames, mean over frames ``2..T-1``: ``{"total": ..., term: ...}``."""
+    frames = item.select(torch.arange(2, pred.shape[0]))
+    with torch.no_grad():
+        total, terms = module.loss_fn(loss_inputs(frames, pred[2:], module.dt,
+                                                  predicted=2 * pred[1:-1] - pred[:-2],
+                                                  ground_truth=False))
+    return {"total": float(total), **{k: float(v) for k, v in terms.items()}}
+
+
+def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
+    """The HOOD- and NCS-style models a ``garmentgnn bench`` run left in ``bench/models``
+    (seed ``seed``), on the test split: their own objective on their predictions against
+    the same objective on the LBS garment, beside E_dist."""
+    kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
+              num_landmarks=DATA["num_landmarks"])
+    test = SequenceChunks(root, "test", **kw)
+    groups = sorted({(garment_key(r["garment"]), body_key(r["body"])) for r in test.records})
+    res: Dict[str, Any] = {"bench": str(bench), "seed": seed, "methods": {}}
+    for method in (HOOD, NCS):
+        folder = bench / "models" / f"{method}--s{seed}"
+        rows, loaded = [], {}
+        for i in range(len(test)):
+            r = test.records[test.index[i][0]]
+            ckpt = (folder / "last.ckpt" if method == HOOD else folder /
+                    f"garment{groups.index((garment_key(r['garment']), body_key(r['body'])))}"
+                    / "last.ckpt")
+            if not ckpt.is_file():
+                continue
+            if ckpt not in loaded:
+                loaded[ckpt] = BaselineModule.load_from_checkpoint(ckpt, map_location="cpu")
+            module, item = loaded[ckpt].eval(), test[i]
+            pred, lbs = predict(module, item), item.skinned()
+            ok = item.get("converged")  # E_dist as the bench scores it: converged frames
+            ok = torch.ones(item.num_frames, dtype=torch.bool) if ok is None else ok
+            rows.append({"sequence": item.seq_id, "frames": item.num_frames,
+                         "scored": int(ok.sum()),
+                         "method": own_objective(module, item, pred),
+                         "lbs": own_objective(module, item, lbs),
+                         "E_dist": float(vertex_distance(pred[ok], item.gt[ok]).mean()),
+                         "E_dist_lbs": float(vertex_distance(lbs[ok], item.gt[ok]).mean())})
+        res["methods"][method] = rows
+    lines = [f"Each method's own objective (its physics terms, mean per frame) on its test "
+             f"predictions and on the LBS garment; E_dist in cm over the frames the engine "
+             f"converged on, as the bench scores it; bench `{bench.name}`, seed {seed}:", ""]
+    def mean(rows, key, weight="frames"):  # frame-weighted over sequences
+        return sum(key(r) * r[weight] for r in rows) / sum(r[weight] for r in rows)
+
+    out = []
+    for method, rows in res["methods"].items():
+        if not rows:
+            out.append([method, "0", "—", "—", "—", "—", "—", "no checkpoint"])
+            continue
+        own = mean(rows, lambda r: r["method"]["total"])
+        base = mean(rows, lambda r: r["lbs"]["total"])
+        lower = sum(r["method"]["total"] < r["lbs"]["total"] for r in rows)
+        out.append([method, str(len(rows)), f"{own:.4g}", f"{base:.4g}", f"{own / base:.3f}",
+                    f"{lower} of {len(rows)}",
+                    f"{mean(rows, lambda r: r['E_dist'], 'scored'):.3f}",
+                    f"{mean(rows, lambda r: r['E_dist_lbs'], 'scored'):.3f}"])
+    lines += table(["method", "sequences", "objective", "objective, LBS", "ratio",
+                    "sequences below LBS", "E_dist", "E_dist, LBS"], out)
+    return {"results": res, "markdown": lines}
+
+
 #: the curves plot's top (E_dist / LBS): a diverging variant is clipped there and says so
 #: in the legend, so that it does not flatten the differences near 1
 PLOT_TOP = 1.5
 
 
 def plot_curves(res: Dict[str, Any], path: Path) -> None:
+    """E_dist / LBS against steps, train and test.  Where some variant stays below
+    :data:`PLOT_TOP` the axis is linear and diverging variants are clipped (so they do
+    not flatten the differences near 1); where none does, the axis is logarithmic."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    curves = {name: r["curve"] for name, r in res["variants"].items() if r["curve"]}
+    clip = any(max(row[s] / res["lbs"][s] for row in c) <= PLOT_TOP
+               for c in curves.values() for s in ("train", "test"))
     low = PLOT_TOP
     for ax, split in zip(axes, ("train", "test")):
-        for name, r in res["variants"].items():
-            c = r["curve"]
-            if not c:
-                continue
+        for name, c in curves.items():
             y = [row[split] / res["lbs"][split] for row in c]
             low = min(low, min(y))
-            label = name if max(y) <= PLOT_TOP else f"{name} (up to {max(y):.1f}x: clipped)"
-            ax.plot([row["step"] for row in c], [min(v, PLOT_TOP) for v in y], marker=".",
-                    label=label)
+            clipped = clip and max(y) > PLOT_TOP
+            label = f"{name} (up to {max(y):.1f}x: clipped)" if clipped else name
+            ax.plot([row["step"] for row in c], [min(v, PLOT_TOP) if clip else v for v in y],
+                    marker=".", label=label)
         ax.axhline(1.0, color="k", lw=0.8, ls="--")
         ax.set_title(f"{split} sequences (LBS {res['lbs'][split]:.2f} cm = 1)")
         ax.set_xlabel("optimizer steps")
         ax.legend(fontsize=7, loc="upper left")
-    axes[0].set_ylim(max(0.0, low - 0.05), PLOT_TOP + 0.02)
-    axes[0].set_ylabel("E_dist / LBS")
+    if clip:
+        axes[0].set_ylim(max(0.0, low - 0.05), PLOT_TOP + 0.02)
+    else:
+        axes[0].set_yscale("log")
+    axes[0].set_ylabel("E_dist / LBS" + ("" if clip else " (log scale)"))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -361,9 +454,11 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
 def main(argv: Optional[Sequence[str]] = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves"),
+    ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves", "energy"),
                     help="what to run")
     ap.add_argument("--data", required=True, help="a generated dataset folder")
+    ap.add_argument("--bench", default=None,
+                    help="energy: the output folder of a `garmentgnn bench` run on --data")
     add_output_args(ap, RESULTS, "folder for <part>.json, .md and .png")
     ap.add_argument("--steps", type=int, default=300, help="optimizer steps (overfit, curves)")
     ap.add_argument("--every", type=int, default=50, help="steps between measurements")
@@ -375,7 +470,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
                          "method of the bench)")
     ap.add_argument("--train-sequences", type=int, default=6,
                     help="training sequences measured by `curves` (evenly spaced)")
-    ap.add_argument("--seed", type=int, default=0, help="training seed (curves)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="training seed (curves); the bench run's seed (energy)")
     ap.add_argument("--surface", action="store_true",
                     help="curves: also the normal, edge-length and curvature errors")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
@@ -395,6 +491,10 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         elif part == "overfit":
             r = part_overfit(root, args.steps, args.every, args.methods,
                              args.variants or ())
+        elif part == "energy":
+            if args.bench is None:
+                raise SystemExit("error: `energy` reads a bench run's models: give --bench DIR")
+            r = part_energy(root, Path(args.bench).expanduser(), args.seed)
         else:
             r = part_curves(root, args.steps, args.every, args.variants or list(VARIANTS),
                             args.train_sequences, args.seed, args.surface)

@@ -3,7 +3,7 @@ geometric initialisation, stacks of registry attention layers, and batched copie
 garment graph (the frames of one garment as one PyG-style batch)."""
 from __future__ import annotations
 
-from typing import List, Sequence
+from typing import List, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -13,7 +13,8 @@ from torch.nn.parameter import UninitializedParameter
 
 from garmentgnn.nn import TensorCache, make_layer
 
-__all__ = ["AttentionStack", "batch_edges", "cached_batch_edges", "geometric_init_", "mlp"]
+__all__ = ["AttentionStack", "RunningNormalizer", "batch_edges", "cached_batch_edges",
+           "geometric_init_", "mlp"]
 
 
 def mlp(sizes: Sequence[int], act: nn.Module, last_act: bool = True) -> nn.Sequential:
@@ -32,6 +33,62 @@ def geometric_init_(module: nn.Module) -> None:
         if isinstance(m, nn.Linear):
             nn.init.normal_(m.weight, 0.0, (2.0 / m.out_features) ** 0.5)
             nn.init.zeros_(m.bias)
+
+
+class RunningNormalizer(nn.Module):
+    """MeshGraphNets-style input normaliser (Pfaff et al., ICLR 2021): ``(x - mean) / std``
+    per feature, from running statistics of every row seen in training mode over the
+    first ``max_updates`` calls; frozen after that and in eval mode.  The statistics are
+    buffers, so they travel in the checkpoint.  Before any update it is the identity.
+
+    Not ``nn.BatchNorm1d(affine=False, momentum=None)``: that normalises a training
+    batch by its own statistics, so an autoregressive rollout (one frame per batch) would
+    see other inputs in training than in evaluation.
+
+    Args:
+        size: features per row (the last dimension).
+        max_updates: training calls that update the statistics.
+        eps: the smallest standard deviation (a constant feature stays finite).
+    """
+
+    def __init__(self, size: int, max_updates: int = 100_000, eps: float = 1e-8) -> None:
+        super().__init__()
+        if not isinstance(size, int) or size < 1:
+            raise ValueError(f"`size`: expected a positive int, got {size!r}")
+        if not isinstance(max_updates, int) or max_updates < 0:
+            raise ValueError(f"`max_updates`: expected an int >= 0, got {max_updates!r}")
+        if not eps > 0:
+            raise ValueError(f"`eps`: must be positive, got {eps!r}")
+        self.size, self.max_updates, self.eps = size, max_updates, float(eps)
+        self.register_buffer("updates", torch.zeros((), dtype=torch.long))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("total", torch.zeros(size, dtype=torch.float64))
+        self.register_buffer("total_sq", torch.zeros(size, dtype=torch.float64))
+
+    def mean_std(self) -> Tuple[Tensor, Tensor]:
+        """The current ``(mean, std)``, each ``[size]`` (float64)."""
+        n = self.count.clamp_min(1.0)
+        mean = self.total / n
+        var = (self.total_sq / n - mean ** 2).clamp_min(0.0)
+        return mean, var.sqrt().clamp_min(self.eps)
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.shape[-1] != self.size:
+            raise ValueError(f"`x`: expected {self.size} features in the last dimension, got "
+                             f"{tuple(x.shape)}")
+        if self.training and int(self.updates) < self.max_updates:
+            rows = x.detach().reshape(-1, self.size).to(torch.float64)
+            self.count += rows.shape[0]
+            self.total += rows.sum(0)
+            self.total_sq += (rows ** 2).sum(0)
+            self.updates += 1
+        if float(self.count) == 0:
+            return x
+        mean, std = self.mean_std()
+        return (x - mean.to(x.dtype)) / std.to(x.dtype)
+
+    def extra_repr(self) -> str:
+        return f"{self.size}, max_updates={self.max_updates}, updates={int(self.updates)}"
 
 
 def batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tensor:

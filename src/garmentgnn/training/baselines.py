@@ -9,9 +9,11 @@ is a model plus its losses plus a configuration (``garmentgnn/configs/baselines/
   from its pose.
 * ``hood`` (:class:`~garmentgnn.models.baselines.HOODStyle`): the physics terms only
   (inertia included); trained one step at a time on its own rollout of each chunk,
-  started from the LBS garment of the two frames before the chunk, inputs detached
-  between steps; predicts by an autoregressive rollout over the whole input from the
-  LBS garment of its first two frames, pinned vertices driven by LBS.
+  started from the LBS garment of the two frames before the chunk (or, with
+  ``start_state="own"``, from its own states there, left by its latest training
+  rollout of the chunk before), inputs detached between steps; predicts by an
+  autoregressive rollout over the whole input from the LBS garment of its first two
+  frames, pinned vertices driven by LBS.
 * ``ncs`` (:class:`~garmentgnn.models.baselines.NCSStyle`): garment-specific and
   self-supervised -- the physics terms on its own predictions of three consecutive
   frames; the chunks' simulated positions are removed before the loss ever sees them.
@@ -35,6 +37,10 @@ __all__ = ["BASELINE_METHODS", "BaselineModule"]
 
 #: the methods this module trains
 BASELINE_METHODS = ("da", "hood", "ncs")
+#: where a ``hood`` training rollout starts (``start_state``)
+START_STATES = ("lbs", "own")
+#: checkpoint key of the kept start states (``start_state="own"``)
+STATES_KEY = "garmentgnn_start_states"
 
 
 class BaselineModule(GarmentModule):
@@ -51,16 +57,34 @@ class BaselineModule(GarmentModule):
             poses per frame from it).
         num_body_vertices, nystrom_dim: accepted (and ignored) so the data module's
             sizes can be linked as for GarTrans.
+        start_state: ``hood``: where a training chunk's rollout starts. ``"lbs"``: the
+            LBS garment of the two frames before the chunk. ``"own"``: the model's own
+            states at those two frames, kept from its latest training rollout of the
+            chunk before it (so over the epochs the rollouts chain through whole
+            sequences, the states a test rollout reaches); the LBS garment where there
+            is none yet (a sequence's first chunk, the first epoch) or where that state
+            is on average more than ``max_start_drift`` metres from LBS.  The kept states
+            (two frames per chunk) travel in the checkpoint.
+        max_start_drift: see ``start_state``.
     """
 
     def __init__(self, method: str, num_joints: int, num_vertices: Optional[int] = None,
                  model: Optional[Dict[str, Any]] = None, lr: float = 1e-3,
                  loss: Optional[Dict[str, Any]] = None, coarse: Optional[Dict[str, Any]] = None,
                  fps: float = 30.0, history: int = 3, num_body_vertices: Optional[int] = None,
-                 nystrom_dim: Optional[int] = None) -> None:
+                 nystrom_dim: Optional[int] = None, start_state: str = "lbs",
+                 max_start_drift: float = 0.25) -> None:
         super().__init__()
         if method not in BASELINE_METHODS:
             raise ValueError(f"`method`: expected one of {BASELINE_METHODS}, got {method!r}")
+        if start_state not in START_STATES:
+            raise ValueError(f"`start_state`: expected one of {START_STATES}, got "
+                             f"{start_state!r}")
+        if start_state != "lbs" and method != "hood":
+            raise ValueError(f"`start_state`: only the autoregressive `hood` method has a "
+                             f"start state; leave it at 'lbs' for {method!r}")
+        if not max_start_drift > 0:
+            raise ValueError(f"`max_start_drift`: expected metres > 0, got {max_start_drift!r}")
         self.save_hyperparameters()
         kw = dict(model or {})
         self.dt = 1.0 / fps
@@ -83,6 +107,8 @@ class BaselineModule(GarmentModule):
         lk = dict(loss or {})
         self.loss_fn = GarTransLoss(lk.pop("weights", None), **lk)
         self._coarse: Dict[str, CoarseLevel] = {}  # HOOD's coarse level per sequence
+        # start_state "own": sequence id -> frame -> the state of the latest rollout (CPU)
+        self._states: Dict[str, Dict[int, Tensor]] = {}
 
     # -- pieces ---------------------------------------------------------------------
     def coarse_level(self, inp: GarmentInputs) -> CoarseLevel:
@@ -139,9 +165,7 @@ class BaselineModule(GarmentModule):
                                             ground_truth=False))
         coarse = self.coarse_level(inp)
         lbs = inp.skinned()
-        first = inp.select(torch.tensor([0]))
-        x_prev = first.history_slot(-3).skinned()[0]  # frame t0 - 2 (clamped at 0)
-        x_curr = first.history_slot(-2).skinned()[0]  # frame t0 - 1
+        x_prev, x_curr = self._start(inp)
         preds, inertial = [], []
         for b in range(lbs.shape[0]):  # one step at a time on its own rollout
             nxt = self.model.step(inp, coarse, x_prev[None], x_curr[None],
@@ -149,8 +173,45 @@ class BaselineModule(GarmentModule):
             preds.append(nxt)
             inertial.append(2 * x_curr - x_prev)
             x_prev, x_curr = x_curr, nxt.detach()
+        self._keep(inp, x_prev, x_curr)
         return self.loss_fn(loss_inputs(inp, torch.stack(preds), self.dt,
                                         predicted=torch.stack(inertial), ground_truth=False))
+
+    def _start(self, inp: GarmentInputs) -> Tuple[Tensor, Tensor]:
+        """``hood``: the states ``[V, 3]`` at the two frames before ``inp``'s first (see
+        ``start_state``)."""
+        first = inp.select(torch.tensor([0]))
+        x_prev = first.history_slot(-3).skinned()[0]  # frame t0 - 2 (clamped at 0)
+        x_curr = first.history_slot(-2).skinned()[0]  # frame t0 - 1
+        frames, seq = inp.get("frames"), inp.get("seq_id")
+        if self.hparams.start_state != "own" or frames is None or seq is None:
+            return x_prev, x_curr
+        t0 = int(frames[0])
+        kept = self._states.get(seq, {})
+        if t0 < 2 or t0 - 2 not in kept or t0 - 1 not in kept:
+            return x_prev, x_curr
+        own_prev, own_curr = (kept[t].to(x_curr) for t in (t0 - 2, t0 - 1))
+        drift = float((own_curr - x_curr).norm(dim=-1).mean())
+        if not drift <= self.hparams.max_start_drift:  # also NaN
+            return x_prev, x_curr
+        return own_prev, own_curr
+
+    def _keep(self, inp: GarmentInputs, x_prev: Tensor, x_curr: Tensor) -> None:
+        """``start_state="own"``: keep the rollout's states at ``inp``'s last two frames."""
+        frames, seq = inp.get("frames"), inp.get("seq_id")
+        if self.hparams.start_state == "own" and frames is not None and seq is not None:
+            last = int(frames[-1])
+            self._states.setdefault(seq, {}).update(
+                {last - 1: x_prev.detach().cpu(), last: x_curr.detach().cpu()})
+
+    def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        if self._states:
+            checkpoint[STATES_KEY] = self._states
+        super().on_save_checkpoint(checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
+        self._states = dict(checkpoint.get(STATES_KEY, {}))
 
     def training_step(self, batch: GarmentInputs, batch_idx: int) -> Tensor:
         total, terms = self.compute_loss(batch)

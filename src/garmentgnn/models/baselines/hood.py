@@ -12,7 +12,7 @@ from torch_geometric.utils import scatter
 
 from garmentgnn.geometry import farthest_point_sampling, vertex_normals
 from garmentgnn.models.baselines.common import small_init_
-from garmentgnn.models.blocks import batch_edges, mlp
+from garmentgnn.models.blocks import RunningNormalizer, batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
 
 __all__ = ["CoarseLevel", "HOODStyle", "MLPMessagePassing"]
@@ -114,20 +114,26 @@ class HOODStyle(nn.Module):
     Simplified from HOOD: two levels instead of several (coarse nodes by geodesic
     farthest-point sampling with k-NN geodesic edges instead of HOOD's graph
     coarsening), body interaction as a nearest-body-vertex node feature instead of
-    body-garment edges, no material parameters as inputs, no normalisation statistics.
+    body-garment edges, no material parameters as inputs; the input normalisation of
+    HOOD and MeshGraphNets (running statistics of the node and edge inputs) is optional.
 
     Args:
         hidden: width of every MLP.
         fine_blocks: message-passing blocks before and after the coarse level (each).
         coarse_blocks: blocks on the coarse level.
         dt: frame time step (s).
+        normalize: normalise the node, edge and coarse-edge inputs by running statistics
+            accumulated in training (:class:`~garmentgnn.models.blocks.RunningNormalizer`).
+        accel_scale: the decoder's output unit in m/s^2 (the decoder starts near 0, and
+            holding cloth against gravity takes about 10 m/s^2).
     """
 
     NODE_IN = 11
     EDGE_IN = 8
 
     def __init__(self, hidden: int = 64, fine_blocks: int = 1, coarse_blocks: int = 2,
-                 dt: float = 1.0 / 30.0) -> None:
+                 dt: float = 1.0 / 30.0, normalize: bool = False,
+                 accel_scale: float = 1.0) -> None:
         super().__init__()
         if hidden < 1:
             raise ValueError(f"`hidden`: must be positive, got {hidden}")
@@ -135,7 +141,15 @@ class HOODStyle(nn.Module):
             raise ValueError("`fine_blocks`/`coarse_blocks`: must be positive")
         if not dt > 0:
             raise ValueError(f"`dt`: must be positive, got {dt}")
+        if not accel_scale > 0:
+            raise ValueError(f"`accel_scale`: must be positive (m/s^2), got {accel_scale}")
         self.dt = float(dt)
+        self.accel_scale = float(accel_scale)
+        self.normalize = bool(normalize)
+        if self.normalize:
+            self.node_norm = RunningNormalizer(self.NODE_IN)
+            self.edge_norm = RunningNormalizer(self.EDGE_IN)
+            self.coarse_edge_norm = RunningNormalizer(self.EDGE_IN)
         self.node_enc = _mlp_ln([self.NODE_IN, hidden, hidden])
         self.edge_enc = _mlp_ln([self.EDGE_IN, hidden, hidden])
         self.coarse_edge_enc = _mlp_ln([self.EDGE_IN, hidden, hidden])
@@ -183,9 +197,15 @@ class HOODStyle(nn.Module):
         pinned = scene.pinned_mask().to(dtype).view(1, V, 1).expand(B, V, 1)
         node = torch.cat([vel, normal, pinned, to_body, to_body.norm(dim=-1, keepdim=True)], -1)
 
+        e_in = self._edge_in(x_curr, rest, scene.edge_index)
+        lm = coarse.landmarks
+        ec_in = self._edge_in(x_curr[:, lm], rest[lm], coarse.edge_index)
+        if self.normalize:
+            node, e_in = self.node_norm(node), self.edge_norm(e_in)
+            ec_in = self.coarse_edge_norm(ec_in)
         h = self.node_enc(node).reshape(B * V, -1)
         ei = batch_edges(scene.edge_index, B, V)
-        e = self.edge_enc(self._edge_in(x_curr, rest, scene.edge_index))
+        e = self.edge_enc(e_in)
         e = e.reshape(-1, e.shape[-1])  # copy-major, like `ei`
         for block in self.fine_down:
             h, e = block(h, ei, e)
@@ -193,16 +213,15 @@ class HOODStyle(nn.Module):
         cluster = (coarse.assign.view(1, V)
                    + Z * torch.arange(B, device=h.device).view(B, 1)).reshape(-1)
         hc = scatter(h, cluster, dim=0, dim_size=B * Z, reduce="mean")
-        lm = coarse.landmarks
         eic = batch_edges(coarse.edge_index, B, Z)
-        ec = self.coarse_edge_enc(self._edge_in(x_curr[:, lm], rest[lm], coarse.edge_index))
+        ec = self.coarse_edge_enc(ec_in)
         ec = ec.reshape(-1, ec.shape[-1])
         for block in self.coarse:
             hc, ec = block(hc, eic, ec)
         h = h + hc[cluster]
         for block in self.fine_up:
             h, e = block(h, ei, e)
-        return self.decoder(h).reshape(B, V, 3)
+        return self.decoder(h).reshape(B, V, 3) * self.accel_scale
 
     def step(self, scene: GarmentInputs, coarse: CoarseLevel, x_prev: Tensor, x_curr: Tensor,
              body: Tensor, pinned_target: Optional[Tensor] = None) -> Tensor:
