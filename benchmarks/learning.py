@@ -45,11 +45,11 @@ from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench.methods import BASELINES, DA, DATA, GARTRANS, HOOD, NCS, variant_settings
 from garmentgnn.bench.tables import table
-from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
 from garmentgnn.data.keys import body_key, garment_key
+from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule, SequenceChunks
-from garmentgnn.training.module import loss_inputs
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
+from garmentgnn.training.module import loss_inputs
 
 #: the surface metrics ``curves --surface`` adds (E_dist is always measured)
 SURFACE = ("E_vnorm", "E_fnorm", "E_len", "E_curv")

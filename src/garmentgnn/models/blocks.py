@@ -1,6 +1,7 @@
 """The building blocks of :class:`~garmentgnn.models.GarTrans`: MLPs with the §4.1
 geometric initialisation, stacks of registry attention layers, and batched copies of a
-garment graph (the frames of one garment as one PyG-style batch)."""
+garment graph (the frames of one garment as one PyG-style batch); and the running input
+normaliser of the HOOD-style baseline."""
 from __future__ import annotations
 
 from typing import List, Sequence, Tuple
