@@ -64,7 +64,8 @@ class BaselineModule(GarmentModule):
             sequences, the states a test rollout reaches); the LBS garment where there
             is none yet (a sequence's first chunk, the first epoch) or where that state
             is on average more than ``max_start_drift`` metres from LBS.  The kept states
-            (two frames per chunk) travel in the checkpoint.
+            (two frames per chunk) travel in the checkpoint; with DDP each process keeps
+            those of the chunks it trained, and the checkpoint holds rank 0's.
         max_start_drift: see ``start_state``.
     """
 
