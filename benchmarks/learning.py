@@ -147,6 +147,13 @@ def methods(dims: Dict[str, int], num_vertices: int, only: Optional[Sequence[str
     return out
 
 
+def whole_sequences(root: Path, split: str) -> SequenceChunks:
+    """``split``'s sequences, one item each, with the bench's data settings."""
+    return SequenceChunks(root, split, chunk=10 ** 9, history=DATA["history"],
+                          nystrom_dim=DATA["nystrom_dim"], num_landmarks=DATA["num_landmarks"],
+                          cache_size=64)
+
+
 class _Fixed(torch.utils.data.Dataset):
     """One chunk, ``n`` times (an epoch of ``n`` steps on the same chunk)."""
 
@@ -292,10 +299,7 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 train_sequences: int, seed: int, surface: bool = False) -> Dict[str, Any]:
     dm = datamodule(root, seed)
     dims = dm.dims
-    kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
-              num_landmarks=DATA["num_landmarks"], cache_size=64)
-    test = SequenceChunks(root, "test", **kw)
-    train = SequenceChunks(root, "train", **kw)
+    test, train = whole_sequences(root, "test"), whole_sequences(root, "train")
     pick = torch.linspace(0, len(train) - 1, min(train_sequences, len(train))).round().long()
     sets = {"train": [train[int(i)] for i in pick.unique()],
             "test": [test[i] for i in range(len(test))]}
@@ -363,9 +367,7 @@ def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
     """The HOOD- and NCS-style models a ``garmentgnn bench`` run left in ``bench/models``
     (seed ``seed``), on the test split: their own objective on their predictions against
     the same objective on the LBS garment, beside E_dist."""
-    kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
-              num_landmarks=DATA["num_landmarks"])
-    test = SequenceChunks(root, "test", **kw)
+    test = whole_sequences(root, "test")
     groups = sorted({(garment_key(r["garment"]), body_key(r["body"])) for r in test.records})
     res: Dict[str, Any] = {"bench": str(bench), "seed": seed, "methods": {}}
     for method in (HOOD, NCS):
