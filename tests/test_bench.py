@@ -261,13 +261,18 @@ def test_register_and_cli_arguments(tmp_path):
     with pytest.raises(ValueError, match="seeds"):
         harness.run(presets.preset("tiny"), tmp_path, seeds=0)
     assert cli_main(["bench", "--out", str(tmp_path), "--seeds", "0"]) == 2
+    for bad in ("2/2", "1", "a/b", "0/2/3", "-1/2"):
+        assert cli_main(["bench", "--out", str(tmp_path), f"--shard={bad}"]) == 2
+    with pytest.raises(ValueError, match="shard"):
+        harness.run(presets.preset("tiny"), tmp_path, shard=(2, 2))
     assert not os.listdir(tmp_path)
     assert Path(harness.__file__).exists()
 
 
 @pytest.mark.parametrize("line", [
     "garmentgnn bench --preset medium --out /o --data /d",
-    "garmentgnn bench --preset tiny --out o --seeds 2 --no-learned --retry-failed --no-progress"])
+    "garmentgnn bench --preset tiny --out o --seeds 2 --no-learned --retry-failed --no-progress",
+    "garmentgnn bench --preset converge --out o --data d --shard 1/2"])
 def test_report_command_is_the_command_line(line):
     """The command the report quotes parses back to the same arguments."""
     args = build_parser().parse_args(line.split()[1:])

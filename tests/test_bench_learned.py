@@ -11,6 +11,7 @@ import dataclasses
 import importlib
 import json
 import math
+import multiprocessing
 import shutil
 from pathlib import Path
 
@@ -405,3 +406,30 @@ def test_time_budget_seed_plan_and_long_run(data, tmp_path):
     # a second run redoes nothing
     again = harness.run(p, tmp_path, data=data, progress=False)
     assert again.ran == 0
+
+
+def _shard(p: presets.Preset, out: Path, data: Path, shard) -> harness.RunSummary:
+    return harness.run(p, out, data=data, progress=False, shard=shard, poll_seconds=0.1)
+
+
+@pytest.mark.slow
+def test_two_shards_share_one_bench(data, tmp_path):
+    """Two processes on one ``OUT`` (``shard=(i, 2)``), started together: every task of
+    the seed plan runs exactly once, the second seeds start only once every first seed is
+    in (the plan needs them all), and the report holds every record."""
+    full = next(iter(methods.GARTRANS))
+    p = learned_only(seeds=2, epochs=2, minutes=0.002, epoch_chunks=1, seed_methods=(full,))
+    with multiprocessing.get_context("spawn").Pool(2) as pool:
+        sums = pool.starmap(_shard, [(p, tmp_path, data, (i, 2)) for i in range(2)])
+    recs = records_of(tmp_path)
+    assert all(r["status"] == "ok" for r in recs)
+    assert sum(s.ran for s in sums) == len(recs) == len(list((tmp_path / "records").iterdir()))
+    assert any("report" in s.paths for s in sums)
+    seed0 = {r["method"]: r["metrics"]["E_dist"] for r in recs if r["seed"] == 0}
+    plan = methods.seed_plan(dataclasses.replace(p.learned), seed0)
+    assert sorted((r["method"], r["seed"]) for r in recs) == \
+        sorted((m, s) for m, k in plan.items() for s in range(k))
+    meta = json.loads((tmp_path / "results.json").read_text())["meta"]
+    assert meta["shards"] == 2 and meta["threads"] == max(1, p.threads // 2)
+    # an unsharded rerun finds everything done
+    assert harness.run(p, tmp_path, data=data, progress=False).ran == 0

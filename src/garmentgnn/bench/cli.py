@@ -1,4 +1,5 @@
-"""``garmentgnn bench --preset tiny|small --out DIR [--seeds N] [--data DATASET] [--no-learned]``.
+"""``garmentgnn bench --preset NAME --out DIR [--seeds N] [--data DATASET] [--no-learned]
+[--shard I/N]``.
 
 :mod:`garmentgnn.cli` adds it with ``add_parser(subparsers)`` and calls ``main(args)``
 for ``args.command == "bench"``.
@@ -32,6 +33,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "(default: generate the preset's dataset under OUT/data)")
     b.add_argument("--no-learned", action="store_true",
                    help="do not train/evaluate the learned methods (no dataset needed)")
+    b.add_argument("--shard", default=None, metavar="I/N",
+                   help="run only part I (0-based) of N interleaved parts of the tasks, with "
+                        "the preset's threads divided by N: start N processes with the same "
+                        "--out to share the cores; they wait for each other's first-seed "
+                        "records before the seed plan, and the last to finish writes the "
+                        "report (default: every task in this process)")
     b.add_argument("--retry-failed", action="store_true", help="rerun records marked failed")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     return b
@@ -40,7 +47,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def _command(args: argparse.Namespace) -> str:
     """The ``garmentgnn bench`` command line that ``args`` stand for."""
     parts = ["garmentgnn", "bench", "--preset", args.preset, "--out", str(args.out)]
-    for flag, value in (("--seeds", args.seeds), ("--data", args.data)):
+    for flag, value in (("--seeds", args.seeds), ("--data", args.data),
+                        ("--shard", args.shard)):
         if value is not None:
             parts += [flag, str(value)]
     for flag, on in (("--no-learned", args.no_learned), ("--retry-failed", args.retry_failed),
@@ -59,11 +67,22 @@ def main(args: argparse.Namespace) -> int:
     if args.data is not None and args.no_learned:
         print("error: --data and --no-learned exclude each other", file=sys.stderr)
         return 2
+    shard = None
+    if args.shard is not None:
+        try:
+            i, n = (int(v) for v in args.shard.split("/"))
+        except ValueError:
+            i, n = -1, 0
+        if not 0 <= i < n:
+            print(f"error: --shard must be I/N with 0 <= I < N (e.g. 0/2), got {args.shard!r}",
+                  file=sys.stderr)
+            return 2
+        shard = (i, n)
     try:
         summary = run(preset(args.preset), args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,
                       data=args.data, learned=not args.no_learned,
-                      command=_command(args))
+                      command=_command(args), shard=shard)
     except (ValueError, SpecMismatch) as err:  # bad arguments / a dataset folder of another spec
         print(f"error: {err}", file=sys.stderr)
         return 2

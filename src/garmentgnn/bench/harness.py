@@ -192,8 +192,10 @@ class RunSummary:
     paths: Dict[str, Path]
 
     def __str__(self) -> str:
+        report = self.paths.get("report") or "not yet (other shards still running; the " \
+            "last to finish writes it)"
         return (f"bench: ran {self.ran}, skipped {self.skipped} (already done), "
-                f"failed {self.failed}, {self.seconds:.1f} s; report: {self.paths.get('report')}")
+                f"failed {self.failed}, {self.seconds:.1f} s; report: {report}")
 
 
 class _Context:
@@ -348,15 +350,27 @@ def _extra_record(ctx: _Context, kind: str, method: str, item: Dict[str, Any], s
 
 def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
         retry_failed: bool = False, data=None, learned: bool = True,
-        command: Optional[str] = None) -> RunSummary:
+        command: Optional[str] = None, shard: Optional[Tuple[int, int]] = None,
+        poll_seconds: float = 30.0) -> RunSummary:
     """Run (or resume) preset ``p`` into ``out`` and write the report.
 
     ``seeds`` overrides both the preset's seeds and its learned methods' training seeds.
     The learned methods (``p.learned``, unless ``learned=False``) train on the dataset
     ``data`` (a generated dataset folder) or, by default, on ``p.dataset`` generated
-    (resumably) under ``OUT/data``.  ``command``: the command line, for the report."""
+    (resumably) under ``OUT/data``.  ``command``: the command line, for the report.
+
+    ``shard=(i, n)``: run only the ``i``-th of ``n`` interleaved parts of the task list,
+    with ``max(1, p.threads // n)`` threads, so that ``n`` processes started on the same
+    ``OUT`` share the preset's cores (every record says its threads).  Before the seed
+    plan a shard waits (polling every ``poll_seconds``) for every method's first-seed
+    record, whoever runs it; the shard that finds every record written writes the report
+    (the others' summaries have no ``report`` path)."""
     if not isinstance(p, Preset):
         raise ValueError(f"`p`: expected a Preset, got {type(p).__name__}")
+    if shard is not None and not (isinstance(shard, tuple) and len(shard) == 2
+                                  and all(isinstance(v, int) for v in shard)
+                                  and 0 <= shard[0] < shard[1]):
+        raise ValueError(f"`shard`: expected (i, n) with 0 <= i < n, got {shard!r}")
     n = p.seeds if seeds is None else seeds
     if not isinstance(n, int) or n < 1:
         raise ValueError(f"`seeds`: expected a positive int, got {seeds!r}")
@@ -392,6 +406,30 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     ctx = _Context(p, out)
     records: Dict[Tuple[str, str, str, int], Dict[str, Any]] = {}
     ran = skipped = 0
+    threads = p.threads if shard is None else max(1, p.threads // shard[1])
+
+    def mine(todo):
+        """This shard's part of ``todo`` (every task without ``shard``)."""
+        return list(todo) if shard is None else list(todo)[shard[0]::shard[1]]
+
+    def collect(todo, wait: bool) -> bool:
+        """Load the records of ``todo`` that other shards wrote; with ``wait``, until all
+        are there.  Whether all are."""
+        while True:
+            missing = []
+            for kind, method, item, seed in todo:
+                key = (kind, method, item["name"], seed)
+                if key not in records:
+                    rec = load_record(record_path(out, *key), *key)
+                    if rec is None:
+                        missing.append(key)
+                    else:
+                        records[key] = rec
+            if not missing or not wait:
+                return not missing
+            print(f"shard {shard[0]}/{shard[1]}: waiting for {len(missing)} record(s) of "
+                  f"other shards, e.g. {missing[0]}", flush=True)
+            time.sleep(poll_seconds)
 
     def run_all(todo, bar) -> None:
         nonlocal ran, skipped
@@ -434,25 +472,33 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
         picked = engines.pick_sequences(runner.test.records, p.engine_per_group)
         first += [(engines.KIND, name, {"name": it["id"], "item": it}, 0)
                   for it in picked for name in engine_settings]
-    with num_threads(p.threads), tqdm(total=len(first), desc=f"bench {p.name}",
-                                      disable=not progress) as bar:
-        run_all(first, bar)
+    own = mine(first)
+    with num_threads(threads), tqdm(total=len(own), desc=f"bench {p.name}",
+                                    disable=not progress) as bar:
+        run_all(own, bar)
+        done = collect(first, wait=budget is not None and budget.seed_methods is not None)
         if budget is not None and budget.seed_methods is not None:
             seed0 = {r["method"]: r["metrics"]["E_dist"] for r in records.values()
                      if r["kind"] == learned_mod.KIND and r["seed"] == lseeds[0]
                      and r["status"] == "ok"}
             plan = methods.seed_plan(replace(budget, seeds=len(lseeds)), seed0)
-            second = tasks(p, list(range(n)), lseeds, case, plan)
-            bar.total = len(first) + sum(t[:2] + (t[2]["name"], t[3]) not in records
-                                         for t in second)
-            run_all(second, bar)
+            # split by the plan alone (not by what is on disk), so every shard agrees
+            added = [t for t in tasks(p, list(range(n)), lseeds, case, plan)
+                     if t not in first]
+            own = mine(added)
+            bar.total = bar.n + len(own)
+            run_all(own, bar)
+            done = collect(first + added, wait=False)
+    if not done:
+        return RunSummary(ran, skipped, 0, time.perf_counter() - t0, {})
     records = list(records.values())
     # the simulator-case methods (and their reference) only where the preset has cases
     planned = list(PLANNED) + ([m for m in METHODS if m not in p.method_names()]
                                if p.cases else [])
     not_run = [m for m in planned if not any(r["method"] == m for r in records)]
     meta = {"command": command or f"garmentgnn.bench.harness.run(preset {p.name!r})",
-            "preset": p.name, "seeds": n, "threads": p.threads,
+            "preset": p.name, "seeds": n, "threads": threads,
+            "shards": 1 if shard is None else shard[1],
             "torch": torch.__version__, "python": platform.python_version(),
             "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
                        + f", {os.cpu_count()} CPUs",
