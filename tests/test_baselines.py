@@ -217,3 +217,27 @@ def _assert_trains(model, loss, lr):
         loss().backward()
         opt.step()
     assert float(loss().detach()) < float(first.detach())
+
+
+def test_to_device_is_a_copy_that_moves_the_rest_state(setup):
+    """``GarmentInputs.to`` (what Lightning calls to put a batch on a GPU) returns a copy
+    with every tensor, the rest state and the pinned mask on the device, and leaves the
+    original where it was: PyG's ``Data.to`` moves in place, which put the bench's cached
+    validation items on the GPU under a CPU prediction, and left ``rest`` on the CPU
+    under a GPU loss.  The ``meta`` device stands in for a GPU."""
+    scene = setup[-1].clone()
+    scene.rest = _physics(scene)[0]
+    del scene.pinned  # the all-False mask is made on the inputs' device
+    moved = scene.to("meta")
+    assert moved is not scene
+    keys = [k for k, v in scene.items() if isinstance(v, torch.Tensor)]
+    assert {"rest_pos", "faces", "edge_index", "skin_weights"} <= set(keys)
+    for k in keys:
+        assert scene[k].device.type == "cpu" and moved[k].device.type == "meta", k
+    rest = [moved.rest.faces, moved.rest.uv_inverse, moved.rest.hinge_area,
+            *moved.rest.adjacency]
+    assert all(t.is_meta for t in rest) and not scene.rest.uv_inverse.is_meta
+    assert type(moved.rest.adjacency) is type(scene.rest.adjacency)
+    assert moved.pinned_mask().is_meta and not scene.pinned_mask().is_meta
+    only = scene.to("meta", "rest_pos")
+    assert only.rest_pos.is_meta and not only.faces.is_meta and not only.rest.faces.is_meta

@@ -2,6 +2,7 @@
 import json
 import math
 import os
+import shlex
 import time
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import pytest
 import torch
 
 from garmentgnn.bench import harness, precision, presets, report, stability, tables, timing
-from garmentgnn.bench.cli import _command
+from garmentgnn.bench.cli import _command, _learned_overrides
 from garmentgnn.bench.records import NOT_RUN, failure, section
 from garmentgnn.bench.sequences import case_item, make_sequence
 from garmentgnn.cli import build_parser, main as cli_main
@@ -272,12 +273,32 @@ def test_register_and_cli_arguments(tmp_path):
 @pytest.mark.parametrize("line", [
     "garmentgnn bench --preset medium --out /o --data /d",
     "garmentgnn bench --preset tiny --out o --seeds 2 --no-learned --retry-failed --no-progress",
-    "garmentgnn bench --preset converge --out o --data d --shard 1/2"])
+    "garmentgnn bench --preset converge --out o --data d --minutes 2.5 --shard 1/2 "
+    "--methods 'GarTrans (SAT)' DA-style"])
 def test_report_command_is_the_command_line(line):
     """The command the report quotes parses back to the same arguments."""
-    args = build_parser().parse_args(line.split()[1:])
+    args = build_parser().parse_args(shlex.split(line)[1:])
     assert _command(args) == line
-    assert build_parser().parse_args(_command(args).split()[1:]) == args
+    assert build_parser().parse_args(shlex.split(_command(args))[1:]) == args
+
+
+def test_minutes_and_methods_override_the_preset(tmp_path):
+    """``--minutes``/``--methods``: the learned budget and methods replaced, the seed
+    plan's fixed methods kept where chosen; refused without learned runs."""
+    conv = presets.preset("converge")
+    full = conv.learned.seed_methods[0]
+    p = _learned_overrides(conv, 90.0, ["DA-style", full, "DA-style"])
+    assert p.learned.minutes == 90.0 and p.learned.methods == ("DA-style", full)
+    assert p.learned.seed_methods == (full,) and p.learned.equal_steps == conv.learned.equal_steps
+    assert _learned_overrides(conv, None, ["DA-style"]).learned.seed_methods == ()
+    assert _learned_overrides(conv, None, None) is conv
+    with pytest.raises(ValueError, match="minutes"):
+        _learned_overrides(conv, 0.0, None)
+    out = str(tmp_path / "o")
+    assert cli_main(["bench", "--out", out, "--no-learned", "--minutes", "1"]) == 2
+    with pytest.raises(SystemExit):  # argparse: not a method name
+        cli_main(["bench", "--out", out, "--methods", "no-such-method"])
+    assert not (tmp_path / "o").exists()
 
 
 def test_failed_record_fields_and_report_section_start():

@@ -1,5 +1,5 @@
 """``garmentgnn bench --preset NAME --out DIR [--seeds N] [--data DATASET] [--no-learned]
-[--shard I/N]``.
+[--minutes M] [--methods NAME ...] [--shard I/N]``.
 
 :mod:`garmentgnn.cli` adds it with ``add_parser(subparsers)`` and calls ``main(args)``
 for ``args.command == "bench"``.
@@ -7,11 +7,14 @@ for ``args.command == "bench"``.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
+from dataclasses import replace
 
 from garmentgnn._argparse import HelpFormatter
 from garmentgnn.bench.harness import run
-from garmentgnn.bench.presets import PRESET_NAMES, preset
+from garmentgnn.bench.methods import METHOD_NAMES
+from garmentgnn.bench.presets import PRESET_NAMES, Preset, preset
 from garmentgnn.data import SpecMismatch
 
 
@@ -33,6 +36,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "(default: generate the preset's dataset under OUT/data)")
     b.add_argument("--no-learned", action="store_true",
                    help="do not train/evaluate the learned methods (no dataset needed)")
+    b.add_argument("--minutes", type=float, default=None,
+                   help="training minutes of every learned run, instead of the preset's "
+                        "(e.g. an hours-long budget on a GPU; use a new --out: finished "
+                        "records in OUT are kept; default: the preset's)")
+    b.add_argument("--methods", nargs="+", default=None, metavar="NAME",
+                   choices=METHOD_NAMES,
+                   help="run only these learned methods (quote names with spaces; "
+                        f"choose from {', '.join(METHOD_NAMES)}; default: the preset's)")
     b.add_argument("--shard", default=None, metavar="I/N",
                    help="run only part I (0-based) of N interleaved parts of the tasks, with "
                         "the preset's threads divided by N: start N processes with the same "
@@ -48,14 +59,33 @@ def _command(args: argparse.Namespace) -> str:
     """The ``garmentgnn bench`` command line that ``args`` stand for."""
     parts = ["garmentgnn", "bench", "--preset", args.preset, "--out", str(args.out)]
     for flag, value in (("--seeds", args.seeds), ("--data", args.data),
-                        ("--shard", args.shard)):
+                        ("--minutes", args.minutes), ("--shard", args.shard)):
         if value is not None:
             parts += [flag, str(value)]
+    if args.methods:
+        parts += ["--methods"] + [shlex.quote(m) for m in args.methods]
     for flag, on in (("--no-learned", args.no_learned), ("--retry-failed", args.retry_failed),
                      ("--no-progress", args.no_progress)):
         if on:
             parts.append(flag)
     return " ".join(parts)
+
+
+def _learned_overrides(p: Preset, minutes, methods) -> Preset:
+    """``p`` with its learned runs' ``minutes`` and ``methods`` replaced (``None``: the
+    preset's); the preset's seeded methods that are left out drop from its seed plan."""
+    if minutes is None and methods is None:
+        return p
+    if p.learned is None:
+        raise ValueError(f"--minutes/--methods: preset {p.name!r} has no learned methods")
+    if minutes is not None and not 0 < minutes < float("inf"):
+        raise ValueError(f"--minutes must be a positive number, got {minutes}")
+    kw = {} if minutes is None else {"minutes": minutes}
+    if methods is not None:
+        kw["methods"] = tuple(dict.fromkeys(methods))
+        if p.learned.seed_methods is not None:
+            kw["seed_methods"] = tuple(m for m in p.learned.seed_methods if m in methods)
+    return replace(p, learned=replace(p.learned, **kw))
 
 
 def main(args: argparse.Namespace) -> int:
@@ -79,7 +109,10 @@ def main(args: argparse.Namespace) -> int:
             return 2
         shard = (i, n)
     try:
-        summary = run(preset(args.preset), args.out, seeds=args.seeds,
+        if args.no_learned and (args.minutes is not None or args.methods):
+            raise ValueError("--minutes/--methods set the learned runs; --no-learned runs none")
+        p = _learned_overrides(preset(args.preset), args.minutes, args.methods)
+        summary = run(p, args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,
                       data=args.data, learned=not args.no_learned,
                       command=_command(args), shard=shard)

@@ -465,7 +465,7 @@ class LearnedRunner:
             module = self._baseline_module(NCS, dm, V)
             info = self.fit(module, dm, folder / f"garment{g}", self.budget.ncs_epochs,
                             minutes=each)
-            total["epochs"] = info["epochs"]
+            total["epochs"], total["device"] = info["epochs"], info["device"]
             total["train_seconds"] += info["train_seconds"]
             for k in ("budget_seconds", "steps"):
                 if k in info:

@@ -64,10 +64,21 @@ class GarmentInputs(Data):
     def num_frames(self) -> int:
         return int(self.rotations.shape[0]) if "rotations" in self else 0
 
+    def to(self, device, *args: str, non_blocking: bool = False) -> "GarmentInputs":
+        """A copy on ``device``, the rest state (``rest``) included; ``args``: only these
+        keys.  Unlike PyG's ``Data.to`` (which moves in place), this one never moves
+        ``self``: a dataset's cached item stays on the CPU when a copy goes to a GPU."""
+        out = copy.copy(self)  # a new store holding the same tensors
+        Data.to(out, device, *args, non_blocking=non_blocking)
+        if "rest" in out and (not args or "rest" in args):
+            out.rest = out.rest.to(device, non_blocking=non_blocking)
+        return out
+
     def pinned_mask(self) -> Tensor:
         """``[V]`` bool (all ``False`` when nothing is pinned)."""
         p = self.get("pinned")
-        return torch.zeros(self.num_vertices, dtype=torch.bool) if p is None else p.bool()
+        return (torch.zeros(self.num_vertices, dtype=torch.bool, device=self.rest_pos.device)
+                if p is None else p.bool())
 
     def select(self, idx: Tensor) -> "GarmentInputs":
         """The same garment restricted to frames ``idx`` (per-frame keys indexed, static

@@ -27,7 +27,7 @@ losses multiply the energies by their weights.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Optional, Sequence
 
 import torch
@@ -77,6 +77,14 @@ class ClothRest:
     hinge_length: Tensor
     hinge_area: Tensor
 
+    def to(self, device, non_blocking: bool = False) -> "ClothRest":
+        """A copy with every tensor on ``device`` (this one is left where it is)."""
+        def move(v):
+            if isinstance(v, Tensor):
+                return v.to(device, non_blocking=non_blocking)
+            return type(v)(*(move(t) for t in v))  # FaceAdjacency
+        return replace(self, **{f.name: move(getattr(self, f.name)) for f in fields(self)})
+
     @classmethod
     def from_mesh(cls, rest_pos: Tensor, faces: Tensor, face_uv: Optional[Tensor] = None,
                   flat_rest: bool = False) -> "ClothRest":
@@ -97,7 +105,8 @@ class ClothRest:
         corner_faces = torch.arange(3 * F, device=faces.device).view(F, 3)
         frame = uv_rest_frame(face_uv.reshape(-1, 2).to(rest_pos.dtype), corner_faces)
         adj = face_adjacency(faces, rest_pos.size(0))
-        theta0 = (torch.zeros(adj.faces.size(0), dtype=rest_pos.dtype) if flat_rest
+        theta0 = (torch.zeros(adj.faces.size(0), dtype=rest_pos.dtype, device=rest_pos.device)
+                  if flat_rest
                   else dihedral_angles(rest_pos, faces, adj))
         e = rest_pos[adj.edges[:, 1]] - rest_pos[adj.edges[:, 0]]
         return cls(faces=faces, uv_inverse=frame.inverse, uv_area=frame.area, valid=frame.valid,
