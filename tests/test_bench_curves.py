@@ -50,6 +50,29 @@ def test_report_when_no_method_reached_the_equal_step_snapshot():
     assert "E_dist at 500 steps" not in text and "too few points" in text
 
 
+def test_plot_marks_only_curves_that_leave_the_frame(tmp_path, monkeypatch):
+    """The legend says "above the frame" for a curve whose top lies above the plotted
+    error axis, and only then: a curve a little above 1.5x LBS still drawn inside the
+    axis's margin was once marked so (read off the figure's own axis)."""
+    got = {}
+    monkeypatch.setattr(curves, "save_figure",
+                        lambda fig, path: got.update(fig=fig) or path)
+
+    def rec(method, errors):
+        return {"kind": "learned", "status": "ok", "method": method, "seed": 0, "epochs": 1,
+                "steps": 40, "metrics": {"E_dist": 9.5},
+                "curve": {"every": 10, "points": _pts(errors), "lbs_E_dist": 2.0}}
+
+    curves.plot([rec("A", [2.1, 2.2, 2.1]), rec("B", [2.1, 3.02, 2.9]),
+                 rec("C", [2.1, 50.0, 70.0])], tmp_path / "c.png")
+    ax = got["fig"].axes[0]
+    top = ax.get_ylim()[1]
+    labels = dict(zip(["A", "B", "C"], ax.get_legend_handles_labels()[1]))
+    assert 3.0 < 3.02 < top < 50.0  # 1.5x LBS plus the margin
+    assert labels["A"] == "A" and labels["B"] == "B"
+    assert labels["C"] == "C (up to 70 cm, above the frame)"
+
+
 # --------------------------------------------------------------------------- callback
 class _Line(L.LightningModule):
     """Least squares on a fixed random problem: deterministic, a few ms per step."""

@@ -231,11 +231,13 @@ def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
     lbs = next((r["curve"].get("lbs_E_dist") for r in rs if r["curve"].get("lbs_E_dist")), None)
     errs = [p["E_dist"] for r in first.values() for p in r["curve"]["points"]]
     top = max(errs) if lbs is None else min(max(errs), 1.5 * lbs)
+    bottom = min(errs + ([lbs] if lbs else []))
+    lo, hi = bottom - 0.05 * (top - bottom), top + 0.05 * (top - bottom)
     fig, axes = plt.subplots(1, 2, figsize=(12.8, 5.2), sharey=True)
     for i, (method, r) in enumerate(first.items()):
         pts = r["curve"]["points"]
         y = [p["E_dist"] for p in pts]
-        label = method + (f" (up to {max(y):.3g} cm, above the frame)" if max(y) > top else "")
+        label = method + (f" (up to {max(y):.3g} cm, above the frame)" if max(y) > hi else "")
         style = dict(color=plt.get_cmap("tab10")(i % 10), marker=".", markersize=3, lw=1.2)
         axes[0].plot([p["step"] for p in pts], y, label=label, **style)
         axes[1].plot([p["seconds"] / 60.0 for p in pts], y, **style)
@@ -245,8 +247,7 @@ def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
                        label=f"LBS: {lbs:.3g} cm" if ax is axes[0] else None)
         ax.set_xlabel(xlabel)
         ax.grid(True, alpha=0.3)
-    bottom = min(errs + ([lbs] if lbs else []))
-    axes[0].set_ylim(bottom - 0.05 * (top - bottom), top + 0.05 * (top - bottom))
+    axes[0].set_ylim(lo, hi)
     axes[0].set_ylabel("validation E_dist (cm)")
     axes[0].set_title("against optimizer steps")
     axes[1].set_title("against training wall time")
