@@ -96,6 +96,9 @@ def test_load_floor(tmp_path, monkeypatch):
     assert nf.load_floor(tmp_path / "none.json") is None
     monkeypatch.setenv(nf.ENV, str(path))
     assert nf.load_floor()["path"] == str(path)
+    monkeypatch.delenv(nf.ENV)
+    if nf.COMMITTED.is_file():  # the committed file is named by its place in the repository
+        assert nf.load_floor()["path"] == "benchmarks/results/gt_noise.json"
     bad = tmp_path / "bad.json"
     for text in ("{", '{"floor": {"torch": {"mean_cm": -1, "max_cm": 1, "scale_m": 1e-7}}}',
                  '{"runs": []}', '{"floor": {"torch": 3}}'):

@@ -116,7 +116,11 @@ def load_floor(path=None) -> Optional[Dict[str, Any]]:
         raise ValueError(f"{path}: not a results file of benchmarks/gt_noise.py (no valid "
                          f"'floor': {type(e).__name__}: {e}); rerun it, or point ${ENV} at "
                          f"one") from None
-    return {"path": str(path), "floor": floor, "meta": doc.get("meta", {})}
+    try:  # the committed file by its place in the repository, not this machine's path
+        shown = str(path.resolve().relative_to(COMMITTED.parents[2]))
+    except ValueError:
+        shown = str(path)
+    return {"path": shown, "floor": floor, "meta": doc.get("meta", {})}
 
 
 def label(engine: str, f: Dict[str, Any]) -> str:
