@@ -33,7 +33,6 @@ no record are listed as "not run" in the report -- no number is ever made up for
 from __future__ import annotations
 
 import io
-import json
 import os
 import platform
 import time
@@ -50,8 +49,8 @@ from garmentgnn.bench import learned as learned_mod
 from garmentgnn.bench import methods
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.presets import Preset, SimBudget
-from garmentgnn.bench.records import failure
-from garmentgnn.bench.report import STATUSES, check_record, write_report
+from garmentgnn.bench.records import collect, failure, json_safe, load_record, record_path
+from garmentgnn.bench.report import check_record, write_report
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.timing import batch_sweep, num_threads, peak_memory
@@ -157,25 +156,6 @@ def _method(name: str, p: Preset) -> Method:
 
 
 # --------------------------------------------------------------------------- records
-def record_path(out: Path, kind: str, method: str, case: str, seed: int) -> Path:
-    return out / "records" / f"{kind}--{slug(case)}--{slug(method)}--s{seed}.json"
-
-
-def load_record(path: Path, kind: str, method: str, case: str, seed: int
-                ) -> Optional[Dict[str, Any]]:
-    """The record at ``path`` if it is complete and is the one asked for, else ``None``."""
-    try:
-        rec = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(rec, dict) or rec.get("status") not in STATUSES:
-        return None
-    if (rec.get("kind"), rec.get("method"), rec.get("case"), rec.get("seed")) != \
-            (kind, method, case, seed):
-        return None
-    return rec
-
-
 def _save_tensor_dict(path: Path, obj: Dict[str, Any]) -> None:
     buf = io.BytesIO()
     torch.save(obj, buf)
@@ -412,25 +392,6 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
         """This shard's part of ``todo`` (every task without ``shard``)."""
         return list(todo) if shard is None else list(todo)[shard[0]::shard[1]]
 
-    def collect(todo, wait: bool) -> bool:
-        """Load the records of ``todo`` that other shards wrote; with ``wait``, until all
-        are there.  Whether all are."""
-        while True:
-            missing = []
-            for kind, method, item, seed in todo:
-                key = (kind, method, item["name"], seed)
-                if key not in records:
-                    rec = load_record(record_path(out, *key), *key)
-                    if rec is None:
-                        missing.append(key)
-                    else:
-                        records[key] = rec
-            if not missing or not wait:
-                return not missing
-            print(f"shard {shard[0]}/{shard[1]}: waiting for {len(missing)} record(s) of "
-                  f"other shards, e.g. {missing[0]}", flush=True)
-            time.sleep(poll_seconds)
-
     def run_all(todo, bar) -> None:
         nonlocal ran, skipped
         for kind, method, item, seed in todo:
@@ -458,7 +419,7 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
                                                 engine_settings[method], p.engine_frames)
                 else:
                     rec = _extra_record(ctx, kind, method, item, seed)
-                rec = _json_safe(_finalize(rec))
+                rec = json_safe(_finalize(rec))
                 atomic_write_json(path, rec)
                 ran += 1
             records[(kind, method, case, seed)] = rec
@@ -476,7 +437,9 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     with num_threads(threads), tqdm(total=len(own), desc=f"bench {p.name}",
                                     disable=not progress) as bar:
         run_all(own, bar)
-        done = collect(first, wait=budget is not None and budget.seed_methods is not None)
+        who = "" if shard is None else f"shard {shard[0]}/{shard[1]}"
+        done = collect(out, first, records, budget is not None and budget.seed_methods is not None,
+                       poll_seconds, who)
         if budget is not None and budget.seed_methods is not None:
             seed0 = {r["method"]: r["metrics"]["E_dist"] for r in records.values()
                      if r["kind"] == learned_mod.KIND and r["seed"] == lseeds[0]
@@ -488,7 +451,7 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
             own = mine(added)
             bar.total = bar.n + len(own)
             run_all(own, bar)
-            done = collect(first + added, wait=False)
+            done = collect(out, first + added, records)
     if not done:
         return RunSummary(ran, skipped, 0, time.perf_counter() - t0, {})
     records = list(records.values())
@@ -505,7 +468,7 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
             "code": code_version(),
             "reference": (p.reference.name + " (ground truth of the simulator cases)"
                           if p.cases else "each dataset sequence's own simulation"),
-            "preset_config": _json_safe(asdict(p))}
+            "preset_config": json_safe(asdict(p))}
     if data_info is not None:
         meta["dataset"] = data_info.to_json()
     paths = write_report(records, out, not_run, meta)
@@ -520,17 +483,3 @@ def _finalize(rec: Dict[str, Any]) -> Dict[str, Any]:
     except ValueError as err:
         rec = dict(rec, status="failed", message=f"refused by the report: {err}")
     return rec
-
-
-def _json_safe(obj: Any) -> Any:
-    """Tuples to lists, non-finite floats to ``None`` (applied after :func:`_finalize`,
-    so only failed records still hold any), anything else JSON cannot hold to ``str``."""
-    if isinstance(obj, dict):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, float):
-        return obj if obj == obj and obj not in (float("inf"), float("-inf")) else None
-    if isinstance(obj, (str, int, bool)) or obj is None:
-        return obj
-    return str(obj)

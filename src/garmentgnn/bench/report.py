@@ -33,7 +33,7 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 from garmentgnn.bench import (curves, learned_report, leaveout, noise_floor, precision,
                               scaling)
 from garmentgnn.bench.page import write_media
-from garmentgnn.bench.records import NOT_RUN
+from garmentgnn.bench.records import NOT_RUN, STATUSES
 from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
@@ -43,7 +43,6 @@ STABILITY_KINDS = ("stability", "learned_stability")
 #: the field an ok record of each extra kind must hold (their modules document the rest)
 EXTRA_REQUIRED = {"scaling": "timing", "leaveout": "scenes", "precision": "rows",
                   "long_sequence": "verdict"}
-STATUSES = ("ok", "failed")
 
 
 # --------------------------------------------------------------------------- validation
