@@ -453,7 +453,8 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
             run_all(own, bar)
             done = collect(out, first + added, records)
     if not done:
-        return RunSummary(ran, skipped, 0, time.perf_counter() - t0, {})
+        failed = sum(r["status"] == "failed" for r in records.values())
+        return RunSummary(ran, skipped, failed, time.perf_counter() - t0, {})
     records = list(records.values())
     # the simulator-case methods (and their reference) only where the preset has cases
     planned = list(PLANNED) + ([m for m in METHODS if m not in p.method_names()]
