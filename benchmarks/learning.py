@@ -81,6 +81,8 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "gate 0.1, cm, no limit/projection": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
                                                     "strain_limit": 0,
                                                     "collision_projection": None}},
+    "lr 3e-4": {"model": {"lr": 3e-4}},
+    "lr 1e-2": {"model": {"lr": 1e-2}},
     "state, noise 3 mm": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
                                     "garment_state": True, "state_noise": 0.003,
                                     "state_dropout": 0.25}},
