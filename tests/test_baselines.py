@@ -239,5 +239,7 @@ def test_to_device_is_a_copy_that_moves_the_rest_state(setup):
     assert all(t.is_meta for t in rest) and not scene.rest.uv_inverse.is_meta
     assert type(moved.rest.adjacency) is type(scene.rest.adjacency)
     assert moved.pinned_mask().is_meta and not scene.pinned_mask().is_meta
+    back = scene.cpu()  # cpu() and cuda() copy too (PyG's move in place)
+    assert back is not scene and back.rest is not scene.rest
     only = scene.to("meta", "rest_pos")
     assert only.rest_pos.is_meta and not only.faces.is_meta and not only.rest.faces.is_meta

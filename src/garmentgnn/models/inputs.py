@@ -74,6 +74,14 @@ class GarmentInputs(Data):
             out.rest = out.rest.to(device, non_blocking=non_blocking)
         return out
 
+    def cpu(self, *args: str) -> "GarmentInputs":
+        """A copy on the CPU (see :meth:`to`)."""
+        return self.to("cpu", *args)
+
+    def cuda(self, device=None, *args: str, non_blocking: bool = True) -> "GarmentInputs":
+        """A copy on a GPU, ``cuda`` (the current one) by default (see :meth:`to`)."""
+        return self.to("cuda" if device is None else device, *args, non_blocking=non_blocking)
+
     def pinned_mask(self) -> Tensor:
         """``[V]`` bool (all ``False`` when nothing is pinned)."""
         p = self.get("pinned")
