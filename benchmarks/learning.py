@@ -57,8 +57,8 @@ RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "learning"
 
 #: HOOD-style's configuration before it started from its own states with normalised inputs
 _HOOD_FORMER: Dict[str, Any] = {"start_state": "lbs", "model": {"normalize": False}}
-#: GarTrans settings compared by ``curves``: model overrides of the packaged config and
-#: Trainer arguments
+#: GarTrans settings compared by ``curves``: model overrides of the packaged config,
+#: Trainer arguments and data-module settings
 VARIANTS: Dict[str, Dict[str, Any]] = {
     "config": {},
     "former config (gates at 0, acceleration)": {"model": {"gate_init": 0.0,
@@ -83,6 +83,11 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
                                                     "collision_projection": None}},
     "lr 3e-4": {"model": {"lr": 3e-4}},
     "lr 1e-2": {"model": {"lr": 1e-2}},
+    "input normalisers": {"model": {"input_norm": True}},
+    # ``data``: the data module's settings (the pose history is the GRU's input)
+    "pose history 2": {"data": {"history": 2}},
+    "pose history 10": {"data": {"history": 10}},
+    "pose history 30": {"data": {"history": 30}},
     "state, noise 3 mm": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
                                     "garment_state": True, "state_noise": 0.003,
                                     "state_dropout": 0.25}},
@@ -111,9 +116,11 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
 
 
 # ------------------------------------------------------------------ building methods
-def datamodule(root: Path, seed: int = 0, split: str = "train") -> GarmentDataModule:
+def datamodule(root: Path, seed: int = 0, split: str = "train",
+               data: Optional[Dict[str, Any]] = None) -> GarmentDataModule:
+    """The bench's data settings, with ``data``'s overrides (e.g. ``history``)."""
     return GarmentDataModule(root, val_split=None, seed=seed, train_split=split, cache_size=64,
-                             **DATA)
+                             **dict(DATA, **(data or {})))
 
 
 def gartrans(dims: Dict[str, int], method: str = "GarTrans (SAT)",
@@ -149,9 +156,10 @@ def methods(dims: Dict[str, int], num_vertices: int, only: Optional[Sequence[str
     return out
 
 
-def whole_sequences(root: Path, split: str) -> SequenceChunks:
-    """``split``'s sequences, one item each, with the bench's data settings."""
-    return SequenceChunks(root, split, chunk=10 ** 9, history=DATA["history"],
+def whole_sequences(root: Path, split: str, history: Optional[int] = None) -> SequenceChunks:
+    """``split``'s sequences, one item each, with the bench's data settings (``history``:
+    another pose history length)."""
+    return SequenceChunks(root, split, chunk=10 ** 9, history=history or DATA["history"],
                           nystrom_dim=DATA["nystrom_dim"], num_landmarks=DATA["num_landmarks"],
                           cache_size=64)
 
@@ -301,10 +309,15 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 train_sequences: int, seed: int, surface: bool = False) -> Dict[str, Any]:
     dm = datamodule(root, seed)
     dims = dm.dims
-    test, train = whole_sequences(root, "test"), whole_sequences(root, "train")
-    pick = torch.linspace(0, len(train) - 1, min(train_sequences, len(train))).round().long()
-    sets = {"train": [train[int(i)] for i in pick.unique()],
-            "test": [test[i] for i in range(len(test))]}
+
+    def sequences(history: Optional[int] = None) -> Dict[str, List[Any]]:
+        test = whole_sequences(root, "test", history)
+        train = whole_sequences(root, "train", history)
+        pick = torch.linspace(0, len(train) - 1, min(train_sequences, len(train))).round().long()
+        return {"train": [train[int(i)] for i in pick.unique()],
+                "test": [test[i] for i in range(len(test))]}
+
+    sets = sequences()
     lbs = {k: lbs_error(v) for k, v in sets.items()}
     res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seed": seed, "variants": {}}
     if surface:
@@ -315,10 +328,12 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
         L.seed_everything(seed, verbose=False)
         module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
                   else gartrans(dims, overrides=v.get("model")))
-        probe = Probe(sets, every, name, surface)
+        data = v.get("data")
+        probe = Probe(sequences(data.get("history")) if data else sets, every, name, surface)
         t = time.perf_counter()
         try:
-            _trainer(steps, [probe], **v.get("trainer", {})).fit(module, datamodule(root, seed))
+            _trainer(steps, [probe], **v.get("trainer", {})).fit(module,
+                                                                 datamodule(root, seed, data=data))
             status = "ok"
         except Exception as err:
             status = f"{type(err).__name__}: {err}"

@@ -163,7 +163,7 @@ def test_state_arguments_are_checked(dm):
 #: the model switches whose defaults must agree in GarTrans, GarTransModule and the
 #: packaged config (``compile_search`` is a speed switch, on in the config only)
 SWITCHES = ("lbs_start", "gate_init", "collision_projection", "blend_shape", "strain_limit",
-            "accel_unit", "garment_state")
+            "accel_unit", "garment_state", "input_norm")
 
 
 def test_model_module_and_config_defaults_agree():
@@ -176,8 +176,8 @@ def test_model_module_and_config_defaults_agree():
     for name in SWITCHES:
         assert model[name] == module[name] == config[name], name
     assert set(PAPER_FORM) == set(SWITCHES)
-    assert all(PAPER_FORM[k] != model[k] for k in SWITCHES if k not in ("gate_init",
-                                                                           "garment_state"))
+    assert all(PAPER_FORM[k] != model[k] for k in SWITCHES
+               if k not in ("gate_init", "garment_state", "input_norm"))
     assert module["skin_prior"] is True and config.get("skin_prior", True) is True
 
 
@@ -232,3 +232,55 @@ def test_model_can_be_built_under_no_grad(dm):
     with torch.no_grad():
         module = gartrans(dm)
     assert any(p.requires_grad for p in module.model.dynamic.parameters())
+
+
+def test_input_normalisers_feed_the_stacks_standardised_features(dm, tmp_path):
+    """``input_norm``: in training, the first call's statistics are that call's rows, so
+    each stack gets exactly ``(x - mean) / std`` of its raw features (computed here with
+    torch's own mean and population std); in eval the statistics stay; they travel in
+    the checkpoint; without ``input_norm`` the model has no such buffers."""
+    module = gartrans(dm, input_norm=True).train()
+    model, item = module.model, dm.train_set[1]
+    seen = {}
+
+    def keep(name):
+        def hook(mod, args, out):
+            seen[name] = (args[0].detach().clone(), out.detach().clone())
+        return hook
+
+    def keep_stack_input(name):
+        def pre(mod, args):
+            seen[name] = (args[0].detach().clone(), args[2].detach().clone())
+        return pre
+
+    for name in ("rest_norm", "rest_edge_norm", "dynamic_norm", "dynamic_edge_norm"):
+        getattr(model, name).register_forward_hook(keep(name))
+    model.dynamic.register_forward_pre_hook(keep_stack_input("dynamic"))
+    model.rest_attn.register_forward_pre_hook(keep_stack_input("rest_attn"))
+    module(item)
+    for name in ("rest_norm", "rest_edge_norm", "dynamic_norm", "dynamic_edge_norm"):
+        raw, out = seen[name]
+        rows = raw.double()
+        want = (rows - rows.mean(0)) / rows.std(0, unbiased=False).clamp_min(1e-8)
+        torch.testing.assert_close(out.double(), want, atol=1e-4, rtol=1e-4)
+        assert int(getattr(model, name).updates) == 1
+    # what the stacks see is the normalisers' output
+    torch.testing.assert_close(seen["dynamic"][0], seen["dynamic_norm"][1])
+    torch.testing.assert_close(seen["dynamic"][1], seen["dynamic_edge_norm"][1])
+    torch.testing.assert_close(seen["rest_attn"][1], seen["rest_edge_norm"][1])
+    module.eval()
+    with torch.no_grad():
+        first = module(item)["final"]
+    assert int(model.dynamic_norm.updates) == 1  # eval does not update
+    path = tmp_path / "norm.ckpt"
+    ckpt = {"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, path)
+    loaded = GarTransModule.load_from_checkpoint(path).eval()
+    assert int(loaded.model.dynamic_norm.updates) == 1
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(item)["final"], first)
+    plain = gartrans(dm)
+    assert plain.model.dynamic_norm is None
+    assert not any("norm" in k for k in plain.state_dict())

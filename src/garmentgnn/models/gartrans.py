@@ -36,7 +36,8 @@ from torch import Tensor, nn
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
                                 push_outside, unique_edges, vertex_normals)
-from garmentgnn.models.blocks import AttentionStack, cached_batch_edges, geometric_init_, mlp
+from garmentgnn.models.blocks import (AttentionStack, RunningNormalizer, cached_batch_edges,
+                                      geometric_init_, mlp)
 from garmentgnn.models.inputs import check_history, history_frames
 
 
@@ -56,7 +57,7 @@ STATE_BOUND, STATE_STEP = 0.2, 0.02
 PAPER_FORM: Dict[str, object] = {"lbs_start": False, "gate_init": 0.0,
                                  "collision_projection": None, "blend_shape": True,
                                  "strain_limit": 0, "accel_unit": None,
-                                 "garment_state": False}
+                                 "garment_state": False, "input_norm": False}
 
 
 @dataclass
@@ -123,6 +124,12 @@ class GarTrans(nn.Module):
             frame-parallel one.
             :meth:`rollout` feeds its own predictions back as the state; training feeds
             the simulated frames (``GarTransModule``).  Needs a pose history ``H >= 3``.
+        input_norm: not in the paper: MeshGraphNets-style input normalisers (Pfaff et
+            al., 2021; :class:`~garmentgnn.models.blocks.RunningNormalizer`): the rest
+            and dynamic stacks' vertex features and their edge features become
+            ``(x - mean) / std`` per feature, from running statistics gathered in
+            training (buffers: they travel in the checkpoint).  ``False``: the raw
+            features (the paper).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -131,7 +138,8 @@ class GarTrans(nn.Module):
                  lbs_start: bool = True, collision_projection: Optional[float] = 0.002,
                  blend_shape: bool = False, strain_limit: int = 10,
                  compile_search: bool = False, gate_init: float = 1.0,
-                 accel_unit: Optional[float] = 0.01, garment_state: bool = False) -> None:
+                 accel_unit: Optional[float] = 0.01, garment_state: bool = False,
+                 input_norm: bool = False) -> None:
         super().__init__()
         self.garment_state = bool(garment_state)
         if not gate_init >= 0:
@@ -171,6 +179,13 @@ class GarTrans(nn.Module):
                                       edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
         self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
+        #: ``input_norm``'s normalisers of the rest vertex and edge features and the
+        #: dynamic vertex and edge features (``None``: raw features)
+        self.input_norm = bool(input_norm)
+        norm = RunningNormalizer if self.input_norm else (lambda size: None)
+        self.rest_norm, self.rest_edge_norm = norm(6 + S), norm(edge_dim)
+        self.dynamic_norm = norm(3 + 3 + S + state_dim)
+        self.dynamic_edge_norm = norm(edge_dim)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -190,6 +205,10 @@ class GarTrans(nn.Module):
 
     def _gate(self, i: int, x: Tensor) -> Tensor:
         return x if self.gates is None else self.gates[i] * x
+
+    @staticmethod
+    def _norm(norm: Optional[RunningNormalizer], x: Tensor) -> Tensor:
+        return x if norm is None else norm(x)
 
     # -- static branch --------------------------------------------------------
     def encode_static(self, rest_pos: Tensor, faces: Tensor, edge_index: Tensor,
@@ -213,8 +232,9 @@ class GarTrans(nn.Module):
         """
         n = vertex_normals(rest_pos, faces)
         dj = torch.cdist(rest_pos, rest_joints)
-        x = self.rest_fc(torch.cat([rest_pos, n, dj], -1))
-        x = self.rest_attn(x, edge_index, edge_features(rest_pos, edge_index))
+        x = self.rest_fc(self._norm(self.rest_norm, torch.cat([rest_pos, n, dj], -1)))
+        e = self._norm(self.rest_edge_norm, edge_features(rest_pos, edge_index))
+        x = self.rest_attn(x, edge_index, e)
         x1 = x * self.nystrom_fc(nystrom)  # x' = x̄^[1] ⊙ u^[1]
         b = (self.body_default if body_joint_dists is None
              else self.body_fc(body_joint_dists.t()).t())
@@ -269,6 +289,7 @@ class GarTrans(nn.Module):
         template = rest_pos.unsqueeze(0).expand(B, V, 3)
         if self.blend is not None:
             e = edge_features(rest_pos, edge_index) if rest_edge_attr is None else rest_edge_attr
+            e = self._norm(self.rest_edge_norm, e)
             blend = self.blend(x3.reshape(B * V, -1), cached_batch_edges(edge_index, B, V),
                                e.repeat(B, 1))
             # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so
@@ -346,9 +367,9 @@ class GarTrans(nn.Module):
         n = vertex_normals(cur, faces)
         dj = torch.cdist(cur, joints)
         feats = [vel, n, dj] + ([extra] if offset is not None else [])
-        x = torch.cat(feats, -1).reshape(B * V, -1)
+        x = self._norm(self.dynamic_norm, torch.cat(feats, -1).reshape(B * V, -1))
         ei = cached_batch_edges(edge_index, B, V)
-        e = edge_features(cur.reshape(B * V, 3), ei)
+        e = self._norm(self.dynamic_edge_norm, edge_features(cur.reshape(B * V, 3), ei))
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         unit = self.fps ** -2 if self.accel_unit is None else self.accel_unit
         final = cur + self._gate(2, accel * unit)
