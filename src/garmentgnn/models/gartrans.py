@@ -124,12 +124,10 @@ class GarTrans(nn.Module):
             frame-parallel one.
             :meth:`rollout` feeds its own predictions back as the state; training feeds
             the simulated frames (``GarTransModule``).  Needs a pose history ``H >= 3``.
-        input_norm: not in the paper: MeshGraphNets-style input normalisers (Pfaff et
-            al., 2021; :class:`~garmentgnn.models.blocks.RunningNormalizer`): the rest
-            and dynamic stacks' vertex features and their edge features become
-            ``(x - mean) / std`` per feature, from running statistics gathered in
-            training (buffers: they travel in the checkpoint).  ``False``: the raw
-            features (the paper).
+        input_norm: not in the paper: MeshGraphNets-style normalisers
+            (:class:`~garmentgnn.models.blocks.RunningNormalizer`) make the rest and
+            dynamic stacks' vertex and edge features ``(x - mean) / std`` per feature,
+            from running statistics of training (saved in the checkpoint).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -179,13 +177,11 @@ class GarTrans(nn.Module):
                                       edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
         self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
-        #: ``input_norm``'s normalisers of the rest vertex and edge features and the
-        #: dynamic vertex and edge features (``None``: raw features)
+        # ``input_norm``: the rest and dynamic vertex and edge features' normalisers
         self.input_norm = bool(input_norm)
-        norm = RunningNormalizer if self.input_norm else (lambda size: None)
+        norm = RunningNormalizer if self.input_norm else (lambda size: nn.Identity())
         self.rest_norm, self.rest_edge_norm = norm(6 + S), norm(edge_dim)
-        self.dynamic_norm = norm(3 + 3 + S + state_dim)
-        self.dynamic_edge_norm = norm(edge_dim)
+        self.dynamic_norm, self.dynamic_edge_norm = norm(3 + 3 + S + state_dim), norm(edge_dim)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -205,10 +201,6 @@ class GarTrans(nn.Module):
 
     def _gate(self, i: int, x: Tensor) -> Tensor:
         return x if self.gates is None else self.gates[i] * x
-
-    @staticmethod
-    def _norm(norm: Optional[RunningNormalizer], x: Tensor) -> Tensor:
-        return x if norm is None else norm(x)
 
     # -- static branch --------------------------------------------------------
     def encode_static(self, rest_pos: Tensor, faces: Tensor, edge_index: Tensor,
@@ -232,8 +224,8 @@ class GarTrans(nn.Module):
         """
         n = vertex_normals(rest_pos, faces)
         dj = torch.cdist(rest_pos, rest_joints)
-        x = self.rest_fc(self._norm(self.rest_norm, torch.cat([rest_pos, n, dj], -1)))
-        e = self._norm(self.rest_edge_norm, edge_features(rest_pos, edge_index))
+        x = self.rest_fc(self.rest_norm(torch.cat([rest_pos, n, dj], -1)))
+        e = self.rest_edge_norm(edge_features(rest_pos, edge_index))
         x = self.rest_attn(x, edge_index, e)
         x1 = x * self.nystrom_fc(nystrom)  # x' = x̄^[1] ⊙ u^[1]
         b = (self.body_default if body_joint_dists is None
@@ -289,7 +281,7 @@ class GarTrans(nn.Module):
         template = rest_pos.unsqueeze(0).expand(B, V, 3)
         if self.blend is not None:
             e = edge_features(rest_pos, edge_index) if rest_edge_attr is None else rest_edge_attr
-            e = self._norm(self.rest_edge_norm, e)
+            e = self.rest_edge_norm(e)
             blend = self.blend(x3.reshape(B * V, -1), cached_batch_edges(edge_index, B, V),
                                e.repeat(B, 1))
             # T^t = T + B^t (Eq. 2); the stack outputs B^t in centimetres (BLEND_UNIT), so
@@ -367,9 +359,9 @@ class GarTrans(nn.Module):
         n = vertex_normals(cur, faces)
         dj = torch.cdist(cur, joints)
         feats = [vel, n, dj] + ([extra] if offset is not None else [])
-        x = self._norm(self.dynamic_norm, torch.cat(feats, -1).reshape(B * V, -1))
+        x = self.dynamic_norm(torch.cat(feats, -1).reshape(B * V, -1))
         ei = cached_batch_edges(edge_index, B, V)
-        e = self._norm(self.dynamic_edge_norm, edge_features(cur.reshape(B * V, 3), ei))
+        e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         unit = self.fps ** -2 if self.accel_unit is None else self.accel_unit
         final = cur + self._gate(2, accel * unit)
