@@ -8,11 +8,13 @@ seconds.  Oracles: :func:`garmentgnn.training.evaluate.evaluate_split` (an indep
 scoring path) for LBS and for the trained GarTrans checkpoint; an uninterrupted training
 for the resumed one; a copy of the dataset with altered test positions for NCS."""
 import dataclasses
+import gc
 import importlib
 import json
 import math
 import multiprocessing
 import shutil
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -286,8 +288,13 @@ def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch)
     base = runner.test.records[0]
     seq, _ = stability.stability_sequence("baseline", dict(base, name="baseline"), base["seed"])
     item = runner.test[0]
+    before = None
     for method in ("GarTrans (SAT)", methods.HOOD, methods.NCS, methods.DA, methods.LBS):
         pred, info = runner.trained(method, 0)
+        # one trained method at a time: the one before is freed with its data caches
+        gc.collect()
+        assert before is None or before() is None, method
+        before = None if pred.module is None else weakref.ref(pred.module)
         if method != methods.LBS:  # the flow's model, not retrained
             assert info["resumed_from_epoch"] == info["epochs"] == 1, (method, info)
         with torch.no_grad():

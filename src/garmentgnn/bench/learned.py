@@ -208,9 +208,11 @@ class LearnedRunner:
 
     def trained(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
         """``method`` trained with ``seed`` (trained, or resumed from its checkpoint, on
-        the first call; kept for the next)."""
+        the first call; kept for the next calls until another method is asked for: each
+        trained module holds its data module's caches, gigabytes on ``medium``)."""
         key = (method, seed)
         if key not in self._trained:
+            self._trained.clear()
             L.seed_everything(seed, workers=True, verbose=False)
             if method in GARTRANS or method == LONG:
                 self._trained[key] = self._gartrans(method, seed)
