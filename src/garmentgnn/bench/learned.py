@@ -208,8 +208,7 @@ class LearnedRunner:
 
     def trained(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
         """``method`` trained with ``seed`` (trained, or resumed from its checkpoint, on
-        the first call; kept for the next calls until another method is asked for: each
-        trained module holds its data module's caches, gigabytes on ``medium``)."""
+        the first call; kept until another method is asked for: it holds its data caches)."""
         key = (method, seed)
         if key not in self._trained:
             self._trained.clear()
