@@ -14,7 +14,8 @@ same Lightning ``Trainer``:
   :data:`VARIANTS`; NCS-style trains per garment on test poses) trained for the same
   ``--steps`` on the training split; E_dist on the training and test sequences every
   ``--every`` steps, as a ratio to LBS's on the same sequences (``--surface``: the
-  normal, edge-length and curvature errors too).
+  normal, edge-length and curvature errors too); with several ``--seed``, the mean over
+  seeds and a paired Wilcoxon test of each variant against the first.
 * ``energy``: the HOOD- and NCS-style models a ``garmentgnn bench`` run trained
   (``--bench``): their own objective, the physics terms they were trained on, on their
   test predictions against the same objective on the LBS garment, beside E_dist.
@@ -33,6 +34,7 @@ import json
 import math
 import re
 import shlex
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -43,11 +45,15 @@ import torch
 
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn._plotting import pyplot
-from garmentgnn.bench.methods import BASELINES, DA, DATA, GARTRANS, HOOD, NCS, variant_settings
+from garmentgnn.bench import scoring
+from garmentgnn.bench.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
+                                      variant_settings)
 from garmentgnn.bench.tables import table
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
-from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule, SequenceChunks
+from garmentgnn.physics.materials import MATERIALS
+from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
+                                 ProgressiveSchedule, SequenceChunks)
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 from garmentgnn.training.module import loss_inputs
 
@@ -57,6 +63,10 @@ RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "learning"
 
 #: HOOD-style's configuration before it started from its own states with normalised inputs
 _HOOD_FORMER: Dict[str, Any] = {"start_state": "lbs", "model": {"normalize": False}}
+_S = MATERIALS["silk"]
+#: loss weights that make the physics terms the silk preset's energies (SI units)
+_SILK: Dict[str, float] = {"stretch": _S.stretch, "shear": _S.shear, "bending": _S.bending,
+                           "gravity": 1.0, "inertia": 1.0}
 #: GarTrans settings compared by ``curves``: model overrides of the packaged config,
 #: Trainer arguments and data-module settings
 VARIANTS: Dict[str, Dict[str, Any]] = {
@@ -84,6 +94,10 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "lr 3e-4": {"model": {"lr": 3e-4}},
     "lr 1e-2": {"model": {"lr": 1e-2}},
     "input normalisers": {"model": {"input_norm": True}},
+    # ``schedule``: the bench's ProgressiveSchedule (the curvature term from phase 1, phases
+    # 2 and 3 at plateaus of ``window`` epochs) instead of phase 1 alone
+    "schedule": {"schedule": {"window": 1}},
+    "schedule, no phase-3 freeze": {"schedule": {"window": 1, "freeze_rest": False}},
     # ``data``: the data module's settings (the pose history is the GRU's input)
     "pose history 2": {"data": {"history": 2}},
     "pose history 10": {"data": {"history": 10}},
@@ -106,6 +120,12 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "HOOD-style, raw inputs": {"baseline": HOOD, "module": {"model": {"normalize": False}}},
     "HOOD-style, accelerations x10": {"baseline": HOOD, "module": {
         "model": {"accel_scale": 10.0}}},
+    # its objective in SI units: the stiffnesses of the silk preset as the loss weights
+    # (the configuration's are the GarTrans paper's loss weights, ~1/5000 of silk's
+    # stretch), gravity and inertia at 1
+    "HOOD-style, silk energies": {"baseline": HOOD, "module": {"loss": {"weights": _SILK}}},
+    "HOOD-style, silk energies, collision x10": {"baseline": HOOD, "module": {
+        "loss": {"weights": dict(_SILK, collision=15.0)}}},
     # before its configuration started from its own states with normalised inputs
     "HOOD-style, former recipe": {"baseline": HOOD, "module": _HOOD_FORMER},
     "HOOD-style, former recipe, lr 1e-4": {"baseline": HOOD, "module": dict(
@@ -208,9 +228,10 @@ class Probe(L.Callback):
         row: Dict[str, Any] = {"step": step, "train_seconds": self.train_seconds}
         for name, items in self.sets.items():
             preds = [predict(module, it) for it in items]
-            errs = [float(vertex_distance(p, it.gt).mean()) * it.gt.shape[0]
-                    for p, it in zip(preds, items)]
-            row[name] = sum(errs) / sum(it.gt.shape[0] for it in items)
+            errs = [float(vertex_distance(p, it.gt).mean()) for p, it in zip(preds, items)]
+            row[f"{name}_sequences"] = {it.seq_id: e for it, e in zip(items, errs)}
+            row[name] = (sum(e * it.gt.shape[0] for e, it in zip(errs, items))
+                         / sum(it.gt.shape[0] for it in items))
             if self.surface:  # the other Table 3 metrics, frame-weighted
                 row[f"{name}_metrics"] = self.weighted(
                     [(evaluate_inputs(p, it), it) for p, it in zip(preds, items)])
@@ -306,9 +327,11 @@ def part_overfit(root: Path, steps: int, every: int,
 
 
 def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
-                train_sequences: int, seed: int, surface: bool = False) -> Dict[str, Any]:
-    dm = datamodule(root, seed)
-    dims = dm.dims
+                train_sequences: int, seeds: Sequence[int],
+                surface: bool = False) -> Dict[str, Any]:
+    """Each variant trained once per seed; the table gives the mean over seeds at the last
+    step and, against the first variant, a paired Wilcoxon test over (seed, test sequence)."""
+    dims = datamodule(root, seeds[0]).dims
 
     def sequences(history: Optional[int] = None) -> Dict[str, List[Any]]:
         test = whole_sequences(root, "test", history)
@@ -319,53 +342,114 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
 
     sets = sequences()
     lbs = {k: lbs_error(v) for k, v in sets.items()}
-    res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seed": seed, "variants": {}}
+    res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seeds": list(seeds), "variants": {}}
     if surface:
         res["lbs_metrics"] = {k: Probe.weighted([(evaluate_inputs(it.skinned(), it), it)
                                                   for it in v]) for k, v in sets.items()}
     for name in variants:
         v = VARIANTS[name]
-        L.seed_everything(seed, verbose=False)
-        module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
-                  else gartrans(dims, overrides=v.get("model")))
         data = v.get("data")
-        probe = Probe(sequences(data.get("history")) if data else sets, every, name, surface)
-        t = time.perf_counter()
-        try:
-            _trainer(steps, [probe], **v.get("trainer", {})).fit(module,
-                                                                 datamodule(root, seed, data=data))
-            status = "ok"
-        except Exception as err:
-            status = f"{type(err).__name__}: {err}"
-        res["variants"][name] = {"settings": v, "curve": probe.rows, "status": status,
-                                 "seconds": time.perf_counter() - t}
-        last = probe.rows[-1] if probe.rows else {}
-        print(f"curves {name}: " + ", ".join(f"{k} {last.get(k, math.nan) / lbs[k]:.3f}"
-                                            for k in sets) + f" x LBS ({status})", flush=True)
+        runs = []
+        for seed in seeds:
+            L.seed_everything(seed, verbose=False)
+            module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
+                      else gartrans(dims, overrides=v.get("model")))
+            probe = Probe(sequences(data.get("history")) if data else sets, every, name, surface)
+            callbacks: List[L.Callback] = [probe]
+            if "schedule" in v:  # the bench's schedule of full GarTrans, with v's settings
+                callbacks.append(ProgressiveSchedule(**dict(variant_settings(FULL)[1],
+                                                            **v["schedule"])))
+            t = time.perf_counter()
+            try:
+                _trainer(steps, callbacks, **v.get("trainer", {})).fit(
+                    module, datamodule(root, seed, data=data))
+                status = "ok"
+            except Exception as err:
+                status = f"{type(err).__name__}: {err}"
+            runs.append({"seed": seed, "curve": probe.rows, "status": status,
+                         "seconds": time.perf_counter() - t,
+                         **({"transitions": callbacks[1].transitions} if "schedule" in v
+                            else {})})
+            last = probe.rows[-1] if probe.rows else {}
+            print(f"curves {name}, seed {seed}: " + ", ".join(
+                f"{k} {last.get(k, math.nan) / lbs[k]:.3f}" for k in sets)
+                + f" x LBS ({status})", flush=True)
+        res["variants"][name] = {"settings": v, "runs": runs}
+    return {"results": res, "markdown": curves_markdown(res, sets, surface)}
+
+
+def mean_curve(runs: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+    """The runs' curves averaged over seeds, at the steps every run measured."""
+    curves = [r["curve"] for r in runs if r["curve"]]
+    n = min((len(c) for c in curves), default=0)
+    return [{"step": curves[0][i]["step"],
+             **{k: sum(c[i][k] for c in curves) / len(curves) for k in ("train", "test")}}
+            for i in range(n)]
+
+
+def curves_markdown(res: Dict[str, Any], sets: Dict[str, List[Any]],
+                    surface: bool) -> List[str]:
+    lbs, seeds = res["lbs"], res["seeds"]
+
+    def last_sequences(runs):  # {"seed/sequence": E_dist} of the test split, last step
+        return {f"{r['seed']}/{q}": e for r in runs if r["curve"]
+                for q, e in r["curve"][-1]["test_sequences"].items()}
+
+    def spread(values):
+        m = sum(values) / len(values)
+        if len(values) < 2:
+            return f"{m:.3f}"
+        return f"{m:.3f} ± {statistics.stdev(values):.3f}"
+
+    names = list(res["variants"])
+    ref = last_sequences(res["variants"][names[0]]["runs"]) if names else {}
     rows = []
     for name, r in res["variants"].items():
-        c = r["curve"]
-        if not c:
-            rows.append([name, "—", "—", "—", "—", r["status"]])
+        ok = [run for run in r["runs"] if run["curve"]]
+        failures = "; ".join(f"seed {run['seed']}: {run['status']}" for run in r["runs"]
+                             if run["status"] != "ok")
+        if not ok:
+            rows.append([name, "—", "—", "—", "—", "—", failures])
             continue
+        c = mean_curve(ok)
         best = min(c, key=lambda row: row["test"])
-        rows.append([name, str(c[-1]["step"]), f"{c[-1]['train'] / lbs['train']:.3f}",
-                     f"{c[-1]['test'] / lbs['test']:.3f}",
-                     f"{best['test'] / lbs['test']:.3f} @ {best['step']}",
-                     "" if r["status"] == "ok" else r["status"]])
+        p = "—"
+        if name != names[0] and len(ok) == len(r["runs"]):
+            try:
+                w = scoring.wilcoxon(last_sequences(ok), ref)
+                p = f"{w['p']:.2g} ({w['median_diff']:+.3f} cm)"
+            except ValueError:
+                pass
+        rows.append([name, str(ok[0]["curve"][-1]["step"]),
+                     spread([run["curve"][-1]["train"] / lbs["train"] for run in ok]),
+                     spread([run["curve"][-1]["test"] / lbs["test"] for run in ok]),
+                     f"{best['test'] / lbs['test']:.3f} @ {best['step']}", p, failures])
     lines = [f"E_dist / LBS's (LBS: train {lbs['train']:.3f} cm over {len(sets['train'])} "
-             f"sequences, test {lbs['test']:.3f} cm over {len(sets['test'])}), seed {seed}:", ""]
-    lines += table(["variant", "steps", "train", "test", "best test", "failure"], rows)
+             f"sequences, test {lbs['test']:.3f} cm over {len(sets['test'])}); "
+             f"{'seed' if len(seeds) == 1 else 'mean ± std over seeds'} "
+             f"{', '.join(map(str, seeds))}; p: paired Wilcoxon test against "
+             f"`{names[0] if names else ''}` over (seed, test sequence) at the last step, "
+             "with the median difference:", ""]
+    lines += table(["variant", "steps", "train", "test", "best test (seed mean)",
+                    "p vs first", "failure"], rows)
+    phased = [(name, run["seed"], run["transitions"]) for name, r in res["variants"].items()
+              for run in r["runs"] if "transitions" in run]
+    if phased:
+        lines += ["", "Phase transitions (phase: the epoch at whose end it began): " + "; ".join(
+            f"{name}, seed {s}: {t or 'phase 1 only'}" for name, s, t in phased)]
     if surface:
         lm = res["lbs_metrics"]["test"]
         srows = [["LBS", "—"] + [f"{lm[k]:.4g}" for k in SURFACE]]
         for name, r in res["variants"].items():
-            if r["curve"] and "test_metrics" in r["curve"][-1]:
-                m = r["curve"][-1]["test_metrics"]
-                srows.append([name, str(r["curve"][-1]["step"])] + [f"{m[k]:.4g}" for k in SURFACE])
-        lines += ["", "Test split at the last step (degrees, degrees, %, rad):", ""]
+            ok = [run["curve"][-1]["test_metrics"] for run in r["runs"]
+                  if run["curve"] and "test_metrics" in run["curve"][-1]]
+            if ok:
+                srows.append([name, str(r["runs"][0]["curve"][-1]["step"])]
+                             + [f"{sum(m[k] for m in ok) / len(ok):.4g}" for k in SURFACE])
+        lines += ["", "Test split at the last step, mean over seeds (degrees, degrees, %, rad):",
+                  ""]
         lines += table(["variant", "steps", *SURFACE], srows)
-    return {"results": res, "markdown": lines}
+    return lines
 
 
 def own_objective(module: BaselineModule, item: Any, pred: torch.Tensor) -> Dict[str, float]:
@@ -444,7 +528,10 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
     not flatten the differences near 1); where none does, the axis is logarithmic."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
-    curves = {name: r["curve"] for name, r in res["variants"].items() if r["curve"]}
+    n = len(res.get("seeds", [0]))  # files written before the seeds: one run, "curve"
+    curves = {name if n == 1 else f"{name} (mean of {n} seeds)":
+              mean_curve(r.get("runs", [r])) for name, r in res["variants"].items()}
+    curves = {name: c for name, c in curves.items() if c}
     clip = any(max(row[s] / res["lbs"][s] for row in c) <= PLOT_TOP
                for c in curves.values() for s in ("train", "test"))
     low = PLOT_TOP
@@ -489,8 +576,9 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
                          "method of the bench)")
     ap.add_argument("--train-sequences", type=int, default=6,
                     help="training sequences measured by `curves` (evenly spaced)")
-    ap.add_argument("--seed", type=int, default=0,
-                    help="training seed (curves); the bench run's seed (energy)")
+    ap.add_argument("--seed", type=int, nargs="+", default=[0],
+                    help="training seeds (curves: each variant once per seed); the bench "
+                         "run's seed (energy: one)")
     ap.add_argument("--surface", action="store_true",
                     help="curves: also the normal, edge-length and curvature errors")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
@@ -513,7 +601,9 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         elif part == "energy":
             if args.bench is None:
                 raise SystemExit("error: `energy` reads a bench run's models: give --bench DIR")
-            r = part_energy(root, Path(args.bench).expanduser(), args.seed)
+            if len(args.seed) != 1:
+                raise SystemExit("error: `energy` reads one bench run's models: give one --seed")
+            r = part_energy(root, Path(args.bench).expanduser(), args.seed[0])
         else:
             r = part_curves(root, args.steps, args.every, args.variants or list(VARIANTS),
                             args.train_sequences, args.seed, args.surface)

@@ -1,4 +1,6 @@
 """``garmentgnn train`` (LightningCLI + configs/) and DDP on 2 CPU processes (gloo)."""
+import subprocess
+import sys
 from pathlib import Path
 from typing import List, Optional
 
@@ -229,3 +231,22 @@ def test_ddp_two_cpu_processes_equals_one_process_accumulating(root, tmp_path): 
                    for p, q in zip(ddp.parameters(), wrong.parameters()))
     assert not all(_close(a, b) for a, b in zip(w["grads"][0].values(),
                                                   r0["grads"][0].values()))
+
+
+def test_gloo_process_group_is_destroyed_at_exit(tmp_path):
+    """A replica's gloo group is destroyed before the interpreter's own teardown (which
+    can abort the process after a successful fit); an NCCL-only rule would leave it."""
+    script = f"""
+import atexit
+import torch.distributed as dist
+atexit.register(lambda: print("initialized at exit:", dist.is_initialized()))  # runs last
+dist.init_process_group("gloo", init_method="file://{tmp_path / 'store'}", rank=0,
+                        world_size=1)
+from garmentgnn.training.base import destroy_gloo_group_at_exit
+destroy_gloo_group_at_exit()
+destroy_gloo_group_at_exit()  # registered once
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "initialized at exit: False"

@@ -44,7 +44,7 @@ from garmentgnn.bench import stability as stab
 from garmentgnn.bench import scoring
 from garmentgnn.bench.curves import LearningCurve
 from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
-from garmentgnn.bench.methods import (BASELINES, DATA, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
+from garmentgnn.bench.methods import (BASELINES, DATA, FULL, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
                                       METHOD_NAMES, NCS, LearnedBudget, variant_settings)
 from garmentgnn.bench.model_inputs import BenchChunks
 from garmentgnn.bench.page import MEDIA
@@ -385,7 +385,7 @@ class LearnedRunner:
 
     def _gartrans(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
         long = method == LONG
-        variant = next(iter(GARTRANS)) if long else method
+        variant = FULL if long else method
         hp, sched_kw = variant_settings(variant)
         sched_kw = dict(sched_kw, window=self.budget.window)
         minutes = self.budget.long_minutes if long else self.budget.minutes

@@ -52,6 +52,8 @@ GARTRANS: Dict[str, Variant] = {
     "GarTrans GAT": Variant("gat"),
     "GarTrans w/o unsupervised loss": Variant("wo_unsup"),
 }
+#: full GarTrans, the variant every comparison is made against
+FULL = next(iter(GARTRANS))
 NCS, HOOD, DA, LBS = "NCS-style", "HOOD-style", "DA-style", "LBS only"
 METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, LBS)
 #: methods without training or randomness: run for the first seed only
@@ -170,8 +172,7 @@ def seed_plan(budget: LearnedBudget, seed0: Dict[str, float]) -> Dict[str, int]:
     if budget.seed_methods is None:
         return {m: (1 if m in SEED_FREE else n) for m in budget.methods}
     full = set(budget.seed_methods)
-    first = next(iter(GARTRANS))
-    for pool in ([m for m in budget.methods if m in GARTRANS and m != first],
+    for pool in ([m for m in budget.methods if m in GARTRANS and m != FULL],
                  [m for m in budget.methods if m in BASELINES]):
         if pool:
             full.add(min(pool, key=lambda m: seed0.get(m, float("inf"))))

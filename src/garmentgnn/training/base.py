@@ -11,10 +11,12 @@ it trains (``training_step``, ``configure_optimizers``).
 """
 from __future__ import annotations
 
+import atexit
 from typing import Any, Dict, Optional
 
 import lightning as L
 import torch
+import torch.distributed as dist
 from torch import Tensor
 
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
@@ -28,6 +30,27 @@ __all__ = ["LBS_PREFIX", "GarmentModule"]
 LBS_PREFIX = "test_lbs"
 
 
+def _destroy_process_group() -> None:
+    if dist.is_initialized():
+        dist.destroy_process_group()
+
+
+_EXIT_HOOK: list = []  # _destroy_process_group, once registered with atexit
+
+
+def destroy_gloo_group_at_exit() -> None:
+    """Destroy the default process group when the interpreter exits, if it is gloo's.
+
+    Lightning registers this for NCCL only.  A gloo group (DDP on CPU) left to the
+    interpreter's own teardown can abort a replica after a successful fit ("terminate
+    called without an active exception": its threads are destroyed still running), which
+    fails the whole ``ddp_spawn`` run."""
+    if not _EXIT_HOOK and dist.is_available() and dist.is_initialized() \
+            and dist.get_backend() == "gloo":
+        atexit.register(_destroy_process_group)
+        _EXIT_HOOK.append(_destroy_process_group)
+
+
 class GarmentModule(L.LightningModule):
     """Base of the garment methods trained by ``garmentgnn train`` (one chunk per step,
     :class:`~garmentgnn.training.GarmentDataModule`)."""
@@ -35,6 +58,9 @@ class GarmentModule(L.LightningModule):
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         """The garment ``[B, V, 3]`` of every frame of ``batch``."""
         raise NotImplementedError(f"{type(self).__name__}: define predict_garment")
+
+    def setup(self, stage: str) -> None:
+        destroy_gloo_group_at_exit()  # on every replica, once its process group exists
 
     # -- training ---------------------------------------------------------------------
     def log_training_step(self, total: Tensor, terms: Dict[str, Tensor], batch_size: int,

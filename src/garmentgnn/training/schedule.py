@@ -6,7 +6,7 @@
   collision + gravity on, supervised terms scaled by ``supervised_scale`` (0.05);
 * phase 3, once the collision term's relative change over ``window`` epochs falls
   below ``threshold``: the rest-pose branch (rest_fc, rest_attn, nystrom_fc, body_fc)
-  is frozen and stretch + shear are switched on.
+  is frozen (``freeze_rest``) and stretch + shear are switched on.
 
 ``extra_terms`` (not in the paper, default none) switches further terms of
 :class:`GarTransLoss` -- e.g. ``bending`` -- on from phase ``extra_from`` on.
@@ -43,12 +43,15 @@ class ProgressiveSchedule(L.Callback):
         max_phase: stop advancing after this phase.
         extra_terms: loss terms beyond the paper's, e.g. ``["bending"]`` (their weights
             are the module's ``loss_weights``), active from phase ``extra_from`` on.
+        freeze_rest: freeze the rest-pose branch in phase 3 (the paper); ``False`` keeps
+            training it on phase 3's losses too.
     """
 
     def __init__(self, window: int = 50, threshold: float = 0.03,
                  window2: Optional[int] = None, threshold2: Optional[float] = None,
                  supervised_scale: float = 0.05, start_phase: int = 1, max_phase: int = 3,
-                 extra_terms: Sequence[str] = (), extra_from: int = 3) -> None:
+                 extra_terms: Sequence[str] = (), extra_from: int = 3,
+                 freeze_rest: bool = True) -> None:
         if window < 1:
             raise ValueError(f"`window`: expected >= 1, got {window}")
         if start_phase not in PHASE_TERMS:
@@ -60,6 +63,7 @@ class ProgressiveSchedule(L.Callback):
             raise ValueError(f"`extra_terms`: unknown term(s) {sorted(unknown)}; known: "
                              f"{sorted(PAPER_WEIGHTS)}")
         self.extra_terms, self.extra_from = tuple(extra_terms), extra_from
+        self.freeze_rest = freeze_rest
         self.window, self.threshold = window, threshold
         self.window2 = window if window2 is None else window2
         self.threshold2 = threshold if threshold2 is None else threshold2
@@ -86,7 +90,7 @@ class ProgressiveSchedule(L.Callback):
         extra = self.extra_terms if self.phase >= self.extra_from else ()
         loss.set_enabled(PHASE_TERMS[self.phase] + extra)
         loss.supervised_scale = 1.0 if self.phase == 1 else self.supervised_scale
-        pl_module.set_rest_branch_frozen(self.phase >= 3)
+        pl_module.set_rest_branch_frozen(self.freeze_rest and self.phase >= 3)
 
     def on_fit_start(self, trainer, pl_module) -> None:  # after a checkpoint is restored
         self.apply(pl_module)
