@@ -2,11 +2,15 @@
 gradient at step 0; the state model's inputs and rollout against hand-built oracles."""
 import copy
 import inspect
+import runpy
+import statistics
+from pathlib import Path
 
 import lightning as L
 import numpy as np
 import pytest
 import torch
+from scipy.stats import wilcoxon
 from torch_geometric.nn import Linear as PyGLinear
 
 from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
@@ -284,3 +288,33 @@ def test_input_normalisers_feed_the_stacks_standardised_features(dm, tmp_path):
     plain = gartrans(dm)
     assert isinstance(plain.model.dynamic_norm, torch.nn.Identity)
     assert not any("norm" in k for k in plain.state_dict())
+
+
+def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy():
+    """``benchmarks/learning.py``'s curves table: the mean ± std over seeds of each
+    variant's last E_dist / LBS, and scipy's paired Wilcoxon test over (seed, sequence)."""
+    bench = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
+                               "learning.py"), run_name="curves_table_check")
+    g = torch.Generator().manual_seed(0)
+    seqs = [f"s{i}" for i in range(5)]
+    lbs = {"train": 2.0, "test": 4.0}
+
+    def run(seed, shift):
+        errs = {q: float(4.0 + shift + 0.3 * torch.rand((), generator=g)) for q in seqs}
+        last = {"step": 10, "train": 1.8 + shift, "test": sum(errs.values()) / len(errs),
+                "test_sequences": errs}
+        return {"seed": seed, "status": "ok",
+                "curve": [{"step": 0, "train": 2.0, "test": 4.0}, last]}
+
+    res = {"lbs": lbs, "seeds": [0, 1, 2], "variants": {
+        "a": {"runs": [run(s, 0.0) for s in range(3)]},
+        "b": {"runs": [run(s, -0.2) for s in range(3)]}}}
+    sets = {"train": [None] * 2, "test": [None] * 5}
+    lines = bench["curves_markdown"](res, sets, surface=False)
+    row = next(line for line in lines if line.startswith("| b |")).split(" | ")
+    tests = [r["curve"][-1]["test"] / 4.0 for r in res["variants"]["b"]["runs"]]
+    assert row[3] == f"{statistics.mean(tests):.3f} ± {statistics.stdev(tests):.3f}"
+    x = [r["curve"][-1]["test_sequences"][q] for r in res["variants"]["b"]["runs"] for q in seqs]
+    y = [r["curve"][-1]["test_sequences"][q] for r in res["variants"]["a"]["runs"] for q in seqs]
+    assert row[5].startswith(f"{wilcoxon(x, y).pvalue:.2g} (")
+    assert next(line for line in lines if line.startswith("| a |")).split(" | ")[5] == "—"
