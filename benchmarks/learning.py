@@ -98,6 +98,7 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     # 2 and 3 at plateaus of ``window`` epochs) instead of phase 1 alone
     "schedule": {"schedule": {"window": 1}},
     "schedule, no phase-3 freeze": {"schedule": {"window": 1, "freeze_rest": False}},
+    "schedule, phase 1 only (curvature term)": {"schedule": {"window": 1, "max_phase": 1}},
     # ``data``: the data module's settings (the pose history is the GRU's input)
     "pose history 2": {"data": {"history": 2}},
     "pose history 10": {"data": {"history": 10}},
@@ -375,7 +376,7 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 f"{k} {last.get(k, math.nan) / lbs[k]:.3f}" for k in sets)
                 + f" x LBS ({status})", flush=True)
         res["variants"][name] = {"settings": v, "runs": runs}
-    return {"results": res, "markdown": curves_markdown(res, sets, surface)}
+    return {"results": res, "markdown": curves_markdown(res, surface)}
 
 
 def mean_curve(runs: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
@@ -387,9 +388,12 @@ def mean_curve(runs: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
             for i in range(n)]
 
 
-def curves_markdown(res: Dict[str, Any], sets: Dict[str, List[Any]],
-                    surface: bool) -> List[str]:
+def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
+    """The table of :func:`part_curves`' (or :func:`merge_curves`') results."""
     lbs, seeds = res["lbs"], res["seeds"]
+    measured = next(run["curve"][-1] for r in res["variants"].values() for run in r["runs"]
+                    if run["curve"])
+    count = {k: len(measured[f"{k}_sequences"]) for k in ("train", "test")}
 
     def last_sequences(runs):  # {"seed/sequence": E_dist} of the test split, last step
         return {f"{r['seed']}/{q}": e for r in runs if r["curve"]
@@ -424,8 +428,8 @@ def curves_markdown(res: Dict[str, Any], sets: Dict[str, List[Any]],
                      spread([run["curve"][-1]["train"] / lbs["train"] for run in ok]),
                      spread([run["curve"][-1]["test"] / lbs["test"] for run in ok]),
                      f"{best['test'] / lbs['test']:.3f} @ {best['step']}", p, failures])
-    lines = [f"E_dist / LBS's (LBS: train {lbs['train']:.3f} cm over {len(sets['train'])} "
-             f"sequences, test {lbs['test']:.3f} cm over {len(sets['test'])}); "
+    lines = [f"E_dist / LBS's (LBS: train {lbs['train']:.3f} cm over {count['train']} "
+             f"sequences, test {lbs['test']:.3f} cm over {count['test']}); "
              f"{'seed' if len(seeds) == 1 else 'mean ± std over seeds'} "
              f"{', '.join(map(str, seeds))}; p: paired Wilcoxon test against "
              f"`{names[0] if names else ''}` over (seed, test sequence) at the last step, "
@@ -450,6 +454,26 @@ def curves_markdown(res: Dict[str, Any], sets: Dict[str, List[Any]],
                   ""]
         lines += table(["variant", "steps", *SURFACE], srows)
     return lines
+
+
+def merge_curves(files: Sequence[Path]) -> Dict[str, Any]:
+    """The ``curves.json`` of runs made in separate processes (other variants, the same
+    dataset, steps and seeds) as one result; the first file's first variant is then the
+    reference of every paired test."""
+    parts = [json.loads(Path(f).read_text()) for f in files]
+    res = {k: v for k, v in parts[0].items() if k != "command"}
+    res.update(variants={}, sources=[{"file": str(f), "command": p.get("command")}
+                                     for f, p in zip(files, parts)])
+    for f, part in zip(files, parts):
+        for key in ("lbs", "steps", "seeds"):
+            if part.get(key) != res.get(key):
+                raise ValueError(f"`files`: {f} has another {key} ({part.get(key)} against "
+                                 f"{res.get(key)}): not runs that can be compared")
+        for name, v in part["variants"].items():
+            if name in res["variants"]:
+                raise ValueError(f"`files`: variant {name!r} is in more than one file")
+            res["variants"][name] = v
+    return res
 
 
 def own_objective(module: BaselineModule, item: Any, pred: torch.Tensor) -> Dict[str, float]:
@@ -560,9 +584,12 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
 def main(argv: Optional[Sequence[str]] = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves", "energy"),
-                    help="what to run")
-    ap.add_argument("--data", required=True, help="a generated dataset folder")
+    ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves", "energy", "merge"),
+                    help="what to run (merge: the `curves` results of --curves as one table)")
+    ap.add_argument("--data", default=None,
+                    help="a generated dataset folder (every part but merge)")
+    ap.add_argument("--curves", nargs="+", default=None,
+                    help="merge: curves.json files of the same dataset, steps and seeds")
     ap.add_argument("--bench", default=None,
                     help="energy: the output folder of a `garmentgnn bench` run on --data")
     add_output_args(ap, RESULTS, "folder for <part>.json, .md and .png")
@@ -585,8 +612,12 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     args = ap.parse_args(argv)
     if args.steps < 1 or args.every < 1:
         raise SystemExit("error: --steps and --every must be >= 1")
+    if args.data is None and set(args.parts) - {"merge"}:
+        raise SystemExit("error: give --data DIR, the generated dataset to train on")
+    if "merge" in args.parts and not args.curves:
+        raise SystemExit("error: merge: give --curves FILE FILE ..., `curves` results")
     torch.set_num_threads(args.threads)
-    root, out = Path(args.data), output_path(args, RESULTS)
+    root, out = Path(args.data or "."), output_path(args, RESULTS)
     out.mkdir(parents=True, exist_ok=True)
     words = [w.replace(str(Path.home()), "~", 1) if w.startswith(str(Path.home())) else w
              for w in (sys.argv[1:] if argv is None else argv)]
@@ -604,6 +635,15 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             if len(args.seed) != 1:
                 raise SystemExit("error: `energy` reads one bench run's models: give one --seed")
             r = part_energy(root, Path(args.bench).expanduser(), args.seed[0])
+        elif part == "merge":
+            try:
+                res = merge_curves([Path(f).expanduser() for f in args.curves])
+            except ValueError as err:
+                raise SystemExit(f"error: {err}") from None
+            r = {"results": res, "markdown": [
+                "Merged from:", ""] + [f"- `{src['command']}`" for src in res["sources"]]
+                + [""] + curves_markdown(res, "lbs_metrics" in res)}
+            plot_curves(res, out / f"{part}.png")
         else:
             r = part_curves(root, args.steps, args.every, args.variants or list(VARIANTS),
                             args.train_sequences, args.seed, args.surface)

@@ -2,6 +2,7 @@
 gradient at step 0; the state model's inputs and rollout against hand-built oracles."""
 import copy
 import inspect
+import json
 import runpy
 import statistics
 from pathlib import Path
@@ -290,7 +291,7 @@ def test_input_normalisers_feed_the_stacks_standardised_features(dm, tmp_path):
     assert not any("norm" in k for k in plain.state_dict())
 
 
-def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy():
+def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
     """``benchmarks/learning.py``'s curves table: the mean ± std over seeds of each
     variant's last E_dist / LBS, and scipy's paired Wilcoxon test over (seed, sequence)."""
     bench = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
@@ -302,15 +303,15 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy():
     def run(seed, shift):
         errs = {q: float(4.0 + shift + 0.3 * torch.rand((), generator=g)) for q in seqs}
         last = {"step": 10, "train": 1.8 + shift, "test": sum(errs.values()) / len(errs),
-                "test_sequences": errs}
+                "test_sequences": errs, "train_sequences": {"t0": 1.8, "t1": 1.8}}
         return {"seed": seed, "status": "ok",
                 "curve": [{"step": 0, "train": 2.0, "test": 4.0}, last]}
 
-    res = {"lbs": lbs, "seeds": [0, 1, 2], "variants": {
+    res = {"lbs": lbs, "steps": 10, "seeds": [0, 1, 2], "variants": {
         "a": {"runs": [run(s, 0.0) for s in range(3)]},
         "b": {"runs": [run(s, -0.2) for s in range(3)]}}}
-    sets = {"train": [None] * 2, "test": [None] * 5}
-    lines = bench["curves_markdown"](res, sets, surface=False)
+
+    lines = bench["curves_markdown"](res)
     row = next(line for line in lines if line.startswith("| b |")).split(" | ")
     tests = [r["curve"][-1]["test"] / 4.0 for r in res["variants"]["b"]["runs"]]
     assert row[3] == f"{statistics.mean(tests):.3f} ± {statistics.stdev(tests):.3f}"
@@ -318,3 +319,16 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy():
     y = [r["curve"][-1]["test_sequences"][q] for r in res["variants"]["a"]["runs"] for q in seqs]
     assert row[5].startswith(f"{wilcoxon(x, y).pvalue:.2g} (")
     assert next(line for line in lines if line.startswith("| a |")).split(" | ")[5] == "—"
+    assert "over 2 sequences, test 4.000 cm over 5" in lines[0]
+    # the same two variants run in two processes, merged: the same table
+    for name in ("a", "b"):
+        part = dict(res, command=f"run {name}", variants={name: res["variants"][name]})
+        (tmp_path / f"{name}.json").write_text(json.dumps(part))
+    merged = bench["merge_curves"]([tmp_path / "a.json", tmp_path / "b.json"])
+    assert bench["curves_markdown"](merged) == lines
+    assert [src["command"] for src in merged["sources"]] == ["run a", "run b"]
+    (tmp_path / "c.json").write_text(json.dumps(dict(res, seeds=[0, 1], variants={})))
+    with pytest.raises(ValueError, match="another seeds"):
+        bench["merge_curves"]([tmp_path / "a.json", tmp_path / "c.json"])
+    with pytest.raises(ValueError, match="more than one file"):
+        bench["merge_curves"]([tmp_path / "a.json", tmp_path / "a.json"])
