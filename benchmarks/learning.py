@@ -558,11 +558,11 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
     curves = {name: c for name, c in curves.items() if c}
     clip = any(max(row[s] / res["lbs"][s] for row in c) <= PLOT_TOP
                for c in curves.values() for s in ("train", "test"))
-    low = PLOT_TOP
+    low, high = PLOT_TOP, 1.0
     for ax, split in zip(axes, ("train", "test")):
         for name, c in curves.items():
             y = [row[split] / res["lbs"][split] for row in c]
-            low = min(low, min(y))
+            low, high = min(low, min(y)), max(high, min(max(y), PLOT_TOP))
             clipped = clip and max(y) > PLOT_TOP
             label = f"{name} (up to {max(y):.1f}x: clipped)" if clipped else name
             ax.plot([row["step"] for row in c], [min(v, PLOT_TOP) if clip else v for v in y],
@@ -572,7 +572,8 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
         ax.set_xlabel("optimizer steps")
         ax.legend(fontsize=7, loc="upper left")
     if clip:
-        axes[0].set_ylim(max(0.0, low - 0.05), PLOT_TOP + 0.02)
+        pad = 0.05 * (high - low) + 0.005
+        axes[0].set_ylim(max(0.0, low - pad), high + pad)
     else:
         axes[0].set_yscale("log")
     axes[0].set_ylabel("E_dist / LBS" + ("" if clip else " (log scale)"))
