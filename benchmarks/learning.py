@@ -439,8 +439,11 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
     phased = [(name, run["seed"], run["transitions"]) for name, r in res["variants"].items()
               for run in r["runs"] if "transitions" in run]
     if phased:
-        lines += ["", "Phase transitions (phase: the epoch at whose end it began): " + "; ".join(
-            f"{name}, seed {s}: {t or 'phase 1 only'}" for name, s, t in phased)]
+        def when(t):  # {phase: the epoch at whose end it began}; JSON keys are strings
+            return ", ".join(f"phase {k} after epoch {t[k]}" for k in sorted(t, key=int))
+
+        lines += ["", "Phase transitions: " + "; ".join(
+            f"{name}, seed {s}: {when(t) or 'phase 1 only'}" for name, s, t in phased)]
     if surface:
         lm = res["lbs_metrics"]["test"]
         srows = [["LBS", "—"] + [f"{lm[k]:.4g}" for k in SURFACE]]
