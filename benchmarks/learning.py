@@ -554,7 +554,8 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
     :data:`PLOT_TOP` the axis is linear and diverging variants are clipped (so they do
     not flatten the differences near 1); where none does, the axis is logarithmic."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    rows = len(res["variants"])  # legend lines, below each panel (not over its curves)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2 + 0.16 * rows), sharey=True)
     n = len(res.get("seeds", [0]))  # files written before the seeds: one run, "curve"
     curves = {name if n == 1 else f"{name} (mean of {n} seeds)":
               mean_curve(r.get("runs", [r])) for name, r in res["variants"].items()}
@@ -573,7 +574,7 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
         ax.axhline(1.0, color="k", lw=0.8, ls="--")
         ax.set_title(f"{split} sequences (LBS {res['lbs'][split]:.2f} cm = 1)")
         ax.set_xlabel("optimizer steps")
-        ax.legend(fontsize=7, loc="upper left")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), frameon=False)
     if clip:
         pad = 0.05 * (high - low) + 0.005
         axes[0].set_ylim(max(0.0, low - pad), high + pad)
