@@ -391,9 +391,9 @@ def mean_curve(runs: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
 def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
     """The table of :func:`part_curves`' (or :func:`merge_curves`') results."""
     lbs, seeds = res["lbs"], res["seeds"]
-    measured = next(run["curve"][-1] for r in res["variants"].values() for run in r["runs"]
-                    if run["curve"])
-    count = {k: len(measured[f"{k}_sequences"]) for k in ("train", "test")}
+    measured = next((run["curve"][-1] for r in res["variants"].values() for run in r["runs"]
+                     if run["curve"]), {})  # none where every run failed at once
+    count = {k: len(measured.get(f"{k}_sequences", ())) for k in ("train", "test")}
 
     def last_sequences(runs):  # {"seed/sequence": E_dist} of the test split, last step
         return {f"{r['seed']}/{q}": e for r in runs if r["curve"]

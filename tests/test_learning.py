@@ -332,3 +332,7 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
         bench["merge_curves"]([tmp_path / "a.json", tmp_path / "c.json"])
     with pytest.raises(ValueError, match="more than one file"):
         bench["merge_curves"]([tmp_path / "a.json", tmp_path / "a.json"])
+    # every run failed: the table still renders, naming the failure
+    failed = dict(res, variants={"a": {"runs": [{"seed": 0, "status": "RuntimeError: boom",
+                                                 "curve": []}]}})
+    assert bench["curves_markdown"](failed)[-1].endswith("| seed 0: RuntimeError: boom |")
