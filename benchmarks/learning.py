@@ -356,21 +356,20 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
             module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
                       else gartrans(dims, overrides=v.get("model")))
             probe = Probe(sequences(data.get("history")) if data else sets, every, name, surface)
-            callbacks: List[L.Callback] = [probe]
-            if "schedule" in v:  # the bench's schedule of full GarTrans, with v's settings
-                callbacks.append(ProgressiveSchedule(**dict(variant_settings(FULL)[1],
-                                                            **v["schedule"])))
+            # the bench's schedule of full GarTrans, with v's settings
+            sched = (ProgressiveSchedule(**dict(variant_settings(FULL)[1], **v["schedule"]))
+                     if "schedule" in v else None)
             t = time.perf_counter()
             try:
-                _trainer(steps, callbacks, **v.get("trainer", {})).fit(
+                _trainer(steps, [probe] + ([sched] if sched else []),
+                         **v.get("trainer", {})).fit(
                     module, datamodule(root, seed, data=data))
                 status = "ok"
             except Exception as err:
                 status = f"{type(err).__name__}: {err}"
             runs.append({"seed": seed, "curve": probe.rows, "status": status,
                          "seconds": time.perf_counter() - t,
-                         **({"transitions": callbacks[1].transitions} if "schedule" in v
-                            else {})})
+                         **({"transitions": sched.transitions} if sched else {})})
             last = probe.rows[-1] if probe.rows else {}
             print(f"curves {name}, seed {seed}: " + ", ".join(
                 f"{k} {last.get(k, math.nan) / lbs[k]:.3f}" for k in sets)

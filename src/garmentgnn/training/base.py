@@ -35,20 +35,22 @@ def _destroy_process_group() -> None:
         dist.destroy_process_group()
 
 
-_EXIT_HOOK: list = []  # _destroy_process_group, once registered with atexit
+_exit_hook_registered = False
 
 
 def destroy_gloo_group_at_exit() -> None:
-    """Destroy the default process group when the interpreter exits, if it is gloo's.
+    """Destroy the default process group when the interpreter exits, if it is gloo's
+    (registered once per process).
 
     Lightning registers this for NCCL only.  A gloo group (DDP on CPU) left to the
-    interpreter's own teardown can abort a replica after a successful fit ("terminate
-    called without an active exception": its threads are destroyed still running), which
-    fails the whole ``ddp_spawn`` run."""
-    if not _EXIT_HOOK and dist.is_available() and dist.is_initialized() \
+    interpreter's own teardown was seen to abort a replica after a successful fit
+    ("terminate called without an active exception"), which fails the whole
+    ``ddp_spawn`` run."""
+    global _exit_hook_registered
+    if not _exit_hook_registered and dist.is_available() and dist.is_initialized() \
             and dist.get_backend() == "gloo":
         atexit.register(_destroy_process_group)
-        _EXIT_HOOK.append(_destroy_process_group)
+        _exit_hook_registered = True
 
 
 class GarmentModule(L.LightningModule):
