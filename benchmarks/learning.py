@@ -94,6 +94,12 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "lr 3e-4": {"model": {"lr": 3e-4}},
     "lr 1e-2": {"model": {"lr": 1e-2}},
     "input normalisers": {"model": {"input_norm": True}},
+    # the dynamic stack in each vertex's skinned local frame (inputs and output)
+    "local frame": {"model": {"local_frame": True}},
+    "local frame, input normalisers": {"model": {"local_frame": True, "input_norm": True}},
+    # the paper's blend shape B^t (a learned offset of the template, skinned with it)
+    "blend shape": {"model": {"blend_shape": True}},
+    "blend shape, local frame": {"model": {"blend_shape": True, "local_frame": True}},
     # ``schedule``: the bench's ProgressiveSchedule (the curvature term from phase 1, phases
     # 2 and 3 at plateaus of ``window`` epochs) instead of phase 1 alone
     "schedule": {"schedule": {"window": 1}},

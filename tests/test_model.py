@@ -10,7 +10,8 @@ from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.garments import make_garment
 from garmentgnn.geometry import (edge_lengths, faces_to_edge_index, geodesic_nystrom_features,
-                                 project_edge_lengths, signed_distance, unique_edges)
+                                 project_edge_lengths, signed_distance, unique_edges,
+                                 vertex_normals)
 from garmentgnn.models import PAPER_FORM, GarTrans
 from garmentgnn.motion import make_motion
 
@@ -267,3 +268,47 @@ def test_blend_shape_can_be_left_out(scene):
         assert not torch.allclose(run(full, scene)["coarse"],
                                   linear_blend_skinning(g.vertices, run(full, scene)["weights"], A),
                                   atol=1e-5)
+
+
+@pytest.mark.parametrize("rotvec", [(0.0, 0.0, torch.pi / 2), (0.3, -0.5, 0.8)])
+def test_local_frame_turns_the_dynamic_inputs_and_output_with_the_skinning(scene, rotvec):
+    """``local_frame``: with every joint turned by one root rotation ``R`` (scipy's matrix
+    as the oracle), every vertex's blended rotation is ``R``; the dynamic stack sees
+    ``R^T v``, ``R^T n`` (= the rest garment's normals), the rest position and
+    ``R^T (0, 0, -1)``, and its output ``c`` is added as ``R c`` (centimetres)."""
+    Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
+    body, g, ei, ny, bd, _, _ = scene
+    S, V = body.skeleton.num_joints, g.vertices.shape[0]
+    model = build(body, ny, local_frame=True, accel_unit=0.01, blend_shape=False).eval()
+    rots = torch.zeros(1, 3, S, 3)
+    rots[:, :, 0] = torch.tensor(rotvec)
+    tr = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]])
+    seen = {}
+    c = torch.tensor([1.0, -2.0, 0.5])
+
+    def fake_stack(x, edge_index, edge_attr):
+        seen["x"] = x
+        return c.expand(x.shape[0], 3)
+
+    model.dynamic.forward = fake_stack
+    with torch.no_grad():
+        out = run(model, scene, rots=rots, tr=tr)
+    R = torch.from_numpy(Rotation.from_rotvec(rotvec).as_matrix()).float()
+    x = seen["x"]
+    assert x.shape == (V, 3 + 3 + S + 6)
+    torch.testing.assert_close(x[:, :3], (R.T @ torch.tensor([3.0, 0.0, 0.0])).expand(V, 3),
+                               atol=1e-4, rtol=1e-4)  # 10 cm in one frame at 30 fps
+    torch.testing.assert_close(x[:, 3:6], vertex_normals(g.vertices, g.faces),
+                               atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(x[:, -6:-3], g.vertices)
+    torch.testing.assert_close(x[:, -3:], (R.T @ torch.tensor([0.0, 0.0, -1.0])).expand(V, 3),
+                               atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out["final"] - out["coarse"], (0.01 * R @ c).expand(1, V, 3),
+                               atol=1e-6, rtol=1e-4)
+    # without the switch the stack sees world vectors and its output is added unturned
+    plain = build(body, ny, accel_unit=0.01, blend_shape=False).eval()
+    plain.dynamic.forward = fake_stack
+    with torch.no_grad():
+        out = run(plain, scene, rots=rots, tr=tr)
+    assert seen["x"].shape == (V, 3 + 3 + S)
+    torch.testing.assert_close(out["final"] - out["coarse"], (0.01 * c).expand(1, V, 3))

@@ -33,7 +33,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import torch
 from torch import Tensor, nn
 
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
+from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
                                 push_outside, unique_edges, vertex_normals)
 from garmentgnn.models.blocks import (AttentionStack, RunningNormalizer, cached_batch_edges,
@@ -57,7 +57,8 @@ STATE_BOUND, STATE_STEP = 0.2, 0.02
 PAPER_FORM: Dict[str, object] = {"lbs_start": False, "gate_init": 0.0,
                                  "collision_projection": None, "blend_shape": True,
                                  "strain_limit": 0, "accel_unit": None,
-                                 "garment_state": False, "input_norm": False}
+                                 "garment_state": False, "input_norm": False,
+                                 "local_frame": False}
 
 
 @dataclass
@@ -128,6 +129,14 @@ class GarTrans(nn.Module):
             (:class:`~garmentgnn.models.blocks.RunningNormalizer`) make the rest and
             dynamic stacks' vertex and edge features ``(x - mean) / std`` per feature,
             from running statistics of training (saved in the checkpoint).
+        local_frame: not in the paper: the dynamic stack works in each vertex's skinned
+            local frame, the rotation part ``R_v`` of its blended skinning transform
+            ``M_v(t) = sum_j W_vj A_j(t)`` (Eq. 1).  Its vector inputs (velocity, normal)
+            enter as ``R_v^T x``, with the gravity direction ``R_v^T (0, 0, -1)`` and the
+            rest position ``T_v`` (which vertex it is) as six more features, and its output
+            is rotated back, ``M^{t,d} = M^{t,c} + g_a R_v a u``: a drape that stays put on
+            the limb is one output whatever the pose (the frame in which the "static
+            oracle" of ``benchmarks/error_split.py`` is a constant).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -137,8 +146,9 @@ class GarTrans(nn.Module):
                  blend_shape: bool = False, strain_limit: int = 10,
                  compile_search: bool = False, gate_init: float = 1.0,
                  accel_unit: Optional[float] = 0.01, garment_state: bool = False,
-                 input_norm: bool = False) -> None:
+                 input_norm: bool = False, local_frame: bool = False) -> None:
         super().__init__()
+        self.local_frame = bool(local_frame)
         self.garment_state = bool(garment_state)
         if not gate_init >= 0:
             raise ValueError(f"`gate_init`: expected a value >= 0, got {gate_init}")
@@ -172,7 +182,8 @@ class GarTrans(nn.Module):
         self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
                                     last_act=False) if blend_shape else None
         state_dim = 6 if self.garment_state else 0
-        self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S + state_dim,
+        local_dim = 6 if self.local_frame else 0  # rest position and local gravity
+        self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S + state_dim + local_dim,
                                       [32, 64, 64, 64, 32, 3], heads,
                                       edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
@@ -181,7 +192,8 @@ class GarTrans(nn.Module):
         self.input_norm = bool(input_norm)
         norm = RunningNormalizer if self.input_norm else (lambda size: nn.Identity())
         self.rest_norm, self.rest_edge_norm = norm(6 + S), norm(edge_dim)
-        self.dynamic_norm, self.dynamic_edge_norm = norm(3 + 3 + S + state_dim), norm(edge_dim)
+        self.dynamic_norm = norm(3 + 3 + S + state_dim + local_dim)
+        self.dynamic_edge_norm = norm(edge_dim)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -267,12 +279,14 @@ class GarTrans(nn.Module):
 
     def coarse(self, static: StaticFeatures, rest_pos: Tensor, edge_index: Tensor,
                rest_joints: Tensor, parents: Tensor, rotations: Tensor, translation: Tensor,
-               rest_edge_attr: Optional[Tensor] = None, frames: int = 2):
+               rest_edge_attr: Optional[Tensor] = None, frames: int = 2,
+               with_rotation: bool = False):
         """Coarse meshes ``M^{t,c}`` for the last ``frames`` frames of each history:
         ``[B, frames, V, 3]`` (oldest first, current last), plus the skinning weights
         ``[B, V, S]`` and the posed joints ``[B, S, 3]`` of frame t.  ``rest_edge_attr``:
         the rest graph's :func:`edge_features` ``[E, 4]`` when the caller has them
-        (computed here otherwise)."""
+        (computed here otherwise).  ``with_rotation``: also the rotation part ``[B, V, 3,
+        3]`` of each vertex's blended skinning transform at frame t (``local_frame``)."""
         B, H = rotations.shape[:2]
         V = rest_pos.shape[0]
         x3 = static.x2.unsqueeze(0) * self.motion_code(rotations, translation).unsqueeze(1)
@@ -294,7 +308,11 @@ class GarTrans(nn.Module):
         # Eq. 1 with the frame's own template and weights, for the last k frames
         verts = linear_blend_skinning(template.repeat_interleave(k, 0),
                                       W.repeat_interleave(k, 0), A)
-        return verts.view(B, k, V, 3), W, joints.view(B, k, -1, 3)[:, -1]
+        out = (verts.view(B, k, V, 3), W, joints.view(B, k, -1, 3)[:, -1])
+        if with_rotation:
+            A_t = A.view(B, k, *A.shape[1:])[:, -1, :, :3, :3]  # [B, S, 3, 3] of frame t
+            out = out + (blend_transforms(W, A_t),)
+        return out
 
     def forward(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
                 edge_index: Tensor, rest_joints: Tensor, parents: Tensor, rotations: Tensor,
@@ -334,8 +352,10 @@ class GarTrans(nn.Module):
             raise ValueError(f"`rotations`: a model with `garment_state` needs a pose history "
                              f"of H >= 3 frames, got {tuple(rotations.shape)}")
         k = 3 if self.garment_state else 2
-        coarse_k, W, joints = self.coarse(static, rest_pos, edge_index, rest_joints, parents,
-                                          rotations, translation, rest_edge_attr, frames=k)
+        coarse_k, W, joints, *rot = self.coarse(static, rest_pos, edge_index, rest_joints,
+                                                parents, rotations, translation,
+                                                rest_edge_attr, frames=k,
+                                                with_rotation=self.local_frame)
         prev, cur = coarse_k[:, -2], coarse_k[:, -1]
         offset = None
         if self.garment_state:
@@ -358,12 +378,20 @@ class GarTrans(nn.Module):
         vel = (cur - prev) * self.fps
         n = vertex_normals(cur, faces)
         dj = torch.cdist(cur, joints)
-        feats = [vel, n, dj] + ([extra] if offset is not None else [])
+        if self.local_frame:  # R_v^T x: the skinned local frame of each vertex
+            R = rot[0]
+            down = R.new_tensor([0.0, 0.0, -1.0]).expand(B, V, 3)
+            vel, n, down = (torch.einsum("bvji,bvj->bvi", R, x) for x in (vel, n, down))
+            extra_local = [rest_pos.unsqueeze(0).expand(B, V, 3), down]
+        feats = ([vel, n, dj] + ([extra] if offset is not None else [])
+                 + (extra_local if self.local_frame else []))
         x = self.dynamic_norm(torch.cat(feats, -1).reshape(B * V, -1))
         ei = cached_batch_edges(edge_index, B, V)
         e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))
         accel = self.dynamic(x, ei, e).view(B, V, 3)
         unit = self.fps ** -2 if self.accel_unit is None else self.accel_unit
+        if self.local_frame:  # back to the world: R_v a
+            accel = torch.einsum("bvij,bvj->bvi", R, accel)
         final = cur + self._gate(2, accel * unit)
         if offset is not None:
             final = final + offset
