@@ -100,6 +100,13 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     # the paper's blend shape B^t (a learned offset of the template, skinned with it)
     "blend shape": {"model": {"blend_shape": True}},
     "blend shape, local frame": {"model": {"blend_shape": True, "local_frame": True}},
+    "blend shape, pose history 10": {"model": {"blend_shape": True}, "data": {"history": 10}},
+    # the dynamic stack also sees the coarse mesh's earlier velocities
+    "local frame, velocity history 3, input normalisers": {"model": {
+        "local_frame": True, "input_norm": True, "motion_history": 3}},
+    "local frame, velocity history 10, input normalisers": {"model": {
+        "local_frame": True, "input_norm": True, "motion_history": 10},
+        "data": {"history": 10}},
     # ``schedule``: the bench's ProgressiveSchedule (the curvature term from phase 1, phases
     # 2 and 3 at plateaus of ``window`` epochs) instead of phase 1 alone
     "schedule": {"schedule": {"window": 1}},

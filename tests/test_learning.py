@@ -168,7 +168,7 @@ def test_state_arguments_are_checked(dm):
 #: the model switches whose defaults must agree in GarTrans, GarTransModule and the
 #: packaged config (``compile_search`` is a speed switch, on in the config only)
 SWITCHES = ("lbs_start", "gate_init", "collision_projection", "blend_shape", "strain_limit",
-            "accel_unit", "garment_state", "input_norm", "local_frame")
+            "accel_unit", "garment_state", "input_norm", "local_frame", "motion_history")
 
 
 def test_model_module_and_config_defaults_agree():
@@ -182,7 +182,8 @@ def test_model_module_and_config_defaults_agree():
         assert model[name] == module[name] == config[name], name
     assert set(PAPER_FORM) == set(SWITCHES)
     assert all(PAPER_FORM[k] != model[k] for k in SWITCHES
-               if k not in ("gate_init", "garment_state", "input_norm", "local_frame"))
+               if k not in ("gate_init", "garment_state", "input_norm", "local_frame",
+                            "motion_history"))
     assert module["skin_prior"] is True and config.get("skin_prior", True) is True
 
 

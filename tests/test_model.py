@@ -312,3 +312,41 @@ def test_local_frame_turns_the_dynamic_inputs_and_output_with_the_skinning(scene
         out = run(plain, scene, rots=rots, tr=tr)
     assert seen["x"].shape == (V, 3 + 3 + S)
     torch.testing.assert_close(out["final"] - out["coarse"], (0.01 * c).expand(1, V, 3))
+
+
+@pytest.mark.parametrize("local_frame", [False, True])
+def test_motion_history_feeds_the_earlier_velocities_newest_first(scene, local_frame):
+    """``motion_history=3``: the dynamic stack also sees the coarse mesh's velocities at
+    t-1 and t-2 (a turned root moved to 0, 5, 15 and 30 cm: 1.5, 3 and 4.5 m/s at 30 fps,
+    newest first), turned into the local frame with ``local_frame``."""
+    Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
+    body, g, ei, ny, bd, _, _ = scene
+    S, V = body.skeleton.num_joints, g.vertices.shape[0]
+    model = build(body, ny, local_frame=local_frame, motion_history=3,
+                  blend_shape=False).eval()
+    rotvec = (0.2, 0.4, -0.7)
+    rots = torch.zeros(1, 4, S, 3)
+    rots[:, :, 0] = torch.tensor(rotvec)
+    tr = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.15, 0.0, 0.0],
+                       [0.3, 0.0, 0.0]]).unsqueeze(0)
+    seen = {}
+
+    def fake_stack(x, edge_index, edge_attr):
+        seen["x"] = x
+        return x.new_zeros(x.shape[0], 3)
+
+    model.dynamic.forward = fake_stack
+    with torch.no_grad():
+        run(model, scene, rots=rots, tr=tr)
+    R = torch.from_numpy(Rotation.from_rotvec(rotvec).as_matrix()).float()
+    turn = R.T if local_frame else torch.eye(3)
+    x = seen["x"]
+    assert x.shape == (V, 3 + 3 + S + 6 + (6 if local_frame else 0))
+    for cols, speed in ((slice(0, 3), 4.5), (slice(6 + S, 9 + S), 3.0),
+                        (slice(9 + S, 12 + S), 1.5)):
+        torch.testing.assert_close(x[:, cols], (turn @ torch.tensor([speed, 0.0, 0.0]))
+                                   .expand(V, 3), atol=1e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="motion_history"):
+        run(model, scene, rots=rots[:, 1:], tr=tr[:, 1:])
+    with pytest.raises(ValueError, match="motion_history"):
+        build(body, ny, motion_history=0)

@@ -58,7 +58,7 @@ PAPER_FORM: Dict[str, object] = {"lbs_start": False, "gate_init": 0.0,
                                  "collision_projection": None, "blend_shape": True,
                                  "strain_limit": 0, "accel_unit": None,
                                  "garment_state": False, "input_norm": False,
-                                 "local_frame": False}
+                                 "local_frame": False, "motion_history": 1}
 
 
 @dataclass
@@ -137,6 +137,12 @@ class GarTrans(nn.Module):
             is rotated back, ``M^{t,d} = M^{t,c} + g_a R_v a u``: a drape that stays put on
             the limb is one output whatever the pose (the frame in which the "static
             oracle" of ``benchmarks/error_split.py`` is a constant).
+        motion_history: not in the paper beyond ``1``: how many of the coarse mesh's
+            per-vertex velocities the dynamic stack sees, ``(M^{s,c} - M^{s-1,c}) / dt``
+            for ``s = t, t-1, ..., t - motion_history + 1`` (with ``local_frame``, turned
+            by frame t's ``R_v^T``), so that it sees how the garment's skinned frame has
+            been moving, not only its last step; needs a pose history
+            ``H >= motion_history + 1``.  ``1``: the paper's single velocity.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -146,9 +152,15 @@ class GarTrans(nn.Module):
                  blend_shape: bool = False, strain_limit: int = 10,
                  compile_search: bool = False, gate_init: float = 1.0,
                  accel_unit: Optional[float] = 0.01, garment_state: bool = False,
-                 input_norm: bool = False, local_frame: bool = False) -> None:
+                 input_norm: bool = False, local_frame: bool = False,
+                 motion_history: int = 1) -> None:
         super().__init__()
         self.local_frame = bool(local_frame)
+        if not isinstance(motion_history, int) or isinstance(motion_history, bool) \
+                or motion_history < 1:
+            raise ValueError(f"`motion_history`: expected a number of velocities >= 1, got "
+                             f"{motion_history!r}")
+        self.motion_history = motion_history
         self.garment_state = bool(garment_state)
         if not gate_init >= 0:
             raise ValueError(f"`gate_init`: expected a value >= 0, got {gate_init}")
@@ -183,6 +195,7 @@ class GarTrans(nn.Module):
                                     last_act=False) if blend_shape else None
         state_dim = 6 if self.garment_state else 0
         local_dim = 6 if self.local_frame else 0  # rest position and local gravity
+        local_dim += 3 * (motion_history - 1)  # the earlier velocities
         self.dynamic = AttentionStack(dynamic_layer, 3 + 3 + S + state_dim + local_dim,
                                       [32, 64, 64, 64, 32, 3], heads,
                                       edge_dim, "elu", last_act=False)
@@ -351,7 +364,11 @@ class GarTrans(nn.Module):
         if self.garment_state and rotations.shape[1] < 3:
             raise ValueError(f"`rotations`: a model with `garment_state` needs a pose history "
                              f"of H >= 3 frames, got {tuple(rotations.shape)}")
-        k = 3 if self.garment_state else 2
+        if rotations.shape[1] < self.motion_history + 1:
+            raise ValueError(f"`rotations`: `motion_history={self.motion_history}` needs a pose "
+                             f"history of H >= {self.motion_history + 1} frames, got "
+                             f"{tuple(rotations.shape)} (a longer data `history`)")
+        k = max(3 if self.garment_state else 2, self.motion_history + 1)
         coarse_k, W, joints, *rot = self.coarse(static, rest_pos, edge_index, rest_joints,
                                                 parents, rotations, translation,
                                                 rest_edge_attr, frames=k,
@@ -365,7 +382,7 @@ class GarTrans(nn.Module):
                 if state.shape != (B, 2, V, 3):
                     raise ValueError(f"`state`: expected [{B}, 2, {V}, 3] (the garment at "
                                      f"frames t-2, t-1), got {tuple(state.shape)}")
-                d = state - coarse_k[:, :2]  # offsets from the coarse mesh, t-2 and t-1
+                d = state - coarse_k[:, -3:-1]  # offsets from the coarse mesh, t-2 and t-1
             # bounded: a rollout whose state drifts far stays bounded (no feedback loop)
             offset = STATE_BOUND * torch.tanh(d[:, 1] / STATE_BOUND)
             extra = torch.cat([torch.tanh(d[:, 1] / STATE_BOUND),
@@ -378,13 +395,18 @@ class GarTrans(nn.Module):
         vel = (cur - prev) * self.fps
         n = vertex_normals(cur, faces)
         dj = torch.cdist(cur, joints)
+        m = self.motion_history  # the coarse mesh's earlier velocities, newest first
+        past = ((coarse_k[:, -m:-1] - coarse_k[:, -m - 1:-2]) * self.fps).flip(1) \
+            if m > 1 else coarse_k.new_zeros(B, 0, V, 3)
+        extra_local = [past.transpose(1, 2).reshape(B, V, -1)]
         if self.local_frame:  # R_v^T x: the skinned local frame of each vertex
             R = rot[0]
             down = R.new_tensor([0.0, 0.0, -1.0]).expand(B, V, 3)
             vel, n, down = (torch.einsum("bvji,bvj->bvi", R, x) for x in (vel, n, down))
-            extra_local = [rest_pos.unsqueeze(0).expand(B, V, 3), down]
-        feats = ([vel, n, dj] + ([extra] if offset is not None else [])
-                 + (extra_local if self.local_frame else []))
+            past = torch.einsum("bvji,bkvj->bkvi", R, past)
+            extra_local = [past.transpose(1, 2).reshape(B, V, -1),
+                           rest_pos.unsqueeze(0).expand(B, V, 3), down]
+        feats = [vel, n, dj] + ([extra] if offset is not None else []) + extra_local
         x = self.dynamic_norm(torch.cat(feats, -1).reshape(B * V, -1))
         ei = cached_batch_edges(edge_index, B, V)
         e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))

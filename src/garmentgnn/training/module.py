@@ -66,8 +66,8 @@ class GarTransModule(GarmentModule):
         strain_limit: sweeps of GarTrans's strain-limiting step (``0``: none, the paper).
         compile_search: ``torch.compile`` the nearest-body-face search of the collision
             projection and the collision loss (same results; see docs/model.md).
-        gate_init, accel_unit, garment_state, input_norm, local_frame: :class:`GarTrans`
-            settings.
+        gate_init, accel_unit, garment_state, input_norm, local_frame, motion_history:
+            :class:`GarTrans` settings.
         optimizer: ``"adamax"`` (the paper), ``"adam"`` or ``"adamw"``.
         state_noise: ``garment_state`` training: the standard deviation (metres) of the
             Gaussian noise added to the simulated frame ``t-1`` given as the state
@@ -97,7 +97,7 @@ class GarTransModule(GarmentModule):
                  garment_state: bool = False, state_noise: float = 0.0,
                  state_dropout: float = 0.0, state_rollout: bool = False,
                  input_norm: bool = False, local_frame: bool = False,
-                 num_vertices: Optional[int] = None,
+                 motion_history: int = 1, num_vertices: Optional[int] = None,
                  history: Optional[int] = None) -> None:
         super().__init__()
         if lbs_start and not skin_prior:
@@ -112,7 +112,8 @@ class GarTransModule(GarmentModule):
                               blend_shape=blend_shape, strain_limit=strain_limit,
                               compile_search=compile_search, gate_init=gate_init,
                               accel_unit=accel_unit, garment_state=garment_state,
-                              input_norm=input_norm, local_frame=local_frame)
+                              input_norm=input_norm, local_frame=local_frame,
+                              motion_history=motion_history)
         if not 0.0 <= state_dropout <= 1.0:
             raise ValueError(f"`state_dropout`: expected a share in [0, 1], got {state_dropout}")
         if not state_noise >= 0.0:
