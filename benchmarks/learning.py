@@ -471,10 +471,10 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
     return lines
 
 
-def merge_curves(files: Sequence[Path]) -> Dict[str, Any]:
+def merge_curves(files: Sequence[Path], only: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     """The ``curves.json`` of runs made in separate processes (other variants, the same
-    dataset, steps and seeds) as one result; the first file's first variant is then the
-    reference of every paired test."""
+    dataset, steps and seeds) as one result; the first file's first variant kept is then
+    the reference of every paired test.  ``only``: keep these variants alone."""
     parts = [json.loads(Path(f).read_text()) for f in files]
     res = {k: v for k, v in parts[0].items() if k != "command"}
     res.update(variants={}, sources=[{"file": str(f), "command": p.get("command")}
@@ -485,9 +485,14 @@ def merge_curves(files: Sequence[Path]) -> Dict[str, Any]:
                 raise ValueError(f"`files`: {f} has another {key} ({part.get(key)} against "
                                  f"{res.get(key)}): not runs that can be compared")
         for name, v in part["variants"].items():
+            if only is not None and name not in only:
+                continue
             if name in res["variants"]:
                 raise ValueError(f"`files`: variant {name!r} is in more than one file")
             res["variants"][name] = v
+    missing = [name for name in only or () if name not in res["variants"]]
+    if missing:
+        raise ValueError(f"`only`: {missing} in none of the files")
     return res
 
 
@@ -613,8 +618,9 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     ap.add_argument("--steps", type=int, default=300, help="optimizer steps (overfit, curves)")
     ap.add_argument("--every", type=int, default=50, help="steps between measurements")
     ap.add_argument("--variants", nargs="+", default=None, choices=list(VARIANTS),
-                    help="GarTrans settings compared by `curves` (default: all) and added to "
-                         "`grad` and `overfit` (default: none)")
+                    help="GarTrans settings compared by `curves` (default: all), added to "
+                         "`grad` and `overfit` (default: none), kept by `merge` (default: "
+                         "all)")
     ap.add_argument("--methods", nargs="+", default=None,
                     help="the methods `grad` and `overfit` run (default: every learned "
                          "method of the bench)")
@@ -654,7 +660,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             r = part_energy(root, Path(args.bench).expanduser(), args.seed[0])
         elif part == "merge":
             try:
-                res = merge_curves([Path(f).expanduser() for f in args.curves])
+                res = merge_curves([Path(f).expanduser() for f in args.curves],
+                                   args.variants)
             except ValueError as err:
                 raise SystemExit(f"error: {err}") from None
             r = {"results": res, "markdown": [

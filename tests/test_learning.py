@@ -333,6 +333,14 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
         bench["merge_curves"]([tmp_path / "a.json", tmp_path / "c.json"])
     with pytest.raises(ValueError, match="more than one file"):
         bench["merge_curves"]([tmp_path / "a.json", tmp_path / "a.json"])
+    # a merged file's variants, some kept: the reference is the first kept
+    (tmp_path / "ab.json").write_text(json.dumps(dict(merged, command="merge a b")))
+    only_b = bench["merge_curves"]([tmp_path / "ab.json"], only=["b"])
+    assert list(only_b["variants"]) == ["b"]
+    assert next(line for line in bench["curves_markdown"](only_b)
+                if line.startswith("| b |")).split(" | ")[5] == "—"
+    with pytest.raises(ValueError, match="in none of the files"):
+        bench["merge_curves"]([tmp_path / "a.json"], only=["b"])
     # every run failed: the table still renders, naming the failure
     failed = dict(res, variants={"a": {"runs": [{"seed": 0, "status": "RuntimeError: boom",
                                                  "curve": []}]}})
