@@ -104,6 +104,9 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     # the dynamic stack also sees the coarse mesh's earlier velocities
     "local frame, velocity history 3, input normalisers": {"model": {
         "local_frame": True, "input_norm": True, "motion_history": 3}},
+    "velocity history 3": {"model": {"motion_history": 3}},
+    "blend shape, local frame, velocity history 3, input normalisers": {"model": {
+        "blend_shape": True, "local_frame": True, "input_norm": True, "motion_history": 3}},
     "local frame, velocity history 10, input normalisers": {"model": {
         "local_frame": True, "input_norm": True, "motion_history": 10},
         "data": {"history": 10}},

@@ -50,10 +50,11 @@ BLEND_UNIT = 0.01
 #: autoregressive rollout cannot feed its own error back without limit
 STATE_BOUND, STATE_STEP = 0.2, 0.02
 
-#: the :class:`GarTrans` arguments of the paper's own form (§3.1, §4.1), where the
-#: defaults (those of ``garmentgnn/configs/gartrans.yaml`` and :class:`GarTransModule`)
-#: differ: no gates, the blend shape, an acceleration output, no strain limit, no
-#: collision projection, no garment state (docs/model.md says why each default differs)
+#: the :class:`GarTrans` arguments of the paper's own form (§3.1, §4.1): no gates, the
+#: blend shape, an acceleration output, no strain limit, no collision projection, no
+#: garment state, no input normalisers, a world-frame dynamic stack that sees one
+#: velocity; where the defaults (those of ``garmentgnn/configs/gartrans.yaml`` and
+#: :class:`GarTransModule`) differ, docs/model.md says why
 PAPER_FORM: Dict[str, object] = {"lbs_start": False, "gate_init": 0.0,
                                  "collision_projection": None, "blend_shape": True,
                                  "strain_limit": 0, "accel_unit": None,
