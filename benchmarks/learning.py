@@ -68,9 +68,12 @@ _S = MATERIALS["silk"]
 _SILK: Dict[str, float] = {"stretch": _S.stretch, "shear": _S.shear, "bending": _S.bending,
                            "gravity": 1.0, "inertia": 1.0}
 #: GarTrans settings compared by ``curves``: model overrides of the packaged config,
-#: Trainer arguments and data-module settings
+#: Trainer arguments and data-module settings.  Every variant but ``config`` starts from
+#: the former config's world-frame dynamic stack on raw inputs (:data:`_FORMER_INPUTS`,
+#: merged in below), as they were measured, unless it names the switches itself
 VARIANTS: Dict[str, Dict[str, Any]] = {
     "config": {},
+    "former config (world frame, raw inputs)": {},
     "former config (gates at 0, acceleration)": {"model": {"gate_init": 0.0,
                                                            "accel_unit": None}},
     "gate 0.1": {"model": {"gate_init": 0.1}},
@@ -150,6 +153,12 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "HOOD-style, former recipe, accelerations x10": {"baseline": HOOD, "module": dict(
         _HOOD_FORMER, model={"normalize": False, "accel_scale": 10.0})},
 }
+#: the config's dynamic-stack switches before ``local_frame`` and ``input_norm`` became
+#: its defaults (docs/model.md)
+_FORMER_INPUTS: Dict[str, Any] = {"local_frame": False, "input_norm": False}
+for _name, _v in VARIANTS.items():
+    if _name != "config" and "baseline" not in _v:
+        _v["model"] = dict(_FORMER_INPUTS, **_v.get("model", {}))
 
 
 # ------------------------------------------------------------------ building methods

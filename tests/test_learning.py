@@ -22,7 +22,7 @@ from garmentgnn.models.gartrans import STATE_BOUND
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
 from garmentgnn.training.configs import load_config, model_args
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
-from garmentgnn.training.integrity import stamp_checkpoint
+from garmentgnn.training.integrity import CheckpointError, stamp_checkpoint
 
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 
@@ -182,8 +182,7 @@ def test_model_module_and_config_defaults_agree():
         assert model[name] == module[name] == config[name], name
     assert set(PAPER_FORM) == set(SWITCHES)
     assert all(PAPER_FORM[k] != model[k] for k in SWITCHES
-               if k not in ("gate_init", "garment_state", "input_norm", "local_frame",
-                            "motion_history"))
+               if k not in ("gate_init", "garment_state", "motion_history"))
     assert module["skin_prior"] is True and config.get("skin_prior", True) is True
 
 
@@ -230,6 +229,36 @@ def test_checkpoint_from_before_accel_unit_keeps_its_acceleration_output(dm, tmp
         torch.testing.assert_close(loaded(item)["final"], old(item)["final"])
     assert GarTransModule.load_from_checkpoint(paths["new"]).model.accel_unit is None
     assert GarTransModule(**dm.dims).model.accel_unit == 0.01  # today's default
+
+
+def test_checkpoint_from_before_the_local_frame_loads_as_it_was_trained(dm, tmp_path):
+    """A checkpoint saved before ``local_frame`` (and ``input_norm``) existed was a
+    world-frame model without normalisers; it loads as that model, not with today's
+    defaults (which would not even fit its weights), unless the caller names them."""
+    old = gartrans(dm, local_frame=False, input_norm=False).eval()
+    item = dm.train_set[1]
+    hp = {k: v for k, v in old.hparams.items() if k not in ("local_frame", "input_norm")}
+    ckpt = {"state_dict": old.state_dict(), "hyper_parameters": hp,
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, tmp_path / "old.ckpt")
+    loaded = GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt").eval()
+    assert not loaded.model.local_frame and not loaded.model.input_norm
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(item)["final"], old(item)["final"])
+    with pytest.raises(RuntimeError, match="state_dict"):
+        GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt", local_frame=True)
+    # an override is no edit of the file (Lightning writes it into the loaded
+    # hyper-parameters before the digest was checked: every override was refused)
+    assert GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt", lr=1e-4).hparams.lr \
+        == 1e-4
+    ckpt["hyper_parameters"]["lr"] = 0.5  # an edited file is still refused
+    torch.save(ckpt, tmp_path / "edited.ckpt")
+    for kw in ({}, {"lr": 1e-4}):
+        with pytest.raises(CheckpointError, match="integrity digest"):
+            GarTransModule.load_from_checkpoint(tmp_path / "edited.ckpt", **kw)
+    new = GarTransModule(**dm.dims)
+    assert new.model.local_frame and new.model.input_norm  # today's defaults
 
 
 def test_model_can_be_built_under_no_grad(dm):

@@ -129,7 +129,7 @@ class GarTrans(nn.Module):
         input_norm: not in the paper: MeshGraphNets-style normalisers
             (:class:`~garmentgnn.models.blocks.RunningNormalizer`) make the rest and
             dynamic stacks' vertex and edge features ``(x - mean) / std`` per feature,
-            from running statistics of training (saved in the checkpoint).
+            from running statistics of training (saved in the checkpoint).  Default on.
         local_frame: not in the paper: the dynamic stack works in each vertex's skinned
             local frame, the rotation part ``R_v`` of its blended skinning transform
             ``M_v(t) = sum_j W_vj A_j(t)`` (Eq. 1).  Its vector inputs (velocity, normal)
@@ -137,7 +137,8 @@ class GarTrans(nn.Module):
             rest position ``T_v`` (which vertex it is) as six more features, and its output
             is rotated back, ``M^{t,d} = M^{t,c} + g_a R_v a u``: a drape that stays put on
             the limb is one output whatever the pose (the frame in which the "static
-            oracle" of ``benchmarks/error_split.py`` is a constant).
+            oracle" of ``benchmarks/error_split.py`` is a constant).  Default on
+            (with ``input_norm`` it fits the training data better: docs/model.md).
         motion_history: not in the paper beyond ``1``: how many of the coarse mesh's
             per-vertex velocities the dynamic stack sees, ``(M^{s,c} - M^{s-1,c}) / dt``
             for ``s = t, t-1, ..., t - motion_history + 1`` (with ``local_frame``, turned
@@ -153,7 +154,7 @@ class GarTrans(nn.Module):
                  blend_shape: bool = False, strain_limit: int = 10,
                  compile_search: bool = False, gate_init: float = 1.0,
                  accel_unit: Optional[float] = 0.01, garment_state: bool = False,
-                 input_norm: bool = False, local_frame: bool = False,
+                 input_norm: bool = True, local_frame: bool = True,
                  motion_history: int = 1) -> None:
         super().__init__()
         self.local_frame = bool(local_frame)

@@ -12,6 +12,8 @@ it trains (``training_step``, ``configure_optimizers``).
 from __future__ import annotations
 
 import atexit
+import contextvars
+import os
 from typing import Any, Dict, Optional
 
 import lightning as L
@@ -22,9 +24,14 @@ from torch import Tensor
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.integrity import stamp_checkpoint, verify_checkpoint
+from garmentgnn.training.integrity import (load_checkpoint_file, stamp_checkpoint,
+                                           verify_checkpoint)
 
 __all__ = ["LBS_PREFIX", "GarmentModule"]
+
+#: set while :meth:`GarmentModule.load_from_checkpoint` loads a file it has verified
+_VERIFIED: contextvars.ContextVar[bool] = contextvars.ContextVar("checkpoint_verified",
+                                                                default=False)
 
 #: the prefix of the "LBS only" metrics that ``test`` logs beside the method's ``test/...``
 LBS_PREFIX = "test_lbs"
@@ -111,5 +118,20 @@ class GarmentModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         stamp_checkpoint(checkpoint)
 
+    @classmethod
+    def load_from_checkpoint(cls, checkpoint_path, *args, **kwargs):
+        """Lightning's ``load_from_checkpoint``.  Lightning writes hyper-parameter
+        overrides (``kwargs``) into the loaded checkpoint before :meth:`on_load_checkpoint`
+        sees it, so with ``kwargs`` the file is verified as it was written, first."""
+        if not kwargs or not isinstance(checkpoint_path, (str, os.PathLike)):
+            return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+        load_checkpoint_file(checkpoint_path)  # raises CheckpointError on a changed file
+        token = _VERIFIED.set(True)
+        try:
+            return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+        finally:
+            _VERIFIED.reset(token)
+
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
-        verify_checkpoint(checkpoint)
+        if not _VERIFIED.get():
+            verify_checkpoint(checkpoint)

@@ -8,6 +8,7 @@ the supervised scale and whether the rest-pose branch is frozen are switched by
 """
 from __future__ import annotations
 
+import os
 from typing import Any, Dict, Iterable, Iterator, Optional
 
 import torch
@@ -16,6 +17,7 @@ from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.base import GarmentModule
+from garmentgnn.training.integrity import load_checkpoint_file
 
 
 def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
@@ -32,6 +34,10 @@ def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
 #: ``optimizer`` choices (the paper: Adamax)
 OPTIMIZERS = {"adamax": torch.optim.Adamax, "adam": torch.optim.Adam,
               "adamw": torch.optim.AdamW}
+
+#: switches whose default has changed, with the value a checkpoint that does not name
+#: them was trained with (:meth:`GarTransModule.load_from_checkpoint` builds it so)
+FORMER_DEFAULTS: Dict[str, Any] = {"input_norm": False, "local_frame": False}
 
 #: the rest-pose processing submodule frozen in the third phase (§4.1)
 REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
@@ -96,7 +102,7 @@ class GarTransModule(GarmentModule):
                  accel_unit: Optional[float] = 0.01, optimizer: str = "adamax",
                  garment_state: bool = False, state_noise: float = 0.0,
                  state_dropout: float = 0.0, state_rollout: bool = False,
-                 input_norm: bool = False, local_frame: bool = False,
+                 input_norm: bool = True, local_frame: bool = True,
                  motion_history: int = 1, num_vertices: Optional[int] = None,
                  history: Optional[int] = None) -> None:
         super().__init__()
@@ -217,6 +223,17 @@ class GarTransModule(GarmentModule):
                 "terms": {k: v.detach() for k, v in terms.items()}}
 
     # -- checkpoints (integrity: GarmentModule) ----------------------------------------
+    @classmethod
+    def load_from_checkpoint(cls, checkpoint_path, *args, **kwargs):
+        """Lightning's ``load_from_checkpoint``; a checkpoint written before a switch of
+        :data:`FORMER_DEFAULTS` existed is built with the switch's former value (the
+        model it was trained as), unless ``kwargs`` name it."""
+        if isinstance(checkpoint_path, (str, os.PathLike)):
+            saved = load_checkpoint_file(checkpoint_path).get("hyper_parameters") or {}
+            kwargs = {**{k: v for k, v in FORMER_DEFAULTS.items() if k not in saved},
+                      **kwargs}
+        return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         super().on_load_checkpoint(checkpoint)
         saved = checkpoint.get("hyper_parameters")
