@@ -125,7 +125,8 @@ class GarTrans(SequencePrediction, nn.Module):
             rest position ``T_v`` (which vertex it is) as six more features, and its output
             is rotated back, ``M^{t,d} = M^{t,c} + g_a R_v a u``: a drape that stays put on
             the limb is one output whatever the pose (the frame in which the "static
-            oracle" of ``benchmarks/error_split.py`` is a constant).  Default on
+            oracle" of ``benchmarks/error_split.py`` is a constant).  The edge features
+            stay in the world frame.  Default on
             (with ``input_norm`` it fits the training data better: docs/model.md).
         motion_history: not in the paper beyond ``1``: how many of the coarse mesh's
             per-vertex velocities the dynamic stack sees, ``(M^{s,c} - M^{s-1,c}) / dt``
@@ -388,15 +389,15 @@ class GarTrans(SequencePrediction, nn.Module):
         m = self.motion_history  # the coarse mesh's earlier velocities, newest first
         past = ((coarse_k[:, -m:-1] - coarse_k[:, -m - 1:-2]) * self.fps).flip(1) \
             if m > 1 else coarse_k.new_zeros(B, 0, V, 3)
-        extra_local = [past.transpose(1, 2).reshape(B, V, -1)]
+        local = []
         if self.local_frame:  # R_v^T x: the skinned local frame of each vertex
             R = rot[0]
             down = R.new_tensor([0.0, 0.0, -1.0]).expand(B, V, 3)
             vel, n, down = (torch.einsum("bvji,bvj->bvi", R, x) for x in (vel, n, down))
             past = torch.einsum("bvji,bkvj->bkvi", R, past)
-            extra_local = [past.transpose(1, 2).reshape(B, V, -1),
-                           rest_pos.unsqueeze(0).expand(B, V, 3), down]
-        feats = [vel, n, dj] + ([extra] if offset is not None else []) + extra_local
+            local = [rest_pos.unsqueeze(0).expand(B, V, 3), down]
+        feats = ([vel, n, dj] + ([extra] if offset is not None else [])
+                 + [past.transpose(1, 2).reshape(B, V, -1)] + local)
         x = self.dynamic_norm(torch.cat(feats, -1).reshape(B * V, -1))
         ei = cached_batch_edges(edge_index, B, V)
         e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))

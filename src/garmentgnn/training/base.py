@@ -123,7 +123,8 @@ class GarmentModule(L.LightningModule):
         """Lightning's ``load_from_checkpoint``.  Lightning writes hyper-parameter
         overrides (``kwargs``) into the loaded checkpoint before :meth:`on_load_checkpoint`
         sees it, so with ``kwargs`` the file is verified as it was written, first."""
-        if not kwargs or not isinstance(checkpoint_path, (str, os.PathLike)):
+        if not kwargs or not isinstance(checkpoint_path, (str, os.PathLike)) \
+                or not os.path.isfile(checkpoint_path):  # a stream or a remote URL
             return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
         load_checkpoint_file(checkpoint_path)  # raises CheckpointError on a changed file
         token = _VERIFIED.set(True)

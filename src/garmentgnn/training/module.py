@@ -228,7 +228,7 @@ class GarTransModule(GarmentModule):
         """Lightning's ``load_from_checkpoint``; a checkpoint written before a switch of
         :data:`FORMER_DEFAULTS` existed is built with the switch's former value (the
         model it was trained as), unless ``kwargs`` name it."""
-        if isinstance(checkpoint_path, (str, os.PathLike)):
+        if isinstance(checkpoint_path, (str, os.PathLike)) and os.path.isfile(checkpoint_path):
             saved = load_checkpoint_file(checkpoint_path).get("hyper_parameters") or {}
             kwargs = {**{k: v for k, v in FORMER_DEFAULTS.items() if k not in saved},
                       **kwargs}
