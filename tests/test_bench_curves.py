@@ -38,6 +38,23 @@ def test_plateau_reached_when_the_last_quarter_does_not_improve():
         curves.plateau(_pts([3.0, 2.0, 1.0]))
 
 
+def test_report_plateau_column_says_which_way_the_last_quarter_moved():
+    """The plateau column names the direction: a run whose last quarter is worse than its
+    earlier best reads "above" (it was once printed as "-2.9% better")."""
+    def rec(errors, seed):
+        return {"kind": "learned", "status": "ok", "method": "GarTrans (SAT)", "seed": seed,
+                "epochs": 1, "steps": 80, "metrics": {"E_dist": 9.5},
+                "curve": {"every": 10, "points": _pts(errors), "lbs_E_dist": 1.9},
+                "equal_steps": {"step": 500, "reached": False}}
+    text = "\n".join(curves.markdown([rec([9.0, 6.0, 5.0, 4.0, 3.9, 3.95, 3.92, 3.91, 4.29], 0),
+                                      rec([9.0, 8.0, 7.0, 6.0, 5.0, 4.0, 3.0, 2.0, 1.0], 1)]))
+    rows = [line for line in text.splitlines() if line.startswith("| GarTrans (SAT) |")]
+    # seed 0: best of the last quarter 3.91 against 3.9 before; seed 1: 1.0 against 3.0
+    assert "yes (the last 25%'s best is 0.3% above the best before it)" in rows[0]
+    assert "not converged (the last 25%'s best is 66.7% below the best before it)" in rows[1]
+    assert "better" not in text
+
+
 def test_report_when_no_method_reached_the_equal_step_snapshot():
     """Every run stopped by its time before the snapshot: the section names them and
     shows no equal-step table (this crashed the report once)."""

@@ -101,3 +101,19 @@ def test_report_verdicts_from_paired_tests():
     assert "lower than LBS on all five metrics: **missed**" in text
     row = next(line for line in text.splitlines() if line.startswith(f"| {abl} | E_dist"))
     assert "significant (p < 0.05)" in row and "not significant" not in row
+
+
+def test_report_lower_than_lbs_needs_a_significant_difference_on_every_metric():
+    """Lower than LBS on the mean of every metric is "met" only where every paired
+    difference is significant: three sequences cannot give p < 0.05 (the smallest exact
+    two-sided p is 2/8), eight that all agree can (2/256)."""
+    full = methods.FULL
+    base = [5.0 + i for i in range(8)]
+    few = [_record(full, [v - 0.1 for v in base[:3]]), _record(methods.LBS, base[:3])]
+    text = "\n".join(learned_report.comparison_markdown(few))
+    assert "lower than LBS on all five metrics: **not significant**" in text
+    assert "significantly, p < 0.05, on none" in text
+    many = [_record(full, [v - 0.1 for v in base]), _record(methods.LBS, base)]
+    text = "\n".join(learned_report.comparison_markdown(many))
+    assert "lower than LBS on all five metrics: **met**" in text
+    assert "significantly, p < 0.05, on E_dist, E_vnorm, E_fnorm, E_len, E_curv" in text

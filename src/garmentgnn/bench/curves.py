@@ -172,8 +172,9 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
         pts = r["curve"]["points"]
         try:
             pl = plateau(pts)
-            verdict = (f"{'yes' if pl['reached'] else 'not converged'} "
-                       f"({pl['gain']:.1%} better in the last {TAIL:.0%})")
+            verdict = (f"{'yes' if pl['reached'] else 'not converged'} (the last "
+                       f"{TAIL:.0%}'s best is {abs(pl['gain']):.1%} "
+                       f"{'below' if pl['gain'] >= 0 else 'above'} the best before it)")
             best = f"{pl['best']:.3f} @ {pl['best_step']} (epoch {pl['best_epoch']})"
         except ValueError:
             verdict, best = "too few points", "—"

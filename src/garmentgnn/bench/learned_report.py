@@ -246,9 +246,15 @@ def _targets(records: Sequence[Dict[str, Any]], groups: Sequence[str]) -> List[s
                  f"**{'met' if ok30 else 'missed'}** ("
                  + ", ".join(f"{g}: {100 * c:.0f}%" for g, c in cuts.items()) + ")")
     better = [k for k in METRICS[:5] if m(full, k) < m(lbs, k)]
-    met = "met" if len(better) == 5 else "missed"
+    sig = [k for k in better if len(set(per_sequence(records, FULL, k))
+                                    & set(per_sequence(records, LBS, k))) >= 2
+           and scoring.wilcoxon(per_sequence(records, FULL, k),
+                                per_sequence(records, LBS, k))["p"] < ALPHA]
+    # met: lower on the mean of every metric, each by a significant paired difference
+    met = ("missed" if len(better) < 5 else "met" if len(sig) == 5 else "not significant")
     lines.append(f"- lower than LBS on all five metrics: **{met}**"
-                 f" (lower on {', '.join(better) or 'none'})")
+                 f" (lower on {', '.join(better) or 'none'}; significantly, p < {ALPHA}, "
+                 f"on {', '.join(sig) or 'none'})")
     for b in BASELINES_ORDER:
         rb = _ok(records, b)
         if rb:
