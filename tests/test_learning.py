@@ -360,8 +360,20 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
     (tmp_path / "c.json").write_text(json.dumps(dict(res, seeds=[0, 1], variants={})))
     with pytest.raises(ValueError, match="another seeds"):
         bench["merge_curves"]([tmp_path / "a.json", tmp_path / "c.json"])
-    with pytest.raises(ValueError, match="more than one file"):
-        bench["merge_curves"]([tmp_path / "a.json", tmp_path / "a.json"])
+    # a variant in two files: kept once where a rerun reproduced its errors (timings
+    # differ), refused where an error differs
+    rerun = json.loads((tmp_path / "a.json").read_text())
+    for r in rerun["variants"]["a"]["runs"]:
+        r["seconds"] = r.get("seconds", 0.0) + 1.0
+        for point in r["curve"]:
+            point["train_seconds"] = point.get("train_seconds", 0.0) + 1.0
+    (tmp_path / "a2.json").write_text(json.dumps(rerun))
+    twice = bench["merge_curves"]([tmp_path / "a.json", tmp_path / "b.json", tmp_path / "a2.json"])
+    assert bench["curves_markdown"](twice) == lines
+    rerun["variants"]["a"]["runs"][0]["curve"][-1]["test"] += 1e-6
+    (tmp_path / "a3.json").write_text(json.dumps(rerun))
+    with pytest.raises(ValueError, match="more than one file, with other errors"):
+        bench["merge_curves"]([tmp_path / "a.json", tmp_path / "a3.json"])
     # a merged file's variants, some kept: the reference is the first kept
     (tmp_path / "ab.json").write_text(json.dumps(dict(merged, command="merge a b")))
     only_b = bench["merge_curves"]([tmp_path / "ab.json"], only=["b"])

@@ -246,10 +246,9 @@ def _targets(records: Sequence[Dict[str, Any]], groups: Sequence[str]) -> List[s
                  f"**{'met' if ok30 else 'missed'}** ("
                  + ", ".join(f"{g}: {100 * c:.0f}%" for g, c in cuts.items()) + ")")
     better = [k for k in METRICS[:5] if m(full, k) < m(lbs, k)]
-    sig = [k for k in better if len(set(per_sequence(records, FULL, k))
-                                    & set(per_sequence(records, LBS, k))) >= 2
-           and scoring.wilcoxon(per_sequence(records, FULL, k),
-                                per_sequence(records, LBS, k))["p"] < ALPHA]
+    pairs = {k: (per_sequence(records, FULL, k), per_sequence(records, LBS, k)) for k in better}
+    sig = [k for k, (a, b) in pairs.items()
+           if len(set(a) & set(b)) >= 2 and scoring.wilcoxon(a, b)["p"] < ALPHA]
     # met: lower on the mean of every metric, each by a significant paired difference
     met = ("missed" if len(better) < 5 else "met" if len(sig) == 5 else "not significant")
     lines.append(f"- lower than LBS on all five metrics: **{met}**"
