@@ -261,6 +261,24 @@ def test_checkpoint_from_before_the_local_frame_loads_as_it_was_trained(dm, tmp_
     assert new.model.local_frame and new.model.input_norm  # today's defaults
 
 
+def test_an_old_checkpoint_is_read_twice_at_most(dm, tmp_path, monkeypatch):
+    """Looking up the former defaults verifies the file; loading it reads it once more
+    (Lightning), not a third time to verify it again."""
+    old = gartrans(dm, local_frame=False, input_norm=False)
+    hp = {k: v for k, v in old.hparams.items() if k not in ("local_frame", "input_norm")}
+    ckpt = {"state_dict": old.state_dict(), "hyper_parameters": hp,
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, tmp_path / "old.ckpt")
+    reads, load = [], torch.load
+    monkeypatch.setattr(torch, "load", lambda *a, **kw: reads.append(1) or load(*a, **kw))
+    for kw in ({}, {"lr": 1e-4}):
+        reads.clear()
+        loaded = GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt", **kw)
+        assert not loaded.model.local_frame
+        assert len(reads) == 2
+
+
 def test_model_can_be_built_under_no_grad(dm):
     """Building GarTrans inside ``torch.no_grad()`` crashed ("element 0 of tensors does not
     require grad"): the attention stacks find their dead edge outputs by a backward pass."""

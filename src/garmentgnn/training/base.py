@@ -14,7 +14,7 @@ from __future__ import annotations
 import atexit
 import contextvars
 import os
-from typing import Any, Dict, Optional
+from typing import Any, ClassVar, Dict, Optional
 
 import lightning as L
 import torch
@@ -62,7 +62,15 @@ def destroy_gloo_group_at_exit() -> None:
 
 class GarmentModule(L.LightningModule):
     """Base of the garment methods trained by ``garmentgnn train`` (one chunk per step,
-    :class:`~garmentgnn.training.GarmentDataModule`)."""
+    :class:`~garmentgnn.training.GarmentDataModule`).
+
+    Attributes:
+        former_defaults: hyper-parameters whose default has changed, with the value a
+            checkpoint that does not name them was trained with;
+            :meth:`load_from_checkpoint` builds such a checkpoint with it.
+    """
+
+    former_defaults: ClassVar[Dict[str, Any]] = {}
 
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         """The garment ``[B, V, 3]`` of every frame of ``batch``."""
@@ -120,13 +128,19 @@ class GarmentModule(L.LightningModule):
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path, *args, **kwargs):
-        """Lightning's ``load_from_checkpoint``.  Lightning writes hyper-parameter
-        overrides (``kwargs``) into the loaded checkpoint before :meth:`on_load_checkpoint`
-        sees it, so with ``kwargs`` the file is verified as it was written, first."""
-        if not kwargs or not isinstance(checkpoint_path, (str, os.PathLike)) \
-                or not os.path.isfile(checkpoint_path):  # a stream or a remote URL
+        """Lightning's ``load_from_checkpoint``; a checkpoint that does not name a
+        hyper-parameter of :attr:`former_defaults` is built with its former value (the
+        model it was trained as), unless ``kwargs`` name it.  Lightning writes
+        ``kwargs`` into the loaded checkpoint before :meth:`on_load_checkpoint` sees
+        it, so with ``kwargs`` (or former defaults to look up) a local file is verified
+        as it was written, first; a stream or a remote URL is verified as loaded."""
+        if not (kwargs or cls.former_defaults) or not isinstance(
+                checkpoint_path, (str, os.PathLike)) or not os.path.isfile(checkpoint_path):
             return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
-        load_checkpoint_file(checkpoint_path)  # raises CheckpointError on a changed file
+        # raises CheckpointError on a changed file
+        saved = load_checkpoint_file(checkpoint_path).get("hyper_parameters") or {}
+        kwargs = {**{k: v for k, v in cls.former_defaults.items() if k not in saved},
+                  **kwargs}
         token = _VERIFIED.set(True)
         try:
             return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)

@@ -8,7 +8,6 @@ the supervised scale and whether the rest-pose branch is frozen are switched by
 """
 from __future__ import annotations
 
-import os
 from typing import Any, Dict, Iterable, Iterator, Optional
 
 import torch
@@ -17,7 +16,6 @@ from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.base import GarmentModule
-from garmentgnn.training.integrity import load_checkpoint_file
 
 
 def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
@@ -36,7 +34,9 @@ OPTIMIZERS = {"adamax": torch.optim.Adamax, "adam": torch.optim.Adam,
               "adamw": torch.optim.AdamW}
 
 #: switches whose default has changed, with the value a checkpoint that does not name
-#: them was trained with (:meth:`GarTransModule.load_from_checkpoint` builds it so)
+#: them was trained with (:meth:`GarTransModule.load_from_checkpoint` builds it so; a
+#: checkpoint from before ``accel_unit`` existed gets its former value in
+#: ``on_load_checkpoint``, which a resumed fit runs too)
 FORMER_DEFAULTS: Dict[str, Any] = {"input_norm": False, "local_frame": False}
 
 #: the rest-pose processing submodule frozen in the third phase (§4.1)
@@ -222,17 +222,8 @@ class GarTransModule(GarmentModule):
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
 
-    # -- checkpoints (integrity: GarmentModule) ----------------------------------------
-    @classmethod
-    def load_from_checkpoint(cls, checkpoint_path, *args, **kwargs):
-        """Lightning's ``load_from_checkpoint``; a checkpoint written before a switch of
-        :data:`FORMER_DEFAULTS` existed is built with the switch's former value (the
-        model it was trained as), unless ``kwargs`` name it."""
-        if isinstance(checkpoint_path, (str, os.PathLike)) and os.path.isfile(checkpoint_path):
-            saved = load_checkpoint_file(checkpoint_path).get("hyper_parameters") or {}
-            kwargs = {**{k: v for k, v in FORMER_DEFAULTS.items() if k not in saved},
-                      **kwargs}
-        return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+    # -- checkpoints (integrity and FORMER_DEFAULTS: GarmentModule) -----------------------
+    former_defaults = FORMER_DEFAULTS
 
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         super().on_load_checkpoint(checkpoint)
