@@ -209,20 +209,26 @@ def test_attention_stack_initialisation_is_kaiming(layer):
     assert seen >= 3
 
 
+def _save_checkpoint(module, path, drop=()) -> dict:
+    """``module`` saved as a stamped Lightning checkpoint without the hyper-parameters
+    ``drop`` (a checkpoint written before they existed); returns what was saved."""
+    hp = {k: v for k, v in module.hparams.items() if k not in drop}
+    ckpt = {"state_dict": module.state_dict(), "hyper_parameters": hp,
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, path)
+    return ckpt
+
+
 def test_checkpoint_from_before_accel_unit_keeps_its_acceleration_output(dm, tmp_path):
     """A checkpoint saved before ``accel_unit`` existed holds no such hyper-parameter;
     its model output an acceleration.  Loaded with today's default (centimetres) it
     would predict other positions without a word; it loads as it was saved."""
     old = gartrans(dm, accel_unit=None).eval()
     item = dm.train_set[1]
-    paths = {}
-    for name, drop in (("old", True), ("new", False)):
-        hp = {k: v for k, v in old.hparams.items() if not (drop and k == "accel_unit")}
-        ckpt = {"state_dict": old.state_dict(), "hyper_parameters": hp,
-                "pytorch-lightning_version": L.__version__}
-        stamp_checkpoint(ckpt)
-        paths[name] = tmp_path / f"{name}.ckpt"
-        torch.save(ckpt, paths[name])
+    paths = {"old": tmp_path / "old.ckpt", "new": tmp_path / "new.ckpt"}
+    _save_checkpoint(old, paths["old"], drop=("accel_unit",))
+    _save_checkpoint(old, paths["new"])
     loaded = GarTransModule.load_from_checkpoint(paths["old"]).eval()
     assert loaded.model.accel_unit is None and loaded.hparams.accel_unit is None
     with torch.no_grad():
@@ -237,11 +243,7 @@ def test_checkpoint_from_before_the_local_frame_loads_as_it_was_trained(dm, tmp_
     defaults (which would not even fit its weights), unless the caller names them."""
     old = gartrans(dm, local_frame=False, input_norm=False).eval()
     item = dm.train_set[1]
-    hp = {k: v for k, v in old.hparams.items() if k not in ("local_frame", "input_norm")}
-    ckpt = {"state_dict": old.state_dict(), "hyper_parameters": hp,
-            "pytorch-lightning_version": L.__version__}
-    stamp_checkpoint(ckpt)
-    torch.save(ckpt, tmp_path / "old.ckpt")
+    ckpt = _save_checkpoint(old, tmp_path / "old.ckpt", drop=("local_frame", "input_norm"))
     loaded = GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt").eval()
     assert not loaded.model.local_frame and not loaded.model.input_norm
     with torch.no_grad():
@@ -265,11 +267,7 @@ def test_an_old_checkpoint_is_read_twice_at_most(dm, tmp_path, monkeypatch):
     """Looking up the former defaults verifies the file; loading it reads it once more
     (Lightning), not a third time to verify it again."""
     old = gartrans(dm, local_frame=False, input_norm=False)
-    hp = {k: v for k, v in old.hparams.items() if k not in ("local_frame", "input_norm")}
-    ckpt = {"state_dict": old.state_dict(), "hyper_parameters": hp,
-            "pytorch-lightning_version": L.__version__}
-    stamp_checkpoint(ckpt)
-    torch.save(ckpt, tmp_path / "old.ckpt")
+    _save_checkpoint(old, tmp_path / "old.ckpt", drop=("local_frame", "input_norm"))
     reads, load = [], torch.load
     monkeypatch.setattr(torch, "load", lambda *a, **kw: reads.append(1) or load(*a, **kw))
     for kw in ({}, {"lr": 1e-4}):
