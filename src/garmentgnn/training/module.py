@@ -8,7 +8,7 @@ the supervised scale and whether the rest-pose branch is frozen are switched by
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Iterable, Iterator, Optional
+from typing import Any, ClassVar, Dict, Iterable, Iterator, Optional
 
 import torch
 
@@ -32,12 +32,6 @@ def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
 #: ``optimizer`` choices (the paper: Adamax)
 OPTIMIZERS = {"adamax": torch.optim.Adamax, "adam": torch.optim.Adam,
               "adamw": torch.optim.AdamW}
-
-#: switches whose default has changed, with the value a checkpoint that does not name
-#: them was trained with (:meth:`GarTransModule.load_from_checkpoint` builds it so; a
-#: checkpoint from before ``accel_unit`` existed gets its former value in
-#: ``on_load_checkpoint``, which a resumed fit runs too)
-FORMER_DEFAULTS: Dict[str, Any] = {"input_norm": False, "local_frame": False}
 
 #: the rest-pose processing submodule frozen in the third phase (§4.1)
 REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
@@ -222,8 +216,12 @@ class GarTransModule(GarmentModule):
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
 
-    # -- checkpoints (integrity and FORMER_DEFAULTS: GarmentModule) -----------------------
-    former_defaults = FORMER_DEFAULTS
+    # -- checkpoints (integrity and the former defaults: GarmentModule) -------------------
+    #: switches whose default has changed, with the value a checkpoint that does not name
+    #: them was trained with (the base's ``load_from_checkpoint`` builds it so; a
+    #: checkpoint from before ``accel_unit`` existed gets its former value in
+    #: ``on_load_checkpoint``, which a resumed fit runs too)
+    former_defaults: ClassVar[Dict[str, Any]] = {"input_norm": False, "local_frame": False}
 
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         super().on_load_checkpoint(checkpoint)
