@@ -358,19 +358,25 @@ def part_overfit(root: Path, steps: int, every: int,
     return {"results": res, "markdown": lines}
 
 
+def evenly(items: Sequence[Any], n: int) -> List[Any]:
+    """``n`` of ``items``, evenly spaced, the first and the last among them."""
+    pick = torch.linspace(0, len(items) - 1, min(n, len(items))).round().long()
+    return [items[int(i)] for i in pick.unique()]
+
+
 def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 train_sequences: int, seeds: Sequence[int],
-                surface: bool = False) -> Dict[str, Any]:
+                surface: bool = False, test_sequences: Optional[int] = None) -> Dict[str, Any]:
     """Each variant trained once per seed; the table gives the mean over seeds at the last
-    step and, against the first variant, a paired Wilcoxon test over (seed, test sequence)."""
+    step and, against the first variant, a paired Wilcoxon test over (seed, test sequence).
+    ``test_sequences``: that many of the test split, evenly spaced (default: all)."""
     dims = datamodule(root, seeds[0]).dims
 
     def sequences(history: Optional[int] = None) -> Dict[str, List[Any]]:
         test = whole_sequences(root, "test", history)
         train = whole_sequences(root, "train", history)
-        pick = torch.linspace(0, len(train) - 1, min(train_sequences, len(train))).round().long()
-        return {"train": [train[int(i)] for i in pick.unique()],
-                "test": [test[i] for i in range(len(test))]}
+        return {"train": evenly(train, train_sequences),
+                "test": evenly(test, test_sequences or len(test))}
 
     sets = sequences()
     lbs = {k: lbs_error(v) for k, v in sets.items()}
@@ -657,6 +663,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
                          "method of the bench)")
     ap.add_argument("--train-sequences", type=int, default=6,
                     help="training sequences measured by `curves` (evenly spaced)")
+    ap.add_argument("--test-sequences", type=int, default=None,
+                    help="test sequences measured by `curves` (evenly spaced; default: all)")
     ap.add_argument("--seed", type=int, nargs="+", default=[0],
                     help="training seeds (curves: each variant once per seed); the bench "
                          "run's seed (energy: one)")
@@ -666,6 +674,9 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     args = ap.parse_args(argv)
     if args.steps < 1 or args.every < 1:
         raise SystemExit("error: --steps and --every must be >= 1")
+    if args.train_sequences < 1 or (args.test_sequences is not None
+                                    and args.test_sequences < 1):
+        raise SystemExit("error: --train-sequences and --test-sequences must be >= 1")
     if args.data is None and set(args.parts) - {"merge"}:
         raise SystemExit("error: give --data DIR, the generated dataset to train on")
     if "merge" in args.parts and not args.curves:
@@ -701,7 +712,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             plot_curves(res, out / f"{part}.png")
         else:
             r = part_curves(root, args.steps, args.every, args.variants or list(VARIANTS),
-                            args.train_sequences, args.seed, args.surface)
+                            args.train_sequences, args.seed, args.surface,
+                            args.test_sequences)
             plot_curves(r["results"], out / f"{part}.png")
         (out / f"{part}.json").write_text(json.dumps({"command": command, **r["results"]},
                                                      indent=1))

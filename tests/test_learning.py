@@ -337,6 +337,19 @@ def test_input_normalisers_feed_the_stacks_standardised_features(dm, tmp_path):
     assert not any("norm" in k for k in plain.state_dict())
 
 
+@pytest.mark.parametrize("n", [1, 2, 4, 7, 20])
+def test_curves_measures_evenly_spaced_sequences(n):
+    """``benchmarks/learning.py``'s choice of the measured sequences: ``n`` of them, evenly
+    spaced from the first to the last (numpy's rounded ``linspace``), all where ``n`` is
+    more than there are."""
+    evenly = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
+                                "learning.py"), run_name="evenly_check")["evenly"]
+    items = [f"seq{i}" for i in range(7)]
+    want = sorted(set(np.rint(np.linspace(0, 6, min(n, 7))).astype(int)))
+    assert evenly(items, n) == [items[i] for i in want]
+    assert len(evenly(items, n)) == min(n, 7)
+
+
 def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
     """``benchmarks/learning.py``'s curves table: the mean ± std over seeds of each
     variant's last E_dist / LBS, and scipy's paired Wilcoxon test over (seed, sequence)."""
