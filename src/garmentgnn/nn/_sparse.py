@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
+import weakref
 from typing import Iterator, Optional, Tuple
 
 import torch
@@ -82,6 +83,10 @@ class Pattern:
         self._transpose_parts = transpose  # (ptr_t, col_t, to_t), built on demand otherwise
         self._t: Optional[Pattern] = None
         self._to_t: Optional[Tensor] = None
+        # a transpose refers back to the pattern it was built from weakly: a pair of
+        # strong references is a cycle, whose index tensors only a full garbage
+        # collection frees (RSS grew by about 20 MB a training step on `medium`)
+        self._parent: Optional["weakref.ReferenceType[Pattern]"] = None
         self.rows: Optional[Tensor] = None  # row of every entry (head patterns set it)
 
     def matrix(self, values: Tensor) -> Tensor:
@@ -105,14 +110,18 @@ class Pattern:
     @property
     @torch.inference_mode(False)
     def T(self) -> "Pattern":
-        if self._t is None:
-            ptr_t, col_t, to_t = self._transpose_parts or self._build_transpose()
-            t = Pattern(ptr_t, col_t, (self.shape[1], self.shape[0]))
-            back = torch.empty_like(to_t)
-            back[to_t] = torch.arange(to_t.numel(), device=to_t.device)
-            t._t, t._to_t = self, back
-            self._t, self._to_t = t, to_t
-        return self._t
+        if self._t is not None:
+            return self._t
+        parent = self._parent() if self._parent is not None else None
+        if parent is not None:
+            return parent
+        ptr_t, col_t, to_t = self._transpose_parts or self._build_transpose()
+        t = Pattern(ptr_t, col_t, (self.shape[1], self.shape[0]))
+        back = torch.empty_like(to_t)
+        back[to_t] = torch.arange(to_t.numel(), device=to_t.device)
+        t._parent, t._to_t = weakref.ref(self), back
+        self._t, self._to_t = t, to_t
+        return t
 
     def sample(self, a: Tensor, b: Tensor) -> Tensor:
         """``(a b^T)`` on the pattern, as a flat value vector.
@@ -144,13 +153,16 @@ def head_pattern(plan: CSRPlan, heads: int) -> Pattern:
         ptr = torch.cat([(plan.ptr[:-1].unsqueeze(0) + off * E).reshape(-1),
                          plan.ptr.new_full((1,), heads * E)])
         col = (plan.src.unsqueeze(0) + off * ns).reshape(-1)
+        src, dst = plan.src, plan.dst  # not ``plan``: the plan holds the pattern, which
+        # holds this closure, and that cycle would keep every plan's index tensors alive
+        # until a full garbage collection
 
         def transpose() -> Tuple[Tensor, Tensor, Tensor]:
-            perm = torch.argsort(plan.src * nd + plan.dst, stable=True)
-            ptr_b = index2ptr(plan.src[perm], ns)
+            perm = torch.argsort(src * nd + dst, stable=True)
+            ptr_b = index2ptr(src[perm], ns)
             ptr_t = torch.cat([(ptr_b[:-1].unsqueeze(0) + off * E).reshape(-1),
                                ptr_b.new_full((1,), heads * E)])
-            col_t = (plan.dst[perm].unsqueeze(0) + off * nd).reshape(-1)
+            col_t = (dst[perm].unsqueeze(0) + off * nd).reshape(-1)
             return ptr_t, col_t, (perm.unsqueeze(0) + off * E).reshape(-1)
 
         pat = Pattern(ptr, col, (heads * nd, heads * ns))

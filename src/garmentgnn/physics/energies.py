@@ -53,6 +53,13 @@ def _safe_norm(v: Tensor) -> Tensor:
     return (v * v).sum(-1).clamp_min(1e-20).sqrt()
 
 
+def _move(v, device, non_blocking: bool):
+    """``v`` (a tensor, or a named tuple of them: FaceAdjacency) on ``device``."""
+    if isinstance(v, Tensor):
+        return v.to(device, non_blocking=non_blocking)
+    return type(v)(*(_move(t, device, non_blocking) for t in v))
+
+
 @dataclass
 class ClothRest:
     """Rest-state quantities of a cloth mesh, computed once per garment.
@@ -79,11 +86,8 @@ class ClothRest:
 
     def to(self, device, non_blocking: bool = False) -> "ClothRest":
         """A copy with every tensor on ``device`` (this one is left where it is)."""
-        def move(v):
-            if isinstance(v, Tensor):
-                return v.to(device, non_blocking=non_blocking)
-            return type(v)(*(move(t) for t in v))  # FaceAdjacency
-        return replace(self, **{f.name: move(getattr(self, f.name)) for f in fields(self)})
+        return replace(self, **{f.name: _move(getattr(self, f.name), device, non_blocking)
+                                for f in fields(self)})
 
     @classmethod
     def from_mesh(cls, rest_pos: Tensor, faces: Tensor, face_uv: Optional[Tensor] = None,
