@@ -1,0 +1,93 @@
+"""Resident memory of a training process against steps.
+
+Trains a learned method of the bench (``--method``, built from its packaged
+configuration as ``garmentgnn bench`` builds it) on a generated dataset's training
+split through the Lightning ``Trainer`` and prints the process's resident set size
+(``VmRSS`` of ``/proc/self/status``, Linux) every ``--every`` steps.  A process whose
+live tensors do not grow should not grow either; on the `medium` dataset a reference
+cycle among the attention layers' sparse patterns once made a GarTrans fit grow by
+about 23 MB a step (docs/bench.md, "Memory").  Writes ``train_memory.json`` into
+``--out`` (``--commit``: the committed ``benchmarks/results/``)::
+
+    python benchmarks/train_memory.py --data ~/.cache/garmentgnn/datasets/medium-blender
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+import lightning as L
+import torch
+
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn.bench.methods import DATA, FULL, GARTRANS, variant_settings
+from garmentgnn.data.store import code_version
+from garmentgnn.training import GarmentDataModule, GarTransModule
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def rss_mb() -> float:
+    """The process's resident set size (MB) from ``/proc/self/status``."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmRSS in /proc/self/status (Linux only)")
+
+
+class RSSProbe(L.Callback):
+    """Records ``(step, RSS)`` every ``every`` optimizer steps."""
+
+    def __init__(self, every: int) -> None:
+        self.every = every
+        self.rows: List[Dict[str, float]] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        step = trainer.global_step
+        if step % self.every == 0:
+            self.rows.append({"step": step, "rss_mb": rss_mb()})
+            print(f"step {step}: RSS {self.rows[-1]['rss_mb']:.0f} MB", flush=True)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=HelpFormatter)
+    ap.add_argument("--data", required=True, help="a generated dataset folder")
+    ap.add_argument("--method", default=FULL, choices=list(GARTRANS),
+                    help="a GarTrans variant of the bench")
+    ap.add_argument("--steps", type=int, default=300, help="optimizer steps")
+    ap.add_argument("--every", type=int, default=50, help="steps between measurements")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    add_output_args(ap, RESULTS, "folder for train_memory.json")
+    args = ap.parse_args(argv)
+    if args.steps < 1 or args.every < 1:
+        raise SystemExit("error: --steps and --every must be >= 1")
+    if not sys.platform.startswith("linux"):
+        raise SystemExit("error: reads /proc/self/status: Linux only")
+    out = output_path(args, RESULTS)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(args.threads)
+    L.seed_everything(0, verbose=False)
+    dm = GarmentDataModule(args.data, val_split=None, seed=0, cache_size=64, **DATA)
+    hp, _ = variant_settings(args.method)
+    module = GarTransModule(**dm.dims, **hp)
+    probe = RSSProbe(args.every)
+    L.Trainer(max_steps=args.steps, accelerator="cpu", devices=1, logger=False,
+              enable_checkpointing=False, enable_progress_bar=False,
+              enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
+              callbacks=[probe]).fit(module, dm)
+    words = [w.replace(str(Path.home()), "~", 1) for w in
+             (sys.argv[1:] if argv is None else argv)]
+    result: Dict[str, Any] = {
+        "command": "python benchmarks/train_memory.py " + " ".join(words),
+        "method": args.method, "threads": args.threads, "torch": torch.__version__,
+        "code": code_version(), "rows": probe.rows}
+    (out / "train_memory.json").write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
