@@ -24,6 +24,7 @@ import torch
 
 from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn.bench.methods import DATA, FULL, GARTRANS, variant_settings
+from garmentgnn.bench.timing import status_kb
 from garmentgnn.data.store import code_version
 from garmentgnn.training import GarmentDataModule, GarTransModule
 
@@ -32,11 +33,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def rss_mb() -> float:
     """The process's resident set size (MB) from ``/proc/self/status``."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS"):
-                return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmRSS in /proc/self/status (Linux only)")
+    return status_kb("VmRSS") / 1024
 
 
 class RSSProbe(L.Callback):

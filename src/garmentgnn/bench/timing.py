@@ -121,7 +121,8 @@ def batch_sweep(make_fn: Callable[[int], Callable[[], Any]], batches: Sequence[i
 
 
 # --------------------------------------------------------------------------- memory
-def _status_kb(field: str) -> int:
+def status_kb(field: str) -> int:
+    """A ``kB`` field of ``/proc/self/status`` (``VmRSS``, ``VmHWM``; Linux)."""
     with open("/proc/self/status") as f:
         for line in f:
             if line.startswith(field + ":"):
@@ -131,7 +132,7 @@ def _status_kb(field: str) -> int:
 
 def _hwm_resettable() -> bool:
     try:
-        _status_kb("VmHWM")
+        status_kb("VmHWM")
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
         return True
@@ -156,11 +157,11 @@ def peak_memory(fn: Callable[[], Any]) -> Dict[str, Any]:
     """Run ``fn()`` once; returns ``{"result", "peak_mb", "method"}`` (see module doc)."""
     trimmed = _release_free_memory()
     if _hwm_resettable():
-        before = _status_kb("VmRSS")
+        before = status_kb("VmRSS")
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")  # VmHWM := current RSS
         result = fn()
-        peak = _status_kb("VmHWM")
+        peak = status_kb("VmHWM")
         return {"result": result, "peak_mb": max(0, peak - before) * 1024 / MiB,
                 "method": "linux VmHWM delta" + (" after malloc_trim" if trimmed else "")}
 
