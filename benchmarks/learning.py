@@ -1,6 +1,6 @@
 """Do the learned methods learn?  Step-0 gradients, one-chunk overfit, equal-step curves.
 
-Three parts, each on a generated dataset (``--data``, e.g. ``garmentgnn generate --preset
+Its parts, each on a generated dataset (``--data``, e.g. ``garmentgnn generate --preset
 small --engine blender``), every method built from its packaged configuration the way
 ``garmentgnn bench`` builds it (:mod:`garmentgnn.bench.methods`) and trained through the
 same Lightning ``Trainer``:
@@ -19,6 +19,10 @@ same Lightning ``Trainer``:
 * ``energy``: the HOOD- and NCS-style models a ``garmentgnn bench`` run trained
   (``--bench``): their own objective, the physics terms they were trained on, on their
   test predictions against the same objective on the LBS garment, beside E_dist.
+* ``oracle``: what those methods could reach at best: the trajectory that minimises a
+  physics objective exactly, frame by frame (the objectives of the HOOD-style
+  ``--variants``, default its configuration's, which NCS-style's shares, and the silk
+  energies), on the test sequences, against LBS.
 
 Each writes ``<part>.json`` and ``<part>.md`` (curves also ``<part>.png``) into
 ``~/.cache/garmentgnn/benchmarks/learning``, ``--out``, or with ``--commit`` the committed
@@ -30,6 +34,7 @@ copy ``docs/results/learning``::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import re
@@ -140,6 +145,9 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "HOOD-style, raw inputs": {"baseline": HOOD, "module": {"model": {"normalize": False}}},
     "HOOD-style, accelerations x10": {"baseline": HOOD, "module": {
         "model": {"accel_scale": 10.0}}},
+    # accelerations relative to the LBS garment's: the untrained model carries the
+    # garment with the body
+    "HOOD-style, follows LBS": {"baseline": HOOD, "module": {"model": {"follow_lbs": True}}},
     # its objective in SI units: the stiffnesses of the silk preset as the loss weights
     # (the configuration's are the GarTrans paper's loss weights, ~1/5000 of silk's
     # stretch), gravity and inertia at 1
@@ -598,6 +606,108 @@ def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
     return {"results": res, "markdown": lines}
 
 
+def objective_rollout(module: BaselineModule, item: Any, max_iter: int = 200) -> torch.Tensor:
+    """The garment trajectory ``[T, V, 3]`` that minimises ``module``'s own objective
+    (:func:`own_objective`'s) frame by frame: from the LBS garment of frames 0 and 1,
+    each frame's free vertices by L-BFGS from the inertial prediction ``2 x_{t-1} -
+    x_{t-2}``, the pinned ones on the LBS garment.  What a physics-trained model that
+    fitted its objective exactly at every state would roll out: one implicit-Euler step
+    of its objective's cloth a frame."""
+    lbs = item.skinned()
+    pinned = item.pinned_mask() if item.get("pinned") is not None else None
+    free = (torch.ones(lbs.shape[1], dtype=torch.bool) if pinned is None else ~pinned)
+    xs = [lbs[0].double(), lbs[1].double()]
+    for t in range(2, lbs.shape[0]):
+        frame, inertial = item.select(torch.tensor([t])), 2 * xs[-1] - xs[-2]
+        body = frame.body_pos.double()  # in float64: the line search needs its resolution
+        var = inertial[free].clone().requires_grad_(True)
+        fixed = lbs[t].double()
+
+        def place(v: torch.Tensor) -> torch.Tensor:
+            return fixed.masked_scatter(free.unsqueeze(-1), v)
+
+        opt = torch.optim.LBFGS([var], max_iter=max_iter, history_size=20,
+                                tolerance_grad=1e-9, tolerance_change=1e-12,
+                                line_search_fn="strong_wolfe")
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            total, _ = module.loss_fn(dataclasses.replace(loss_inputs(
+                frame, place(var)[None], module.dt, predicted=inertial[None],
+                ground_truth=False), body_pos=body))
+            total.backward()
+            return total
+
+        opt.step(closure)
+        x = place(var.detach())
+        if not torch.isfinite(x).all():
+            raise FloatingPointError(f"`objective_rollout`: frame {t} of {item.seq_id} is not "
+                                     f"finite")
+        xs.append(x)
+    return torch.stack(xs).to(lbs.dtype)
+
+
+def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[int],
+                max_iter: int = 200) -> Dict[str, Any]:
+    """For each physics-trained variant (its objective: the loss terms and weights of
+    its configuration), :func:`objective_rollout` on the test sequences against the
+    LBS garment: E_dist (the frames the engine converged on, as the bench scores it),
+    its objective and how far it is from LBS at the last frame."""
+    test = whole_sequences(root, "test")
+    picked = evenly(list(range(len(test))), test_sequences or len(test))
+    dims = datamodule(root).dims
+    res: Dict[str, Any] = {"max_iter": max_iter, "variants": {}}
+    out = []
+    for name in variants:
+        v = VARIANTS[name]
+        if v.get("baseline") not in (HOOD, NCS):
+            raise ValueError(f"`variants`: {name!r} is not trained on a physics objective; "
+                             f"give a HOOD-style variant")
+        module = baseline(v["baseline"], dims, overrides=v.get("module")).eval()
+        module.loss_fn.compile_search = False  # the same search, not compiled per shape
+        rows = []
+        for i in picked:
+            item, t = test[i], time.perf_counter()
+            pred, lbs = objective_rollout(module, item, max_iter), item.skinned()
+            ok = item.get("converged")
+            ok = torch.ones(item.num_frames, dtype=torch.bool) if ok is None else ok
+            rows.append({"sequence": item.seq_id, "frames": item.num_frames,
+                         "scored": int(ok.sum()), "seconds": time.perf_counter() - t,
+                         "oracle": own_objective(module, item, pred),
+                         "lbs": own_objective(module, item, lbs),
+                         "E_dist": float(vertex_distance(pred[ok], item.gt[ok]).mean()),
+                         "E_dist_lbs": float(vertex_distance(lbs[ok], item.gt[ok]).mean()),
+                         "from_lbs_last": float((pred[-1] - lbs[-1]).norm(dim=-1).mean())})
+            r = rows[-1]
+            print(f"oracle {name}, {item.seq_id}: E_dist {r['E_dist']:.3f} cm, LBS "
+                  f"{r['E_dist_lbs']:.3f} cm ({r['seconds']:.0f} s)", flush=True)
+        res["variants"][name] = {"settings": v, "rows": rows}
+        scored = sum(r["scored"] for r in rows)
+        e = sum(r["E_dist"] * r["scored"] for r in rows) / scored
+        el = sum(r["E_dist_lbs"] * r["scored"] for r in rows) / scored
+        try:
+            w = scoring.wilcoxon({r["sequence"]: r["E_dist"] for r in rows},
+                                 {r["sequence"]: r["E_dist_lbs"] for r in rows})
+            p = f"{w['p']:.2g}"
+        except ValueError:
+            p = "—"
+        objective = (sum(r["oracle"]["total"] for r in rows)
+                     / sum(r["lbs"]["total"] for r in rows))
+        out.append([name, str(len(rows)), f"{e:.3f}", f"{el:.3f}", f"{e / el:.3f}",
+                    f"{sum(r['E_dist'] < r['E_dist_lbs'] for r in rows)} of {len(rows)}", p,
+                    f"{objective:.3f}",
+                    f"{100 * sum(r['from_lbs_last'] for r in rows) / len(rows):.1f}"])
+    lines = [f"The trajectory that minimises each objective frame by frame (L-BFGS, at most "
+             f"{max_iter} iterations a frame, from the LBS garment of frames 0 and 1) on "
+             f"{len(picked)} of {len(test)} test sequences; E_dist in cm over the frames the "
+             f"engine converged on, frame-weighted; p: paired Wilcoxon test against LBS over "
+             f"sequences:", ""]
+    lines += table(["objective of", "sequences", "E_dist", "E_dist, LBS", "x LBS",
+                    "sequences below LBS", "p", "objective / LBS's",
+                    "from LBS at the last frame (cm)"], out)
+    return {"results": res, "markdown": lines}
+
+
 #: the curves plot's top (E_dist / LBS): a diverging variant is clipped there and says so
 #: in the legend, so that it does not flatten the differences near 1
 PLOT_TOP = 1.5
@@ -643,7 +753,8 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
 def main(argv: Optional[Sequence[str]] = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves", "energy", "merge"),
+    ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves", "energy", "oracle",
+                                                  "merge"),
                     help="what to run (merge: the `curves` results of --curves as one table)")
     ap.add_argument("--data", default=None,
                     help="a generated dataset folder (every part but merge)")
@@ -700,6 +811,13 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             if len(args.seed) != 1:
                 raise SystemExit("error: `energy` reads one bench run's models: give one --seed")
             r = part_energy(root, Path(args.bench).expanduser(), args.seed[0])
+        elif part == "oracle":
+            try:
+                r = part_oracle(root, args.variants or ["HOOD-style",
+                                                        "HOOD-style, silk energies"],
+                                args.test_sequences)
+            except ValueError as err:
+                raise SystemExit(f"error: {err}") from None
         elif part == "merge":
             try:
                 res = merge_curves([Path(f).expanduser() for f in args.curves],

@@ -19,6 +19,7 @@ from garmentgnn.data import store
 from garmentgnn.models import GarTrans, PAPER_FORM
 from garmentgnn.models.blocks import AttentionStack
 from garmentgnn.models.gartrans import STATE_BOUND
+from garmentgnn.physics.energies import GRAVITY
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
 from garmentgnn.training.configs import load_config, model_args
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
@@ -415,3 +416,46 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
     failed = dict(res, variants={"a": {"runs": [{"seed": 0, "status": "RuntimeError: boom",
                                                  "curve": []}]}})
     assert bench["curves_markdown"](failed)[-1].endswith("| seed 0: RuntimeError: boom |")
+
+
+def _hood(dm, loss):
+    cfg = dict(BASELINES[HOOD], model={"hidden": 8})
+    cfg["loss"] = dict(cfg["loss"], compile_search=False, **loss)
+    return BaselineModule(num_joints=dm.dims["num_joints"], history=3, **cfg)
+
+
+def test_objective_rollout_is_free_fall_under_gravity_and_inertia(dm):
+    """With gravity and inertia alone the objective's minimiser is known: each free vertex
+    falls at ``g w_gravity / w_inertia`` from the LBS garment's first velocity, the pinned
+    ones follow the LBS garment."""
+    learning = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
+                                  "learning.py"), run_name="oracle_check")
+    module = _hood(dm, {"enabled": ["gravity", "inertia"],
+                        "weights": {"gravity": 0.1, "inertia": 2.0}})
+    item = dm.train_set[1]
+    lbs = item.skinned().double()
+    out = learning["objective_rollout"](module, item).double()
+    c = 0.05 * torch.tensor(GRAVITY, dtype=torch.float64) * module.dt ** 2
+    t = torch.arange(item.num_frames, dtype=torch.float64).view(-1, 1, 1)
+    fall = lbs[0] + t * (lbs[1] - lbs[0]) + c * (t - 1) * t / 2
+    pinned = item.pinned_mask().view(1, -1, 1)
+    want = torch.where(pinned, lbs, fall)
+    torch.testing.assert_close(out, want, rtol=0, atol=2e-6)
+    assert out.shape == lbs.shape and item.num_frames >= 3
+
+
+def test_objective_rollout_lowers_the_objective_of_each_frame(dm):
+    learning = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
+                                  "learning.py"), run_name="oracle_check")
+    module = _hood(dm, {})
+    item = dm.train_set[1]
+    out = learning["objective_rollout"](module, item, max_iter=5)
+    lbs = item.skinned()
+    first = item.select(torch.arange(3))  # frame 2, from the same frames 0 and 1
+    for start in (out[2], 2 * lbs[1] - lbs[0], lbs[2]):
+        traj = torch.stack([lbs[0], lbs[1], start])
+        assert torch.equal(traj[:2], out[:2].to(traj))
+    own = learning["own_objective"]
+    best = own(module, first, out[:3])["total"]
+    assert best <= own(module, first, torch.stack([lbs[0], lbs[1], 2 * lbs[1] - lbs[0]]))["total"]
+    assert best < own(module, first, lbs[:3])["total"]

@@ -425,11 +425,11 @@ class LearnedRunner:
             it = item.cycled(b)
             if module.hparams.method != "hood":
                 return lambda: module(it)
-            # one autoregressive step per frame, its inputs (the LBS garment of the two
-            # frames before) prepared outside the timed call
+            # one autoregressive step per frame, its inputs prepared outside the timed call
             coarse, lbs = module.coarse_level(it), it.skinned()
             prev, curr = it.history_slot(-3).skinned(), it.history_slot(-2).skinned()
-            return lambda: module.model.step(it, coarse, prev, curr, it.body_pos, lbs)
+            acc = lbs - 2 * curr + prev  # the LBS garment's (for a model that follows it)
+            return lambda: module.model.step(it, coarse, prev, curr, it.body_pos, lbs, acc)
         return make_batch
 
     def _baseline(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:

@@ -149,7 +149,7 @@ class BaselineModule(GarmentModule):
         if lbs.shape[0] < 2:
             raise ValueError("`inp`: a HOOD-style rollout needs at least 2 frames")
         return self.model.rollout(inp, self.coarse_level(inp), lbs[0], lbs[1], inp.body_pos,
-                                  pinned_targets=lbs)
+                                  pinned_targets=lbs, lbs=lbs)
 
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         return self(batch)
@@ -166,11 +166,14 @@ class BaselineModule(GarmentModule):
                                             ground_truth=False))
         coarse = self.coarse_level(inp)
         lbs = inp.skinned()
-        x_prev, x_curr = self._start(inp)
+        before = self._lbs_before(inp)
+        x_prev, x_curr = self._start(inp, before)
+        path = torch.cat([torch.stack(before), lbs])  # LBS from two frames before inp
         preds, inertial = [], []
         for b in range(lbs.shape[0]):  # one step at a time on its own rollout
+            acc = (path[b + 2] - 2 * path[b + 1] + path[b])[None]
             nxt = self.model.step(inp, coarse, x_prev[None], x_curr[None],
-                                  inp.body_pos[b:b + 1], lbs[b:b + 1])[0]
+                                  inp.body_pos[b:b + 1], lbs[b:b + 1], acc)[0]
             preds.append(nxt)
             inertial.append(2 * x_curr - x_prev)
             x_prev, x_curr = x_curr, nxt.detach()
@@ -178,12 +181,18 @@ class BaselineModule(GarmentModule):
         return self.loss_fn(loss_inputs(inp, torch.stack(preds), self.dt,
                                         predicted=torch.stack(inertial), ground_truth=False))
 
-    def _start(self, inp: GarmentInputs) -> Tuple[Tensor, Tensor]:
-        """``hood``: the states ``[V, 3]`` at the two frames before ``inp``'s first (see
-        ``start_state``)."""
+    @staticmethod
+    def _lbs_before(inp: GarmentInputs) -> Tuple[Tensor, Tensor]:
+        """The LBS garment ``[V, 3]`` at the two frames before ``inp``'s first (clamped at
+        the sequence's frame 0)."""
         first = inp.select(torch.tensor([0]))
-        x_prev = first.history_slot(-3).skinned()[0]  # frame t0 - 2 (clamped at 0)
-        x_curr = first.history_slot(-2).skinned()[0]  # frame t0 - 1
+        return first.history_slot(-3).skinned()[0], first.history_slot(-2).skinned()[0]
+
+    def _start(self, inp: GarmentInputs,
+               lbs_before: Optional[Tuple[Tensor, Tensor]] = None) -> Tuple[Tensor, Tensor]:
+        """``hood``: the states ``[V, 3]`` at the two frames before ``inp``'s first (see
+        ``start_state``); ``lbs_before``: :meth:`_lbs_before` of ``inp`` where known."""
+        x_prev, x_curr = lbs_before or self._lbs_before(inp)
         frames, seq = inp.get("frames"), inp.get("seq_id")
         if self.hparams.start_state != "own" or frames is None or seq is None:
             return x_prev, x_curr
