@@ -613,9 +613,7 @@ def objective_rollout(module: BaselineModule, item: Any, max_iter: int = 200) ->
     x_{t-2}``, the pinned ones on the LBS garment.  What a physics-trained model that
     fitted its objective exactly at every state would roll out: one implicit-Euler step
     of its objective's cloth a frame."""
-    lbs = item.skinned()
-    pinned = item.pinned_mask() if item.get("pinned") is not None else None
-    free = (torch.ones(lbs.shape[1], dtype=torch.bool) if pinned is None else ~pinned)
+    lbs, free = item.skinned(), ~item.pinned_mask()
     xs = [lbs[0].double(), lbs[1].double()]
     for t in range(2, lbs.shape[0]):
         frame, inertial = item.select(torch.tensor([t])), 2 * xs[-1] - xs[-2]
@@ -653,6 +651,10 @@ def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[in
     its configuration), :func:`objective_rollout` on the test sequences against the
     LBS garment: E_dist (the frames the engine converged on, as the bench scores it),
     its objective and how far it is from LBS at the last frame."""
+    wrong = [name for name in variants if VARIANTS[name].get("baseline") != HOOD]
+    if wrong:
+        raise ValueError(f"`variants`: {wrong} not trained on a physics objective; give "
+                         f"HOOD-style variants")
     test = whole_sequences(root, "test")
     picked = evenly(list(range(len(test))), test_sequences or len(test))
     dims = datamodule(root).dims
@@ -660,9 +662,6 @@ def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[in
     out = []
     for name in variants:
         v = VARIANTS[name]
-        if v.get("baseline") not in (HOOD, NCS):
-            raise ValueError(f"`variants`: {name!r} is not trained on a physics objective; "
-                             f"give a HOOD-style variant")
         module = baseline(v["baseline"], dims, overrides=v.get("module")).eval()
         module.loss_fn.compile_search = False  # the same search, not compiled per shape
         rows = []
@@ -768,14 +767,16 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     ap.add_argument("--variants", nargs="+", default=None, choices=list(VARIANTS),
                     help="GarTrans settings compared by `curves` (default: all), added to "
                          "`grad` and `overfit` (default: none), kept by `merge` (default: "
-                         "all)")
+                         "all); the HOOD-style objectives of `oracle` (default: its "
+                         "configuration's and the silk energies)")
     ap.add_argument("--methods", nargs="+", default=None,
                     help="the methods `grad` and `overfit` run (default: every learned "
                          "method of the bench)")
     ap.add_argument("--train-sequences", type=int, default=6,
                     help="training sequences measured by `curves` (evenly spaced)")
     ap.add_argument("--test-sequences", type=int, default=None,
-                    help="test sequences measured by `curves` (evenly spaced; default: all)")
+                    help="test sequences measured by `curves` and `oracle` (evenly spaced; "
+                         "default: all)")
     ap.add_argument("--seed", type=int, nargs="+", default=[0],
                     help="training seeds (curves: each variant once per seed); the bench "
                          "run's seed (energy: one)")

@@ -459,3 +459,10 @@ def test_objective_rollout_lowers_the_objective_of_each_frame(dm):
     best = own(module, first, out[:3])["total"]
     assert best <= own(module, first, torch.stack([lbs[0], lbs[1], 2 * lbs[1] - lbs[0]]))["total"]
     assert best < own(module, first, lbs[:3])["total"]
+
+
+def test_oracle_refuses_a_method_without_a_physics_objective(tmp_path):
+    learning = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
+                                  "learning.py"), run_name="oracle_check")
+    with pytest.raises(ValueError, match="`variants`.*DA-style"):
+        learning["part_oracle"](tmp_path, ["HOOD-style", "DA-style"], 1)
