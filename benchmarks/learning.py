@@ -37,10 +37,7 @@ import argparse
 import dataclasses
 import json
 import math
-import re
-import shlex
 import statistics
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
@@ -48,7 +45,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import HelpFormatter, add_output_args, command_line, output_path
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench import scoring
 from garmentgnn.bench.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
@@ -553,6 +550,13 @@ def own_objective(module: BaselineModule, item: Any, pred: torch.Tensor) -> Dict
     return {"total": float(total), **{k: float(v) for k, v in terms.items()}}
 
 
+def weighted_mean(rows: Sequence[Dict[str, Any]], key: Callable[[Dict[str, Any]], float],
+                  weight: str = "frames") -> float:
+    """``key`` of each sequence's row, averaged over sequences weighted by ``weight``
+    (frames)."""
+    return sum(key(r) * r[weight] for r in rows) / sum(r[weight] for r in rows)
+
+
 def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
     """The HOOD- and NCS-style models a ``garmentgnn bench`` run left in ``bench/models``
     (seed ``seed``), on the test split: their own objective on their predictions against
@@ -586,21 +590,18 @@ def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
     lines = [f"Each method's own objective (its physics terms, mean per frame) on its test "
              f"predictions and on the LBS garment; E_dist in cm over the frames the engine "
              f"converged on, as the bench scores it; bench `{bench.name}`, seed {seed}:", ""]
-    def mean(rows, key, weight="frames"):  # frame-weighted over sequences
-        return sum(key(r) * r[weight] for r in rows) / sum(r[weight] for r in rows)
-
     out = []
     for method, rows in res["methods"].items():
         if not rows:
             out.append([method, "0", "—", "—", "—", "—", "—", "no checkpoint"])
             continue
-        own = mean(rows, lambda r: r["method"]["total"])
-        base = mean(rows, lambda r: r["lbs"]["total"])
+        own = weighted_mean(rows, lambda r: r["method"]["total"])
+        base = weighted_mean(rows, lambda r: r["lbs"]["total"])
         lower = sum(r["method"]["total"] < r["lbs"]["total"] for r in rows)
         out.append([method, str(len(rows)), f"{own:.4g}", f"{base:.4g}", f"{own / base:.3f}",
                     f"{lower} of {len(rows)}",
-                    f"{mean(rows, lambda r: r['E_dist'], 'scored'):.3f}",
-                    f"{mean(rows, lambda r: r['E_dist_lbs'], 'scored'):.3f}"])
+                    f"{weighted_mean(rows, lambda r: r['E_dist'], 'scored'):.3f}",
+                    f"{weighted_mean(rows, lambda r: r['E_dist_lbs'], 'scored'):.3f}"])
     lines += table(["method", "sequences", "objective", "objective, LBS", "ratio",
                     "sequences below LBS", "E_dist", "E_dist, LBS"], out)
     return {"results": res, "markdown": lines}
@@ -681,9 +682,8 @@ def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[in
             print(f"oracle {name}, {item.seq_id}: E_dist {r['E_dist']:.3f} cm, LBS "
                   f"{r['E_dist_lbs']:.3f} cm ({r['seconds']:.0f} s)", flush=True)
         res["variants"][name] = {"settings": v, "rows": rows}
-        scored = sum(r["scored"] for r in rows)
-        e = sum(r["E_dist"] * r["scored"] for r in rows) / scored
-        el = sum(r["E_dist_lbs"] * r["scored"] for r in rows) / scored
+        e = weighted_mean(rows, lambda r: r["E_dist"], "scored")
+        el = weighted_mean(rows, lambda r: r["E_dist_lbs"], "scored")
         try:
             w = scoring.wilcoxon({r["sequence"]: r["E_dist"] for r in rows},
                                  {r["sequence"]: r["E_dist_lbs"] for r in rows})
@@ -796,10 +796,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     torch.set_num_threads(args.threads)
     root, out = Path(args.data or "."), output_path(args, RESULTS)
     out.mkdir(parents=True, exist_ok=True)
-    words = [w.replace(str(Path.home()), "~", 1) if w.startswith(str(Path.home())) else w
-             for w in (sys.argv[1:] if argv is None else argv)]
-    command = "python benchmarks/learning.py " + " ".join(
-        w if re.fullmatch(r"[\w@%+=:,./~-]+", w) else shlex.quote(w) for w in words)
+    command = command_line("benchmarks/learning.py", argv)
     for part in args.parts:
         if part == "grad":
             r = part_grad(root, args.methods, args.variants or ())

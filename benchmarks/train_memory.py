@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import HelpFormatter, add_output_args, command_line, output_path
 from garmentgnn.bench.methods import DATA, FULL, GARTRANS, variant_settings
 from garmentgnn.bench.timing import status_kb
 from garmentgnn.data.store import code_version
@@ -77,10 +77,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
               enable_checkpointing=False, enable_progress_bar=False,
               enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
               callbacks=[probe]).fit(module, dm)
-    words = [w.replace(str(Path.home()), "~", 1) for w in
-             (sys.argv[1:] if argv is None else argv)]
     result: Dict[str, Any] = {
-        "command": "python benchmarks/train_memory.py " + " ".join(words),
+        "command": command_line("benchmarks/train_memory.py", argv),
         "method": args.method, "threads": args.threads, "torch": torch.__version__,
         "code": code_version(), "rows": probe.rows}
     (out / "train_memory.json").write_text(json.dumps(result, indent=1))

@@ -3,11 +3,12 @@ text, and the help shows its default (argparse's own formatter output is the ora
 benchmark scripts write into a cache folder unless ``--commit`` or ``--out`` is given."""
 import argparse
 import runpy
+import shlex
 from pathlib import Path
 
 import pytest
 
-from garmentgnn._argparse import add_output_args, benchmark_cache, output_path
+from garmentgnn._argparse import add_output_args, benchmark_cache, command_line, output_path
 from garmentgnn.cli import build_parser
 
 SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
@@ -96,3 +97,17 @@ def test_benchmark_output_goes_to_the_cache_unless_asked(tmp_path, monkeypatch):
     assert output_path(ap.parse_args(["--out", "x/y"]), committed) == Path("x/y")
     with pytest.raises(SystemExit):  # not both
         ap.parse_args(["--commit", "--out", "x"])
+
+
+def test_command_line_records_the_command_as_the_shell_reads_it(monkeypatch):
+    """Paths under the home folder from ``~``, words with spaces or quotes quoted so that
+    ``shlex.split`` gives the arguments back."""
+    home = str(Path.home())
+    argv = ["curves", "--data", f"{home}/d", "--variants", "HOOD-style, lr 1e-4", "it's",
+            f"/x{home}"]
+    line = command_line("benchmarks/x.py", argv)
+    assert line.startswith("python benchmarks/x.py curves --data ~/d --variants ")
+    assert shlex.split(line)[2:] == ["curves", "--data", "~/d", "--variants",
+                                     "HOOD-style, lr 1e-4", "it's", f"/x{home}"]
+    monkeypatch.setattr("sys.argv", ["x.py", "grad"])
+    assert command_line("benchmarks/x.py") == "python benchmarks/x.py grad"

@@ -6,7 +6,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
+import shlex
+import sys
 from pathlib import Path
+from typing import Optional, Sequence
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -51,3 +55,14 @@ def output_path(args: argparse.Namespace, committed: Path) -> Path:
         out = benchmark_cache() / committed.name
     print(f"results: {out}", flush=True)
     return out
+
+
+def command_line(script: str, argv: Optional[Sequence[str]] = None) -> str:
+    """The command that ran ``script`` with ``argv`` (default ``sys.argv[1:]``), as a
+    results file records it: ``python <script> ...``, a path under the home folder
+    written from ``~``, a word the shell would split quoted."""
+    home = str(Path.home())
+    words = [w.replace(home, "~", 1) if w.startswith(home) else w
+             for w in (sys.argv[1:] if argv is None else argv)]
+    return " ".join(["python", script] + [
+        w if re.fullmatch(r"[\w@%+=:,./~-]+", w) else shlex.quote(w) for w in words])
