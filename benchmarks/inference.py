@@ -82,25 +82,24 @@ def motion_tensors(seq):
 
 
 # --------------------------------------------------------------------------- GarTrans
-def forward_args(it) -> tuple:
-    """The positional arguments after ``static`` of :meth:`GarTrans.forward` for the
-    model input ``it``."""
-    return (it.rest_pos, it.faces, it.edge_index, it.rest_joints, it.parents, it.rotations,
-            it.translation)
+def without_body(it):
+    """``it`` without the posed body (the frame-parallel model without its collision
+    projection, as these rows have always been timed)."""
+    out = copy.copy(it)
+    del out.body_pos
+    return out
 
 
 def gartrans_rows(seq, it, batches: List[int], repeats: int, **module_kw) -> Dict[str, Any]:
     module = untrained_module(it, 0, **module_kw)
     model = module.model
-    rot, tr = motion_tensors(seq)
-    T = rot.shape[0]
-    args = forward_args(it)[:5]
+    it = without_body(it)
+    T = it.num_frames
     with torch.inference_mode():
         static = module.encode_static(it)
 
     def run(b):
-        return lambda: model.predict_sequence(static, *args, rot, tr, history=HISTORY,
-                                              batch_size=b)["final"]
+        return lambda: model.predict_sequence(it, batch_size=b, static=static)["final"]
 
     enc = measure(lambda: module.encode_static(it), 1, repeats)
     sweep = []
@@ -168,7 +167,8 @@ def torch_sim_row(seq, frames: int) -> Dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- profile
-STAGES = ("vertex_normals", "edge_features", "forward_kinematics", "linear_blend_skinning")
+STAGES = ("vertex_normals", "edge_features", "forward_kinematics", "project_edge_lengths",
+          "push_outside")
 MODULES = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc", "gru", "gru_out", "blend",
            "dynamic")
 
@@ -208,16 +208,12 @@ def labelled(model):
 def profile_rows(it, seq) -> Dict[str, Any]:
     module = untrained_module(it, 0)
     model = module.model
-    rot, tr = motion_tensors(seq)
-    args = forward_args(it)[:5]
-    t = rot.shape[0] // 2
+    it = without_body(it)
     out: Dict[str, Any] = {}
     with torch.inference_mode():
         static = module.encode_static(it)
-        # one frame (t, mid-motion) at batch 1
-        hist = (torch.arange(t, t + 1).unsqueeze(1) + torch.arange(-HISTORY, 1)).clamp_min(0)
-        fns = {"cached": lambda: model(static, *args, rot[hist], tr[hist]),
-               "uncached": lambda: model(module.encode_static(it), *args, rot[hist], tr[hist])}
+        one = it.select(torch.tensor([it.num_frames // 2]))  # one frame, mid-motion
+        fns = {"cached": lambda: model(one, static), "uncached": lambda: model(one)}
         for mode, fn in fns.items():
             for _ in range(2):
                 fn()
@@ -243,13 +239,11 @@ def experiments(seq, it, repeats: int) -> Dict[str, Any]:
     # blend shape's and the dynamic branch's rounding error)
     module = untrained_module(it, 0, lbs_start=False)
     model = module.model
-    rot, tr = motion_tensors(seq)
-    T = rot.shape[0]
-    args = forward_args(it)
-    hist = (torch.arange(T).unsqueeze(1) + torch.arange(-HISTORY, 1)).clamp_min(0)
+    it = without_body(it)
+    T = it.num_frames
     with torch.inference_mode():
         static = module.encode_static(it)
-        base = lambda: model(static, *args[:5], rot[hist], tr[hist])["final"]  # noqa: E731
+        base = lambda: model(it, static)["final"]  # noqa: E731
         ref = base()
         res["float32_ms_per_frame"] = measure(base, 1, repeats)["median_ms"] / T
     # bfloat16: weights and inputs cast (the layers take their message route in half types)
@@ -258,9 +252,11 @@ def experiments(seq, it, repeats: int) -> Dict[str, Any]:
         cast = lambda x: x.to(torch.bfloat16) if x.is_floating_point() else x  # noqa: E731
         st16 = type(static)(**{k: (None if v is None else cast(v))
                                for k, v in vars(static).items()})
-        a16 = [cast(a) for a in args[:5]]
+        it16 = copy.copy(it)
+        for k in ("rest_pos", "rotations", "translation"):
+            it16[k] = cast(it[k])
         with torch.inference_mode():
-            f16 = lambda: m16(st16, *a16, cast(rot[hist]), cast(tr[hist]))["final"]  # noqa: E731
+            f16 = lambda: m16(it16, st16)["final"]  # noqa: E731
             err = (f16().float() - ref).abs()
             res["bfloat16_ms_per_frame"] = measure(f16, 1, repeats)["median_ms"] / T
         res["bfloat16_max_err_mm"] = 1e3 * float(err.max())

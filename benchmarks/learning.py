@@ -106,15 +106,6 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "blend shape": {"model": {"blend_shape": True}},
     "blend shape, local frame": {"model": {"blend_shape": True, "local_frame": True}},
     "blend shape, pose history 10": {"model": {"blend_shape": True}, "data": {"history": 10}},
-    # the dynamic stack also sees the coarse mesh's earlier velocities
-    "local frame, velocity history 3, input normalisers": {"model": {
-        "local_frame": True, "input_norm": True, "motion_history": 3}},
-    "velocity history 3": {"model": {"motion_history": 3}},
-    "blend shape, local frame, velocity history 3, input normalisers": {"model": {
-        "blend_shape": True, "local_frame": True, "input_norm": True, "motion_history": 3}},
-    "local frame, velocity history 10, input normalisers": {"model": {
-        "local_frame": True, "input_norm": True, "motion_history": 10},
-        "data": {"history": 10}},
     # ``schedule``: the bench's ProgressiveSchedule (the curvature term from phase 1, phases
     # 2 and 3 at plateaus of ``window`` epochs) instead of phase 1 alone
     "schedule": {"schedule": {"window": 1}},
@@ -124,15 +115,6 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "pose history 2": {"data": {"history": 2}},
     "pose history 10": {"data": {"history": 10}},
     "pose history 30": {"data": {"history": 30}},
-    "state, noise 3 mm": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
-                                    "garment_state": True, "state_noise": 0.003,
-                                    "state_dropout": 0.25}},
-    "state, noise 1 cm": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
-                                    "garment_state": True, "state_noise": 0.01,
-                                    "state_dropout": 0.25}},
-    "state, rollout training": {"model": {"gate_init": 0.1, "accel_unit": 0.01,
-                                          "garment_state": True, "state_noise": 0.003,
-                                          "state_dropout": 0.25, "state_rollout": True}},
     # the baselines on the same curves (``baseline``: the method, ``module``: overrides of
     # its packaged configuration)
     "DA-style": {"baseline": DA},
@@ -142,9 +124,6 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "HOOD-style, raw inputs": {"baseline": HOOD, "module": {"model": {"normalize": False}}},
     "HOOD-style, accelerations x10": {"baseline": HOOD, "module": {
         "model": {"accel_scale": 10.0}}},
-    # accelerations relative to the LBS garment's: the untrained model carries the
-    # garment with the body
-    "HOOD-style, follows LBS": {"baseline": HOOD, "module": {"model": {"follow_lbs": True}}},
     # its objective in SI units: the stiffnesses of the silk preset as the loss weights
     # (the configuration's are the GarTrans paper's loss weights, ~1/5000 of silk's
     # stretch), gravity and inertia at 1

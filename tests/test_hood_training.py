@@ -102,55 +102,35 @@ def test_hood_acceleration_unit(data):
 
 
 
-def test_hood_follows_lbs(data):
-    """Where the decoder outputs 0, a model that follows LBS rolls out the LBS garment
-    itself, and the plain model throws the garment on at its first velocity."""
+def test_hood_with_a_zero_decoder_throws_the_garment_at_its_first_velocity(data):
+    """Where the decoder outputs 0 the rollout is ballistic, ``x0 + t v``, with the pinned
+    waist driven by LBS."""
     item = SequenceChunks(data, "train", chunk=8)[0]
     coarse = CoarseLevel.build(item.rest_pos, item.faces)
     lbs = item.skinned().double()
     torch.manual_seed(0)
-    follow = HOODStyle(hidden=16, follow_lbs=True).double()
     plain = HOODStyle(hidden=16).double()
-    for model in (follow, plain):
-        torch.nn.init.zeros_(model.decoder[-1].weight)
-        torch.nn.init.zeros_(model.decoder[-1].bias)
+    torch.nn.init.zeros_(plain.decoder[-1].weight)
+    torch.nn.init.zeros_(plain.decoder[-1].bias)
     body = item.body_pos.double()
     with torch.no_grad():
-        torch.testing.assert_close(follow.rollout(item, coarse, lbs[0], lbs[1], body, lbs, lbs=lbs),
-                                   lbs, rtol=0, atol=1e-12)
         t = torch.arange(8, dtype=torch.float64).view(8, 1, 1)  # the oracle: x0 + t v,
         thrown = lbs[0] + t * (lbs[1] - lbs[0])  # the pinned waist driven by LBS
         thrown = torch.where(item.pinned_mask().view(1, -1, 1), lbs, thrown)
         assert item.pinned_mask().any() and not item.pinned_mask().all()
         torch.testing.assert_close(plain.rollout(item, coarse, lbs[0], lbs[1], body, lbs),
                                    thrown, rtol=0, atol=1e-12)
-        # with a trained decoder: the LBS garment's acceleration is added to the step's
-        torch.manual_seed(1)
-        torch.nn.init.normal_(follow.decoder[-1].weight, std=0.1)
-        acc = lbs[2:3] - 2 * lbs[1:2] + lbs[0:1]
-        a = follow(item, coarse, lbs[0:1], lbs[1:2], body[2:3])
-        free = ~item.pinned_mask()
-        torch.testing.assert_close(
-            follow.step(item, coarse, lbs[0:1], lbs[1:2], body[2:3], lbs_accel=acc)[:, free],
-            (2 * lbs[1:2] - lbs[0:1] + acc + a * follow.dt ** 2)[:, free])
-    with pytest.raises(ValueError, match="`lbs_accel`"):
-        follow.step(item, coarse, lbs[0:1], lbs[1:2], body[2:3])
-    with pytest.raises(ValueError, match="`lbs_accel`"):
-        follow.step(item, coarse, lbs[0:1], lbs[1:2], body[2:3], lbs_accel=acc[:, :5])
-    with pytest.raises(ValueError, match="`lbs`"):
-        follow.rollout(item, coarse, lbs[0], lbs[1], body)
 
 
-def test_hood_follows_lbs_in_training(data):
-    """The training rollout of a chunk adds the LBS garment's acceleration from the two
-    frames before it: the states it keeps are those of ``HOODStyle.step`` by hand."""
+def test_hood_training_rollout_keeps_the_states_of_its_steps(data):
+    """The training rollout of a chunk starts from the LBS garment of the two frames
+    before it: the states it keeps are those of ``HOODStyle.step`` by hand."""
     chunks = SequenceChunks(data, "train", chunk=4)
     second = chunks[1]
     assert int(second.frames[0]) == 4
     torch.manual_seed(0)
     module = _module(GarmentDataModule(data, chunk=4, val_split=None).dims, start_state="own",
-                     model={"hidden": 16, "fine_blocks": 1, "coarse_blocks": 1,
-                            "follow_lbs": True})
+                     model={"hidden": 16, "fine_blocks": 1, "coarse_blocks": 1})
     module.compute_loss(second)
     whole = SequenceChunks(data, "train", chunk=8)[0]  # frames 0-7 of the same sequence
     assert whole.seq_id == second.seq_id
@@ -159,13 +139,13 @@ def test_hood_follows_lbs_in_training(data):
     x_prev, x_curr = path[2], path[3]
     with torch.no_grad():
         for t in range(4, 8):
-            acc = (path[t] - 2 * path[t - 1] + path[t - 2])[None]
             nxt = module.model.step(second, coarse, x_prev[None], x_curr[None],
-                                    second.body_pos[t - 4:t - 3], path[t:t + 1], acc)[0]
+                                    second.body_pos[t - 4:t - 3], path[t:t + 1])[0]
             x_prev, x_curr = x_curr, nxt
     kept = module._states[second.seq_id]
     torch.testing.assert_close(kept[6], x_prev)
     torch.testing.assert_close(kept[7], x_curr)
+
 
 def test_own_start_state_chains_the_rollouts(data, tmp_path):
     dm = GarmentDataModule(data, chunk=4, val_split=None)

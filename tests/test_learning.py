@@ -1,6 +1,5 @@
-"""Learning diagnostics and the garment state: every active branch of every method gets a
-gradient at step 0; the state model's inputs and rollout against hand-built oracles."""
-import copy
+"""Learning diagnostics and checkpoints: every active branch of every method gets a
+gradient at step 0; defaults written once; checkpoints of earlier layouts load as trained."""
 import inspect
 import json
 import runpy
@@ -15,10 +14,9 @@ from scipy.stats import wilcoxon
 from torch_geometric.nn import Linear as PyGLinear
 
 from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
-from garmentgnn.data import store
 from garmentgnn.models import GarTrans, PAPER_FORM
 from garmentgnn.models.blocks import AttentionStack
-from garmentgnn.models.gartrans import STATE_BOUND
+from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.physics.energies import GRAVITY
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
 from garmentgnn.training.configs import load_config, model_args
@@ -65,111 +63,10 @@ def test_zero_gates_leave_the_gated_branches_without_gradient(dm):
     assert rep["gates"]["with_grad"] == 1
 
 
-def test_previous_frames_are_the_simulated_frames_before(root, dm):  # noqa: F811
-    item = dm.train_set[1]  # frames 4..7 of the first training sequence
-    seq = store.load_record_sequence(root, dm.train_set.records[0])
-    pos = np.asarray(seq["positions"], np.float32)
-    for b, t in enumerate(range(4, 8)):
-        np.testing.assert_array_equal(item.gt_prev[b, 0].numpy(), pos[t - 2])
-        np.testing.assert_array_equal(item.gt_prev[b, 1].numpy(), pos[t - 1])
-    first = dm.train_set[0]  # clamped at frame 0
-    np.testing.assert_array_equal(first.gt_prev[0, 0].numpy(), pos[0])
-    np.testing.assert_array_equal(first.gt_prev[1, 0].numpy(), pos[0])
-    np.testing.assert_array_equal(first.gt_prev[1, 1].numpy(), pos[0])
-
-
-def clamped(item):
-    """``item`` skinned with the weights GarTrans's skinning prior holds (clamped at 1e-4
-    and renormalised)."""
-    out = copy.copy(item)
-    w = item.skin_weights.clamp_min(1e-4)
-    out.skin_weights = w / w.sum(-1, keepdim=True)
-    return out
-
-
-def _plain(**kw):
-    return dict(gate_init=0.0, strain_limit=0, collision_projection=None, garment_state=True,
-                **kw)
-
-
-def test_state_model_with_closed_gates_is_previous_frame_plus_lbs_motion(dm):
-    """With the gates at 0 the state model keeps the previous offset from the skinned
-    garment: ``x_t = LBS(t) + b tanh((x_{t-1} - LBS(t-1)) / b)``, nearly
-    ``x_{t-1} + LBS(t) - LBS(t-1)`` (computed here with plain skinning)."""
-    module = gartrans(dm, **_plain()).eval()
-    item = dm.train_set[1]
-    with torch.no_grad():
-        out = module.model(module.encode_static(item), item.rest_pos, item.faces,
-                           item.edge_index, item.rest_joints, item.parents, item.rotations,
-                           item.translation, state=item.gt_prev)
-    lbs = clamped(item)
-    d = item.gt_prev[:, 1] - lbs.history_slot(-2).skinned()
-    oracle = lbs.skinned() + STATE_BOUND * torch.tanh(d / STATE_BOUND)
-    torch.testing.assert_close(out["final"], oracle, atol=1e-5, rtol=0)
-    # the bound: a state 10 m off is carried as at most STATE_BOUND
-    far = module.model(module.encode_static(item), item.rest_pos, item.faces, item.edge_index,
-                       item.rest_joints, item.parents, item.rotations, item.translation,
-                       state=item.gt_prev + 10.0)["final"]
-    assert float((far - lbs.skinned()).abs().max()) <= STATE_BOUND + 1e-5
-
-
-def test_state_rollout_with_closed_gates_stays_lbs_and_feeds_its_own_frames(dm):
-    module = gartrans(dm, **_plain()).eval()
-    item = dm.train_set[0]
-    with torch.no_grad():
-        torch.testing.assert_close(module(item)["final"], clamped(item).skinned(), atol=1e-5,
-                                   rtol=0)
-        # opened gates: frame t of the rollout is forward() on the rollout's frames t-2, t-1
-        module.model.gates.fill_(0.5)
-        roll = module(item)["final"]
-        static = module.encode_static(item)
-        for t in (2, 3):
-            one = item.select(torch.tensor([t]))
-            o = module.model(static, item.rest_pos, item.faces, item.edge_index,
-                             item.rest_joints, item.parents, one.rotations, one.translation,
-                             state=roll[t - 2:t][None])
-            torch.testing.assert_close(o["final"][0], roll[t], atol=1e-5, rtol=0)
-
-
-def test_teacher_forcing_noise_and_dropout(dm):
-    item = dm.train_set[1]
-    module = gartrans(dm, **_plain(state_dropout=1.0))
-    with torch.no_grad():
-        none = module.model(module.encode_static(item), item.rest_pos, item.faces,
-                            item.edge_index, item.rest_joints, item.parents, item.rotations,
-                            item.translation)["final"]
-        torch.testing.assert_close(module.training_forward(item)["final"], none)
-        noisy = gartrans(dm, **_plain(state_noise=0.01))
-        # closed gates: the prediction is the (noisy) previous frame + LBS motion
-        lbs = clamped(item)
-        d = noisy.training_forward(item)["final"] - (item.gt_prev[:, 1] + lbs.skinned()
-                                                  - lbs.history_slot(-2).skinned())
-        assert 0.007 < float(d.std()) < 0.013  # the noise (1 cm), nearly unchanged
-    bare = copy.copy(item)
-    del bare.gt_prev
-    with pytest.raises(ValueError, match="gt_prev"):
-        module.training_forward(bare)
-
-
-def test_state_arguments_are_checked(dm):
-    with pytest.raises(ValueError, match="state_dropout"):
-        gartrans(dm, garment_state=True, state_dropout=1.5)
-    with pytest.raises(ValueError, match="state_noise"):
-        gartrans(dm, garment_state=True, state_noise=-1.0)
-    with pytest.raises(ValueError, match="gate_init"):
-        gartrans(dm, gate_init=-0.1)
-    plain = gartrans(dm, garment_state=False)
-    item = dm.train_set[1]
-    with pytest.raises(ValueError, match="garment_state"):
-        plain.model(plain.encode_static(item), item.rest_pos, item.faces, item.edge_index,
-                    item.rest_joints, item.parents, item.rotations, item.translation,
-                    state=item.gt_prev)
-
-
 #: the model switches whose defaults must agree in GarTrans, GarTransModule and the
 #: packaged config (``compile_search`` is a speed switch, on in the config only)
-SWITCHES = ("lbs_start", "gate_init", "collision_projection", "blend_shape", "strain_limit",
-            "accel_unit", "garment_state", "input_norm", "local_frame", "motion_history")
+SWITCHES = ("skin_prior", "lbs_start", "gate_init", "collision_projection", "blend_shape",
+            "strain_limit", "accel_unit", "input_norm", "local_frame")
 
 
 def test_model_module_and_config_defaults_agree():
@@ -180,11 +77,11 @@ def test_model_module_and_config_defaults_agree():
     model, module = defaults(GarTrans.__init__), defaults(GarTransModule.__init__)
     config = model_args(load_config("gartrans"))
     for name in SWITCHES:
-        assert model[name] == module[name] == config[name], name
+        assert model[name] == module[name] == config.get(name, module[name]), name
     assert set(PAPER_FORM) == set(SWITCHES)
-    assert all(PAPER_FORM[k] != model[k] for k in SWITCHES
-               if k not in ("gate_init", "garment_state", "motion_history"))
-    assert module["skin_prior"] is True and config.get("skin_prior", True) is True
+    assert all(PAPER_FORM[k] != model[k] for k in SWITCHES if k != "gate_init")
+    paper = model_args(load_config("ablations/paper"))
+    assert {k: paper.get(k, config.get(k, module[k])) for k in SWITCHES} == PAPER_FORM
 
 
 @pytest.mark.parametrize("layer", ["sat", "gt", "gat"])
@@ -262,6 +159,40 @@ def test_checkpoint_from_before_the_local_frame_loads_as_it_was_trained(dm, tmp_
             GarTransModule.load_from_checkpoint(tmp_path / "edited.ckpt", **kw)
     new = GarTransModule(**dm.dims)
     assert new.model.local_frame and new.model.input_norm  # today's defaults
+
+
+OLD_LAYOUT = Path(__file__).parent / "data" / "gartrans_old_layout.pt"
+
+
+def _old_layout(tmp_path, **changes):
+    """The committed checkpoint written by an earlier layout of GarTransModule (its
+    hyper-parameters name the options removed since, all off), saved to a file with
+    ``changes`` to its hyper-parameters (re-stamped); returns (path, scene, prediction)."""
+    saved = torch.load(OLD_LAYOUT, weights_only=False)
+    ckpt = saved["checkpoint"]
+    ckpt["hyper_parameters"].update(changes)
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, tmp_path / "old.ckpt")
+    scene = GarmentInputs(**saved["scene"], num_nodes=saved["scene"]["rest_pos"].shape[0])
+    return tmp_path / "old.ckpt", scene, saved["final"]
+
+
+def test_old_layout_checkpoint_predicts_the_positions_it_did(tmp_path):
+    path, scene, final = _old_layout(tmp_path)
+    assert {"garment_state", "motion_history", "state_noise"} <= set(
+        torch.load(path, weights_only=False)["hyper_parameters"])
+    module = GarTransModule.load_from_checkpoint(path).eval()
+    with torch.no_grad():
+        pred = module(scene)["final"]
+    assert float((pred - final).abs().max()) <= 1e-6
+
+
+@pytest.mark.parametrize("change", [{"garment_state": True}, {"motion_history": 3},
+                                    {"state_rollout": True}])
+def test_checkpoint_with_a_removed_option_on_is_refused(tmp_path, change):
+    path, _, _ = _old_layout(tmp_path, **change)
+    with pytest.raises(CheckpointError, match=next(iter(change))):
+        GarTransModule.load_from_checkpoint(path)
 
 
 def test_an_old_checkpoint_is_read_twice_at_most(dm, tmp_path, monkeypatch):

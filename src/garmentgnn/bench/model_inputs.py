@@ -52,7 +52,6 @@ class BenchChunks(SequenceChunks):
         self.root, self.split, self.chunk, self.history = None, None, chunk, history
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size = self.static_cache = 1
-        self.previous_frames = False
         self.records = [{"id": seq.name, "num_frames": T, "status": "ok",
                          "garment": seq.item["garment"], "body": seq.item["body"]}]
         self.index = [(0, t0, min(chunk, T - t0)) for t0 in range(0, T, chunk)]

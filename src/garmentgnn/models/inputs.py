@@ -22,20 +22,28 @@ Keys (``V`` garment vertices, ``S`` joints, ``Vb`` body vertices, ``B`` frames,
 * per frame: ``rotations [B, H, S, 3]``, ``translation [B, H, 3]`` (the poses of frames
   ``t - history .. t``; frame 0 repeated before the start), ``body_pos [B, Vb, 3]``
   (the posed body), ``frames [B]``, optionally ``gt [B, V, 3]`` (the simulated
-  garment: absent where no ground truth exists), optionally ``gt_prev [B, 2, V, 3]`` (the
-  simulated garment at frames ``t-2, t-1``, clamped at frame 0: the state a model with a
-  garment state is trained on; never an input at test time), optionally ``converged
+  garment: absent where no ground truth exists), optionally ``converged
   [B]`` (bool: the frames whose simulation converged, the only ones metrics score), and
   ``seq_id`` (str).
+
+Batches: PyG's :class:`~torch_geometric.data.Batch` of ``N`` chunks of the same frame
+count ``B`` (:meth:`GarmentInputs.collate`) is one garment graph, the disjoint union of
+the ``N`` garments (``rest_pos [sum V, 3]``, ``faces``, ``edge_index`` offset as PyG
+does; ``batch [sum V]`` names each vertex's chunk), whose per-frame vertex keys are
+concatenated along the vertex axis (``gt``, ``body_pos``: ``[B, sum V, 3]``, ``[B, sum
+Vb, 3]``) and whose per-chunk keys are stacked (``rotations [N, B, H, S, 3]``,
+``translation [N, B, H, 3]``, ``frames``, ``converged [N, B]``, ``rest_joints [N, S, 3]``,
+``parents [N, S]``); ``rest`` and ``seq_id`` become lists.  Every chunk's body has the
+same vertex count (one body model).
 """
 from __future__ import annotations
 
 import copy
-from typing import Optional, Tuple
+from typing import Any, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
-from torch_geometric.data import Data
+from torch_geometric.data import Batch, Data
 
 from garmentgnn.body.body import Body
 from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_blend_skinning
@@ -46,11 +54,86 @@ __all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "chec
            "check_pose", "history_frames", "skin", "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
-FRAME_KEYS = ("rotations", "translation", "gt", "gt_prev", "body_pos", "frames", "converged")
+FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames", "converged")
+#: keys a :class:`~torch_geometric.data.Batch` concatenates along the vertex axis (dim 1)
+VERTEX_FRAME_KEYS = ("gt", "body_pos")
+#: per-chunk keys a batch stacks (a new leading dimension)
+STACKED_KEYS = ("rotations", "translation", "frames", "converged", "rest_joints", "parents")
+#: face-like keys: concatenated along dim 0 (PyG would use the last dimension)
+FACE_KEYS = ("faces", "face_uv", "body_faces", "body_joint_dists")
 
 
 class GarmentInputs(Data):
     """One garment on one body over ``B`` frames (see the module doc for the keys)."""
+
+    # -- batching (PyG's ``Batch``) -------------------------------------------------
+    def __cat_dim__(self, key: str, value: Any, *args: Any, **kwargs: Any) -> Any:
+        if key in VERTEX_FRAME_KEYS:
+            return 1
+        if key in STACKED_KEYS:
+            return None
+        if key in FACE_KEYS:
+            return 0
+        return super().__cat_dim__(key, value, *args, **kwargs)
+
+    def __inc__(self, key: str, value: Any, *args: Any, **kwargs: Any) -> Any:
+        if key == "faces":
+            return self.num_vertices
+        if key == "body_faces":
+            return self.body_pos.shape[-2] if "body_pos" in self else \
+                self.body_joint_dists.shape[0]
+        if key in FACE_KEYS or key in STACKED_KEYS:
+            return 0
+        return super().__inc__(key, value, *args, **kwargs)
+
+    @staticmethod
+    def collate(items: Sequence["GarmentInputs"]) -> "GarmentInputs":
+        """``items`` (chunks of the same frame count) as one PyG ``Batch`` (module doc)."""
+        items = list(items)
+        if not items or not all(isinstance(i, GarmentInputs) for i in items):
+            raise TypeError(f"`items`: expected a non-empty sequence of GarmentInputs, got "
+                            f"{[type(i).__name__ for i in items]}")
+        frames = {i.num_frames for i in items}
+        if len(frames) > 1:
+            raise ValueError(f"`items`: the chunks of a batch need the same frame count, got "
+                             f"{sorted(frames)} (cut sequences into chunks of one length)")
+        joints = {i.num_joints for i in items}
+        if len(joints) > 1:
+            raise ValueError(f"`items`: the chunks of a batch need one skeleton, got joint "
+                             f"counts {sorted(joints)}")
+        if any(not torch.equal(i.parents, items[0].parents) for i in items):
+            raise ValueError("`items`: the chunks of a batch need one skeleton (equal "
+                             "`parents`)")
+        if "body_pos" in items[0]:
+            bodies = {(int(i.body_pos.shape[-2]), int(i.body_faces.shape[0])) for i in items}
+            if len(bodies) > 1:
+                raise ValueError(f"`items`: the bodies of a batch need one mesh (one body "
+                                 f"model), got (vertices, faces) {sorted(bodies)}")
+        keys = [set(i.keys()) for i in items]
+        if "pinned" in set.union(*keys):  # a garment without pinned vertices: none pinned
+            items = [i if "pinned" in k else _with(i, pinned=i.pinned_mask())
+                     for i, k in zip(items, keys)]
+            keys = [k | {"pinned"} for k in keys]
+        odd = set.union(*keys) - set.intersection(*keys)
+        if odd:
+            raise ValueError(f"`items`: keys {sorted(odd)} are in some chunks only; give "
+                             f"every chunk of a batch the same keys")
+        return Batch.from_data_list(items)
+
+    @property
+    def num_chunks(self) -> int:
+        """``N``: the chunks of a batch (1 for one chunk)."""
+        return int(self.num_graphs) if isinstance(self, Batch) else 1
+
+    def vertex_chunk(self) -> Tensor:
+        """``[V]`` the chunk of each vertex (zeros for one chunk)."""
+        b = self.get("batch")
+        return b if b is not None else torch.zeros(self.num_vertices, dtype=torch.long,
+                                                  device=self.rest_pos.device)
+
+    def chunks(self) -> List["GarmentInputs"]:
+        """The chunks of a batch (``[self]`` for one chunk)."""
+        return self.to_data_list() if isinstance(self, Batch) else [self]
 
     @property
     def num_vertices(self) -> int:
@@ -58,11 +141,14 @@ class GarmentInputs(Data):
 
     @property
     def num_joints(self) -> int:
-        return int(self.rest_joints.shape[0])
+        return int(self.rest_joints.shape[-2])
 
     @property
     def num_frames(self) -> int:
-        return int(self.rotations.shape[0]) if "rotations" in self else 0
+        """``B``: frames per chunk."""
+        if "rotations" not in self:
+            return 0
+        return int(self.rotations.shape[1 if isinstance(self, Batch) else 0])
 
     def to(self, device, *args: str, non_blocking: bool = False) -> "GarmentInputs":
         """A copy on ``device``, the rest state (``rest``) included; ``args``: only these
@@ -71,7 +157,9 @@ class GarmentInputs(Data):
         out = copy.copy(self)  # a new store holding the same tensors
         Data.to(out, device, *args, non_blocking=non_blocking)
         if "rest" in out and (not args or "rest" in args):
-            out.rest = out.rest.to(device, non_blocking=non_blocking)
+            rest = out.rest  # one ClothRest, or a batch's list of them
+            out.rest = [r.to(device, non_blocking=non_blocking) for r in rest] \
+                if isinstance(rest, list) else rest.to(device, non_blocking=non_blocking)
         return out
 
     def cpu(self, *args: str) -> "GarmentInputs":
@@ -257,8 +345,7 @@ def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tens
 
 def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translation: Tensor,
                 frames: Tensor, history: int, gt: Optional[Tensor] = None,
-                seq_id: Optional[str] = None, gt_prev: Optional[Tensor] = None
-                ) -> GarmentInputs:
+                seq_id: Optional[str] = None) -> GarmentInputs:
     """``static`` plus frames ``frames`` of a motion.
 
     Args:
@@ -267,12 +354,18 @@ def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translatio
         frames: ``[B]`` frame indices.
         history: previous poses per frame (``H = history + 1 >= 2``).
         gt: ``[B, V, 3]`` the simulated garment of those frames, or ``None``.
-        gt_prev: ``[B, 2, V, 3]`` the simulated garment at frames ``t-2, t-1`` (clamped
-            at 0), or ``None``.
     """
     check_history(history)
-    rotations, translation = rotations.float(), translation.float()
+    rotations, translation = torch.as_tensor(rotations).float(), \
+        torch.as_tensor(translation).float()
+    S = static.num_joints
+    if rotations.dim() != 3 or rotations.shape[1:] != (S, 3):
+        raise ValueError(f"`rotations`: expected the motion's [T, {S}, 3] axis-angle "
+                         f"rotations, got {tuple(rotations.shape)}")
     T = rotations.shape[0]
+    if translation.shape != (T, 3):
+        raise ValueError(f"`translation`: expected [{T}, 3] (one per frame of `rotations`), "
+                         f"got {tuple(translation.shape)}")
     frames = torch.as_tensor(frames).long()
     if frames.numel() and not (0 <= int(frames.min()) and int(frames.max()) < T):
         raise ValueError(f"`frames`: indices must lie in [0, {T}), got "
@@ -290,13 +383,15 @@ def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translatio
             raise ValueError(f"`gt`: expected [{frames.shape[0]}, {static.num_vertices}, 3], "
                              f"got {tuple(gt.shape)}")
         out.gt = gt
-    if gt_prev is not None:
-        gt_prev = torch.as_tensor(gt_prev).float()
-        if gt_prev.shape != (frames.shape[0], 2, static.num_vertices, 3):
-            raise ValueError(f"`gt_prev`: expected [{frames.shape[0]}, 2, "
-                             f"{static.num_vertices}, 3], got {tuple(gt_prev.shape)}")
-        out.gt_prev = gt_prev
     if seq_id is not None:
         out.seq_id = seq_id
     return out
 
+
+
+def _with(inputs: GarmentInputs, **values: Any) -> GarmentInputs:
+    """A shallow copy of ``inputs`` with ``values`` set."""
+    out = copy.copy(inputs)
+    for k, v in values.items():
+        out[k] = v
+    return out

@@ -1,21 +1,22 @@
-"""GarTrans's static-branch output (:class:`StaticFeatures`) and its batched whole-sequence
-inference (:meth:`SequencePrediction.predict_sequence`), the paper's frame-parallel
-prediction of every frame of a motion, as a mixin of :class:`~garmentgnn.models.GarTrans`."""
+"""What :class:`~garmentgnn.models.GarTrans` works with besides its layers: the static
+branch's output (:class:`StaticFeatures`), the layout of a batch of chunks
+(:class:`ChunkLayout`: per-chunk quantities on the union graph) and the frame-parallel
+prediction of a whole motion (:meth:`SequencePrediction.predict_sequence`)."""
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
-from garmentgnn.geometry import edge_features
-from garmentgnn.models.inputs import check_history, history_frames
+from garmentgnn.models.inputs import FRAME_KEYS, GarmentInputs
 
 
 @dataclass
 class StaticFeatures:
-    """The static branch's output for one garment on one body shape."""
+    """The static branch's output for the garments of one input (one chunk or a batch)."""
 
     x2: Tensor  # [V, S]  x'' = (x̄^[1] ⊙ u^[1]) b^[1]
     log_prior: Optional[Tensor] = None  # [V, S] log of prior skinning weights (or None)
@@ -24,8 +25,123 @@ class StaticFeatures:
     strain_lengths: Optional[Tensor] = None
 
 
+class ChunkLayout:
+    """The ``N`` chunks of a :class:`GarmentInputs` (``N = 1`` for one chunk) as seen
+    by the model: the per-chunk pose tensors ``[N, B, ...]`` and the operations that
+    pair each vertex of the union graph with its own chunk's joints, transforms and body.
+    One chunk takes the plain path (no gathering, the same numbers as a lone garment);
+    a batch pads each garment to the largest (``[N, Vmax, ...]``) for the per-chunk
+    products (its vertex counts read from the host once per batch)."""
+
+    #: the vertex counts and padded positions of recent batches, by their ``batch`` tensor
+    _recent: List[Tuple[weakref.ref, Tuple[List[int], int, Tensor]]] = []
+
+    def __init__(self, inputs: GarmentInputs) -> None:
+        self.N = inputs.num_chunks
+        batched = self.N > 1 or inputs.rotations.dim() == 5
+        self.B = inputs.num_frames
+        self.V = inputs.num_vertices
+        up = (lambda x: x) if batched else (lambda x: x.unsqueeze(0))
+        self.rotations = up(inputs.rotations)  # [N, B, H, S, 3]
+        self.translation = up(inputs.translation)  # [N, B, H, 3]
+        self.rest_joints = up(inputs.rest_joints)  # [N, S, 3]
+        parents = inputs.parents
+        self.parents = parents[0] if parents.dim() == 2 else parents
+        if self.rotations.dim() != 5 or self.rotations.shape[2] < 2:
+            raise ValueError(f"`inputs.rotations`: expected pose histories [B, H >= 2, S, 3] "
+                             f"(a data `history` >= 1), got {tuple(inputs.rotations.shape)}")
+        if self.translation.shape[:3] != self.rotations.shape[:3]:
+            raise ValueError(f"`inputs.translation`: expected "
+                             f"{tuple(inputs.rotations.shape[:-2]) + (3,)}, got "
+                             f"{tuple(inputs.translation.shape)}")
+        if self.N == 1:
+            self.counts, self.index = [self.V], None
+        else:
+            self.batch = inputs.vertex_chunk()
+            self.counts, self.Vmax, self.index = self._padding(self.batch, self.N)
+
+    @classmethod
+    def _padding(cls, batch: Tensor, N: int) -> Tuple[List[int], int, Tensor]:
+        """Vertex counts, their largest and each vertex's position in the padded
+        ``[N * Vmax]`` layout (one host read per ``batch`` tensor, kept for a few)."""
+        for ref, value in cls._recent:
+            if ref() is batch:
+                return value
+        counts_t = torch.bincount(batch, minlength=N)
+        ptr = torch.cat([batch.new_zeros(1), counts_t.cumsum(0)])
+        counts = counts_t.tolist()
+        Vmax = max(counts)
+        index = batch * Vmax + torch.arange(batch.shape[0], device=batch.device) - ptr[batch]
+        value = (counts, Vmax, index)
+        cls._recent = [(weakref.ref(batch), value)] + [r for r in cls._recent
+                                                       if r[0]() is not None][:3]
+        return value
+
+    @classmethod
+    def of(cls, inputs: GarmentInputs) -> "ChunkLayout":
+        return cls(inputs)
+
+    # -- padded layout ------------------------------------------------------------------
+    def to_padded(self, x: Tensor) -> Tensor:
+        """``[V, ...]`` -> ``[N, Vmax, ...]`` (zeros past each garment's vertices)."""
+        out = x.new_zeros(self.N * self.Vmax, *x.shape[1:]).index_copy(0, self.index, x)
+        return out.view(self.N, self.Vmax, *x.shape[1:])
+
+    def from_padded(self, x: Tensor) -> Tensor:
+        """``[N, Vmax, ...]`` -> ``[V, ...]``."""
+        return x.reshape(self.N * self.Vmax, *x.shape[2:])[self.index]
+
+    # -- per-chunk operations on the union graph ---------------------------------------------
+    def per_vertex(self, code: Tensor) -> Tensor:
+        """A per-chunk, per-frame code ``[N, B, S]`` for every vertex: ``[B, V, S]``
+        (``[B, 1, S]``, broadcasting, for one chunk)."""
+        if self.N == 1:
+            return code[0].unsqueeze(1)
+        return code.transpose(0, 1)[:, self.batch]
+
+    def per_chunk_matmul(self, x: Tensor, b: Tensor) -> Tensor:
+        """``x_v b_{n(v)}``: ``[V, d]`` times each chunk's ``[N, d, S]`` -> ``[V, S]``."""
+        if self.N == 1:
+            return x @ b[0]
+        return self.from_padded(self.to_padded(x) @ b)
+
+    def joint_distances(self, pos: Tensor, joints: Tensor) -> Tensor:
+        """Distances ``[F, V, S]`` of vertices ``[F, V, 3]`` to their own chunk's joints
+        ``[F, N, S, 3]``."""
+        if self.N == 1:
+            return torch.cdist(pos, joints[:, 0])
+        F = pos.shape[0]
+        p = self.to_padded(pos.transpose(0, 1))  # [N, Vmax, F, 3]
+        d = torch.cdist(p.permute(2, 0, 1, 3), joints)  # [F, N, Vmax, S]
+        return self.from_padded(d.permute(1, 2, 0, 3)).view(self.V, F, -1).transpose(0, 1)
+
+    def blend_transforms(self, W: Tensor, A: Tensor) -> Tensor:
+        """Each vertex's blended transform ``sum_j W_vj A_{n(v), j}`` (Eq. 1): weights
+        ``[B, V, S]``, transforms ``[N, B, S, 4, 4]`` -> ``[B, V, 4, 4]``."""
+        if self.N == 1:
+            return torch.einsum("bvs,bsij->bvij", W, A[0])
+        Wp = self.to_padded(W.transpose(0, 1))  # [N, Vmax, B, S]
+        M = torch.einsum("nvbs,nbsij->nvbij", Wp, A)
+        return self.from_padded(M).transpose(0, 1)
+
+    def bodies(self, inputs: GarmentInputs) -> List[Tuple[Tuple[int, int], Tuple[int, int],
+                                                          Tensor]]:
+        """Per chunk: its vertex range in the union graph, its body's vertex range in
+        ``body_pos`` and its body faces (indices into that range)."""
+        faces = inputs.get("body_faces")
+        if faces is None:
+            raise ValueError("`inputs.body_faces`: needed with `body_pos` for the collision "
+                             "projection")
+        if self.N == 1:
+            return [((0, self.V), (0, inputs.body_pos.shape[1]), faces)]
+        Vb, Fb = inputs.body_pos.shape[1] // self.N, faces.shape[0] // self.N
+        starts = [0] + torch.tensor(self.counts).cumsum(0).tolist()
+        return [((starts[n], starts[n + 1]), (n * Vb, (n + 1) * Vb),
+                 faces[n * Fb:(n + 1) * Fb] - n * Vb) for n in range(self.N)]
+
+
 class SequencePrediction:
-    """:meth:`predict_sequence` for a model with GarTrans's ``forward`` and ``num_joints``."""
+    """:meth:`predict_sequence` for a model with GarTrans's ``forward``."""
 
     #: default chunk size of :meth:`predict_sequence`: frames per chunk such that a
     #: chunk holds about this many garment vertices (bounds memory, see docs/inference.md)
@@ -33,48 +149,27 @@ class SequencePrediction:
     #: what :meth:`predict_sequence` can return
     SEQUENCE_OUTPUTS = ("final", "coarse", "accel", "weights")
 
-    def predict_sequence(self, static: StaticFeatures, rest_pos: Tensor, faces: Tensor,
-                         edge_index: Tensor, rest_joints: Tensor, parents: Tensor,
-                         rotations: Tensor, translation: Tensor, history: int = 3,
-                         batch_size: Optional[int] = None, body_pos: Optional[Tensor] = None,
-                         body_faces: Optional[Tensor] = None,
-                         outputs: Sequence[str] = ("final",)) -> Dict[str, Tensor]:
-        """Predict every frame of a motion, frame-parallel (the paper's batch inference).
-
-        The pose history of frame ``t`` is frames ``t-history .. t`` clamped at 0 (as
-        the training data module builds it); frames are predicted ``batch_size`` at a
-        time by :meth:`forward` (static branch ``static`` computed once by the caller,
-        dynamic branch batched) under ``torch.inference_mode``.  The batched graph, its
-        CSR plans and the rest graph's edge features are built once and reused by every
-        chunk.  Equals :meth:`forward` on each frame's history alone up to float
-        round-off, whatever ``batch_size``.
+    def predict_sequence(self, inputs: GarmentInputs, batch_size: Optional[int] = None,
+                         outputs: Sequence[str] = ("final",),
+                         static: Optional[StaticFeatures] = None) -> Dict[str, Tensor]:
+        """Predict every frame of ``inputs`` (one garment over a whole motion, e.g.
+        :func:`~garmentgnn.models.inputs.with_frames` of all its frames), frame-parallel,
+        ``batch_size`` frames at a time under ``torch.inference_mode``; the static branch
+        once (``static``: a cached one), the batched graph and its CSR plans once.
+        Equals :meth:`forward` on each frame alone up to float round-off.
 
         Args:
-            static, rest_pos, faces, edge_index, rest_joints, parents: as :meth:`forward`.
-            rotations: ``[T, S, 3]`` the motion's joint rotations (axis-angle).
-            translation: ``[T, 3]`` its root translations.
-            history: previous frames per pose history (``H = history + 1 >= 2``).
-            batch_size: frames per chunk; ``None``: about :attr:`CHUNK_VERTICES`
-                vertices per chunk (at least one frame).
-            body_pos: ``[T, Vb, 3]`` posed body (for ``collision_projection``), with
-                ``body_faces``.
+            batch_size: frames per call; ``None``: about :attr:`CHUNK_VERTICES` vertices.
             outputs: which of :attr:`SEQUENCE_OUTPUTS` to return (``weights`` is
                 ``[T, V, S]``: large).
 
         Returns:
             ``{name: [T, V, 3]}`` (``weights``: ``[T, V, S]``) for each name in ``outputs``.
         """
-        S = self.num_joints
-        if not isinstance(rotations, Tensor) or rotations.dim() != 3 \
-                or rotations.shape[1:] != (S, 3) or rotations.shape[0] < 1:
-            got = tuple(rotations.shape) if isinstance(rotations, Tensor) else type(rotations)
-            raise ValueError(f"`rotations`: expected [T>=1, {S}, 3] axis-angle rotations of "
-                             f"the whole motion, got {got}")
-        T = rotations.shape[0]
-        if not isinstance(translation, Tensor) or tuple(translation.shape) != (T, 3):
-            got = tuple(translation.shape) if isinstance(translation, Tensor) else type(translation)
-            raise ValueError(f"`translation`: expected [{T}, 3], got {got}")
-        check_history(history)
+        if not isinstance(inputs, GarmentInputs) or inputs.num_chunks != 1 \
+                or inputs.num_frames < 1:
+            raise ValueError(f"`inputs`: expected the GarmentInputs of one garment over "
+                             f"T >= 1 frames, got {type(inputs).__name__}")
         if batch_size is not None and (not isinstance(batch_size, int)
                                        or isinstance(batch_size, bool) or batch_size < 1):
             raise ValueError(f"`batch_size`: expected a positive int or None, got {batch_size!r}")
@@ -82,21 +177,18 @@ class SequencePrediction:
         if isinstance(outputs, str) or bad or not outputs:
             raise ValueError(f"`outputs`: expected a non-empty sequence of "
                              f"{self.SEQUENCE_OUTPUTS}, got {outputs!r}")
-        if body_pos is not None and (body_pos.dim() != 3 or body_pos.shape[0] != T):
-            raise ValueError(f"`body_pos`: expected [{T}, Vb, 3], got {tuple(body_pos.shape)}")
-        V = rest_pos.shape[0]
-        b = batch_size or max(1, self.CHUNK_VERTICES // max(V, 1))
-        b = min(b, T)
+        T, V = inputs.num_frames, inputs.num_vertices
+        for k in FRAME_KEYS:
+            if k in inputs and inputs[k].shape[0] != T:
+                raise ValueError(f"`inputs.{k}`: expected one row per frame ({T}), got "
+                                 f"{tuple(inputs[k].shape)}")
+        b = min(batch_size or max(1, self.CHUNK_VERTICES // max(V, 1)), T)
         with torch.inference_mode():
-            rest_e = edge_features(rest_pos, edge_index)
-            out = {k: rest_pos.new_empty(T, V, S if k == "weights" else 3) for k in outputs}
-            for t0 in range(0, T, b):  # chunks of frames, each predicted in one batch
-                frames = torch.arange(t0, min(t0 + b, T), device=rotations.device)
-                hist = history_frames(frames, history)  # [n, H]
-                o = self.forward(static, rest_pos, faces, edge_index, rest_joints, parents,
-                                 rotations[hist], translation[hist],
-                                 body_pos=None if body_pos is None else body_pos[frames],
-                                 body_faces=body_faces, rest_edge_attr=rest_e)
+            static = self.encode_static(inputs) if static is None else static
+            out = {k: inputs.rest_pos.new_empty(T, V, self.num_joints if k == "weights"
+                                                else 3) for k in outputs}
+            for t0 in range(0, T, b):
+                o = self.forward(inputs.select(torch.arange(t0, min(t0 + b, T))), static)
                 for k in outputs:
-                    out[k][t0:t0 + len(frames)] = o[k]
+                    out[k][t0:t0 + b] = o[k]
         return out

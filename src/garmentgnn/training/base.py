@@ -24,8 +24,8 @@ from torch import Tensor
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.integrity import (load_checkpoint_file, stamp_checkpoint,
-                                           verify_checkpoint)
+from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
+                                           stamp_checkpoint, verify_checkpoint)
 
 __all__ = ["LBS_PREFIX", "GarmentModule"]
 
@@ -61,8 +61,8 @@ def destroy_gloo_group_at_exit() -> None:
 
 
 class GarmentModule(L.LightningModule):
-    """Base of the garment methods trained by ``garmentgnn train`` (one chunk per step,
-    :class:`~garmentgnn.training.GarmentDataModule`).
+    """Base of the garment methods trained by ``garmentgnn train`` (a batch of chunks
+    per training step, :class:`~garmentgnn.training.GarmentDataModule`).
 
     Attributes:
         former_defaults: hyper-parameters whose default has changed, with the value a
@@ -71,6 +71,20 @@ class GarmentModule(L.LightningModule):
     """
 
     former_defaults: ClassVar[Dict[str, Any]] = {}
+    #: hyper-parameters that no longer exist, with the only value a checkpoint may hold
+    #: for them (anything else was another model: :meth:`check_removed` refuses it)
+    removed_switches: ClassVar[Dict[str, Any]] = {}
+
+    @classmethod
+    def check_removed(cls, hparams: Dict[str, Any], where: str = "checkpoint") -> None:
+        """A :class:`CheckpointError` when ``hparams`` switch on a removed option."""
+        bad = {k: hparams[k] for k, off in cls.removed_switches.items()
+               if k in hparams and hparams[k] != off}
+        if bad:
+            what = ", ".join(f"{k}={v!r}" for k, v in sorted(bad.items()))
+            raise CheckpointError(f"{where}: trained with {what}, an option measured not to "
+                                  f"help and removed (docs/experiments.md); this version "
+                                  f"cannot rebuild that model")
 
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         """The garment ``[B, V, 3]`` of every frame of ``batch``."""
@@ -134,11 +148,12 @@ class GarmentModule(L.LightningModule):
         ``kwargs`` into the loaded checkpoint before :meth:`on_load_checkpoint` sees
         it, so with ``kwargs`` (or former defaults to look up) a local file is verified
         as it was written, first; a stream or a remote URL is verified as loaded."""
-        if not (kwargs or cls.former_defaults) or not isinstance(
+        if not (kwargs or cls.former_defaults or cls.removed_switches) or not isinstance(
                 checkpoint_path, (str, os.PathLike)) or not os.path.isfile(checkpoint_path):
             return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
         # raises CheckpointError on a changed file
         saved = load_checkpoint_file(checkpoint_path).get("hyper_parameters") or {}
+        cls.check_removed(saved, str(checkpoint_path))
         kwargs = {**{k: v for k, v in cls.former_defaults.items() if k not in saved},
                   **kwargs}
         token = _VERIFIED.set(True)
@@ -150,3 +165,4 @@ class GarmentModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         if not _VERIFIED.get():
             verify_checkpoint(checkpoint)
+        self.check_removed(checkpoint.get("hyper_parameters") or {})

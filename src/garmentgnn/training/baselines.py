@@ -1,7 +1,9 @@
 """The DA-, HOOD- and NCS-style baselines as one LightningModule, trained by the same
-Lightning ``Trainer``, data module (:class:`GarmentDataModule`: one chunk per step, the
-epoch order of :class:`EpochShuffleSampler`) and checkpointing as GarTrans.  A method
-is a model plus its losses plus a configuration (``garmentgnn/configs/baselines/*.yaml``,
+Lightning ``Trainer``, data module (:class:`GarmentDataModule`: ``batch_size`` chunks per
+step, the epoch order of :class:`EpochShuffleSampler`) and checkpointing as GarTrans; a
+batch's loss is the mean of its chunks' (DA-style predicts a batch in one pass, HOOD- and
+NCS-style, whose models take one garment at a time, chunk by chunk).  A method is a model
+plus its losses plus a configuration (``garmentgnn/configs/baselines/*.yaml``,
 :func:`garmentgnn.training.configs.load_config`):
 
 * ``da`` (:class:`~garmentgnn.models.baselines.DAStyle`): supervised, the supervised
@@ -31,7 +33,7 @@ from garmentgnn.losses.gartrans_loss import GarTransLoss
 from garmentgnn.models.baselines import CoarseLevel, DAStyle, HOODStyle, NCSStyle
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.base import GarmentModule
-from garmentgnn.training.module import loss_inputs
+from garmentgnn.training.module import chunk_mean_loss, loss_inputs
 
 __all__ = ["BASELINE_METHODS", "BaselineModule"]
 
@@ -141,24 +143,32 @@ class BaselineModule(GarmentModule):
         """The garment ``[B, V, 3]`` of every frame of ``inp`` (HOOD: a rollout over
         the frames in order, from the LBS garment of the first two)."""
         m = self.hparams.method
-        if m == "da":
-            return self.model(inp, inp.rotations[:, -1], inp.translation[:, -1])
+        if m == "da":  # one chunk or a batch of them (the pose of frame t: history's last)
+            return self.model(inp, inp.rotations[..., -1, :, :], inp.translation[..., -1, :])
         if m == "ncs":
             return self.model(inp, *self._ncs_poses(inp, -1))
         lbs = inp.skinned()
         if lbs.shape[0] < 2:
             raise ValueError("`inp`: a HOOD-style rollout needs at least 2 frames")
         return self.model.rollout(inp, self.coarse_level(inp), lbs[0], lbs[1], inp.body_pos,
-                                  pinned_targets=lbs, lbs=lbs)
+                                  pinned_targets=lbs)
 
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         return self(batch)
 
     # -- training -------------------------------------------------------------------
     def compute_loss(self, inp: GarmentInputs) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """The loss of one chunk, or the mean over the chunks of a ``Batch`` (``da``: one
+        forward over the union graph; ``hood`` and ``ncs``, whose models take one garment
+        at a time: each chunk on its own)."""
         m = self.hparams.method
-        if m == "da":
-            return self.loss_fn(loss_inputs(inp, self(inp), self.dt))
+        if m == "da":  # a batch in one forward over the union graph
+            return chunk_mean_loss(self.loss_fn, inp, self(inp), self.dt)
+        if inp.num_chunks > 1:
+            losses = [self.compute_loss(c) for c in inp.chunks()]
+            n = len(losses)
+            return (sum(t for t, _ in losses) / n,
+                    {k: sum(t[k] for _, t in losses) / n for k in losses[0][1]})
         if m == "ncs":
             inp = inp.without_ground_truth()  # self-supervised: never the simulation
             p = [self.model(inp, *self._ncs_poses(inp, j)) for j in (-1, -2, -3)]
@@ -168,12 +178,10 @@ class BaselineModule(GarmentModule):
         lbs = inp.skinned()
         before = self._lbs_before(inp)
         x_prev, x_curr = self._start(inp, before)
-        path = torch.cat([torch.stack(before), lbs])  # LBS from two frames before inp
         preds, inertial = [], []
         for b in range(lbs.shape[0]):  # one step at a time on its own rollout
-            acc = (path[b + 2] - 2 * path[b + 1] + path[b])[None]
             nxt = self.model.step(inp, coarse, x_prev[None], x_curr[None],
-                                  inp.body_pos[b:b + 1], lbs[b:b + 1], acc)[0]
+                                  inp.body_pos[b:b + 1], lbs[b:b + 1])[0]
             preds.append(nxt)
             inertial.append(2 * x_curr - x_prev)
             x_prev, x_curr = x_curr, nxt.detach()
@@ -225,7 +233,7 @@ class BaselineModule(GarmentModule):
 
     def training_step(self, batch: GarmentInputs, batch_idx: int) -> Tensor:
         total, terms = self.compute_loss(batch)
-        self.log_training_step(total, terms, batch.num_frames)
+        self.log_training_step(total, terms, batch.num_frames * batch.num_chunks)
         return total
 
     def configure_optimizers(self):

@@ -5,8 +5,8 @@ sequence (the ``.npz`` files written by ``garmentgnn generate``, loaded with
 :func:`garmentgnn.data.store.load_sequence`).  GarTrans predicts the frames of a
 chunk in parallel and shares one static encoding (``encode_static``) between them.
 
-Each item is a :class:`~garmentgnn.models.inputs.GarmentInputs` (a PyG ``Data``; the
-data loader runs with ``batch_size=None``, one chunk per step), built by
+Each item is a :class:`~garmentgnn.models.inputs.GarmentInputs` (a PyG ``Data``),
+built by
 :func:`~garmentgnn.models.inputs.build_static` and
 :func:`~garmentgnn.models.inputs.with_frames`: the model inputs every method, loss and
 metric reads.  ``skin_weights`` are the ones stored with the sequence (the weights the
@@ -16,6 +16,11 @@ transfer recomputed.
 The static inputs (edge index, Nyström features, ClothRest, masses, rest body) are
 computed once per sequence and cached (``static_cache`` entries, LRU); positions and
 motion are cached per sequence file (``cache_size`` files, LRU).
+
+A training step takes ``batch_size`` chunks of one frame count from different sequences,
+collated as one PyG ``Batch`` (:meth:`GarmentInputs.collate`; ``SequenceChunks[[i, j,
+...]]``); a sequence's last, shorter chunk goes into a batch of such chunks.  With
+``batch_size=1`` a step is one plain chunk.
 """
 from __future__ import annotations
 
@@ -51,20 +56,19 @@ class SequenceChunks(Dataset):
             ``nystrom_dim``).
         cache_size, static_cache: sequence files / static inputs kept (LRU).
         ids: keep only these sequence ids (e.g. one garment's sequences).
-        previous_frames: add ``gt_prev``, the simulated garment at frames ``t-2, t-1``
-            (the state a model with a garment state trains on).
+
+    ``chunks[i]`` is one chunk; ``chunks[[i, j, ...]]`` those chunks as one batch.
     """
 
     def __init__(self, root, split: Optional[str] = "train", chunk: int = 8, history: int = 3,
                  nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
                  cache_size: int = 4, static_cache: int = 64,
-                 ids: Optional[Sequence[str]] = None, previous_frames: bool = False) -> None:
+                 ids: Optional[Sequence[str]] = None) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
         check_history(history)
         self.root = Path(root)
         self.split, self.chunk, self.history = split, chunk, history
-        self.previous_frames = previous_frames
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
         manifest = store.read_manifest(self.root)
@@ -139,7 +143,13 @@ class SequenceChunks(Dataset):
         return st, body
 
     # -- items --------------------------------------------------------------------
-    def __getitem__(self, idx: int) -> GarmentInputs:
+    def frame_counts(self) -> List[int]:
+        """Frames of each chunk (what a batch of chunks must share)."""
+        return [n for _, _, n in self.index]
+
+    def __getitem__(self, idx: Union[int, Sequence[int]]) -> GarmentInputs:
+        if isinstance(idx, (list, tuple)):
+            return GarmentInputs.collate([self[i] for i in idx])
         if not 0 <= idx < len(self):
             raise IndexError(f"chunk index {idx} out of range [0, {len(self)})")
         i, t0, n = self.index[idx]
@@ -147,14 +157,11 @@ class SequenceChunks(Dataset):
         rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
         tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
         pos = np.asarray(seq["positions"])
-        gt = gt_prev = None
+        gt = None
         if pos.shape[1:2] == (st.num_vertices,):
             gt = torch.from_numpy(np.asarray(pos[t0:t0 + n], np.float32))
-            if self.previous_frames:
-                prev = np.clip(np.arange(t0, t0 + n)[:, None] + np.array([-2, -1]), 0, None)
-                gt_prev = torch.from_numpy(np.asarray(pos[prev], np.float32))
         item = with_frames(st, body, rot, tr, torch.arange(t0, t0 + n), self.history, gt=gt,
-                           seq_id=self.records[i]["id"], gt_prev=gt_prev)
+                           seq_id=self.records[i]["id"])
         if gt is not None:  # which frames the metrics may score
             item.converged = self.converged(idx)
         return item
@@ -175,13 +182,18 @@ class EpochShuffleSampler(DistributedSampler):
     """
 
     def __init__(self, n: int, seed: int = 0, shuffle: bool = True, num_replicas: int = 1,
-                 rank: int = 0) -> None:
+                 rank: int = 0, batch_size: int = 1,
+                 lengths: Optional[Sequence[int]] = None) -> None:
         if not 0 <= rank < num_replicas:
             raise ValueError(f"`rank`: expected 0 <= rank < num_replicas={num_replicas}, "
                              f"got {rank}")
+        if lengths is not None and len(lengths) != n:
+            raise ValueError(f"`lengths`: expected {n} chunk lengths, got {len(lengths)}")
         # the base class only shards positions (its own shuffle stays off)
         super().__init__(range(n), num_replicas=num_replicas, rank=rank, shuffle=False)
         self.n, self.seed, self.order_shuffle = n, seed, shuffle
+        self.batch_size = batch_size
+        self.lengths = list(lengths) if lengths is not None else [0] * n
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -193,13 +205,36 @@ class EpochShuffleSampler(DistributedSampler):
         g = torch.Generator().manual_seed(self.seed * 100003 + self.epoch)
         return torch.randperm(self.n, generator=g).tolist()
 
-    def __iter__(self) -> Iterator[int]:
+    def _shard(self) -> List[int]:
         order = self.order()
-        return iter([order[i] for i in super().__iter__()])
+        return [order[i] for i in super().__iter__()]
+
+    def batches(self) -> List[List[int]]:
+        """This replica's batches of the epoch: its chunks in order, each added to the
+        open batch of its frame count, a batch given out when it holds ``batch_size``
+        chunks; the last, partly filled ones at the end."""
+        open_: Dict[int, List[int]] = {}
+        out: List[List[int]] = []
+        for i in self._shard():
+            b = open_.setdefault(self.lengths[i], [])
+            b.append(i)
+            if len(b) == self.batch_size:
+                out.append(open_.pop(self.lengths[i]))
+        return out + [b for b in open_.values() if b]
+
+    def __iter__(self) -> Iterator[Any]:
+        """Chunk indices (``batch_size`` 1), else lists of them (:meth:`batches`)."""
+        if self.batch_size == 1:
+            return iter(self._shard())
+        return iter(self.batches())
+
+    def __len__(self) -> int:
+        return super().__len__() if self.batch_size == 1 else len(self.batches())
 
     def __repr__(self) -> str:
         return (f"EpochShuffleSampler(n={self.n}, seed={self.seed}, "
-                f"shuffle={self.order_shuffle}, rank={self.rank}/{self.num_replicas})")
+                f"shuffle={self.order_shuffle}, rank={self.rank}/{self.num_replicas}, "
+                f"batch_size={self.batch_size})")
 
 
 def _identity(x):
@@ -207,7 +242,9 @@ def _identity(x):
 
 
 class GarmentDataModule(L.LightningDataModule):
-    """Train/val/test chunks from the manifest's splits (one chunk per step).
+    """Train/val/test chunks from the manifest's splits: ``batch_size`` training chunks
+    per step (one ``Batch``, see the module doc); validation, test and predict one chunk
+    (a sequence's frames in order) per step.
 
     The arguments are the data module's hyper-parameters (``self.hparams``, stored in
     every checkpoint).  :meth:`setup` builds only what a stage reads: ``fit`` the
@@ -228,8 +265,12 @@ class GarmentDataModule(L.LightningDataModule):
                  train_split: str = "train", val_split: Optional[str] = "val",
                  shuffle: bool = True, seed: int = 0, drop_last: bool = False,
                  test_split: str = "test", train_ids: Optional[Sequence[str]] = None,
-                 cache_size: int = 4, predict_split: Optional[str] = None) -> None:
+                 cache_size: int = 4, predict_split: Optional[str] = None,
+                 batch_size: int = 1) -> None:
         super().__init__()
+        if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1:
+            raise ValueError(f"--data.batch_size: expected a number of chunks >= 1, got "
+                             f"{batch_size!r}")
         if not (Path(root) / store.MANIFEST).is_file():
             store.read_manifest(root)  # raises: which path, and the command that makes it
         # plain types in the hyper-parameters: checkpoints load with weights_only=True
@@ -255,20 +296,21 @@ class GarmentDataModule(L.LightningDataModule):
     def load_state_dict(self, state: Dict[str, int]) -> None:
         self.start_epoch = int(state.get("next_epoch", 0))
 
-    def _make(self, split: Optional[str], ids: Optional[Sequence[str]] = None,
-              previous_frames: bool = False) -> SequenceChunks:
+    def _make(self, split: Optional[str], ids: Optional[Sequence[str]] = None
+              ) -> SequenceChunks:
         hp = self.hparams
         return SequenceChunks(self.root, split, hp.chunk, hp.history, hp.nystrom_dim,
                               hp.num_landmarks, drop_last=hp.drop_last,
-                              cache_size=hp.cache_size, ids=ids,
-                              previous_frames=previous_frames)
+                              cache_size=hp.cache_size, ids=ids)
 
     def _train(self) -> SequenceChunks:
         if self.train_set is None:
-            # training chunks carry the simulated previous frames (``gt_prev``: the
-            # state a model with a garment state is trained on)
-            self.train_set = self._make(self.hparams.train_split, self.hparams.train_ids,
-                                        previous_frames=True)
+            train = self._make(self.hparams.train_split, self.hparams.train_ids)
+            if self.hparams.batch_size > len(train):
+                raise ValueError(f"--data.batch_size: {self.hparams.batch_size} is more than "
+                                 f"the {len(train)} chunks of the {self.hparams.train_split!r} "
+                                 f"split; give at most {len(train)}")
+            self.train_set = train
         return self.train_set
 
     def setup(self, stage: Optional[str] = None) -> None:
@@ -306,9 +348,10 @@ class GarmentDataModule(L.LightningDataModule):
                 "num_vertices": st.num_vertices if len(pairs) == 1 else None}
 
     def _loader(self, ds: SequenceChunks, shuffle: bool, num_replicas: int = 1,
-                rank: int = 0) -> DataLoader:
+                rank: int = 0, batch_size: int = 1) -> DataLoader:
         hp = self.hparams
-        sampler = EpochShuffleSampler(len(ds), hp.seed, shuffle, num_replicas, rank)
+        sampler = EpochShuffleSampler(len(ds), hp.seed, shuffle, num_replicas, rank,
+                                      batch_size, ds.frame_counts())
         return DataLoader(ds, batch_size=None, sampler=sampler,
                           num_workers=hp.num_workers, collate_fn=_identity,
                           persistent_workers=hp.num_workers > 0)
@@ -319,7 +362,8 @@ class GarmentDataModule(L.LightningDataModule):
         # strategy that does not shard the data)
         shard = trainer.distributed_sampler_kwargs if trainer is not None else None
         world, rank = (shard["num_replicas"], shard["rank"]) if shard else (1, 0)
-        dl = self._loader(self._train(), self.hparams.shuffle, world, rank)
+        dl = self._loader(self._train(), self.hparams.shuffle, world, rank,
+                          self.hparams.batch_size)
         dl.sampler.set_epoch(self.start_epoch)
         return dl
 

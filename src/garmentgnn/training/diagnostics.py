@@ -27,7 +27,7 @@ def training_loss(module: L.LightningModule, batch: Any) -> torch.Tensor:
     """The total loss of one training step of ``module`` on ``batch`` (its
     ``compute_loss``: GarTrans calls its forward first)."""
     if isinstance(module, GarTransModule):
-        total, _ = module.compute_loss(batch, module.training_forward(batch))
+        total, _ = module.compute_loss(batch, module(batch))
     else:
         total, _ = module.compute_loss(batch)
     return total

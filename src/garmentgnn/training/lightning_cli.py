@@ -196,7 +196,12 @@ class GarmentCLI(LightningCLI):
         model = _plain(self.config[sub].get("model"))
         cls_path = model.get("class_path") or DEFAULT_MODEL
         saved_cls = stored.pop("_class_path", None)
-        params = inspect.signature(_import(cls_path).__init__).parameters
+        module_cls = _import(cls_path)
+        if issubclass(module_cls, GarmentModule):
+            module_cls.check_removed(stored, str(ckpt_path))
+            for k in module_cls.removed_switches:
+                stored.pop(k, None)
+        params = inspect.signature(module_cls.__init__).parameters
         foreign = sorted(k for k in stored if k not in params)
         if (saved_cls and saved_cls.rsplit(".", 1)[-1] != cls_path.rsplit(".", 1)[-1]) \
                 or foreign:

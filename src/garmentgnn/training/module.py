@@ -1,14 +1,15 @@
 """GarTrans as a LightningModule (paper §4.1: Adamax, lr 0.003, cosine annealing).
 
-One training step = one chunk (one garment on one body, ``B`` frames, see
-:mod:`garmentgnn.training.datamodule`): ``encode_static`` once, ``forward`` on the
-``B`` frames in parallel, then :class:`GarTransLoss`.  Which loss terms are active,
+One training step = a batch of chunks (each one garment on one body over ``B`` frames,
+see :mod:`garmentgnn.training.datamodule`): ``encode_static`` once per garment,
+``forward`` on every frame of every chunk in parallel over the union graph, then
+:class:`GarTransLoss` per chunk, averaged.  Which loss terms are active,
 the supervised scale and whether the rest-pose branch is frozen are switched by
 :class:`garmentgnn.training.ProgressiveSchedule`.
 """
 from __future__ import annotations
 
-from typing import Any, ClassVar, Dict, Iterable, Iterator, Optional
+from typing import Any, ClassVar, Dict, Iterable, Iterator, Optional, Tuple
 
 import torch
 
@@ -29,6 +30,26 @@ def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
                       mass=inp.get("mass"), rest=inp.get("rest"), predicted=predicted, dt=dt)
 
 
+def chunk_mean_loss(loss_fn: GarTransLoss, batch: GarmentInputs, pred: torch.Tensor,
+                    dt: float, predicted: Optional[torch.Tensor] = None,
+                    ground_truth: bool = True) -> Tuple[torch.Tensor, Dict[str, torch.Tensor]]:
+    """``loss_fn`` of a prediction ``pred [B, V, 3]`` of ``batch`` (one chunk, or a
+    ``Batch`` of chunks: the mean over its chunks of each chunk's total and terms)."""
+    if batch.num_chunks == 1:
+        return loss_fn(loss_inputs(batch, pred, dt, predicted, ground_truth))
+    totals, terms, v0 = [], {}, 0
+    for chunk in batch.chunks():
+        v1 = v0 + chunk.num_vertices
+        p = None if predicted is None else predicted[:, v0:v1]
+        total, t = loss_fn(loss_inputs(chunk, pred[:, v0:v1], dt, p, ground_truth))
+        totals.append(total)
+        for k, v in t.items():
+            terms.setdefault(k, []).append(v)
+        v0 = v1
+    n = len(totals)
+    return sum(totals) / n, {k: sum(v) / n for k, v in terms.items()}
+
+
 #: ``optimizer`` choices (the paper: Adamax)
 OPTIMIZERS = {"adamax": torch.optim.Adamax, "adam": torch.optim.Adam,
               "adamw": torch.optim.AdamW}
@@ -39,48 +60,28 @@ REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
 
 class GarTransModule(GarmentModule):
     """GarTrans trained by Lightning.  The model defaults are :class:`GarTrans`'s (and
-    ``garmentgnn/configs/gartrans.yaml``'s); ``GarTransModule(..., skin_prior=False,
-    **PAPER_FORM)`` is the paper's form.
+    ``garmentgnn/configs/gartrans.yaml``'s); ``GarTransModule(..., **PAPER_FORM)`` is the
+    paper's form (``configs/ablations/paper.yaml``).
+
+    A training step takes one chunk or a ``Batch`` of chunks
+    (:meth:`GarmentInputs.collate`): the model runs once over the union graph, and the
+    loss is the mean over the chunks of each chunk's :class:`GarTransLoss`, so a batch of
+    one chunk is that chunk's step.
 
     Args:
         num_joints, num_body_vertices, nystrom_dim: model sizes (see
             :attr:`GarmentDataModule.dims`).
-        rest_layer, blend_layer, dynamic_layer: registry names of the attention slots.
-        heads, fps: model settings.
-        lr: Adamax learning rate; ``t_max``: CosineAnnealingLR period in epochs
-            (default: the trainer's ``max_epochs``); ``eta_min``.
+        rest_layer, blend_layer, dynamic_layer, heads, fps, use_body, skin_prior,
+        lbs_start, gate_init, blend_shape, accel_unit, input_norm, local_frame,
+        strain_limit, collision_projection, compile_search: :class:`GarTrans` settings
+            (``compile_search`` also runs the collision loss's face search compiled).
+        lr: learning rate; ``t_max``: CosineAnnealingLR period in epochs (default: the
+            trainer's ``max_epochs``); ``eta_min``; ``optimizer``: ``"adamax"`` (the
+            paper), ``"adam"`` or ``"adamw"``.
         loss_weights, edge_reduction, collision_margin: :class:`GarTransLoss` settings.
         enabled, supervised_scale: initial loss terms / scale (phase 1).
-        use_body: feed the body-vertex-to-joint distances (else the learned code).
-        skin_prior: start the learned skinning weights from the body's weights
-            transferred to the garment (``encode_static(skin_prior=...)``); ``False`` is
-            the paper's from-scratch ``W^t``.
-        lbs_start: gates on what the learned branches add to LBS (:class:`GarTrans`'s
-            ``lbs_start``, started at ``gate_init``); needs ``skin_prior``.  ``False``:
-            the paper's form.
-        collision_projection: margin (metres) of GarTrans's last step that moves
-            garment vertices out of the body (:class:`GarTrans`); ``None``: off (the
-            paper).  Applied in training and inference alike.
-        blend_shape: ``False`` leaves out GarTrans's blend shape ``B^t`` (``True``: the
-            paper).
-        strain_limit: sweeps of GarTrans's strain-limiting step (``0``: none, the paper).
-        compile_search: ``torch.compile`` the nearest-body-face search of the collision
-            projection and the collision loss (same results; see docs/model.md).
-        gate_init, accel_unit, garment_state, input_norm, local_frame, motion_history:
-            :class:`GarTrans` settings.
-        optimizer: ``"adamax"`` (the paper), ``"adam"`` or ``"adamw"``.
-        state_noise: ``garment_state`` training: the standard deviation (metres) of the
-            Gaussian noise added to the simulated frame ``t-1`` given as the state
-            (MeshGraphNets' and HOOD's noise injection: the model learns to correct the
-            errors its own rollout makes).
-        state_dropout: ``garment_state`` training: the share of training chunks given no
-            state (the frame-parallel inputs), so that a rollout can start from no state.
-        state_rollout: ``garment_state`` training on the model's own rollout of each
-            chunk (:meth:`GarTrans.rollout` from the simulated frames before the chunk,
-            gradients through every step) instead of the simulated previous frames of
-            every frame (teacher forcing).
-        num_vertices, history: accepted (and ignored) so that the data module's sizes
-            are linked to every method alike (:class:`BaselineModule` reads them).
+        num_vertices, history: the data sizes ``garmentgnn train`` links to every method
+            (:class:`BaselineModule` reads them); GarTrans does not depend on them.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -94,38 +95,23 @@ class GarTransModule(GarmentModule):
                  collision_projection: Optional[float] = 0.002, blend_shape: bool = False,
                  strain_limit: int = 10, compile_search: bool = False, gate_init: float = 1.0,
                  accel_unit: Optional[float] = 0.01, optimizer: str = "adamax",
-                 garment_state: bool = False, state_noise: float = 0.0,
-                 state_dropout: float = 0.0, state_rollout: bool = False,
                  input_norm: bool = True, local_frame: bool = True,
-                 motion_history: int = 1, num_vertices: Optional[int] = None,
-                 history: Optional[int] = None) -> None:
+                 num_vertices: Optional[int] = None, history: Optional[int] = None) -> None:
         super().__init__()
-        if lbs_start and not skin_prior:
-            raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
-                             "(or set `lbs_start=False`)")
         enabled = sorted(enabled)
         self.save_hyperparameters()
-        self.model = GarTrans(num_joints, num_body_vertices, nystrom_dim=nystrom_dim,
-                              rest_layer=rest_layer, blend_layer=blend_layer,
-                              dynamic_layer=dynamic_layer, heads=heads, fps=fps,
-                              lbs_start=lbs_start, collision_projection=collision_projection,
-                              blend_shape=blend_shape, strain_limit=strain_limit,
-                              compile_search=compile_search, gate_init=gate_init,
-                              accel_unit=accel_unit, garment_state=garment_state,
-                              input_norm=input_norm, local_frame=local_frame,
-                              motion_history=motion_history)
-        if not 0.0 <= state_dropout <= 1.0:
-            raise ValueError(f"`state_dropout`: expected a share in [0, 1], got {state_dropout}")
-        if not state_noise >= 0.0:
-            raise ValueError(f"`state_noise`: expected a standard deviation >= 0 (metres), "
-                             f"got {state_noise}")
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"`optimizer`: expected one of {sorted(OPTIMIZERS)}, got "
                              f"{optimizer!r}")
-        # only one of the body code paths is ever used; freeze the other (DDP requires
-        # every trainable parameter to receive a gradient)
-        unused = self.model.body_default if use_body else self.model.body_fc
-        unused.requires_grad_(False)
+        self.model = GarTrans(num_joints, num_body_vertices, nystrom_dim=nystrom_dim,
+                              rest_layer=rest_layer, blend_layer=blend_layer,
+                              dynamic_layer=dynamic_layer, heads=heads, fps=fps,
+                              use_body=use_body, skin_prior=skin_prior, lbs_start=lbs_start,
+                              collision_projection=collision_projection,
+                              blend_shape=blend_shape, strain_limit=strain_limit,
+                              compile_search=compile_search, gate_init=gate_init,
+                              accel_unit=accel_unit, input_norm=input_norm,
+                              local_frame=local_frame)
         self.loss_fn = GarTransLoss(loss_weights, enabled=enabled,
                                     supervised_scale=supervised_scale,
                                     collision_margin=collision_margin,
@@ -134,7 +120,7 @@ class GarTransModule(GarmentModule):
 
     # -- phase controls (used by ProgressiveSchedule) ---------------------------------
     def set_rest_branch_frozen(self, frozen: bool) -> None:
-        unused = self.model.body_default if self.hparams.use_body else self.model.body_fc
+        unused = self.model.body_default if self.model.use_body else self.model.body_fc
         never = {id(p) for p in unused.parameters()} if isinstance(unused, torch.nn.Module) \
             else {id(unused)}
         for name in REST_BRANCH:
@@ -149,65 +135,30 @@ class GarTransModule(GarmentModule):
 
     # -- forward ------------------------------------------------------------------
     def encode_static(self, inp: GarmentInputs) -> StaticFeatures:
-        """The static branch of one garment on one body (a data-module item)."""
-        hp = self.hparams
-        return self.model.encode_static(
-            inp.rest_pos, inp.faces, inp.edge_index, inp.rest_joints, inp.nystrom,
-            inp.get("body_joint_dists") if hp.use_body else None,
-            inp.skin_weights if hp.get("skin_prior", False) else None)
+        """The static branch of ``inp``'s garments (:meth:`GarTrans.encode_static`)."""
+        return self.model.encode_static(inp)
 
     def forward(self, inp: GarmentInputs, static: Optional[StaticFeatures] = None,
-                autoregressive: Optional[bool] = None) -> Dict[str, torch.Tensor]:
+                autoregressive: bool = False) -> Dict[str, torch.Tensor]:
         """GarTrans on every frame of ``inp``: frame-parallel (the paper's mode), or
-        ``autoregressive`` (:meth:`GarTrans.rollout`; the default with ``garment_state``,
-        frame-parallel otherwise).  ``static``: a cached :meth:`encode_static` of the same
-        garment (default: computed here)."""
-        static = self.encode_static(inp) if static is None else static
-        if autoregressive is None:
-            autoregressive = self.model.garment_state
+        ``autoregressive`` (:meth:`GarTrans.rollout`).  ``static``: a cached
+        :meth:`encode_static` of the same garments (default: computed here)."""
         run = self.model.rollout if autoregressive else self.model
-        return run(static, inp.rest_pos, inp.faces, inp.edge_index, inp.rest_joints,
-                   inp.parents, inp.rotations, inp.translation, body_pos=inp.get("body_pos"),
-                   body_faces=inp.get("body_faces"))
+        return run(inp, static)
 
     def predict_garment(self, batch: GarmentInputs) -> torch.Tensor:
-        """:meth:`forward`'s garment ``[B, V, 3]`` (frame-parallel, or the rollout with
-        ``garment_state``): what ``validate``, ``test`` and ``predict`` score."""
+        """:meth:`forward`'s garment ``[B, V, 3]``: what ``validate``, ``test`` and
+        ``predict`` score."""
         return self(batch)["final"]
 
-    def training_forward(self, inp: GarmentInputs) -> Dict[str, torch.Tensor]:
-        """The prediction a training step scores: :meth:`forward` (frame-parallel), or
-        with ``garment_state`` every frame of ``inp`` given the simulated frames
-        ``t-2, t-1`` (``inp.gt_prev``) as its state, with ``state_noise`` on frame ``t-1``
-        (teacher forcing), or the model's own rollout of the chunk from the frames before
-        it (``state_rollout``); no state for a ``state_dropout`` share of the chunks."""
-        if not self.model.garment_state:
-            return self(inp)
-        hp = self.hparams
-        state = inp.get("gt_prev")
-        if state is None:
-            raise ValueError("`inp`: a model with `garment_state` trains on chunks with "
-                             "`gt_prev` (the simulated frames t-2, t-1; GarmentDataModule's "
-                             "training chunks carry them)")
-        if hp.state_dropout and float(torch.rand(())) < hp.state_dropout:
-            state = None
-        elif hp.state_noise:
-            noise = torch.randn_like(state[:, 1]) * hp.state_noise
-            state = torch.stack([state[:, 0], state[:, 1] + noise], 1)
-        args = (self.encode_static(inp), inp.rest_pos, inp.faces, inp.edge_index,
-                inp.rest_joints, inp.parents, inp.rotations, inp.translation)
-        kw = dict(body_pos=inp.get("body_pos"), body_faces=inp.get("body_faces"))
-        if hp.get("state_rollout", False):
-            return self.model.rollout(*args, state=None if state is None else state[0], **kw)
-        return self.model(*args, state=state, **kw)
-
     def compute_loss(self, batch: GarmentInputs, out: Dict[str, torch.Tensor]):
-        inp = loss_inputs(batch, out["final"], dt=1.0 / self.hparams.fps)
-        return self.loss_fn(inp)  # NaN/inf raises NonFiniteLossError naming the term
+        """The mean over ``batch``'s chunks of each chunk's loss (NaN/inf raises
+        :class:`NonFiniteLossError` naming the term)."""
+        return chunk_mean_loss(self.loss_fn, batch, out["final"], 1.0 / self.hparams.fps)
 
     def training_step(self, batch: GarmentInputs, batch_idx: int):
-        out = self.training_forward(batch)
-        B = out["final"].shape[0]
+        out = self(batch)
+        B = out["final"].shape[0] * batch.num_chunks
         # raises NonFiniteLossError naming the term; Trainer.fit re-raises it (stops)
         total, terms = self.compute_loss(batch, out)
         with torch.no_grad():
@@ -222,6 +173,11 @@ class GarTransModule(GarmentModule):
     #: checkpoint from before ``accel_unit`` existed gets its former value in
     #: ``on_load_checkpoint``, which a resumed fit runs too)
     former_defaults: ClassVar[Dict[str, Any]] = {"input_norm": False, "local_frame": False}
+    #: switches measured not to help and removed (docs/experiments.md), with the value
+    #: that meant "off": a checkpoint that has them off loads as today's model
+    removed_switches: ClassVar[Dict[str, Any]] = {
+        "garment_state": False, "state_noise": 0.0, "state_dropout": 0.0,
+        "state_rollout": False, "motion_history": 1}
 
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         super().on_load_checkpoint(checkpoint)

@@ -6,10 +6,12 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
+from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import edge_features, vertex_joint_distances, vertex_normals
 from garmentgnn.models.baselines.common import skin, small_init_
 from garmentgnn.models.blocks import batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.models.sequence import ChunkLayout
 from garmentgnn.nn import GATBaselineConv
 
 __all__ = ["DAStyle"]
@@ -57,20 +59,47 @@ class DAStyle(nn.Module):
         small_init_(self.decoder[-1])
 
     def features(self, scene: GarmentInputs, skinned: Tensor, joints: Tensor) -> Tensor:
-        """``[B, V, 9 + S]`` per-vertex attributes."""
+        """``[B, V, 9 + S]`` per-vertex attributes (``joints [B, S, 3]``, or ``[N, B, S,
+        3]`` for a batch of ``N`` chunks)."""
         B, V = skinned.shape[:2]
         rest = scene.rest_pos.to(skinned.dtype).expand(B, V, 3)
         normal = vertex_normals(scene.rest_pos, scene.faces).to(skinned.dtype).expand(B, V, 3)
-        rel = skinned - joints[:, :1]
-        dist = vertex_joint_distances(skinned, joints)
+        if joints.dim() == 3:
+            rel = skinned - joints[:, :1]
+            dist = vertex_joint_distances(skinned, joints)
+        else:  # each vertex against its own chunk's joints
+            lay = ChunkLayout.of(scene)
+            rel = skinned - lay.per_vertex(joints[:, :, 0])
+            dist = lay.joint_distances(skinned, joints.transpose(0, 1))
         return torch.cat([rest, normal, rel, dist], -1)
+
+    @staticmethod
+    def skin_batch(scene: GarmentInputs, rotations: Tensor, translation: Tensor):
+        """Eq. 1 for a batch of ``N`` chunks: ``rotations [N, B, S, 3]``, ``translation
+        [N, B, 3]`` -> (positions ``[B, V, 3]``, posed joints ``[N, B, S, 3]``)."""
+        lay = ChunkLayout.of(scene)
+        N, B, S = rotations.shape[:3]
+        dt = scene.rest_pos.dtype
+        A, joints = forward_kinematics(rotations.reshape(N * B, S, 3).to(dt),
+                                       lay.rest_joints.to(dt).repeat_interleave(B, 0),
+                                       lay.parents, translation.reshape(N * B, 3).to(dt))
+        W = scene.skin_weights.to(dt).expand(B, -1, -1)
+        M = lay.blend_transforms(W, A.view(N, B, *A.shape[1:]))
+        verts = (M[..., :3, :3] @ scene.rest_pos.unsqueeze(-1)).squeeze(-1) + M[..., :3, 3]
+        return verts, joints.view(N, B, S, 3)
 
     def forward(self, scene: GarmentInputs, rotations: Tensor,
                 translation: Optional[Tensor] = None) -> Tensor:
-        """``rotations [B, S, 3]``, ``translation [B, 3]`` -> positions ``[B, V, 3]``."""
+        """``rotations [B, S, 3]``, ``translation [B, 3]`` -> positions ``[B, V, 3]``; for
+        a batch of ``N`` chunks ``[N, B, S, 3]`` and ``[N, B, 3]`` (one union graph)."""
         if scene.num_joints != self.num_joints:
             raise ValueError(f"`scene`: has {scene.num_joints} joints, the model {self.num_joints}")
-        skinned, joints = skin(scene, rotations, translation)
+        if rotations.dim() == 4:
+            if translation is None:
+                translation = rotations.new_zeros(rotations.shape[:2] + (3,))
+            skinned, joints = self.skin_batch(scene, rotations, translation)
+        else:
+            skinned, joints = skin(scene, rotations, translation)
         dtype = self.encoder[0].weight.dtype
         B, V = skinned.shape[:2]
         x = self.encoder(self.features(scene, skinned, joints).to(dtype)).reshape(B * V, -1)

@@ -126,12 +126,6 @@ class HOODStyle(nn.Module):
             accumulated in training (:class:`~garmentgnn.models.blocks.RunningNormalizer`).
         accel_scale: the decoder's output unit in m/s^2 (the decoder starts near 0, and
             holding cloth against gravity takes about 10 m/s^2).
-        follow_lbs: predict the acceleration relative to the LBS garment's,
-            ``x_t = 2 x_{t-1} - x_{t-2} + (L_t - 2 L_{t-1} + L_{t-2}) + a dt^2`` for the
-            LBS garment ``L``: the garment's offset from ``L`` moves ballistically where
-            ``a = 0``, so the untrained model carries the garment with the body instead
-            of throwing it on at its first velocity (not in HOOD, whose garment follows
-            the body through body-garment edges and collisions alone).
     """
 
     NODE_IN = 11
@@ -139,7 +133,7 @@ class HOODStyle(nn.Module):
 
     def __init__(self, hidden: int = 64, fine_blocks: int = 1, coarse_blocks: int = 2,
                  dt: float = 1.0 / 30.0, normalize: bool = False,
-                 accel_scale: float = 1.0, follow_lbs: bool = False) -> None:
+                 accel_scale: float = 1.0) -> None:
         super().__init__()
         if hidden < 1:
             raise ValueError(f"`hidden`: must be positive, got {hidden}")
@@ -152,7 +146,6 @@ class HOODStyle(nn.Module):
         self.dt = float(dt)
         self.accel_scale = float(accel_scale)
         self.normalize = bool(normalize)
-        self.follow_lbs = bool(follow_lbs)
         if self.normalize:
             self.node_norm = RunningNormalizer(self.NODE_IN)
             self.edge_norm = RunningNormalizer(self.EDGE_IN)
@@ -231,35 +224,22 @@ class HOODStyle(nn.Module):
         return self.decoder(h).reshape(B, V, 3) * self.accel_scale
 
     def step(self, scene: GarmentInputs, coarse: CoarseLevel, x_prev: Tensor, x_curr: Tensor,
-             body: Tensor, pinned_target: Optional[Tensor] = None,
-             lbs_accel: Optional[Tensor] = None) -> Tensor:
-        """Next state ``[B, V, 3]``: ``2 x_curr - x_prev + a dt^2``, plus ``lbs_accel``
-        (``[B, V, 3]``: ``L_t - 2 L_{t-1} + L_{t-2}`` of the LBS garment ``L``, in metres)
-        where ``follow_lbs``; pinned vertices are set to ``pinned_target [B, V, 3]`` when
-        given (else kept at ``x_curr``)."""
-        if self.follow_lbs and lbs_accel is None:
-            raise ValueError("`lbs_accel`: this model follows the LBS garment "
-                             "(follow_lbs=True); give L_t - 2 L_{t-1} + L_{t-2}")
+             body: Tensor, pinned_target: Optional[Tensor] = None) -> Tensor:
+        """Next state ``[B, V, 3]``: ``2 x_curr - x_prev + a dt^2``; pinned vertices are
+        set to ``pinned_target [B, V, 3]`` when given (else kept at ``x_curr``)."""
         a = self(scene, coarse, x_prev, x_curr, body)
         x_next = 2 * x_curr.to(a.dtype) - x_prev.to(a.dtype) + a * self.dt ** 2
-        if self.follow_lbs:
-            if lbs_accel.shape != x_next.shape:
-                raise ValueError(f"`lbs_accel`: expected {tuple(x_next.shape)}, got "
-                                 f"{tuple(lbs_accel.shape)}")
-            x_next = x_next + lbs_accel.to(a.dtype)
         if scene.get("pinned") is not None:
             target = x_curr.to(a.dtype) if pinned_target is None else pinned_target.to(a.dtype)
             x_next = torch.where(scene.pinned_mask().view(1, -1, 1), target, x_next)
         return x_next
 
     def rollout(self, scene: GarmentInputs, coarse: CoarseLevel, x0: Tensor, x1: Tensor,
-                body_frames: Tensor, pinned_targets: Optional[Tensor] = None,
-                lbs: Optional[Tensor] = None) -> Tensor:
+                body_frames: Tensor, pinned_targets: Optional[Tensor] = None) -> Tensor:
         """Autoregressive rollout: ``x0, x1 [V, 3]`` (frames 0 and 1), ``body_frames
         [T, Vb, 3]`` -> ``[T, V, 3]`` whose first two frames are ``x0, x1``.
 
-        ``pinned_targets [T, V, 3]`` (e.g. the LBS positions) drive pinned vertices;
-        ``lbs [T, V, 3]``, the LBS garment, is needed where ``follow_lbs``.
+        ``pinned_targets [T, V, 3]`` (e.g. the LBS positions) drive pinned vertices.
         Differentiable; wrap in ``torch.no_grad()`` for inference.
         """
         V = scene.num_vertices
@@ -273,15 +253,10 @@ class HOODStyle(nn.Module):
         if pinned_targets is not None and pinned_targets.shape != (T, V, 3):
             raise ValueError(f"`pinned_targets`: expected [{T}, {V}, 3], got "
                              f"{tuple(pinned_targets.shape)}")
-        if self.follow_lbs and (lbs is None or lbs.shape != (T, V, 3)):
-            raise ValueError(f"`lbs`: this model follows the LBS garment (follow_lbs=True); "
-                             f"expected [{T}, {V}, 3], got "
-                             f"{None if lbs is None else tuple(lbs.shape)}")
         dtype = self.decoder[-1].weight.dtype
         out = [x0.to(dtype), x1.to(dtype)]
         for t in range(2, T):
             target = None if pinned_targets is None else pinned_targets[t:t + 1]
-            acc = None if not self.follow_lbs else (lbs[t] - 2 * lbs[t - 1] + lbs[t - 2])[None]
             out.append(self.step(scene, coarse, out[-2].unsqueeze(0), out[-1].unsqueeze(0),
-                                 body_frames[t:t + 1], target, acc)[0])
+                                 body_frames[t:t + 1], target)[0])
         return torch.stack(out)

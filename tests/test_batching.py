@@ -1,0 +1,224 @@
+"""Batched training steps: chunks of several garments (different vertex counts) collated as
+one PyG ``Batch``; the batch's loss and gradients against each chunk on its own, a batch of
+one chunk against the plain chunk step by step, the data module's batches and its
+``--data.batch_size`` checks."""
+import lightning as L
+import pytest
+import torch
+
+from garmentgnn.data import Spec, generate
+from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.training import (BaselineModule, EpochShuffleSampler, GarmentDataModule,
+                                 GarTransModule, SequenceChunks)
+from garmentgnn.training.configs import load_config, model_args
+
+from conftest import lbs_simulate
+
+NY = 8
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    """Two garments of different vertex counts on one body, three motions of 10 frames
+    (chunks of 4: two of 4 frames and one of 2 per sequence)."""
+    out = tmp_path_factory.mktemp("mixed")
+    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200},
+         {"kind": "tshirt", "params": {}, "resolution": 300}]
+    b = [{"model": "capsule", "shape": "regular"}]
+    m = [{"name": n, "num_frames": 10, "speed": 1.0, "amplitude": 1.0}
+         for n in ("walk", "run", "jump")]
+    spec = Spec("mixed", g, b, m, ["silk"], held_out={})
+    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    assert s.failed == 0 and s.done == 6
+    return out
+
+
+def data(root, **kw):
+    kw = {"chunk": 4, "history": 2, "nystrom_dim": NY, "num_landmarks": 16, "seed": 0,
+          "val_split": None, "train_split": "train", **kw}
+    return GarmentDataModule(root, **kw)
+
+
+@pytest.fixture(scope="module")
+def chunks(root):
+    return SequenceChunks(root, "train", chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
+
+
+def gartrans(dims, **kw):
+    L.seed_everything(0)
+    cfg = model_args(load_config("gartrans"))
+    cfg.update(compile_search=False, **kw)
+    return GarTransModule(**dims, **cfg)
+
+
+def pick(chunks):
+    """Three chunks of 4 frames, of at least two garments (vertex counts)."""
+    full = [i for i, n in enumerate(chunks.frame_counts()) if n == 4]
+    by_size = {}
+    for i in full:
+        by_size.setdefault(chunks[i].num_vertices, []).append(i)
+    assert len(by_size) == 2, by_size
+    a, b = by_size.values()
+    return [a[0], b[0], a[1]]
+
+
+def test_batch_of_mixed_garments_collates_as_one_union_graph(chunks):
+    idx = pick(chunks)
+    items = [chunks[i] for i in idx]
+    batch = chunks[idx]
+    V = [it.num_vertices for it in items]
+    assert len(set(V)) == 2 and batch.num_chunks == 3 and batch.num_frames == 4
+    assert batch.num_vertices == sum(V) and batch.gt.shape == (4, sum(V), 3)
+    assert batch.rotations.shape == (3,) + tuple(items[0].rotations.shape)
+    Vb = items[0].body_pos.shape[1]
+    assert batch.body_pos.shape == (4, 3 * Vb, 3)
+    # each chunk comes back whole: faces and body faces offset and undone
+    for it, back in zip(items, batch.chunks()):
+        for k in ("rest_pos", "faces", "edge_index", "gt", "body_pos", "body_faces",
+                  "rotations", "face_uv", "skin_weights"):
+            if k in it:
+                assert torch.equal(it[k], back[k]), k
+    # the union's faces index each garment's own vertices
+    F0 = items[0].faces.shape[0]
+    assert torch.equal(batch.faces[F0:F0 + items[1].faces.shape[0]], items[1].faces + V[0])
+
+
+def test_collate_refuses_what_one_batch_cannot_hold(chunks):
+    n = chunks.frame_counts()
+    four, two = n.index(4), n.index(2)
+    with pytest.raises(ValueError, match="`items`.*same frame count"):
+        GarmentInputs.collate([chunks[four], chunks[two]])
+    with pytest.raises(TypeError, match="`items`"):
+        GarmentInputs.collate([])
+
+
+@pytest.mark.parametrize("form", ["project", "paper"])
+def test_batch_loss_and_gradients_are_the_mean_of_each_chunk_alone(root, chunks, form):
+    """The oracle: each chunk's loss on its own, averaged; the batch's gradient is the
+    mean of the chunks' gradients."""
+    kw = {} if form == "project" else dict(skin_prior=False, lbs_start=False, gate_init=0.0,
+                                           blend_shape=True, accel_unit=None,
+                                           input_norm=False, local_frame=False,
+                                           strain_limit=0, collision_projection=None)
+    module = gartrans(data(root).dims, **kw).eval()  # eval: the normalisers stay fixed
+    module.loss_fn.set_enabled(["vert", "edge", "norm", "collision", "gravity", "stretch",
+                                "shear", "curv"])
+    idx = pick(chunks)
+    batch = chunks[idx]
+
+    def grads(loss):
+        module.zero_grad()
+        loss.backward()
+        return {n: p.grad.clone() for n, p in module.named_parameters() if p.grad is not None}
+
+    total, terms = module.compute_loss(batch, module(batch))
+    g_batch = grads(total)
+    singles = [module.compute_loss(chunks[i], module(chunks[i])) for i in idx]
+    mean = sum(t for t, _ in singles) / 3
+    torch.testing.assert_close(total, mean, rtol=1e-5, atol=1e-6)
+    for k in terms:
+        torch.testing.assert_close(terms[k], sum(t[k] for _, t in singles) / 3, rtol=1e-5,
+                                   atol=1e-6)
+    g_single = grads(sum(t for t, _ in [module.compute_loss(chunks[i], module(chunks[i]))
+                                        for i in idx]) / 3)
+    assert g_batch.keys() == g_single.keys() and len(g_batch) > 10
+    for n in g_batch:
+        scale = float(g_single[n].abs().max()) + 1e-8
+        assert float((g_batch[n] - g_single[n]).abs().max()) <= 1e-4 * scale + 1e-7, n
+
+
+def test_da_style_batch_is_each_chunk_alone(root, chunks):
+    """DA-style predicts a batch in one pass over the union graph: the same positions as
+    each chunk alone, and the mean of their losses."""
+    dims = data(root).dims
+    cfg = dict(load_config("baselines/da")["model"]["init_args"])
+    cfg.pop("method")
+    L.seed_everything(0)
+    module = BaselineModule("da", num_joints=dims["num_joints"], **cfg).eval()
+    idx = pick(chunks)
+    batch = chunks[idx]
+    with torch.no_grad():
+        pred = module(batch)
+        v0 = 0
+        for i in idx:
+            one = module(chunks[i])
+            torch.testing.assert_close(pred[:, v0:v0 + one.shape[1]], one, atol=1e-5, rtol=0)
+            v0 += one.shape[1]
+        total, _ = module.compute_loss(batch)
+        mean = sum(module.compute_loss(chunks[i])[0] for i in idx) / 3
+    torch.testing.assert_close(total, mean, rtol=1e-5, atol=1e-6)
+
+
+def test_batch_of_one_chunk_trains_as_the_chunk_itself(root, chunks):
+    """Same chunk order, one chunk per step: the plain chunk and a ``Batch`` holding it
+    give the same loss trajectory (Adamax, 6 steps, training-mode normalisers)."""
+    dims = data(root).dims
+    losses = {}
+    for mode in ("plain", "batch"):
+        module = gartrans(dims).train()
+        opt = module.configure_optimizers()["optimizer"]
+        out = []
+        for step in range(6):
+            item = chunks[step % len(chunks)]
+            if mode == "batch":
+                item = GarmentInputs.collate([item])
+            loss, _ = module.compute_loss(item, module(item))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            out.append(float(loss))
+        losses[mode] = out
+    assert max(abs(a - b) for a, b in zip(*losses.values())) <= 1e-6 * max(losses["plain"])
+
+
+def test_sampler_batches_each_chunk_once_with_one_frame_count(chunks):
+    lengths = chunks.frame_counts()
+    s = EpochShuffleSampler(len(chunks), seed=3, batch_size=4, lengths=lengths)
+    for epoch in (0, 1):
+        s.set_epoch(epoch)
+        batches = list(s)
+        assert len(batches) == len(s)
+        flat = [i for b in batches for i in b]
+        assert sorted(flat) == list(range(len(chunks)))  # each chunk once
+        assert all(len({lengths[i] for i in b}) == 1 for b in batches)
+        assert all(len(b) <= 4 for b in batches)
+        assert sum(len(b) == 4 for b in batches) >= len(chunks) // 4 - 1
+        s.set_epoch(epoch)
+        assert list(s) == batches  # the order of an epoch depends on the epoch alone
+    one = EpochShuffleSampler(len(chunks), seed=3)
+    assert all(isinstance(i, int) for i in one)
+
+
+@pytest.mark.parametrize("bad", [0, -2, True, 1.5])
+def test_batch_size_flag_refuses_nonsense(root, bad):
+    with pytest.raises(ValueError, match="--data.batch_size"):
+        data(root, batch_size=bad)
+
+
+def test_batch_size_larger_than_the_split_is_refused(root, chunks):
+    with pytest.raises(ValueError, match=f"--data.batch_size.*at most {len(chunks)}"):
+        data(root, batch_size=len(chunks) + 1).setup("fit")
+
+
+@pytest.mark.slow
+def test_every_method_fits_batched_through_the_trainer(root):
+    """GarTrans and the three baselines take the same batched steps through Lightning."""
+    dm = data(root, batch_size=4)
+    dims = dm.dims
+    modules = [gartrans(dims)]
+    for method in ("da", "hood"):
+        cfg = dict(load_config(f"baselines/{method}")["model"]["init_args"])
+        cfg["loss"] = dict(cfg.get("loss", {}), compile_search=False)
+        cfg.pop("method")
+        modules.append(BaselineModule(method, num_joints=dims["num_joints"], history=2, **cfg))
+    for module in modules:
+        before = {n: p.detach().clone() for n, p in module.named_parameters()
+                  if p.requires_grad}
+        tr = L.Trainer(max_steps=3, accelerator="cpu", devices=1, logger=False,
+                       enable_checkpointing=False, enable_progress_bar=False,
+                       enable_model_summary=False, limit_val_batches=0)
+        tr.fit(module, datamodule=data(root, batch_size=4))
+        assert tr.global_step == 3
+        moved = [n for n, p in module.named_parameters() if n in before
+                 and not torch.equal(p.detach(), before[n])]
+        assert moved, type(module).__name__
