@@ -5,7 +5,7 @@ import pytest
 import torch
 import trimesh
 
-from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
+from garmentgnn.geometry import NearestFaceCache, grid_mesh, signed_distance, unique_edges
 from garmentgnn.losses import (PAPER_WEIGHTS, GarTransLoss, LossInputs, NonFiniteLossError,
                                edge_loss, normal_loss, vertex_loss)
 from garmentgnn.metrics import (collision_rate, curvature_error, edge_length_error, evaluate,
@@ -170,6 +170,29 @@ def test_collision_term_with_candidate_faces_equals_the_exact_search():
     assert float(terms[None][0]) > 0  # some of the cap is inside: the term is active
     torch.testing.assert_close(terms[8][0], terms[None][0], rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(terms[8][1], terms[None][1], rtol=1e-9, atol=1e-12)
+
+
+def test_collision_term_through_a_face_cache_equals_the_exact_search():
+    """``LossInputs.face_cache``: the term's search runs through the cache (the model's
+    projection built it on the same frames) and equals the brute force, gradient too."""
+    box = trimesh.creation.box(extents=[0.4, 0.4, 0.4])  # 12 large faces
+    bv = torch.tensor(box.vertices, dtype=torch.float64)
+    bf = torch.tensor(box.faces, dtype=torch.long)
+    pos, faces = grid_mesh(8, 8, (0.3, 0.3), dtype=torch.float64)
+    pos = pos - torch.tensor([0.15, 0.15, 0.0], dtype=torch.float64)
+    pos[:, 2] = 0.2 - 5 * (pos[:, 0] ** 2 + pos[:, 1] ** 2)  # a cap dipping into the box
+    pred = pos.unsqueeze(0).repeat(2, 1, 1).requires_grad_(True)
+    cache = NearestFaceCache(k=4)
+    cache.nearest(pred, bv.expand(2, -1, -1), bf)
+    out = {}
+    for fc in (None, cache):
+        loss = GarTransLoss(enabled=["collision"], distance_candidates=None)
+        total, t = loss(LossInputs(pred=pred, faces=faces, body_pos=bv.expand(2, -1, -1),
+                                   body_faces=bf, face_cache=fc))
+        out[fc is None] = (t["collision"].detach(), torch.autograd.grad(total, pred)[0])
+    assert float(out[True][0]) > 0 and cache.stats.calls == 2
+    torch.testing.assert_close(out[False][0], out[True][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[False][1], out[True][1], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("batch", [(), (3,)])

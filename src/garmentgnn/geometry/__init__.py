@@ -9,6 +9,7 @@ from garmentgnn.geometry.distance import (SignedDistance, WindingNumber,
                                           penetration_depth, push_outside,
                                           signed_distance,
                                           vertex_joint_distances)
+from garmentgnn.geometry.face_cache import FaceCacheStats, NearestFaceCache
 from garmentgnn.geometry.geodesic import (HeatGeodesicSolver, NystromFeatures,
                                           cotan_laplacian, farthest_point_sampling,
                                           geodesic_nystrom_features,
@@ -49,6 +50,7 @@ __all__ = [
     # body distances (Eq. 10)
     "closest_point_on_triangle", "signed_distance", "SignedDistance", "push_outside",
     "vertex_joint_distances", "WindingNumber", "penetration_depth", "is_closed_mesh",
+    "NearestFaceCache", "FaceCacheStats",
     # analytic rigid shapes
     "sphere_distance", "plane_distance",
     # rotations

@@ -200,7 +200,7 @@ def _nearest_faces_candidates(points: Tensor, body: Tensor, faces: Tensor, k: in
 def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
                     chunk_size: Optional[int] = None, candidates: Optional[int] = None,
                     body_edges: Optional[EdgeTopology] = None,
-                    compiled: bool = False) -> SignedDistance:
+                    compiled: bool = False, cache: Optional[Any] = None) -> SignedDistance:
     """Signed distance from garment vertices to a body triangle mesh (the ``s(p)`` of Eq. 10).
 
     ``s(p) = sign((p - q) . n(q)) * |p - q|`` with ``q`` the exact closest point on
@@ -239,6 +239,11 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
             (same faces up to ties; about 4x faster on CPU after a one-off compile of
             10-20 s per process; falls back to eager with a warning where compiling
             fails).
+        cache: a :class:`~garmentgnn.geometry.NearestFaceCache` kept for this
+            garment-body pair: the face search runs through it instead (exact, the faces
+            of ``candidates=None``, from candidates cached by earlier calls and proven
+            by a bound; ``candidates`` and ``chunk_size`` are then unused, ``compiled``
+            compiles its candidate evaluation).  The differentiable part is the same.
     """
     points = check_points(points, "points")
     body_pos = check_points(body_pos, "body_pos")
@@ -264,7 +269,9 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
     X = body_pos.expand(*batch, Vb, 3).reshape(B, Vb, 3)
     f = body_faces
 
-    if candidates is None:
+    if cache is not None:
+        fid = cache.nearest(P, X, f, compiled=compiled or None)
+    elif candidates is None:
         cs = chunk_size or max(1, (1 << 18) // max(F, 1))
         fid = _nearest_faces_bruteforce(P.detach(), X.detach(), f, cs)
     else:
@@ -307,7 +314,8 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
 
 
 def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: float,
-                 candidates: Optional[int] = 8, compiled: bool = False) -> Tensor:
+                 candidates: Optional[int] = 8, compiled: bool = False,
+                 cache: Optional[Any] = None) -> Tensor:
     """Move every point closer than ``margin`` to the body (or inside it) to distance
     ``margin`` outside: ``p' = p + max(margin - s(p), 0) grad s(p)`` with ``s`` of
     :func:`signed_distance` and ``grad s = sign (p - q) / |p - q|`` (``q`` the closest
@@ -317,8 +325,9 @@ def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: f
     This is the one-step collision projection used as post-processing by learned
     garment models (e.g. TailorNet); it lands exactly at ``margin`` when the
     closest point keeps its face, i.e. for depths below the body's local feature size.
-    Differentiable in ``points`` and ``body_pos``.  ``candidates`` and ``compiled``: see
-    :func:`signed_distance` (``candidates=None``: exact brute force).
+    Differentiable in ``points`` and ``body_pos``.  ``candidates``, ``compiled`` and
+    ``cache``: see :func:`signed_distance` (``candidates=None``: exact brute force; a
+    ``cache`` makes the search exact as well, from cached candidates).
 
     Garment fitting does not use it: ``garmentgnn.garments._distance.BodyDistance.push_out``
     solves a different problem (the same move ``q + margin n``, but repeated until no
@@ -330,7 +339,7 @@ def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: f
     if not margin >= 0:
         raise ValueError(f"`margin` must be >= 0 (metres), got {margin}")
     sd = signed_distance(points, body_pos, body_faces, candidates=candidates,
-                         compiled=compiled)
+                         compiled=compiled, cache=cache)
     diff = points - sd.closest
     dist = safe_norm(diff, keepdim=True)
     tiny = 1e3 * torch.finfo(dist.dtype).eps

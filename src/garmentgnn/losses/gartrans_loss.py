@@ -31,7 +31,8 @@ from typing import Dict, Iterable, Optional
 
 from torch import Tensor, nn
 
-from garmentgnn.geometry import angle_defect_difference, edge_lengths, unique_edges, vertex_normals
+from garmentgnn.geometry import (NearestFaceCache, angle_defect_difference, edge_lengths,
+                                 signed_distance, unique_edges, vertex_normals)
 from garmentgnn.physics import (
     ClothRest,
     bending_energy,
@@ -85,7 +86,10 @@ class LossInputs:
     (``None`` for scenes without a body: collision is skipped); ``mass`` ``[V]``;
     ``rest`` from :meth:`ClothRest.from_mesh` (``None`` when the garment has no
     material coordinates: stretch/shear/bending are skipped); ``predicted`` the
-    inertial prediction ``p_prev + dt v_prev`` for the inertia term.
+    inertial prediction ``p_prev + dt v_prev`` for the inertia term; ``face_cache`` a
+    :class:`~garmentgnn.geometry.NearestFaceCache` kept for this garment-body pair (the
+    one the model's collision projection used on the same frames): the collision term's
+    nearest-face search then runs through it, exact, instead of ``distance_candidates``.
     """
 
     pred: Tensor
@@ -97,6 +101,7 @@ class LossInputs:
     rest: Optional[ClothRest] = None
     predicted: Optional[Tensor] = None
     dt: float = 1.0 / 30.0
+    face_cache: Optional[NearestFaceCache] = None
 
 
 class GarTransLoss(nn.Module):
@@ -152,6 +157,13 @@ class GarTransLoss(nn.Module):
             self._edges = (faces, unique_edges(faces, num_vertices).edges)
         return self._edges[1]
 
+    def _cached_distance(self, inp: LossInputs) -> Optional[Tensor]:
+        """``s(pred)`` through ``inp.face_cache`` (``None`` without one)."""
+        if inp.face_cache is None:
+            return None
+        return signed_distance(inp.pred, inp.body_pos, inp.body_faces, cache=inp.face_cache,
+                               compiled=self.compile_search).distance
+
     def forward(self, inp: LossInputs):
         w = self.weights
         pred = inp.pred
@@ -171,7 +183,7 @@ class GarTransLoss(nn.Module):
                                                                     inp.faces).mean(),
             "collision": lambda: collision_energy(pred, inp.body_pos, inp.body_faces,
                                                   self.collision_margin, w["collision"],
-                                                  power=1,
+                                                  power=1, distance=self._cached_distance(inp),
                                                   candidates=self.distance_candidates,
                                                   compiled=self.compile_search).mean(),
             "gravity": lambda: w["gravity"] * gravity_energy(pred, inp.mass).mean(),
