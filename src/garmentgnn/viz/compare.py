@@ -23,7 +23,7 @@ from garmentgnn.training.evaluate import predict
 from garmentgnn.training.integrity import load_checkpoint_file
 from garmentgnn.viz.animate import (GT_COLOR, Panel, default_error_limit, render_animation,
                                     vertex_error_cm)
-from garmentgnn.viz.viewer import write_viewer
+from garmentgnn.viz.viewer import viewer_bundle, write_viewer
 
 PathLike = Union[str, os.PathLike]
 
@@ -156,12 +156,14 @@ def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
     labels as in the animation), with ``html`` also the viewer page ``<out>.html``
     (:func:`garmentgnn.viz.viewer.write_viewer`); returns ``{"animation": Animation,
     "gltf": path or None, "html": path or None, "comparison": Comparison}``."""
+    if html and not gltf:
+        raise ValueError("`html`: the viewer page shows the glTF file; leave `gltf` on")
+    if html:
+        viewer_bundle()  # a missing or damaged bundle before anything is rendered
     c = comparison(root, checkpoints, split, index, mode, lbs, history, num_landmarks,
                    max_frames, predictions)
     anim = render_animation(c.panels, c.faces, out, c.body_positions, c.body_faces, fps=c.fps,
                             caption=c.seq_id, frame_offset=int(c.frames[0]), **render_kw)
-    if html and not gltf:
-        raise ValueError("`html`: the viewer page shows the glTF file; leave `gltf` on")
     glb = page = None
     if gltf:
         glb = export_comparison_gltf(c, Path(out).with_suffix(".glb"), clim=anim.clim,
