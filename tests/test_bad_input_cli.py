@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from garmentgnn.cli import main as cli_main
-from garmentgnn.data import generate, preset, read_manifest, store
+from garmentgnn.data import Spec, generate, preset, read_manifest, store
 from test_data import fake_simulate, files_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -194,3 +194,74 @@ def test_interrupted_generate_says_what_was_kept_and_how_to_resume(dataset, tmp_
     monkeypatch.delenv("GG_CRASH_AFTER")
     assert cli_main(resume.split()[1:]) == 0
     assert files_of(out) == files_of(dataset)  # nothing lost: as an uninterrupted run
+
+
+def test_generate_and_manifest_refuse_sequence_files_of_another_dataset(dataset, tmp_path,
+                                                                        capsys):
+    """A folder holding another dataset's sequence files but no spec.json or
+    manifest.json: `generate` wrote its own manifest without them (exit 0), and `manifest`
+    with a spec listed them as this dataset's."""
+    other = Spec("x", preset("tiny").garments[:1], preset("tiny").bodies[:1],
+                 preset("tiny").motions[:1], ["silk"], seed=7)
+    out = tmp_path / "d"
+    assert generate(other, out, workers=0, simulate_fn=fake_simulate, progress=False).done == 1
+    (foreign,) = (out / store.SEQUENCES).glob("*.npz")
+    (out / store.SPEC).unlink()
+    (out / store.MANIFEST).unlink()
+    argv = ["generate", "--out", str(out), "--workers", "0", "--limit", "1"] + GEN
+    one_error(capsys, cli_main(argv), f"--out {out}", "1 sequence file(s)",
+              "belong to another dataset", foreign.name, "--force")
+    assert not (out / store.MANIFEST).exists() and not (out / store.SPEC).exists()
+    # --force: this dataset beside it, and the other file's record is kept
+    assert cli_main(argv + ["--force"]) == 0
+    status = {r["id"]: r["status"] for r in read_manifest(out)["items"]}
+    assert status[foreign.stem] == "ok" and len(status) == 9
+    assert cli_main(argv) == 0  # a resume keeps it without --force again
+    assert read_manifest(out)["counts"] == {"ok": 3, "pending": 6}
+    # `manifest` on tiny's spec with a file of yet another dataset copied in
+    shutil.copy(first_file(dataset), out / store.SEQUENCES / "copied.npz")
+    capsys.readouterr()
+    one_error(capsys, cli_main(["manifest", "--out", str(out)]), f"--out {out}",
+              "belong to another dataset", "--force")
+    assert read_manifest(out)["counts"] == {"ok": 3, "pending": 6}  # not rewritten
+    cli_main(["manifest", "--out", str(out), "--force"])
+    assert "copied" not in {r["id"] for r in read_manifest(out)["items"]}  # invalid: other id
+
+
+def test_manifest_marks_nan_in_any_array(dataset, tmp_path, capsys):
+    """NaN motion rotations: recorded `ok` by `manifest` before."""
+    out = copy(dataset, tmp_path)
+    a = first_file(out)
+    rot = store.load_sequence(a)["motion_rotations"].copy()
+    rot[2, 1, 0] = np.nan
+    edit_sequence(a, motion_rotations=rot)
+    rc = cli_main(["manifest", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 1 and f"{a.name}: motion_rotations contain NaN/inf in 1 of" in err
+    assert {r["id"]: r["status"] for r in read_manifest(out)["items"]}[a.stem] == "pending"
+
+
+def test_export_start_frame_nan_blames_start_frame(dataset, tmp_path, capsys):
+    """`--start-frame nan` was blamed on --seq."""
+    argv = ["export", "--seq", str(first_file(dataset)), "--format", "pc2", "--out",
+            str(tmp_path / "x.pc2"), "--start-frame", "nan"]
+    with pytest.raises(SystemExit) as e:
+        cli_main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --start-frame: expected a finite number" in err
+    assert "--seq" not in err.splitlines()[-1] and not (tmp_path / "x.pc2").exists()
+
+
+@pytest.mark.parametrize("content", [b"\xff\xfe\x00 not text", b"", b"console.log(1)"])
+def test_show_html_with_a_broken_viewer_bundle_fails_before_rendering(dataset, tmp_path,
+                                                                      capsys, monkeypatch,
+                                                                      content):
+    """A damaged bundle failed after the MP4, PNG and glTF were written, with a raw
+    UnicodeDecodeError."""
+    bundle = tmp_path / "viewer.bundle.js"
+    bundle.write_bytes(content)
+    monkeypatch.setenv("GARMENTGNN_VIEWER_BUNDLE", str(bundle))
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(tmp_path / "s" / "cmp"),
+                   "--html", "--max-frames", "2", "--height", "720"])
+    one_error(capsys, rc, f"the viewer bundle {bundle}", "make install")
+    assert not (tmp_path / "s").exists()  # nothing rendered
