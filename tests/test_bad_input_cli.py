@@ -9,8 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from garmentgnn.bench.methods import METHOD_NAMES
+from garmentgnn.cli import build_parser
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, preset, read_manifest, store
+from garmentgnn.viz.compare import comparison
 from test_data import fake_simulate, files_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -265,3 +268,56 @@ def test_show_html_with_a_broken_viewer_bundle_fails_before_rendering(dataset, t
                    "--html", "--max-frames", "2", "--height", "720"])
     one_error(capsys, rc, f"the viewer bundle {bundle}", "make install")
     assert not (tmp_path / "s").exists()  # nothing rendered
+
+
+# ------------------------------------------------------------------ found by fuzzing
+@pytest.mark.parametrize("argv, words", [
+    (["--format", "pc2", "--out", "{tmp}/x.glb"], ["--out", "must end in .pc2"]),
+    (["--format", "gltf", "--out", "{tmp}/x.gltf"], ["--out", "must end in .glb"]),
+    (["--format", "obj", "--out", "{tmp}/objs", "--start-frame", "3"],
+     ["--start-frame: only --format pc2"]),
+    (["--format", "pc2", "--out", "{tmp}/x.pc2", "--no-body"], ["--no-body", "garment only"]),
+])
+def test_export_flags_the_format_ignores_are_refused(dataset, tmp_path, capsys, argv, words):
+    """A PC2 written into x.glb, a binary glTF into x.gltf, --start-frame on OBJs and
+    --no-body on PC2: exit 0 with the flag ignored or the file misnamed."""
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    rc = cli_main(["export", "--seq", str(first_file(dataset))] + argv)
+    one_error(capsys, rc, *words)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["bench", "--out", ""], ["argument --out: empty path"]),
+    (["show", "--data", "{data}", "--out", ""], ["argument --out: empty path"]),
+    (["show", "--data", "{data}", "--out", "{tmp}/s", "--max-frames", "-3"],
+     ["argument --max-frames: expected an integer >= 1, got -3"]),
+])
+def test_empty_out_and_negative_max_frames_are_refused(dataset, tmp_path, capsys, monkeypatch,
+                                                       argv, words):
+    """`bench --out ""` wrote its records and report into the current folder;
+    `show --max-frames -3` dropped the last 3 frames."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        cli_main([a.format(data=dataset, tmp=tmp_path) for a in argv])
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and all(w in last for w in words), last
+    assert not list(tmp_path.iterdir())
+
+
+def test_show_with_two_panels_of_one_name_is_refused(dataset, tmp_path, capsys):
+    """`--ckpt run1/last.ckpt --ckpt run2/last.ckpt`: both panels were named 'last' and
+    the second silently replaced the first."""
+    a, b = str(tmp_path / "run1" / "last.ckpt"), str(tmp_path / "run2" / "last.ckpt")
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(tmp_path / "s"), "--ckpt", a,
+                   "--ckpt", b])
+    one_error(capsys, rc, "--ckpt", "two panels named 'last'", f"--ckpt A={a} --ckpt B={b}")
+    with pytest.raises(ValueError, match="`max_frames`: expected an int >= 1"):
+        comparison(dataset, {}, max_frames=-3)
+
+
+def test_bench_methods_given_twice_add_up():
+    """`bench --methods A --methods B` ran B only."""
+    a, b = METHOD_NAMES[:2]
+    args = build_parser().parse_args(["bench", "--out", "x", "--methods", a, "--methods", b])
+    assert args.methods == [a, b]

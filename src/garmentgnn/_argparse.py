@@ -85,6 +85,14 @@ def check_unique(parser: argparse.ArgumentParser, values: Optional[Sequence[Any]
                      f"value once")
 
 
+def nonempty_path(text: str) -> str:
+    """An argparse type: a non-empty path (``--out ""`` would write into the current
+    folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path; name a folder or file")
+    return text
+
+
 def existing_file(text: str) -> str:
     """An argparse type: the path of an existing file (``~`` expanded)."""
     path = os.path.expanduser(text)

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
 import garmentgnn
-from garmentgnn._argparse import HelpFormatter, finite_float
+from garmentgnn._argparse import HelpFormatter, finite_float, nonempty_path
 from garmentgnn.bench import cli as bench_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
@@ -47,12 +47,7 @@ def _import_callable(spec: str):
     return fn
 
 
-def _path(text: str) -> str:
-    """An argparse type: a non-empty path (``--out ""`` would write into the current
-    folder)."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError("empty path; name a folder or file")
-    return text
+_path = nonempty_path  # an argparse type: --out "" would write into the current folder
 
 
 def add_generate_parser(sub) -> argparse.ArgumentParser:
@@ -129,6 +124,10 @@ def _interrupted(out, args: argparse.Namespace) -> int:
     return 130
 
 
+#: the file name ending each single-file export format needs (obj writes a folder)
+EXPORT_SUFFIX = {"pc2": ".pc2", "gltf": ".glb", "abc": ".abc", "blend": ".blend"}
+
+
 def add_export_parser(sub) -> argparse.ArgumentParser:
     """The ``export`` sub-command: one sequence file as PC2, OBJs or glTF."""
     e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence, glTF, "
@@ -147,8 +146,8 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
                    help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true",
                    help="glTF, Alembic, .blend: the garment only")
-    e.add_argument("--start-frame", type=finite_float, default=0.0,
-                   help="PC2: the frame number of the first sample")
+    e.add_argument("--start-frame", type=finite_float, default=None,
+                   help="PC2: the frame number of the first sample (default 0)")
     return e
 
 
@@ -162,13 +161,22 @@ def export_main(args: argparse.Namespace) -> int:
         print(f"error: --out {args.out}: is a file, and --format obj writes a folder of "
               f"OBJs; name a folder", file=sys.stderr)
         return 2
-    if args.format in ("abc", "blend") and Path(args.out).suffix.lower() != f".{args.format}":
+    suffix = EXPORT_SUFFIX.get(args.format)
+    if suffix and Path(args.out).suffix.lower() != suffix:
         print(f"error: --out {args.out}: --format {args.format} writes a file whose "
-              f"name must end in .{args.format}", file=sys.stderr)
+              f"name must end in {suffix}", file=sys.stderr)
+        return 2
+    if args.start_frame is not None and args.format != "pc2":
+        print(f"error: --start-frame: only --format pc2 stores a start frame; drop it for "
+              f"--format {args.format}", file=sys.stderr)
+        return 2
+    if args.no_body and args.format in ("pc2", "obj"):
+        print(f"error: --no-body: --format {args.format} holds the garment only; drop it",
+              file=sys.stderr)
         return 2
     try:
         paths = export_sequence(args.seq, args.format, args.out,
-                                start_frame=args.start_frame, body=not args.no_body)
+                                start_frame=args.start_frame or 0.0, body=not args.no_body)
     except (ValueError, KeyError) as exc:
         msg = _flag_message(str(exc), args)
         if msg.startswith("--") and not msg.startswith("--seq"):  # about another flag
