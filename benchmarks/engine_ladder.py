@@ -21,7 +21,8 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import (HelpFormatter, add_output_args, dataset_dir, int_at_least,
+                                  output_path)
 from garmentgnn.bench.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
                                       default_settings, engine_record, item_engine,
                                       pick_sequences)
@@ -33,10 +34,11 @@ RESULTS = HERE / "results" / "engine_ladder"
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--data", required=True, help="a generated dataset folder")
-    ap.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
+    ap.add_argument("--data", required=True, type=dataset_dir,
+                    help="a generated dataset folder")
+    ap.add_argument("--frames", type=int_at_least(2), default=DEFAULT_FRAMES,
                     help="frames of each sequence (after the pre-roll)")
-    ap.add_argument("--per-group", type=int, default=1,
+    ap.add_argument("--per-group", type=int_at_least(1), default=1,
                     help="test sequences per held-out group")
     ap.add_argument("--engine", choices=("blender", "torch"), default=None,
                     help="run only this engine's settings (and the oracle); default both")
@@ -45,7 +47,8 @@ def main(argv=None) -> None:
     a.out = str(output_path(a, RESULTS))
     picks = pick_sequences(dataset_items(a.data), a.per_group)
     if not picks:
-        raise SystemExit(f"{a.data}: no ok test items held out for one part only")
+        raise SystemExit(f"error: --data {a.data}: no ok test items held out for one part "
+                         f"only")
     t0 = time.perf_counter()
     records = []
     for item in picks:

@@ -40,7 +40,9 @@ import numpy as np
 import torch
 import trimesh
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
+                                  int_at_least, output_path)
+from garmentgnn.data.store import read_json
 from garmentgnn.data.presets import BLENDER_SETTINGS, build_inputs, preset
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import grid_mesh, signed_distance, unique_edges
@@ -209,26 +211,37 @@ def table(rows) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[300, 1000, 4000],
+    ap.add_argument("--sizes", type=int_at_least(4), nargs="+", default=[300, 1000, 4000],
+                    action=Accumulate,
                     help="sheet sizes (vertices) of the hang and drape cases")
-    ap.add_argument("--frames", type=int, default=30, help="simulated frames per case")
-    ap.add_argument("--torch-max-vertices", type=int, default=1500,
+    ap.add_argument("--frames", type=int_at_least(1), default=30,
+                    help="simulated frames per case")
+    ap.add_argument("--torch-max-vertices", type=int_at_least(0), default=1500,
                     help="skip the torch simulator above this size (5K vertices: ~2 min/frame)")
-    ap.add_argument("--cases", nargs="+", default=["hang", "anny", "drape"],
+    ap.add_argument("--cases", nargs="+", default=["hang", "anny", "drape"], action=Accumulate,
                     choices=["hang", "drape", "anny"], help="scenes to simulate")
-    ap.add_argument("--threads", type=int, default=2, help="torch threads (Blender uses all cores)")
+    ap.add_argument("--threads", type=int_at_least(1), default=2,
+                    help="torch threads (Blender uses all cores)")
     add_output_args(ap, RESULTS, "writes OUT.json and OUT.md")
     ap.add_argument("--keep", action="store_true",
                     help="keep the rows of the cases not rerun from the existing JSON (marked "
                          "with the command that measured them)")
     args = ap.parse_args(argv)
+    check_unique(ap, args.sizes, "--sizes")
+    check_unique(ap, args.cases, "--cases")
     args.out = str(output_path(args, RESULTS))
     torch.set_num_threads(args.threads)
     mat = material("silk")
     rows = []
     old = Path(args.out + ".json")
     if args.keep and old.exists():
-        doc = json.loads(old.read_text())
+        try:
+            doc = read_json(old, "delete it, or run without --keep")
+        except ValueError as err:
+            ap.error(f"--keep: {err}")
+        if not isinstance(doc.get("rows"), list) or "command" not in doc:
+            ap.error(f"--keep: {old}: not the results of benchmarks/engines.py; delete it, or "
+                     f"run without --keep")
         for r in doc["rows"]:
             if r["case"] not in args.cases:
                 r.setdefault("measured_by", doc["command"])

@@ -36,7 +36,8 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import HelpFormatter, add_output_args, dataset_dir, output_path
+from garmentgnn.data.store import read_manifest
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics import vertex_distance
 from garmentgnn.metrics.split import posed, to_rest_frame
@@ -45,13 +46,19 @@ from garmentgnn.training import SequenceChunks
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--data", required=True, help="a generated dataset folder")
+    ap.add_argument("--data", required=True, type=dataset_dir,
+                    help="a generated dataset folder")
     ap.add_argument("--split", default=None, help="train / val / test (default: every split)")
     add_output_args(ap, RESULTS, "folder for error_split.json and error_split.md")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    splits = sorted({str(r.get("split")) for r in read_manifest(args.data)["items"]
+                     if r.get("status") == "ok"})
+    if args.split is not None and args.split not in splits:
+        ap.error(f"--split {args.split}: no ok sequences of that split in {args.data}; "
+                 f"name one of {', '.join(splits)}, or leave it out for every split")
     out = output_path(args, RESULTS)
     ds = SequenceChunks(args.data, split=None, chunk=10 ** 9, history=1)
     seqs = []

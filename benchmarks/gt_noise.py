@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
+                                  float_above, int_at_least, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench import noise_floor as nf
 from garmentgnn.bench.tables import save_figure, table
@@ -168,17 +169,17 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
     ap.add_argument("--engines", nargs="+", choices=tuple(PRESETS), default=list(PRESETS),
+                    action=Accumulate,
                     help="the engines to perturb and simulate again")
-    ap.add_argument("--sequences", type=int, default=None,
+    ap.add_argument("--sequences", type=int_at_least(1), default=None,
                     help="sequences per engine (default 6 for Blender, 2 for torch)")
-    ap.add_argument("--scales", type=float, nargs="+", default=[1e-7, 1e-4],
+    ap.add_argument("--scales", type=float_above(0.0), nargs="+", default=[1e-7, 1e-4],
+                    action=Accumulate,
                     help="perturbation distances (m)")
     add_output_args(ap, COMMITTED, "writes OUT.json, OUT.md and OUT.png")
     a = ap.parse_args(argv)
-    if a.sequences is not None and a.sequences < 1:
-        raise SystemExit(f"--sequences: expected >= 1, got {a.sequences}")
-    if any(not (s > 0) for s in a.scales):
-        raise SystemExit(f"--scales: expected distances > 0 m, got {a.scales}")
+    check_unique(ap, a.engines, "--engines")
+    check_unique(ap, a.scales, "--scales")
     out = output_path(a, COMMITTED)
     torch.set_num_threads(1)
     t0 = time.perf_counter()

@@ -49,7 +49,8 @@ import numpy as np
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
+                                  int_at_least, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
 from garmentgnn.bench.sequences import case_item, make_sequence
@@ -335,28 +336,36 @@ def plot(rows: List[Dict[str, Any]], path: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 4000, 10000],
+    ap.add_argument("--sizes", type=int_at_least(4), nargs="+", default=[1000, 4000, 10000],
+                    action=Accumulate,
                     help="template resolutions (requested vertex counts)")
-    ap.add_argument("--frames", type=int, default=32, help="motion frames (GarTrans, LBS)")
-    ap.add_argument("--batches", type=int, nargs="+", default=[1, 4, 8, 16, 32],
+    ap.add_argument("--frames", type=int_at_least(2), default=32,
+                    help="motion frames (GarTrans, LBS)")
+    ap.add_argument("--batches", type=int_at_least(1), nargs="+", default=[1, 4, 8, 16, 32],
+                    action=Accumulate,
                     help="GarTrans batch sizes (frames per call) for the throughput")
-    ap.add_argument("--repeats", type=int, default=3, help="timed repeats (the best is kept)")
-    ap.add_argument("--blender-frames", type=int, default=8, help="frames Blender records")
-    ap.add_argument("--blender-preroll", type=int, default=3,
+    ap.add_argument("--repeats", type=int_at_least(1), default=3,
+                    help="timed repeats (the best is kept)")
+    ap.add_argument("--blender-frames", type=int_at_least(2), default=8,
+                    help="frames Blender records")
+    ap.add_argument("--blender-preroll", type=int_at_least(0), default=3,
                     help="Blender's pre-roll frames (shortened from the dataset's)")
     ap.add_argument("--no-blender", action="store_true", help="leave out the Blender engine")
-    ap.add_argument("--blender-cores", type=int, default=None,
+    ap.add_argument("--blender-cores", type=int_at_least(1), default=None,
                     help="CPU cores of the Blender worker (its affinity); default: --threads")
-    ap.add_argument("--torch-frames", type=int, default=3, help="frames of the torch simulator")
-    ap.add_argument("--torch-max-vertices", type=int, default=1500,
+    ap.add_argument("--torch-frames", type=int_at_least(2), default=3,
+                    help="frames of the torch simulator")
+    ap.add_argument("--torch-max-vertices", type=int_at_least(0), default=1500,
                     help="time the torch simulator only up to this many vertices")
     ap.add_argument("--profile", action="store_true",
                     help="add a torch.profiler breakdown of one GarTrans frame per size")
     ap.add_argument("--experiments", action="store_true",
                     help="time bfloat16 and torch.compile at the smallest size")
-    ap.add_argument("--threads", type=int, default=2, help="torch threads")
+    ap.add_argument("--threads", type=int_at_least(1), default=2, help="torch threads")
     add_output_args(ap, RESULTS, "writes OUT.json, OUT.md and OUT.png")
     args = ap.parse_args(argv)
+    check_unique(ap, args.sizes, "--sizes")
+    check_unique(ap, args.batches, "--batches")
     args.out = str(output_path(args, RESULTS))
     torch.set_num_threads(args.threads)
     args.blender_cores = args.blender_cores or args.threads

@@ -45,7 +45,8 @@ import torch_geometric
 import torch_geometric.typing
 from torch_geometric.nn import GATv2Conv, TransformerConv
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
+                                  existing_dir, int_at_least, output_path)
 from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh
 from garmentgnn.nn import LAYERS, make_layer
 
@@ -211,19 +212,25 @@ def markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--nx", type=int, default=100, help="mesh is nx x nx vertices (100 -> 10K)")
-    ap.add_argument("--width", type=int, default=64, help="node feature width")
-    ap.add_argument("--edge-dims", type=int, nargs="+", default=[4, 64],
+    ap.add_argument("--nx", type=int_at_least(2), default=100,
+                    help="mesh is nx x nx vertices (100 -> 10K)")
+    ap.add_argument("--width", type=int_at_least(1), default=64, help="node feature width")
+    ap.add_argument("--edge-dims", type=int_at_least(1), nargs="+", default=[4, 64],
+                    action=Accumulate,
                     help="edge feature widths (4: the mesh's length and direction)")
-    ap.add_argument("--reps", type=int, default=9, help="timed repetitions (median kept)")
-    ap.add_argument("--warmup", type=int, default=2, help="untimed first repetitions")
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch thread counts")
+    ap.add_argument("--reps", type=int_at_least(1), default=9,
+                    help="timed repetitions (median kept)")
+    ap.add_argument("--warmup", type=int_at_least(0), default=2,
+                    help="untimed first repetitions")
+    ap.add_argument("--threads", type=int_at_least(1), nargs="+", default=[1, 2],
+                    action=Accumulate, help="torch thread counts")
     ap.add_argument("--layers", nargs="+", default=["sat"], choices=sorted(LAYERS),
+                    action=Accumulate,
                     help="garmentgnn layers to time beside TransformerConv and GATv2Conv")
-    ap.add_argument("--baseline", default=None, metavar="SRC",
+    ap.add_argument("--baseline", default=None, metavar="SRC", type=existing_dir,
                     help="source folder (holding garmentgnn/) of another version whose "
                          "layers are timed beside these, with the same weights")
     ap.add_argument("--baseline-label", default="base",
@@ -232,7 +239,14 @@ def main() -> None:
     ap.add_argument("--docs", default=None,
                     help=f"file whose table between the markers is replaced; default: none, "
                          f"{DOCS} with --commit")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    for flag in ("edge_dims", "threads", "layers"):
+        check_unique(ap, getattr(args, flag), "--" + flag.replace("_", "-"))
+    if args.baseline is not None and not (Path(args.baseline) / "garmentgnn").is_dir():
+        ap.error(f"--baseline {args.baseline}: no garmentgnn/ in it; name the src/ folder of "
+                 f"the other version")
+    if args.docs is not None and not Path(args.docs).is_file():
+        ap.error(f"--docs {args.docs}: no such file")
     args.out = output_path(args, RESULTS)
     if args.docs is None and args.commit:
         args.docs = str(DOCS)

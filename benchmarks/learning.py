@@ -45,13 +45,15 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, command_line, output_path
+from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
+                                  command_line, existing_file, int_at_least, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench import scoring
 from garmentgnn.bench.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
                                       variant_settings)
 from garmentgnn.bench.tables import table
 from garmentgnn.data.keys import body_key, garment_key
+from garmentgnn.data.store import read_json, read_manifest
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
 from garmentgnn.physics.materials import MATERIALS
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
@@ -487,13 +489,26 @@ def _errors(variant: Dict[str, Any]) -> List[Any]:
             for run in variant.get("runs", [])]
 
 
+def _read_curves(path: Path) -> Dict[str, Any]:
+    """A ``curves.json`` (``FileNotFoundError`` / ``ValueError`` naming ``path`` when it is
+    missing, not JSON or not the results of ``curves``)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"`files`: {path}: no such file (a curves.json written by "
+                                f"`python benchmarks/learning.py curves`)")
+    doc = read_json(path, "give a curves.json written by `python benchmarks/learning.py "
+                          "curves`")
+    if not isinstance(doc.get("variants"), dict):
+        raise ValueError(f"`files`: {path}: no 'variants': not the results of `curves`")
+    return doc
+
+
 def merge_curves(files: Sequence[Path], only: Optional[Sequence[str]] = None) -> Dict[str, Any]:
     """The ``curves.json`` of runs made in separate processes (other variants, the same
     dataset, steps and seeds) as one result; the first file's first variant kept is then
     the reference of every paired test.  ``only``: keep these variants alone.  A variant
     in more than one file is kept once where its errors agree exactly (a rerun that
     reproduced it), and refused where they differ."""
-    parts = [json.loads(Path(f).read_text()) for f in files]
+    parts = [_read_curves(Path(f)) for f in files]
     res = {k: v for k, v in parts[0].items() if k != "command"}
     res.update(variants={}, sources=[{"file": str(f), "command": p.get("command")}
                                      for f, p in zip(files, parts)])
@@ -728,7 +743,10 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: Optional[Sequence[str]] = None) -> None:
+def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
+    """The command line, checked: a repeated list flag (``--seed 0 --seed 1``) adds up,
+    a value given twice, a count below 1, ``--every`` over ``--steps``, a missing
+    dataset or ``--curves`` file end in one ``error:`` line (exit status 2)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
     ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves", "energy", "oracle",
@@ -736,42 +754,66 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
                     help="what to run (merge: the `curves` results of --curves as one table)")
     ap.add_argument("--data", default=None,
                     help="a generated dataset folder (every part but merge)")
-    ap.add_argument("--curves", nargs="+", default=None,
+    ap.add_argument("--curves", nargs="+", default=None, action=Accumulate, type=existing_file,
                     help="merge: curves.json files of the same dataset, steps and seeds")
     ap.add_argument("--bench", default=None,
                     help="energy: the output folder of a `garmentgnn bench` run on --data")
     add_output_args(ap, RESULTS, "folder for <part>.json, .md and .png")
-    ap.add_argument("--steps", type=int, default=300, help="optimizer steps (overfit, curves)")
-    ap.add_argument("--every", type=int, default=50, help="steps between measurements")
+    ap.add_argument("--steps", type=int_at_least(1), default=300,
+                    help="optimizer steps (overfit, curves)")
+    ap.add_argument("--every", type=int_at_least(1), default=50,
+                    help="steps between measurements (at most --steps)")
     ap.add_argument("--variants", nargs="+", default=None, choices=list(VARIANTS),
+                    action=Accumulate,
                     help="GarTrans settings compared by `curves` (default: all), added to "
                          "`grad` and `overfit` (default: none), kept by `merge` (default: "
                          "all); the HOOD-style objectives of `oracle` (default: its "
                          "configuration's and the silk energies)")
-    ap.add_argument("--methods", nargs="+", default=None,
+    ap.add_argument("--methods", nargs="+", default=None, action=Accumulate,
                     help="the methods `grad` and `overfit` run (default: every learned "
                          "method of the bench)")
-    ap.add_argument("--train-sequences", type=int, default=6,
+    ap.add_argument("--train-sequences", type=int_at_least(1), default=6,
                     help="training sequences measured by `curves` (evenly spaced)")
-    ap.add_argument("--test-sequences", type=int, default=None,
+    ap.add_argument("--test-sequences", type=int_at_least(1), default=None,
                     help="test sequences measured by `curves` and `oracle` (evenly spaced; "
                          "default: all)")
-    ap.add_argument("--seed", type=int, nargs="+", default=[0],
-                    help="training seeds (curves: each variant once per seed); the bench "
-                         "run's seed (energy: one)")
+    ap.add_argument("--seed", type=int, nargs="+", default=[0], action=Accumulate,
+                    help="training seeds (curves: each variant once per seed; repeat the "
+                         "flag or list several); the bench run's seed (energy: one)")
     ap.add_argument("--surface", action="store_true",
                     help="curves: also the normal, edge-length and curvature errors")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--threads", type=int_at_least(1), default=1, help="torch threads")
     args = ap.parse_args(argv)
-    if args.steps < 1 or args.every < 1:
-        raise SystemExit("error: --steps and --every must be >= 1")
-    if args.train_sequences < 1 or (args.test_sequences is not None
-                                    and args.test_sequences < 1):
-        raise SystemExit("error: --train-sequences and --test-sequences must be >= 1")
+    for flag in ("parts", "seed", "variants", "methods", "curves"):
+        check_unique(ap, getattr(args, flag), "--" + flag if flag != "parts" else "parts")
+    if args.every > args.steps and set(args.parts) & {"overfit", "curves"}:
+        ap.error(f"--every {args.every}: more than --steps {args.steps}; nothing would be "
+                 f"measured after step 0")
     if args.data is None and set(args.parts) - {"merge"}:
         raise SystemExit("error: give --data DIR, the generated dataset to train on")
+    if args.data is not None and set(args.parts) - {"merge"}:
+        try:
+            read_manifest(Path(args.data).expanduser())
+        except (OSError, ValueError) as err:
+            raise SystemExit(f"error: --data {err}") from None
     if "merge" in args.parts and not args.curves:
         raise SystemExit("error: merge: give --curves FILE FILE ..., `curves` results")
+    for f in (args.curves or []) if "merge" in args.parts else []:
+        try:
+            _read_curves(Path(f))
+        except (OSError, ValueError) as err:
+            raise SystemExit(f"error: {_curves_message(err)}") from None
+    return args
+
+
+def _curves_message(err: Exception) -> str:
+    """An error of :func:`merge_curves` with the flag named."""
+    msg = str(err).replace("`files`", "--curves")
+    return msg if msg.startswith("--") else "--curves " + msg
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    args = parse_args(argv)
     torch.set_num_threads(args.threads)
     root, out = Path(args.data or "."), output_path(args, RESULTS)
     out.mkdir(parents=True, exist_ok=True)
@@ -799,8 +841,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             try:
                 res = merge_curves([Path(f).expanduser() for f in args.curves],
                                    args.variants)
-            except ValueError as err:
-                raise SystemExit(f"error: {err}") from None
+            except (OSError, ValueError) as err:
+                raise SystemExit(f"error: {_curves_message(err)}") from None
             r = {"results": res, "markdown": [
                 "Merged from:", ""] + [f"- `{src['command']}`" for src in res["sources"]]
                 + [""] + curves_markdown(res, "lbs_metrics" in res)}

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
+                                  float_above, int_at_least, output_path)
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import grid_mesh
 from garmentgnn.motion import Motion
@@ -64,19 +65,26 @@ def run(num_vertices: int, threads: int, stiffness: float, frames: int, substeps
                 converged=bool(res.converged.all()), ok=res.ok, message=res.message)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 10000],
+    ap.add_argument("--sizes", type=int_at_least(4), nargs="+", default=[1000, 5000, 10000],
+                    action=Accumulate,
                     help="sheet sizes (vertices)")
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2],
+    ap.add_argument("--threads", type=int_at_least(1), nargs="+", default=[1, 2],
+                    action=Accumulate,
                     help="torch thread counts, measured at the smallest size")
-    ap.add_argument("--stiffness", type=float, nargs="+", default=[1.0, 1000.0],
+    ap.add_argument("--stiffness", type=float_above(0.0), nargs="+", default=[1.0, 1000.0],
+                    action=Accumulate,
                     help="stiffness multipliers, measured at the smallest size")
-    ap.add_argument("--frames", type=int, default=3, help="simulated frames per row")
-    ap.add_argument("--substeps", type=int, default=4, help="simulator substeps per frame")
+    ap.add_argument("--frames", type=int_at_least(1), default=3,
+                    help="simulated frames per row")
+    ap.add_argument("--substeps", type=int_at_least(1), default=4,
+                    help="simulator substeps per frame")
     add_output_args(ap, RESULTS, "folder for simulator.json and simulator.md")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    for flag in ("sizes", "threads", "stiffness"):
+        check_unique(ap, getattr(args, flag), "--" + flag)
     args.out = output_path(args, RESULTS)
     rows = []
     small, most = min(args.sizes), max(args.threads)

@@ -32,7 +32,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Dict, List
 
-from garmentgnn._argparse import HelpFormatter
+from garmentgnn._argparse import HelpFormatter, dataset_dir, float_above
+from garmentgnn.data.store import read_json
 from garmentgnn.bench import harness
 from garmentgnn.bench.methods import DA, LBS
 from garmentgnn.bench.presets import preset
@@ -71,27 +72,32 @@ def markdown(rows_: List[Dict[str, Any]]) -> List[str]:
                   "E_static (cm) [LBS's removed]", "E_dynamic (cm) [LBS's removed]"], body)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--data", required=True, help="the generated `medium` dataset folder")
+    ap.add_argument("--data", required=True, type=dataset_dir,
+                    help="the generated `medium` dataset folder")
     ap.add_argument("--out", default=str(Path.home() / ".cache" / "garmentgnn" / "bench" /
                                          "medium-static-steps"),
                     help="bench folder of this run (rerun to resume)")
-    ap.add_argument("--minutes", type=float, default=10.0,
+    ap.add_argument("--minutes", type=float_above(0.0), default=10.0,
                     help="training budget of the ablation")
     ap.add_argument("--reference", default=str(REFERENCE),
                     help="results.json of the 5-minute `medium` run")
     ap.add_argument("--commit", action="store_true",
                     help=f"write the table into the committed {RESULTS} (default: into --out)")
-    args = ap.parse_args()
-    if args.minutes <= 0:
-        raise ValueError(f"`--minutes`: expected > 0, got {args.minutes}")
-    ref_path = Path(args.reference)
+    args = ap.parse_args(argv)
+    ref_path = Path(args.reference).expanduser()
     if not ref_path.is_file():
-        raise ValueError(f"`--reference`: no file {ref_path}; pass the results.json of a "
-                         "`garmentgnn bench --preset medium` run")
-    ref = json.loads(ref_path.read_text())
+        ap.error(f"--reference {ref_path}: no such file; pass the results.json of a "
+                 "`garmentgnn bench --preset medium` run")
+    fix = "pass the results.json of a `garmentgnn bench --preset medium` run"
+    try:
+        ref = read_json(ref_path, fix)
+    except ValueError as err:
+        ap.error(f"--reference {err}")
+    if not isinstance(ref.get("records"), list):
+        ap.error(f"--reference {ref_path}: no 'records'; {fix}")
     base = preset("medium")
     p = replace(base, engines=False, learned=replace(
         base.learned, seeds=1, minutes=args.minutes, methods=(WO_UNSUP,),

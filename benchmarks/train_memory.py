@@ -22,7 +22,8 @@ from typing import Any, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, command_line, output_path
+from garmentgnn._argparse import (HelpFormatter, add_output_args, command_line, dataset_dir,
+                                  int_at_least, output_path)
 from garmentgnn.bench.methods import DATA, FULL, GARTRANS, variant_settings
 from garmentgnn.bench.timing import status_kb
 from garmentgnn.data.store import code_version
@@ -53,16 +54,19 @@ class RSSProbe(L.Callback):
 def main(argv: Optional[Sequence[str]] = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=HelpFormatter)
-    ap.add_argument("--data", required=True, help="a generated dataset folder")
+    ap.add_argument("--data", required=True, type=dataset_dir,
+                    help="a generated dataset folder")
     ap.add_argument("--method", default=FULL, choices=list(GARTRANS),
                     help="a GarTrans variant of the bench")
-    ap.add_argument("--steps", type=int, default=300, help="optimizer steps")
-    ap.add_argument("--every", type=int, default=50, help="steps between measurements")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--steps", type=int_at_least(1), default=300, help="optimizer steps")
+    ap.add_argument("--every", type=int_at_least(1), default=50,
+                    help="steps between measurements (at most --steps)")
+    ap.add_argument("--threads", type=int_at_least(1), default=1, help="torch threads")
     add_output_args(ap, RESULTS, "folder for train_memory.json")
     args = ap.parse_args(argv)
-    if args.steps < 1 or args.every < 1:
-        raise SystemExit("error: --steps and --every must be >= 1")
+    if args.every > args.steps:
+        ap.error(f"--every {args.every}: more than --steps {args.steps}; nothing would be "
+                 f"measured")
     if not sys.platform.startswith("linux"):
         raise SystemExit("error: reads /proc/self/status: Linux only")
     out = output_path(args, RESULTS)

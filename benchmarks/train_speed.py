@@ -138,8 +138,11 @@ def main() -> None:
         return child(a)
     from garmentgnn._argparse import output_path  # noqa: PLC0415  (parent only: see child)
     a.out = str(output_path(a, RESULTS))
-    if a.steps < 1 or a.warmup < 1 or a.repeats < 1:
-        ap.error("--steps, --warmup and --repeats must be positive")
+    if a.steps < 1 or a.warmup < 1 or a.repeats < 1 or a.threads < 1:
+        ap.error("--steps, --warmup, --repeats and --threads must be positive")
+    if not (Path(a.data).expanduser() / "manifest.json").is_file():
+        ap.error(f"--data {a.data}: no manifest.json there; make the dataset with "
+                 f"`garmentgnn generate --out {a.data}`")
     tmp = Path(tempfile.mkdtemp(prefix="train_speed_src_"))
     try:
         before_src = checkout(a.before, tmp / "before")

@@ -317,13 +317,21 @@ def test_sim_settings_validated_at_construction(kw, name):
         SimSettings(**kw)
 
 
+@pytest.mark.slow  # a one-step fit, then test and predict (~45 s)
 def test_train_test_prints_lbs_beside_the_method_and_predict_writes(root, tmp_path,  # noqa: F811
                                                                      capsys):
     args = ["--config", CONFIG, "--data.root", str(root), "--data.chunk", "4",
             "--data.history", "2", "--data.nystrom_dim", str(NY), "--data.num_landmarks",
             "16", "--data.test_split", "val", "--trainer.limit_test_batches", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir",
-            str(tmp_path), "--trainer.logger.init_args.save_dir", str(tmp_path)]
+            str(tmp_path), "--trainer.logger.init_args.save_dir", str(tmp_path),
+            "--model.compile_search", "false"]
+    assert cli_main(["train", "fit"] + args + ["--trainer.max_epochs", "1",
+                                               "--trainer.limit_train_batches", "1",
+                                               "--trainer.limit_val_batches", "1"]) == 0
+    (last,) = tmp_path.rglob("last.ckpt")  # test and predict score a trained checkpoint
+    args += ["--ckpt_path", str(last)]
+    capsys.readouterr()
     assert cli_main(["train", "test"] + args) == 0
     out = capsys.readouterr().out
     assert "test/" in out and "| GarTrans (sat) |" in out and "| LBS only |" in out

@@ -9,8 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from garmentgnn.bench.methods import METHOD_NAMES
+from garmentgnn.cli import build_parser
 from garmentgnn.cli import main as cli_main
-from garmentgnn.data import generate, preset, read_manifest, store
+from garmentgnn.data import Spec, generate, preset, read_manifest, store
+from garmentgnn.viz.compare import comparison
 from test_data import fake_simulate, files_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -194,3 +197,127 @@ def test_interrupted_generate_says_what_was_kept_and_how_to_resume(dataset, tmp_
     monkeypatch.delenv("GG_CRASH_AFTER")
     assert cli_main(resume.split()[1:]) == 0
     assert files_of(out) == files_of(dataset)  # nothing lost: as an uninterrupted run
+
+
+def test_generate_and_manifest_refuse_sequence_files_of_another_dataset(dataset, tmp_path,
+                                                                        capsys):
+    """A folder holding another dataset's sequence files but no spec.json or
+    manifest.json: `generate` wrote its own manifest without them (exit 0), and `manifest`
+    with a spec listed them as this dataset's."""
+    other = Spec("x", preset("tiny").garments[:1], preset("tiny").bodies[:1],
+                 preset("tiny").motions[:1], ["silk"], seed=7)
+    out = tmp_path / "d"
+    assert generate(other, out, workers=0, simulate_fn=fake_simulate, progress=False).done == 1
+    (foreign,) = (out / store.SEQUENCES).glob("*.npz")
+    (out / store.SPEC).unlink()
+    (out / store.MANIFEST).unlink()
+    argv = ["generate", "--out", str(out), "--workers", "0", "--limit", "1"] + GEN
+    one_error(capsys, cli_main(argv), f"--out {out}", "1 sequence file(s)",
+              "belong to another dataset", foreign.name, "--force")
+    assert not (out / store.MANIFEST).exists() and not (out / store.SPEC).exists()
+    # --force: this dataset beside it, and the other file's record is kept
+    assert cli_main(argv + ["--force"]) == 0
+    status = {r["id"]: r["status"] for r in read_manifest(out)["items"]}
+    assert status[foreign.stem] == "ok" and len(status) == 9
+    assert cli_main(argv) == 0  # a resume keeps it without --force again
+    assert read_manifest(out)["counts"] == {"ok": 3, "pending": 6}
+    # `manifest` on tiny's spec with a file of yet another dataset copied in
+    shutil.copy(first_file(dataset), out / store.SEQUENCES / "copied.npz")
+    capsys.readouterr()
+    one_error(capsys, cli_main(["manifest", "--out", str(out)]), f"--out {out}",
+              "belong to another dataset", "--force")
+    assert read_manifest(out)["counts"] == {"ok": 3, "pending": 6}  # not rewritten
+    cli_main(["manifest", "--out", str(out), "--force"])
+    assert "copied" not in {r["id"] for r in read_manifest(out)["items"]}  # invalid: other id
+
+
+def test_manifest_marks_nan_in_any_array(dataset, tmp_path, capsys):
+    """NaN motion rotations: recorded `ok` by `manifest` before."""
+    out = copy(dataset, tmp_path)
+    a = first_file(out)
+    rot = store.load_sequence(a)["motion_rotations"].copy()
+    rot[2, 1, 0] = np.nan
+    edit_sequence(a, motion_rotations=rot)
+    rc = cli_main(["manifest", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 1 and f"{a.name}: motion_rotations contain NaN/inf in 1 of" in err
+    assert {r["id"]: r["status"] for r in read_manifest(out)["items"]}[a.stem] == "pending"
+
+
+def test_export_start_frame_nan_blames_start_frame(dataset, tmp_path, capsys):
+    """`--start-frame nan` was blamed on --seq."""
+    argv = ["export", "--seq", str(first_file(dataset)), "--format", "pc2", "--out",
+            str(tmp_path / "x.pc2"), "--start-frame", "nan"]
+    with pytest.raises(SystemExit) as e:
+        cli_main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --start-frame: expected a finite number" in err
+    assert "--seq" not in err.splitlines()[-1] and not (tmp_path / "x.pc2").exists()
+
+
+@pytest.mark.parametrize("content", [b"\xff\xfe\x00 not text", b"", b"console.log(1)"])
+def test_show_html_with_a_broken_viewer_bundle_fails_before_rendering(dataset, tmp_path,
+                                                                      capsys, monkeypatch,
+                                                                      content):
+    """A damaged bundle failed after the MP4, PNG and glTF were written, with a raw
+    UnicodeDecodeError."""
+    bundle = tmp_path / "viewer.bundle.js"
+    bundle.write_bytes(content)
+    monkeypatch.setenv("GARMENTGNN_VIEWER_BUNDLE", str(bundle))
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(tmp_path / "s" / "cmp"),
+                   "--html", "--max-frames", "2", "--height", "720"])
+    one_error(capsys, rc, f"the viewer bundle {bundle}", "make install")
+    assert not (tmp_path / "s").exists()  # nothing rendered
+
+
+# ------------------------------------------------------------------ found by fuzzing
+@pytest.mark.parametrize("argv, words", [
+    (["--format", "pc2", "--out", "{tmp}/x.glb"], ["--out", "must end in .pc2"]),
+    (["--format", "gltf", "--out", "{tmp}/x.gltf"], ["--out", "must end in .glb"]),
+    (["--format", "obj", "--out", "{tmp}/objs", "--start-frame", "3"],
+     ["--start-frame: only --format pc2"]),
+    (["--format", "pc2", "--out", "{tmp}/x.pc2", "--no-body"], ["--no-body", "garment only"]),
+])
+def test_export_flags_the_format_ignores_are_refused(dataset, tmp_path, capsys, argv, words):
+    """A PC2 written into x.glb, a binary glTF into x.gltf, --start-frame on OBJs and
+    --no-body on PC2: exit 0 with the flag ignored or the file misnamed."""
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    rc = cli_main(["export", "--seq", str(first_file(dataset))] + argv)
+    one_error(capsys, rc, *words)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["bench", "--out", ""], ["argument --out: empty path"]),
+    (["show", "--data", "{data}", "--out", ""], ["argument --out: empty path"]),
+    (["show", "--data", "{data}", "--out", "{tmp}/s", "--max-frames", "-3"],
+     ["argument --max-frames: expected an integer >= 1, got -3"]),
+])
+def test_empty_out_and_negative_max_frames_are_refused(dataset, tmp_path, capsys, monkeypatch,
+                                                       argv, words):
+    """`bench --out ""` wrote its records and report into the current folder;
+    `show --max-frames -3` dropped the last 3 frames."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        cli_main([a.format(data=dataset, tmp=tmp_path) for a in argv])
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and all(w in last for w in words), last
+    assert not list(tmp_path.iterdir())
+
+
+def test_show_with_two_panels_of_one_name_is_refused(dataset, tmp_path, capsys):
+    """`--ckpt run1/last.ckpt --ckpt run2/last.ckpt`: both panels were named 'last' and
+    the second silently replaced the first."""
+    a, b = str(tmp_path / "run1" / "last.ckpt"), str(tmp_path / "run2" / "last.ckpt")
+    rc = cli_main(["show", "--data", str(dataset), "--out", str(tmp_path / "s"), "--ckpt", a,
+                   "--ckpt", b])
+    one_error(capsys, rc, "--ckpt", "two panels named 'last'", f"--ckpt A={a} --ckpt B={b}")
+    with pytest.raises(ValueError, match="`max_frames`: expected an int >= 1"):
+        comparison(dataset, {}, max_frames=-3)
+
+
+def test_bench_methods_given_twice_add_up():
+    """`bench --methods A --methods B` ran B only."""
+    a, b = METHOD_NAMES[:2]
+    args = build_parser().parse_args(["bench", "--out", "x", "--methods", a, "--methods", b])
+    assert args.methods == [a, b]

@@ -312,7 +312,8 @@ def test_sequence_chunks_items_and_lazy_loading(clean_run):
     ds[0]
     assert ds.num_file_loads == 3
     assert len(SequenceChunks(clean_run, split="test", chunk=1)) == 4 * 8
-    assert len(SequenceChunks(clean_run, split="val")) == 0
+    with pytest.raises(ValueError, match="no 'val' split; name one that its manifest lists"):
+        SequenceChunks(clean_run, split="val")  # tiny holds out no val split
 
 
 def _env():

@@ -1,16 +1,133 @@
 """Command-line parts shared by ``garmentgnn``'s sub-commands and the scripts in
-``benchmarks/``: a help formatter that shows every option's default, and the
-``--out`` / ``--commit`` pair of a benchmark script (results go to a cache folder unless
-the committed copy is asked for)."""
+``benchmarks/``: a help formatter that shows every option's default, the ``--out`` /
+``--commit`` pair of a benchmark script (results go to a cache folder unless the
+committed copy is asked for), and argument types and actions that refuse what would
+otherwise run silently wrong: counts below their minimum (:func:`int_at_least`), NaN or
+infinite numbers (:func:`finite_float`), a list flag given twice (:class:`Accumulate`:
+the values add up instead of the last flag winning) and repeated values
+(:func:`check_unique`)."""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import shlex
 import sys
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
+
+
+def int_at_least(low: int) -> Callable[[str], int]:
+    """An argparse type: an int ``>= low`` (e.g. ``--threads 0`` is refused by the parser
+    with the flag named, instead of failing later with a traceback)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
+        return value
+    parse.__name__ = f"int >= {low}"
+    return parse
+
+
+def finite_float(text: str) -> float:
+    """An argparse type: a finite float (``nan``, ``inf`` are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def float_above(low: float) -> Callable[[str], float]:
+    """An argparse type: a finite float ``> low``."""
+    def parse(text: str) -> float:
+        value = finite_float(text)
+        if not value > low:
+            raise argparse.ArgumentTypeError(f"expected a number > {low:g}, got {text!r}")
+        return value
+    parse.__name__ = f"float > {low:g}"
+    return parse
+
+
+class Accumulate(argparse.Action):
+    """A list flag (``nargs="+"``) that may be repeated: ``--seed 0 --seed 1 2`` gives
+    ``[0, 1, 2]`` (argparse's default action keeps the last flag's values only, silently);
+    the first use replaces the default, later ones add to it."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: Optional[str] = None) -> None:
+        current = getattr(namespace, self.dest, None)
+        # argparse puts the default object itself in the namespace before parsing
+        old = [] if current is None or current is self.default else list(current)
+        new = list(values) if isinstance(values, (list, tuple)) else [values]
+        setattr(namespace, self.dest, old + new)
+
+
+def check_unique(parser: argparse.ArgumentParser, values: Optional[Sequence[Any]],
+                 flag: str) -> None:
+    """``parser.error`` (one ``error:`` line, exit status 2) when ``values`` repeat one
+    (``--seed 0 0 0`` would run the same seed three times)."""
+    if values is None:
+        return
+    seen, dup = set(), []
+    for v in values:
+        if v in seen and v not in dup:
+            dup.append(v)
+        seen.add(v)
+    if dup:
+        parser.error(f"{flag}: {', '.join(map(str, dup))} given more than once; give each "
+                     f"value once")
+
+
+def nonempty_path(text: str) -> str:
+    """An argparse type: a non-empty path (``--out ""`` would write into the current
+    folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path; name a folder or file")
+    return text
+
+
+def existing_file(text: str) -> str:
+    """An argparse type: the path of an existing file (``~`` expanded)."""
+    path = os.path.expanduser(text)
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path; name a file")
+    if not os.path.isfile(path):
+        what = "is a folder, not a file" if os.path.isdir(path) else "no such file"
+        raise argparse.ArgumentTypeError(f"{text}: {what}")
+    return path
+
+
+def dataset_dir(text: str) -> str:
+    """An argparse type: a dataset folder made by ``garmentgnn generate`` (its
+    ``manifest.json`` readable; ``~`` expanded); otherwise the path and the command that
+    makes or repairs it."""
+    from garmentgnn.data.store import read_manifest  # noqa: PLC0415 (light import here)
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path; name a dataset folder")
+    path = os.path.expanduser(text)
+    try:
+        read_manifest(path)
+    except (OSError, ValueError) as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return path
+
+
+def existing_dir(text: str) -> str:
+    """An argparse type: the path of an existing folder (``~`` expanded)."""
+    path = os.path.expanduser(text)
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path; name a folder")
+    if not os.path.isdir(path):
+        what = "is a file, not a folder" if os.path.exists(path) else "no such folder"
+        raise argparse.ArgumentTypeError(f"{text}: {what}")
+    return path
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
 import garmentgnn
-from garmentgnn._argparse import HelpFormatter
+from garmentgnn._argparse import HelpFormatter, finite_float, nonempty_path
 from garmentgnn.bench import cli as bench_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
@@ -47,12 +47,7 @@ def _import_callable(spec: str):
     return fn
 
 
-def _path(text: str) -> str:
-    """An argparse type: a non-empty path (``--out ""`` would write into the current
-    folder)."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError("empty path; name a folder or file")
-    return text
+_path = nonempty_path  # an argparse type: --out "" would write into the current folder
 
 
 def add_generate_parser(sub) -> argparse.ArgumentParser:
@@ -70,7 +65,8 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
                         "<preset>-<engine>, $GARMENTGNN_DATA_DIR defaulting to "
                         "~/.cache/garmentgnn/datasets")
     g.add_argument("--force", action="store_true",
-                   help="overwrite the spec and manifest of another dataset in --out")
+                   help="overwrite the spec of another dataset in --out (the records of its "
+                        "sequence files stay in the manifest)")
     g.add_argument("--workers", type=int, default=1,
                    help="worker processes (0 = in this process)")
     g.add_argument("--backend", choices=("local", "ray"), default="local",
@@ -106,7 +102,7 @@ def generate_main(args: argparse.Namespace) -> int:
                            progress=not args.no_progress, estimate=args.estimate,
                            force=args.force, backend=args.backend, address=args.address)
     except (SpecMismatch, ValueError, RuntimeError) as exc:
-        print(f"error: {_flag_message(str(exc), args)}", file=sys.stderr)
+        print(f"error: {_with_flag(_flag_message(str(exc), args), args)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return _interrupted(out, args)
@@ -128,6 +124,10 @@ def _interrupted(out, args: argparse.Namespace) -> int:
     return 130
 
 
+#: the file name ending each single-file export format needs (obj writes a folder)
+EXPORT_SUFFIX = {"pc2": ".pc2", "gltf": ".glb", "abc": ".abc", "blend": ".blend"}
+
+
 def add_export_parser(sub) -> argparse.ArgumentParser:
     """The ``export`` sub-command: one sequence file as PC2, OBJs or glTF."""
     e = sub.add_parser("export", help="export a sequence file as PC2, an OBJ sequence, glTF, "
@@ -146,8 +146,8 @@ def add_export_parser(sub) -> argparse.ArgumentParser:
                    help="the .pc2 / .glb / .abc / .blend file, or a folder for OBJs")
     e.add_argument("--no-body", action="store_true",
                    help="glTF, Alembic, .blend: the garment only")
-    e.add_argument("--start-frame", type=float, default=0.0,
-                   help="PC2: the frame number of the first sample")
+    e.add_argument("--start-frame", type=finite_float, default=None,
+                   help="PC2: the frame number of the first sample (default 0)")
     return e
 
 
@@ -161,16 +161,29 @@ def export_main(args: argparse.Namespace) -> int:
         print(f"error: --out {args.out}: is a file, and --format obj writes a folder of "
               f"OBJs; name a folder", file=sys.stderr)
         return 2
-    if args.format in ("abc", "blend") and Path(args.out).suffix.lower() != f".{args.format}":
+    suffix = EXPORT_SUFFIX.get(args.format)
+    if suffix and Path(args.out).suffix.lower() != suffix:
         print(f"error: --out {args.out}: --format {args.format} writes a file whose "
-              f"name must end in .{args.format}", file=sys.stderr)
+              f"name must end in {suffix}", file=sys.stderr)
+        return 2
+    if args.start_frame is not None and args.format != "pc2":
+        print(f"error: --start-frame: only --format pc2 stores a start frame; drop it for "
+              f"--format {args.format}", file=sys.stderr)
+        return 2
+    if args.no_body and args.format in ("pc2", "obj"):
+        print(f"error: --no-body: --format {args.format} holds the garment only; drop it",
+              file=sys.stderr)
         return 2
     try:
         paths = export_sequence(args.seq, args.format, args.out,
-                                start_frame=args.start_frame, body=not args.no_body)
+                                start_frame=args.start_frame or 0.0, body=not args.no_body)
     except (ValueError, KeyError) as exc:
-        print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
-              file=sys.stderr)
+        msg = _flag_message(str(exc), args)
+        if msg.startswith("--") and not msg.startswith("--seq"):  # about another flag
+            print(f"error: {msg}", file=sys.stderr)
+        else:
+            print(f"error: --seq {args.seq}: not a readable sequence file ({exc})",
+                  file=sys.stderr)
         return 2
     except RuntimeError as exc:  # Blender missing or failed (abc, blend)
         print(f"error: --format {args.format}: {exc}", file=sys.stderr)
@@ -185,6 +198,9 @@ def add_manifest_parser(sub) -> argparse.ArgumentParser:
                        description="Rebuild a dataset's manifest.json from its sequence "
                        "files.", formatter_class=HelpFormatter)
     m.add_argument("--out", required=True, type=_path, help="the dataset folder")
+    m.add_argument("--force", action="store_true",
+                   help="list sequence files of another dataset than OUT/spec.json "
+                        "describes too (refused without it)")
     return m
 
 
@@ -196,9 +212,9 @@ def manifest_main(args: argparse.Namespace) -> int:
               f"`garmentgnn generate --out {args.out}`", file=sys.stderr)
         return 2
     try:
-        doc = rebuild_manifest(args.out)
+        doc = rebuild_manifest(args.out, force=args.force)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_with_flag(str(exc), args)}", file=sys.stderr)
         return 2
     print(f"rebuilt {args.out}/manifest.json: {doc['counts']}\n"
           f"dataset content SHA-256: {doc['content_sha256']}")
@@ -231,7 +247,7 @@ def train_main(args: argparse.Namespace) -> int:
             warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
             lightning_main(args.lightning_args, prog="garmentgnn train")
     except (FileNotFoundError, IntegrityError, CheckpointError) as exc:
-        print(f"error: {exc}", file=sys.stderr)  # one line: the path and the fix
+        print(f"error: {_with_flag(str(exc), args)}", file=sys.stderr)  # the path, the fix
         return 2
     return 0
 
@@ -286,7 +302,17 @@ def _flag_message(msg: str, args: argparse.Namespace) -> str:
         flag = "--" + name.replace("_", "-")
         if flag in _flags(args):
             return flag + rest
+        if getattr(args, "command", None) == "train" and name in _data_arguments():
+            return f"--data.{name}" + rest  # given or not (a config's or the default)
     return msg
+
+
+def _data_arguments() -> Tuple[str, ...]:
+    """The arguments of the data module ``garmentgnn train`` configures (``--data.*``)."""
+    import inspect  # noqa: PLC0415
+
+    from garmentgnn.training.datamodule import GarmentDataModule  # noqa: PLC0415
+    return tuple(inspect.signature(GarmentDataModule.__init__).parameters)[1:]
 
 
 _OS_FIX = {PermissionError: "not writable (or readable) by you; pick another path",
@@ -313,6 +339,14 @@ def _os_message(exc: OSError, args: argparse.Namespace) -> Optional[str]:
     return None
 
 
+def _with_flag(msg: str, args: argparse.Namespace) -> str:
+    """``msg`` (``"PATH: ..."`` about a flag's file) with that flag in front."""
+    for flag, value in _flags(args).items():
+        if len(value) > 1 and msg.startswith(value) and not msg.startswith(flag):
+            return f"{flag} {msg}"
+    return msg
+
+
 def error_line(exc: BaseException, args: argparse.Namespace) -> str:
     """The one ``error:`` line for an exception that ended a sub-command."""
     cause = exc.__cause__
@@ -320,16 +354,14 @@ def error_line(exc: BaseException, args: argparse.Namespace) -> str:
         exc, cause = cause, cause.__cause__  # a wrapper repeating it (e.g. jsonargparse's)
     lines = str(exc).strip().splitlines()
     msg = lines[0] if lines else type(exc).__name__
-    if isinstance(exc, OSError):
-        msg = _os_message(exc, args) or f"{type(exc).__name__}: {msg}"
+    if isinstance(exc, OSError):  # ours (no errno) say what and the fix already
+        msg = _os_message(exc, args) or (msg if exc.errno is None
+                                         else f"{type(exc).__name__}: {msg}")
     elif not isinstance(exc, (ValueError, TypeError, RuntimeError)):
         msg = f"{type(exc).__name__}: {msg}"
-    msg = _flag_message(msg, args)
-    for flag, value in _flags(args).items():  # "PATH: ..." about a flag's file
-        if len(value) > 1 and msg.startswith(value) and flag not in msg:
-            msg = f"{flag} {msg}"
-            break
-    if not any(flag in msg for flag in _flags(args)) and not isinstance(exc, OSError):
+    msg = _with_flag(_flag_message(msg, args), args)
+    if not msg.startswith("--") and not any(flag in msg for flag in _flags(args)) \
+            and not isinstance(exc, OSError):
         msg += " (rerun with --debug for the traceback)"
     return f"error: {msg}"
 

@@ -11,7 +11,7 @@ import shlex
 import sys
 from dataclasses import replace
 
-from garmentgnn._argparse import HelpFormatter
+from garmentgnn._argparse import Accumulate, HelpFormatter, nonempty_path
 from garmentgnn.bench.harness import run
 from garmentgnn.bench.methods import METHOD_NAMES
 from garmentgnn.bench.presets import PRESET_NAMES, Preset, preset
@@ -27,11 +27,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "and stability of the simulator budgets, LBS and the learned methods "
                     "(resumable; writes OUT/report.md).", formatter_class=HelpFormatter)
     b.add_argument("--preset", choices=PRESET_NAMES, default="tiny", help="benchmark preset")
-    b.add_argument("--out", required=True, help="output folder (rerun to resume)")
+    b.add_argument("--out", required=True, type=nonempty_path,
+                   help="output folder (rerun to resume)")
     b.add_argument("--seeds", type=int, default=None,
                    help="number of seeds, of the simulated cases and of the learned methods' "
                         "training (default: the preset's)")
-    b.add_argument("--data", default=None,
+    b.add_argument("--data", default=None, type=nonempty_path,
                    help="an existing generated dataset folder for the learned methods "
                         "(default: generate the preset's dataset under OUT/data)")
     b.add_argument("--no-learned", action="store_true",
@@ -40,7 +41,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="training minutes of every learned run, instead of the preset's "
                         "(e.g. an hours-long budget on a GPU; use a new --out: finished "
                         "records in OUT are kept; default: the preset's)")
-    b.add_argument("--methods", nargs="+", default=None, metavar="NAME",
+    b.add_argument("--methods", nargs="+", default=None, metavar="NAME", action=Accumulate,
                    choices=METHOD_NAMES,
                    help="run only these learned methods (quote names with spaces; "
                         f"choose from {', '.join(METHOD_NAMES)}; default: the preset's)")

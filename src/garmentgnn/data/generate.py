@@ -96,9 +96,10 @@ class SpecMismatch(RuntimeError):
 
 def _load_existing(out: Path, spec_json: Dict[str, Any], force: bool = False
                    ) -> Dict[str, Dict[str, Any]]:
-    """Check ``OUT/spec.json`` (or, without it, ``OUT/manifest.json``) holds this
+    """Check ``OUT/spec.json`` (or, without it, ``OUT/manifest.json``) and the sequence
+    files under ``OUT/sequences`` (:func:`store.foreign_sequence_files`) hold this
     dataset; return previous manifest records by id.  ``force``: replace another
-    dataset's spec and manifest instead of refusing."""
+    dataset's spec instead of refusing (its files' records stay in the manifest)."""
     spec_path = out / store.SPEC
     ids = [it["id"] for it in spec_json["items"]]
     if force:
@@ -111,13 +112,22 @@ def _load_existing(out: Path, spec_json: Dict[str, Any], force: bool = False
         if other is None or not set(other) <= set(ids):
             raise SpecMismatch(f"{out} holds another dataset's {store.MANIFEST}; use another "
                                f"--out, or --force to overwrite it")
+    accepted: set = set()
     if spec_path.exists():
         old = store.read_json(spec_path, "--force to overwrite it")
         if [it.get("id") for it in old.get("items", [])] != ids:
             raise SpecMismatch(
                 f"{out} holds a different dataset (spec {old.get('name')!r}, seed "
                 f"{old.get('seed')}); use another --out, or --force to overwrite it")
-    else:
+        accepted = store.listed_ok(out)  # another dataset's files kept by an earlier --force
+    if not force:  # sequence files of another dataset, whatever spec or manifest is there
+        foreign = store.foreign_sequence_files(out, spec_json["items"], accepted)
+        if foreign:
+            raise SpecMismatch(store.foreign_message(
+                out, foreign, f"the one being generated ({spec_json.get('name')!r}, seed "
+                f"{spec_json.get('seed')}, engine {spec_json.get('engine')})",
+                "nothing was written"))
+    if not spec_path.exists():
         store.atomic_write_json(spec_path, spec_json)
     prev = {}
     if (out / store.MANIFEST).exists():
@@ -255,9 +265,15 @@ def _generate(spec: Spec, out: Path, workers: int, limit: Optional[int],
         todo.append(it)
     if limit is not None:
         todo = todo[:limit]
+    # another dataset's files (kept with --force, now or before): listed after this
+    # spec's items, so no record of a file that exists is dropped
+    outside = store.outside_records(out, records, prev)
+    if outside:
+        log(f"warning: {len(outside)} sequence file(s) of another dataset in {out} are "
+            f"listed in the manifest beside this dataset's (kept by --force)")
 
     def flush():
-        store.write_manifest(out, [records[it["id"]] for it in items], header)
+        store.write_manifest(out, [records[it["id"]] for it in items] + outside, header)
 
     flush()
     if estimate and todo:
@@ -320,5 +336,5 @@ def _generate(spec: Spec, out: Path, workers: int, limit: Optional[int],
         flush()
         summary.seconds = time.perf_counter() - t_start
         summary.pending = sum(r["status"] == "pending" for r in records.values())
-        summary.content_sha256 = store.content_sha256(records.values())
+        summary.content_sha256 = store.content_sha256(list(records.values()) + outside)
     return summary

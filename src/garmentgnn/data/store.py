@@ -223,11 +223,26 @@ ORDER_TOLERANCE = 0.5
 REST_ORDER_TOLERANCE = 4.0
 
 
+def nonfinite_arrays(arrays: Dict[str, Any]) -> Optional[str]:
+    """``None`` if every floating-point array of ``arrays`` (a sequence file's; ``meta``
+    is skipped) is finite, otherwise which array holds NaN/inf and how many values."""
+    for key in sorted(arrays):
+        if key == "meta":
+            continue
+        a = np.asarray(arrays[key])
+        if np.issubdtype(a.dtype, np.inexact) and not np.isfinite(a).all():
+            bad = np.flatnonzero(~np.isfinite(a).reshape(-1))
+            return (f"{key} contain NaN/inf in {len(bad)} of {a.size} values (first at index "
+                    f"{tuple(int(i) for i in np.unravel_index(bad[0], a.shape))})")
+    return None
+
+
 def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Optional[str]:
     """``None`` if the arrays of a loaded sequence file (:func:`load_sequence`) fit
     together, otherwise what is wrong: missing arrays, another item's id, shapes
     (``positions [T, V, 3]`` with ``V`` the rest garment's vertices and ``T`` the
-    metadata's frames; faces in range), NaN/inf frames (named), and the vertex order:
+    metadata's frames; faces in range), NaN/inf frames (named) and NaN/inf in any other
+    array (:func:`nonfinite_arrays`, the array named), and the vertex order:
     the edge lengths of the first, middle and last frame against the rest garment's
     (``garment_vertices`` on ``garment_faces``: a median relative difference over
     :data:`ORDER_TOLERANCE`), and the rest edges against the distances between nearest
@@ -253,6 +268,9 @@ def check_sequence(seq: Dict[str, Any], item_id: Optional[str] = None) -> Option
         frames = np.flatnonzero(bad)
         return (f"positions contain NaN/inf in {len(frames)} of {len(P)} frames (first: "
                 f"frame {int(frames[0])})")
+    msg = nonfinite_arrays(seq)
+    if msg is not None:
+        return msg
     if not F.size or not len(P):
         return None
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
@@ -393,13 +411,78 @@ def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> D
     return rec
 
 
-def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
+def _engine_name(meta_or_item: Dict[str, Any]) -> str:
+    engine = meta_or_item.get("engine")
+    if isinstance(engine, dict):
+        engine = engine.get("name")
+    return str(engine or "torch")  # written before engines were recorded: torch
+
+
+def listed_ok(out: PathLike) -> set:
+    """The ids ``OUT/manifest.json`` lists as ok (empty when it is missing or unreadable):
+    files of another dataset listed there were accepted by an earlier ``--force``."""
+    try:
+        return {r["id"] for r in read_manifest(out)["items"] if r.get("status") == "ok"}
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
+
+
+def foreign_sequence_files(out: PathLike, items: List[Dict[str, Any]],
+                           accepted: Iterable[str] = ()) -> List[str]:
+    """The sequence files under ``OUT/sequences`` that belong to another dataset than
+    the spec ``items``: a file whose id no item has (and that is not ``accepted``), or
+    whose engine is not its item's; each as ``"<file name> (engine E, split S)"``.
+    Unreadable files are left to :func:`validate_sequence`."""
+    by_id = {it.get("id"): it for it in items if isinstance(it, dict)}
+    accepted = set(accepted)
+    out_list = []
+    for p in sorted((Path(out) / SEQUENCES).glob("*.npz")):
+        item = by_id.get(p.stem)
+        if item is None and p.stem in accepted:
+            continue
+        try:
+            meta = read_meta(p)
+        except (ValueError, OSError):
+            continue
+        if item is None or _engine_name(meta) != _engine_name(item):
+            out_list.append(f"{p.name} (engine {_engine_name(meta)}, split "
+                            f"{meta.get('split')})")
+    return out_list
+
+
+def foreign_message(out: PathLike, foreign: List[str], whose: str, what: str) -> str:
+    """The error about :func:`foreign_sequence_files` ``foreign`` (not of ``whose``):
+    ``what`` was refused, the files and the fix."""
+    more = f" and {len(foreign) - 2} more" if len(foreign) > 2 else ""
+    return (f"{out}: {len(foreign)} sequence file(s) in {SEQUENCES}/ belong to another "
+            f"dataset than {whose} (another preset's, seed's or engine's: "
+            f"{', '.join(foreign[:2])}{more}); {what}; use another --out, or --force to "
+            f"list them beside this dataset's")
+
+
+def rebuild_manifest(out: PathLike, write: bool = True, force: bool = False) -> Dict[str, Any]:
     """Recreate the manifest from ``OUT/sequences/*.npz`` (and ``OUT/spec.json`` when it
     exists, so items without a file are listed as ``pending``; failure messages are not
     recoverable from the sequence files, so failed items come back as pending).
 
-    Unreadable sequence files are skipped (and listed under ``invalid``)."""
+    Unreadable sequence files are skipped (and listed under ``invalid``).  Files of
+    another dataset than ``spec.json`` describes (:func:`foreign_sequence_files`; those
+    the manifest lists as ok were accepted before) are a ``ValueError`` unless ``force``;
+    files outside the spec are listed after its items."""
     out = Path(out)
+    spec_path = out / SPEC
+    spec = None
+    if spec_path.exists():
+        spec = read_json(spec_path, "delete it (items without a file are then not listed)")
+        if not isinstance(spec.get("items"), list) or \
+                not all(isinstance(it, dict) and "id" in it for it in spec["items"]):
+            raise ValueError(f"{spec_path}: no valid 'items' list; delete it (items without "
+                             f"a file are then not listed)")
+        foreign = [] if force else foreign_sequence_files(out, spec["items"],
+                                                          listed_ok(out))
+        if foreign:
+            raise ValueError(foreign_message(out, foreign, f"{spec_path} describes",
+                                             "the manifest is not rebuilt"))
     found: Dict[str, Dict[str, Any]] = {}
     invalid = []
     for p in sorted((out / SEQUENCES).glob("*.npz")):
@@ -410,13 +493,7 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
         found[p.stem] = dict(record_from_meta(read_meta(p)), sha256=file_sha256(p))
     header: Dict[str, Any] = {"rebuilt": True}
     records: List[Dict[str, Any]] = []
-    spec_path = out / SPEC
-    if spec_path.exists():
-        spec = read_json(spec_path, "delete it (items without a file are then not listed)")
-        if not isinstance(spec.get("items"), list) or \
-                not all(isinstance(it, dict) and "id" in it for it in spec["items"]):
-            raise ValueError(f"{spec_path}: no valid 'items' list; delete it (items without "
-                             f"a file are then not listed)")
+    if spec is not None:
         header.update({k: v for k, v in spec.items() if k != "items"})
         for it in spec["items"]:
             records.append(found.pop(it["id"], None) or pending_record(it))
@@ -426,6 +503,24 @@ def rebuild_manifest(out: PathLike, write: bool = True) -> Dict[str, Any]:
     if write:
         write_manifest(out, records, header)
     return read_manifest(out) if write else dict(header, items=records)
+
+
+def outside_records(out: PathLike, ids: Iterable[str],
+                    prev: Dict[str, Dict[str, Any]]) -> List[Dict[str, Any]]:
+    """The ok records of the valid sequence files under ``OUT/sequences`` whose id is not
+    in ``ids`` (another dataset's, kept beside a spec's items by ``generate --force`` and
+    ``manifest --force``, so no record of a file that exists is dropped): ``prev``'s
+    record where it is ok with the file's hash, else one made from the file."""
+    ids = set(ids)
+    recs = []
+    for p in sorted((Path(out) / SEQUENCES).glob("*.npz")):
+        if p.stem in ids or validate_sequence(p, p.stem) is not None:
+            continue
+        sha = file_sha256(p)
+        old = prev.get(p.stem)
+        recs.append(old if old and old.get("status") == "ok" and old.get("sha256") == sha
+                    else dict(record_from_meta(read_meta(p)), sha256=sha))
+    return recs
 
 
 def pending_record(item: Dict[str, Any]) -> Dict[str, Any]:

@@ -112,6 +112,9 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
         }
         if pen is not None:
             arrays["penetration"] = pen
+        bad = store.nonfinite_arrays(arrays)  # a file that would fail store.check_sequence
+        if bad is not None:
+            raise RuntimeError(f"simulator or inputs: {bad}")
         meta = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",
                                      "seed", "split")}
         meta["held_out"] = item.get("held_out", [])

@@ -77,10 +77,38 @@ def schedule_args(config: Dict[str, Any]) -> Optional[Dict[str, Any]]:
     return None
 
 
+def _ablation_name(path: str) -> Optional[str]:
+    """``"ablations/<name>"`` when ``path`` is a packaged ablation file, else ``None``."""
+    try:
+        rel = Path(path).resolve().relative_to(Path(str(_ROOT)).resolve() / "ablations")
+    except (ValueError, OSError):
+        return None
+    return f"ablations/{rel.with_suffix('')}"
+
+
+def _module_named(path: str) -> Optional[str]:
+    """The module the YAML file ``path`` names (``model: class_path:``), as a base
+    configuration does; ``None`` when it names none, ``""`` when it cannot be read
+    (LightningCLI reports that)."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return ""
+    model = doc.get("model") if isinstance(doc, dict) else None
+    return str(model["class_path"]) if isinstance(model, dict) and "class_path" in model \
+        else None
+
+
 def resolve_config_args(args: Sequence[str]) -> List[str]:
     """``args`` with each ``--config NAME`` (or ``--config=NAME``) that is not an existing
-    file but a packaged configuration's name replaced by that file's path."""
+    file but a packaged configuration's name replaced by that file's path.
+
+    An ablation (``ablations/<name>``) says only what it changes on top of GarTrans: given
+    without a configuration before it that names the module (``--config gartrans``), it
+    would train without GarTrans's schedule, checkpoints and loss weights (after a
+    baseline's, another module's), so that is a ``ValueError`` naming the flags to give."""
     out = list(args)
+    base: Optional[str] = None  # the module the last --config naming one named
     for i, a in enumerate(out):
         if a == "--config" and i + 1 < len(out):
             j, value, prefix = i + 1, out[i + 1], ""
@@ -93,4 +121,13 @@ def resolve_config_args(args: Sequence[str]) -> List[str]:
                 out[j] = prefix + str(config_path(value))
             except (ValueError, TypeError):
                 pass  # not a packaged name either: LightningCLI reports it
+        path = out[j][len(prefix):]
+        ablation = _ablation_name(path) if Path(path).is_file() else None
+        if ablation is not None and not (base == "" or str(base).endswith("GarTransModule")):
+            after = f" (not on {base})" if base else ""
+            raise ValueError(f"--config {value}: an ablation changes only what differs from "
+                             f"GarTrans; give the GarTrans configuration before it{after}: "
+                             f"--config gartrans --config {ablation}")
+        if Path(path).is_file() and ablation is None:
+            base = _module_named(path) or base
     return out

@@ -48,7 +48,8 @@ class SequenceChunks(Dataset):
 
     Args:
         root: generation output folder (``manifest.json`` + ``sequences/``).
-        split: ``"train" | "val" | "test"`` or ``None`` for all.
+        split: ``"train" | "val" | "test"`` or ``None`` for all; a split the manifest
+            does not list, or one without ok sequences, is a ``ValueError``.
         chunk: frames per chunk ``B``; a sequence is cut into ``ceil(T / chunk)``
             chunks (the last may be shorter) -- ``drop_last=True`` drops a short one.
         history: previous frames per pose history (``H = history + 1 >= 2``).
@@ -66,20 +67,43 @@ class SequenceChunks(Dataset):
                  ids: Optional[Sequence[str]] = None) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
+        if not isinstance(num_landmarks, int) or num_landmarks < 1:
+            raise ValueError(f"`num_landmarks`: expected an int >= 1, got {num_landmarks!r}")
+        if not isinstance(nystrom_dim, int) or not 1 <= nystrom_dim <= num_landmarks:
+            raise ValueError(f"`nystrom_dim`: expected an int in [1, num_landmarks="
+                             f"{num_landmarks}] (the features are eigenvectors over the "
+                             f"landmarks), got {nystrom_dim!r}; lower nystrom_dim or raise "
+                             f"num_landmarks")
         check_history(history)
         self.root = Path(root)
         self.split, self.chunk, self.history = split, chunk, history
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
         manifest = store.read_manifest(self.root)
+        items = manifest["items"]
+        if split is not None:
+            splits = sorted({str(r.get("split")) for r in items})
+            if split not in splits:
+                raise ValueError(f"`split`: {root} has no {split!r} split; name one that its "
+                                 f"manifest lists: {', '.join(splits)}")
         keep = None if ids is None else set(ids)
-        self.records = [r for r in manifest["items"] if r["status"] == "ok"
+        self.records = [r for r in items if r["status"] == "ok"
                         and (split is None or r["split"] == split)
                         and (keep is None or r["id"] in keep)]
         if keep is not None and len(self.records) != len(keep):
             found = {r["id"] for r in self.records}
             raise ValueError(f"`ids`: not ok {split!r} sequences under {root}: "
                              f"{sorted(keep - found)[:5]}")
+        if not self.records:
+            listed = [r for r in items if split is None or r["split"] == split]
+            status: Dict[str, int] = {}
+            for r in listed:
+                status[str(r["status"])] = status.get(str(r["status"]), 0) + 1
+            what = "sequences" if split is None else f"{split!r} sequences"
+            raise ValueError(f"`split`: no ok {what} under {root} (the manifest lists "
+                             f"{len(listed)}: {status or 'none'}); simulate them with "
+                             f"`garmentgnn generate --out {root}` (failed ones with "
+                             f"--retry-failed)")
         self.index: List[Tuple[int, int, int]] = []  # (record, first frame, frames)
         for i, r in enumerate(self.records):
             T = int(r["num_frames"])
@@ -133,12 +157,23 @@ class SequenceChunks(Dataset):
             skin = transfer_skinning_weights(rest_pos, faces, body.vertices.float(),
                                              body.weights.float())
         pinned = np.asarray(seq["garment_pinned"]).astype(bool)
-        st = build_static(
-            rest_pos, faces, body, torch.as_tensor(np.asarray(skin, np.float32)),
-            face_uv=torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32)),
-            density=float((meta.get("material_params") or {}).get("density", DEFAULT_DENSITY)),
-            pinned=torch.from_numpy(pinned) if pinned.any() else None,
-            nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks)
+        try:
+            st = build_static(
+                rest_pos, faces, body, torch.as_tensor(np.asarray(skin, np.float32)),
+                face_uv=torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32)),
+                density=float((meta.get("material_params") or {}).get("density",
+                                                                      DEFAULT_DENSITY)),
+                pinned=torch.from_numpy(pinned) if pinned.any() else None,
+                nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks)
+        except ValueError as exc:  # the Nyström features' `k` is our nystrom_dim
+            msg = str(exc)
+            if not msg.startswith(("`k`", "`num_landmarks`")):
+                raise
+            path = store.sequence_path(self.root, self.records[i])
+            raise ValueError(f"`nystrom_dim`: {self.nystrom_dim} Nyström features with "
+                             f"num_landmarks={self.num_landmarks} do not fit the garment of "
+                             f"{path} ({len(rest_pos)} vertices; {msg.split(': ', 1)[-1]}); "
+                             f"lower nystrom_dim or raise num_landmarks") from None
         self.num_static_builds += 1
         return st, body
 
@@ -296,16 +331,26 @@ class GarmentDataModule(L.LightningDataModule):
     def load_state_dict(self, state: Dict[str, int]) -> None:
         self.start_epoch = int(state.get("next_epoch", 0))
 
-    def _make(self, split: Optional[str], ids: Optional[Sequence[str]] = None
+    def _make(self, name: str, split: Optional[str], ids: Optional[Sequence[str]] = None
               ) -> SequenceChunks:
+        """The chunks of ``split``, the value of argument ``name`` (``"val_split"``, ...):
+        an error about the split names that argument."""
         hp = self.hparams
-        return SequenceChunks(self.root, split, hp.chunk, hp.history, hp.nystrom_dim,
-                              hp.num_landmarks, drop_last=hp.drop_last,
-                              cache_size=hp.cache_size, ids=ids)
+        try:
+            return SequenceChunks(self.root, split, hp.chunk, hp.history, hp.nystrom_dim,
+                                  hp.num_landmarks, drop_last=hp.drop_last,
+                                  cache_size=hp.cache_size, ids=ids)
+        except ValueError as exc:
+            msg = str(exc)
+            if not msg.startswith("`split`"):
+                raise
+            fix = {"val_split": " (or val_split=None, --data.val_split null, to train "
+                                "without validation)"}.get(name, "")
+            raise ValueError(f"`{name}`{msg[len('`split`'):]}{fix}") from None
 
     def _train(self) -> SequenceChunks:
         if self.train_set is None:
-            train = self._make(self.hparams.train_split, self.hparams.train_ids)
+            train = self._make("train_split", self.hparams.train_split, self.hparams.train_ids)
             if self.hparams.batch_size > len(train):
                 raise ValueError(f"--data.batch_size: {self.hparams.batch_size} is more than "
                                  f"the {len(train)} chunks of the {self.hparams.train_split!r} "
@@ -324,12 +369,12 @@ class GarmentDataModule(L.LightningDataModule):
             self._train()
         if stage in (None, "fit", "validate") and self.val_set is None \
                 and hp.val_split is not None:
-            self.val_set = self._make(hp.val_split)
+            self.val_set = self._make("val_split", hp.val_split)
         if stage in (None, "test") and self.test_set is None:
-            self.test_set = self._make(hp.test_split)
+            self.test_set = self._make("test_split", hp.test_split)
         if stage in (None, "predict") and self.predict_set is None:
-            split = hp.test_split if hp.predict_split is None else hp.predict_split
-            self.predict_set = self._make(split)
+            name = "test_split" if hp.predict_split is None else "predict_split"
+            self.predict_set = self._make(name, hp[name])
 
     @property
     def dims(self) -> Dict[str, Optional[int]]:

@@ -65,6 +65,9 @@ TENSORBOARD_SUBDIR = "tensorboard"
 DEFAULT_MODEL = "garmentgnn.training.GarTransModule"
 #: Lightning's special ``--ckpt_path`` values (not files)
 SPECIAL_CKPT = ("last", "best", "hpc", "registry")
+#: the subcommands that score a trained model (refused without ``--ckpt_path``): what
+#: each would do with an untrained one
+EVALUATING = {"validate": "validate", "test": "test", "predict": "predict with"}
 #: the model sizes linked from :attr:`GarmentDataModule.dims` when the classes are built
 LINKED_DIMS = ("num_joints", "num_body_vertices", "num_vertices")
 #: every module argument linked from the data module
@@ -164,9 +167,11 @@ class GarmentCLI(LightningCLI):
     linked from the data module; subcommands ``fit``, ``validate``, ``test`` (the
     method's and LBS's metrics, :func:`metrics_table`) and ``predict``.
 
-    ``--ckpt_path X`` is checked first: an unreadable or changed file, a checkpoint of
-    another module class, or a ``--model.*`` flag (or config value) that differs from
-    X's hyper-parameters, is a :class:`~garmentgnn.training.integrity.CheckpointError`
+    ``validate``, ``test`` and ``predict`` need ``--ckpt_path`` (without it they would
+    score an untrained model).  ``--ckpt_path X`` is checked first: an unreadable or
+    changed file, a checkpoint of another module class, or a ``--model.*`` flag (or
+    config value) that differs from X's hyper-parameters, is a
+    :class:`~garmentgnn.training.integrity.CheckpointError`
     (the model is rebuilt from X's hyper-parameters)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -175,12 +180,25 @@ class GarmentCLI(LightningCLI):
 
     def parse_arguments(self, parser: Any, args: Any) -> None:
         super().parse_arguments(parser, args)
+        self.check_checkpoint_given()
         cls_path = self.check_checkpoint_flags()
         if cls_path is not None:
             # Lightning rebuilds the model from the checkpoint's hyper-parameters next;
             # a checkpoint written outside LightningCLI does not name its class, which is
             # then the configured one (not the parser's default)
             parser.set_defaults({f"{self.config.subcommand}.model": {"class_path": cls_path}})
+
+    def check_checkpoint_given(self) -> None:
+        """``validate``, ``test`` and ``predict`` score a trained model: without
+        ``--ckpt_path`` they would score the untrained one that the configuration builds,
+        so they are refused (:class:`CheckpointError` naming the flag)."""
+        sub = self.config.get("subcommand") if self.config is not None else None
+        if sub in EVALUATING and not self.config[sub].get("ckpt_path"):
+            raise CheckpointError(
+                f"--ckpt_path: `{sub}` without a checkpoint would {EVALUATING[sub]} the "
+                f"untrained model the configuration builds; pass --ckpt_path PATH, a "
+                f"checkpoint written by `garmentgnn train fit` (e.g. <default_root_dir>/"
+                f"logs/version_<n>/checkpoints/last.ckpt)")
 
     def check_checkpoint_flags(self) -> Optional[str]:
         """Refuse a ``--ckpt_path`` that does not match the configured module (see the
@@ -242,6 +260,36 @@ class GarmentCLI(LightningCLI):
         for name in LINKED_DIMS:
             parser.link_arguments("data", f"model.init_args.{name}", apply_on="instantiate",
                                   compute_fn=_dim(name))
+
+    def check_special_checkpoint(self, sub: str) -> None:
+        """``--ckpt_path last`` / ``best`` for ``validate``, ``test`` or ``predict``:
+        Lightning looks in this run's log folder (a new ``version_<n>``) and, finding no
+        file there, goes on with the untrained model (``last``) or fails with a message
+        about ``ModelCheckpoint`` (``best``); refused here, naming the flag."""
+        ckpt_path = self.config[sub].get("ckpt_path")
+        if ckpt_path not in ("last", "best"):
+            return
+        from lightning.pytorch.callbacks import ModelCheckpoint  # noqa: PLC0415
+        found = set()
+        for cb in self.trainer.checkpoint_callbacks:
+            if isinstance(cb, ModelCheckpoint):
+                found |= (cb._find_last_checkpoints(self.trainer) if ckpt_path == "last"
+                          else {cb.best_model_path} - {""})
+        if not any(os.path.isfile(f) for f in found):
+            raise CheckpointError(
+                f"--ckpt_path {ckpt_path}: `{sub}` finds no {ckpt_path} checkpoint in this "
+                f"run's folder ({self.trainer.log_dir}); it would {EVALUATING[sub]} the "
+                f"untrained model; give the checkpoint file, e.g. <default_root_dir>/logs/"
+                f"version_<n>/checkpoints/last.ckpt")
+
+    def before_validate(self) -> None:
+        self.check_special_checkpoint("validate")
+
+    def before_test(self) -> None:
+        self.check_special_checkpoint("test")
+
+    def before_predict(self) -> None:
+        self.check_special_checkpoint("predict")
 
     def after_test(self) -> None:
         """Print the method's and LBS's test metrics side by side."""

@@ -6,21 +6,23 @@ from __future__ import annotations
 import argparse
 import time
 
-from garmentgnn._argparse import HelpFormatter
+from garmentgnn._argparse import HelpFormatter, int_at_least, nonempty_path
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
     s = sub.add_parser("show", help="animate ground truth | checkpoints | LBS on a held-out "
                        "sequence (MP4, GIF, PNG, glTF, HTML viewer)", description=__doc__,
                        formatter_class=HelpFormatter)
-    s.add_argument("--data", required=True, help="generated dataset folder (manifest.json)")
+    s.add_argument("--data", required=True, type=nonempty_path,
+                   help="generated dataset folder (manifest.json)")
     s.add_argument("--ckpt", action="append", default=[], metavar="[NAME=]PATH",
                    help="a GarTrans checkpoint to show (repeat for baselines / ablations); "
                    "NAME is the panel title (default: the file name)")
     s.add_argument("--pred", action="append", default=[], metavar="NAME=FILE.npy",
                    help="any other method's garment on this sequence, [T, V, 3] in our vertex "
                    "order (e.g. a bench baseline), shown after the checkpoints")
-    s.add_argument("--out", required=True, help="output path without suffix (.mp4/.gif/.png/.glb)")
+    s.add_argument("--out", required=True, type=nonempty_path,
+                   help="output path without suffix (.mp4/.gif/.png/.glb)")
     s.add_argument("--split", default="test", help="the dataset split of the sequence")
     s.add_argument("--index", type=int, default=0, help="which sequence of the split")
     s.add_argument("--mode", choices=("gartrans", "gartrans_ar"), default="gartrans",
@@ -30,7 +32,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="past frames each prediction sees (as the checkpoints were trained)")
     s.add_argument("--num-landmarks", type=int, default=64,
                    help="Nystrom landmarks of the garment's geodesic features")
-    s.add_argument("--max-frames", type=int, default=None,
+    s.add_argument("--max-frames", type=int_at_least(1), default=None,
                    help="show at most this many frames (default: the whole sequence)")
     s.add_argument("--height", type=int, default=896, help="frame height in px (>= 720)")
     s.add_argument("--clim", type=float, default=None,
@@ -46,12 +48,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     # start-up: the `show` parser is built without loading the training package (lightning)
-    from garmentgnn.viz.compare import parse_named, show  # noqa: PLC0415
+    from garmentgnn.viz.compare import parse_named, show, unique_names  # noqa: PLC0415
     t0 = time.perf_counter()
-    res = show(args.data, dict(parse_named(args.ckpt)), args.out, split=args.split,
+    ckpts, preds = parse_named(args.ckpt), parse_named(args.pred, "--pred")
+    unique_names(ckpts + preds)
+    res = show(args.data, dict(ckpts), args.out, split=args.split,
                index=args.index, mode=args.mode, lbs=not args.no_lbs, history=args.history,
                num_landmarks=args.num_landmarks, max_frames=args.max_frames,
-               predictions=dict(parse_named(args.pred, "--pred")), gltf=not args.no_gltf,
+               predictions=dict(preds), gltf=not args.no_gltf,
                height=args.height, gif=not args.no_gif, html=args.html,
                clim=None if args.clim is None else (0.0, args.clim))
     a = res["animation"]

@@ -23,7 +23,7 @@ from garmentgnn.training.evaluate import predict
 from garmentgnn.training.integrity import load_checkpoint_file
 from garmentgnn.viz.animate import (GT_COLOR, Panel, default_error_limit, render_animation,
                                     vertex_error_cm)
-from garmentgnn.viz.viewer import write_viewer
+from garmentgnn.viz.viewer import viewer_bundle, write_viewer
 
 PathLike = Union[str, os.PathLike]
 
@@ -58,6 +58,17 @@ def parse_named(specs: Sequence[str], option: str = "--ckpt") -> List[Tuple[str,
     return out
 
 
+def unique_names(named: Sequence[Tuple[str, str]]) -> None:
+    """``ValueError`` when two of ``named`` (:func:`parse_named`'s pairs of ``--ckpt``
+    and ``--pred``) share a panel name: one would silently replace the other."""
+    seen: Dict[str, str] = {}
+    for name, path in named:
+        if name in seen:
+            raise ValueError(f"`ckpt`: two panels named {name!r} ({seen[name]}, {path}); "
+                             f"name them: --ckpt A={seen[name]} --ckpt B={path}")
+        seen[name] = path
+
+
 def load_checkpoint(path: PathLike):
     """A :class:`GarTransModule` from a Lightning checkpoint, on the CPU, in eval mode."""
     if not Path(path).is_file():
@@ -84,6 +95,10 @@ def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str
     Models run in eval mode (their mode is restored)."""
     if mode not in ("gartrans", "gartrans_ar"):
         raise ValueError(f"`mode`: expected 'gartrans' or 'gartrans_ar', got {mode!r}")
+    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(
+            max_frames, int) or max_frames < 1):  # -3 dropped the last 3 frames, silently
+        raise ValueError(f"`max_frames`: expected an int >= 1 (or None: every frame), got "
+                         f"{max_frames!r}")
     # loaded with autograd on: building the model runs a backward pass
     loaded = {name: (load_checkpoint(m) if isinstance(m, (str, os.PathLike)) else m)
               for name, m in models.items()}
@@ -156,12 +171,14 @@ def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
     labels as in the animation), with ``html`` also the viewer page ``<out>.html``
     (:func:`garmentgnn.viz.viewer.write_viewer`); returns ``{"animation": Animation,
     "gltf": path or None, "html": path or None, "comparison": Comparison}``."""
+    if html and not gltf:
+        raise ValueError("`html`: the viewer page shows the glTF file; leave `gltf` on")
+    if html:
+        viewer_bundle()  # a missing or damaged bundle before anything is rendered
     c = comparison(root, checkpoints, split, index, mode, lbs, history, num_landmarks,
                    max_frames, predictions)
     anim = render_animation(c.panels, c.faces, out, c.body_positions, c.body_faces, fps=c.fps,
                             caption=c.seq_id, frame_offset=int(c.frames[0]), **render_kw)
-    if html and not gltf:
-        raise ValueError("`html`: the viewer page shows the glTF file; leave `gltf` on")
     glb = page = None
     if gltf:
         glb = export_comparison_gltf(c, Path(out).with_suffix(".glb"), clim=anim.clim,

@@ -39,17 +39,37 @@ def bundle_path() -> Path:
     return Path(env) if env else _REPO / "build" / "viewer" / "viewer.bundle.js"
 
 
-def write_viewer(glb: PathLike, out: PathLike, title: str = "") -> Path:
-    """Write ``out`` (.html): one page that shows and plays ``glb``, with the labels and
-    colour bar the file carries (:mod:`garmentgnn.data.gltf`); returns its path.  When
-    WebGL is off or the file cannot be read, the page shows why in a red box."""
+def viewer_bundle() -> str:
+    """The three.js viewer bundle's text (:func:`bundle_path`), checked:
+    ``FileNotFoundError`` when it is missing, ``ValueError`` when it is not the viewer's
+    JavaScript (empty, not UTF-8 text, or without the page's ``glb`` element), each
+    naming the file and how to rebuild it.  ``garmentgnn show --html`` calls it before
+    it renders anything."""
     bundle = bundle_path()
     if not bundle.is_file():
         raise FileNotFoundError(f"the viewer bundle {bundle} is missing: {BUILD_HINT}")
+    try:
+        js = bundle.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"the viewer bundle {bundle} is not UTF-8 text (byte {e.start}): "
+                         f"a damaged file; delete it and {BUILD_HINT}") from None
+    if "glb" not in js:
+        what = "empty" if not js.strip() else "not the viewer's JavaScript"
+        raise ValueError(f"the viewer bundle {bundle} is {what}; delete it and "
+                         f"{BUILD_HINT}")
+    return js
+
+
+def write_viewer(glb: PathLike, out: PathLike, title: str = "") -> Path:
+    """Write ``out`` (.html): one page that shows and plays ``glb``, with the labels and
+    colour bar the file carries (:mod:`garmentgnn.data.gltf`); returns its path.  When
+    WebGL is off or the file cannot be read, the page shows why in a red box.  The
+    bundle is checked first (:func:`viewer_bundle`)."""
+    js = viewer_bundle()
     data = Path(glb).read_bytes()
     if data[:4] != b"glTF":
         raise ValueError(f"`glb`: {glb} is not a binary glTF (.glb) file")
-    js = bundle.read_text().replace("</script", "<\\/script")
+    js = js.replace("</script", "<\\/script")
     title = title or Path(glb).stem
     title_js = json.dumps(title).replace("<", "\\u003c")
     page = f"""<!DOCTYPE html>

@@ -1,0 +1,135 @@
+"""Bad arguments to the scripts in ``benchmarks/``: a list flag given twice kept only its
+last values, a value given twice ran twice, a count of 0 or a missing file ended in a
+traceback, a merge of a corrupt file did not name it.  Each is now one ``error:`` line
+naming the flag (exit status 2) or, for a repeated flag, the values added up
+(:mod:`garmentgnn._argparse`)."""
+import json
+import runpy
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+_SCRIPTS = {}
+
+
+def script(name):
+    """The functions of ``benchmarks/<name>.py`` (loaded once)."""
+    if name not in _SCRIPTS:
+        _SCRIPTS[name] = runpy.run_path(str(BENCHMARKS / f"{name}.py"),
+                                        run_name=f"{name}_args_check")
+    return _SCRIPTS[name]
+
+
+def _ran(*args, **kwargs):
+    raise AssertionError("the benchmark ran with these arguments")
+
+
+def refused(capsys, fn, argv, *words):
+    """``fn(argv)`` exits with status 2 and one last ``error:`` line naming ``words``
+    (before it chooses its output folder: the benchmark would run after that)."""
+    saved = fn.__globals__.get("output_path")
+    fn.__globals__["output_path"] = _ran
+    try:
+        with pytest.raises(SystemExit) as e:
+            fn(argv)
+    finally:
+        fn.__globals__["output_path"] = saved
+    err = capsys.readouterr().err.strip()
+    # argparse prints its error and exits with 2; a script's own check exits with the line
+    last = err.splitlines()[-1] if e.value.code == 2 else str(e.value.code)
+    assert "error: " in last and "Traceback" not in err, err[-800:]
+    assert all(w in last for w in words), last
+    return last
+
+
+@pytest.fixture
+def data(tmp_path):
+    """A folder that passes as a dataset (a manifest without items): the arguments are
+    checked before anything is read from it."""
+    (tmp_path / "manifest.json").write_text('{"items": []}')
+    return str(tmp_path)
+
+
+# ------------------------------------------------------------------ learning.py
+def test_learning_repeated_seed_flags_add_up(data):
+    """`--seed 0 --seed 1 --seed 2` ran seed 2 only."""
+    parse = script("learning")["parse_args"]
+    assert parse(["curves", "--data", data, "--seed", "0", "--seed", "1", "--seed", "2"]
+                 ).seed == [0, 1, 2]
+    assert parse(["curves", "--data", data, "--seed", "3", "4"]).seed == [3, 4]
+    assert parse(["curves", "--data", data]).seed == [0]
+    v = parse(["curves", "--data", data, "--variants", "config", "--variants", "DA-style"])
+    assert v.variants == ["config", "DA-style"]
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--seed", "0", "0", "0"], ["--seed: 0 given more than once"]),
+    (["--seed", "1", "--seed", "1"], ["--seed: 1 given more than once"]),
+    (["--threads", "0"], ["argument --threads: expected an integer >= 1, got 0"]),
+    (["--steps", "10", "--every", "50"], ["--every 50: more than --steps 10"]),
+    (["--steps", "0"], ["argument --steps: expected an integer >= 1"]),
+    (["--variants", "config", "config"], ["--variants: config given more than once"]),
+])
+def test_learning_bad_counts_and_repeats_are_refused(capsys, data, argv, words):
+    refused(capsys, script("learning")["parse_args"], ["curves", "--data", data] + argv,
+            *words)
+
+
+def test_learning_missing_dataset_is_one_line(capsys, tmp_path):
+    """A missing --data printed a traceback."""
+    refused(capsys, script("learning")["main"], ["curves", "--data", str(tmp_path / "typo"),
+                                                 "--out", str(tmp_path / "o")],
+            f"--data {tmp_path / 'typo'}", "garmentgnn generate")
+
+
+def test_learning_merge_names_a_missing_or_corrupt_file(capsys, tmp_path):
+    """merge on a corrupt JSON said "Expecting value" without the file; a missing one
+    printed a traceback."""
+    main = script("learning")["main"]
+    out = ["--out", str(tmp_path / "o")]
+    refused(capsys, main, ["merge", "--curves", str(tmp_path / "none.json")] + out,
+            "argument --curves", "none.json: no such file")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"variants": {')
+    refused(capsys, main, ["merge", "--curves", str(bad)] + out,
+            f"--curves {bad}: not valid JSON")
+    grad = tmp_path / "grad.json"
+    grad.write_text(json.dumps({"command": "python benchmarks/learning.py grad"}))
+    refused(capsys, main, ["merge", "--curves", str(grad)] + out,
+            f"--curves: {grad}: no 'variants'")
+    with pytest.raises(FileNotFoundError, match="none.json: no such file"):
+        script("learning")["merge_curves"]([tmp_path / "none.json"])
+
+
+# ------------------------------------------------------------------ the other scripts
+CASES = [
+    ("engine_ladder", ["--data", "{typo}"], ["argument --data", "garmentgnn generate"]),
+    ("engine_ladder", ["--data", "{data}", "--per-group", "0"], ["--per-group"]),
+    ("engines", ["--sizes", "300", "--sizes", "300"], ["--sizes: 300 given more than once"]),
+    ("engines", ["--threads", "0"], ["argument --threads"]),
+    ("engines", ["--cases", "hang", "hang"], ["--cases: hang given more than once"]),
+    ("error_split", ["--data", "{data}", "--split", "tset"], ["--split tset"]),
+    ("gt_noise", ["--scales", "nan"], ["argument --scales: expected a finite number"]),
+    ("gt_noise", ["--scales", "0"], ["argument --scales: expected a number > 0"]),
+    ("gt_noise", ["--engines", "torch", "torch"], ["--engines: torch given more than once"]),
+    ("inference", ["--batches", "0"], ["argument --batches"]),
+    ("inference", ["--sizes", "1000", "--sizes", "1000"], ["--sizes: 1000 given"]),
+    ("layers", ["--threads", "0"], ["argument --threads"]),
+    ("layers", ["--baseline", "{typo}"], ["argument --baseline", "no such folder"]),
+    ("layers", ["--layers", "sat", "--layers", "sat"], ["--layers: sat given"]),
+    ("simulator", ["--stiffness", "inf"], ["argument --stiffness"]),
+    ("simulator", ["--threads", "1", "1"], ["--threads: 1 given more than once"]),
+    ("static_drape_steps", ["--data", "{data}", "--minutes", "0"], ["argument --minutes"]),
+    ("static_drape_steps", ["--data", "{data}", "--reference", "{typo}"],
+     ["--reference", "no such file"]),
+]
+
+
+@pytest.mark.parametrize("name, argv, words", CASES)
+def test_other_benchmark_arguments_are_checked(capsys, tmp_path, data, name, argv, words):
+    """Each ran with the last of a repeated list flag, ran a value twice, or failed late
+    with a traceback (a thread count of 0, a missing file, ``--minutes 0``:
+    ``ValueError``), or, for ``error_split --split tset``, divided by zero."""
+    argv = [a.format(data=data, typo=str(tmp_path / "typo")) for a in argv]
+    refused(capsys, script(name)["main"], argv + ["--out", str(tmp_path / "o")], *words)

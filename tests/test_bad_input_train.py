@@ -1,0 +1,153 @@
+"""Bad input to ``garmentgnn train`` and the data module: an untrained model scored
+without a word, split names that match nothing, an ablation config without its base,
+Nyström sizes that cannot fit, a NaN in a training file.  Each ended in a silent success
+or an error naming an internal argument; now each is one ``error:`` line naming the flag
+(or the file and the array) and the fix."""
+import shutil
+
+import numpy as np
+import pytest
+
+from garmentgnn.cli import main as cli_main
+from garmentgnn.data import read_manifest, store
+from garmentgnn.training import GarmentDataModule, SequenceChunks
+from garmentgnn.training.configs import config_path, resolve_config_args
+
+from test_bad_input_cli import edit_sequence, one_error
+from test_training import NY, root  # noqa: F401  (module-scoped toy dataset: train + val)
+
+
+def data_args(data_root, tmp_path):
+    return ["--data.root", str(data_root), "--data.chunk", "4", "--data.history", "3",
+            "--data.nystrom_dim", str(NY), "--data.num_landmarks", "16",
+            "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "1",
+            "--trainer.limit_val_batches", "1", "--trainer.enable_progress_bar", "false",
+            "--trainer.default_root_dir", str(tmp_path),
+            "--trainer.logger.init_args.save_dir", str(tmp_path)]
+
+
+@pytest.fixture(scope="module")
+def da_checkpoint(root, tmp_path_factory):  # noqa: F811
+    """A DA-style checkpoint trained for one step on the toy dataset (~5 s)."""
+    out = tmp_path_factory.mktemp("da")
+    assert cli_main(["train", "fit", "--config", "baselines/da"] + data_args(root, out)) == 0
+    (last,) = out.rglob("last.ckpt")
+    return last
+
+
+# ------------------------------------------------------------------ no checkpoint
+@pytest.mark.parametrize("sub", ["test", "predict", "validate"])
+def test_scoring_without_a_checkpoint_is_refused(root, tmp_path, capsys, sub):  # noqa: F811
+    """`train test` printed the metrics of an untrained model (exit 0) before."""
+    rc = cli_main(["train", sub, "--config", "baselines/da", "--data.test_split", "val"]
+                  + data_args(root, tmp_path))
+    one_error(capsys, rc, "--ckpt_path", "untrained", "pass --ckpt_path PATH")
+    assert not list(tmp_path.rglob("predictions"))
+
+
+@pytest.mark.parametrize("special", ["last", "best"])
+def test_scoring_with_last_or_best_and_no_such_file_is_refused(root, tmp_path, capsys,  # noqa: F811
+                                                               special):
+    """`--ckpt_path last` with no last checkpoint in the new run's folder: Lightning
+    warned and tested the untrained model."""
+    rc = cli_main(["train", "test", "--config", "baselines/da", "--data.test_split", "val",
+                   "--ckpt_path", special] + data_args(root, tmp_path))
+    one_error(capsys, rc, f"--ckpt_path {special}", "untrained", "give the checkpoint file")
+
+
+# ------------------------------------------------------------------ split names
+def test_unknown_split_names_are_refused_listing_the_manifests(root):  # noqa: F811
+    """`SequenceChunks(root, split="tset")` had length 0; the data module predicted
+    nothing (exit 0) or trained without validation."""
+    with pytest.raises(ValueError, match=r"`split`: .* no 'tset' split; name one that its "
+                                         r"manifest lists: train, val"):
+        SequenceChunks(root, split="tset", nystrom_dim=NY, num_landmarks=16)
+    for name in ("predict_split", "test_split", "val_split", "train_split"):
+        dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16,
+                               **{name: "tset"})
+        with pytest.raises(ValueError, match=f"`{name}`: .*'tset'.*train, val"):
+            dm.setup({"predict_split": "predict", "test_split": "test"}.get(name, "fit"))
+
+
+def test_empty_split_or_dataset_is_an_error(root, tmp_path):  # noqa: F811
+    """A split whose sequences are all pending (or failed) gave zero chunks."""
+    out = tmp_path / "d"
+    shutil.copytree(root, out)
+    doc = read_manifest(out)
+    for r in doc["items"]:
+        if r["split"] == "val":
+            r.update(status="failed", message="diverged")
+    store.write_manifest(out, doc["items"], {k: v for k, v in doc.items() if k != "items"})
+    with pytest.raises(ValueError, match=r"`split`: no ok 'val' sequences .*'failed': 1.*"
+                                         r"--retry-failed"):
+        SequenceChunks(out, split="val", nystrom_dim=NY, num_landmarks=16)
+    for r in doc["items"]:
+        r.update(status="pending")
+    store.write_manifest(out, doc["items"], {k: v for k, v in doc.items() if k != "items"})
+    with pytest.raises(ValueError, match=r"`split`: no ok sequences under .*'pending': 2"):
+        SequenceChunks(out, split=None, nystrom_dim=NY, num_landmarks=16)
+
+
+def test_fit_with_a_misspelt_val_split_names_the_flag(root, tmp_path, capsys):  # noqa: F811
+    """`fit --data.val_split vall` trained without validation (exit 0) before."""
+    rc = cli_main(["train", "fit", "--config", "baselines/da", "--data.val_split", "vall"]
+                  + data_args(root, tmp_path))
+    one_error(capsys, rc, "--data.val_split", "'vall'", "train, val", "--data.val_split null")
+    assert not list(tmp_path.rglob("*.ckpt"))
+
+
+def test_predict_with_a_misspelt_split_names_the_flag(root, tmp_path, capsys,  # noqa: F811
+                                                      da_checkpoint):
+    """`predict --data.predict_split tset` wrote nothing and exited 0."""
+    rc = cli_main(["train", "predict", "--config", "baselines/da", "--data.predict_split",
+                   "tset", "--ckpt_path", str(da_checkpoint)] + data_args(root, tmp_path))
+    one_error(capsys, rc, "--data.predict_split", "'tset'", "train, val")
+
+
+# ------------------------------------------------------------------ configs
+@pytest.mark.parametrize("configs", [["ablations/gat"], ["baselines/da", "ablations/gat"]])
+def test_ablation_config_without_gartrans_is_refused(root, tmp_path, capsys,  # noqa: F811
+                                                     configs):
+    """An ablation alone trained with no schedule, no checkpoints and no loss weights."""
+    argv = [a for c in configs for a in ("--config", c)]
+    rc = cli_main(["train", "fit"] + argv + data_args(root, tmp_path)
+                  + ["--model.init_args.compile_search", "false"])
+    one_error(capsys, rc, "--config ablations/gat", "--config gartrans --config ablations/gat")
+    assert not list(tmp_path.rglob("*.ckpt"))
+    stacked = resolve_config_args(["--config", str(config_path("gartrans")),
+                                   "--config=ablations/gat"])
+    assert stacked[-1].endswith("ablations/gat.yaml")  # on its base: resolved, no error
+
+
+# ------------------------------------------------------------------ Nyström sizes
+@pytest.mark.parametrize("ny, lm, words", [
+    ("32", "8", ["expected an int in [1, num_landmarks=8]", "got 32"]),
+    ("60", "64", ["60 Nyström features with num_landmarks=64", ".npz", "lower nystrom_dim"]),
+])
+def test_nystrom_dim_that_cannot_fit_names_the_flags(root, tmp_path, capsys, ny, lm,  # noqa: F811
+                                                     words):
+    """"`k`: expected an int in [1, 8]" named an argument no flag has."""
+    rc = cli_main(["train", "fit", "--config", "baselines/da"] + data_args(root, tmp_path)
+                  + ["--data.nystrom_dim", ny, "--data.num_landmarks", lm])
+    last = one_error(capsys, rc, "--data.nystrom_dim", *words)
+    assert "`k`" not in last
+
+
+# ------------------------------------------------------------------ NaN in a file
+def test_nan_in_a_training_file_names_the_file_and_the_array(root, tmp_path, capsys):  # noqa: F811
+    """"`pos`: contains NaN or inf entries" named neither the file nor the array."""
+    out = tmp_path / "d"
+    shutil.copytree(root, out)
+    rec = next(r for r in read_manifest(out)["items"] if r["split"] == "train")
+    path = store.sequence_path(out, rec)
+    rot = store.load_sequence(path)["motion_rotations"].copy()
+    rot[2, 1, 0] = np.nan
+    edit_sequence(path, motion_rotations=rot)
+    doc = read_manifest(out)  # the file's new hash accepted, as `manifest` would
+    for r in doc["items"]:
+        if r["id"] == rec["id"]:
+            r["sha256"] = store.file_sha256(path)
+    store.write_manifest(out, doc["items"], {k: v for k, v in doc.items() if k != "items"})
+    rc = cli_main(["train", "fit", "--config", "baselines/da"] + data_args(out, tmp_path / "r"))
+    one_error(capsys, rc, str(path), "motion_rotations contain NaN/inf in 1 of",
+              "(first at index (2, 1, 0))")
