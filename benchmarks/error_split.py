@@ -41,7 +41,7 @@ from garmentgnn.data.store import read_manifest
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics import vertex_distance
 from garmentgnn.metrics.split import posed, to_rest_frame
-from garmentgnn.training import SequenceChunks
+from garmentgnn.data import SequenceChunks
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

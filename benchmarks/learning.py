@@ -56,8 +56,9 @@ from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.data.store import read_json, read_manifest
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
 from garmentgnn.physics.materials import MATERIALS
+from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 ProgressiveSchedule, SequenceChunks)
+                                 ProgressiveSchedule)
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 from garmentgnn.training.module import loss_inputs
 

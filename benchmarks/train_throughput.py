@@ -37,8 +37,8 @@ from garmentgnn._argparse import (HelpFormatter, add_output_args, benchmark_cach
 from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.data import Spec, generate, store
 from garmentgnn.garments.skinning import transfer_skinning_weights
-from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 SequenceChunks)
+from garmentgnn.data import SequenceChunks
+from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule)
 from garmentgnn.training.configs import load_config, model_args
 
 HERE = Path(__file__).resolve().parent

@@ -34,7 +34,7 @@ from garmentgnn.motion.sequence import Motion, match_joints
 from garmentgnn.physics import material
 from garmentgnn.sim import SimSettings, simulate
 from garmentgnn.training import GarTransModule
-from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.data import SequenceChunks
 from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
 
 from test_data import fake_simulate

@@ -10,7 +10,8 @@ import pytest
 
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import read_manifest, store
-from garmentgnn.training import GarmentDataModule, SequenceChunks
+from garmentgnn.data import SequenceChunks
+from garmentgnn.training import GarmentDataModule
 from garmentgnn.training.configs import config_path, resolve_config_args
 
 from test_bad_input_cli import edit_sequence, one_error

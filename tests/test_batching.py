@@ -8,8 +8,9 @@ import torch
 
 from garmentgnn.data import Spec, generate
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, EpochShuffleSampler, GarmentDataModule,
-                                 GarTransModule, SequenceChunks)
+                                 GarTransModule)
 from garmentgnn.training.configs import load_config, model_args
 
 from conftest import lbs_simulate

@@ -20,7 +20,7 @@ from garmentgnn.data.store import load_sequence, sequence_path
 from garmentgnn.garments import make_garment
 from garmentgnn.models import GarTrans
 from garmentgnn.models.baselines import LBSBaseline
-from garmentgnn.training import SequenceChunks
+from garmentgnn.data import SequenceChunks
 
 NY, LANDMARKS, HISTORY = 8, 16, 2
 KW = {"history": HISTORY, "nystrom_dim": NY, "num_landmarks": LANDMARKS}

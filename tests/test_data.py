@@ -24,7 +24,7 @@ from garmentgnn.data import store
 from garmentgnn.data.store import LRUCache
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training import SequenceChunks
+from garmentgnn.data import SequenceChunks
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_SIM = importlib.util.find_spec("garmentgnn.sim") is not None and \

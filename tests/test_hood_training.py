@@ -11,7 +11,8 @@ from garmentgnn.bench.methods import BASELINES, HOOD
 from garmentgnn.data import Spec, generate
 from garmentgnn.models.baselines import CoarseLevel, HOODStyle
 from garmentgnn.models.blocks import RunningNormalizer
-from garmentgnn.training import BaselineModule, GarmentDataModule, SequenceChunks
+from garmentgnn.data import SequenceChunks
+from garmentgnn.training import (BaselineModule, GarmentDataModule)
 from garmentgnn.training.module import loss_inputs
 
 from conftest import lbs_simulate

@@ -12,7 +12,7 @@ from conftest import lbs_simulate
 from garmentgnn.data import Spec, generate
 from garmentgnn.metrics import split_inputs, static_dynamic_split
 from garmentgnn.metrics.split import posed, to_rest_frame
-from garmentgnn.training import SequenceChunks
+from garmentgnn.data import SequenceChunks
 
 
 def affine(lin: np.ndarray, off: np.ndarray) -> torch.Tensor:

@@ -9,7 +9,8 @@ from garmentgnn.bench import scoring
 from garmentgnn.data import generate, preset
 from garmentgnn.metrics import evaluate, evaluate_inputs
 from garmentgnn.metrics.split import split_inputs
-from garmentgnn.training import GarTransModule, GarmentDataModule, SequenceChunks
+from garmentgnn.data import SequenceChunks
+from garmentgnn.training import (GarTransModule, GarmentDataModule)
 from garmentgnn.training.evaluate import evaluate_split
 
 from conftest import lbs_simulate

@@ -9,15 +9,9 @@ import torch
 from garmentgnn.data import Spec, generate, motion_key
 from garmentgnn.geometry import signed_distance
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
-from garmentgnn.training import (
-    PHASE_TERMS,
-    REST_BRANCH,
-    GarmentDataModule,
-    EpochShuffleSampler,
-    GarTransModule,
-    ProgressiveSchedule,
-    SequenceChunks,
-)
+from garmentgnn.data import SequenceChunks
+from garmentgnn.training import (PHASE_TERMS, REST_BRANCH, GarmentDataModule, EpochShuffleSampler,
+                                 GarTransModule, ProgressiveSchedule)
 from garmentgnn.training.evaluate import evaluate_split
 
 from conftest import lbs_simulate

@@ -14,7 +14,7 @@ from garmentgnn.cli import main as cli_main
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
 from garmentgnn.training.configs import available, config_path, model_args
-from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)

@@ -51,12 +51,12 @@ from garmentgnn.bench.page import MEDIA
 from garmentgnn.bench.records import failure
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.timing import batch_sweep, peak_memory
-from garmentgnn.data import store
+from garmentgnn.data import SequenceChunks, store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.geometry import push_outside
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 ProgressiveSchedule, SequenceChunks, TimeBudget)
+                                 ProgressiveSchedule, TimeBudget)
 
 KIND = "learned"
 #: the record kind of :meth:`LearnedRunner.stability_record`

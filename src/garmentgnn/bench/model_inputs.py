@@ -1,6 +1,6 @@
 """GarTrans inputs for a bench sequence, built by the training data module's own code.
 
-:class:`BenchChunks` is :class:`garmentgnn.training.SequenceChunks` reading one
+:class:`BenchChunks` is :class:`garmentgnn.data.SequenceChunks` reading one
 in-memory :class:`~garmentgnn.bench.sequences.BenchSequence` instead of a generated
 ``.npz`` file: its items (static inputs from ``SequenceChunks._build_static``: edge
 index, Nyström features, ClothRest, masses, body distances, transferred skinning
@@ -21,7 +21,8 @@ from torch import Tensor
 from garmentgnn.bench.sequences import BenchSequence
 from garmentgnn.data import store
 from garmentgnn.models.inputs import check_history
-from garmentgnn.training import GarTransModule, SequenceChunks
+from garmentgnn.data import SequenceChunks
+from garmentgnn.training import GarTransModule
 
 
 class BenchChunks(SequenceChunks):

@@ -61,7 +61,7 @@ def stratified(records: Sequence[Dict[str, Any]], n: int) -> List[str]:
 
 def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
     """Per test sequence: ``predict(i, item)`` (the garment ``[T, V, 3]`` of item ``i``
-    of ``test``, a whole-sequence :class:`~garmentgnn.training.SequenceChunks`) scored
+    of ``test``, a whole-sequence :class:`~garmentgnn.data.SequenceChunks`) scored
     against its simulation.  Metrics are frame means over the sequence's frames the engine
     converged on (``frames``; the others are counted in ``excluded_frames``; a sequence
     with none is left out), ``collision`` renamed ``collision_rate``; raises

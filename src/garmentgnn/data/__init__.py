@@ -1,7 +1,8 @@
 """Dataset specs and presets (garments x bodies x motions x materials), their generation
 through an engine, the on-disk store (sequence files, manifest) and export (PC2, OBJ,
-glTF, Alembic, .blend).  The model inputs read from it are
-:class:`garmentgnn.training.SequenceChunks`'s."""
+glTF, Alembic, .blend), and the reader that makes model inputs of it,
+:class:`SequenceChunks`."""
+from garmentgnn.data.chunks import DEFAULT_DENSITY, SequenceChunks
 from garmentgnn.data.export import export_sequence, write_obj_sequence, write_pc2
 from garmentgnn.data.generate import SpecMismatch, Summary, generate
 from garmentgnn.data.keys import body_key, garment_key, motion_key
@@ -17,7 +18,7 @@ from garmentgnn.data.store import (
     validate_sequence,
 )
 
-__all__ = ["IntegrityError", "PRESETS", "Spec",
+__all__ = ["DEFAULT_DENSITY", "IntegrityError", "PRESETS", "SequenceChunks", "Spec",
            "SpecMismatch", "Summary", "body_key", "export_sequence", "file_sha256",
            "garment_key", "generate", "load_record_sequence", "load_sequence", "motion_key",
            "preset", "read_manifest", "rebuild_manifest", "run_item", "validate_sequence",

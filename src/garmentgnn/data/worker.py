@@ -17,6 +17,7 @@ import torch
 from garmentgnn.data import store
 from garmentgnn.data._lifeline import watch_parent
 from garmentgnn.data.presets import build_inputs
+from garmentgnn.data.sequence_check import nonfinite_arrays
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.sim import SimSettings, simulate
 from garmentgnn.sim.blender import BlenderSettings, blender_version, simulate_blender
@@ -112,7 +113,7 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
         }
         if pen is not None:
             arrays["penetration"] = pen
-        bad = store.nonfinite_arrays(arrays)  # a file that would fail store.check_sequence
+        bad = nonfinite_arrays(arrays)  # a file that would fail store.check_sequence
         if bad is not None:
             raise RuntimeError(f"simulator or inputs: {bad}")
         meta = {k: item[k] for k in ("id", "garment", "body", "motion", "material", "settings",

@@ -4,7 +4,7 @@ Every method (GarTrans, its ablations, the baselines, LBS), every loss, metric a
 bench reads a :class:`GarmentInputs`; it is built in one place: :func:`build_static`
 makes the per-garment part once (graph, Nyström features, rest state, masses,
 skinning weights, rest body), :func:`with_frames` adds the frames of a chunk.  The
-training data module (:class:`garmentgnn.training.SequenceChunks`) and the bench's
+training data module (:class:`garmentgnn.data.SequenceChunks`) and the bench's
 in-memory sequences both go through these two functions.
 
 :class:`GarmentInputs` is a PyG :class:`~torch_geometric.data.Data` (one graph: the

@@ -1,10 +1,9 @@
-"""Lightning training: chunked sequence data, the GarTrans and baseline LightningModules
+"""Lightning training: the data module, the GarTrans and baseline LightningModules
 (both :class:`GarmentModule`), the progressive schedule callback (paper §4.1), a
 wall-clock training budget and the packaged configurations."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
            GarmentDataModule,
-           SequenceChunks,
 )
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.baselines import BaselineModule
@@ -21,7 +20,6 @@ __all__ = [
            "GarmentModule",
            "GarmentDataModule",
            "ProgressiveSchedule",
-           "SequenceChunks",
            "TimeBudget",
            "loss_inputs",
 ]

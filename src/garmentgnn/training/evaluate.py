@@ -24,7 +24,7 @@ import torch
 
 from garmentgnn.metrics import METRIC_UNITS, evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.data import SequenceChunks
 
 MODES = ("gartrans", "gartrans_ar", "lbs")
 

@@ -18,7 +18,7 @@ import torch
 from garmentgnn.data import store
 from garmentgnn.data.gltf import GltfMesh, write_gltf
 from garmentgnn.training import GarTransModule
-from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
 from garmentgnn.training.integrity import load_checkpoint_file
 from garmentgnn.viz.animate import (GT_COLOR, Panel, default_error_limit, render_animation,

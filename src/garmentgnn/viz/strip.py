@@ -13,7 +13,7 @@ from typing import Tuple, Union
 import torch
 
 from garmentgnn.training.base import GarmentModule
-from garmentgnn.training.datamodule import SequenceChunks
+from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
 from garmentgnn.viz.mpl import render_grid
 

@@ -1,0 +1,199 @@
+"""The dataset reader: chunks of consecutive frames of a generated dataset, as model inputs.
+
+A *chunk* is one garment on one body over ``B`` consecutive frames of one generated
+sequence (the ``.npz`` files written by ``garmentgnn generate``, loaded with
+:func:`garmentgnn.data.store.load_sequence`).  GarTrans predicts the frames of a
+chunk in parallel and shares one static encoding (``encode_static``) between them.
+
+Each item is a :class:`~garmentgnn.models.inputs.GarmentInputs` (a PyG ``Data``),
+built by
+:func:`~garmentgnn.models.inputs.build_static` and
+:func:`~garmentgnn.models.inputs.with_frames`: the model inputs every method, loss and
+metric reads.  ``skin_weights`` are the ones stored with the sequence (the weights the
+engine skinned the garment with); files written before they were stored get the same
+transfer recomputed.
+
+The static inputs (edge index, Nyström features, ClothRest, masses, rest body) are
+computed once per sequence and cached (``static_cache`` entries, LRU); positions and
+motion are cached per sequence file (``cache_size`` files, LRU).
+
+``chunks[[i, j, ...]]`` collates those chunks (of one frame count) as one PyG ``Batch``
+(:meth:`GarmentInputs.collate`): what a batched training step reads
+(:class:`garmentgnn.training.GarmentDataModule`).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from garmentgnn.body.factory import build_body
+from garmentgnn.data import store
+from garmentgnn.garments.skinning import transfer_skinning_weights
+from garmentgnn.models.inputs import GarmentInputs, build_static, check_history, with_frames
+
+__all__ = ["DEFAULT_DENSITY", "SequenceChunks"]
+
+DEFAULT_DENSITY = 0.15
+
+
+class SequenceChunks(Dataset):
+    """Chunks of ``chunk`` consecutive frames of every ok sequence of ``split``.
+
+    Args:
+        root: generation output folder (``manifest.json`` + ``sequences/``).
+        split: ``"train" | "val" | "test"`` or ``None`` for all; a split the manifest
+            does not list, or one without ok sequences, is a ``ValueError``.
+        chunk: frames per chunk ``B``; a sequence is cut into ``ceil(T / chunk)``
+            chunks (the last may be shorter) -- ``drop_last=True`` drops a short one.
+        history: previous frames per pose history (``H = history + 1 >= 2``).
+        nystrom_dim, num_landmarks: Nyström features (``k`` must equal the model's
+            ``nystrom_dim``).
+        cache_size, static_cache: sequence files / static inputs kept (LRU).
+        ids: keep only these sequence ids (e.g. one garment's sequences).
+
+    ``chunks[i]`` is one chunk; ``chunks[[i, j, ...]]`` those chunks as one batch.
+    """
+
+    def __init__(self, root, split: Optional[str] = "train", chunk: int = 8, history: int = 3,
+                 nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
+                 cache_size: int = 4, static_cache: int = 64,
+                 ids: Optional[Sequence[str]] = None) -> None:
+        if chunk < 1:
+            raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
+        if not isinstance(num_landmarks, int) or num_landmarks < 1:
+            raise ValueError(f"`num_landmarks`: expected an int >= 1, got {num_landmarks!r}")
+        if not isinstance(nystrom_dim, int) or not 1 <= nystrom_dim <= num_landmarks:
+            raise ValueError(f"`nystrom_dim`: expected an int in [1, num_landmarks="
+                             f"{num_landmarks}] (the features are eigenvectors over the "
+                             f"landmarks), got {nystrom_dim!r}; lower nystrom_dim or raise "
+                             f"num_landmarks")
+        check_history(history)
+        self.root = Path(root)
+        self.split, self.chunk, self.history = split, chunk, history
+        self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
+        self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
+        manifest = store.read_manifest(self.root)
+        items = manifest["items"]
+        if split is not None:
+            splits = sorted({str(r.get("split")) for r in items})
+            if split not in splits:
+                raise ValueError(f"`split`: {root} has no {split!r} split; name one that its "
+                                 f"manifest lists: {', '.join(splits)}")
+        keep = None if ids is None else set(ids)
+        self.records = [r for r in items if r["status"] == "ok"
+                        and (split is None or r["split"] == split)
+                        and (keep is None or r["id"] in keep)]
+        if keep is not None and len(self.records) != len(keep):
+            found = {r["id"] for r in self.records}
+            raise ValueError(f"`ids`: not ok {split!r} sequences under {root}: "
+                             f"{sorted(keep - found)[:5]}")
+        if not self.records:
+            listed = [r for r in items if split is None or r["split"] == split]
+            status: Dict[str, int] = {}
+            for r in listed:
+                status[str(r["status"])] = status.get(str(r["status"]), 0) + 1
+            what = "sequences" if split is None else f"{split!r} sequences"
+            raise ValueError(f"`split`: no ok {what} under {root} (the manifest lists "
+                             f"{len(listed)}: {status or 'none'}); simulate them with "
+                             f"`garmentgnn generate --out {root}` (failed ones with "
+                             f"--retry-failed)")
+        self.index: List[Tuple[int, int, int]] = []  # (record, first frame, frames)
+        for i, r in enumerate(self.records):
+            T = int(r["num_frames"])
+            for t0 in range(0, T, chunk):
+                n = min(chunk, T - t0)
+                if n == chunk or not drop_last:
+                    self.index.append((i, t0, n))
+        self._seqs = store.LRUCache(self.cache_size)
+        self._static = store.LRUCache(self.static_cache)
+        self.num_file_loads = 0
+        self.num_static_builds = 0
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def converged(self, idx: int) -> torch.Tensor:
+        """``[n]`` bool: which frames of item ``idx`` the engine converged on (the sequence
+        file's ``converged``); metrics leave the others out
+        (:func:`garmentgnn.metrics.evaluate_inputs`'s ``keep``)."""
+        i, t0, n = self.index[idx]
+        conv = self.sequence(i).get("converged")
+        if conv is None:
+            return torch.ones(n, dtype=torch.bool)
+        return torch.from_numpy(np.asarray(conv[t0:t0 + n], dtype=bool))
+
+    # -- caches -----------------------------------------------------------------
+    def sequence(self, i: int) -> Dict[str, Any]:
+        rec = self.records[i]
+
+        def load() -> Dict[str, Any]:
+            self.num_file_loads += 1
+            return store.load_record_sequence(self.root, rec)
+
+        return self._seqs.get_or_build(rec["id"], load)
+
+    def static(self, i: int) -> GarmentInputs:
+        """The per-sequence static inputs (cached)."""
+        return self._static_and_body(i)[0]
+
+    def _static_and_body(self, i: int) -> Tuple[GarmentInputs, Any]:
+        return self._static.get_or_build(self.records[i]["id"], lambda: self._build_static(i))
+
+    def _build_static(self, i: int) -> Tuple[GarmentInputs, Any]:
+        seq = self.sequence(i)
+        meta = seq["meta"]
+        rest_pos = torch.from_numpy(np.asarray(seq["garment_vertices"], np.float32))
+        faces = torch.from_numpy(np.asarray(seq["garment_faces"])).long()
+        body = build_body(meta["body"])
+        skin = seq.get("garment_skin_weights")
+        if skin is None:  # files written before the weights were stored: the same transfer
+            skin = transfer_skinning_weights(rest_pos, faces, body.vertices.float(),
+                                             body.weights.float())
+        pinned = np.asarray(seq["garment_pinned"]).astype(bool)
+        try:
+            st = build_static(
+                rest_pos, faces, body, torch.as_tensor(np.asarray(skin, np.float32)),
+                face_uv=torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32)),
+                density=float((meta.get("material_params") or {}).get("density",
+                                                                      DEFAULT_DENSITY)),
+                pinned=torch.from_numpy(pinned) if pinned.any() else None,
+                nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks)
+        except ValueError as exc:  # the Nyström features' `k` is our nystrom_dim
+            msg = str(exc)
+            if not msg.startswith(("`k`", "`num_landmarks`")):
+                raise
+            path = store.sequence_path(self.root, self.records[i])
+            raise ValueError(f"`nystrom_dim`: {self.nystrom_dim} Nyström features with "
+                             f"num_landmarks={self.num_landmarks} do not fit the garment of "
+                             f"{path} ({len(rest_pos)} vertices; {msg.split(': ', 1)[-1]}); "
+                             f"lower nystrom_dim or raise num_landmarks") from None
+        self.num_static_builds += 1
+        return st, body
+
+    # -- items --------------------------------------------------------------------
+    def frame_counts(self) -> List[int]:
+        """Frames of each chunk (what a batch of chunks must share)."""
+        return [n for _, _, n in self.index]
+
+    def __getitem__(self, idx: Union[int, Sequence[int]]) -> GarmentInputs:
+        if isinstance(idx, (list, tuple)):
+            return GarmentInputs.collate([self[i] for i in idx])
+        if not 0 <= idx < len(self):
+            raise IndexError(f"chunk index {idx} out of range [0, {len(self)})")
+        i, t0, n = self.index[idx]
+        seq, (st, body) = self.sequence(i), self._static_and_body(i)
+        rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
+        tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
+        pos = np.asarray(seq["positions"])
+        gt = None
+        if pos.shape[1:2] == (st.num_vertices,):
+            gt = torch.from_numpy(np.asarray(pos[t0:t0 + n], np.float32))
+        item = with_frames(st, body, rot, tr, torch.arange(t0, t0 + n), self.history, gt=gt,
+                           seq_id=self.records[i]["id"])
+        if gt is not None:  # which frames the metrics may score
+            item.converged = self.converged(idx)
+        return item
