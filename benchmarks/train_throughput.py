@@ -190,7 +190,7 @@ def main() -> None:
         one = next(x for x in rows if x["batch"] == min(a.batches) and all(
             x[k] == r[k] for k in ("size", "method", "threads", "precision")))
         r["x_batch1"] = r["vertex_frames_per_s"] / one["vertex_frames_per_s"]
-    info = {"command": command_line(__file__), "device": a.device,
+    info = {"command": command_line("benchmarks/train_throughput.py"), "device": a.device,
             "device_name": torch.cuda.get_device_name() if a.device == "cuda"
             else platform.processor() or platform.machine(),
             "torch": torch.__version__, "datasets": {
