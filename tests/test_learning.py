@@ -396,3 +396,29 @@ def test_objective_rollout_lowers_the_objective_of_each_frame(dm, learning):
 def test_oracle_refuses_a_method_without_a_physics_objective(tmp_path, learning):
     with pytest.raises(ValueError, match="`variants`.*DA-style"):
         learning["part_oracle"](tmp_path, ["HOOD-style", "DA-style"], 1)
+
+
+def test_checkpoint_of_other_data_sizes_names_them(tmp_path):
+    """A checkpoint scored on data of another body model or Nyström width (as ``train test
+    --ckpt_path X`` on another dataset builds the module from that data) is refused
+    naming each size, not with torch's "Error(s) in loading state_dict"."""
+    path, _, _ = _old_layout(tmp_path)
+    ckpt = torch.load(path, weights_only=False)
+    hp = {k: v for k, v in ckpt["hyper_parameters"].items()
+          if k not in GarTransModule.removed_switches}
+    other = GarTransModule(**dict(hp, num_joints=hp["num_joints"] + 2, nystrom_dim=4))
+    with pytest.raises(CheckpointError, match=r"num_joints \d+ \(the data: \d+\).*nystrom_dim"):
+        other.on_load_checkpoint(ckpt)
+    same = GarTransModule(**hp)
+    same.on_load_checkpoint(ckpt)  # no error: the sizes fit
+    same.load_state_dict(ckpt["state_dict"])
+    # a garment-agnostic baseline does not depend on the garment's vertex count
+    da = BaselineModule("da", num_joints=hp["num_joints"], num_vertices=10)
+    da_ckpt = {"state_dict": da.state_dict(), "hyper_parameters": dict(da.hparams,
+                                                                       num_vertices=99)}
+    stamp_checkpoint(da_ckpt)
+    da.on_load_checkpoint(da_ckpt)
+    da_ckpt["hyper_parameters"]["num_joints"] += 1
+    stamp_checkpoint(da_ckpt)
+    with pytest.raises(CheckpointError, match="BaselineModule \\(da\\).*num_joints"):
+        da.on_load_checkpoint(da_ckpt)

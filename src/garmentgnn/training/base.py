@@ -14,7 +14,7 @@ from __future__ import annotations
 import atexit
 import contextvars
 import os
-from typing import Any, ClassVar, Dict, Optional
+from typing import Any, ClassVar, Dict, Optional, Tuple
 
 import lightning as L
 import torch
@@ -165,4 +165,26 @@ class GarmentModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         if not _VERIFIED.get():
             verify_checkpoint(checkpoint)
-        self.check_removed(checkpoint.get("hyper_parameters") or {})
+        saved = checkpoint.get("hyper_parameters") or {}
+        self.check_removed(saved)
+        self.check_data_sizes(saved)
+
+    def data_sizes(self) -> Tuple[str, ...]:
+        """The hyper-parameters set by the data that the weights depend on."""
+        return ()
+
+    def check_data_sizes(self, saved: Dict[str, Any]) -> None:
+        """A :class:`CheckpointError` when a checkpoint's hyper-parameters ``saved`` were
+        trained on data of other sizes (joints, body vertices, Nyström width, the
+        garment's vertices) than this module was built for (``garmentgnn train test
+        --ckpt_path X`` on another dataset), naming each, before the weights fail to fit."""
+        bad = {k: (saved[k], self.hparams[k]) for k in self.data_sizes()
+               if saved.get(k) is not None and self.hparams.get(k) is not None
+               and saved[k] != self.hparams[k]}
+        if bad:
+            what = saved.get("method") or saved.get("dynamic_layer") or ""
+            sizes = ", ".join(f"{k} {c} (the data: {d})" for k, (c, d) in sorted(bad.items()))
+            raise CheckpointError(f"a checkpoint of {type(self).__name__}"
+                                  f"{f' ({what})' if what else ''} trained on data of other "
+                                  f"sizes: {sizes}; score it on data of its body model and "
+                                  f"--data.nystrom_dim, or train a new model on this data")

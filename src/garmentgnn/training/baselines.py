@@ -113,6 +113,10 @@ class BaselineModule(GarmentModule):
         # start_state "own": sequence id -> frame -> the state of the latest rollout (CPU)
         self._states: Dict[str, Dict[int, Tensor]] = {}
 
+    def data_sizes(self) -> Tuple[str, ...]:
+        return ("num_joints", "num_vertices") if self.hparams.method == "ncs" \
+            else ("num_joints",)
+
     # -- pieces ---------------------------------------------------------------------
     def coarse_level(self, inp: GarmentInputs) -> CoarseLevel:
         """HOOD's coarse level of ``inp``'s garment (built once per sequence and device)."""

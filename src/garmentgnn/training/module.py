@@ -118,6 +118,9 @@ class GarTransModule(GarmentModule):
                                     edge_reduction=edge_reduction,
                                     compile_search=compile_search)
 
+    def data_sizes(self) -> Tuple[str, ...]:
+        return ("num_joints", "num_body_vertices", "nystrom_dim")
+
     # -- phase controls (used by ProgressiveSchedule) ---------------------------------
     def set_rest_branch_frozen(self, frozen: bool) -> None:
         unused = self.model.body_default if self.model.use_body else self.model.body_fc
