@@ -151,3 +151,23 @@ def test_history_frames_are_the_clamped_window_before_each_frame():
 def test_check_history_names_the_argument(history):
     with pytest.raises(ValueError, match="`history`"):
         check_history(history)
+
+
+def test_inputs_of_another_skeleton_or_motion_length_name_the_key(scene):
+    """A pose history of another joint count, a skeleton the model was not built for and
+    a translation of another length are ValueErrors naming the inputs' key, not torch's
+    size errors."""
+    model = scene.model
+    one = scene.seq.select(torch.arange(2))
+    bad = copy.copy(one)
+    bad.rotations = one.rotations[..., :-1, :]
+    with pytest.raises(ValueError, match="`inputs.rotations`"):
+        model(bad)
+    bad = copy.copy(one)
+    bad.translation = one.translation[:, :-1]
+    with pytest.raises(ValueError, match="`inputs.translation`"):
+        model(bad)
+    bad = copy.copy(one)
+    bad.rest_joints = one.rest_joints[:-1]
+    with pytest.raises(ValueError, match="`inputs.rest_joints`"):
+        model(bad)

@@ -173,6 +173,9 @@ class GarTrans(SequencePrediction, nn.Module):
     def encode_static(self, inputs: GarmentInputs) -> StaticFeatures:
         """``x''`` ``[V, S]`` of every garment of ``inputs`` (and the skinning prior and
         strain-limit targets): once per garment and body shape, reused by every frame."""
+        if inputs.num_joints != self.num_joints:
+            raise ValueError(f"`inputs.rest_joints`: a skeleton of {inputs.num_joints} joints, "
+                             f"this model has {self.num_joints} (`num_joints`)")
         lay = ChunkLayout.of(inputs)
         rest_pos, faces, edge_index = inputs.rest_pos, inputs.faces, inputs.edge_index
         dj = lay.joint_distances(rest_pos.unsqueeze(0), lay.rest_joints.unsqueeze(0))[0]

@@ -50,6 +50,10 @@ class ChunkLayout:
         if self.rotations.dim() != 5 or self.rotations.shape[2] < 2:
             raise ValueError(f"`inputs.rotations`: expected pose histories [B, H >= 2, S, 3] "
                              f"(a data `history` >= 1), got {tuple(inputs.rotations.shape)}")
+        if self.rotations.shape[-2:] != (self.rest_joints.shape[-2], 3):
+            raise ValueError(f"`inputs.rotations`: expected axis-angle rotations of the "
+                             f"{self.rest_joints.shape[-2]} joints of `rest_joints`, got "
+                             f"{tuple(inputs.rotations.shape)}")
         if self.translation.shape[:3] != self.rotations.shape[:3]:
             raise ValueError(f"`inputs.translation`: expected "
                              f"{tuple(inputs.rotations.shape[:-2]) + (3,)}, got "
