@@ -10,6 +10,7 @@ import torch
 import torch.distributed as dist
 from lightning.pytorch.strategies import DDPStrategy
 
+from garmentgnn.models import PAPER_FORM
 from garmentgnn.cli import main as cli_main
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
 from garmentgnn.training.lightning_cli import main as train_main
@@ -30,8 +31,9 @@ def fast_args(data_root, tmp_path):
 
 
 def test_variants_cover_table1():
-    assert VARIANTS == ["gat.yaml", "structure_aware.yaml", "wo_edge.yaml", "wo_gating.yaml",
-                        "wo_unsup.yaml"]
+    """Table 1's ablations, and the paper's own form (``paper.yaml``)."""
+    assert VARIANTS == ["gat.yaml", "paper.yaml", "structure_aware.yaml", "wo_edge.yaml",
+                        "wo_gating.yaml", "wo_unsup.yaml"]
 
 
 @pytest.mark.parametrize("variant", [None] + VARIANTS)
@@ -47,6 +49,8 @@ def test_config_builds_the_variant(root, tmp_path, variant):  # noqa: F811
     expected = {"wo_edge.yaml": "gt", "wo_gating.yaml": "gt_edge", "gat.yaml": "gat",
                 "structure_aware.yaml": "structure_aware"}.get(variant, "sat")
     assert m.hparams.dynamic_layer == expected
+    if variant == "paper.yaml":
+        assert {k: m.hparams[k] for k in PAPER_FORM} == PAPER_FORM
     sched = [c for c in cli.trainer.callbacks if isinstance(c, ProgressiveSchedule)]
     assert len(sched) == 1
     assert sched[0].max_phase == (1 if variant == "wo_unsup.yaml" else 3)

@@ -3,7 +3,8 @@
 and by the bench alike, so a method's settings are written down once.
 
 * ``gartrans.yaml``: the full model, its data module, trainer and schedule;
-* ``ablations/<name>.yaml``: what each Table 1 ablation changes on top of it;
+* ``ablations/<name>.yaml``: what each Table 1 ablation changes on top of it (and
+  ``ablations/paper.yaml``, the paper's own form of GarTrans);
 * ``baselines/<name>.yaml``: the :class:`~garmentgnn.training.BaselineModule` settings
   of the DA-, HOOD- and NCS-style baselines, with their data module and trainer.
 
