@@ -422,3 +422,19 @@ def test_checkpoint_of_other_data_sizes_names_them(tmp_path):
     stamp_checkpoint(da_ckpt)
     with pytest.raises(CheckpointError, match="BaselineModule \\(da\\).*num_joints"):
         da.on_load_checkpoint(da_ckpt)
+
+
+def test_show_loads_a_baseline_checkpoint_as_its_method(tmp_path):
+    """``garmentgnn show --ckpt`` of a DA-style checkpoint: loaded as the baseline it is
+    (it was refused as a GarTrans checkpoint with Lightning's "blocked to prevent
+    arbitrary code execution") and predicts as ``BaselineModule.predict_garment``."""
+    from garmentgnn.training.evaluate import predict  # noqa: PLC0415
+    from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415  (viz: optional extra)
+    _, scene, _ = _old_layout(tmp_path)
+    L.seed_everything(0)
+    da = BaselineModule("da", num_joints=scene.num_joints).eval()
+    _save_checkpoint(da, tmp_path / "da.ckpt")
+    loaded = load_checkpoint(tmp_path / "da.ckpt")
+    assert isinstance(loaded, BaselineModule) and loaded.hparams.method == "da"
+    with torch.no_grad():
+        torch.testing.assert_close(predict(loaded, scene, "gartrans"), da(scene))

@@ -24,6 +24,7 @@ import torch
 
 from garmentgnn.metrics import METRIC_UNITS, evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.training.module import GarTransModule
 from garmentgnn.data import SequenceChunks
 
 MODES = ("gartrans", "gartrans_ar", "lbs")
@@ -35,6 +36,8 @@ def predict(module, item: GarmentInputs, mode: str) -> torch.Tensor:
         return item.skinned()
     if mode not in MODES:
         raise ValueError(f"`mode`: expected one of {MODES}, got {mode!r}")
+    if not isinstance(module, GarTransModule):  # a baseline predicts in its own way
+        return module.predict_garment(item)
     return module(item, autoregressive=mode == "gartrans_ar")["final"]
 
 

@@ -17,7 +17,7 @@ import torch
 
 from garmentgnn.data import store
 from garmentgnn.data.gltf import GltfMesh, write_gltf
-from garmentgnn.training import GarTransModule
+from garmentgnn.training import BaselineModule, GarTransModule
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
 from garmentgnn.training.integrity import load_checkpoint_file
@@ -70,11 +70,15 @@ def unique_names(named: Sequence[Tuple[str, str]]) -> None:
 
 
 def load_checkpoint(path: PathLike):
-    """A :class:`GarTransModule` from a Lightning checkpoint, on the CPU, in eval mode."""
+    """The trained method of a Lightning checkpoint (a :class:`GarTransModule`, or a
+    :class:`BaselineModule` when it names a baseline ``method``), on the CPU, in eval
+    mode."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
+    hp = load_checkpoint_file(path).get("hyper_parameters") or {}
+    cls = BaselineModule if hp.get("method") is not None else GarTransModule
     try:
-        return GarTransModule.load_from_checkpoint(str(path), map_location="cpu").eval()
+        return cls.load_from_checkpoint(str(path), map_location="cpu").eval()
     except (ValueError, TypeError):
         raise
     except Exception:  # a truncated or foreign file: the error naming it and the fix
