@@ -14,6 +14,7 @@ from scipy.stats import wilcoxon
 from torch_geometric.nn import Linear as PyGLinear
 
 from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
+from garmentgnn.data import store
 from garmentgnn.models import GarTrans, PAPER_FORM
 from garmentgnn.models.blocks import AttentionStack
 from garmentgnn.models.inputs import GarmentInputs
@@ -21,6 +22,7 @@ from garmentgnn.physics.energies import GRAVITY
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
 from garmentgnn.training.configs import load_config, model_args
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
+from garmentgnn.training.base import DATASET_KEY, dataset_stamp
 from garmentgnn.training.integrity import CheckpointError, stamp_checkpoint
 
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
@@ -29,7 +31,7 @@ from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset
 @pytest.fixture(scope="module")
 def dm(root):  # noqa: F811
     d = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16, seed=0)
-    d.setup()
+    d.setup("fit")
     return d
 
 
@@ -409,6 +411,9 @@ def test_checkpoint_of_other_data_sizes_names_them(tmp_path):
     other = GarTransModule(**dict(hp, num_joints=hp["num_joints"] + 2, nystrom_dim=4))
     with pytest.raises(CheckpointError, match=r"num_joints \d+ \(the data: \d+\).*nystrom_dim"):
         other.on_load_checkpoint(ckpt)
+    ckpt[DATASET_KEY] = {"root": "data/small", "content_sha256": "084747be" + "0" * 56}
+    with pytest.raises(CheckpointError, match="dataset 084747be0000 at data/small"):
+        other.on_load_checkpoint(ckpt)
     same = GarTransModule(**hp)
     same.on_load_checkpoint(ckpt)  # no error: the sizes fit
     same.load_state_dict(ckpt["state_dict"])
@@ -438,3 +443,9 @@ def test_show_loads_a_baseline_checkpoint_as_its_method(tmp_path):
     assert isinstance(loaded, BaselineModule) and loaded.hparams.method == "da"
     with torch.no_grad():
         torch.testing.assert_close(predict(loaded, scene, "gartrans"), da(scene))
+
+
+def test_dataset_stamp_is_the_manifests_content_hash(dm):
+    assert dataset_stamp(dm) == {"root": str(dm.root), "content_sha256": store.read_manifest(
+        dm.root)["content_sha256"]}
+    assert dataset_stamp(None) == {}

@@ -10,6 +10,7 @@ import torch
 import torch.distributed as dist
 from lightning.pytorch.strategies import DDPStrategy
 
+from garmentgnn.data import read_manifest
 from garmentgnn.models import PAPER_FORM
 from garmentgnn.cli import main as cli_main
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
@@ -62,6 +63,8 @@ def test_cli_fit_writes_checkpoint_and_resumes(root, tmp_path):  # noqa: F811
     last = list(tmp_path.rglob("last.ckpt"))
     assert len(last) == 1
     ck = torch.load(last[0], weights_only=False)
+    # the dataset it was trained on travels with it
+    assert ck["garmentgnn_dataset"]["content_sha256"] == read_manifest(root)["content_sha256"]
     assert ck["epoch"] == 0
     # resume for one more epoch from `last`
     args2 = list(args)

@@ -21,6 +21,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
+from garmentgnn.data.store import read_manifest
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
@@ -32,6 +33,23 @@ __all__ = ["LBS_PREFIX", "GarmentModule"]
 #: set while :meth:`GarmentModule.load_from_checkpoint` loads a file it has verified
 _VERIFIED: contextvars.ContextVar[bool] = contextvars.ContextVar("checkpoint_verified",
                                                                 default=False)
+
+#: checkpoint key of the dataset a method was trained on (:func:`dataset_stamp`)
+DATASET_KEY = "garmentgnn_dataset"
+
+
+def dataset_stamp(datamodule: Any) -> Dict[str, Any]:
+    """``{"root", "content_sha256"}`` of a data module's dataset (its manifest's content
+    hash), saved in every checkpoint a fit writes; ``{}`` without one."""
+    root = getattr(datamodule, "root", None)
+    if root is None:
+        return {}
+    try:
+        sha = read_manifest(root).get("content_sha256")
+    except (OSError, ValueError):
+        return {}
+    return {"root": str(root), "content_sha256": sha} if sha else {}
+
 
 #: the prefix of the "LBS only" metrics that ``test`` logs beside the method's ``test/...``
 LBS_PREFIX = "test_lbs"
@@ -138,6 +156,13 @@ class GarmentModule(L.LightningModule):
 
     # -- checkpoint integrity (garmentgnn.training.integrity) ---------------------------
     def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        try:
+            datamodule = self.trainer.datamodule
+        except RuntimeError:  # not attached to a Trainer
+            datamodule = None
+        stamp = dataset_stamp(datamodule)
+        if stamp:
+            checkpoint[DATASET_KEY] = stamp
         stamp_checkpoint(checkpoint)
 
     @classmethod
@@ -167,13 +192,14 @@ class GarmentModule(L.LightningModule):
             verify_checkpoint(checkpoint)
         saved = checkpoint.get("hyper_parameters") or {}
         self.check_removed(saved)
-        self.check_data_sizes(saved)
+        self.check_data_sizes(saved, checkpoint.get(DATASET_KEY))
 
     def data_sizes(self) -> Tuple[str, ...]:
         """The hyper-parameters set by the data that the weights depend on."""
         return ()
 
-    def check_data_sizes(self, saved: Dict[str, Any]) -> None:
+    def check_data_sizes(self, saved: Dict[str, Any],
+                         dataset: Optional[Dict[str, Any]] = None) -> None:
         """A :class:`CheckpointError` when a checkpoint's hyper-parameters ``saved`` were
         trained on data of other sizes (joints, body vertices, Nyström width, the
         garment's vertices) than this module was built for (``garmentgnn train test
@@ -184,7 +210,9 @@ class GarmentModule(L.LightningModule):
         if bad:
             what = saved.get("method") or saved.get("dynamic_layer") or ""
             sizes = ", ".join(f"{k} {c} (the data: {d})" for k, (c, d) in sorted(bad.items()))
+            data = (f" (dataset {dataset.get('content_sha256', '?')[:12]} at "
+                    f"{dataset.get('root')})" if dataset else "")
             raise CheckpointError(f"a checkpoint of {type(self).__name__}"
-                                  f"{f' ({what})' if what else ''} trained on data of other "
-                                  f"sizes: {sizes}; score it on data of its body model and "
-                                  f"--data.nystrom_dim, or train a new model on this data")
+                                  f"{f' ({what})' if what else ''} trained on data{data} of "
+                                  f"other sizes: {sizes}; score it on data of its body model "
+                                  f"and --data.nystrom_dim, or train a new model on this data")
