@@ -428,8 +428,7 @@ class LearnedRunner:
             # one autoregressive step per frame, its inputs prepared outside the timed call
             coarse, lbs = module.coarse_level(it), it.skinned()
             prev, curr = it.history_slot(-3).skinned(), it.history_slot(-2).skinned()
-            acc = lbs - 2 * curr + prev  # the LBS garment's (for a model that follows it)
-            return lambda: module.model.step(it, coarse, prev, curr, it.body_pos, lbs, acc)
+            return lambda: module.model.step(it, coarse, prev, curr, it.body_pos, lbs)
         return make_batch
 
     def _baseline(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
