@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from garmentgnn.data import Spec, generate
+from garmentgnn.models import PAPER_FORM
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, EpochShuffleSampler, GarmentDataModule,
@@ -97,10 +98,7 @@ def test_collate_refuses_what_one_batch_cannot_hold(chunks):
 def test_batch_loss_and_gradients_are_the_mean_of_each_chunk_alone(root, chunks, form):
     """The oracle: each chunk's loss on its own, averaged; the batch's gradient is the
     mean of the chunks' gradients."""
-    kw = {} if form == "project" else dict(skin_prior=False, lbs_start=False, gate_init=0.0,
-                                           blend_shape=True, accel_unit=None,
-                                           input_norm=False, local_frame=False,
-                                           strain_limit=0, collision_projection=None)
+    kw = {} if form == "project" else dict(PAPER_FORM)
     module = gartrans(data(root).dims, **kw).eval()  # eval: the normalisers stay fixed
     module.loss_fn.set_enabled(["vert", "edge", "norm", "collision", "gravity", "stretch",
                                 "shear", "curv"])

@@ -176,7 +176,7 @@ class GarTrans(SequencePrediction, nn.Module):
         if inputs.num_joints != self.num_joints:
             raise ValueError(f"`inputs.rest_joints`: a skeleton of {inputs.num_joints} joints, "
                              f"this model has {self.num_joints} (`num_joints`)")
-        lay = ChunkLayout.of(inputs)
+        lay = ChunkLayout(inputs)
         rest_pos, faces, edge_index = inputs.rest_pos, inputs.faces, inputs.edge_index
         dj = lay.joint_distances(rest_pos.unsqueeze(0), lay.rest_joints.unsqueeze(0))[0]
         x = self.rest_fc(self.rest_norm(torch.cat([rest_pos, vertex_normals(rest_pos, faces),
@@ -224,7 +224,7 @@ class GarTrans(SequencePrediction, nn.Module):
         """Coarse meshes ``M^{t-1,c}, M^{t,c}`` ``[B, V, 3]`` (frame t's weights for
         both), the skinning weights ``W^t`` ``[B, V, S]``, the posed joints ``[N, B, S,
         3]`` and each vertex's skinning rotation ``R_v`` ``[B, V, 3, 3]`` at frame t."""
-        lay = ChunkLayout.of(inputs)
+        lay = ChunkLayout(inputs)
         N, B, V = lay.N, lay.B, inputs.num_vertices
         code = self.motion_code(lay.rotations.flatten(0, 1), lay.translation.flatten(0, 1))
         x3 = static.x2.unsqueeze(0) * lay.per_vertex(code.view(N, B, -1))  # [B, V, S]
@@ -255,7 +255,7 @@ class GarTrans(SequencePrediction, nn.Module):
                R: Tensor) -> Tensor:
         """The dynamic stack's output ``a`` ``[B, V, 3]`` for the coarse mesh ``cur`` (world
         frame, in units of :attr:`unit` metres), from its velocity since ``prev``."""
-        lay = ChunkLayout.of(inputs)
+        lay = ChunkLayout(inputs)
         B, V = cur.shape[:2]
         vel, n = (cur - prev) * self.fps, vertex_normals(cur, inputs.faces)
         dj = lay.joint_distances(cur, joints.transpose(0, 1))
@@ -290,7 +290,7 @@ class GarTrans(SequencePrediction, nn.Module):
         body = inputs.get("body_pos")
         if self.collision_projection is None or body is None:
             return x
-        lay = ChunkLayout.of(inputs)
+        lay = ChunkLayout(inputs)
         parts = [push_outside(x[:, v0:v1], body[:, b0:b1], faces, self.collision_projection,
                               compiled=self.compile_search)
                  for (v0, v1), (b0, b1), faces in lay.bodies(inputs)]

@@ -81,10 +81,6 @@ class ChunkLayout:
                                                        if r[0]() is not None][:3]
         return value
 
-    @classmethod
-    def of(cls, inputs: GarmentInputs) -> "ChunkLayout":
-        return cls(inputs)
-
     # -- padded layout ------------------------------------------------------------------
     def to_padded(self, x: Tensor) -> Tensor:
         """``[V, ...]`` -> ``[N, Vmax, ...]`` (zeros past each garment's vertices)."""

@@ -68,7 +68,7 @@ class DAStyle(nn.Module):
             rel = skinned - joints[:, :1]
             dist = vertex_joint_distances(skinned, joints)
         else:  # each vertex against its own chunk's joints
-            lay = ChunkLayout.of(scene)
+            lay = ChunkLayout(scene)
             rel = skinned - lay.per_vertex(joints[:, :, 0])
             dist = lay.joint_distances(skinned, joints.transpose(0, 1))
         return torch.cat([rest, normal, rel, dist], -1)
@@ -77,7 +77,7 @@ class DAStyle(nn.Module):
     def skin_batch(scene: GarmentInputs, rotations: Tensor, translation: Tensor):
         """Eq. 1 for a batch of ``N`` chunks: ``rotations [N, B, S, 3]``, ``translation
         [N, B, 3]`` -> (positions ``[B, V, 3]``, posed joints ``[N, B, S, 3]``)."""
-        lay = ChunkLayout.of(scene)
+        lay = ChunkLayout(scene)
         N, B, S = rotations.shape[:3]
         dt = scene.rest_pos.dtype
         A, joints = forward_kinematics(rotations.reshape(N * B, S, 3).to(dt),
