@@ -2,7 +2,7 @@
 
 Its parts, each on a generated dataset (``--data``, e.g. ``garmentgnn generate --preset
 small --engine blender``), every method built from its packaged configuration the way
-``garmentgnn bench`` builds it (:mod:`garmentgnn.bench.methods`) and trained through the
+``garmentgnn bench`` builds it (:mod:`garmentgnn.harness.methods`) and trained through the
 same Lightning ``Trainer``:
 
 * ``grad``: one backward pass of each method's phase-1 training loss on the first
@@ -48,10 +48,10 @@ import torch
 from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
                                   command_line, existing_file, int_at_least, output_path)
 from garmentgnn._plotting import pyplot
-from garmentgnn.bench import scoring
-from garmentgnn.bench.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
+from garmentgnn.harness import scoring
+from garmentgnn.harness.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
                                       variant_settings)
-from garmentgnn.bench.tables import table
+from garmentgnn.harness.tables import table
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.data.store import read_json, read_manifest
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance

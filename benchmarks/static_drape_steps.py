@@ -8,7 +8,7 @@ GarTrans takes about 500 steps and removes 5%. So does its supervised-only ablat
 ("w/o unsupervised loss", which never leaves phase 1, so no physics term and no down-scaled
 supervision).
 
-This script trains that ablation through the same bench path (``harness.run`` on the
+This script trains that ablation through the same bench path (``runner.run`` on the
 `medium` preset: same data, chunks, cosine ``TimeBudget``, same 40 test sequences) with a
 longer budget (``--minutes``, default 10: about as many steps as DA-style's 5 minutes).
 It then prints the rows side by side with the 5-minute records of ``--reference`` (the
@@ -34,10 +34,10 @@ from typing import Any, Dict, List
 
 from garmentgnn._argparse import HelpFormatter, dataset_dir, float_above
 from garmentgnn.data.store import read_json
-from garmentgnn.bench import harness
-from garmentgnn.bench.methods import DA, LBS
-from garmentgnn.bench.presets import preset
-from garmentgnn.bench.tables import table
+from garmentgnn.harness import runner
+from garmentgnn.harness.methods import DA, LBS
+from garmentgnn.harness.presets import preset
+from garmentgnn.harness.tables import table
 
 WO_UNSUP = "GarTrans w/o unsupervised loss"
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,7 +104,7 @@ def main(argv=None) -> None:
         seed_methods=None, long_minutes=None))
     command = ("python benchmarks/static_drape_steps.py --data " + args.data +
                f" --minutes {args.minutes:g}")
-    summary = harness.run(p, args.out, data=args.data, command=command)
+    summary = runner.run(p, args.out, data=args.data, command=command)
     print(summary)
     res = json.loads((Path(args.out) / "results.json").read_text())
     found = rows(ref["records"], "5 (medium)") + rows(res["records"], f"{args.minutes:g}")

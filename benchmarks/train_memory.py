@@ -24,8 +24,8 @@ import torch
 
 from garmentgnn._argparse import (HelpFormatter, add_output_args, command_line, dataset_dir,
                                   int_at_least, output_path)
-from garmentgnn.bench.methods import DATA, FULL, GARTRANS, variant_settings
-from garmentgnn.bench.timing import status_kb
+from garmentgnn.harness.methods import DATA, FULL, GARTRANS, variant_settings
+from garmentgnn.harness.timing import status_kb
 from garmentgnn.data.store import code_version
 from garmentgnn.training import GarmentDataModule, GarTransModule
 

@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from garmentgnn.bench import harness, precision, presets, report, stability, tables, timing
-from garmentgnn.bench.cli import _command, _learned_overrides
-from garmentgnn.bench.records import NOT_RUN, failure, section
-from garmentgnn.bench.sequences import case_item, make_sequence
+from garmentgnn.harness import runner, precision, presets, report, stability, tables, timing
+from garmentgnn.harness.cli import _command, _learned_overrides
+from garmentgnn.harness.records import NOT_RUN, failure, section
+from garmentgnn.harness.sequences import case_item, make_sequence
 from garmentgnn.cli import build_parser, main as cli_main
 from garmentgnn.data import store
 from garmentgnn.models.baselines import LBSBaseline
@@ -28,14 +28,14 @@ from conftest import ZERO_AREA_M2, numbers
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     t0 = time.perf_counter()
-    summary = harness.run(presets.preset("tiny"), out, progress=False, learned=False)
+    summary = runner.run(presets.preset("tiny"), out, progress=False, learned=False)
     return out, summary, time.perf_counter() - t0
 
 
 def test_tiny_preset_report(tiny_run):
     out, summary, seconds = tiny_run
     p = presets.preset("tiny")
-    expected = len(harness.tasks(p, [0]))
+    expected = len(runner.tasks(p, [0]))
     assert summary.ran == expected and summary.skipped == 0
     for name in ("results.json", "report.md", "pareto.png", "scaling.png"):
         assert (out / name).stat().st_size > 0
@@ -61,10 +61,10 @@ def test_tiny_preset_report(tiny_run):
     assert all(r["verdict"] in ("stable", "degraded", "failed") for r in stab)
     # nothing was run for the learned methods (learned=False; tests/test_bench_learned.py
     # runs them), and the report says so without numbers
-    assert set(harness.PLANNED) <= set(res["not_run"])
+    assert set(runner.PLANNED) <= set(res["not_run"])
     md = (out / "report.md").read_text()
     assert "shaped like Table 1" in md and "shaped like Table 3" in md and "## Stability" in md
-    for name in harness.PLANNED:
+    for name in runner.PLANNED:
         assert f"- {name}: not run" in md
 
 
@@ -106,7 +106,7 @@ def test_tiny_preset_extra_reports(tiny_run):
 def test_rerun_skips_finished_records(tiny_run):
     out, _, _ = tiny_run
     before = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
-    summary = harness.run(presets.preset("tiny"), out, progress=False, learned=False)
+    summary = runner.run(presets.preset("tiny"), out, progress=False, learned=False)
     assert summary.ran == 0 and summary.skipped == len(before)
     after = {p.name: p.stat().st_mtime_ns for p in (out / "records").glob("*.json")}
     assert after == before
@@ -114,11 +114,11 @@ def test_rerun_skips_finished_records(tiny_run):
 
 def test_deleted_record_is_rerun_and_leftovers_removed(tiny_run):
     out, _, _ = tiny_run
-    rec = harness.record_path(out, "accuracy", "lbs", "skirt-walk", 0)
+    rec = runner.record_path(out, "accuracy", "lbs", "skirt-walk", 0)
     rec.unlink()
     stale = rec.with_name(f".{rec.name}.tmp-99999")
     stale.write_text('{"half": ')  # a killed writer's leftover
-    summary = harness.run(presets.preset("tiny"), out, progress=False, learned=False)
+    summary = runner.run(presets.preset("tiny"), out, progress=False, learned=False)
     assert summary.ran == 1
     assert json.loads(rec.read_text())["status"] == "ok"
     assert not stale.exists()
@@ -126,7 +126,7 @@ def test_deleted_record_is_rerun_and_leftovers_removed(tiny_run):
 
 def test_record_is_never_half_written(tmp_path, monkeypatch):
     """A crash between writing and renaming leaves no record (and no temporary)."""
-    path = harness.record_path(tmp_path, "accuracy", "m", "c", 0)
+    path = runner.record_path(tmp_path, "accuracy", "m", "c", 0)
 
     def crash(src, dst):
         raise OSError("killed before rename")
@@ -138,10 +138,10 @@ def test_record_is_never_half_written(tmp_path, monkeypatch):
     monkeypatch.undo()
     # an existing but truncated/foreign file is not taken as a finished record
     path.write_text('{"kind": "accuracy", "method": "m"')
-    assert harness.load_record(path, "accuracy", "m", "c", 0) is None
+    assert runner.load_record(path, "accuracy", "m", "c", 0) is None
     path.write_text(json.dumps({"kind": "accuracy", "method": "other", "case": "c", "seed": 0,
                                 "status": "ok"}))
-    assert harness.load_record(path, "accuracy", "m", "c", 0) is None
+    assert runner.load_record(path, "accuracy", "m", "c", 0) is None
 
 
 def _acc(method="m", seed=0, status="ok", e=1.0, latency=2.0):
@@ -254,20 +254,20 @@ def test_degenerate_case_on_a_pattern_laid_flat_per_face():
 
 def test_register_and_cli_arguments(tmp_path):
     with pytest.raises(ValueError, match="name"):
-        harness.register("lbs", lambda p: None)
+        runner.register("lbs", lambda p: None)
     with pytest.raises(ValueError, match="factory"):
-        harness.register("new", 3)
+        runner.register("new", 3)
     with pytest.raises(ValueError, match="preset"):
         presets.preset("huge")
     with pytest.raises(ValueError, match="seeds"):
-        harness.run(presets.preset("tiny"), tmp_path, seeds=0)
+        runner.run(presets.preset("tiny"), tmp_path, seeds=0)
     assert cli_main(["bench", "--out", str(tmp_path), "--seeds", "0"]) == 2
     for bad in ("2/2", "1", "a/b", "0/2/3", "-1/2"):
         assert cli_main(["bench", "--out", str(tmp_path), f"--shard={bad}"]) == 2
     with pytest.raises(ValueError, match="shard"):
-        harness.run(presets.preset("tiny"), tmp_path, shard=(2, 2))
+        runner.run(presets.preset("tiny"), tmp_path, shard=(2, 2))
     assert not os.listdir(tmp_path)
-    assert Path(harness.__file__).exists()
+    assert Path(runner.__file__).exists()
 
 
 @pytest.mark.parametrize("line", [

@@ -1,5 +1,5 @@
 """Learning curves and the equal-step snapshot of ``garmentgnn bench``
-(:mod:`garmentgnn.bench.curves`).
+(:mod:`garmentgnn.harness.curves`).
 
 Oracles: a fit stopped by ``max_steps`` at the snapshot's step (the snapshot must hold
 exactly its weights); a validation that sleeps a known time (it must not count as
@@ -13,7 +13,7 @@ import lightning as L
 import pytest
 import torch
 
-from garmentgnn.bench import curves, harness, learned, methods, presets
+from garmentgnn.harness import curves, runner, learned, methods, presets
 from garmentgnn.data import Spec, generate, motion_key
 from garmentgnn.training import GarTransModule, TimeBudget
 from garmentgnn.training.evaluate import evaluate_split
@@ -210,7 +210,7 @@ def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, 
         # 2 train sequences of 4 frames: one chunk each, 2 steps per epoch
         learned=dataclasses.replace(p.learned, methods=(full, da, methods.LBS), epochs=2,
                                     stability_cases=(), curve_every=1, equal_steps=4))
-    summary = harness.run(p, tmp_path, data=data_with_val, progress=False)
+    summary = runner.run(p, tmp_path, data=data_with_val, progress=False)
     recs = {r["method"]: r for r in json.loads((tmp_path / "results.json").read_text())["records"]
             if r["kind"] == learned.KIND}
     assert summary.failed == 0

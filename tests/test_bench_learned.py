@@ -1,4 +1,4 @@
-"""The learned methods inside ``garmentgnn bench`` (bench.learned): every method trained
+"""The learned methods inside ``garmentgnn bench`` (harness.learned): every method trained
 and scored on one generated dataset's split, records, report table, resume, failures.
 
 The dataset is a very small generated one (a mini skirt on one body, 3 motions of 4
@@ -22,7 +22,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from garmentgnn.bench import harness, learned, methods, presets, report, scoring, stability, tables
+from garmentgnn.harness import runner, learned, methods, presets, report, scoring, stability, tables
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, motion_key, store
 from garmentgnn.models import gartrans
@@ -74,7 +74,7 @@ def records_of(out):
 @pytest.fixture(scope="module")
 def flow(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    summary = harness.run(learned_only(**FLOW), out, data=data, progress=False)
+    summary = runner.run(learned_only(**FLOW), out, data=data, progress=False)
     return out, summary
 
 
@@ -83,7 +83,7 @@ def test_presets_budgets():
     assert tiny.dataset == "tiny" and small.dataset == "small"
     assert tiny.learned.seeds == 1 and small.learned.seeds >= 3
     assert set(tiny.learned.methods) == set(small.learned.methods) == set(methods.METHOD_NAMES)
-    assert set(methods.METHOD_NAMES) >= set(harness.PLANNED)
+    assert set(methods.METHOD_NAMES) >= set(runner.PLANNED)
 
 
 @pytest.mark.slow  # the module's end-to-end run (~20 s) comes first
@@ -168,14 +168,14 @@ def test_second_run_is_a_no_op(flow, data):
     out, first = flow
     files = sorted((out / "records").glob("*.json")) + sorted((out / "models").rglob("*.*"))
     before = {p: p.stat().st_mtime_ns for p in files}
-    again = harness.run(learned_only(**FLOW), out, data=data, progress=False)
+    again = runner.run(learned_only(**FLOW), out, data=data, progress=False)
     assert again.ran == 0 and again.skipped == first.ran
     assert {p: p.stat().st_mtime_ns for p in files} == before
 
 
 def test_interrupted_gartrans_training_resumes_from_last_ckpt(data, tmp_path, monkeypatch):
     p = learned_only(methods=("GarTrans (SAT)",), epochs=2)
-    straight = harness.run(p, tmp_path / "straight", data=data, progress=False)
+    straight = runner.run(p, tmp_path / "straight", data=data, progress=False)
     assert straight.failed == 0
     ref = records_of(tmp_path / "straight")[0]
 
@@ -188,12 +188,12 @@ def test_interrupted_gartrans_training_resumes_from_last_ckpt(data, tmp_path, mo
     monkeypatch.setattr(ModelCheckpoint, "on_train_epoch_end", save_then_die)
     out = tmp_path / "cut"
     with pytest.raises(SystemExit):
-        harness.run(p, out, data=data, progress=False)
+        runner.run(p, out, data=data, progress=False)
     last = out / "models" / "GarTrans_SAT--s0" / "last.ckpt"
     assert torch.load(last, weights_only=False)["epoch"] == 0
     assert not list((out / "records").glob("*.json"))  # no record of a killed task
     monkeypatch.undo()
-    summary = harness.run(p, out, data=data, progress=False)
+    summary = runner.run(p, out, data=data, progress=False)
     rec = records_of(out)[0]
     assert summary.ran == 1 and rec["status"] == "ok", rec["message"]
     assert rec["resumed_from_epoch"] == 1 and rec["epochs"] == 2 == ref["epochs"]
@@ -213,7 +213,7 @@ def test_nan_loss_gives_a_failed_record_then_retry(data, tmp_path, monkeypatch):
     monkeypatch.setattr(gartrans.GarTrans, "forward", nan_gartrans)
     monkeypatch.setattr(DAStyle, "forward", lambda self, *a, **k: da(self, *a, **k) * float("nan"))
     out = tmp_path / "nan"
-    summary = harness.run(p, out, data=data, progress=False)
+    summary = runner.run(p, out, data=data, progress=False)
     assert summary.failed == 2
     for r in records_of(out):
         assert r["status"] == "failed" and "NonFiniteLossError" in r["message"], r["message"]
@@ -221,8 +221,8 @@ def test_nan_loss_gives_a_failed_record_then_retry(data, tmp_path, monkeypatch):
     md = (out / "report.md").read_text()
     assert "## Failures" in md and "| GarTrans (SAT) (1/1 failed) | failed" in md
     monkeypatch.undo()
-    assert harness.run(p, out, data=data, progress=False).ran == 0  # failed records are kept
-    summary = harness.run(p, out, data=data, progress=False, retry_failed=True)
+    assert runner.run(p, out, data=data, progress=False).ran == 0  # failed records are kept
+    summary = runner.run(p, out, data=data, progress=False, retry_failed=True)
     assert summary.ran == 2 and summary.failed == 0
 
 
@@ -242,7 +242,7 @@ def test_ncs_never_reads_test_positions(flow, data, tmp_path):
             arrays["positions"] = arrays["positions"] + np.float32(0.05)
             store.write_sequence(path, arrays, seq["meta"])
     store.rebuild_manifest(moved)  # edited on purpose: record the new files' hashes
-    summary = harness.run(learned_only(methods=(methods.NCS,)), tmp_path / "b", data=moved,
+    summary = runner.run(learned_only(methods=(methods.NCS,)), tmp_path / "b", data=moved,
                           progress=False)
     assert summary.failed == 0
     for g in (0,):
@@ -311,7 +311,7 @@ def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
     worker = importlib.import_module("garmentgnn.data.worker")
     monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": lbs_simulate)
     p = dataclasses.replace(learned_only(methods=(methods.LBS,)), data_workers=0)
-    summary = harness.run(p, tmp_path, progress=False)
+    summary = runner.run(p, tmp_path, progress=False)
     assert summary.failed == 0
     man = store.read_manifest(tmp_path / "data")
     assert man["name"] == "tiny" and man["counts"] == {"ok": 8}
@@ -360,7 +360,7 @@ def test_bad_arguments(data, tmp_path):
     with pytest.raises(ValueError, match="data"):
         learned.prepare_dataset(tmp_path / "empty")
     with pytest.raises(ValueError, match="data"):
-        harness.run(learned_only(), tmp_path / "x", data=data, learned=False)
+        runner.run(learned_only(), tmp_path / "x", data=data, learned=False)
     info = learned.prepare_dataset(data)
     with pytest.raises(ValueError, match="method"):
         learned.LearnedRunner(info, methods.LearnedBudget(), tmp_path, (1,), 0, 1).record("x", 0)
@@ -370,11 +370,11 @@ def test_bad_arguments(data, tmp_path):
                      "--data", str(tmp_path / "empty")]) == 2  # not a dataset
     # a checkpoint folder of another configuration is refused, not resumed
     p = learned_only(methods=(methods.DA,))
-    harness.run(p, tmp_path / "z", data=data, progress=False)
+    runner.run(p, tmp_path / "z", data=data, progress=False)
     (tmp_path / "z" / "records").joinpath(
         next(f.name for f in (tmp_path / "z" / "records").glob("*.json"))).unlink()
     p2 = learned_only(methods=(methods.DA,), epochs=2)
-    summary = harness.run(p2, tmp_path / "z", data=data, progress=False)
+    summary = runner.run(p2, tmp_path / "z", data=data, progress=False)
     rec = records_of(tmp_path / "z")[0]
     assert summary.failed == 1 and "another dataset or configuration" in rec["message"]
 
@@ -387,7 +387,7 @@ def test_time_budget_seed_plan_and_long_run(data, tmp_path):
     full = next(iter(methods.GARTRANS))
     p = learned_only(seeds=2, epochs=3, minutes=0.002, epoch_chunks=1, seed_methods=(full,),
                      long_minutes=0.003)
-    summary = harness.run(p, tmp_path, data=data, progress=False)
+    summary = runner.run(p, tmp_path, data=data, progress=False)
     recs = [r for r in records_of(tmp_path) if r["kind"] == learned.KIND]
     assert summary.failed == 0 and all(r["status"] == "ok" for r in recs)
     seeds = {}
@@ -411,12 +411,12 @@ def test_time_budget_seed_plan_and_long_run(data, tmp_path):
     assert "### By held-out group" in text and "### Targets" in text
     assert "### Static drape and dynamics" in text
     # a second run redoes nothing
-    again = harness.run(p, tmp_path, data=data, progress=False)
+    again = runner.run(p, tmp_path, data=data, progress=False)
     assert again.ran == 0
 
 
-def _shard(p: presets.Preset, out: Path, data: Path, shard) -> harness.RunSummary:
-    return harness.run(p, out, data=data, progress=False, shard=shard, poll_seconds=0.1)
+def _shard(p: presets.Preset, out: Path, data: Path, shard) -> runner.RunSummary:
+    return runner.run(p, out, data=data, progress=False, shard=shard, poll_seconds=0.1)
 
 
 @pytest.mark.slow
@@ -439,4 +439,4 @@ def test_two_shards_share_one_bench(data, tmp_path):
     meta = json.loads((tmp_path / "results.json").read_text())["meta"]
     assert meta["shards"] == 2 and meta["threads"] == max(1, p.threads // 2)
     # an unsharded rerun finds everything done
-    assert harness.run(p, tmp_path, data=data, progress=False).ran == 0
+    assert runner.run(p, tmp_path, data=data, progress=False).ran == 0

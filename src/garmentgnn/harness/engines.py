@@ -34,7 +34,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from garmentgnn.bench.records import failure
+from garmentgnn.harness.records import failure
 from garmentgnn.data import store
 from garmentgnn.data.presets import ENGINES, build_inputs
 from garmentgnn.data.worker import default_simulate

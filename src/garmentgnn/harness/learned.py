@@ -1,8 +1,8 @@
 """The learned methods inside ``garmentgnn bench``: every method trained and evaluated on
 the same generated dataset and data split, through one training path.
 
-One bench run (:func:`garmentgnn.bench.harness.run`) with a preset that has a
-:class:`~garmentgnn.bench.methods.LearnedBudget`:
+One bench run (:func:`garmentgnn.harness.runner.run`) with a preset that has a
+:class:`~garmentgnn.harness.methods.LearnedBudget`:
 
 1. uses a generated dataset (:func:`prepare_dataset`: ``garmentgnn.data.generate``'s
    preset of the bench preset, generated -- resumably -- under ``OUT/data``, or an
@@ -10,13 +10,13 @@ One bench run (:func:`garmentgnn.bench.harness.run`) with a preset that has a
 2. trains each method of the budget for each training seed for the budget's epochs or
    wall-clock minutes (:class:`TimeBudget`): :class:`GarTransModule` (GarTrans, Table 1
    variants) or :class:`BaselineModule` (DA-, HOOD-, NCS-style) with the packaged YAML
-   settings (:mod:`~garmentgnn.bench.methods`), on a :class:`GarmentDataModule`, by one
+   settings (:mod:`~garmentgnn.harness.methods`), on a :class:`GarmentDataModule`, by one
    Lightning ``Trainer`` set-up (:meth:`LearnedRunner.fit`) that resumes from
    ``OUT/models/<method>--s<seed>/``; NCS-style trains one model per (garment, body) of
    the scored test sequences on their poses (never their simulated positions);
 3. scores it on the ``test`` split (all of it, or the budget's stratified subset:
-   :mod:`garmentgnn.bench.scoring`), times it (:func:`~garmentgnn.bench.timing.batch_sweep`,
-   :func:`~garmentgnn.bench.timing.peak_memory`) and returns one record of kind
+   :mod:`garmentgnn.harness.scoring`), times it (:func:`~garmentgnn.harness.timing.batch_sweep`,
+   :func:`~garmentgnn.harness.timing.peak_memory`) and returns one record of kind
    ``"learned"`` per (method, seed); the harness writes it atomically.
 
 ``LBS only`` is the rest garment skinned with the stored skinning weights
@@ -40,17 +40,17 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from torch import Tensor
 
-from garmentgnn.bench import stability as stab
-from garmentgnn.bench import scoring
-from garmentgnn.bench.curves import LearningCurve
-from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
-from garmentgnn.bench.methods import (BASELINES, DATA, FULL, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
+from garmentgnn.harness import stability as stab
+from garmentgnn.harness import scoring
+from garmentgnn.harness.curves import LearningCurve
+from garmentgnn.harness.dataset import DatasetInfo, prepare_dataset
+from garmentgnn.harness.methods import (BASELINES, DATA, FULL, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
                                       METHOD_NAMES, NCS, LearnedBudget, variant_settings)
-from garmentgnn.bench.model_inputs import BenchChunks
-from garmentgnn.bench.page import MEDIA
-from garmentgnn.bench.records import failure
-from garmentgnn.bench.tables import slug
-from garmentgnn.bench.timing import batch_sweep, peak_memory
+from garmentgnn.harness.model_inputs import BenchChunks
+from garmentgnn.harness.page import MEDIA
+from garmentgnn.harness.records import failure
+from garmentgnn.harness.tables import slug
+from garmentgnn.harness.timing import batch_sweep, peak_memory
 from garmentgnn.data import SequenceChunks, store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.geometry import push_outside
@@ -197,7 +197,7 @@ class LearnedRunner:
     def save_prediction(self, method: str, pred: "_Predictor") -> Path:
         """``OUT/media/predictions/<method>.npy``: ``method``'s ``[T, V, 3]`` prediction
         of the first test sequence, a panel of the report's animation
-        (:mod:`garmentgnn.bench.page`)."""
+        (:mod:`garmentgnn.harness.page`)."""
         item = self.test[0]
         with torch.no_grad():
             P = pred.predict(self.test, 0, item).float().numpy()
@@ -224,7 +224,7 @@ class LearnedRunner:
         return self._trained[key]
 
     def stability_record(self, method: str, seed: int, case: str) -> Dict[str, Any]:
-        """Stability ``case`` (:mod:`garmentgnn.bench.stability`) built on the first test
+        """Stability ``case`` (:mod:`garmentgnn.harness.stability`) built on the first test
         sequence of the dataset (its body, garment, motion and motion seed), predicted by
         ``method`` trained with ``seed`` -- or by :data:`SIMULATOR` with the dataset's
         simulator settings -- and scored like the simulator's cases.  The model sees the
@@ -255,7 +255,7 @@ class LearnedRunner:
     def evaluate(self, pred: _Predictor) -> Dict[str, Any]:
         """``metrics`` (frame-weighted means over the converged frames of every test
         sequence), ``groups`` (per held-out group), ``per_sequence`` and ``test_frames``
-        (:mod:`garmentgnn.bench.scoring`)."""
+        (:mod:`garmentgnn.harness.scoring`)."""
         per_seq = scoring.score(lambda i, item: pred.predict(self.test, i, item), self.test)
         agg = scoring.aggregate(per_seq)
         return {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
@@ -280,7 +280,7 @@ class LearnedRunner:
     def val_error(self, predict: Callable[[L.LightningModule, GarmentInputs], Tensor]
                   ) -> Callable[[L.LightningModule], float]:
         """The validation E_dist (cm) of a module: ``predict(module, item)`` scored on
-        every ``val`` sequence (:mod:`garmentgnn.bench.scoring`), on the module's device."""
+        every ``val`` sequence (:mod:`garmentgnn.harness.scoring`), on the module's device."""
         def run(module: L.LightningModule) -> float:
             per = scoring.score(lambda i, item: predict(module, item.to(module.device)).cpu(),
                                 self.val)
