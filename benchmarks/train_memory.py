@@ -27,7 +27,8 @@ from garmentgnn._argparse import (HelpFormatter, add_output_args, command_line, 
 from garmentgnn.harness.methods import DATA, FULL, GARTRANS, variant_settings
 from garmentgnn.harness.timing import status_kb
 from garmentgnn.data.store import code_version
-from garmentgnn.training import GarmentDataModule, GarTransModule
+from garmentgnn.training import GarmentDataModule
+from garmentgnn.training.configs import instantiate
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -75,7 +76,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     L.seed_everything(0, verbose=False)
     dm = GarmentDataModule(args.data, val_split=None, seed=0, cache_size=64, **DATA)
     hp, _ = variant_settings(args.method)
-    module = GarTransModule(**dm.dims, **hp)
+    module = instantiate(hp, dm.dims)
     probe = RSSProbe(args.every)
     L.Trainer(max_steps=args.steps, accelerator="cpu", devices=1, logger=False,
               enable_checkpointing=False, enable_progress_bar=False,

@@ -60,7 +60,12 @@ def child(args: argparse.Namespace) -> None:
     data.update(json.loads(args.data_overrides))
     L.seed_everything(0, verbose=False)
     dm = GarmentDataModule(args.data, val_split=None, seed=0, **data)
-    module = GarTransModule(**dm.dims, **cfg["model"])
+    init = cfg["model"].get("init_args", cfg["model"])
+    if isinstance(init.get("model"), dict):  # a revision whose module is handed its model
+        from garmentgnn.training.configs import instantiate  # noqa: PLC0415
+        module = instantiate(cfg["model"], dm.dims)
+    else:
+        module = GarTransModule(**dm.dims, **init)
 
     class Clock(L.Callback):
         def __init__(self) -> None:

@@ -38,8 +38,8 @@ from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.data import Spec, generate, store
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.data import SequenceChunks
-from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule)
-from garmentgnn.training.configs import load_config, model_args
+from garmentgnn.training import (GarmentDataModule)
+from garmentgnn.training.configs import instantiate, module_spec
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent / "docs" / "results" / "train_throughput"
@@ -78,10 +78,8 @@ def dataset(size: str, cache: Path) -> Path:
 def module_for(method: str, dims: Dict[str, Any]) -> L.LightningModule:
     L.seed_everything(0, verbose=False)
     if method == "gartrans":
-        return GarTransModule(**dims, **model_args(load_config("gartrans")))
-    cfg = dict(load_config("baselines/da")["model"]["init_args"])
-    cfg.pop("method")
-    return BaselineModule("da", num_joints=dims["num_joints"], **cfg)
+        return instantiate(module_spec("gartrans"), dims)
+    return instantiate(module_spec("baselines/da"), dims)
 
 
 class Clock(L.Callback):

@@ -28,6 +28,7 @@ from garmentgnn.training.evaluate import evaluate_split, markdown_table
 from garmentgnn.viz.animate import renderer_unavailable
 from garmentgnn.viz.strip import render_strip
 from garmentgnn.viz.compare import show
+from garmentgnn.models import GarTrans
 
 
 def main() -> None:
@@ -48,7 +49,7 @@ def main() -> None:
     L.seed_everything(0, workers=True)
     dm = GarmentDataModule(data, chunk=8, history=3, nystrom_dim=16, num_landmarks=64,
                            val_split=None)  # tiny holds out a test motion only
-    module = GarTransModule(**dm.dims)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
     sched = ProgressiveSchedule(window=4, threshold=0.05)
     trainer = L.Trainer(max_epochs=args.epochs, accelerator="cpu", devices=1, logger=False,
                         enable_checkpointing=False, enable_model_summary=False,

@@ -270,6 +270,12 @@ def test_module_size():
         f"split already, remove from OVERSIZED: {sorted(OVERSIZED - set(big))}"
 
 
+def test_the_model_reads_as_the_paper_in_300_lines():
+    """GarTrans's file holds its pipeline; what any frame-wise model shares (batch
+    layout, sequence prediction, rollout) lives beside it in models/sequence.py."""
+    assert not oversized(SRC / "models", limit=300).keys() & {"gartrans.py"}
+
+
 # --------------------------------------------------------------------------- each rule can fail
 def make_package(tmp_path: Path, files: Dict[str, str]) -> Path:
     """A package ``pkg`` under ``tmp_path`` with ``files`` (relative path -> source) and

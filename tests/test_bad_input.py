@@ -36,6 +36,7 @@ from garmentgnn.sim import SimSettings, simulate
 from garmentgnn.training import GarTransModule
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
+from garmentgnn.models import GarTrans
 
 from test_data import fake_simulate
 from test_training import NY, root  # noqa: F401  (module-scoped toy dataset)
@@ -177,7 +178,7 @@ def test_bvh_roundtrip_is_matched_by_name():
 
 # ------------------------------------------------------------------ checkpoints
 def small_module():
-    return GarTransModule(num_joints=3, num_body_vertices=10, nystrom_dim=NY, heads=2)
+    return GarTransModule(GarTrans(num_joints=3, num_body_vertices=10, nystrom_dim=NY, heads=2))
 
 
 def write_ckpt(path, module):
@@ -213,10 +214,10 @@ def test_flag_conflicting_with_checkpoint_is_an_error(tmp_path, capsys):
     p = tmp_path / "sat.ckpt"
     write_ckpt(p, small_module())  # dynamic_layer="sat"
     rc = cli_main(["train", "fit", "--config", CONFIG, "--data.root", str(tmp_path),
-                   "--model.dynamic_layer", "gat", "--ckpt_path", str(p)])
+                   "--model.model.dynamic_layer", "gat", "--ckpt_path", str(p)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1
-    assert "--model.dynamic_layer 'gat' (checkpoint: 'sat')" in err[0]
+    assert "--model.model.dynamic_layer 'gat' (checkpoint: 'sat')" in err[0]
 
 
 # ------------------------------------------------------------------ dataset folders
@@ -325,7 +326,7 @@ def test_train_test_prints_lbs_beside_the_method_and_predict_writes(root, tmp_pa
             "16", "--data.test_split", "val", "--trainer.limit_test_batches", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir",
             str(tmp_path), "--trainer.logger.init_args.save_dir", str(tmp_path),
-            "--model.compile_search", "false"]
+            "--model.model.compile_search", "false"]
     assert cli_main(["train", "fit"] + args + ["--trainer.max_epochs", "1",
                                                "--trainer.limit_train_batches", "1",
                                                "--trainer.limit_val_batches", "1"]) == 0

@@ -10,9 +10,8 @@ from garmentgnn.data import Spec, generate
 from garmentgnn.models import PAPER_FORM
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.data import SequenceChunks
-from garmentgnn.training import (BaselineModule, EpochShuffleSampler, GarmentDataModule,
-                                 GarTransModule)
-from garmentgnn.training.configs import load_config, model_args
+from garmentgnn.training import (EpochShuffleSampler, GarmentDataModule)
+from garmentgnn.training.configs import instantiate, merge, module_spec
 
 from conftest import lbs_simulate
 
@@ -48,9 +47,9 @@ def chunks(root):
 
 def gartrans(dims, **kw):
     L.seed_everything(0)
-    cfg = model_args(load_config("gartrans"))
-    cfg.update(compile_search=False, **kw)
-    return GarTransModule(**dims, **cfg)
+    spec = merge(module_spec("gartrans"), {"init_args": {"model": {"init_args": dict(
+        compile_search=False, **kw)}}})
+    return instantiate(spec, dims)
 
 
 def pick(chunks):
@@ -130,10 +129,8 @@ def test_da_style_batch_is_each_chunk_alone(root, chunks):
     """DA-style predicts a batch in one pass over the union graph: the same positions as
     each chunk alone, and the mean of their losses."""
     dims = data(root).dims
-    cfg = dict(load_config("baselines/da")["model"]["init_args"])
-    cfg.pop("method")
     L.seed_everything(0)
-    module = BaselineModule("da", num_joints=dims["num_joints"], **cfg).eval()
+    module = instantiate(module_spec("baselines/da"), dims).eval()
     idx = pick(chunks)
     batch = chunks[idx]
     with torch.no_grad():
@@ -206,10 +203,9 @@ def test_every_method_fits_batched_through_the_trainer(root):
     dims = dm.dims
     modules = [gartrans(dims)]
     for method in ("da", "hood"):
-        cfg = dict(load_config(f"baselines/{method}")["model"]["init_args"])
-        cfg["loss"] = dict(cfg.get("loss", {}), compile_search=False)
-        cfg.pop("method")
-        modules.append(BaselineModule(method, num_joints=dims["num_joints"], history=2, **cfg))
+        spec = merge(module_spec(f"baselines/{method}"),
+                     {"init_args": {"loss": {"compile_search": False}}})
+        modules.append(instantiate(spec, dims))
     for module in modules:
         before = {n: p.detach().clone() for n, p in module.named_parameters()
                   if p.requires_grad}

@@ -30,6 +30,7 @@ from garmentgnn.models.baselines import DAStyle
 from garmentgnn.training import BaselineModule, GarTransModule, GarmentDataModule
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
+from garmentgnn.training.configs import instantiate
 
 from conftest import ZERO_AREA_M2, lbs_simulate, numbers
 
@@ -111,8 +112,7 @@ def test_every_method_produces_a_finite_record(flow, data):
     by = {r["method"]: r for r in recs}
     for name in methods.GARTRANS:
         assert by[name]["phase"] == 1  # 1 epoch: the window (1) never elapses
-        assert by[name]["config"]["model"]["dynamic_layer"] == \
-            methods.variant_settings(name)[0]["dynamic_layer"]
+        assert by[name]["config"]["model"] == methods.variant_settings(name)[0]
         assert (out / "models" / f"{tables.slug(name)}--s0" / "last.ckpt").exists()
     assert by["GarTrans w/o unsupervised loss"]["config"]["schedule"]["max_phase"] == 1
     assert by[methods.NCS]["models"] == 1  # one per test garment
@@ -329,9 +329,16 @@ def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
     args = ["--config", "gartrans"] + (["--config", f"ablations/{v.config}"] if v.config else [])
     cli = train_main(args + ["--data.root", str(data), "--trainer.logger", "false",
                              "--trainer.default_root_dir", str(tmp_path)], run=False)
-    model, sched = methods.variant_settings(name)
+    spec, sched = methods.variant_settings(name)
     hp = dict(cli.model.hparams)
-    assert {k: hp[k] for k in model} == model
+    assert hp["_class_path"] == spec["class_path"]
+    given = spec["init_args"]
+    assert {k: hp[k] for k in given if k != "model"} == \
+        {k: v for k, v in given.items() if k != "model"}
+    model = hp["model"]["init_args"]  # the model: the configured settings, as built
+    assert {k: model[k] for k in given["model"]["init_args"]} == given["model"]["init_args"]
+    built = instantiate(spec, cli.datamodule.dims)
+    assert built.model.init_args == cli.model.model.init_args
     cbs = [c for c in cli.config["trainer"]["callbacks"]
            if c["class_path"].endswith("ProgressiveSchedule")]
     assert len(cbs) == 1
@@ -343,10 +350,11 @@ def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
 
 def test_baseline_configs_build_their_modules(data):
     dm = GarmentDataModule(data, val_split=None, **methods.DATA)
-    for name, cfg in methods.BASELINES.items():
-        extra = {"num_vertices": 5} if name == methods.NCS else {}
-        module = BaselineModule(num_joints=dm.dims["num_joints"], **cfg, **extra)
-        assert module.hparams.method == cfg["method"] and module.hparams.lr == cfg["lr"]
+    for name, spec in methods.BASELINES.items():
+        module = instantiate(spec, dict(dm.dims, num_vertices=5))
+        cfg = spec["init_args"]
+        assert isinstance(module, BaselineModule) and module.hparams.lr == cfg["lr"]
+        assert module.method == methods.BASELINE_CONFIGS[name].split("/")[1]
         assert set(module.loss_fn.enabled) == set(cfg["loss"]["enabled"])
 
 

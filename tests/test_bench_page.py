@@ -15,6 +15,7 @@ from garmentgnn.data import store
 from garmentgnn.training import GarTransModule, GarmentDataModule
 from garmentgnn.viz.animate import renderer_unavailable
 from garmentgnn.viz.compare import comparison
+from garmentgnn.models import GarTrans
 
 from test_viz_export import dataset  # noqa: F401  (the shared two-sequence toy dataset)
 
@@ -25,7 +26,7 @@ METRICS = dict.fromkeys(report.METRICS, 1.0)
 def _checkpoint(root, path):
     dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=8, num_landmarks=16,
                            val_split=None)
-    module = GarTransModule(**dm.dims)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
     trainer = L.Trainer(max_epochs=0, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False,
                         default_root_dir=str(path.parent))

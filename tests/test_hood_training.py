@@ -14,6 +14,8 @@ from garmentgnn.models.blocks import RunningNormalizer
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, GarmentDataModule)
 from garmentgnn.training.module import loss_inputs
+from garmentgnn.models.baselines import DAStyle
+from garmentgnn.training.configs import instantiate, merge
 
 from conftest import lbs_simulate
 
@@ -64,9 +66,10 @@ def data(tmp_path_factory):
 
 
 def _module(dims, **kw) -> BaselineModule:
-    cfg = dict(BASELINES[HOOD], model={"hidden": 16, "fine_blocks": 1, "coarse_blocks": 1})
-    cfg["loss"] = dict(cfg["loss"], compile_search=False)
-    return BaselineModule(num_joints=dims["num_joints"], **dict(cfg, **kw))
+    model = kw.pop("model", {"hidden": 16, "fine_blocks": 1, "coarse_blocks": 1})
+    spec = merge(BASELINES[HOOD], {"init_args": dict(kw, loss={"compile_search": False})})
+    spec["init_args"]["model"]["init_args"] = model
+    return instantiate(spec, dims)
 
 
 def test_hood_normalised_inputs(data):
@@ -209,7 +212,7 @@ def test_start_state_arguments(data):
     with pytest.raises(ValueError, match="`start_state`"):
         _module(dims, start_state="simulated")
     with pytest.raises(ValueError, match="`start_state`"):
-        BaselineModule("da", dims["num_joints"], start_state="own")
+        BaselineModule(DAStyle(dims["num_joints"]), start_state="own")
     with pytest.raises(ValueError, match="`max_start_drift`"):
         _module(dims, max_start_drift=0.0)
 

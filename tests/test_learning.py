@@ -20,10 +20,11 @@ from garmentgnn.models.blocks import AttentionStack
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.physics.energies import GRAVITY
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
-from garmentgnn.training.configs import load_config, model_args
+from garmentgnn.training.configs import instantiate, merge, module_spec
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 from garmentgnn.training.base import DATASET_KEY, dataset_stamp
 from garmentgnn.training.integrity import CheckpointError, stamp_checkpoint
+from garmentgnn.models.baselines import DAStyle, HOODStyle, NCSStyle
 
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 
@@ -36,9 +37,10 @@ def dm(root):  # noqa: F811
 
 
 def gartrans(dm, method="GarTrans (SAT)", **kw):
-    hp, _ = variant_settings(method)
+    spec, _ = variant_settings(method)
+    spec = merge(spec, {"init_args": {"model": {"init_args": dict(compile_search=False, **kw)}}})
     L.seed_everything(0)
-    return GarTransModule(**dm.dims, **dict(hp, compile_search=False, **kw))
+    return instantiate(spec, dm.dims)
 
 
 @pytest.mark.parametrize("method", list(GARTRANS) + [DA, HOOD, NCS])
@@ -47,10 +49,8 @@ def test_every_branch_gets_a_gradient_at_step_0(dm, method):
     if method in GARTRANS:
         module = gartrans(dm, method)
     else:
-        cfg = dict(BASELINES[method])
-        cfg["loss"] = dict(cfg["loss"], compile_search=False)
-        module = BaselineModule(num_joints=dm.dims["num_joints"], num_vertices=item.num_vertices,
-                                history=3, **cfg)
+        spec = merge(BASELINES[method], {"init_args": {"loss": {"compile_search": False}}})
+        module = instantiate(spec, dict(dm.dims, num_vertices=item.num_vertices))
     rep = branch_gradients(module, item)
     assert rep and dead_branches(rep) == []
     assert all(r["with_grad"] == r["trainable"] for r in rep.values()), rep
@@ -65,25 +65,24 @@ def test_zero_gates_leave_the_gated_branches_without_gradient(dm):
     assert rep["gates"]["with_grad"] == 1
 
 
-#: the model switches whose defaults must agree in GarTrans, GarTransModule and the
-#: packaged config (``compile_search`` is a speed switch, on in the config only)
+#: the model switches that make the project's form differ from the paper's
 SWITCHES = ("skin_prior", "lbs_start", "gate_init", "collision_projection", "blend_shape",
             "strain_limit", "accel_unit", "input_norm", "local_frame")
 
 
-def test_model_module_and_config_defaults_agree():
-    def defaults(fn):
-        return {k: p.default for k, p in inspect.signature(fn).parameters.items()
-                if p.default is not inspect.Parameter.empty}
-
-    model, module = defaults(GarTrans.__init__), defaults(GarTransModule.__init__)
-    config = model_args(load_config("gartrans"))
-    for name in SWITCHES:
-        assert model[name] == module[name] == config.get(name, module[name]), name
+def test_the_paper_form_is_the_model_and_its_config():
+    """The model's defaults are the project's form; the paper's form (PAPER_FORM,
+    GarTrans.paper, configs/ablations/paper.yaml) flips each switch, and the packaged
+    config leaves every switch at the model's default (written once)."""
+    model = {k: p.default for k, p in inspect.signature(GarTrans.__init__).parameters.items()
+             if p.default is not inspect.Parameter.empty}
+    config = module_spec("gartrans")["init_args"]["model"]["init_args"]
+    assert not set(SWITCHES) & set(config)
     assert set(PAPER_FORM) == set(SWITCHES)
     assert all(PAPER_FORM[k] != model[k] for k in SWITCHES if k != "gate_init")
-    paper = model_args(load_config("ablations/paper"))
-    assert {k: paper.get(k, config.get(k, module[k])) for k in SWITCHES} == PAPER_FORM
+    paper = module_spec("gartrans", "ablations/paper")["init_args"]["model"]["init_args"]
+    assert {k: paper.get(k, model[k]) for k in SWITCHES} == PAPER_FORM
+    assert GarTrans.paper(3, 10).init_args == dict(GarTrans(3, 10).init_args, **PAPER_FORM)
 
 
 @pytest.mark.parametrize("layer", ["sat", "gt", "gat"])
@@ -110,9 +109,12 @@ def test_attention_stack_initialisation_is_kaiming(layer):
 
 
 def _save_checkpoint(module, path, drop=()) -> dict:
-    """``module`` saved as a stamped Lightning checkpoint without the hyper-parameters
-    ``drop`` (a checkpoint written before they existed); returns what was saved."""
-    hp = {k: v for k, v in module.hparams.items() if k not in drop}
+    """``module`` saved as a stamped Lightning checkpoint of the earlier layout (the
+    model's settings among the module's) without the hyper-parameters ``drop`` (a
+    checkpoint written before they existed); returns what was saved."""
+    flat = {**{k: v for k, v in module.hparams.items() if k != "model"},
+            **module.model.init_args}
+    hp = {k: v for k, v in flat.items() if k not in drop}
     ckpt = {"state_dict": module.state_dict(), "hyper_parameters": hp,
             "pytorch-lightning_version": L.__version__}
     stamp_checkpoint(ckpt)
@@ -130,11 +132,12 @@ def test_checkpoint_from_before_accel_unit_keeps_its_acceleration_output(dm, tmp
     _save_checkpoint(old, paths["old"], drop=("accel_unit",))
     _save_checkpoint(old, paths["new"])
     loaded = GarTransModule.load_from_checkpoint(paths["old"]).eval()
-    assert loaded.model.accel_unit is None and loaded.hparams.accel_unit is None
+    assert loaded.model.accel_unit is None
+    assert loaded.hparams.model["init_args"]["accel_unit"] is None
     with torch.no_grad():
         torch.testing.assert_close(loaded(item)["final"], old(item)["final"])
     assert GarTransModule.load_from_checkpoint(paths["new"]).model.accel_unit is None
-    assert GarTransModule(**dm.dims).model.accel_unit == 0.01  # today's default
+    assert GarTrans(**dm.model_sizes(GarTrans)).accel_unit == 0.01  # today's default
 
 
 def test_checkpoint_from_before_the_local_frame_loads_as_it_was_trained(dm, tmp_path):
@@ -159,8 +162,8 @@ def test_checkpoint_from_before_the_local_frame_loads_as_it_was_trained(dm, tmp_
     for kw in ({}, {"lr": 1e-4}):
         with pytest.raises(CheckpointError, match="integrity digest"):
             GarTransModule.load_from_checkpoint(tmp_path / "edited.ckpt", **kw)
-    new = GarTransModule(**dm.dims)
-    assert new.model.local_frame and new.model.input_norm  # today's defaults
+    new = GarTrans(**dm.model_sizes(GarTrans))
+    assert new.local_frame and new.input_norm  # today's defaults
 
 
 OLD_LAYOUT = Path(__file__).parent / "data" / "gartrans_old_layout.pt"
@@ -187,6 +190,38 @@ def test_old_layout_checkpoint_predicts_the_positions_it_did(tmp_path):
     with torch.no_grad():
         pred = module(scene)["final"]
     assert float((pred - final).abs().max()) <= 1e-6
+
+
+@pytest.mark.parametrize("method", ["da", "hood", "ncs"])
+def test_baseline_checkpoint_of_the_earlier_layout_loads_as_its_model(dm, tmp_path, method):
+    """A baseline checkpoint of the earlier layout names its ``method``, the data sizes and
+    the model's keyword arguments among the module's: it loads as the model it was (the
+    same weights, the same prediction), and ``upgrade_checkpoint`` writes it in today's
+    layout, which loads the same."""
+    item = dm.train_set[1]
+    S, V = dm.dims["num_joints"], item.num_vertices
+    model = {"da": lambda: DAStyle(S, hidden=16), "hood": lambda: HOODStyle(hidden=8),
+             "ncs": lambda: NCSStyle(V, S, history=1, hidden=8)}[method]()
+    new = BaselineModule(model).eval()
+    kw = {"da": {"hidden": 16}, "hood": {"hidden": 8}, "ncs": {"history": 1, "hidden": 8}}
+    old_hp = {"method": method, "num_joints": S, "num_vertices": V, "model": kw[method],
+              "lr": 1e-3, "loss": None, "coarse": None, "fps": 30.0, "history": 3,
+              "num_body_vertices": None, "nystrom_dim": None, "start_state": "lbs",
+              "max_start_drift": 0.25}
+    ckpt = {"state_dict": new.state_dict(), "hyper_parameters": old_hp,
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, tmp_path / "old.ckpt")
+    BaselineModule.upgrade_checkpoint(tmp_path / "old.ckpt", tmp_path / "new.ckpt")
+    assert torch.load(tmp_path / "new.ckpt", weights_only=False)["hyper_parameters"][
+        "model"]["class_path"].endswith(type(model).__name__)
+    with torch.no_grad():
+        want = new(item)
+        for path in ("old.ckpt", "new.ckpt"):
+            loaded = BaselineModule.load_from_checkpoint(tmp_path / path).eval()
+            assert loaded.method == method and type(loaded.model) is type(model)
+            assert loaded.model.init_args == model.init_args
+            torch.testing.assert_close(loaded(item), want)
 
 
 @pytest.mark.parametrize("change", [{"garment_state": True}, {"motion_history": 3},
@@ -359,9 +394,10 @@ def learning():
 
 
 def _hood(dm, loss):
-    cfg = dict(BASELINES[HOOD], model={"hidden": 8})
-    cfg["loss"] = dict(cfg["loss"], compile_search=False, **loss)
-    return BaselineModule(num_joints=dm.dims["num_joints"], history=3, **cfg)
+    spec = merge(BASELINES[HOOD], {})
+    spec["init_args"]["model"]["init_args"] = {"hidden": 8}
+    spec["init_args"]["loss"] = dict(spec["init_args"]["loss"], compile_search=False, **loss)
+    return instantiate(spec, dm.dims)
 
 
 def test_objective_rollout_is_free_fall_under_gravity_and_inertia(dm, learning):
@@ -406,26 +442,25 @@ def test_checkpoint_of_other_data_sizes_names_them(tmp_path):
     naming each size, not with torch's "Error(s) in loading state_dict"."""
     path, _, _ = _old_layout(tmp_path)
     ckpt = torch.load(path, weights_only=False)
-    hp = {k: v for k, v in ckpt["hyper_parameters"].items()
-          if k not in GarTransModule.removed_switches}
-    other = GarTransModule(**dict(hp, num_joints=hp["num_joints"] + 2, nystrom_dim=4))
+    init = GarTransModule.saved_hparams(ckpt)["model"]["init_args"]
+    other = GarTransModule(GarTrans(**dict(init, num_joints=init["num_joints"] + 2,
+                                           nystrom_dim=4)))
     with pytest.raises(CheckpointError, match=r"num_joints \d+ \(the data: \d+\).*nystrom_dim"):
         other.on_load_checkpoint(ckpt)
     ckpt[DATASET_KEY] = {"root": "data/small", "content_sha256": "084747be" + "0" * 56}
     with pytest.raises(CheckpointError, match="dataset 084747be0000 at data/small"):
         other.on_load_checkpoint(ckpt)
-    same = GarTransModule(**hp)
+    same = GarTransModule(GarTrans(**init))
     same.on_load_checkpoint(ckpt)  # no error: the sizes fit
     same.load_state_dict(ckpt["state_dict"])
     # a garment-agnostic baseline does not depend on the garment's vertex count
-    da = BaselineModule("da", num_joints=hp["num_joints"], num_vertices=10)
-    da_ckpt = {"state_dict": da.state_dict(), "hyper_parameters": dict(da.hparams,
-                                                                       num_vertices=99)}
+    da = BaselineModule(DAStyle(init["num_joints"]))
+    da_ckpt = {"state_dict": da.state_dict(), "hyper_parameters": dict(da.hparams)}
     stamp_checkpoint(da_ckpt)
     da.on_load_checkpoint(da_ckpt)
-    da_ckpt["hyper_parameters"]["num_joints"] += 1
+    da_ckpt["hyper_parameters"]["model"]["init_args"]["num_joints"] += 1
     stamp_checkpoint(da_ckpt)
-    with pytest.raises(CheckpointError, match="BaselineModule \\(da\\).*num_joints"):
+    with pytest.raises(CheckpointError, match="BaselineModule \\(DAStyle\\).*num_joints"):
         da.on_load_checkpoint(da_ckpt)
 
 
@@ -437,10 +472,13 @@ def test_show_loads_a_baseline_checkpoint_as_its_method(tmp_path):
     from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415  (viz: optional extra)
     _, scene, _ = _old_layout(tmp_path)
     L.seed_everything(0)
-    da = BaselineModule("da", num_joints=scene.num_joints).eval()
-    _save_checkpoint(da, tmp_path / "da.ckpt")
+    da = BaselineModule(DAStyle(scene.num_joints)).eval()
+    ckpt = {"state_dict": da.state_dict(), "hyper_parameters": dict(da.hparams),
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, tmp_path / "da.ckpt")
     loaded = load_checkpoint(tmp_path / "da.ckpt")
-    assert isinstance(loaded, BaselineModule) and loaded.hparams.method == "da"
+    assert isinstance(loaded, BaselineModule) and loaded.method == "da"
     with torch.no_grad():
         torch.testing.assert_close(predict(loaded, scene, "gartrans"), da(scene))
 

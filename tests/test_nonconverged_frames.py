@@ -12,6 +12,7 @@ from garmentgnn.metrics.split import split_inputs
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (GarTransModule, GarmentDataModule)
 from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.models import GarTrans
 
 from conftest import lbs_simulate
 
@@ -80,7 +81,7 @@ def test_keep_is_checked(test_split):
 def test_evaluate_split_leaves_them_out(test_split):
     dm = GarmentDataModule(test_split.root, chunk=4, history=3, nystrom_dim=16,
                            num_landmarks=64, val_split=None)
-    module = GarTransModule(**dm.dims)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
     res = evaluate_split(module, test_split.root, "test", modes=("lbs",), history=3,
                          num_landmarks=64)["lbs"]
     assert res["frames"] == 4 * 6 and res["excluded_frames"] == 4 * 2
@@ -96,8 +97,8 @@ def test_train_test_step_leaves_them_out(test_split):
                             nystrom_dim=16)
     item = chunks[0]  # frames 0, 1, 2: frame 2 flagged
     assert item.converged.tolist() == [True, True, False]
-    module = GarTransModule(num_joints=item.rotations.shape[2],
-                            num_body_vertices=item.body_pos.shape[1], nystrom_dim=16)
+    module = GarTransModule(GarTrans(num_joints=item.rotations.shape[2],
+                                     num_body_vertices=item.body_pos.shape[1], nystrom_dim=16))
     module.log = lambda *a, **k: None  # outside a Trainer
     with torch.no_grad():
         got = module.test_step(item, 0)

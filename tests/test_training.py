@@ -1,5 +1,6 @@
 """Lightning training of GarTrans on a tiny generated dataset (no simulator: the
 "simulation" is the garment skinned by LBS plus a small smooth offset)."""
+import inspect
 import math
 
 import lightning as L
@@ -13,6 +14,7 @@ from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (PHASE_TERMS, REST_BRANCH, GarmentDataModule, EpochShuffleSampler,
                                  GarTransModule, ProgressiveSchedule)
 from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.models import GarTrans
 
 from conftest import lbs_simulate
 
@@ -35,7 +37,10 @@ def root(tmp_path_factory):
 def make(root, **kw):
     dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16, seed=0)
     L.seed_everything(0, workers=True)
-    module = GarTransModule(**dm.dims, **kw)
+    model_args = inspect.signature(GarTrans.__init__).parameters
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans),
+                                     **{k: v for k, v in kw.items() if k in model_args}),
+                            **{k: v for k, v in kw.items() if k not in model_args})
     return dm, module
 
 
@@ -109,7 +114,7 @@ def test_schedule_passes_all_three_phases(root):
     assert "train/shear" in seen[4][3] and "train/collision" in seen[2][3]
     for name in REST_BRANCH:
         assert all(not p.requires_grad for p in getattr(module.model, name).parameters())
-    fresh = GarTransModule(**dm.dims).model.dynamic  # (its dead last edge output is frozen)
+    fresh = GarTrans(**dm.model_sizes(GarTrans)).dynamic  # (its dead last edge output is frozen)
     assert ([p.requires_grad for p in module.model.dynamic.parameters()]
             == [p.requires_grad for p in fresh.parameters()])
     assert sum(p.requires_grad for p in fresh.parameters()) > 0

@@ -15,6 +15,7 @@ from garmentgnn.models import PAPER_FORM
 from garmentgnn.cli import main as cli_main
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
 from garmentgnn.training.lightning_cli import main as train_main
+from garmentgnn.models import GarTrans
 
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 
@@ -45,13 +46,16 @@ def test_config_builds_the_variant(root, tmp_path, variant):  # noqa: F811
     cli = train_main(args + fast_args(root, tmp_path), run=False)
     m = cli.model
     assert isinstance(m, GarTransModule) and isinstance(cli.datamodule, GarmentDataModule)
-    assert m.hparams.num_joints == cli.datamodule.dims["num_joints"]  # linked from the data
-    assert m.hparams.nystrom_dim == NY
+    model = m.hparams.model["init_args"]  # the model it was handed, as saved
+    assert model == m.model.init_args and isinstance(m.model, GarTrans)
+    assert model["num_joints"] == cli.datamodule.dims["num_joints"]  # linked from the data
+    assert model["num_body_vertices"] == cli.datamodule.dims["num_body_vertices"]
+    assert model["nystrom_dim"] == NY
     expected = {"wo_edge.yaml": "gt", "wo_gating.yaml": "gt_edge", "gat.yaml": "gat",
                 "structure_aware.yaml": "structure_aware"}.get(variant, "sat")
-    assert m.hparams.dynamic_layer == expected
+    assert model["dynamic_layer"] == expected
     if variant == "paper.yaml":
-        assert {k: m.hparams[k] for k in PAPER_FORM} == PAPER_FORM
+        assert {k: model[k] for k in PAPER_FORM} == PAPER_FORM
     sched = [c for c in cli.trainer.callbacks if isinstance(c, ProgressiveSchedule)]
     assert len(sched) == 1
     assert sched[0].max_phase == (1 if variant == "wo_unsup.yaml" else 3)
@@ -121,7 +125,7 @@ def test_ddp_two_cpu_processes_gloo(root, tmp_path, phase):  # noqa: F811
     """Plain DDP (every trainable parameter gets a gradient) in phase 1; phase 3 freezes
     the rest branch mid-run, which DDP only allows with ``find_unused_parameters``."""
     dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
-    module = GarTransModule(**dm.dims)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
     with torch.no_grad():  # open the lbs_start gates so every branch gets gradient at once
         module.model.gates.fill_(0.5)
     strategy = DDPStrategy(start_method="spawn", find_unused_parameters=phase == 3)
@@ -163,7 +167,8 @@ class _Record(L.Callback):
 def _fit_recorded(root, tmp_path, init, devices, accumulate):  # noqa: F811
     tmp_path.mkdir()
     dm = GarmentDataModule(root, chunk=2, history=2, nystrom_dim=NY, num_landmarks=16, seed=0)
-    module = GarTransModule(**dm.dims, input_norm=False)  # see the test below
+    # input_norm off: see the test below
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans), input_norm=False))
     module.load_state_dict(init)
     strategy = DDPStrategy(start_method="spawn") if devices > 1 else "auto"
     trainer = L.Trainer(accelerator="cpu", devices=devices, strategy=strategy, max_epochs=1,
@@ -209,7 +214,7 @@ def test_ddp_two_cpu_processes_equals_one_process_accumulating(root, tmp_path): 
     broadcast at every forward), which no single process reproduces (docs/model.md)."""
     dm = GarmentDataModule(root, chunk=2, history=2, nystrom_dim=NY, num_landmarks=16, seed=0)
     L.seed_everything(0)
-    init = GarTransModule(**dm.dims, input_norm=False)
+    init = GarTransModule(GarTrans(**dm.model_sizes(GarTrans), input_norm=False))
     assert len(dm.train_set) == 4
     with torch.no_grad():  # open the lbs_start gates so every branch gets gradient at once
         init.model.gates.fill_(0.5)

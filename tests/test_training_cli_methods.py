@@ -13,12 +13,16 @@ import yaml
 from garmentgnn.cli import main as cli_main
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
-from garmentgnn.training.configs import available, config_path, model_args
+from garmentgnn.training.configs import available, config_path, module_spec
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
+from garmentgnn.models.baselines import NCSStyle
+from garmentgnn.training.configs import instantiate
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 from test_training_cli import fast_args
+
+OLD_LAYOUT = Path(__file__).parent / "data" / "gartrans_old_layout.pt"
 
 CLASSES = {"garmentgnn.training.GarTransModule": GarTransModule,
            "garmentgnn.training.BaselineModule": BaselineModule}
@@ -48,15 +52,25 @@ def test_each_packaged_config_builds_its_module(root, tmp_path, name):  # noqa: 
                                      else name).read_text())
     assert isinstance(cli.model, CLASSES[cfg["model"]["class_path"]])
     assert isinstance(cli.datamodule, GarmentDataModule)
-    expected = dict(model_args(cfg), **model_args(yaml.safe_load(config_path(name).read_text())))
+    names = ["gartrans", name] if name.startswith("ablations/") else [name]
+    expected = module_spec(*names)["init_args"]
     hp = dict(cli.model.hparams)
     for k, v in expected.items():
-        assert hp[k] == (sorted(v) if k == "enabled" else v), k
-    dims = cli.datamodule.dims
-    assert hp["num_joints"] == dims["num_joints"] and hp["history"] == 3
+        if k == "model":  # the model it is handed: its configured settings, as built
+            got = hp["model"]["init_args"]
+            assert hp["model"]["class_path"].rsplit(".", 1)[-1] == \
+                v["class_path"].rsplit(".", 1)[-1]
+            assert {j: got[j] for j in v["init_args"]} == v["init_args"]
+            assert got == cli.model.model.init_args
+        else:
+            assert hp[k] == (sorted(v) if k == "enabled" else v), k
+    dims, model = cli.datamodule.dims, hp["model"]["init_args"]
+    # the sizes linked from the data, where the model takes them
+    for size in ("num_joints", "num_body_vertices", "nystrom_dim", "num_vertices"):
+        assert model.get(size, dims[size]) == dims[size], size
+    assert ("num_vertices" in model) == (name == "baselines/ncs")
     if name == "baselines/ncs":  # one garment on one body: the garment-specific size
-        assert hp["num_vertices"] == dims["num_vertices"] == cli.datamodule.train_set.static(
-            0).num_vertices
+        assert model["num_vertices"] == cli.datamodule.train_set.static(0).num_vertices
 
 
 def _oracle(module, root, split):  # noqa: F811
@@ -122,13 +136,12 @@ def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
         root, tmp_path, capsys):  # noqa: F811
     dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16)
     L.seed_everything(0)
-    da = BaselineModule(num_joints=dm.dims["num_joints"], fps=30.0, history=3,
-                        **model_args(yaml.safe_load(config_path("baselines/da").read_text())))
+    da = instantiate(module_spec("baselines/da"), dm.dims)
     _bench_style_checkpoint(da, dm, tmp_path / "da.ckpt")
     args = _test_args(root, tmp_path / "run") + ["--trainer.limit_test_batches", "1"]
     cli = train_main(["test", "--config", "baselines/da", "--ckpt_path",
                       str(tmp_path / "da.ckpt")] + args)
-    assert isinstance(cli.model, BaselineModule) and cli.model.hparams.method == "da"
+    assert isinstance(cli.model, BaselineModule) and cli.model.method == "da"
     saved = torch.load(tmp_path / "da.ckpt", weights_only=False)["state_dict"]
     assert saved.keys() == cli.model.state_dict().keys()
     assert all(torch.equal(v, saved[k]) for k, v in cli.model.state_dict().items())
@@ -141,17 +154,33 @@ def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
     assert "not of garmentgnn.training.GarTransModule" in err[0] and "--config" in err[0]
 
 
+def test_the_cli_names_the_conversion_of_a_checkpoint_of_the_earlier_layout(
+        root, tmp_path, capsys):  # noqa: F811
+    """``--ckpt_path`` rebuilds the module from the file's hyper-parameters as Lightning
+    reads them: a checkpoint of the earlier layout (the model's settings among the
+    module's) is refused in one line naming the conversion, and the converted file holds
+    the model's spec."""
+    old = tmp_path / "old.ckpt"
+    torch.save(torch.load(OLD_LAYOUT, weights_only=False)["checkpoint"], old)
+    rc = cli_main(["train", "test", "--config", "gartrans", "--ckpt_path", str(old)]
+                  + _test_args(root, tmp_path / "run"))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "GarTransModule.upgrade_checkpoint(" in err[0]
+    GarTransModule.upgrade_checkpoint(old, tmp_path / "new.ckpt")
+    hp = torch.load(tmp_path / "new.ckpt", weights_only=False)["hyper_parameters"]
+    assert hp["model"]["class_path"].endswith(".GarTrans")
+    assert "garment_state" not in hp and "rest_layer" not in hp
+
+
 def test_ncs_refuses_a_data_module_of_several_garments(root, tmp_path):  # noqa: F811
     dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16)
     assert dm.dims["num_vertices"] is not None  # one garment on one body
     V = dm.dims["num_vertices"]
-    ncs = BaselineModule("ncs", num_joints=dm.dims["num_joints"], num_vertices=V + 1,
-                         model={"history": 1, "hidden": 8})
+    ncs = BaselineModule(NCSStyle(V + 1, dm.dims["num_joints"], history=1, hidden=8))
     with pytest.raises(ValueError, match="--data.train_ids"):
         ncs.compute_loss(dm.train_set[0])
     short = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
-    ncs = BaselineModule("ncs", num_joints=dm.dims["num_joints"], num_vertices=V,
-                         model={"history": 1, "hidden": 8})
+    ncs = BaselineModule(NCSStyle(V, dm.dims["num_joints"], history=1, hidden=8))
     short.setup("fit")
     with pytest.raises(ValueError, match="--data.history 3"):
         ncs(short.train_set[0])

@@ -20,6 +20,7 @@ from garmentgnn.viz.animate import (Panel, _FOOTER, _HEADER, default_error_limit
                                     renderer_unavailable, vertex_error_cm)
 from garmentgnn.viz.compare import comparison
 from garmentgnn.viz.viewer import bundle_path
+from garmentgnn.models import GarTrans
 
 from test_viz_export import dataset  # noqa: F401  (module-scoped toy dataset)
 
@@ -169,7 +170,7 @@ def test_render_frames_the_body_and_clips_a_diverged_panel(tmp_path):
 def test_comparison_against_evaluate_split(dataset, tmp_path):  # noqa: F811
     dm = GarmentDataModule(dataset, chunk=4, history=2, nystrom_dim=8, num_landmarks=16,
                            val_split=None)
-    module = GarTransModule(**dm.dims)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
     c = comparison(dataset, {"GarTrans": module}, split="test", history=2, num_landmarks=16)
     assert [p.title for p in c.panels] == ["simulated (ground truth)", "GarTrans", "LBS only"]
     rec = [r for r in store.read_manifest(dataset)["items"] if r["split"] == "test"][0]
@@ -194,7 +195,7 @@ def test_comparison_against_evaluate_split(dataset, tmp_path):  # noqa: F811
 def test_show_cli_from_a_checkpoint(dataset, tmp_path, capsys):  # noqa: F811
     dm = GarmentDataModule(dataset, chunk=4, history=2, nystrom_dim=8, num_landmarks=16,
                            val_split=None)
-    module = GarTransModule(**dm.dims)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
     trainer = L.Trainer(max_epochs=0, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False,
                         default_root_dir=str(tmp_path))

@@ -21,6 +21,7 @@ from garmentgnn.motion import load_bvh, save_bvh
 from garmentgnn.motion.sequence import Motion
 from garmentgnn.training import GarTransModule
 from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
+from garmentgnn.models import GarTrans
 
 
 def sheet_garment():
@@ -169,7 +170,7 @@ def test_corrupt_sequence_file(npz_file, tmp_path_factory, data):
 # ------------------------------------------------------------------ checkpoints
 @pytest.fixture(scope="module")
 def ckpt_bytes():
-    m = GarTransModule(num_joints=3, num_body_vertices=10, nystrom_dim=8, heads=2)
+    m = GarTransModule(GarTrans(num_joints=3, num_body_vertices=10, nystrom_dim=8, heads=2))
     ck = {"state_dict": m.state_dict(), "hyper_parameters": dict(m.hparams), "epoch": 0}
     m.on_save_checkpoint(ck)
     buf = io.BytesIO()

@@ -44,8 +44,9 @@ from garmentgnn.harness import stability as stab
 from garmentgnn.harness import scoring
 from garmentgnn.harness.curves import LearningCurve
 from garmentgnn.harness.dataset import DatasetInfo, prepare_dataset
-from garmentgnn.harness.methods import (BASELINES, DATA, FULL, GARTRANS, GARTRANS_MODEL, HOOD, LONG,
-                                      METHOD_NAMES, NCS, LearnedBudget, variant_settings)
+from garmentgnn.harness.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
+                                        HOOD, LONG, METHOD_NAMES, NCS, LearnedBudget,
+                                        variant_settings)
 from garmentgnn.harness.model_inputs import BenchChunks
 from garmentgnn.harness.page import MEDIA
 from garmentgnn.harness.records import failure
@@ -55,8 +56,9 @@ from garmentgnn.data import SequenceChunks, store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.geometry import push_outside
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 ProgressiveSchedule, TimeBudget)
+from garmentgnn.training import (BaselineModule, GarmentDataModule, ProgressiveSchedule,
+                                 TimeBudget)
+from garmentgnn.training.configs import instantiate
 
 KIND = "learned"
 #: the record kind of :meth:`LearnedRunner.stability_record`
@@ -394,7 +396,7 @@ class LearnedRunner:
                   "config": f"ablations/{v.config}" if v.config else "gartrans"}
         folder = self._folder(method, seed, config)
         dm = self._datamodule(seed)
-        module = GarTransModule(**dm.dims, **hp)
+        module = instantiate(hp, dm.dims)
         sched = ProgressiveSchedule(**sched_kw)
         info = self.fit(module, dm, folder, self.budget.epochs, [sched], minutes,
                         predict=lambda m, item: m(item)["final"])
@@ -415,15 +417,13 @@ class LearnedRunner:
     # -- baselines --------------------------------------------------------------------
     def _baseline_module(self, method: str, dm: GarmentDataModule,
                          num_vertices: Optional[int] = None) -> BaselineModule:
-        cfg = BASELINES[method]
-        return BaselineModule(num_joints=dm.dims["num_joints"], num_vertices=num_vertices,
-                              fps=GARTRANS_MODEL["fps"], history=DATA["history"], **cfg)
+        return instantiate(BASELINES[method], dict(dm.dims, num_vertices=num_vertices))
 
     @staticmethod
     def _batch_fn(module: BaselineModule) -> Callable[[GarmentInputs, int], Callable[[], Any]]:
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
             it = item.cycled(b)
-            if module.hparams.method != "hood":
+            if module.method != "hood":
                 return lambda: module(it)
             # one autoregressive step per frame, its inputs prepared outside the timed call
             coarse, lbs = module.coarse_level(it), it.skinned()
@@ -432,9 +432,8 @@ class LearnedRunner:
         return make_batch
 
     def _baseline(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
-        cfg = BASELINES[method]
-        config = {"module": cfg, **self._limits(self.budget.minutes),
-                  "config": f"baselines/{cfg['method']}"}
+        config = {"module": BASELINES[method], **self._limits(self.budget.minutes),
+                  "config": BASELINE_CONFIGS[method]}
         folder = self._folder(method, seed, config)
         dm = self._datamodule(seed)
         module = self._baseline_module(method, dm)

@@ -17,15 +17,17 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 from garmentgnn.harness import stability as stab
-from garmentgnn.training.configs import load_config, model_args, schedule_args
+from garmentgnn.training.configs import load_config, module_spec, schedule_args
 from garmentgnn.training.schedule import ProgressiveSchedule
 
-__all__ = ["BASELINES", "DATA", "GARTRANS", "GARTRANS_MODEL", "LBS", "LONG", "METHOD_NAMES", "NCS",
-           "HOOD", "DA", "SEED_FREE", "LearnedBudget", "Variant", "seed_plan", "variant_settings"]
+__all__ = ["BASELINES", "BASELINE_CONFIGS", "DATA", "GARTRANS", "GARTRANS_MODULE", "LBS",
+           "LONG", "METHOD_NAMES", "NCS", "HOOD", "DA", "SEED_FREE", "LearnedBudget",
+           "Variant", "seed_plan", "variant_settings"]
 
 _BASE = load_config("gartrans")
-#: ``configs/gartrans.yaml``'s module arguments (``model: init_args:``)
-GARTRANS_MODEL: Dict[str, Any] = model_args(_BASE)
+#: ``configs/gartrans.yaml``'s module (its ``model:`` entry: ``class_path`` and
+#: ``init_args``, the GarTrans it trains nested in them)
+GARTRANS_MODULE: Dict[str, Any] = module_spec("gartrans")
 #: ``configs/gartrans.yaml``'s ``data:`` section without ``root`` and ``num_workers``
 DATA: Dict[str, Any] = {k: v for k, v in _BASE["data"].items()
                         if k not in ("root", "num_workers")}
@@ -58,20 +60,23 @@ NCS, HOOD, DA, LBS = "NCS-style", "HOOD-style", "DA-style", "LBS only"
 METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, LBS)
 #: methods without training or randomness: run for the first seed only
 SEED_FREE: Tuple[str, ...] = (LBS,)
-#: each baseline's ``configs/baselines/<name>.yaml`` module arguments
-#: (:class:`~garmentgnn.training.BaselineModule` arguments, ``model: init_args:``)
-BASELINES: Dict[str, Dict[str, Any]] = {
-    name: model_args(load_config(f"baselines/{cfg}"))
-    for name, cfg in ((DA, "da"), (HOOD, "hood"), (NCS, "ncs"))}
+#: each baseline's packaged configuration
+BASELINE_CONFIGS: Dict[str, str] = {DA: "baselines/da", HOOD: "baselines/hood",
+                                    NCS: "baselines/ncs"}
+#: each baseline's module (its configuration's ``model:`` entry: a
+#: :class:`~garmentgnn.training.BaselineModule` handed the model it names)
+BASELINES: Dict[str, Dict[str, Any]] = {name: module_spec(cfg)
+                                        for name, cfg in BASELINE_CONFIGS.items()}
 
 
 def variant_settings(method: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
-    """``(model hyper-parameters, ProgressiveSchedule arguments without the windows)`` of
-    GarTrans variant ``method``: ``gartrans.yaml`` merged with its ablation file the way
-    LightningCLI merges two ``--config`` files (a list, like ``callbacks``, replaces)."""
+    """``(module spec, ProgressiveSchedule arguments without the windows)`` of GarTrans
+    variant ``method``: ``gartrans.yaml`` merged with its ablation file the way
+    LightningCLI merges two ``--config`` files (a list, like ``callbacks``, replaces);
+    :func:`~garmentgnn.training.configs.instantiate` builds the module."""
     v = GARTRANS[method]
     cfg = load_config(f"ablations/{v.config}") if v.config else {}
-    model = dict(GARTRANS_MODEL, **model_args(cfg))
+    model = module_spec("gartrans", *([f"ablations/{v.config}"] if v.config else []))
     sched = schedule_args(cfg)
     sched = schedule_args(_BASE) if sched is None else sched
     full = dict(_SCHEDULE_DEFAULTS, **sched)

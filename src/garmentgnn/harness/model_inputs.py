@@ -23,6 +23,7 @@ from garmentgnn.data import store
 from garmentgnn.models.inputs import check_history
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import GarTransModule
+from garmentgnn.models import GarTrans
 
 
 class BenchChunks(SequenceChunks):
@@ -93,7 +94,7 @@ def untrained_module(item: Dict[str, Any], seed: int = 0, **kwargs: Any) -> GarT
         raise ValueError(f"`seed`: expected an int, got {seed!r}")
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        module = GarTransModule(num_joints=item["rest_joints"].shape[0],
-                                num_body_vertices=item["body_joint_dists"].shape[0],
-                                nystrom_dim=item["nystrom"].shape[1], **kwargs)
+        module = GarTransModule(GarTrans(num_joints=item["rest_joints"].shape[0],
+                                         num_body_vertices=item["body_joint_dists"].shape[0],
+                                         nystrom_dim=item["nystrom"].shape[1], **kwargs))
     return module.eval()

@@ -1,10 +1,12 @@
 """The building blocks of :class:`~garmentgnn.models.GarTrans`: MLPs with the §4.1
 geometric initialisation, stacks of registry attention layers, and batched copies of a
 garment graph (the frames of one garment as one PyG-style batch); and the running input
-normaliser of the HOOD-style baseline."""
+normaliser of the HOOD-style baseline; :class:`Configurable`, what lets a trained model be
+rebuilt from its checkpoint."""
 from __future__ import annotations
 
-from typing import List, Sequence, Tuple
+import inspect
+from typing import Any, Dict, List, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -14,8 +16,35 @@ from torch.nn.parameter import UninitializedParameter
 
 from garmentgnn.nn import TensorCache, make_layer
 
-__all__ = ["AttentionStack", "RunningNormalizer", "batch_edges", "cached_batch_edges",
-           "geometric_init_", "mlp"]
+__all__ = ["AttentionStack", "Configurable", "RunningNormalizer", "batch_edges",
+           "cached_batch_edges", "geometric_init_", "mlp"]
+
+
+class Configurable:
+    """A model that remembers the arguments it was built with, defaults included:
+    :attr:`init_args`, and :meth:`spec` (``{"class_path", "init_args"}``, the form of a
+    YAML ``model:`` entry and of LightningCLI's ``class_path``), which a LightningModule
+    handed the model saves in its checkpoint so the model can be rebuilt from it."""
+
+    #: the arguments of ``__init__`` the instance was built with (defaults filled in)
+    init_args: Dict[str, Any]
+
+    def __new__(cls, *args: Any, **kwargs: Any):
+        obj = super().__new__(cls)
+        try:
+            bound = inspect.signature(cls.__init__).bind(None, *args, **kwargs)
+        except TypeError:  # a copy (copy/pickle call __new__ bare): its __dict__ follows
+            return obj
+        bound.apply_defaults()
+        # straight into __dict__: nn.Module's __setattr__ is not ready before __init__
+        obj.__dict__["init_args"] = {k: v for k, v in list(bound.arguments.items())[1:]}
+        return obj
+
+    def spec(self) -> Dict[str, Any]:
+        """``{"class_path": "<module>.<class>", "init_args": {...}}`` of this model."""
+        cls = type(self)
+        return {"class_path": f"{cls.__module__}.{cls.__qualname__}",
+                "init_args": dict(self.init_args)}
 
 
 def mlp(sizes: Sequence[int], act: nn.Module, last_act: bool = True) -> nn.Sequential:

@@ -1,28 +1,16 @@
 """GarTrans (paper §3.1, §4.1): dynamic-aware graph construction + SAT deformation.
 
-:meth:`GarTrans.forward` reads one :class:`~garmentgnn.models.inputs.GarmentInputs` (one
+:meth:`GarTrans.forward` reads one :class:`~garmentgnn.models.inputs.GarmentInputs` (a
 chunk, or a PyG ``Batch`` of chunks of several garments) and runs the paper's pipeline:
-
-1. Static branch (:meth:`GarTrans.encode_static`, once per garment and body shape):
-   rest features ``x̄ = [p, n, d(p, J)]`` -> FC [128,128,128] tanh -> transformer layers
-   [64,64,128] (4 heads, tanh) = ``x̄^[1]``; Nyström geodesic eigenvectors -> FC =
-   ``u^[1]``; ``x' = x̄^[1] ⊙ u^[1]``; body-vertex-to-joint distances -> FC
-   [512,256,128] = ``b^[1] in R^{128 x S}``; ``x'' = x' b^[1]`` (``V x S``).
-2. Dynamic graph (:meth:`GarTrans.coarse`): a 2-layer GRU (128) over the pose history ->
-   ``Θ^[1] in R^S``; ``x''' = x'' ⊙ Θ^[1]``; skinning weights ``W^t = softmax(x''')`` and
-   (``blend_shape``) a blend shape ``B^t``; coarse mesh ``M^{t,c} = LBS(T + B^t, J, W^t)``
-   (Eqs. 1-2).
-3. SAT stack (:meth:`GarTrans.deform`): graph on ``M^{t,c}`` with vertex features
-   (velocity, normal, joint distances) and edge features (length, direction) -> 6 layers
-   [32,64,64,64,32,3], 4 heads, ELU, heads averaged = ``a``; ``M^{t,d} = M^{t,c} + a dt^2``.
-4. Post-steps, not in the paper (:meth:`GarTrans.post_steps`): the strain limit and the
-   collision projection.
-
+:meth:`~GarTrans.encode_static` (rest features, Nyström and body branches: ``x''``, once
+per garment) -> :meth:`~GarTrans.coarse` (GRU motion code, skinning weights ``W^t``,
+coarse mesh ``M^{t,c}``, Eqs. 1-2) -> :meth:`~GarTrans.deform` (the SAT stack's ``a``) ->
+:meth:`~GarTrans.post_steps` (strain limit, collision projection: not in the paper).
 The project's defaults differ from the paper where measured better (docs/model.md);
-:meth:`GarTrans.paper` (and ``configs/ablations/paper.yaml``) is the paper's form.
-Choices where the paper is vague: per-vertex Nyström features (``V x k`` through FC
-layers); ``Θ^[1]`` = the GRU's last hidden state -> linear -> ``S``; ``a dt^2`` added to the
-coarse mesh (frame-parallel); any registry layer in any slot.
+:meth:`GarTrans.paper` (``configs/ablations/paper.yaml``) is the paper's form.  Choices
+where the paper is vague: per-vertex Nyström features (``V x k`` through FC layers);
+``Θ^[1]`` = the GRU's last hidden state -> linear -> ``S``; ``a`` added to the coarse mesh
+(frame-parallel); any registry layer in any slot.
 """
 from __future__ import annotations
 
@@ -33,9 +21,9 @@ from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
-                                push_outside, unique_edges, vertex_normals)
-from garmentgnn.models.blocks import (AttentionStack, RunningNormalizer, cached_batch_edges,
-                                      geometric_init_, mlp)
+                                unique_edges, vertex_normals)
+from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNormalizer,
+                                      cached_batch_edges, geometric_init_, mlp)
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import ChunkLayout, SequencePrediction, StaticFeatures
 
@@ -51,7 +39,7 @@ PAPER_FORM: Dict[str, Any] = {"skin_prior": False, "lbs_start": False, "gate_ini
                               "collision_projection": None}
 
 
-class GarTrans(SequencePrediction, nn.Module):
+class GarTrans(Configurable, SequencePrediction, nn.Module):
     """The full model.  Layer slots take registry names (``sat``, ``gt``, ``gt_edge``,
     ``structure_aware``, ``gat``), so the paper's ablations are one argument.  The
     defaults are the project's; :meth:`paper` builds the paper's form (:data:`PAPER_FORM`).
@@ -72,9 +60,9 @@ class GarTrans(SequencePrediction, nn.Module):
             blend shape and the dynamic output (needs ``skin_prior``).  At ``gate_init``
             0 the untrained model is exactly LBS but the gated branches get no gradient
             until the gates move; at 1 every branch learns from the first step.
-        blend_shape: the blend shape ``B^t`` and its stack (the paper; off by default).
-        accel_unit: metres per unit of the dynamic stack's output (``0.01``: centimetres);
-            ``None`` (the paper): an acceleration, ``a dt^2``.
+        blend_shape: the blend shape ``B^t`` and its stack (the paper).
+        accel_unit: metres per unit of the dynamic output (``0.01``: centimetres); ``None``
+            (the paper): an acceleration, ``a dt^2``.
         input_norm: MeshGraphNets-style running normalisers of the stacks' vertex and
             edge features (statistics of training, saved in the checkpoint).
         local_frame: the dynamic stack works in each vertex's skinned local frame ``R_v``
@@ -87,8 +75,7 @@ class GarTrans(SequencePrediction, nn.Module):
         collision_projection: margin ``eps`` (metres) of a last differentiable step moving
             vertices closer than ``eps`` to the body (or inside it) to ``eps`` outside
             (:func:`~garmentgnn.geometry.push_outside`); ``None`` (the paper): none.
-        compile_search: ``torch.compile`` the projection's nearest-face search (same
-            result, faster on CPU).
+        compile_search: ``torch.compile`` the projection's nearest-face search (faster).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -166,7 +153,7 @@ class GarTrans(SequencePrediction, nn.Module):
         if self.gates is not None:
             nn.init.constant_(self.gates, self.gate_init)
 
-    def _gate(self, i: int, x: Tensor) -> Tensor:
+    def _gate(self, i: int, x: Tensor) -> Tensor:  # the lbs_start gate i on x
         return x if self.gates is None else self.gates[i] * x
 
     # -- 1. static branch -------------------------------------------------------------
@@ -274,8 +261,7 @@ class GarTrans(SequencePrediction, nn.Module):
 
     @property
     def unit(self) -> float:
-        """Metres of displacement per unit of the dynamic output (``dt^2`` for the paper's
-        acceleration)."""
+        """Metres per unit of the dynamic output (``dt^2``: the paper's acceleration)."""
         return self.fps ** -2 if self.accel_unit is None else self.accel_unit
 
     # -- 4. post-steps ----------------------------------------------------------------------
@@ -290,11 +276,8 @@ class GarTrans(SequencePrediction, nn.Module):
         body = inputs.get("body_pos")
         if self.collision_projection is None or body is None:
             return x
-        lay = ChunkLayout(inputs)
-        parts = [push_outside(x[:, v0:v1], body[:, b0:b1], faces, self.collision_projection,
-                              compiled=self.compile_search)
-                 for (v0, v1), (b0, b1), faces in lay.bodies(inputs)]
-        return parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+        return ChunkLayout(inputs).push_outside(x, inputs, self.collision_projection,
+                                                compiled=self.compile_search)
 
     def forward(self, inputs: GarmentInputs, static: Optional[StaticFeatures] = None,
                 prev_final: Optional[Tensor] = None) -> Dict[str, Tensor]:
@@ -315,19 +298,3 @@ class GarTrans(SequencePrediction, nn.Module):
         accel = self.deform(inputs, prev, cur, joints, R)
         final = self.post_steps(inputs, static, cur + self._gate(2, accel * self.unit))
         return {"final": final, "coarse": cur, "accel": accel, "weights": W}
-
-    def rollout(self, inputs: GarmentInputs, static: Optional[StaticFeatures] = None,
-                first: Optional[Tensor] = None) -> Dict[str, Tensor]:
-        """Autoregressive inference over the frames of one chunk, in order: each frame's
-        velocity from the model's own previous prediction (``first`` ``[V, 3]``: the
-        garment before frame 0; default the coarse mesh).  Outputs as :meth:`forward`."""
-        if inputs.num_chunks != 1:
-            raise ValueError("`inputs`: a rollout runs over one chunk, got a batch of "
-                             f"{inputs.num_chunks}")
-        static = self.encode_static(inputs) if static is None else static
-        outs, prev = [], None if first is None else first.unsqueeze(0)
-        for t in range(inputs.num_frames):
-            o = self.forward(inputs.select(torch.tensor([t])), static, prev_final=prev)
-            prev = o["final"]
-            outs.append(o)
-        return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}

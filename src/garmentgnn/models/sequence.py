@@ -11,6 +11,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from garmentgnn.geometry import push_outside
 from garmentgnn.models.inputs import FRAME_KEYS, GarmentInputs
 
 
@@ -139,9 +140,20 @@ class ChunkLayout:
         return [((starts[n], starts[n + 1]), (n * Vb, (n + 1) * Vb),
                  faces[n * Fb:(n + 1) * Fb] - n * Vb) for n in range(self.N)]
 
+    def push_outside(self, x: Tensor, inputs: GarmentInputs, margin: float,
+                     compiled: bool = False) -> Tensor:
+        """``x`` ``[B, V, 3]`` with each chunk's vertices closer than ``margin`` to its own
+        body (or inside it) moved to ``margin`` outside
+        (:func:`~garmentgnn.geometry.push_outside`)."""
+        parts = [push_outside(x[:, v0:v1], inputs.body_pos[:, b0:b1], faces, margin,
+                              compiled=compiled)
+                 for (v0, v1), (b0, b1), faces in self.bodies(inputs)]
+        return parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+
 
 class SequencePrediction:
-    """:meth:`predict_sequence` for a model with GarTrans's ``forward``."""
+    """:meth:`predict_sequence` and :meth:`rollout` for a model with GarTrans's
+    ``forward(inputs, static, prev_final)`` and ``encode_static(inputs)``."""
 
     #: default chunk size of :meth:`predict_sequence`: frames per chunk such that a
     #: chunk holds about this many garment vertices (bounds memory, see docs/inference.md)
@@ -192,3 +204,19 @@ class SequencePrediction:
                 for k in outputs:
                     out[k][t0:t0 + b] = o[k]
         return out
+
+    def rollout(self, inputs: GarmentInputs, static: Optional[StaticFeatures] = None,
+                first: Optional[Tensor] = None) -> Dict[str, Tensor]:
+        """Autoregressive inference over the frames of one chunk, in order: each frame's
+        velocity from the model's own previous prediction (``first`` ``[V, 3]``: the
+        garment before frame 0; default the coarse mesh).  Outputs as :meth:`forward`."""
+        if inputs.num_chunks != 1:
+            raise ValueError("`inputs`: a rollout runs over one chunk, got a batch of "
+                             f"{inputs.num_chunks}")
+        static = self.encode_static(inputs) if static is None else static
+        outs, prev = [], None if first is None else first.unsqueeze(0)
+        for t in range(inputs.num_frames):
+            o = self.forward(inputs.select(torch.tensor([t])), static, prev_final=prev)
+            prev = o["final"]
+            outs.append(o)
+        return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}

@@ -13,22 +13,26 @@ from __future__ import annotations
 
 import atexit
 import contextvars
+import importlib
+import inspect
+import io
 import os
-from typing import Any, ClassVar, Dict, Optional, Tuple
+from typing import Any, ClassVar, Dict, Optional, Tuple, Union
 
 import lightning as L
 import torch
 import torch.distributed as dist
-from torch import Tensor
+from torch import Tensor, nn
 
 from garmentgnn.data.store import read_manifest
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.metrics import evaluate_inputs
+from garmentgnn.models.blocks import Configurable
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
                                            stamp_checkpoint, verify_checkpoint)
 
-__all__ = ["LBS_PREFIX", "GarmentModule"]
+__all__ = ["LBS_PREFIX", "GarmentModule", "build_model"]
 
 #: set while :meth:`GarmentModule.load_from_checkpoint` loads a file it has verified
 _VERIFIED: contextvars.ContextVar[bool] = contextvars.ContextVar("checkpoint_verified",
@@ -80,15 +84,11 @@ def destroy_gloo_group_at_exit() -> None:
 
 class GarmentModule(L.LightningModule):
     """Base of the garment methods trained by ``garmentgnn train`` (a batch of chunks
-    per training step, :class:`~garmentgnn.training.GarmentDataModule`).
-
-    Attributes:
-        former_defaults: hyper-parameters whose default has changed, with the value a
-            checkpoint that does not name them was trained with;
-            :meth:`load_from_checkpoint` builds such a checkpoint with it.
+    per training step, :class:`~garmentgnn.training.GarmentDataModule`), in
+    Lightning's system style: the module is handed its model (``model=GarTrans(...)``;
+    in YAML, ``model: init_args: model: class_path: ...``) and says how it trains it.
     """
 
-    former_defaults: ClassVar[Dict[str, Any]] = {}
     #: hyper-parameters that no longer exist, with the only value a checkpoint may hold
     #: for them (anything else was another model: :meth:`check_removed` refuses it)
     removed_switches: ClassVar[Dict[str, Any]] = {}
@@ -165,54 +165,160 @@ class GarmentModule(L.LightningModule):
             checkpoint[DATASET_KEY] = stamp
         stamp_checkpoint(checkpoint)
 
+    # -- the model it is handed (Lightning's system style) --------------------------------
+    def hand_model(self, model: nn.Module) -> None:
+        """Keep ``model`` (``self.model``) and its spec (``hparams["model"]``:
+        ``{"class_path", "init_args"}``, :class:`~garmentgnn.models.blocks.Configurable`)
+        so a checkpoint rebuilds it.  Called by ``__init__`` after
+        ``save_hyperparameters(ignore=["model"])``."""
+        if not isinstance(model, Configurable) or not isinstance(model, nn.Module):
+            raise TypeError(f"`model`: expected a garmentgnn model (GarTrans, DAStyle, "
+                            f"HOODStyle, NCSStyle), got {type(model).__name__}; build it "
+                            f"first, e.g. {type(self).__name__}(GarTrans(**datamodule.dims))")
+        self.model = model
+        # LightningCLI's rebuild recipe (the spec rebuilds the model everywhere), and the
+        # sizes it links to every module's arguments, kept by this one's model instead
+        params = inspect.signature(type(self).__init__).parameters
+        for k in [k for k in self.hparams if k not in params and k != "_class_path"]:
+            self.hparams.pop(k)
+        self.hparams["model"] = model.spec()
+
+    @property
+    def nystrom_dim(self) -> Optional[int]:
+        """The Nyström width the model reads (``None``: it reads none)."""
+        return getattr(self.model, "init_args", {}).get("nystrom_dim")
+
+    @classmethod
+    def upgrade_hparams(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
+        """A checkpoint's hyper-parameters in today's layout (``model``: the model's
+        spec).  The base returns them as they are; a module whose earlier layout
+        differs converts it here."""
+        return dict(saved)
+
+    @classmethod
+    def saved_hparams(cls, checkpoint: Dict[str, Any], where: str = "checkpoint"
+                      ) -> Dict[str, Any]:
+        """A checkpoint's hyper-parameters, removed options refused
+        (:meth:`check_removed`), in today's layout (:meth:`upgrade_hparams`)."""
+        saved = dict(checkpoint.get("hyper_parameters") or {})
+        if isinstance(saved.get("model"), Configurable):  # written in by load_from_checkpoint
+            saved["model"] = saved["model"].spec()
+        cls.check_removed(saved, where)
+        saved = cls.upgrade_hparams({k: v for k, v in saved.items()
+                                     if k not in cls.removed_switches})
+        saved.pop("_instantiator", None)
+        return saved
+
+    @classmethod
+    def upgrade_checkpoint(cls, src: Union[str, os.PathLike],
+                           dst: Union[str, os.PathLike]) -> None:
+        """Write checkpoint ``src`` (verified) to ``dst`` with its hyper-parameters in
+        today's layout (:meth:`saved_hparams`), stamped anew: what ``garmentgnn train
+        ... --ckpt_path`` reads."""
+        ckpt = load_checkpoint_file(src)
+        ckpt["hyper_parameters"] = cls.saved_hparams(ckpt, str(src))
+        stamp_checkpoint(ckpt)
+        torch.save(ckpt, dst)
+
+    @classmethod
+    def model_spec(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
+        """The ``{"class_path", "init_args"}`` of the model a checkpoint's hyper-parameters
+        ``saved`` (:meth:`saved_hparams`) describe: their ``model`` entry."""
+        spec = saved.get("model")
+        if not (isinstance(spec, dict) and "class_path" in spec):
+            raise CheckpointError(f"its hyper-parameters name no model (`model: "
+                                  f"class_path:`): not a checkpoint of {cls.__name__}")
+        return spec
+
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path, *args, **kwargs):
-        """Lightning's ``load_from_checkpoint``; a checkpoint that does not name a
-        hyper-parameter of :attr:`former_defaults` is built with its former value (the
-        model it was trained as), unless ``kwargs`` name it.  Lightning writes
-        ``kwargs`` into the loaded checkpoint before :meth:`on_load_checkpoint` sees
-        it, so with ``kwargs`` (or former defaults to look up) a local file is verified
-        as it was written, first; a stream or a remote URL is verified as loaded."""
-        if not (kwargs or cls.former_defaults or cls.removed_switches) or not isinstance(
-                checkpoint_path, (str, os.PathLike)) or not os.path.isfile(checkpoint_path):
-            return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
-        # raises CheckpointError on a changed file
-        saved = load_checkpoint_file(checkpoint_path).get("hyper_parameters") or {}
-        cls.check_removed(saved, str(checkpoint_path))
-        kwargs = {**{k: v for k, v in cls.former_defaults.items() if k not in saved},
-                  **kwargs}
+        """Lightning's ``load_from_checkpoint``, with the model rebuilt from the
+        checkpoint's spec (``hparams["model"]``; a checkpoint of an earlier layout is
+        converted, :meth:`upgrade_hparams`).  ``kwargs`` naming an argument of the model
+        change its spec; the others are the module's, as in Lightning.  The file is
+        verified as it was written (:mod:`~garmentgnn.training.integrity`)."""
+        if not isinstance(checkpoint_path, (str, os.PathLike)):
+            raise TypeError(f"`checkpoint_path`: expected the path of a checkpoint file, "
+                            f"got {type(checkpoint_path).__name__}")
+        ckpt = load_checkpoint_file(checkpoint_path)  # CheckpointError on a changed file
+        saved = cls.saved_hparams(ckpt, str(checkpoint_path))
+        spec = saved.get("model")
+        if isinstance(spec, dict) and "class_path" in spec and "model" not in kwargs:
+            spec = dict(spec, init_args=dict(spec.get("init_args") or {}))
+            model_args = inspect.signature(_import(spec["class_path"]).__init__).parameters
+            for k in [k for k in kwargs if k in model_args]:
+                spec["init_args"][k] = kwargs.pop(k)
+            kwargs["model"] = build_model(spec)
+        ckpt["hyper_parameters"] = saved
+        buf = io.BytesIO()
+        torch.save(ckpt, buf)
+        buf.seek(0)
         token = _VERIFIED.set(True)
         try:
-            return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+            return super().load_from_checkpoint(buf, *args, **kwargs)
         finally:
             _VERIFIED.reset(token)
 
     def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         if not _VERIFIED.get():
             verify_checkpoint(checkpoint)
-        saved = checkpoint.get("hyper_parameters") or {}
-        self.check_removed(saved)
-        self.check_data_sizes(saved, checkpoint.get(DATASET_KEY))
+        saved = self.saved_hparams(checkpoint)
+        if saved:  # (a checkpoint without hyper-parameters cannot say what it was)
+            self.check_model(self.model_spec(saved), checkpoint.get(DATASET_KEY))
 
-    def data_sizes(self) -> Tuple[str, ...]:
-        """The hyper-parameters set by the data that the weights depend on."""
-        return ()
+    #: model arguments that change how it runs, not what it computes: a checkpoint
+    #: restores into a model that differs from it only in these
+    RUNTIME_ARGS: ClassVar[Tuple[str, ...]] = ("compile_search",)
+    #: model arguments set by the data (``garmentgnn train`` links them from
+    #: :attr:`GarmentDataModule.dims`)
+    DATA_SIZES: ClassVar[Tuple[str, ...]] = ("num_joints", "num_body_vertices",
+                                             "nystrom_dim", "num_vertices")
 
-    def check_data_sizes(self, saved: Dict[str, Any],
-                         dataset: Optional[Dict[str, Any]] = None) -> None:
-        """A :class:`CheckpointError` when a checkpoint's hyper-parameters ``saved`` were
-        trained on data of other sizes (joints, body vertices, Nyström width, the
-        garment's vertices) than this module was built for (``garmentgnn train test
-        --ckpt_path X`` on another dataset), naming each, before the weights fail to fit."""
-        bad = {k: (saved[k], self.hparams[k]) for k in self.data_sizes()
-               if saved.get(k) is not None and self.hparams.get(k) is not None
-               and saved[k] != self.hparams[k]}
-        if bad:
-            what = saved.get("method") or saved.get("dynamic_layer") or ""
-            sizes = ", ".join(f"{k} {c} (the data: {d})" for k, (c, d) in sorted(bad.items()))
+    def check_model(self, spec: Dict[str, Any],
+                    dataset: Optional[Dict[str, Any]] = None) -> None:
+        """A :class:`CheckpointError` when the checkpoint's model ``spec`` is not this
+        module's model: another class, or other settings (``--ckpt_path X`` resuming or
+        scoring with another configuration).  Sizes set by the data (joints, body
+        vertices, Nyström width, the garment's vertices) are named as such, with the
+        dataset the checkpoint was trained on, before the weights fail to fit."""
+        name = type(self.model).__name__
+        if spec.get("class_path", "").rsplit(".", 1)[-1] != name:
+            raise CheckpointError(f"a checkpoint of {spec.get('class_path')}, not of {name}; "
+                                  f"give the configuration it was trained with")
+        saved, mine = spec.get("init_args") or {}, self.model.init_args
+        bad = {k: (saved[k], mine[k]) for k in saved
+               if k in mine and k not in self.RUNTIME_ARGS and saved[k] != mine[k]}
+        sizes = {k: v for k, v in bad.items() if k in self.DATA_SIZES}
+        if sizes:
+            what = saved.get("dynamic_layer") or ""
+            text = ", ".join(f"{k} {c} (the data: {d})" for k, (c, d) in sorted(sizes.items()))
             data = (f" (dataset {dataset.get('content_sha256', '?')[:12]} at "
                     f"{dataset.get('root')})" if dataset else "")
-            raise CheckpointError(f"a checkpoint of {type(self).__name__}"
-                                  f"{f' ({what})' if what else ''} trained on data{data} of "
-                                  f"other sizes: {sizes}; score it on data of its body model "
+            raise CheckpointError(f"a checkpoint of {type(self).__name__} ({name}"
+                                  f"{f', {what}' if what else ''}) trained on data{data} of "
+                                  f"other sizes: {text}; score it on data of its body model "
                                   f"and --data.nystrom_dim, or train a new model on this data")
+        if bad:
+            text = ", ".join(f"{k}={c!r} (this model: {d!r})"
+                             for k, (c, d) in sorted(bad.items()))
+            raise CheckpointError(f"a checkpoint of {name} with other settings: {text}; "
+                                  f"build the model with the checkpoint's settings, or load "
+                                  f"it with {type(self).__name__}.load_from_checkpoint")
+
+
+def _import(class_path: str) -> type:
+    module, _, name = str(class_path).rpartition(".")
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError, ValueError):
+        raise CheckpointError(f"model class_path {class_path!r}: no such class") from None
+
+
+def build_model(spec: Dict[str, Any]) -> nn.Module:
+    """The model a ``{"class_path", "init_args"}`` spec describes (a checkpoint's
+    ``hparams["model"]``, a YAML ``model:`` entry)."""
+    cls = _import(spec["class_path"])
+    if not (isinstance(cls, type) and issubclass(cls, Configurable)):
+        raise CheckpointError(f"model class_path {spec['class_path']!r}: not a garmentgnn "
+                              f"model")
+    return cls(**(spec.get("init_args") or {}))

@@ -19,12 +19,12 @@ plus its losses plus a configuration (``garmentgnn/configs/baselines/*.yaml``,
 * ``ncs`` (:class:`~garmentgnn.models.baselines.NCSStyle`): garment-specific and
   self-supervised -- the physics terms on its own predictions of three consecutive
   frames; the chunks' simulated positions are removed before the loss ever sees them.
-  One module per garment (``num_vertices``): ``garmentgnn train`` links it from the data
+  One model per garment (its ``num_vertices``): ``garmentgnn train`` links it from the data
   module, whose training sequences must then all show one garment on one body.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -46,19 +46,19 @@ STATES_KEY = "garmentgnn_start_states"
 
 
 class BaselineModule(GarmentModule):
-    """Args:
-        method: ``"da"``, ``"hood"`` or ``"ncs"``.
-        num_joints: ``S`` (from :attr:`GarmentDataModule.dims`).
-        num_vertices: the garment's vertex count (``ncs`` only: one model per garment).
-        model: keyword arguments of the model class.
+    """A baseline trained by Lightning: the module is handed its model (Lightning's system
+    style), whose class is the method -- :class:`DAStyle` (``da``), :class:`HOODStyle`
+    (``hood``) or :class:`NCSStyle` (``ncs``) -- and holds the training settings.  In YAML
+    (``garmentgnn/configs/baselines/*.yaml``): ``model: init_args: model: class_path:
+    garmentgnn.models.baselines.DAStyle``, its sizes linked from the data module.
+
+    Args:
+        model: the baseline model to train.
         lr: Adam learning rate.
         loss: :class:`GarTransLoss` settings (``enabled``, ``weights``, ...).
         coarse: ``hood``'s coarse level (``ratio``, ``k`` of :meth:`CoarseLevel.build`).
-        fps: frame rate (``dt = 1 / fps``).
-        history: the data module's pose history (``ncs`` reads ``model.history + 2``
-            poses per frame from it).
-        num_body_vertices, nystrom_dim: accepted (and ignored) so the data module's
-            sizes can be linked as for GarTrans.
+        fps: the data's frame rate (the loss's ``dt = 1 / fps``; a HOOD-style model must
+            step the same ``dt``).
         start_state: ``hood``: where a training chunk's rollout starts. ``"lbs"``: the
             LBS garment of the two frames before the chunk. ``"own"``: the model's own
             states at those two frames, kept from its latest training rollout of the
@@ -71,51 +71,61 @@ class BaselineModule(GarmentModule):
         max_start_drift: see ``start_state``.
     """
 
-    def __init__(self, method: str, num_joints: int, num_vertices: Optional[int] = None,
-                 model: Optional[Dict[str, Any]] = None, lr: float = 1e-3,
+    #: the method of each model class
+    METHODS = {DAStyle: "da", HOODStyle: "hood", NCSStyle: "ncs"}
+
+    def __init__(self, model: Union[DAStyle, HOODStyle, NCSStyle], lr: float = 1e-3,
                  loss: Optional[Dict[str, Any]] = None, coarse: Optional[Dict[str, Any]] = None,
-                 fps: float = 30.0, history: int = 3, num_body_vertices: Optional[int] = None,
-                 nystrom_dim: Optional[int] = None, start_state: str = "lbs",
+                 fps: float = 30.0, start_state: str = "lbs",
                  max_start_drift: float = 0.25) -> None:
         super().__init__()
-        if method not in BASELINE_METHODS:
-            raise ValueError(f"`method`: expected one of {BASELINE_METHODS}, got {method!r}")
+        if type(model) not in self.METHODS:
+            raise TypeError(f"`model`: expected a DAStyle, HOODStyle or NCSStyle, got "
+                            f"{type(model).__name__}")
+        #: ``"da"``, ``"hood"`` or ``"ncs"``
+        self.method = self.METHODS[type(model)]
         if start_state not in START_STATES:
             raise ValueError(f"`start_state`: expected one of {START_STATES}, got "
                              f"{start_state!r}")
-        if start_state != "lbs" and method != "hood":
-            raise ValueError(f"`start_state`: only the autoregressive `hood` method has a "
-                             f"start state; leave it at 'lbs' for {method!r}")
+        if start_state != "lbs" and self.method != "hood":
+            raise ValueError(f"`start_state`: only the autoregressive HOOD-style model has a "
+                             f"start state; leave it at 'lbs' for {type(model).__name__}")
         if not max_start_drift > 0:
             raise ValueError(f"`max_start_drift`: expected metres > 0, got {max_start_drift!r}")
-        self.save_hyperparameters()
-        kw = dict(model or {})
+        if not fps > 0:
+            raise ValueError(f"`fps`: expected frames per second > 0, got {fps!r}")
         self.dt = 1.0 / fps
-        if method == "da":
-            self.model = DAStyle(num_joints, **kw)
-        elif method == "hood":
-            self.model = HOODStyle(dt=self.dt, **kw)
-        else:
-            if not isinstance(num_vertices, int) or num_vertices < 1:
-                raise ValueError(f"`num_vertices`: the NCS-style model is garment-specific; "
-                                 f"give the garment's vertex count, got {num_vertices!r} "
-                                 f"(garmentgnn train links it from the data module when "
-                                 f"its training sequences show one garment on one body: "
-                                 f"select them with --data.train_ids)")
-            h = int(kw.get("history", 1))
-            if history + 1 < h + 3:
-                raise ValueError(f"`history`: NCS with model history {h} needs a data "
-                                 f"history >= {h + 2}, got {history}")
-            self.model = NCSStyle(num_vertices, num_joints, **kw)
+        if self.method == "hood" and abs(model.dt - self.dt) > 1e-9 * self.dt:
+            raise ValueError(f"`fps`: the HOOD-style model steps dt = {model.dt:g} s, the "
+                             f"loss {self.dt:g} s; give the model dt = 1 / fps")
+        self.save_hyperparameters(ignore=["model"])
+        self.hand_model(model)
         lk = dict(loss or {})
         self.loss_fn = GarTransLoss(lk.pop("weights", None), **lk)
         self._coarse: Dict[str, CoarseLevel] = {}  # HOOD's coarse level per sequence
         # start_state "own": sequence id -> frame -> the state of the latest rollout (CPU)
         self._states: Dict[str, Dict[int, Tensor]] = {}
 
-    def data_sizes(self) -> Tuple[str, ...]:
-        return ("num_joints", "num_vertices") if self.hparams.method == "ncs" \
-            else ("num_joints",)
+    @classmethod
+    def upgrade_hparams(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
+        """A checkpoint of the earlier layout (the method's name, the data sizes and the
+        model's keyword arguments among the module's) in today's: the model's spec."""
+        if "method" not in saved:
+            return dict(saved)
+        method, kw = saved["method"], dict(saved.get("model") or {})
+        if method in ("da", "ncs"):
+            kw["num_joints"] = saved["num_joints"]
+        if method == "ncs":
+            kw["num_vertices"] = saved.get("num_vertices")
+        if method == "hood":
+            kw["dt"] = 1.0 / saved.get("fps", 30.0)
+        model = {v: k for k, v in cls.METHODS.items()}[method]
+        out = {k: v for k, v in saved.items() if k not in (
+            "method", "num_joints", "num_vertices", "num_body_vertices", "nystrom_dim",
+            "history")}
+        out["model"] = {"class_path": f"{model.__module__}.{model.__qualname__}",
+                        "init_args": kw}
+        return out
 
     # -- pieces ---------------------------------------------------------------------
     def coarse_level(self, inp: GarmentInputs) -> CoarseLevel:
@@ -130,9 +140,9 @@ class BaselineModule(GarmentModule):
         """(rotations ``[B, h + 1, S, 3]``, translation ``[B, 3]``) ending at history
         slot ``j`` of ``inp``."""
         h = self.model.history
-        if inp.num_vertices != self.hparams.num_vertices:
+        if inp.num_vertices != self.model.num_vertices:
             raise ValueError(f"`inp`: this NCS-style model is specific to a garment of "
-                             f"{self.hparams.num_vertices} vertices, sequence "
+                             f"{self.model.num_vertices} vertices, sequence "
                              f"{inp.get('seq_id')!r} has {inp.num_vertices}; give the data "
                              f"module one garment's sequences (--data.train_ids)")
         if inp.rotations.shape[1] < h + 3:
@@ -146,7 +156,7 @@ class BaselineModule(GarmentModule):
     def forward(self, inp: GarmentInputs) -> Tensor:
         """The garment ``[B, V, 3]`` of every frame of ``inp`` (HOOD: a rollout over
         the frames in order, from the LBS garment of the first two)."""
-        m = self.hparams.method
+        m = self.method
         if m == "da":  # one chunk or a batch of them (the pose of frame t: history's last)
             return self.model(inp, inp.rotations[..., -1, :, :], inp.translation[..., -1, :])
         if m == "ncs":
@@ -165,7 +175,7 @@ class BaselineModule(GarmentModule):
         """The loss of one chunk, or the mean over the chunks of a ``Batch`` (``da``: one
         forward over the union graph; ``hood`` and ``ncs``, whose models take one garment
         at a time: each chunk on its own)."""
-        m = self.hparams.method
+        m = self.method
         if m == "da":  # a batch in one forward over the union graph
             return chunk_mean_loss(self.loss_fn, inp, self(inp), self.dt)
         if inp.num_chunks > 1:

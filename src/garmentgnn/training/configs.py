@@ -9,8 +9,10 @@ and by the bench alike, so a method's settings are written down once.
   of the DA-, HOOD- and NCS-style baselines, with their data module and trainer.
 
 Each file's ``model:`` names the module (``class_path``) and its arguments
-(``init_args``; an ablation gives only the ``init_args`` it changes):
-:func:`model_args` reads them.
+(``init_args``; an ablation gives only the ``init_args`` it changes); a GarTrans module's
+arguments hold its model the same way (``model: class_path: garmentgnn.models.GarTrans``).
+:func:`module_spec` merges files as ``garmentgnn train`` does, and :func:`instantiate`
+builds the module they describe from Python.
 
 ``garmentgnn train fit --config gartrans --config ablations/wo_gating`` names packaged
 files without their folder or ``.yaml`` (:func:`resolve_config_args`).
@@ -18,6 +20,8 @@ files without their folder or ``.yaml`` (:func:`resolve_config_args`).
 from __future__ import annotations
 
 import copy
+import importlib
+import inspect
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -25,8 +29,8 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import yaml
 
-__all__ = ["available", "config_path", "load_config", "model_args", "resolve_config_args",
-           "schedule_args"]
+__all__ = ["available", "config_path", "instantiate", "load_config", "merge", "model_args",
+           "module_spec", "resolve_config_args", "schedule_args"]
 
 _ROOT = resources.files("garmentgnn") / "configs"
 
@@ -67,6 +71,42 @@ def model_args(config: Dict[str, Any]) -> Dict[str, Any]:
         raise ValueError(f"`config`: expected `model:` with `class_path` and `init_args`, "
                          f"got {model!r}")
     return dict(model.get("init_args") or {})
+
+
+def merge(base: Dict[str, Any], top: Dict[str, Any]) -> Dict[str, Any]:
+    """``top`` over ``base`` as LightningCLI merges two ``--config`` files: mappings key
+    by key, everything else (lists included) replaced."""
+    out = copy.deepcopy(base)
+    for k, v in top.items():
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
+            else copy.deepcopy(v)
+    return out
+
+
+def module_spec(*names: str) -> Dict[str, Any]:
+    """The ``model:`` entry (``{"class_path", "init_args"}``) of packaged configurations
+    ``names`` merged in order (``module_spec("gartrans", "ablations/gat")``)."""
+    spec: Dict[str, Any] = {}
+    for name in names:
+        spec = merge(spec, load_config(name).get("model") or {})
+    return spec
+
+
+def instantiate(spec: Dict[str, Any], sizes: Optional[Dict[str, Any]] = None) -> Any:
+    """The object a ``{"class_path", "init_args"}`` spec describes (a packaged
+    configuration's ``model:`` entry, :func:`module_spec`), nested specs built first.
+    ``sizes`` (:attr:`GarmentDataModule.dims`) fill the arguments of that name a class
+    takes and the spec leaves out, as ``garmentgnn train`` links them from the data."""
+    if not isinstance(spec, dict) or "class_path" not in spec:
+        raise ValueError(f"`spec`: expected {{'class_path': ..., 'init_args': ...}}, got "
+                         f"{spec!r}")
+    module, _, name = str(spec["class_path"]).rpartition(".")
+    cls = getattr(importlib.import_module(module), name)
+    args = {k: instantiate(v, sizes) if isinstance(v, dict) and "class_path" in v else v
+            for k, v in (spec.get("init_args") or {}).items()}
+    params = inspect.signature(cls.__init__).parameters
+    args.update({k: v for k, v in (sizes or {}).items() if k in params and k not in args})
+    return cls(**args)
 
 
 def schedule_args(config: Dict[str, Any]) -> Optional[Dict[str, Any]]:

@@ -5,6 +5,8 @@ as one PyG ``Batch`` (:meth:`~garmentgnn.models.inputs.GarmentInputs.collate`); 
 test and predict one chunk per step."""
 from __future__ import annotations
 
+import inspect
+
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence, Union
 
@@ -207,6 +209,12 @@ class GarmentDataModule(L.LightningDataModule):
                 "num_body_vertices": st["body_joint_dists"].shape[0],
                 "nystrom_dim": self.hparams.nystrom_dim,
                 "num_vertices": st.num_vertices if len(pairs) == 1 else None}
+
+    def model_sizes(self, model_class: type) -> Dict[str, Optional[int]]:
+        """The :attr:`dims` that ``model_class`` takes (``GarTrans(**dm.model_sizes(
+        GarTrans))``), as ``garmentgnn train`` links them."""
+        params = inspect.signature(model_class.__init__).parameters
+        return {k: v for k, v in self.dims.items() if k in params}
 
     def _loader(self, ds: SequenceChunks, shuffle: bool, num_replicas: int = 1,
                 rank: int = 0, batch_size: int = 1) -> DataLoader:

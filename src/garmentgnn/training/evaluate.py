@@ -50,9 +50,8 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
     for mode in modes:
         if mode not in MODES:
             raise ValueError(f"`modes`: unknown {mode!r}; choose from {MODES}")
-    hp = module.hparams
-    ds = SequenceChunks(root, split, chunk=10 ** 9,
-                        history=history or 3, nystrom_dim=nystrom_dim or hp.nystrom_dim,
+    ds = SequenceChunks(root, split, chunk=10 ** 9, history=history or 3,
+                        nystrom_dim=nystrom_dim or module.nystrom_dim or 16,
                         num_landmarks=num_landmarks)
     if not len(ds):
         raise ValueError(f"`split`: no {split!r} sequences under {root}")

@@ -68,10 +68,15 @@ SPECIAL_CKPT = ("last", "best", "hpc", "registry")
 #: the subcommands that score a trained model (refused without ``--ckpt_path``): what
 #: each would do with an untrained one
 EVALUATING = {"validate": "validate", "test": "test", "predict": "predict with"}
-#: the model sizes linked from :attr:`GarmentDataModule.dims` when the classes are built
-LINKED_DIMS = ("num_joints", "num_body_vertices", "num_vertices")
-#: every module argument linked from the data module
-LINKED = LINKED_DIMS + ("nystrom_dim", "history")
+#: the sizes linked from the data module into the model a module is handed, when the
+#: classes are built (:attr:`GarmentDataModule.dims`) or parsed (its arguments); a model
+#: class that does not take one is left without it
+LINKS = {"instantiate": ("num_joints", "num_body_vertices", "num_vertices"),
+         "parse": ("nystrom_dim",)}
+#: where they go
+LINK_TARGET = "model.init_args.model.init_args"
+#: every argument linked from the data module
+LINKED = LINKS["instantiate"] + LINKS["parse"]
 
 
 def _plain(ns: Any) -> Dict[str, Any]:
@@ -102,10 +107,10 @@ def add_tensorboard(trainer: Trainer) -> Optional[TensorBoardLogger]:
 
 def method_name(model: LightningModule) -> str:
     """The table row name of a trained module: ``"DA-style"``, ``"GarTrans (sat)"``..."""
-    method = model.hparams.get("method")
+    method = getattr(model, "method", None)
     if method is not None:
         return {"da": "DA-style", "hood": "HOOD-style", "ncs": "NCS-style"}.get(method, method)
-    layer = model.hparams.get("dynamic_layer")
+    layer = getattr(getattr(model, "model", None), "init_args", {}).get("dynamic_layer")
     return f"GarTrans ({layer})" if layer else type(model).__name__
 
 
@@ -155,6 +160,11 @@ def _dim(name: str):
     def get(data: GarmentDataModule) -> Optional[int]:
         return data.dims[name]
     return get
+
+
+def _defaults(cls: type) -> Dict[str, Any]:
+    return {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
+            if p.default is not inspect.Parameter.empty}
 
 
 def _import(class_path: str) -> type:
@@ -209,16 +219,21 @@ class GarmentCLI(LightningCLI):
         if not ckpt_path or ckpt_path in SPECIAL_CKPT:
             return None
         ckpt = load_checkpoint_file(ckpt_path)
-        stored = dict(ckpt.get("hyper_parameters") or {})
-        stored.pop("_instantiator", None)
+        raw = dict(ckpt.get("hyper_parameters") or {})
         model = _plain(self.config[sub].get("model"))
         cls_path = model.get("class_path") or DEFAULT_MODEL
-        saved_cls = stored.pop("_class_path", None)
+        saved_cls = raw.pop("_class_path", None)
         module_cls = _import(cls_path)
-        if issubclass(module_cls, GarmentModule):
-            module_cls.check_removed(stored, str(ckpt_path))
-            for k in module_cls.removed_switches:
-                stored.pop(k, None)
+        stored = module_cls.saved_hparams(ckpt, str(ckpt_path)) \
+            if issubclass(module_cls, GarmentModule) else raw
+        stored.pop("_class_path", None)
+        if stored != {k: v for k, v in raw.items() if k != "_instantiator"}:
+            # Lightning rebuilds the module from the file's own hyper-parameters next
+            raise CheckpointError(f"{ckpt_path}: a checkpoint of an earlier layout of "
+                                  f"{cls_path.rsplit('.', 1)[-1]}; convert it once: "
+                                  f"{cls_path.rsplit('.', 1)[-1]}.upgrade_checkpoint("
+                                  f"{str(ckpt_path)!r}, NEW_PATH) (Python), then pass "
+                                  f"--ckpt_path NEW_PATH")
         params = inspect.signature(module_cls.__init__).parameters
         foreign = sorted(k for k in stored if k not in params)
         if (saved_cls and saved_cls.rsplit(".", 1)[-1] != cls_path.rsplit(".", 1)[-1]) \
@@ -226,15 +241,20 @@ class GarmentCLI(LightningCLI):
             what = saved_cls or f"a module with {foreign}"
             raise CheckpointError(f"{ckpt_path}: a checkpoint of {what}, not of {cls_path}; "
                                   f"give the --config of the method it was trained with")
-        defaults = {k: p.default for k, p in params.items()
-                    if p.default is not inspect.Parameter.empty}
-        # a size linked from the data that the checkpoint's module was built without
-        # (``None``: accepted and ignored, as a bench-built baseline's) is no conflict
-        given = {k: v for k, v in _plain(model.get("init_args")).items()
-                 if not (k in LINKED and stored.get(k, 0) is None)}
-        bad = hparam_conflicts(given, defaults, stored)
+        given = _plain(model.get("init_args"))
+        bad = {f"--model.{k}": c for k, c in hparam_conflicts(
+            {k: v for k, v in given.items() if k != "model"}, _defaults(module_cls),
+            stored).items()}
+        spec, given_spec = stored.get("model"), _plain(given.get("model"))
+        if isinstance(spec, dict) and "class_path" in spec:
+            model_cls = _import(spec["class_path"])
+            # a size linked from the data is no flag: the check of the sizes names it
+            flags = {k: v for k, v in _plain(given_spec.get("init_args")).items()
+                     if k not in LINKED}
+            bad.update({f"--model.model.{k}": c for k, c in hparam_conflicts(
+                flags, _defaults(model_cls), spec.get("init_args") or {}).items()})
         if bad:
-            what = ", ".join(f"--model.{k} {v!r} (checkpoint: {c!r})"
+            what = ", ".join(f"{k} {v!r} (checkpoint: {c!r})"
                              for k, (v, c) in sorted(bad.items()))
             raise CheckpointError(f"{ckpt_path}: {what}; the model is rebuilt from the "
                                   f"checkpoint's hyper-parameters, so drop the flag(s), or "
@@ -250,15 +270,15 @@ class GarmentCLI(LightningCLI):
 
     def add_arguments_to_parser(self, parser: Any) -> None:
         parser.set_defaults({"model": {"class_path": DEFAULT_MODEL}})
-        for name in ("nystrom_dim", "history"):
-            parser.link_arguments(f"data.{name}", f"model.init_args.{name}")
+        for name in LINKS["parse"]:
+            parser.link_arguments(f"data.{name}", f"{LINK_TARGET}.{name}")
         # every logger writes under the trainer's root folder (the current folder when it
         # is unset, as in Lightning), so --trainer.default_root_dir moves logs,
         # checkpoints, TensorBoard events and curve plots together
         parser.link_arguments("trainer.default_root_dir", "trainer.logger.init_args.save_dir",
                               compute_fn=lambda d: d or os.getcwd())
-        for name in LINKED_DIMS:
-            parser.link_arguments("data", f"model.init_args.{name}", apply_on="instantiate",
+        for name in LINKS["instantiate"]:
+            parser.link_arguments("data", f"{LINK_TARGET}.{name}", apply_on="instantiate",
                                   compute_fn=_dim(name))
 
     def check_special_checkpoint(self, sub: str) -> None:

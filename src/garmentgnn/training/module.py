@@ -9,6 +9,7 @@ the supervised scale and whether the rest-pose branch is frozen are switched by
 """
 from __future__ import annotations
 
+import inspect
 from typing import Any, ClassVar, Dict, Iterable, Iterator, Optional, Tuple
 
 import torch
@@ -59,9 +60,11 @@ REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
 
 
 class GarTransModule(GarmentModule):
-    """GarTrans trained by Lightning.  The model defaults are :class:`GarTrans`'s (and
-    ``garmentgnn/configs/gartrans.yaml``'s); ``GarTransModule(..., **PAPER_FORM)`` is the
-    paper's form (``configs/ablations/paper.yaml``).
+    """GarTrans trained by Lightning: the module is handed its model (Lightning's system
+    style) and holds the training settings.  ``GarTransModule(GarTrans(**dm.dims))`` is
+    the project's form; ``GarTransModule(GarTrans.paper(**dm.dims))`` the paper's.  In
+    YAML (``garmentgnn/configs/gartrans.yaml``) the model is ``model: init_args: model:
+    class_path: garmentgnn.models.GarTrans``, its sizes linked from the data module.
 
     A training step takes one chunk or a ``Batch`` of chunks
     (:meth:`GarmentInputs.collate`): the model runs once over the union graph, and the
@@ -69,57 +72,35 @@ class GarTransModule(GarmentModule):
     one chunk is that chunk's step.
 
     Args:
-        num_joints, num_body_vertices, nystrom_dim: model sizes (see
-            :attr:`GarmentDataModule.dims`).
-        rest_layer, blend_layer, dynamic_layer, heads, fps, use_body, skin_prior,
-        lbs_start, gate_init, blend_shape, accel_unit, input_norm, local_frame,
-        strain_limit, collision_projection, compile_search: :class:`GarTrans` settings
-            (``compile_search`` also runs the collision loss's face search compiled).
+        model: the :class:`GarTrans` to train (its ``fps`` sets the loss's ``dt``; its
+            ``compile_search`` also compiles the collision loss's face search).
         lr: learning rate; ``t_max``: CosineAnnealingLR period in epochs (default: the
             trainer's ``max_epochs``); ``eta_min``; ``optimizer``: ``"adamax"`` (the
             paper), ``"adam"`` or ``"adamw"``.
         loss_weights, edge_reduction, collision_margin: :class:`GarTransLoss` settings.
         enabled, supervised_scale: initial loss terms / scale (phase 1).
-        num_vertices, history: the data sizes ``garmentgnn train`` links to every method
-            (:class:`BaselineModule` reads them); GarTrans does not depend on them.
     """
 
-    def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
-                 rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
-                 heads: int = 4, fps: float = 30.0, lr: float = 3e-3,
-                 t_max: Optional[int] = None, eta_min: float = 0.0,
+    def __init__(self, model: GarTrans, lr: float = 3e-3, t_max: Optional[int] = None,
+                 eta_min: float = 0.0, optimizer: str = "adamax",
                  loss_weights: Optional[Dict[str, float]] = None,
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
-                 enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 use_body: bool = True, skin_prior: bool = True, lbs_start: bool = True,
-                 collision_projection: Optional[float] = 0.002, blend_shape: bool = False,
-                 strain_limit: int = 10, compile_search: bool = False, gate_init: float = 1.0,
-                 accel_unit: Optional[float] = 0.01, optimizer: str = "adamax",
-                 input_norm: bool = True, local_frame: bool = True,
-                 num_vertices: Optional[int] = None, history: Optional[int] = None) -> None:
+                 enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0) -> None:
         super().__init__()
+        if not isinstance(model, GarTrans):
+            raise TypeError(f"`model`: expected a GarTrans, got {type(model).__name__}; "
+                            f"GarTransModule(GarTrans(**datamodule.dims))")
         enabled = sorted(enabled)
-        self.save_hyperparameters()
+        self.save_hyperparameters(ignore=["model"])
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"`optimizer`: expected one of {sorted(OPTIMIZERS)}, got "
                              f"{optimizer!r}")
-        self.model = GarTrans(num_joints, num_body_vertices, nystrom_dim=nystrom_dim,
-                              rest_layer=rest_layer, blend_layer=blend_layer,
-                              dynamic_layer=dynamic_layer, heads=heads, fps=fps,
-                              use_body=use_body, skin_prior=skin_prior, lbs_start=lbs_start,
-                              collision_projection=collision_projection,
-                              blend_shape=blend_shape, strain_limit=strain_limit,
-                              compile_search=compile_search, gate_init=gate_init,
-                              accel_unit=accel_unit, input_norm=input_norm,
-                              local_frame=local_frame)
+        self.hand_model(model)
         self.loss_fn = GarTransLoss(loss_weights, enabled=enabled,
                                     supervised_scale=supervised_scale,
                                     collision_margin=collision_margin,
                                     edge_reduction=edge_reduction,
-                                    compile_search=compile_search)
-
-    def data_sizes(self) -> Tuple[str, ...]:
-        return ("num_joints", "num_body_vertices", "nystrom_dim")
+                                    compile_search=model.compile_search)
 
     # -- phase controls (used by ProgressiveSchedule) ---------------------------------
     def set_rest_branch_frozen(self, frozen: bool) -> None:
@@ -157,7 +138,7 @@ class GarTransModule(GarmentModule):
     def compute_loss(self, batch: GarmentInputs, out: Dict[str, torch.Tensor]):
         """The mean over ``batch``'s chunks of each chunk's loss (NaN/inf raises
         :class:`NonFiniteLossError` naming the term)."""
-        return chunk_mean_loss(self.loss_fn, batch, out["final"], 1.0 / self.hparams.fps)
+        return chunk_mean_loss(self.loss_fn, batch, out["final"], 1.0 / self.model.fps)
 
     def training_step(self, batch: GarmentInputs, batch_idx: int):
         out = self(batch)
@@ -170,26 +151,33 @@ class GarTransModule(GarmentModule):
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
 
-    # -- checkpoints (integrity and the former defaults: GarmentModule) -------------------
-    #: switches whose default has changed, with the value a checkpoint that does not name
-    #: them was trained with (the base's ``load_from_checkpoint`` builds it so; a
-    #: checkpoint from before ``accel_unit`` existed gets its former value in
-    #: ``on_load_checkpoint``, which a resumed fit runs too)
-    former_defaults: ClassVar[Dict[str, Any]] = {"input_norm": False, "local_frame": False}
+    # -- checkpoints of earlier layouts -------------------------------------------------
+    #: model settings whose default has changed, with the value a checkpoint that does
+    #: not name them was trained with (``accel_unit``: its dynamic output was an
+    #: acceleration, ``a dt^2``)
+    former_defaults: ClassVar[Dict[str, Any]] = {"input_norm": False, "local_frame": False,
+                                                 "accel_unit": None}
     #: switches measured not to help and removed (docs/experiments.md), with the value
     #: that meant "off": a checkpoint that has them off loads as today's model
     removed_switches: ClassVar[Dict[str, Any]] = {
         "garment_state": False, "state_noise": 0.0, "state_dropout": 0.0,
         "state_rollout": False, "motion_history": 1}
 
-    def on_load_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
-        super().on_load_checkpoint(checkpoint)
-        saved = checkpoint.get("hyper_parameters")
-        if saved is not None and "accel_unit" not in saved:
-            # saved before ``accel_unit`` existed: its dynamic output was an acceleration
-            # (``a dt^2``), not the centimetres of today's default
-            self.model.accel_unit = None
-            self.hparams.accel_unit = None
+    @classmethod
+    def upgrade_hparams(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
+        """A checkpoint of the earlier layout (the model's settings among the module's,
+        no ``model`` spec) in today's: the model's settings move into its spec, those it
+        does not name get their :attr:`former_defaults`."""
+        if isinstance(saved.get("model"), dict):
+            return dict(saved)
+        model_args = inspect.signature(GarTrans.__init__).parameters
+        init = {**{k: v for k, v in cls.former_defaults.items() if k not in saved},
+                **{k: v for k, v in saved.items() if k in model_args and k != "self"}}
+        # (num_vertices and history: data sizes the earlier layout accepted and ignored)
+        out = {k: v for k, v in saved.items()
+               if k not in model_args and k not in ("num_vertices", "history")}
+        out["model"] = {"class_path": f"{GarTrans.__module__}.GarTrans", "init_args": init}
+        return out
 
     def configure_optimizers(self):
         opt = OPTIMIZERS[self.hparams.get("optimizer", "adamax")](self.parameters(),

@@ -71,12 +71,15 @@ def unique_names(named: Sequence[Tuple[str, str]]) -> None:
 
 def load_checkpoint(path: PathLike):
     """The trained method of a Lightning checkpoint (a :class:`GarTransModule`, or a
-    :class:`BaselineModule` when it names a baseline ``method``), on the CPU, in eval
-    mode."""
+    :class:`BaselineModule` when its model is a baseline's), on the CPU, in eval mode."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     hp = load_checkpoint_file(path).get("hyper_parameters") or {}
-    cls = BaselineModule if hp.get("method") is not None else GarTransModule
+    model = hp.get("model")
+    model_cls = str(model.get("class_path", "")) if isinstance(model, dict) else ""
+    baseline = hp.get("method") is not None or model_cls.rsplit(".", 1)[-1] in {
+        c.__name__ for c in BaselineModule.METHODS}
+    cls = BaselineModule if baseline else GarTransModule
     try:
         return cls.load_from_checkpoint(str(path), map_location="cpu").eval()
     except (ValueError, TypeError):
@@ -120,7 +123,7 @@ def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str
 
 def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames,
                 predictions) -> Comparison:
-    nys = {int(m.hparams.nystrom_dim) for m in loaded.values()} or {16}
+    nys = {int(m.nystrom_dim) for m in loaded.values() if m.nystrom_dim is not None} or {16}
     if len(nys) > 1:
         raise ValueError(f"`models`: checkpoints disagree on nystrom_dim {sorted(nys)}")
     ids = None

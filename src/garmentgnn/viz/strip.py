@@ -27,7 +27,7 @@ def render_strip(module: GarmentModule, root: Union[str, os.PathLike], split: st
     """PNG: rows simulated / GarTrans / LBS only, columns evenly spaced frames of the
     ``index``-th sequence of ``split``; returns ``(path, sequence id)``."""
     ds = SequenceChunks(root, split, chunk=10 ** 9, history=history,
-                        nystrom_dim=module.hparams.nystrom_dim, num_landmarks=num_landmarks)
+                        nystrom_dim=module.nystrom_dim or 16, num_landmarks=num_landmarks)
     item = ds[index]
     was_training = module.training
     module.eval()

@@ -9,7 +9,7 @@ from torch import Tensor, nn
 from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import edge_features, vertex_joint_distances, vertex_normals
 from garmentgnn.models.baselines.common import skin, small_init_
-from garmentgnn.models.blocks import batch_edges, mlp
+from garmentgnn.models.blocks import Configurable, batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import ChunkLayout
 from garmentgnn.nn import GATBaselineConv
@@ -17,7 +17,7 @@ from garmentgnn.nn import GATBaselineConv
 __all__ = ["DAStyle"]
 
 
-class DAStyle(nn.Module):
+class DAStyle(Configurable, nn.Module):
     """DeePSD-style static garment network ("DA" in the paper's Tables 2-3; Bertiche,
     Madadi, Tylson & Escalera, *DeePSD: Automatic Deep Skinning And Pose Space
     Deformation For 3D Garment Animation*, ICCV 2021).

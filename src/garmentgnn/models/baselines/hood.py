@@ -12,7 +12,7 @@ from torch_geometric.utils import scatter
 
 from garmentgnn.geometry import farthest_point_sampling, vertex_normals
 from garmentgnn.models.baselines.common import small_init_
-from garmentgnn.models.blocks import RunningNormalizer, batch_edges, mlp
+from garmentgnn.models.blocks import Configurable, RunningNormalizer, batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
 
 __all__ = ["CoarseLevel", "HOODStyle", "MLPMessagePassing"]
@@ -95,7 +95,7 @@ class MLPMessagePassing(MessagePassing):
         return e
 
 
-class HOODStyle(nn.Module):
+class HOODStyle(Configurable, nn.Module):
     """HOOD-style dynamic garment network (Grigorev, Thomaszewski, Black & Hilliges,
     *HOOD: Hierarchical Graphs for Generalized Modelling of Clothing Dynamics*, CVPR
     2023).

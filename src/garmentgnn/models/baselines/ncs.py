@@ -7,13 +7,13 @@ from torch import Tensor, nn
 
 from garmentgnn.geometry.rotations import axis_angle_to_matrix
 from garmentgnn.models.baselines.common import skin, small_init_
-from garmentgnn.models.blocks import mlp
+from garmentgnn.models.blocks import Configurable, mlp
 from garmentgnn.models.inputs import GarmentInputs
 
 __all__ = ["NCSStyle"]
 
 
-class NCSStyle(nn.Module):
+class NCSStyle(Configurable, nn.Module):
     """NCS-style garment-specific network (Bertiche, Madadi & Escalera, *Neural Cloth
     Simulation*, SIGGRAPH Asia 2022).
 
@@ -41,8 +41,13 @@ class NCSStyle(nn.Module):
     def __init__(self, num_vertices: int, num_joints: int, history: int = 1,
                  hidden: int = 128) -> None:
         super().__init__()
-        if num_vertices < 1:
-            raise ValueError(f"`num_vertices`: must be positive, got {num_vertices}")
+        if not isinstance(num_vertices, int) or isinstance(num_vertices, bool) \
+                or num_vertices < 1:
+            raise ValueError(f"`num_vertices`: the model is garment-specific; give the "
+                             f"garment's vertex count, got {num_vertices!r} (garmentgnn "
+                             f"train links it from the data module when its training "
+                             f"sequences show one garment on one body: select them with "
+                             f"--data.train_ids)")
         if num_joints < 2:
             raise ValueError(f"`num_joints`: needs a root and at least one joint, got {num_joints}")
         if history < 0:
