@@ -9,13 +9,9 @@ if os.environ.get("GARMENTGNN_NO_SCATTER") == "1":
 # tests/test_bench_page.py turns it on
 os.environ.setdefault("GARMENTGNN_BENCH_MEDIA", "0")
 
-from types import SimpleNamespace  # noqa: E402
-
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning  # noqa: E402
-from garmentgnn.garments.skinning import transfer_skinning_weights  # noqa: E402
 from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh  # noqa: E402
 
 
@@ -42,20 +38,6 @@ def mesh_graph():
     pos = pos + 0.02 * torch.randn(pos.shape, generator=torch.Generator().manual_seed(1))
     ei = faces_to_edge_index(faces, pos.size(0))
     return pos, faces, ei, edge_features(pos, ei)
-
-
-def lbs_simulate(garment, body, motion, material, settings=None, progress=None):
-    """Test double of the simulator: LBS-skinned garment + a deterministic smooth wobble."""
-    W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
-    A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
-                              body.skeleton.parents, motion.translation.to(body.vertices.dtype))
-    P = linear_blend_skinning(garment.vertices.to(A.dtype), W.to(A.dtype), A)
-    T = motion.num_frames
-    t = torch.arange(T, dtype=P.dtype).view(T, 1, 1)
-    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * garment.vertices[None, :, :1].to(P.dtype))
-    return SimpleNamespace(positions=P.float(), converged=torch.ones(T, dtype=torch.bool),
-                           newton_iterations=torch.full((T,), 1), residual=torch.zeros(T),
-                           ok=True, message="", seconds=0.0)
 
 
 def numbers(obj):

@@ -13,8 +13,8 @@ from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, EpochShuffleSampler, GarmentDataModule,
                                  GarTransModule)
 from garmentgnn.training.configs import load_config, model_args
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import lbs_simulate
 
 NY = 8
 
@@ -30,7 +30,7 @@ def root(tmp_path_factory):
     m = [{"name": n, "num_frames": 10, "speed": 1.0, "amplitude": 1.0}
          for n in ("walk", "run", "jump")]
     spec = Spec("mixed", g, b, m, ["silk"], held_out={})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    s = generate(spec, out, workers=0, simulate_fn=skinned_wobble, progress=False)
     assert s.failed == 0 and s.done == 6
     return out
 

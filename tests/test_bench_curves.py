@@ -17,8 +17,8 @@ from garmentgnn.harness import curves, runner, learned, methods, presets
 from garmentgnn.data import Spec, generate, motion_key
 from garmentgnn.training import GarTransModule, TimeBudget
 from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import lbs_simulate
 
 
 # --------------------------------------------------------------------------- plateau
@@ -195,7 +195,7 @@ def data_with_val(tmp_path_factory):
          for n in ("walk", "run", "arm_swing", "jump")]
     spec = Spec("mini", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[2])]},
                                                     "val": {"motions": [motion_key(m[3])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    s = generate(spec, out, workers=0, simulate_fn=skinned_wobble, progress=False)
     assert s.done == 4 and s.failed == 0
     return out
 

@@ -30,8 +30,9 @@ from garmentgnn.models.baselines import DAStyle
 from garmentgnn.training import BaselineModule, GarTransModule, GarmentDataModule
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import ZERO_AREA_M2, lbs_simulate, numbers
+from conftest import ZERO_AREA_M2, numbers
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -48,7 +49,7 @@ def data(tmp_path_factory):
     m = [{"name": n, "num_frames": 4, "speed": 1.0, "amplitude": 1.0}
          for n in ("walk", "run", "arm_swing")]
     spec = Spec("mini", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[2])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    s = generate(spec, out, workers=0, simulate_fn=skinned_wobble, progress=False)
     assert s.done == 3 and s.failed == 0
     return out
 
@@ -309,7 +310,7 @@ def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch)
 
 def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
     worker = importlib.import_module("garmentgnn.data.worker")
-    monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": lbs_simulate)
+    monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": skinned_wobble)
     p = dataclasses.replace(learned_only(methods=(methods.LBS,)), data_workers=0)
     summary = runner.run(p, tmp_path, progress=False)
     assert summary.failed == 0

@@ -14,8 +14,8 @@ from garmentgnn.models.blocks import RunningNormalizer
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, GarmentDataModule)
 from garmentgnn.training.module import loss_inputs
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import lbs_simulate
 
 
 def test_running_normalizer_is_the_statistics_of_the_training_rows():
@@ -58,7 +58,7 @@ def data(tmp_path_factory):
     b = [{"model": "capsule", "shape": "regular"}]
     m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
     s = generate(Spec("hood", g, b, m, ["silk"], held_out={}), out, workers=0,
-                 simulate_fn=lbs_simulate, progress=False)
+                 simulate_fn=skinned_wobble, progress=False)
     assert s.done == 2 and s.failed == 0
     return out
 

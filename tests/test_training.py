@@ -13,8 +13,8 @@ from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (PHASE_TERMS, REST_BRANCH, GarmentDataModule, EpochShuffleSampler,
                                  GarTransModule, ProgressiveSchedule)
 from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import lbs_simulate
 
 NY = 8
 
@@ -27,7 +27,7 @@ def root(tmp_path_factory):
     b = [{"model": "capsule", "shape": "regular"}]
     m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
     spec = Spec("t", g, b, m, ["silk"], held_out={"val": {"motions": [motion_key(m[1])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    s = generate(spec, out, workers=0, simulate_fn=skinned_wobble, progress=False)
     assert s.done == 2 and s.failed == 0
     return out
 

@@ -13,8 +13,8 @@ from garmentgnn.data.export import export_sequence
 from garmentgnn.data.gltf import GltfMesh, write_gltf
 from garmentgnn.data.keys import motion_key
 from garmentgnn.data.presets import Spec
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import lbs_simulate
 
 vtk = pytest.importorskip("vtk", reason='VTK is not installed: pip install "garmentgnn[viz]"')
 pytest.importorskip("pygltflib", reason='pygltflib is not installed: pip install "garmentgnn[viz]"')
@@ -27,7 +27,7 @@ def make_dataset(out):
     b = [{"model": "capsule", "shape": "regular"}]
     m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
     spec = Spec("v", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[1])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    s = generate(spec, out, workers=0, simulate_fn=skinned_wobble, progress=False)
     assert s.done == 2 and s.failed == 0
     return out
 
