@@ -40,6 +40,26 @@ def mesh_graph():
     return pos, faces, ei, edge_features(pos, ei)
 
 
+def skirt_dataset(out, motions, num_frames, held_out=None, name="t"):
+    """A generated dataset in ``out`` (returned): the mini skirt (200 vertices) on the
+    regular capsule body in silk, one ``num_frames``-frame sequence per motion name of
+    ``motions``, :func:`garmentgnn.sim.stand_in.skinned_wobble` as the simulation;
+    ``held_out``: split -> the motion names it holds out."""
+    # the generator and the simulator are heavy imports: only the tests that make a
+    # dataset pay for them
+    from garmentgnn.data import Spec, generate, motion_key  # noqa: PLC0415 (see above)
+    from garmentgnn.sim.stand_in import skinned_wobble  # noqa: PLC0415 (see above)
+    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
+    b = [{"model": "capsule", "shape": "regular"}]
+    m = [{"name": n, "num_frames": num_frames, "speed": 1.0, "amplitude": 1.0} for n in motions]
+    held = {split: {"motions": [motion_key(x) for x in m if x["name"] in names]}
+            for split, names in (held_out or {}).items()}
+    s = generate(Spec(name, g, b, m, ["silk"], held_out=held), out, workers=0,
+                 simulate_fn=skinned_wobble, progress=False)
+    assert s.done == len(motions) and s.failed == 0
+    return out
+
+
 def numbers(obj):
     """Every int/float (not bool) inside nested dicts and lists."""
     if isinstance(obj, dict):

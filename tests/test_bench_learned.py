@@ -24,7 +24,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from garmentgnn.harness import runner, learned, methods, presets, report, scoring, stability, tables
 from garmentgnn.cli import main as cli_main
-from garmentgnn.data import Spec, generate, motion_key, store
+from garmentgnn.data import store
 from garmentgnn.models import gartrans
 from garmentgnn.models.baselines import DAStyle
 from garmentgnn.training import BaselineModule, GarTransModule, GarmentDataModule
@@ -32,7 +32,7 @@ from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
 from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import ZERO_AREA_M2, numbers
+from conftest import ZERO_AREA_M2, numbers, skirt_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,15 +43,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
-    b = [{"model": "capsule", "shape": "regular"}]
-    m = [{"name": n, "num_frames": 4, "speed": 1.0, "amplitude": 1.0}
-         for n in ("walk", "run", "arm_swing")]
-    spec = Spec("mini", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[2])]}})
-    s = generate(spec, out, workers=0, simulate_fn=skinned_wobble, progress=False)
-    assert s.done == 3 and s.failed == 0
-    return out
+    return skirt_dataset(tmp_path_factory.mktemp("data"), ["walk", "run", "arm_swing"], 4,
+                         held_out={"test": ["arm_swing"]}, name="mini")
 
 
 def learned_only(**budget) -> presets.Preset:
