@@ -43,10 +43,9 @@ import torch
 from garmentgnn import geometry as G
 from garmentgnn._argparse import HelpFormatter, add_output_args, command_line, output_path
 from garmentgnn.body.factory import build_body
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.garments import make_garment
-from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.motion import make_motion
+from garmentgnn.sim.stand_in import wobbling_frames
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "docs" / "results" / "face_cache" / "face_cache"
@@ -54,19 +53,13 @@ RESULTS = REPO / "docs" / "results" / "face_cache" / "face_cache"
 
 def scene(size: int, frames: int):
     """Garment ``[T, V, 3]``, body ``[T, Vb, 3]`` (float32) and body faces over
-    ``frames`` frames of a walk."""
+    ``frames`` frames of a walk (:func:`garmentgnn.sim.stand_in.wobbling_frames`, in
+    float64)."""
     body = build_body({"model": "capsule", "shape": "regular"})
     g = make_garment("tshirt", body, resolution=size)
     m = make_motion("walk", body.skeleton, num_frames=frames, fps=30.0, seed=0,
                     rest_joints=body.joints)
-    d = torch.float64
-    A, _ = forward_kinematics(m.rotations.to(d), body.joints.to(d), body.skeleton.parents,
-                              m.translation.to(d))
-    X = linear_blend_skinning(body.vertices.to(d), body.weights.to(d), A)
-    W = transfer_skinning_weights(g.vertices, g.faces, body.vertices, body.weights)
-    P = linear_blend_skinning(g.vertices.to(d), W.to(d), A)
-    t = torch.arange(frames, dtype=d).view(frames, 1, 1)
-    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * g.vertices[None, :, :1].to(d))
+    P, X = wobbling_frames(g, body, m, torch.float64)
     return P.float(), X.float(), body.faces
 
 

@@ -4,7 +4,8 @@ DA-style training steps (``--data.batch_size`` chunks per step), side by side in
 For each garment size (``--sizes``: ``small`` ~400 and ``medium`` ~1.5K vertices) a
 dataset is generated once into the benchmark cache: 4 garment kinds x 3 Anny bodies x 4
 motions of 32 frames (192 chunks of 8 frames).  Its positions are the garment skinned to
-the body plus a smooth wobble, not a cloth simulation: what a step costs does not depend
+the body plus a smooth wobble (:func:`garmentgnn.sim.stand_in.skinned_wobble`), not a
+cloth simulation: what a step costs does not depend
 on where the cloth is, and a Blender dataset of this size would take hours here.
 
 Every configuration (method x threads x batch size) trains through Lightning's
@@ -26,7 +27,6 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Dict, List
 
 import lightning as L
@@ -34,10 +34,9 @@ import torch
 
 from garmentgnn._argparse import (HelpFormatter, add_output_args, benchmark_cache,
                                   command_line, output_path)
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.data import Spec, generate, store
-from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.data import SequenceChunks
+from garmentgnn.sim.stand_in import skinned_wobble
 from garmentgnn.training import (GarmentDataModule)
 from garmentgnn.training.configs import instantiate, module_spec
 
@@ -45,20 +44,6 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent / "docs" / "results" / "train_throughput"
 SIZES = {"small": 400, "medium": 1500}
 METHODS = ("gartrans", "da")
-
-
-def skinned_wobble(garment, body, motion, material, settings=None, progress=None):
-    """The dataset's "simulation": the garment skinned to the body plus a smooth wobble."""
-    W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
-    A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
-                              body.skeleton.parents, motion.translation.to(body.vertices.dtype))
-    P = linear_blend_skinning(garment.vertices.to(A.dtype), W.to(A.dtype), A)
-    T = motion.num_frames
-    t = torch.arange(T, dtype=P.dtype).view(T, 1, 1)
-    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * garment.vertices[None, :, :1].to(P.dtype))
-    return SimpleNamespace(positions=P.float(), converged=torch.ones(T, dtype=torch.bool),
-                           newton_iterations=torch.full((T,), 1), residual=torch.zeros(T),
-                           ok=True, message="", seconds=0.0)
 
 
 def dataset(size: str, cache: Path) -> Path:

@@ -9,13 +9,9 @@ if os.environ.get("GARMENTGNN_NO_SCATTER") == "1":
 # tests/test_bench_page.py turns it on
 os.environ.setdefault("GARMENTGNN_BENCH_MEDIA", "0")
 
-from types import SimpleNamespace  # noqa: E402
-
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning  # noqa: E402
-from garmentgnn.garments.skinning import transfer_skinning_weights  # noqa: E402
 from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh  # noqa: E402
 
 
@@ -44,18 +40,24 @@ def mesh_graph():
     return pos, faces, ei, edge_features(pos, ei)
 
 
-def lbs_simulate(garment, body, motion, material, settings=None, progress=None):
-    """Test double of the simulator: LBS-skinned garment + a deterministic smooth wobble."""
-    W = transfer_skinning_weights(garment.vertices, garment.faces, body.vertices, body.weights)
-    A, _ = forward_kinematics(motion.rotations.to(body.vertices.dtype), body.joints,
-                              body.skeleton.parents, motion.translation.to(body.vertices.dtype))
-    P = linear_blend_skinning(garment.vertices.to(A.dtype), W.to(A.dtype), A)
-    T = motion.num_frames
-    t = torch.arange(T, dtype=P.dtype).view(T, 1, 1)
-    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * garment.vertices[None, :, :1].to(P.dtype))
-    return SimpleNamespace(positions=P.float(), converged=torch.ones(T, dtype=torch.bool),
-                           newton_iterations=torch.full((T,), 1), residual=torch.zeros(T),
-                           ok=True, message="", seconds=0.0)
+def skirt_dataset(out, motions, num_frames, held_out=None, name="t"):
+    """A generated dataset in ``out`` (returned): the mini skirt (200 vertices) on the
+    regular capsule body in silk, one ``num_frames``-frame sequence per motion name of
+    ``motions``, :func:`garmentgnn.sim.stand_in.skinned_wobble` as the simulation;
+    ``held_out``: split -> the motion names it holds out."""
+    # the generator and the simulator are heavy imports: only the tests that make a
+    # dataset pay for them
+    from garmentgnn.data import Spec, generate, motion_key  # noqa: PLC0415 (see above)
+    from garmentgnn.sim.stand_in import skinned_wobble  # noqa: PLC0415 (see above)
+    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
+    b = [{"model": "capsule", "shape": "regular"}]
+    m = [{"name": n, "num_frames": num_frames, "speed": 1.0, "amplitude": 1.0} for n in motions]
+    held = {split: {"motions": [motion_key(x) for x in m if x["name"] in names]}
+            for split, names in (held_out or {}).items()}
+    s = generate(Spec(name, g, b, m, ["silk"], held_out=held), out, workers=0,
+                 simulate_fn=skinned_wobble, progress=False)
+    assert s.done == len(motions) and s.failed == 0
+    return out
 
 
 def numbers(obj):

@@ -3,11 +3,14 @@ last values, a value given twice ran twice, a count of 0 or a missing file ended
 traceback, a merge of a corrupt file did not name it.  Each is now one ``error:`` line
 naming the flag (exit status 2) or, for a repeated flag, the values added up
 (:mod:`garmentgnn._argparse`)."""
+import argparse
 import json
 import runpy
 from pathlib import Path
 
 import pytest
+
+from garmentgnn._argparse import existing_dir, existing_file
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 _SCRIPTS = {}
@@ -133,3 +136,26 @@ def test_other_benchmark_arguments_are_checked(capsys, tmp_path, data, name, arg
     ``ValueError``), or, for ``error_split --split tset``, divided by zero."""
     argv = [a.format(data=data, typo=str(tmp_path / "typo")) for a in argv]
     refused(capsys, script(name)["main"], argv + ["--out", str(tmp_path / "o")], *words)
+
+
+# ------------------------------------------------------------------ the path types
+@pytest.mark.parametrize("check, good, bad, messages", [
+    (existing_file, "f", "d", ["is a folder, not a file", "no such file",
+                               "empty path; name a file"]),
+    (existing_dir, "d", "f", ["is a file, not a folder", "no such folder",
+                              "empty path; name a folder"]),
+])
+def test_existing_path_types_name_the_path_and_what_is_there(tmp_path, monkeypatch, check, good,
+                                                              bad, messages):
+    """The path with ``~`` expanded where it is what the flag wants; otherwise the path as
+    given and what is there instead."""
+    (tmp_path / "f").write_text("")
+    (tmp_path / "d").mkdir()
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert check(f"~/{good}") == str(tmp_path / good)
+    wrong, missing, empty = messages
+    for text, message in [(f"~/{bad}", f"~/{bad}: {wrong}"),
+                          (str(tmp_path / "x"), f"{tmp_path / 'x'}: {missing}"), (" ", empty)]:
+        with pytest.raises(argparse.ArgumentTypeError) as e:
+            check(text)
+        assert str(e.value) == message

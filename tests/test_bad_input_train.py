@@ -16,15 +16,12 @@ from garmentgnn.training.configs import config_path, resolve_config_args
 
 from test_bad_input_cli import edit_sequence, one_error
 from test_training import NY, root  # noqa: F401  (module-scoped toy dataset: train + val)
+from test_training_cli import fast_args
 
 
 def data_args(data_root, tmp_path):
-    return ["--data.root", str(data_root), "--data.chunk", "4", "--data.history", "3",
-            "--data.nystrom_dim", str(NY), "--data.num_landmarks", "16",
-            "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "1",
-            "--trainer.limit_val_batches", "1", "--trainer.enable_progress_bar", "false",
-            "--trainer.default_root_dir", str(tmp_path),
-            "--trainer.logger.init_args.save_dir", str(tmp_path)]
+    """:func:`fast_args` with a pose history of 3 and one training batch."""
+    return fast_args(data_root, tmp_path, history=3, train_batches=1)
 
 
 @pytest.fixture(scope="module")

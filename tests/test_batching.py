@@ -12,8 +12,8 @@ from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (EpochShuffleSampler, GarmentDataModule)
 from garmentgnn.training.configs import instantiate, merge, module_spec
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import lbs_simulate
 
 NY = 8
 
@@ -29,7 +29,7 @@ def root(tmp_path_factory):
     m = [{"name": n, "num_frames": 10, "speed": 1.0, "amplitude": 1.0}
          for n in ("walk", "run", "jump")]
     spec = Spec("mixed", g, b, m, ["silk"], held_out={})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    s = generate(spec, out, workers=0, simulate_fn=skinned_wobble, progress=False)
     assert s.failed == 0 and s.done == 6
     return out
 

@@ -14,11 +14,11 @@ import pytest
 import torch
 
 from garmentgnn.harness import curves, runner, learned, methods, presets
-from garmentgnn.data import Spec, generate, motion_key
 from garmentgnn.training import GarTransModule, TimeBudget
 from garmentgnn.training.evaluate import evaluate_split
 
-from conftest import lbs_simulate
+from conftest import skirt_dataset
+
 
 
 # --------------------------------------------------------------------------- plateau
@@ -188,16 +188,8 @@ def test_converge_preset():
 # --------------------------------------------------------------------------- the bench
 @pytest.fixture(scope="module")
 def data_with_val(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
-    b = [{"model": "capsule", "shape": "regular"}]
-    m = [{"name": n, "num_frames": 4, "speed": 1.0, "amplitude": 1.0}
-         for n in ("walk", "run", "arm_swing", "jump")]
-    spec = Spec("mini", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[2])]},
-                                                    "val": {"motions": [motion_key(m[3])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
-    assert s.done == 4 and s.failed == 0
-    return out
+    return skirt_dataset(tmp_path_factory.mktemp("data"), ["walk", "run", "arm_swing", "jump"], 4,
+                         held_out={"test": ["arm_swing"], "val": ["jump"]}, name="mini")
 
 
 @pytest.mark.slow

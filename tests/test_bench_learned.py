@@ -24,15 +24,16 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from garmentgnn.harness import runner, learned, methods, presets, report, scoring, stability, tables
 from garmentgnn.cli import main as cli_main
-from garmentgnn.data import Spec, generate, motion_key, store
+from garmentgnn.data import store
 from garmentgnn.models import gartrans
 from garmentgnn.models.baselines import DAStyle
 from garmentgnn.training import BaselineModule, GarTransModule, GarmentDataModule
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
 from garmentgnn.training.configs import instantiate
+from garmentgnn.sim.stand_in import skinned_wobble
 
-from conftest import ZERO_AREA_M2, lbs_simulate, numbers
+from conftest import ZERO_AREA_M2, numbers, skirt_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,15 +44,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
-    b = [{"model": "capsule", "shape": "regular"}]
-    m = [{"name": n, "num_frames": 4, "speed": 1.0, "amplitude": 1.0}
-         for n in ("walk", "run", "arm_swing")]
-    spec = Spec("mini", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[2])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
-    assert s.done == 3 and s.failed == 0
-    return out
+    return skirt_dataset(tmp_path_factory.mktemp("data"), ["walk", "run", "arm_swing"], 4,
+                         held_out={"test": ["arm_swing"]}, name="mini")
 
 
 def learned_only(**budget) -> presets.Preset:
@@ -309,7 +303,7 @@ def test_stability_baseline_case_is_the_test_prediction(flow, data, monkeypatch)
 
 def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
     worker = importlib.import_module("garmentgnn.data.worker")
-    monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": lbs_simulate)
+    monkeypatch.setattr(worker, "default_simulate", lambda engine="torch": skinned_wobble)
     p = dataclasses.replace(learned_only(methods=(methods.LBS,)), data_workers=0)
     summary = runner.run(p, tmp_path, progress=False)
     assert summary.failed == 0

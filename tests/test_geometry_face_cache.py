@@ -13,11 +13,10 @@ import torch
 
 from garmentgnn import geometry as G
 from garmentgnn.body import CapsuleBodyModel
-from garmentgnn.body.lbs import forward_kinematics, linear_blend_skinning
 from garmentgnn.garments import make_garment
-from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.geometry import face_cache as fc_mod
 from garmentgnn.motion import make_motion
+from garmentgnn.sim.stand_in import wobbling_frames
 
 D = torch.float64
 
@@ -28,16 +27,9 @@ def walk():
     the t-shirt skinned to the body plus a 3 mm wobble (float64)."""
     body = CapsuleBodyModel(resolution=6)("regular")
     g = make_garment("tshirt", body, resolution=250)
-    T = 12
-    m = make_motion("walk", body.skeleton, num_frames=T, fps=30.0, seed=0,
+    m = make_motion("walk", body.skeleton, num_frames=12, fps=30.0, seed=0,
                     rest_joints=body.joints)
-    A, _ = forward_kinematics(m.rotations.to(D), body.joints.to(D), body.skeleton.parents,
-                              m.translation.to(D))
-    X = linear_blend_skinning(body.vertices.to(D), body.weights.to(D), A)
-    W = transfer_skinning_weights(g.vertices, g.faces, body.vertices, body.weights)
-    P = linear_blend_skinning(g.vertices.to(D), W.to(D), A)
-    t = torch.arange(T, dtype=D).view(T, 1, 1)
-    P = P + 0.003 * torch.sin(0.7 * t + 8.0 * g.vertices[None, :, :1].to(D))
+    P, X = wobbling_frames(g, body, m, D)
     return P, X, body.faces
 
 

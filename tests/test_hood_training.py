@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from garmentgnn.harness.methods import BASELINES, HOOD
-from garmentgnn.data import Spec, generate
 from garmentgnn.models.baselines import CoarseLevel, HOODStyle
 from garmentgnn.models.blocks import RunningNormalizer
 from garmentgnn.data import SequenceChunks
@@ -17,7 +16,8 @@ from garmentgnn.training.module import loss_inputs
 from garmentgnn.models.baselines import DAStyle
 from garmentgnn.training.configs import instantiate, merge
 
-from conftest import lbs_simulate
+from conftest import skirt_dataset
+
 
 
 def test_running_normalizer_is_the_statistics_of_the_training_rows():
@@ -55,14 +55,7 @@ def test_running_normalizer_is_the_statistics_of_the_training_rows():
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("data")
-    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
-    b = [{"model": "capsule", "shape": "regular"}]
-    m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
-    s = generate(Spec("hood", g, b, m, ["silk"], held_out={}), out, workers=0,
-                 simulate_fn=lbs_simulate, progress=False)
-    assert s.done == 2 and s.failed == 0
-    return out
+    return skirt_dataset(tmp_path_factory.mktemp("data"), ["walk", "run"], 8, name="hood")
 
 
 def _module(dims, **kw) -> BaselineModule:

@@ -150,17 +150,23 @@ def test_curvature_term_is_the_metric_and_its_gradient():
         loss(LossInputs(pred=bumped.unsqueeze(0), faces=faces))
 
 
+def dipping_cap(body: trimesh.Trimesh):
+    """``(pred, faces, body vertices, body faces)``, float64: an 8 x 8 sheet 0.3 m wide
+    bent into a cap, its top 0.2 m above the origin, dipping into ``body`` (a mesh
+    around the origin); ``pred [2, V, 3]``: two equal frames, requiring grad."""
+    bv = torch.tensor(body.vertices, dtype=torch.float64)
+    bf = torch.tensor(body.faces, dtype=torch.long)
+    pos, faces = grid_mesh(8, 8, (0.3, 0.3), dtype=torch.float64)
+    pos = pos - torch.tensor([0.15, 0.15, 0.0], dtype=torch.float64)
+    pos[:, 2] = 0.2 - 5 * (pos[:, 0] ** 2 + pos[:, 1] ** 2)
+    return pos.unsqueeze(0).repeat(2, 1, 1).requires_grad_(True), faces, bv, bf
+
+
 def test_collision_term_with_candidate_faces_equals_the_exact_search():
     """The loss searches only the faces around the nearest body vertices; for a cloth
     close to a convex body that is the exact nearest face, so the term (and its
     gradient) equals the brute-force one."""
-    ico = trimesh.creation.icosphere(subdivisions=3, radius=0.2)
-    bv = torch.tensor(ico.vertices, dtype=torch.float64)
-    bf = torch.tensor(ico.faces, dtype=torch.long)
-    pos, faces = grid_mesh(8, 8, (0.3, 0.3), dtype=torch.float64)
-    pos = pos - torch.tensor([0.15, 0.15, 0.0], dtype=torch.float64)
-    pos[:, 2] = 0.2 - 5 * (pos[:, 0] ** 2 + pos[:, 1] ** 2)  # a cap dipping into the sphere
-    pred = pos.unsqueeze(0).repeat(2, 1, 1).requires_grad_(True)
+    pred, faces, bv, bf = dipping_cap(trimesh.creation.icosphere(subdivisions=3, radius=0.2))
     terms = {}
     for cand in (8, None):
         loss = GarTransLoss(enabled=["collision"], distance_candidates=cand)
@@ -175,13 +181,7 @@ def test_collision_term_with_candidate_faces_equals_the_exact_search():
 def test_collision_term_through_a_face_cache_equals_the_exact_search():
     """``LossInputs.face_cache``: the term's search runs through the cache (the model's
     projection built it on the same frames) and equals the brute force, gradient too."""
-    box = trimesh.creation.box(extents=[0.4, 0.4, 0.4])  # 12 large faces
-    bv = torch.tensor(box.vertices, dtype=torch.float64)
-    bf = torch.tensor(box.faces, dtype=torch.long)
-    pos, faces = grid_mesh(8, 8, (0.3, 0.3), dtype=torch.float64)
-    pos = pos - torch.tensor([0.15, 0.15, 0.0], dtype=torch.float64)
-    pos[:, 2] = 0.2 - 5 * (pos[:, 0] ** 2 + pos[:, 1] ** 2)  # a cap dipping into the box
-    pred = pos.unsqueeze(0).repeat(2, 1, 1).requires_grad_(True)
+    pred, faces, bv, bf = dipping_cap(trimesh.creation.box(extents=[0.4, 0.4, 0.4]))  # 12 faces
     cache = NearestFaceCache(k=4)
     cache.nearest(pred, bv.expand(2, -1, -1), bf)
     out = {}

@@ -8,11 +8,11 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import lbs_simulate
-from garmentgnn.data import Spec, generate
 from garmentgnn.metrics import split_inputs, static_dynamic_split
 from garmentgnn.metrics.split import posed, to_rest_frame
 from garmentgnn.data import SequenceChunks
+
+from conftest import skirt_dataset
 
 
 def affine(lin: np.ndarray, off: np.ndarray) -> torch.Tensor:
@@ -197,11 +197,7 @@ def test_bad_input_raises():
 def chunk(tmp_path_factory):
     """One whole sequence (skirt on a capsule body, walk, 8 frames; LBS + a wobble as
     the 'simulation') as a GarmentInputs, read as benchmarks/error_split.py reads it."""
-    out = tmp_path_factory.mktemp("split")
-    spec = Spec("s", [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}],
-                [{"model": "capsule", "shape": "regular"}],
-                [{"name": "walk", "num_frames": 8, "speed": 1.0, "amplitude": 1.0}], ["silk"])
-    assert generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False).done == 1
+    out = skirt_dataset(tmp_path_factory.mktemp("split"), ["walk"], 8, name="s")
     ds = SequenceChunks(out, split=None, chunk=10 ** 9, history=1, nystrom_dim=4,
                         num_landmarks=8)
     return ds[0]

@@ -17,6 +17,8 @@ from garmentgnn.motion import make_motion
 from garmentgnn.motion.sequence import Motion
 from garmentgnn.physics import Material, inertia_energy, material, shear_energy, stretch_energy
 from garmentgnn.sim import ClothSystem, SimSettings, simulate, step
+from garmentgnn.sim.stand_in import WOBBLE, skinned_wobble, wobbling_frames
+from garmentgnn.sim.trajectory import trajectories
 
 G = 9.81
 
@@ -263,3 +265,27 @@ def test_skirt_walk_end_to_end():
     # depends on the numerical stack: at least 3/6 frames converged in one environment,
     # 2/6 in a fresh one (same code; scipy 1.17.1, numpy 2.4.6)
     assert float(res.converged.float().mean()) >= 1 / 3 - 1e-6
+
+
+# --------------------------------------------------------------------------- the stand-in
+def test_stand_in_is_the_skinned_garment_plus_a_wobble():
+    """:mod:`garmentgnn.sim.stand_in` against :func:`trajectories` (the simulator's initial
+    state and pinned targets, computed apart): the body frames are its posed body, the
+    garment frames its skinned garment moved by at most ``WOBBLE`` (the same on each
+    coordinate); ``skinned_wobble``
+    gives them (float32) with the fields of a converged simulation."""
+    body = CapsuleBodyModel(resolution=6)("regular")
+    g = make_garment("skirt", body, resolution=200)
+    m = make_motion("walk", body.skeleton, num_frames=5, fps=30.0, seed=0,
+                    rest_joints=body.joints)
+    P, X = wobbling_frames(g, body, m, torch.float64)
+    skinned, posed = trajectories(g, body, m)
+    assert P.dtype == X.dtype == torch.float64 and P.shape == skinned.shape
+    torch.testing.assert_close(X, posed, rtol=0, atol=1e-5)
+    off = P - skinned  # the same on each coordinate, at most WOBBLE
+    torch.testing.assert_close(off, off[..., :1].expand_as(off), rtol=0, atol=1e-5)
+    assert 0.5 * WOBBLE < float(off.abs().max()) <= WOBBLE + 1e-5
+    res = skinned_wobble(g, body, m, material("silk"))
+    assert res.ok and res.positions.dtype == torch.float32
+    assert bool(res.converged.all()) and res.converged.shape == (5,)
+    torch.testing.assert_close(res.positions.double(), P, rtol=0, atol=1e-5)

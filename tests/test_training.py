@@ -7,7 +7,6 @@ import lightning as L
 import pytest
 import torch
 
-from garmentgnn.data import Spec, generate, motion_key
 from garmentgnn.geometry import signed_distance
 from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.data import SequenceChunks
@@ -16,7 +15,8 @@ from garmentgnn.training import (PHASE_TERMS, REST_BRANCH, GarmentDataModule, Ep
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.models import GarTrans
 
-from conftest import lbs_simulate
+from conftest import skirt_dataset
+
 
 NY = 8
 
@@ -24,14 +24,8 @@ NY = 8
 
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
-    out = tmp_path_factory.mktemp("chunks")
-    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
-    b = [{"model": "capsule", "shape": "regular"}]
-    m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
-    spec = Spec("t", g, b, m, ["silk"], held_out={"val": {"motions": [motion_key(m[1])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
-    assert s.done == 2 and s.failed == 0
-    return out
+    return skirt_dataset(tmp_path_factory.mktemp("chunks"), ["walk", "run"], 8,
+                         held_out={"val": ["run"]})
 
 
 def make(root, **kw):

@@ -23,10 +23,12 @@ CONFIGS = Path(__file__).resolve().parents[1] / "src" / "garmentgnn" / "configs"
 VARIANTS = sorted(p.name for p in (CONFIGS / "ablations").glob("*.yaml"))
 
 
-def fast_args(data_root, tmp_path):
-    return ["--data.root", str(data_root), "--data.chunk", "4", "--data.history", "2",
+def fast_args(data_root, tmp_path, history=2, train_batches=2):
+    """``garmentgnn train`` arguments for one short epoch on the toy dataset ``data_root``,
+    writing into ``tmp_path``."""
+    return ["--data.root", str(data_root), "--data.chunk", "4", "--data.history", str(history),
             "--data.nystrom_dim", str(NY), "--data.num_landmarks", "16",
-            "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
+            "--trainer.max_epochs", "1", "--trainer.limit_train_batches", str(train_batches),
             "--trainer.limit_val_batches", "1", "--trainer.enable_progress_bar", "false",
             "--trainer.default_root_dir", str(tmp_path),
             "--trainer.logger.init_args.save_dir", str(tmp_path)]

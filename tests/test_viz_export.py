@@ -8,13 +8,12 @@ import torch
 
 from garmentgnn.body.factory import build_body
 from garmentgnn.cli import main
-from garmentgnn.data import generate, store
+from garmentgnn.data import store
 from garmentgnn.data.export import export_sequence
 from garmentgnn.data.gltf import GltfMesh, write_gltf
-from garmentgnn.data.keys import motion_key
-from garmentgnn.data.presets import Spec
 
-from conftest import lbs_simulate
+from conftest import skirt_dataset
+
 
 vtk = pytest.importorskip("vtk", reason='VTK is not installed: pip install "garmentgnn[viz]"')
 pytest.importorskip("pygltflib", reason='pygltflib is not installed: pip install "garmentgnn[viz]"')
@@ -23,13 +22,7 @@ from vtk.util.numpy_support import vtk_to_numpy  # noqa: E402
 
 def make_dataset(out):
     """Two 8-frame sequences of a skirt on a capsule body; the `run` motion is held out."""
-    g = [{"kind": "skirt", "params": {"length": "mini"}, "resolution": 200}]
-    b = [{"model": "capsule", "shape": "regular"}]
-    m = [{"name": n, "num_frames": 8, "speed": 1.0, "amplitude": 1.0} for n in ("walk", "run")]
-    spec = Spec("v", g, b, m, ["silk"], held_out={"test": {"motions": [motion_key(m[1])]}})
-    s = generate(spec, out, workers=0, simulate_fn=lbs_simulate, progress=False)
-    assert s.done == 2 and s.failed == 0
-    return out
+    return skirt_dataset(out, ["walk", "run"], 8, held_out={"test": ["run"]}, name="v")
 
 
 _DATA = {}

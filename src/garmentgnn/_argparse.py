@@ -93,15 +93,23 @@ def nonempty_path(text: str) -> str:
     return text
 
 
-def existing_file(text: str) -> str:
-    """An argparse type: the path of an existing file (``~`` expanded)."""
+def _existing(text: str, kind: str, is_kind: Callable[[str], bool], other: str,
+              is_other: Callable[[str], bool]) -> str:
+    """``text`` with ``~`` expanded where ``is_kind`` holds for that path; otherwise an
+    ``ArgumentTypeError`` with ``text`` and what is there: ``a <other>, not a <kind>``
+    where ``is_other`` holds, else ``no such <kind>``."""
     path = os.path.expanduser(text)
     if not text.strip():
-        raise argparse.ArgumentTypeError("empty path; name a file")
-    if not os.path.isfile(path):
-        what = "is a folder, not a file" if os.path.isdir(path) else "no such file"
+        raise argparse.ArgumentTypeError(f"empty path; name a {kind}")
+    if not is_kind(path):
+        what = f"is a {other}, not a {kind}" if is_other(path) else f"no such {kind}"
         raise argparse.ArgumentTypeError(f"{text}: {what}")
     return path
+
+
+def existing_file(text: str) -> str:
+    """An argparse type: the path of an existing file (``~`` expanded)."""
+    return _existing(text, "file", os.path.isfile, "folder", os.path.isdir)
 
 
 def dataset_dir(text: str) -> str:
@@ -121,13 +129,7 @@ def dataset_dir(text: str) -> str:
 
 def existing_dir(text: str) -> str:
     """An argparse type: the path of an existing folder (``~`` expanded)."""
-    path = os.path.expanduser(text)
-    if not text.strip():
-        raise argparse.ArgumentTypeError("empty path; name a folder")
-    if not os.path.isdir(path):
-        what = "is a file, not a folder" if os.path.exists(path) else "no such folder"
-        raise argparse.ArgumentTypeError(f"{text}: {what}")
-    return path
+    return _existing(text, "folder", os.path.isdir, "file", os.path.exists)
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

@@ -1,0 +1,191 @@
+"""The results of ``curves``: their table (mean over seeds, paired tests against the first
+variant), several runs' files merged into one result, and the plot of E_dist / LBS
+against steps."""
+from __future__ import annotations
+
+import statistics
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+from garmentgnn._plotting import pyplot
+from garmentgnn.data.store import read_json
+from garmentgnn.harness import scoring
+from garmentgnn.harness.tables import table
+
+#: the surface metrics ``curves --surface`` adds (E_dist is always measured)
+SURFACE = ("E_vnorm", "E_fnorm", "E_len", "E_curv")
+
+
+def mean_curve(runs: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+    """The runs' curves averaged over seeds, at the steps every run measured."""
+    curves = [r["curve"] for r in runs if r["curve"]]
+    n = min((len(c) for c in curves), default=0)
+    return [{"step": curves[0][i]["step"],
+             **{k: sum(c[i][k] for c in curves) / len(curves) for k in ("train", "test")}}
+            for i in range(n)]
+
+
+def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
+    """The table of :func:`part_curves`' (or :func:`merge_curves`') results."""
+    lbs, seeds = res["lbs"], res["seeds"]
+    measured = next((run["curve"][-1] for r in res["variants"].values() for run in r["runs"]
+                     if run["curve"]), {})  # none where every run failed at once
+    count = {k: len(measured.get(f"{k}_sequences", ())) for k in ("train", "test")}
+
+    def last_sequences(runs):  # {"seed/sequence": E_dist} of the test split, last step
+        return {f"{r['seed']}/{q}": e for r in runs if r["curve"]
+                for q, e in r["curve"][-1]["test_sequences"].items()}
+
+    def spread(values):
+        m = sum(values) / len(values)
+        if len(values) < 2:
+            return f"{m:.3f}"
+        return f"{m:.3f} ± {statistics.stdev(values):.3f}"
+
+    names = list(res["variants"])
+    ref = last_sequences(res["variants"][names[0]]["runs"]) if names else {}
+    rows = []
+    for name, r in res["variants"].items():
+        ok = [run for run in r["runs"] if run["curve"]]
+        failures = "; ".join(f"seed {run['seed']}: {run['status']}" for run in r["runs"]
+                             if run["status"] != "ok")
+        if not ok:
+            rows.append([name, "—", "—", "—", "—", "—", failures])
+            continue
+        c = mean_curve(ok)
+        best = min(c, key=lambda row: row["test"])
+        p = "—"
+        if name != names[0] and len(ok) == len(r["runs"]):
+            try:
+                w = scoring.wilcoxon(last_sequences(ok), ref)
+                p = f"{w['p']:.2g} ({w['median_diff']:+.3f} cm)"
+            except ValueError:
+                pass
+        rows.append([name, str(ok[0]["curve"][-1]["step"]),
+                     spread([run["curve"][-1]["train"] / lbs["train"] for run in ok]),
+                     spread([run["curve"][-1]["test"] / lbs["test"] for run in ok]),
+                     f"{best['test'] / lbs['test']:.3f} @ {best['step']}", p, failures])
+    lines = [f"E_dist / LBS's (LBS: train {lbs['train']:.3f} cm over {count['train']} "
+             f"sequences, test {lbs['test']:.3f} cm over {count['test']}); "
+             f"{'seed' if len(seeds) == 1 else 'mean ± std over seeds'} "
+             f"{', '.join(map(str, seeds))}; p: paired Wilcoxon test against "
+             f"`{names[0] if names else ''}` over (seed, test sequence) at the last step, "
+             "with the median difference:", ""]
+    lines += table(["variant", "steps", "train", "test", "best test (seed mean)",
+                    "p vs first", "failure"], rows)
+    phased = [(name, run["seed"], run["transitions"]) for name, r in res["variants"].items()
+              for run in r["runs"] if "transitions" in run]
+    if phased:
+        def when(t):  # {phase: the epoch at whose end it began}; JSON keys are strings
+            return ", ".join(f"phase {k} after epoch {t[k]}" for k in sorted(t, key=int))
+
+        lines += ["", "Phase transitions: " + "; ".join(
+            f"{name}, seed {s}: {when(t) or 'phase 1 only'}" for name, s, t in phased)]
+    if surface:
+        lm = res["lbs_metrics"]["test"]
+        srows = [["LBS", "—"] + [f"{lm[k]:.4g}" for k in SURFACE]]
+        for name, r in res["variants"].items():
+            ok = [run["curve"][-1]["test_metrics"] for run in r["runs"]
+                  if run["curve"] and "test_metrics" in run["curve"][-1]]
+            if ok:
+                srows.append([name, str(r["runs"][0]["curve"][-1]["step"])]
+                             + [f"{sum(m[k] for m in ok) / len(ok):.4g}" for k in SURFACE])
+        lines += ["", "Test split at the last step, mean over seeds (degrees, degrees, %, rad):",
+                  ""]
+        lines += table(["variant", "steps", *SURFACE], srows)
+    return lines
+
+
+def _errors(variant: Dict[str, Any]) -> List[Any]:
+    """A variant's runs without their timings: what a rerun must reproduce exactly."""
+    def drop(d: Dict[str, Any]) -> Dict[str, Any]:
+        return {k: v for k, v in d.items() if "seconds" not in k}
+    return [dict(drop(run), curve=[drop(p) for p in run.get("curve", [])])
+            for run in variant.get("runs", [])]
+
+
+def read_curves(path: Path) -> Dict[str, Any]:
+    """A ``curves.json`` (``FileNotFoundError`` / ``ValueError`` naming ``path`` when it is
+    missing, not JSON or not the results of ``curves``)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"`files`: {path}: no such file (a curves.json written by "
+                                f"`python benchmarks/learning.py curves`)")
+    doc = read_json(path, "give a curves.json written by `python benchmarks/learning.py "
+                          "curves`")
+    if not isinstance(doc.get("variants"), dict):
+        raise ValueError(f"`files`: {path}: no 'variants': not the results of `curves`")
+    return doc
+
+
+def merge_curves(files: Sequence[Path], only: Optional[Sequence[str]] = None) -> Dict[str, Any]:
+    """The ``curves.json`` of runs made in separate processes (other variants, the same
+    dataset, steps and seeds) as one result; the first file's first variant kept is then
+    the reference of every paired test.  ``only``: keep these variants alone.  A variant
+    in more than one file is kept once where its errors agree exactly (a rerun that
+    reproduced it), and refused where they differ."""
+    parts = [read_curves(Path(f)) for f in files]
+    res = {k: v for k, v in parts[0].items() if k != "command"}
+    res.update(variants={}, sources=[{"file": str(f), "command": p.get("command")}
+                                     for f, p in zip(files, parts)])
+    for f, part in zip(files, parts):
+        for key in ("lbs", "steps", "seeds"):
+            if part.get(key) != res.get(key):
+                raise ValueError(f"`files`: {f} has another {key} ({part.get(key)} against "
+                                 f"{res.get(key)}): not runs that can be compared")
+        for name, v in part["variants"].items():
+            if only is not None and name not in only:
+                continue
+            if name in res["variants"]:
+                if _errors(res["variants"][name]) != _errors(v):
+                    raise ValueError(f"`files`: variant {name!r} is in more than one file, "
+                                     f"with other errors")
+                continue  # a rerun that reproduced the first to the last digit: kept once
+            res["variants"][name] = v
+    missing = [name for name in only or () if name not in res["variants"]]
+    if missing:
+        raise ValueError(f"`only`: {missing} in none of the files")
+    return res
+
+
+
+#: the curves plot's top (E_dist / LBS): a diverging variant is clipped there and says so
+#: in the legend, so that it does not flatten the differences near 1
+PLOT_TOP = 1.5
+
+
+def plot_curves(res: Dict[str, Any], path: Path) -> None:
+    """E_dist / LBS against steps, train and test.  Where some variant stays below
+    :data:`PLOT_TOP` the axis is linear and diverging variants are clipped (so they do
+    not flatten the differences near 1); where none does, the axis is logarithmic."""
+    plt = pyplot()
+    rows = len(res["variants"])  # legend lines, below each panel (not over its curves)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2 + 0.16 * rows), sharey=True)
+    n = len(res.get("seeds", [0]))  # files written before the seeds: one run, "curve"
+    curves = {name if n == 1 else f"{name} (mean of {n} seeds)":
+              mean_curve(r.get("runs", [r])) for name, r in res["variants"].items()}
+    curves = {name: c for name, c in curves.items() if c}
+    clip = any(max(row[s] / res["lbs"][s] for row in c) <= PLOT_TOP
+               for c in curves.values() for s in ("train", "test"))
+    low, high = PLOT_TOP, 1.0
+    for ax, split in zip(axes, ("train", "test")):
+        for name, c in curves.items():
+            y = [row[split] / res["lbs"][split] for row in c]
+            low, high = min(low, min(y)), max(high, min(max(y), PLOT_TOP))
+            clipped = clip and max(y) > PLOT_TOP
+            label = f"{name} (up to {max(y):.1f}x: clipped)" if clipped else name
+            ax.plot([row["step"] for row in c], [min(v, PLOT_TOP) if clip else v for v in y],
+                    marker=".", label=label)
+        ax.axhline(1.0, color="k", lw=0.8, ls="--")
+        ax.set_title(f"{split} sequences (LBS {res['lbs'][split]:.2f} cm = 1)")
+        ax.set_xlabel("optimizer steps")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), frameon=False)
+    if clip:
+        pad = 0.05 * (high - low) + 0.005
+        axes[0].set_ylim(max(0.0, low - pad), high + pad)
+    else:
+        axes[0].set_yscale("log")
+    axes[0].set_ylabel("E_dist / LBS" + ("" if clip else " (log scale)"))
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
