@@ -8,6 +8,7 @@ import runpy
 from pathlib import Path
 
 import pytest
+import torch
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 _SCRIPTS = {}
@@ -133,3 +134,10 @@ def test_other_benchmark_arguments_are_checked(capsys, tmp_path, data, name, arg
     ``ValueError``), or, for ``error_split --split tset``, divided by zero."""
     argv = [a.format(data=data, typo=str(tmp_path / "typo")) for a in argv]
     refused(capsys, script(name)["main"], argv + ["--out", str(tmp_path / "o")], *words)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="refused only where torch sees no GPU")
+def test_inference_on_a_missing_gpu_is_refused(capsys, tmp_path):
+    refused(capsys, script("inference")["main"], ["--device", "cuda", "--out",
+                                                  str(tmp_path / "o")],
+            "--device cuda: torch sees no CUDA device")
