@@ -332,15 +332,16 @@ class Window:
             t = run_command(cmd, stop - time.perf_counter(), folder / "test.log", self.env)
             res["test"] = {k: t[k] for k in ("rc", "wall_s", "timed_out")}
             res["wall_s"] += t["wall_s"]
-        parts = {"fit": r, "test": res.get("test", {"rc": None, "timed_out": False})}
+        parts = {"fit": r, **({"test": res["test"]} if "test" in res else {})}
         late = [k for k, v in parts.items() if v["timed_out"]]
         failed = [k for k, v in parts.items() if not v["timed_out"] and v["rc"] != 0]
-        res["status"] = "ok" if not late and not failed else \
-            "timed out" if not failed else "failed"
-        if late or failed:
-            res["note"] = "; ".join([f"{k} timed out" for k in late] +
-                                    [f"{k} failed" if parts[k]["rc"] is not None else
-                                     f"{k}: no checkpoint to test" for k in failed])
+        res["status"] = "failed" if failed else "timed out" if late else \
+            "ok" if ckpt is not None else "failed"
+        notes = [f"{k} timed out" for k in late] + [f"{k} failed" for k in failed]
+        if ckpt is None:
+            notes.append("no checkpoint to test")
+        if notes:
+            res["note"] = "; ".join(notes)
         res.update(training_summary(folder / "fit", folder / "test.log"))
         return res
 
