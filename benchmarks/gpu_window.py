@@ -56,7 +56,7 @@ WHEELS = ("trimesh", "meshio", "jsonargparse", "docstring_parser", "typeshed_cli
 CARRY_LIMIT = 64 * 2 ** 20
 FILE_LIMIT = 16 * 2 ** 20 - 2 ** 16
 #: seconds kept after the last stage for the last bundle and summary
-MARGIN_S = 15.0
+MARGIN_S = 20.0
 #: each stage's share of the time left when it starts (unused time goes to the later ones)
 WEIGHTS = {"throughput_gartrans": 0.13, "throughput_da": 0.10, "inference": 0.14,
            "train_gartrans": 0.35, "train_da": 0.28}
@@ -112,7 +112,7 @@ def run_command(cmd: List[str], timeout_s: float, log: Path, env: Dict[str, str]
             p.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             timed_out = True
-            for sig, wait in ((signal.SIGTERM, 5), (signal.SIGKILL, 10)):
+            for sig, wait in ((signal.SIGTERM, 3), (signal.SIGKILL, 5)):
                 try:
                     os.killpg(p.pid, sig)
                     p.wait(timeout=wait)
