@@ -17,6 +17,10 @@ the real vertex count is recorded.  Methods:
   excluded); one frame follows the other, so latency = 1 / throughput.
 - **torch simulator** (only up to ``--torch-max-vertices``, a few frames: it is slow).
 
+``--device cuda`` runs the GarTrans rows on the GPU (each timed call ends with a device
+synchronisation; their peak memory is the CUDA allocator's peak over what was allocated
+before the call); LBS and the simulators stay on the CPU.
+
 Peak memory: :func:`garmentgnn.harness.timing.peak_memory` (RSS growth of one call, a lower
 bound) for the in-process methods; the Blender worker's peak RSS (whole process, from
 ``getrusage`` of the children).  ``--profile`` adds a by-module and by-operator
@@ -91,18 +95,46 @@ def without_body(it):
     return out
 
 
-def gartrans_rows(seq, it, batches: List[int], repeats: int, **module_kw) -> Dict[str, Any]:
-    module = untrained_module(it, 0, **module_kw)
+def synchronised(fn: Callable[[], Any], device: str) -> Callable[[], Any]:
+    """``fn`` followed by a wait for the device's queued work (a no-op on the CPU)."""
+    if device == "cpu":
+        return fn
+
+    def call():
+        out = fn()
+        torch.cuda.synchronize()
+        return out
+    return call
+
+
+def device_peak_memory(fn: Callable[[], Any], device: str) -> Dict[str, Any]:
+    """:func:`peak_memory` on the CPU; on a GPU the allocator's peak during one call of
+    ``fn`` over what was allocated before it."""
+    if device == "cpu":
+        return peak_memory(fn)
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    before = torch.cuda.memory_allocated()
+    synchronised(fn, device)()
+    return {"peak_mb": (torch.cuda.max_memory_allocated() - before) / 2 ** 20}
+
+
+def gartrans_rows(seq, it, batches: List[int], repeats: int, device: str = "cpu",
+                  **module_kw) -> Dict[str, Any]:
+    module = untrained_module(it, 0, **module_kw).to(device)
     model = module.model
     it = without_body(it)
+    if device != "cpu":
+        it = it.to(device)
     T = it.num_frames
     with torch.inference_mode():
         static = module.encode_static(it)
 
     def run(b):
-        return lambda: model.predict_sequence(it, batch_size=b, static=static)["final"]
+        return synchronised(
+            lambda: model.predict_sequence(it, batch_size=b, static=static)["final"], device)
 
-    enc = measure(lambda: module.encode_static(it), 1, repeats)
+    enc = measure(synchronised(lambda: module.encode_static(it), device), 1, repeats)
     sweep = []
     for b in sorted(set(min(b, T) for b in batches)):
         m = measure(run(b), 1, repeats)
@@ -110,16 +142,16 @@ def gartrans_rows(seq, it, batches: List[int], repeats: int, **module_kw) -> Dic
                       "fps": T * 1e3 / m["median_ms"]})
     best = max(sweep, key=lambda r: r["fps"])
     with torch.inference_mode():
-        mem_best = peak_memory(run(best["batch"]))
-        mem_one = peak_memory(run(1))
-        mem_default = peak_memory(run(None))
+        mem_best = device_peak_memory(run(best["batch"]), device)
+        mem_one = device_peak_memory(run(1), device)
+        mem_default = device_peak_memory(run(None), device)
     lat = sweep[0]["ms_per_frame"]
     return {"latency_ms": lat, "throughput_fps": best["fps"], "best_batch": best["batch"],
             "encode_static_ms": enc["median_ms"], "uncached_latency_ms": lat + enc["median_ms"],
             "peak_mb": mem_best["peak_mb"], "peak_mb_batch1": mem_one["peak_mb"],
             "peak_mb_default_chunk": mem_default["peak_mb"],
             "default_chunk": max(1, model.CHUNK_VERTICES // it["rest_pos"].shape[0]),
-            "sweep": sweep, "frames": T}
+            "sweep": sweep, "frames": T, "device": device}
 
 
 # --------------------------------------------------------------------------- others
@@ -307,7 +339,7 @@ def table(rows: List[Dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def plot(rows: List[Dict[str, Any]], path: Path) -> None:
+def plot(rows: List[Dict[str, Any]], path: Path, device: str = "cpu") -> None:
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for method, style in (("GarTrans", "o-"), ("GarTrans, no blend shape", "o--"),
@@ -326,7 +358,8 @@ def plot(rows: List[Dict[str, Any]], path: Path) -> None:
         ax.set_ylabel(lab)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"Inference on CPU ({torch.get_num_threads()} torch thread(s)), skirt on a "
+    where = "CPU" if device == "cpu" else "GPU (GarTrans; the others on the CPU)"
+    fig.suptitle(f"Inference on {where} ({torch.get_num_threads()} torch thread(s)), skirt on a "
                  "walking capsule body")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -362,8 +395,12 @@ def main(argv=None) -> int:
     ap.add_argument("--experiments", action="store_true",
                     help="time bfloat16 and torch.compile at the smallest size")
     ap.add_argument("--threads", type=int_at_least(1), default=2, help="torch threads")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="where the GarTrans rows run (LBS and the simulators: the CPU)")
     add_output_args(ap, RESULTS, "writes OUT.json, OUT.md and OUT.png")
     args = ap.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: torch sees no CUDA device here; use --device cpu")
     check_unique(ap, args.sizes, "--sizes")
     check_unique(ap, args.batches, "--batches")
     args.out = str(output_path(args, RESULTS))
@@ -374,16 +411,18 @@ def main(argv=None) -> int:
         "command": " ".join(["python", "benchmarks/inference.py"] + (argv or sys.argv[1:])),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                     "torch_threads": torch.get_num_threads(), "blender_cores": args.blender_cores,
-                    "load_average_start": os.getloadavg(), "gpu": torch.cuda.is_available()},
+                    "load_average_start": os.getloadavg(), "gpu": torch.cuda.is_available(),
+                    "device": args.device, "device_name": torch.cuda.get_device_name()
+                    if args.device == "cuda" else platform.processor() or platform.machine()},
         "history": HISTORY, "paper_gpu": PAPER, "rows": [], "profile": {}}
     for res in args.sizes:
         seq, it = scene(res, args.frames)
         V = seq.garment.num_vertices
         print(f"--- {V} vertices (requested {res})", flush=True)
         new = []
-        g = gartrans_rows(seq, it, args.batches, args.repeats)
+        g = gartrans_rows(seq, it, args.batches, args.repeats, args.device)
         new.append(dict(method="GarTrans", **g))
-        g2 = gartrans_rows(seq, it, args.batches, args.repeats, blend_shape=False)
+        g2 = gartrans_rows(seq, it, args.batches, args.repeats, args.device, blend_shape=False)
         new.append(dict(method="GarTrans, no blend shape", **g2))
         new.append(dict(method="LBS", **lbs_row(seq, args.repeats)))
         if V <= args.torch_max_vertices:
@@ -421,7 +460,9 @@ def markdown(doc: Dict[str, Any]) -> str:
     m = doc["machine"]
     lines = [f"`{doc['command']}` on {m['platform']}, {m['cpus']} CPUs, {m['torch_threads']} "
              f"torch threads, Blender worker on {m.get('blender_cores', '?')} core(s), GPU: "
-             f"{'yes' if m['gpu'] else 'none'}; load average at start "
+             f"{'yes' if m['gpu'] else 'none'}" +
+             (f" (GarTrans rows on {m.get('device_name')}, the others on the CPU)"
+              if m.get("device", "cpu") != "cpu" else "") + "; load average at start "
              f"{m['load_average_start'][0]:.2f}" +
              (f", at end {m['load_average_end'][0]:.2f}" if "load_average_end" in m else ""),
              "", table(doc["rows"]), ""]
@@ -461,7 +502,7 @@ def write(args, doc) -> str:
     md = markdown(doc)
     out.with_suffix(".md").write_text(md)
     if doc["rows"]:
-        plot(doc["rows"], out.with_suffix(".png"))
+        plot(doc["rows"], out.with_suffix(".png"), doc["machine"].get("device", "cpu"))
     return md
 
 

@@ -9,6 +9,7 @@ import runpy
 from pathlib import Path
 
 import pytest
+import torch
 
 from garmentgnn._argparse import existing_dir, existing_file
 
@@ -159,3 +160,10 @@ def test_existing_path_types_name_the_path_and_what_is_there(tmp_path, monkeypat
         with pytest.raises(argparse.ArgumentTypeError) as e:
             check(text)
         assert str(e.value) == message
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="refused only where torch sees no GPU")
+def test_inference_on_a_missing_gpu_is_refused(capsys, tmp_path):
+    refused(capsys, script("inference")["main"], ["--device", "cuda", "--out",
+                                                  str(tmp_path / "o")],
+            "--device cuda: torch sees no CUDA device")

@@ -62,6 +62,17 @@ def cache_dir() -> Path:
     return Path(os.environ.get("GARMENTGNN_CACHE_DIR", Path.home() / ".cache" / "garmentgnn"))
 
 
+def body_cache_path(shape: Union[None, str, Dict[str, float], Tensor, np.ndarray],
+                    rig: str = "cmu_mb", topology: str = "notoes_collapse10pc") -> Path:
+    """Where the body of ``shape`` (a preset name, a phenotype dict or the 6 values) is
+    cached: ``cache_dir()/anny/<rig>_<topology>_<digest>.npz``, whether or not it exists
+    yet (a dataset copy carries these files to a machine without ``anny``)."""
+    pheno = AnnyBodyModel.phenotype(shape)
+    key = f"{_CACHE_VERSION}|{rig}|{topology}|{np.round(pheno, 6).tolist()}"
+    digest = hashlib.sha1(key.encode()).hexdigest()[:16]
+    return cache_dir() / "anny" / f"{rig}_{topology}_{digest}.npz"
+
+
 class AnnyBodyModel:
     """Real human bodies from ``anny``, cached on disk.
 
@@ -117,9 +128,7 @@ class AnnyBodyModel:
 
     # -- cache --------------------------------------------------------------
     def _cache_path(self, pheno: np.ndarray) -> Path:
-        key = f"{_CACHE_VERSION}|{self.rig}|{self.topology}|{np.round(pheno, 6).tolist()}"
-        digest = hashlib.sha1(key.encode()).hexdigest()[:16]
-        return cache_dir() / "anny" / f"{self.rig}_{self.topology}_{digest}.npz"
+        return body_cache_path(pheno, self.rig, self.topology)
 
     def _build(self, pheno: np.ndarray) -> Dict[str, np.ndarray]:
         try:
