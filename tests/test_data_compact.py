@@ -13,7 +13,7 @@ from garmentgnn.body import anny_body
 from garmentgnn.data import SequenceChunks, generate, preset, store
 from garmentgnn.data import compact
 
-from conftest import lbs_simulate
+from garmentgnn.sim.stand_in import skinned_wobble
 
 TOL = 1e-4
 
@@ -22,7 +22,7 @@ TOL = 1e-4
 def root(tmp_path_factory):
     """The tiny preset (train and test splits) with the LBS test double."""
     out = tmp_path_factory.mktemp("tiny")
-    s = generate(preset("tiny"), out, workers=0, simulate_fn=lbs_simulate, progress=False)
+    s = generate(preset("tiny"), out, workers=0, simulate_fn=skinned_wobble, progress=False)
     assert s.done == 8 and s.failed == 0
     return out
 
