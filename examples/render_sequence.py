@@ -12,6 +12,7 @@ import torch
 
 from garmentgnn.body.factory import build_body
 from garmentgnn.data.store import load_sequence
+from garmentgnn.data.validity import sequence_valid
 from garmentgnn.viz import render_grid
 
 BODY_RGB, CLOTH_RGB = (0.82, 0.70, 0.60), (0.30, 0.45, 0.75)
@@ -40,12 +41,12 @@ def main() -> None:
     with torch.no_grad():
         bpos, _ = body.pose(rot[frames], tr[frames])
     faces = torch.from_numpy(seq["garment_faces"])
-    conv = seq.get("converged")
+    valid = sequence_valid(seq)
     cells, titles = [], []
     for view in args.views:
         cells.append([[(bpos[i], body.faces, BODY_RGB), (P[t], faces, CLOTH_RGB)]
                       for i, t in enumerate(frames)])
-        titles.append([f"frame {t}" + ("" if conv is None or conv[t] else " (unconv.)")
+        titles.append([f"frame {t}" + ("" if valid[t] else " (invalid)")
                        + f", {view}" for t in frames])
     png = render_grid(cells, args.out, titles=titles, elev=10, azim=VIEWS[args.views[0]])
     print(f"wrote {png}: {meta['id']} ({T} frames, {meta.get('material')}, "

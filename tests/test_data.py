@@ -22,6 +22,8 @@ from garmentgnn.data import (Spec, SpecMismatch, body_key,
                              rebuild_manifest)
 from garmentgnn.data import store
 from garmentgnn.data.store import LRUCache
+from garmentgnn.garments import FLARES, SLEEVES, TEMPLATES
+from garmentgnn.garments.templates import SKIRT_LENGTHS
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.data import SequenceChunks
@@ -118,6 +120,49 @@ def test_presets_build():
     assert {it["split"] for it in paper} == {"train", "val", "test"}
     with pytest.raises(ValueError):
         preset("huge")
+
+
+def test_learn_preset_has_its_stated_counts_and_held_out_groups():
+    """``learn``: at least 400 sequences of 60 frames of ~400-vertex garments of every kind,
+    24+ bodies, 16+ motions with speed/amplitude variants and mixes, held-out garments,
+    bodies and motions; docs/dataset.md's preset table states the spec's own counts."""
+    spec = preset("learn", engine="blender")
+    items = spec.items()
+    assert spec.engine == "blender" and len(items) == spec.sample >= 400
+    assert len(spec.bodies) >= 24 and len(spec.motions) >= 16
+    assert {m["num_frames"] for m in spec.motions} == {60}
+    assert {(m["speed"], m["amplitude"]) for m in spec.motions} > {(1.0, 1.0)}
+    assert any("+" in m["name"] for m in spec.motions)
+    assert {g["kind"] for g in spec.garments} == set(TEMPLATES)
+    assert {g["resolution"] for g in spec.garments} == {400}
+    # every sleeve of the tops and every skirt length / flare, by the templates' own lists
+    def used(kind, key):
+        return {g["params"].get(key) for g in spec.garments if g["kind"] == kind}
+
+    assert used("tshirt", "sleeves") == set(SLEEVES)
+    assert used("skirt", "length") == used("dress", "length") == set(SKIRT_LENGTHS)
+    assert used("skirt", "flare") >= set(FLARES) - {"straight"}  # straight = pencil
+    keys = {"garments": [garment_key(g) for g in spec.garments],
+            "bodies": [body_key(b) for b in spec.bodies],
+            "motions": [motion_key(m) for m in spec.motions]}
+    split_of = {it["id"]: it["split"] for it in items}
+    for split in ("test", "val"):
+        for part, held in spec.held_out[split].items():
+            assert held and set(held) <= set(keys[part]), (split, part)
+    item_keys = {it["id"]: {garment_key(it["garment"]), body_key(it["body"]),
+                            motion_key(it["motion"])} for it in items}
+    held_any = {k for h in spec.held_out.values() for v in h.values() for k in v}
+    assert all(not (item_keys[i] & held_any) for i, s in split_of.items() if s == "train")
+    counts = {s: sum(v == s for v in split_of.values()) for s in ("train", "val", "test")}
+    assert min(counts.values()) > 0
+    row = next(line for line in (ROOT / "docs" / "dataset.md").read_text().splitlines()
+               if line.startswith("| `learn` |"))
+    grid = len(spec.garments) * len(spec.bodies) * len(spec.motions) * len(spec.materials)
+    for stated in (f"{len(spec.bodies)} anny shapes", f"{len(spec.garments)} garments",
+                   f"{len(spec.motions)} x 60 frames",
+                   f"seeded sample of {len(items)} of {grid:,}: {counts['train']} train, "
+                   f"{counts['val']} val, {counts['test']} test"):
+        assert stated in row, stated
 
 
 # --------------------------------------------------------------------------- generation

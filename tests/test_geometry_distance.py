@@ -286,6 +286,21 @@ def test_winding_number_overlapping_pieces_and_orientation():
         G.WindingNumber(torch.tensor(V)[None], torch.tensor(F))
 
 
+def test_is_closed_mesh_against_trimesh_watertight():
+    """Closed means every edge in exactly two faces: trimesh's ``is_watertight`` is the
+    oracle on whole meshes, on holed ones and on two disjoint closed pieces."""
+    box, sphere = trimesh.creation.box(), trimesh.creation.icosphere(subdivisions=2)
+    two = np.concatenate([box.faces, sphere.faces + len(box.vertices)])
+    holed = sphere.faces[1:]
+    tripled = np.concatenate([box.faces, box.faces[:1]])  # an edge in three faces
+    for faces, V in ((box.faces, box.vertices), (sphere.faces, sphere.vertices),
+                     (two, np.concatenate([box.vertices, sphere.vertices])),
+                     (holed, sphere.vertices), (tripled, box.vertices)):
+        want = trimesh.Trimesh(V, faces, process=False).is_watertight
+        assert G.is_closed_mesh(torch.from_numpy(faces)) == want
+    assert G.is_closed_mesh(torch.zeros(0, 3, dtype=torch.long)) is False
+
+
 def test_vertex_joint_distances():
     g = torch.Generator().manual_seed(0)
     pos = torch.randn(2, 30, 3, generator=g, dtype=D)

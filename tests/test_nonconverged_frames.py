@@ -40,9 +40,12 @@ def test_split(tmp_path_factory):
 def test_sequence_chunks_read_the_flags(test_split, tmp_path):
     keep = test_split.converged(0)
     assert keep.dtype == torch.bool and keep.tolist() == [t not in BAD for t in range(8)]
+    assert test_split.valid(0).tolist() == keep.tolist()  # no penetration recorded
     chunks = SequenceChunks(test_split.root, "test", chunk=3, history=3, num_landmarks=64,
                             nystrom_dim=16)
     assert [chunks.converged(i).tolist() for i in range(3)] == \
+        [[True, True, False], [True, True, False], [True, True]]
+    assert [chunks[i].valid.tolist() for i in range(3)] == \
         [[True, True, False], [True, True, False], [True, True]]
 
 
@@ -109,5 +112,7 @@ def test_train_test_step_leaves_them_out(test_split):
     for k, v in want.items():
         assert got[k] == pytest.approx(v, rel=1e-5, abs=1e-9), k
     assert got["E_dist"] < 25.0  # the flagged frame is 1 m off
-    only_bad = item.select(torch.tensor([2]))
+    only_bad = SequenceChunks(test_split.root, "test", chunk=1, history=3, num_landmarks=64,
+                              nystrom_dim=16)[2]  # frame 2 alone
+    assert only_bad.valid.tolist() == [False]
     assert module._score(only_bad.gt, only_bad, "test") == {}

@@ -7,6 +7,7 @@ from garmentgnn.data.export import export_sequence, write_obj_sequence, write_pc
 from garmentgnn.data.generate import SpecMismatch, Summary, generate
 from garmentgnn.data.keys import body_key, garment_key, motion_key
 from garmentgnn.data.presets import PRESETS, Spec, preset
+from garmentgnn.data.validity import VALID_PENETRATION, sequence_valid, valid_frames
 from garmentgnn.data.worker import run_item
 from garmentgnn.data.store import (
     IntegrityError,
@@ -18,9 +19,9 @@ from garmentgnn.data.store import (
     validate_sequence,
 )
 
-__all__ = ["DEFAULT_DENSITY", "IntegrityError", "PRESETS", "SequenceChunks", "Spec",
-           "SpecMismatch", "Summary", "body_key", "export_sequence", "file_sha256",
+__all__ = ["DEFAULT_DENSITY", "IntegrityError", "PRESETS", "SequenceChunks", "Spec", "SpecMismatch",
+           "Summary", "VALID_PENETRATION", "body_key", "export_sequence", "file_sha256",
            "garment_key", "generate", "load_record_sequence", "load_sequence", "motion_key",
-           "preset", "read_manifest", "rebuild_manifest", "run_item", "validate_sequence",
-           "write_obj_sequence", "write_pc2"]
+           "preset", "read_manifest", "rebuild_manifest", "run_item", "sequence_valid",
+           "valid_frames", "validate_sequence", "write_obj_sequence", "write_pc2"]
 

@@ -17,6 +17,10 @@ The static inputs (edge index, Nyström features, ClothRest, masses, rest body) 
 computed once per sequence and cached (``static_cache`` entries, LRU); positions and
 motion are cached per sequence file (``cache_size`` files, LRU).
 
+Each item with ground truth carries ``valid [B]`` (:meth:`SequenceChunks.valid`): the
+frames that are ground truth (converged, and the body not through the cloth), the only
+ones training targets and metrics use; ``converged [B]`` is the engine's own flag.
+
 ``chunks[[i, j, ...]]`` collates those chunks (of one frame count) as one PyG ``Batch``
 (:meth:`GarmentInputs.collate`): what a batched training step reads
 (:class:`garmentgnn.training.GarmentDataModule`).
@@ -32,6 +36,7 @@ from torch.utils.data import Dataset
 
 from garmentgnn.body.factory import build_body
 from garmentgnn.data import store
+from garmentgnn.data.validity import sequence_valid
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.models.inputs import GarmentInputs, build_static, check_history, with_frames
 
@@ -116,10 +121,19 @@ class SequenceChunks(Dataset):
     def __len__(self) -> int:
         return len(self.index)
 
+    def valid(self, idx: int) -> torch.Tensor:
+        """``[n]`` bool: which frames of item ``idx`` are valid ground truth
+        (:func:`garmentgnn.data.validity.valid_frames`: the engine converged and the
+        garment is at most :data:`~garmentgnn.data.validity.VALID_PENETRATION` inside the
+        body); training targets and metrics leave the others out
+        (:func:`garmentgnn.metrics.evaluate_inputs`'s ``keep``)."""
+        i, t0, n = self.index[idx]
+        ok = sequence_valid(self.sequence(i))
+        return torch.from_numpy(np.ascontiguousarray(ok[t0:t0 + n]))
+
     def converged(self, idx: int) -> torch.Tensor:
         """``[n]`` bool: which frames of item ``idx`` the engine converged on (the sequence
-        file's ``converged``); metrics leave the others out
-        (:func:`garmentgnn.metrics.evaluate_inputs`'s ``keep``)."""
+        file's ``converged``); what is scored is :meth:`valid`, a subset of these."""
         i, t0, n = self.index[idx]
         conv = self.sequence(i).get("converged")
         if conv is None:
@@ -194,6 +208,7 @@ class SequenceChunks(Dataset):
             gt = torch.from_numpy(np.asarray(pos[t0:t0 + n], np.float32))
         item = with_frames(st, body, rot, tr, torch.arange(t0, t0 + n), self.history, gt=gt,
                            seq_id=self.records[i]["id"])
-        if gt is not None:  # which frames the metrics may score
+        if gt is not None:  # which frames the engine converged on, and which are scored
             item.converged = self.converged(idx)
+            item.valid = self.valid(idx)
         return item

@@ -144,8 +144,10 @@ def read_meta(path: PathLike) -> Dict[str, Any]:
     return load_sequence(path, ["meta_json"])["meta"]
 
 
-def load_sequence(path: PathLike, keys: Optional[Iterable[str]] = None) -> Dict[str, Any]:
-    """All arrays (or ``keys``) of a sequence file as numpy arrays plus ``meta`` (dict).
+def load_sequence(path: PathLike, keys: Optional[Iterable[str]] = None,
+                  optional: Iterable[str] = ()) -> Dict[str, Any]:
+    """All arrays (or ``keys``, plus those of ``optional`` the file has) of a sequence file
+    as numpy arrays plus ``meta`` (dict).
 
     A missing file raises ``FileNotFoundError``; an unreadable one (truncated, corrupt
     zip member -- every member carries a CRC-32 --, missing array, bad metadata)
@@ -154,7 +156,8 @@ def load_sequence(path: PathLike, keys: Optional[Iterable[str]] = None) -> Dict[
         raise FileNotFoundError(f"{path}: no such sequence file")
     try:
         with np.load(path, allow_pickle=False) as z:
-            names = list(z.files) if keys is None else [k for k in keys]
+            names = list(z.files) if keys is None else \
+                [k for k in keys] + [k for k in optional if k in z.files]
             out: Dict[str, Any] = {k: z[k] for k in names if k != "meta_json"}
             meta = json.loads(z["meta_json"].tobytes().decode())
     except Exception as e:  # zip, npy-header, EOF, JSON and decoding errors of many kinds
@@ -178,7 +181,8 @@ def file_sha256(path: PathLike) -> str:
 
 
 def load_record_sequence(root: PathLike, record: Dict[str, Any],
-                         keys: Optional[Iterable[str]] = None) -> Dict[str, Any]:
+                         keys: Optional[Iterable[str]] = None,
+                         optional: Iterable[str] = ()) -> Dict[str, Any]:
     """:func:`load_sequence` of a manifest record's file, after checking its SHA-256
     against the record's ``sha256`` (records written before hashes were kept have
     none and are not checked).  Raises :class:`IntegrityError` on a mismatch and
@@ -194,7 +198,7 @@ def load_record_sequence(root: PathLike, record: Dict[str, Any],
                              f"{root}, or run `garmentgnn manifest --out {root}` to accept it")
     if keys is None:  # a whole file: its arrays must fit together
         return checked_sequence(path, load_sequence(path), record.get("id"))
-    return load_sequence(path, keys)
+    return load_sequence(path, keys, optional)
 
 
 def validate_sequence(path: PathLike, item_id: Optional[str] = None) -> Optional[str]:
@@ -314,7 +318,7 @@ def record_from_meta(meta: Dict[str, Any], seconds: Optional[float] = None) -> D
     """The manifest record of an ok item, from a sequence file's metadata."""
     keys = ("id", "garment", "body", "motion", "material", "settings", "seed", "split",
             "num_frames", "num_vertices", "code", "nonconverged_frames", "penetrating_frames",
-            "max_penetration_depth", "engine", "held_out")
+            "max_penetration_depth", "invalid_frames", "resimulated", "engine", "held_out")
     rec = {k: meta.get(k) for k in keys}
     if rec["engine"] is None:  # written before engines were recorded: the torch simulator
         rec["engine"] = {"name": "torch"}

@@ -18,6 +18,7 @@ from garmentgnn.data import store
 from garmentgnn.data._lifeline import watch_parent
 from garmentgnn.data.presets import build_inputs
 from garmentgnn.data.sequence_check import nonfinite_arrays
+from garmentgnn.data.validity import invalid_frame_count
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.sim import SimSettings, simulate
 from garmentgnn.sim.blender import BlenderSettings, blender_version, simulate_blender
@@ -54,42 +55,104 @@ def plain_settings(item: Dict[str, Any]) -> Dict[str, Any]:
     return dict(item["settings"])
 
 
+#: what a Blender item is simulated again with when its first run leaves invalid frames
+#: (:mod:`garmentgnn.data.validity`): at least this quality and collision quality
+#: (docs/dataset.md); the better of the two runs is kept
+RESIMULATE = {"quality": 10, "collision_quality": 5}
+
+
+def resimulation_settings(item: Dict[str, Any]) -> Optional[Dict[str, Any]]:
+    """The item's settings raised to :data:`RESIMULATE`, or ``None`` where there is
+    nothing to raise (an engine other than Blender, or settings already that high)."""
+    if item.get("engine", "torch") != "blender":
+        return None
+    settings = dict(item["settings"])
+    raised = {k: max(int(settings.get(k, getattr(BlenderSettings, k))), v)
+              for k, v in RESIMULATE.items()}
+    if all(int(settings.get(k, getattr(BlenderSettings, k))) == v for k, v in raised.items()):
+        return None
+    return dict(settings, **raised)
+
+
+def _better(a: Dict[str, Any], b: Dict[str, Any]) -> bool:
+    """Whether run ``a`` has fewer invalid frames than ``b`` (then a shallower deepest
+    frame); a tie keeps ``b``."""
+    key = [(r["invalid"], -np.inf if r["pen"] is None else float(r["pen"].max()))
+           for r in (a, b)]
+    return key[0] < key[1]
+
+
+def _seed(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
+def _simulate(sim, inputs, settings) -> Dict[str, Any]:
+    """One run of the engine on an item's inputs: its positions and per-frame records."""
+    garment, body, motion, material = inputs
+    res = sim(garment, body, motion, material, settings=settings, progress=None)
+    T, V = motion.num_frames, garment.num_vertices
+    if not getattr(res, "ok", True):
+        raise RuntimeError(f"simulator: {getattr(res, 'message', 'not ok')}")
+    P = np.asarray(torch.as_tensor(res.positions).detach().cpu(), dtype=np.float32)
+    if P.shape != (T, V, 3):
+        raise RuntimeError(f"simulator returned positions {P.shape}, expected {(T, V, 3)}")
+    if not np.isfinite(P).all():
+        raise RuntimeError("simulator returned NaN/inf positions")
+
+    def arr(name, dtype, default):
+        v = getattr(res, name, None)
+        return np.asarray(default if v is None else torch.as_tensor(v).cpu(), dtype=dtype)
+
+    converged = arr("converged", bool, np.ones(T, bool))
+    pen = getattr(res, "penetration", None)  # exact end-of-frame depth (real simulator)
+    pen = None if pen is None or len(pen) != T else np.asarray(pen, np.float32)
+    return {"positions": P, "converged": converged, "pen": pen,
+            "pen_limit": float(getattr(res, "max_penetration", np.inf)),
+            "newton_iterations": arr("newton_iterations", np.int32, np.zeros(T)),
+            "residual": arr("residual", np.float32, np.zeros(T)),
+            "invalid": invalid_frame_count(converged, pen)}
+
+
 def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = None,
              settings_fn: Optional[Callable] = None) -> Dict[str, Any]:
     """Simulate one item and write ``OUT/sequences/<id>.npz``; returns its manifest record.
 
-    Exceptions from building or simulating are reported as ``status="failed"`` (nothing
-    is written); only ``BaseException``\\ s such as ``KeyboardInterrupt`` propagate."""
+    A Blender item whose run leaves frames that are not valid ground truth
+    (:func:`garmentgnn.data.validity.valid_frames`) is simulated once more with
+    :func:`resimulation_settings`; the run with fewer invalid frames is written, and the
+    record's ``resimulated`` says what was done (``None``: one run).  Exceptions from
+    building or simulating are reported as ``status="failed"`` (nothing is written; a
+    failed second run keeps the first); only ``BaseException``\\ s such as
+    ``KeyboardInterrupt`` propagate."""
     t0 = time.perf_counter()
-    seed = item["seed"]
-    torch.manual_seed(seed)
-    np.random.seed(seed)
-    random.seed(seed)
+    _seed(item["seed"])
     rec = store.pending_record(item)
     try:
         sim = simulate_fn or default_simulate(item.get("engine", "torch"))
         if settings_fn is None:
             settings_fn = item_settings if simulate_fn is None else plain_settings
-        settings = settings_fn(item)
-        garment, body, motion, material = build_inputs(item)
-        res = sim(garment, body, motion, material, settings=settings, progress=None)
+        inputs = build_inputs(item)
+        garment, body, motion, _ = inputs
+        run = _simulate(sim, inputs, settings_fn(item))
+        used, resimulated = item["settings"], None
+        raised = resimulation_settings(item) if run["invalid"] else None
+        if raised is not None:
+            resimulated = {k: raised[k] for k in RESIMULATE}
+            resimulated.update(frames_before=run["invalid"], frames_after=None,
+                               kept="first")
+            try:
+                _seed(item["seed"])
+                again = _simulate(sim, inputs, settings_fn(dict(item, settings=raised)))
+            except Exception as e:
+                resimulated["message"] = f"{type(e).__name__}: {str(e)[:200]}"
+            else:
+                resimulated["frames_after"] = again["invalid"]
+                if _better(again, run):
+                    run, used, resimulated["kept"] = again, raised, "resimulated"
         T, V = motion.num_frames, garment.num_vertices
-        if not getattr(res, "ok", True):
-            raise RuntimeError(f"simulator: {getattr(res, 'message', 'not ok')}")
-        P = np.asarray(torch.as_tensor(res.positions).detach().cpu(), dtype=np.float32)
-        if P.shape != (T, V, 3):
-            raise RuntimeError(f"simulator returned positions {P.shape}, expected {(T, V, 3)}")
-        if not np.isfinite(P).all():
-            raise RuntimeError("simulator returned NaN/inf positions")
-
-        def arr(name, dtype, default):
-            v = getattr(res, name, None)
-            return np.asarray(default if v is None else torch.as_tensor(v).cpu(), dtype=dtype)
-
-        converged = arr("converged", bool, np.ones(T, bool))
-        pen = getattr(res, "penetration", None)  # exact end-of-frame depth (real simulator)
-        pen = None if pen is None or len(pen) != T else np.asarray(pen, np.float32)
-        pen_limit = float(getattr(res, "max_penetration", np.inf))
+        converged, pen = run["converged"], run["pen"]
         arrays = {
             "garment_vertices": garment.vertices.numpy().astype(np.float32),
             "garment_faces": garment.faces.numpy().astype(np.int64),
@@ -106,10 +169,10 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
                            else body.shape.double().numpy()),
             "motion_rotations": motion.rotations.float().numpy(),
             "motion_translation": motion.translation.float().numpy(),
-            "positions": P,
+            "positions": run["positions"],
             "converged": converged,
-            "newton_iterations": arr("newton_iterations", np.int32, np.zeros(T)),
-            "residual": arr("residual", np.float32, np.zeros(T)),
+            "newton_iterations": run["newton_iterations"],
+            "residual": run["residual"],
         }
         if pen is not None:
             arrays["penetration"] = pen
@@ -123,11 +186,12 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
             format_version=store.FORMAT_VERSION, num_frames=T, num_vertices=V,
             num_faces=int(garment.faces.shape[0]), fps=float(motion.fps),
             joint_names=list(motion.joint_names), garment_name=garment.name,
-            material_params=asdict(material), nonconverged_frames=int((~converged).sum()),
-            penetrating_frames=None if pen is None else int((pen > pen_limit).sum()),
+            material_params=asdict(inputs[3]), nonconverged_frames=int((~converged).sum()),
+            penetrating_frames=None if pen is None else int((pen > run["pen_limit"]).sum()),
             max_penetration_depth=None if pen is None else float(pen.max()),
+            invalid_frames=run["invalid"], resimulated=resimulated,
             code={"version": store.code_version()["version"]},
-            engine=engine_info(item.get("engine", "torch"), item["settings"]))
+            engine=engine_info(item.get("engine", "torch"), used))
         path = Path(out) / store.SEQUENCES / f"{item['id']}.npz"
         store.write_sequence(path, arrays, meta)
         rec = store.record_from_meta(meta)
@@ -151,5 +215,5 @@ def init_worker(parent_pid: Optional[int] = None) -> None:
         pass
 
 
-__all__ = ["default_simulate", "engine_info", "init_worker", "item_settings", "plain_settings",
-           "run_item"]
+__all__ = ["RESIMULATE", "default_simulate", "engine_info", "init_worker", "item_settings",
+           "plain_settings", "resimulation_settings", "run_item"]

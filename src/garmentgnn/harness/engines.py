@@ -37,6 +37,7 @@ import torch
 from garmentgnn.harness.records import failure
 from garmentgnn.data import store
 from garmentgnn.data.presets import ENGINES, build_inputs
+from garmentgnn.data.validity import sequence_valid
 from garmentgnn.data.worker import default_simulate
 from garmentgnn.metrics import collision_rate, evaluate
 from garmentgnn.sim import SimSettings
@@ -216,7 +217,8 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
     try:
         seq = store.load_record_sequence(root, item, ["positions", "garment_vertices",
                                                       "garment_faces", "motion_rotations",
-                                                      "motion_translation", "converged"])
+                                                      "motion_translation", "converged"],
+                                         optional=["penetration"])
         # the generator's seeding (garmentgnn.data.worker.run_item)
         torch.manual_seed(item["seed"])
         np.random.seed(item["seed"])
@@ -248,10 +250,11 @@ def engine_record(root, item: dict, setting: EngineSetting, frames: Optional[int
                                f"holds {tuple(gt.shape)}")
         if not torch.isfinite(pred).all():
             raise RuntimeError(f"{int((~torch.isfinite(pred)).sum())} non-finite coordinates")
-        # the ground truth's non-converged frames are left out (and counted)
-        keep = torch.from_numpy(np.asarray(seq["converged"][:n], dtype=bool))
+        # frames that are not valid ground truth are left out (and counted)
+        keep = torch.from_numpy(sequence_valid(seq)[:n])
         if not bool(keep.any()):
-            raise RuntimeError("no frame of the sequence file converged: nothing to score")
+            raise RuntimeError("no frame of the sequence file is valid ground truth (converged "
+                               "and the body not through the cloth): nothing to score")
         m = evaluate(pred[keep], gt[keep], garment.faces)
         # the collision metric in float32, as the learned methods are scored
         # (evaluate_inputs)

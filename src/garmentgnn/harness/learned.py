@@ -255,7 +255,7 @@ class LearnedRunner:
         return rec
 
     def evaluate(self, pred: _Predictor) -> Dict[str, Any]:
-        """``metrics`` (frame-weighted means over the converged frames of every test
+        """``metrics`` (frame-weighted means over the valid ground-truth frames of every test
         sequence), ``groups`` (per held-out group), ``per_sequence`` and ``test_frames``
         (:mod:`garmentgnn.harness.scoring`)."""
         per_seq = scoring.score(lambda i, item: pred.predict(self.test, i, item), self.test)

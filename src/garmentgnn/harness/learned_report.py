@@ -76,11 +76,11 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
              f"{ds.get('frames', {}).get('test')} test frames. Every method is trained on "
              "the train split (NCS-style: one model per test garment, on that garment's own "
              "test poses, physics terms only -- never its simulated positions) and scored "
-             f"on the converged frames of {_scored(rs)} against the simulation (frame-weighted "
-             "means). A different case set from the simulator tables above: these rows are "
-             "not comparable with them. Mean ± std over training seeds. latency: ms per "
-             "frame at batch 1; throughput: frames/s at the best batch; train: wall time of "
-             "the training epochs."
+             f"on the valid ground-truth frames of {_scored(rs)} against the simulation "
+             "(frame-weighted means). A different case set from the simulator tables above: "
+             "these rows are not comparable with them. Mean ± std over training seeds. "
+             "latency: ms per frame at batch 1; throughput: frames/s at the best batch; "
+             "train: wall time of the training epochs."
              + (f" Trained on: {', '.join(devices)}." if devices else ""), ""]
     rows = []
     for method in _ordered(rs):

@@ -62,9 +62,10 @@ def stratified(records: Sequence[Dict[str, Any]], n: int) -> List[str]:
 def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
     """Per test sequence: ``predict(i, item)`` (the garment ``[T, V, 3]`` of item ``i``
     of ``test``, a whole-sequence :class:`~garmentgnn.data.SequenceChunks`) scored
-    against its simulation.  Metrics are frame means over the sequence's frames the engine
-    converged on (``frames``; the others are counted in ``excluded_frames``; a sequence
-    with none is left out), ``collision`` renamed ``collision_rate``; raises
+    against its simulation.  Metrics are frame means over the sequence's valid
+    ground-truth frames (:meth:`~garmentgnn.data.SequenceChunks.valid`: converged, the
+    body not through the cloth; ``frames``; the others are counted in ``excluded_frames``;
+    a sequence with none is left out), ``collision`` renamed ``collision_rate``; raises
     ``RuntimeError`` for a prediction of the wrong shape or with non-finite coordinates."""
     out = []
     for i in range(len(test)):
@@ -78,7 +79,7 @@ def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
         if not torch.isfinite(P).all():
             raise RuntimeError(f"{int((~torch.isfinite(P)).sum())} non-finite coordinates "
                                f"predicted for {item.seq_id}")
-        keep = test.converged(i)  # the ground truth's non-converged frames are left out
+        keep = test.valid(i)  # frames that are not valid ground truth are left out
         if not bool(keep.any()):
             continue
         m = evaluate_inputs(P, item, keep)  # per-frame metrics averaged over kept frames

@@ -22,13 +22,19 @@ simulator) with the paper's weights as stiffnesses:
   train toward E_len and the normal errors.
 
 Paper weights: k_v 100, k_e 15, k_n 50; k_c 1.5, k_g 0.1, k_s 5, k_h 2.
+
+``LossInputs.frame_mask`` leaves frames whose ground truth is not valid (the dataset's
+``valid``: not converged, or the body through the cloth) out of the terms that compare
+with it (the supervised ones and ``curv``): their mean runs over the kept frames only.
+The physics terms, which never read the ground truth, keep every frame.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, Iterable, Optional
+from typing import Dict, Iterable, Optional, Tuple
 
+import torch
 from torch import Tensor, nn
 
 from garmentgnn.geometry import (NearestFaceCache, angle_defect_difference, edge_lengths,
@@ -90,6 +96,8 @@ class LossInputs:
     :class:`~garmentgnn.geometry.NearestFaceCache` kept for this garment-body pair (the
     one the model's collision projection used on the same frames): the collision term's
     nearest-face search then runs through it, exact, instead of ``distance_candidates``.
+    ``frame_mask`` ``[T]`` bool: the frames whose ``gt`` the supervised terms compare with
+    (``None``: every frame); with none kept those terms are 0.
     """
 
     pred: Tensor
@@ -102,6 +110,24 @@ class LossInputs:
     predicted: Optional[Tensor] = None
     dt: float = 1.0 / 30.0
     face_cache: Optional[NearestFaceCache] = None
+    frame_mask: Optional[Tensor] = None
+
+
+def supervised_frames(inp: LossInputs) -> Tuple[Tensor, Optional[Tensor]]:
+    """``(pred, gt)`` restricted to ``inp.frame_mask``'s frames (both whole without a
+    mask); a mask that is not a ``[T]`` bool tensor is a ``ValueError``/``TypeError``."""
+    m = inp.frame_mask
+    if m is None:
+        return inp.pred, inp.gt
+    if not isinstance(m, Tensor):
+        raise TypeError(f"`frame_mask`: expected a [T] bool tensor, got {type(m).__name__}")
+    T = inp.pred.shape[0] if inp.pred.dim() == 3 else None
+    if m.dtype != torch.bool or T is None or tuple(m.shape) != (T,):
+        raise ValueError(f"`frame_mask`: expected a [{T}] bool mask of the frames of `pred` "
+                         f"{tuple(inp.pred.shape)}, got {m.dtype} {tuple(m.shape)}; pass one "
+                         f"flag per frame (the dataset's `valid`)")
+    m = m.to(inp.pred.device)
+    return inp.pred[m], None if inp.gt is None else inp.gt[m]
 
 
 class GarTransLoss(nn.Module):
@@ -173,14 +199,14 @@ class GarTransLoss(nn.Module):
         if "gravity" in self.enabled and inp.mass is None:
             raise ValueError("`mass`: the gravity term (Eq. 11) needs vertex masses")
         s = self.supervised_scale
+        sp, sg = supervised_frames(inp)
         fns = {
-            "vert": lambda: s * w["vert"] * vertex_loss(pred, inp.gt).mean(),
+            "vert": lambda: s * w["vert"] * vertex_loss(sp, sg).mean(),
             "edge": lambda: s * w["edge"] * edge_loss(
-                pred, inp.gt, self._unique_edges(inp.faces, pred.shape[-2]),
+                sp, sg, self._unique_edges(inp.faces, pred.shape[-2]),
                 self.edge_reduction).mean(),
-            "norm": lambda: s * w["norm"] * normal_loss(pred, inp.gt, inp.faces).mean(),
-            "curv": lambda: s * w["curv"] * angle_defect_difference(pred, inp.gt,
-                                                                    inp.faces).mean(),
+            "norm": lambda: s * w["norm"] * normal_loss(sp, sg, inp.faces).mean(),
+            "curv": lambda: s * w["curv"] * angle_defect_difference(sp, sg, inp.faces).mean(),
             "collision": lambda: collision_energy(pred, inp.body_pos, inp.body_faces,
                                                   self.collision_margin, w["collision"],
                                                   power=1, distance=self._cached_distance(inp),
@@ -193,6 +219,9 @@ class GarTransLoss(nn.Module):
             "inertia": lambda: w["inertia"] * inertia_energy(pred, inp.predicted, inp.mass,
                                                              inp.dt).mean(),
         }
+        if sp.shape[0] == 0:  # no frame with valid ground truth: those terms are 0
+            for name in NEEDS_GT:
+                fns[name] = lambda: pred.sum() * 0.0
         skip = set()
         if inp.body_pos is None:
             skip.add("collision")  # no body in the scene

@@ -141,7 +141,7 @@ def evaluate_inputs(pred: Tensor, inp, keep: Optional[Tensor] = None) -> Dict[st
     """:func:`evaluate` of ``pred [B, V, 3]`` against a model input's ``gt`` (a
     :class:`~garmentgnn.models.inputs.GarmentInputs`: its faces, posed body and
     simulated garment); ``keep``: a ``[B]`` bool mask, only those frames are scored (the
-    ground truth's converged frames, :meth:`garmentgnn.data.SequenceChunks.converged`)."""
+    ground truth's valid frames, :meth:`garmentgnn.data.SequenceChunks.valid`)."""
     if inp.get("gt") is None:
         raise ValueError("`inp`: has no ground truth `gt` to score against")
     gt, body_pos = inp.gt, inp.get("body_pos")

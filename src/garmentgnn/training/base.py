@@ -3,8 +3,8 @@
 
 It holds the parts that do not depend on the method: the checkpoint integrity hooks
 (:mod:`garmentgnn.training.integrity`), the training-step logging, the held-out metrics
-of ``validate``/``test`` (:func:`garmentgnn.metrics.evaluate_inputs` on the frames the
-engine converged on, as every metric that reads the data; ``test`` scores
+of ``validate``/``test`` (:func:`garmentgnn.metrics.evaluate_inputs` on the valid
+ground-truth frames, ``valid``, as every metric that reads the data; ``test`` scores
 "LBS only" on the same frames beside the method, ``test_lbs/...``) and ``predict``.  A
 method only says how it predicts a chunk (:meth:`GarmentModule.predict_garment`) and how
 it trains (``training_step``, ``configure_optimizers``).
@@ -127,9 +127,10 @@ class GarmentModule(L.LightningModule):
 
     # -- held-out metrics -------------------------------------------------------------
     def _score(self, pred: Tensor, batch: GarmentInputs, prefix: str) -> Dict[str, float]:
-        """The metrics of the frames the engine converged on (``batch.converged``; a
-        chunk with none is not scored), logged as frame-weighted epoch means."""
-        keep = batch.get("converged")
+        """The metrics of the valid ground-truth frames (``batch.valid``,
+        :meth:`garmentgnn.data.SequenceChunks.valid`; a chunk with none is not scored),
+        logged as frame-weighted epoch means."""
+        keep = batch.get("valid")
         frames = pred.shape[0] if keep is None else int(keep.sum())
         if frames == 0:
             return {}

@@ -10,9 +10,10 @@ Modes, each over whole sequences of a split:
 * ``"lbs"``: the rest garment skinned with the simulator's transferred weights (Eq. 1),
   no learning.
 
-Metrics are frame-weighted means over the split's frames the engine converged on (the
-sequence files' ``converged``; ``excluded_frames`` counts the others, which are still
-predicted and timed); ``ms_per_frame`` is wall time per frame of each mode (static branch
+Metrics are frame-weighted means over the split's valid ground-truth frames
+(:meth:`garmentgnn.data.SequenceChunks.valid`: the engine converged and the body is not
+through the cloth; ``excluded_frames`` counts the others, which are still predicted and
+timed); ``ms_per_frame`` is wall time per frame of each mode (static branch
 included), measured in the same loop.
 """
 from __future__ import annotations
@@ -62,7 +63,7 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
     try:
         for idx in range(len(ds)):
             item = ds[idx]
-            keep = ds.converged(idx)
+            keep = ds.valid(idx)
             B = int(keep.sum())
             frames += B
             predicted += item["gt"].shape[0]
@@ -77,7 +78,8 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
     finally:
         module.train(was_training)
     if not frames:
-        raise ValueError(f"`split`: no converged frame in the {split!r} sequences under {root}")
+        raise ValueError(f"`split`: no valid ground-truth frame in the {split!r} sequences "
+                         f"under {root}")
     out = {}
     for mode in modes:
         out[mode] = {k: v / frames for k, v in sums[mode].items()}
