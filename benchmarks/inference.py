@@ -58,7 +58,7 @@ from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, ch
 from garmentgnn._plotting import pyplot
 from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
 from garmentgnn.harness.sequences import case_item, make_sequence
-from garmentgnn.harness.timing import measure, peak_memory
+from garmentgnn.harness.timing import device_peak_memory, measure, peak_memory, synchronised
 from garmentgnn.data.presets import BLENDER_SETTINGS
 from garmentgnn.models import gartrans as gartrans_mod
 from garmentgnn.models.baselines import LBSBaseline
@@ -93,30 +93,6 @@ def without_body(it):
     out = copy.copy(it)
     del out.body_pos
     return out
-
-
-def synchronised(fn: Callable[[], Any], device: str) -> Callable[[], Any]:
-    """``fn`` followed by a wait for the device's queued work (a no-op on the CPU)."""
-    if device == "cpu":
-        return fn
-
-    def call():
-        out = fn()
-        torch.cuda.synchronize()
-        return out
-    return call
-
-
-def device_peak_memory(fn: Callable[[], Any], device: str) -> Dict[str, Any]:
-    """:func:`peak_memory` on the CPU; on a GPU the allocator's peak during one call of
-    ``fn`` over what was allocated before it."""
-    if device == "cpu":
-        return peak_memory(fn)
-    torch.cuda.synchronize()
-    torch.cuda.reset_peak_memory_stats()
-    before = torch.cuda.memory_allocated()
-    synchronised(fn, device)()
-    return {"peak_mb": (torch.cuda.max_memory_allocated() - before) / 2 ** 20}
 
 
 def gartrans_rows(seq, it, batches: List[int], repeats: int, device: str = "cpu",

@@ -19,7 +19,8 @@ from garmentgnn.physics import ClothRest
 from garmentgnn.training import GarmentDataModule, GarTransModule
 from garmentgnn.training.evaluate import evaluate_split
 
-from conftest import lbs_simulate
+from garmentgnn.models import GarTrans
+from garmentgnn.sim.stand_in import skinned_wobble
 
 #: per-frame depth inside the body (m) the double reports; frame 2 sits exactly on the line
 DEPTHS = (0.0, 0.004, VALID_PENETRATION, 0.0101, 0.03, 0.0, 0.02, 0.0)
@@ -30,9 +31,10 @@ VALID = [True, True, True, False, False, False, False, True]
 
 
 def deep_simulate(garment, body, motion, material, settings=None, progress=None):
-    """:func:`conftest.lbs_simulate` with :data:`DEPTHS` as its penetration and every frame
-    that is not valid moved 1 m up: scored, those frames would dominate every error."""
-    res = lbs_simulate(garment, body, motion, material, settings, progress)
+    """:func:`garmentgnn.sim.stand_in.skinned_wobble` with :data:`DEPTHS` as its
+    penetration and every frame that is not valid moved 1 m up: scored, those frames
+    would dominate every error."""
+    res = skinned_wobble(garment, body, motion, material, settings, progress)
     res.penetration = torch.tensor(DEPTHS[:motion.num_frames])
     res.max_penetration = 0.01
     res.converged[NONCONVERGED] = False
@@ -106,7 +108,7 @@ def test_scoring_leaves_them_out(deep):
 def test_evaluate_split_and_the_test_step_leave_them_out(deep):
     dm = GarmentDataModule(deep, chunk=4, history=3, nystrom_dim=16, num_landmarks=64,
                            val_split=None)
-    module = GarTransModule(**dm.dims)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
     res = evaluate_split(module, deep, "test", modes=("lbs",), history=3,
                          num_landmarks=64)["lbs"]
     assert res["frames"] == 4 * 4 and res["excluded_frames"] == 4 * 4
@@ -155,7 +157,7 @@ def test_files_without_penetration_still_load(deep, tmp_path):
 def quality_simulate(garment, body, motion, material, settings=None, progress=None):
     """A Blender double: frames 3 and 4 are 2 cm deep at the presets' quality; at quality
     >= 10 with collision quality >= 5 only frame 4 is, 1.5 cm."""
-    res = lbs_simulate(garment, body, motion, material, settings, progress)
+    res = skinned_wobble(garment, body, motion, material, settings, progress)
     depth = torch.zeros(motion.num_frames)
     high = settings["quality"] >= 10 and settings["collision_quality"] >= 5
     depth[4] = 0.015 if high else 0.02

@@ -62,7 +62,7 @@ def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
                 loaded[ckpt] = BaselineModule.load_from_checkpoint(ckpt, map_location="cpu")
             module, item = loaded[ckpt].eval(), test[i]
             pred, lbs = predict(module, item), item.skinned()
-            ok = item.get("converged")  # E_dist as the bench scores it: converged frames
+            ok = item.get("valid")  # E_dist as the bench scores it: valid frames
             ok = torch.ones(item.num_frames, dtype=torch.bool) if ok is None else ok
             rows.append({"sequence": item.seq_id, "frames": item.num_frames,
                          "scored": int(ok.sum()),
@@ -153,7 +153,7 @@ def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[in
         for i in picked:
             item, t = test[i], time.perf_counter()
             pred, lbs = objective_rollout(module, item, max_iter), item.skinned()
-            ok = item.get("converged")
+            ok = item.get("valid")
             ok = torch.ones(item.num_frames, dtype=torch.bool) if ok is None else ok
             rows.append({"sequence": item.seq_id, "frames": item.num_frames,
                          "scored": int(ok.sum()), "seconds": time.perf_counter() - t,

@@ -186,3 +186,27 @@ def peak_memory(fn: Callable[[], Any]) -> Dict[str, Any]:
     return {"result": result, "peak_mb": max(0, peak[0] - before) / MiB,
             "method": "psutil RSS sampled at 1 kHz, delta" + (" after malloc_trim" if trimmed
                                                                   else "")}
+
+
+def synchronised(fn: Callable[[], Any], device: str) -> Callable[[], Any]:
+    """``fn`` followed by a wait for the device's queued work (a no-op on the CPU)."""
+    if device == "cpu":
+        return fn
+
+    def call():
+        out = fn()
+        torch.cuda.synchronize()
+        return out
+    return call
+
+
+def device_peak_memory(fn: Callable[[], Any], device: str) -> Dict[str, Any]:
+    """:func:`peak_memory` on the CPU; on a GPU the allocator's peak during one call of
+    ``fn`` over what was allocated before it."""
+    if device == "cpu":
+        return peak_memory(fn)
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    before = torch.cuda.memory_allocated()
+    synchronised(fn, device)()
+    return {"peak_mb": (torch.cuda.max_memory_allocated() - before) / 2 ** 20}

@@ -23,7 +23,9 @@ Keys (``V`` garment vertices, ``S`` joints, ``Vb`` body vertices, ``B`` frames,
   ``t - history .. t``; frame 0 repeated before the start), ``body_pos [B, Vb, 3]``
   (the posed body), ``frames [B]``, optionally ``gt [B, V, 3]`` (the simulated
   garment: absent where no ground truth exists), optionally ``converged
-  [B]`` (bool: the frames whose simulation converged, the only ones metrics score), and
+  [B]`` (bool: the frames whose simulation converged) and ``valid [B]`` (converged and the
+  garment at most 1 cm inside the body: the only frames metrics and supervised losses
+  read), and
   ``seq_id`` (str).
 
 Batches: PyG's :class:`~torch_geometric.data.Batch` of ``N`` chunks of the same frame
@@ -32,8 +34,8 @@ the ``N`` garments (``rest_pos [sum V, 3]``, ``faces``, ``edge_index`` offset as
 does; ``batch [sum V]`` names each vertex's chunk), whose per-frame vertex keys are
 concatenated along the vertex axis (``gt``, ``body_pos``: ``[B, sum V, 3]``, ``[B, sum
 Vb, 3]``) and whose per-chunk keys are stacked (``rotations [N, B, H, S, 3]``,
-``translation [N, B, H, 3]``, ``frames``, ``converged [N, B]``, ``rest_joints [N, S, 3]``,
-``parents [N, S]``); ``rest`` and ``seq_id`` become lists.  Every chunk's body has the
+``translation [N, B, H, 3]``, ``frames``, ``converged``/``valid [N, B]``, ``rest_joints
+[N, S, 3]``, ``parents [N, S]``); ``rest`` and ``seq_id`` become lists.  Every chunk's body has the
 same vertex count (one body model).
 """
 from __future__ import annotations
@@ -54,11 +56,12 @@ __all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "chec
            "check_pose", "history_frames", "skin", "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
-FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames", "converged")
+FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames", "converged", "valid")
 #: keys a :class:`~torch_geometric.data.Batch` concatenates along the vertex axis (dim 1)
 VERTEX_FRAME_KEYS = ("gt", "body_pos")
 #: per-chunk keys a batch stacks (a new leading dimension)
-STACKED_KEYS = ("rotations", "translation", "frames", "converged", "rest_joints", "parents")
+STACKED_KEYS = ("rotations", "translation", "frames", "converged", "valid", "rest_joints",
+                "parents")
 #: face-like keys: concatenated along dim 0 (PyG would use the last dimension)
 FACE_KEYS = ("faces", "face_uv", "body_faces", "body_joint_dists")
 

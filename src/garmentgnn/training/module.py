@@ -25,10 +25,13 @@ def loss_inputs(inp: GarmentInputs, pred: torch.Tensor, dt: float,
                 ) -> LossInputs:
     """The :class:`LossInputs` of a prediction ``pred [B, V, 3]`` of ``inp``'s frames;
     ``predicted``: the inertial prediction ``2 x_{t-1} - x_{t-2}`` (inertia term);
-    ``ground_truth=False`` leaves the simulated garment out (self-supervised methods)."""
+    ``ground_truth=False`` leaves the simulated garment out (self-supervised methods); the
+    supervised terms read only the frames whose ground truth is valid (``inp.valid``)."""
+    valid = inp.get("valid") if ground_truth else None
     return LossInputs(pred=pred, faces=inp.faces, gt=inp.get("gt") if ground_truth else None,
                       body_pos=inp.get("body_pos"), body_faces=inp.get("body_faces"),
-                      mass=inp.get("mass"), rest=inp.get("rest"), predicted=predicted, dt=dt)
+                      mass=inp.get("mass"), rest=inp.get("rest"), predicted=predicted, dt=dt,
+                      frame_mask=None if valid is None else valid.reshape(-1))
 
 
 def chunk_mean_loss(loss_fn: GarTransLoss, batch: GarmentInputs, pred: torch.Tensor,
