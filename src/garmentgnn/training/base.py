@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import atexit
 import contextvars
-import importlib
 import inspect
 import io
 import os
@@ -29,6 +28,7 @@ from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.models.blocks import Configurable
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.training.configs import import_class
 from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
                                            stamp_checkpoint, verify_checkpoint)
 
@@ -246,7 +246,7 @@ class GarmentModule(L.LightningModule):
         spec = saved.get("model")
         if isinstance(spec, dict) and "class_path" in spec and "model" not in kwargs:
             spec = dict(spec, init_args=dict(spec.get("init_args") or {}))
-            model_args = inspect.signature(_import(spec["class_path"]).__init__).parameters
+            model_args = inspect.signature(import_class(spec["class_path"]).__init__).parameters
             for k in [k for k in kwargs if k in model_args]:
                 spec["init_args"][k] = kwargs.pop(k)
             kwargs["model"] = build_model(spec)
@@ -307,18 +307,10 @@ class GarmentModule(L.LightningModule):
                                   f"it with {type(self).__name__}.load_from_checkpoint")
 
 
-def _import(class_path: str) -> type:
-    module, _, name = str(class_path).rpartition(".")
-    try:
-        return getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError, ValueError):
-        raise CheckpointError(f"model class_path {class_path!r}: no such class") from None
-
-
 def build_model(spec: Dict[str, Any]) -> nn.Module:
     """The model a ``{"class_path", "init_args"}`` spec describes (a checkpoint's
     ``hparams["model"]``, a YAML ``model:`` entry)."""
-    cls = _import(spec["class_path"])
+    cls = import_class(spec["class_path"])
     if not (isinstance(cls, type) and issubclass(cls, Configurable)):
         raise CheckpointError(f"model class_path {spec['class_path']!r}: not a garmentgnn "
                               f"model")

@@ -29,7 +29,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import yaml
 
-__all__ = ["available", "config_path", "instantiate", "load_config", "merge", "model_args",
+__all__ = ["available", "config_path", "import_class", "instantiate", "load_config", "merge",
            "module_spec", "resolve_config_args", "schedule_args"]
 
 _ROOT = resources.files("garmentgnn") / "configs"
@@ -63,16 +63,6 @@ def load_config(name: str) -> Dict[str, Any]:
     return copy.deepcopy(_load(name))
 
 
-def model_args(config: Dict[str, Any]) -> Dict[str, Any]:
-    """The module arguments of a configuration (its ``model: init_args:``; ``{}`` when
-    it has none)."""
-    model = config.get("model") or {}
-    if not isinstance(model, dict) or set(model) - {"class_path", "init_args"}:
-        raise ValueError(f"`config`: expected `model:` with `class_path` and `init_args`, "
-                         f"got {model!r}")
-    return dict(model.get("init_args") or {})
-
-
 def merge(base: Dict[str, Any], top: Dict[str, Any]) -> Dict[str, Any]:
     """``top`` over ``base`` as LightningCLI merges two ``--config`` files: mappings key
     by key, everything else (lists included) replaced."""
@@ -92,6 +82,19 @@ def module_spec(*names: str) -> Dict[str, Any]:
     return spec
 
 
+def import_class(class_path: str) -> type:
+    """The class ``"package.module.Name"`` names; ``ValueError`` naming it when there is
+    none."""
+    module, _, name = str(class_path).rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError, ValueError):
+        cls = None
+    if not isinstance(cls, type):
+        raise ValueError(f"`class_path`: no class {class_path!r}")
+    return cls
+
+
 def instantiate(spec: Dict[str, Any], sizes: Optional[Dict[str, Any]] = None) -> Any:
     """The object a ``{"class_path", "init_args"}`` spec describes (a packaged
     configuration's ``model:`` entry, :func:`module_spec`), nested specs built first.
@@ -100,8 +103,7 @@ def instantiate(spec: Dict[str, Any], sizes: Optional[Dict[str, Any]] = None) ->
     if not isinstance(spec, dict) or "class_path" not in spec:
         raise ValueError(f"`spec`: expected {{'class_path': ..., 'init_args': ...}}, got "
                          f"{spec!r}")
-    module, _, name = str(spec["class_path"]).rpartition(".")
-    cls = getattr(importlib.import_module(module), name)
+    cls = import_class(spec["class_path"])
     args = {k: instantiate(v, sizes) if isinstance(v, dict) and "class_path" in v else v
             for k, v in (spec.get("init_args") or {}).items()}
     params = inspect.signature(cls.__init__).parameters

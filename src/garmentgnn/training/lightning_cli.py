@@ -53,7 +53,7 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 from garmentgnn.training.base import LBS_PREFIX, GarmentModule
-from garmentgnn.training.configs import resolve_config_args
+from garmentgnn.training.configs import import_class, resolve_config_args
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.evaluate import markdown_table
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
@@ -167,11 +167,6 @@ def _defaults(cls: type) -> Dict[str, Any]:
             if p.default is not inspect.Parameter.empty}
 
 
-def _import(class_path: str) -> type:
-    module, _, name = class_path.rpartition(".")
-    return getattr(importlib.import_module(module), name)
-
-
 class GarmentCLI(LightningCLI):
     """LightningCLI over every :class:`GarmentModule` with the data-dependent model sizes
     linked from the data module; subcommands ``fit``, ``validate``, ``test`` (the
@@ -223,7 +218,7 @@ class GarmentCLI(LightningCLI):
         model = _plain(self.config[sub].get("model"))
         cls_path = model.get("class_path") or DEFAULT_MODEL
         saved_cls = raw.pop("_class_path", None)
-        module_cls = _import(cls_path)
+        module_cls = import_class(cls_path)
         stored = module_cls.saved_hparams(ckpt, str(ckpt_path)) \
             if issubclass(module_cls, GarmentModule) else raw
         stored.pop("_class_path", None)
@@ -247,7 +242,7 @@ class GarmentCLI(LightningCLI):
             stored).items()}
         spec, given_spec = stored.get("model"), _plain(given.get("model"))
         if isinstance(spec, dict) and "class_path" in spec:
-            model_cls = _import(spec["class_path"])
+            model_cls = import_class(spec["class_path"])
             # a size linked from the data is no flag: the check of the sizes names it
             flags = {k: v for k, v in _plain(given_spec.get("init_args")).items()
                      if k not in LINKED}
