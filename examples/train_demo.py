@@ -23,12 +23,12 @@ from pathlib import Path
 import lightning as L
 
 from garmentgnn.data import generate, preset
+from garmentgnn.models import GarTrans
 from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
 from garmentgnn.training.evaluate import evaluate_split, markdown_table
 from garmentgnn.viz.animate import renderer_unavailable
 from garmentgnn.viz.strip import render_strip
 from garmentgnn.viz.compare import show
-from garmentgnn.models import GarTrans
 
 
 def main() -> None:
@@ -65,7 +65,7 @@ def main() -> None:
     # the numbers hold for this content hash; another CPU's floating point gives another
     # dataset (docs/dataset.md: the ground truth's noise floor)
     print(f"[3/4] held-out test split ({res['lbs']['frames']} frames; "
-          f"{res['lbs']['excluded_frames']} the simulator did not converge on left out) of "
+          f"{res['lbs']['excluded_frames']} without valid ground truth left out) of "
           f"the dataset with content SHA-256 {summary.content_sha256}:")
     print(markdown_table(res))
     reason = renderer_unavailable()
