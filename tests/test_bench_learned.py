@@ -127,7 +127,7 @@ def test_records_equal_evaluate_split(flow, data):
     recs = {r["method"]: r for r in records_of(out) if r["kind"] == learned.KIND}
     rec = recs["GarTrans w/o edge gating"]
     module = GarTransModule.load_from_checkpoint(rec["checkpoint"], map_location="cpu")
-    assert module.hparams.dynamic_layer == "gt_edge"
+    assert module.model.init_args["dynamic_layer"] == "gt_edge"
     ref = evaluate_split(module, data, "test", modes=("gartrans", "lbs"), history=3,
                          nystrom_dim=16, num_landmarks=64)
     for mode, name in (("gartrans", rec["method"]), ("lbs", methods.LBS)):

@@ -61,8 +61,9 @@ from garmentgnn.training.plots import TrainingPlots
 
 #: TensorBoard's event files go into this sub-folder of the CSV logger's run folder
 TENSORBOARD_SUBDIR = "tensorboard"
-#: the module a config without ``model: class_path`` trains
+#: the module a config without ``model: class_path`` trains, and the model it is handed
 DEFAULT_MODEL = "garmentgnn.training.GarTransModule"
+DEFAULT_MODEL_MODEL = "garmentgnn.models.GarTrans"
 #: Lightning's special ``--ckpt_path`` values (not files)
 SPECIAL_CKPT = ("last", "best", "hpc", "registry")
 #: the subcommands that score a trained model (refused without ``--ckpt_path``): what
@@ -264,7 +265,8 @@ class GarmentCLI(LightningCLI):
         return trainer
 
     def add_arguments_to_parser(self, parser: Any) -> None:
-        parser.set_defaults({"model": {"class_path": DEFAULT_MODEL}})
+        parser.set_defaults({"model": {"class_path": DEFAULT_MODEL, "init_args": {
+            "model": {"class_path": DEFAULT_MODEL_MODEL}}}})
         for name in LINKS["parse"]:
             parser.link_arguments(f"data.{name}", f"{LINK_TARGET}.{name}")
         # every logger writes under the trainer's root folder (the current folder when it
