@@ -5,14 +5,20 @@ frame (:mod:`garmentgnn.harness.noise_floor`).
 Per sequence: the unperturbed run, a plain rerun (must be 0: the engines are
 deterministic), then the rest garment's vertices and, separately, the body motion's root
 translation moved by each ``--scales`` distance (default 1e-7 and 1e-4 m) in random
-directions.  Blender runs ``small`` sequences (fast), the torch simulator ``tiny`` ones
-(slow).  Writes JSON, markdown and a PNG of divergence against frame into a cache folder;
-``--commit`` writes the committed ``benchmarks/results/gt_noise.{json,md,png}``
-instead (which the bench report reads)::
+directions.  Blender runs ``small`` sequences (fast; ``--preset`` another, e.g.
+``learn``), the torch simulator ``tiny`` ones (slow).  Each run keeps which frames are
+valid ground truth (:mod:`garmentgnn.data.validity`: converged, the garment at most 1 cm
+inside the body), and the floor is measured on the frames valid in both runs, as every
+score is.  Writes JSON, markdown and a PNG of divergence against frame into a cache
+folder; ``--commit`` writes the committed ``benchmarks/results/gt_noise.{json,md,png}``
+(``gt_noise_<preset>`` for another Blender preset) instead, which the bench report of a
+dataset of that preset reads::
 
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py                      # both engines
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --engines torch --sequences 1
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --commit
+    OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --engines blender --preset learn \
+        --sequences 8 --scales 1e-7 --commit
 """
 from __future__ import annotations
 
@@ -31,8 +37,10 @@ from garmentgnn._plotting import pyplot
 from garmentgnn.harness import noise_floor as nf
 from garmentgnn.harness.tables import save_figure, table
 from garmentgnn.data import preset
+from garmentgnn.data.presets import PRESETS as DATA_PRESETS
 from garmentgnn.data.presets import build_inputs
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json, code_version
+from garmentgnn.data.validity import valid_frames
 from garmentgnn.data.worker import default_simulate, item_settings
 
 HERE = Path(__file__).resolve().parent
@@ -40,10 +48,11 @@ COMMITTED = HERE / "results" / "gt_noise"
 PRESETS = {"blender": "small", "torch": "tiny"}
 
 
-def pick(engine: str, n: int, seed: int = 0):
-    """``n`` items of the engine's preset, spread over garment kinds (the first of each
-    kind in spec order, then the next ones)."""
-    items = preset(PRESETS[engine], engine=engine).items()
+def pick(engine: str, n: int, name: str = None):
+    """``n`` items of the engine's preset (``name``: another), spread over garment kinds
+    (the first of each kind in spec order, then the next ones), each with its ``preset``."""
+    name = name or PRESETS[engine]
+    items = [dict(it, preset=name) for it in preset(name, engine=engine).items()]
     by_kind = {}
     for it in items:
         by_kind.setdefault(it["garment"]["kind"], []).append(it)
@@ -67,16 +76,21 @@ def simulate(item, garment, body, motion, material):
     if not getattr(res, "ok", True):
         raise RuntimeError(getattr(res, "message", "not ok"))
     conv = getattr(res, "converged", None)
-    return (torch.as_tensor(res.positions).detach().double(), time.perf_counter() - t0,
-            None if conv is None else int((~torch.as_tensor(conv).bool()).sum()))
+    pos = torch.as_tensor(res.positions).detach().double()
+    pen = getattr(res, "penetration", None)
+    valid = valid_frames(None if conv is None else torch.as_tensor(conv).numpy(),
+                         None if pen is None else torch.as_tensor(pen).numpy(), pos.shape[0])
+    return (pos, time.perf_counter() - t0,
+            None if conv is None else int((~torch.as_tensor(conv).bool()).sum()), valid)
 
 
 def runs_of(engine: str, item, scales, log=print):
     """The run records of one item: the rerun, then every (input, scale)."""
     garment, body, motion, material = build_inputs(item)
-    base, secs, nonconv = simulate(item, garment, body, motion, material)
+    base, secs, nonconv, base_valid = simulate(item, garment, body, motion, material)
     log(f"{engine:7s} {item['id']}: unperturbed {secs:.1f} s ({base.shape[0]} frames, "
-        f"{base.shape[1]} vertices, {nonconv} non-converged)")
+        f"{base.shape[1]} vertices, {nonconv} non-converged, "
+        f"{int((~base_valid).sum())} not valid ground truth)")
     cases = [("repeat", 0.0)] + [(w, s) for w in ("garment", "body") for s in scales]
     out = []
     for k, (what, scale) in enumerate(cases):
@@ -85,14 +99,15 @@ def runs_of(engine: str, item, scales, log=print):
             g = nf.perturbed_garment(garment, scale, seed=1000 + k)
         elif what == "body":
             m = nf.perturbed_motion(motion, scale, seed=1000 + k)
-        rec = {"engine": engine, "preset": PRESETS[engine], "sequence": item["id"],
+        rec = {"engine": engine, "preset": item["preset"], "sequence": item["id"],
                "what": what, "scale_m": scale, "frames": int(base.shape[0]),
                "vertices": int(base.shape[1])}
         try:
-            pos, secs, nc = simulate(item, g, body, m, material)
+            pos, secs, nc, valid = simulate(item, g, body, m, material)
             mean, mx = nf.divergence(pos, base)
             rec.update(status="ok", seconds=round(secs, 2), mean_cm=mean, max_cm=mx,
-                       nonconverged_frames=nc, base_nonconverged_frames=nonconv)
+                       nonconverged_frames=nc, base_nonconverged_frames=nonconv,
+                       valid=(valid & base_valid).tolist())
             log(f"{engine:7s} {item['id']}: {what:7s} {scale:g} m -> mean "
                 f"{sum(mean) / len(mean):.4f} cm, max {max(mx):.3f} cm ({secs:.1f} s)")
         except Exception as e:  # a run that fails is a result too (recorded, not fatal)
@@ -154,7 +169,8 @@ def plot(runs, path):
         ax.set_yscale("log")
         ax.set_xlabel("frame")
         ax.set_ylabel("distance to the unperturbed run (cm, log)")
-        ax.set_title(f"{nf.ENGINE_NAMES[engine]} ({PRESETS[engine]}, {seqs} sequence"
+        name = next(r["preset"] for r in runs if r["engine"] == engine)
+        ax.set_title(f"{nf.ENGINE_NAMES[engine]} ({name}, {seqs} sequence"
                      f"{'s' if seqs > 1 else ''})")
         ax.grid(True, which="both", alpha=0.3)
     axes[0][-1].legend(*axes[0][0].get_legend_handles_labels(), fontsize=7, loc="upper left",
@@ -176,17 +192,23 @@ def main(argv=None) -> None:
     ap.add_argument("--scales", type=float_above(0.0), nargs="+", default=[1e-7, 1e-4],
                     action=Accumulate,
                     help="perturbation distances (m)")
-    add_output_args(ap, COMMITTED, "writes OUT.json, OUT.md and OUT.png")
+    ap.add_argument("--preset", default=PRESETS["blender"],
+                    choices=DATA_PRESETS,
+                    help="the dataset preset whose sequences Blender simulates again")
+    add_output_args(ap, COMMITTED, "writes OUT.json, OUT.md and OUT.png (with another "
+                    "--preset, the committed name is gt_noise_<preset>)")
     a = ap.parse_args(argv)
     check_unique(ap, a.engines, "--engines")
     check_unique(ap, a.scales, "--scales")
-    out = output_path(a, COMMITTED)
+    own = COMMITTED if a.preset == PRESETS["blender"] else \
+        COMMITTED.with_name(f"gt_noise_{a.preset}")
+    out = output_path(a, own)
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     runs = []
     for engine in a.engines:
         n = a.sequences or (6 if engine == "blender" else 2)
-        for item in pick(engine, n):
+        for item in pick(engine, n, a.preset if engine == "blender" else None):
             runs += runs_of(engine, item, a.scales)
     floor = nf.summarize(runs)
     command = "python benchmarks/gt_noise.py " + " ".join(argv if argv is not None else

@@ -274,7 +274,8 @@ def test_register_and_cli_arguments(tmp_path):
     "garmentgnn bench --preset medium --out /o --data /d",
     "garmentgnn bench --preset tiny --out o --seeds 2 --no-learned --retry-failed --no-progress",
     "garmentgnn bench --preset converge --out o --data d --minutes 2.5 --shard 1/2 "
-    "--methods 'GarTrans (SAT)' DA-style"])
+    "--methods 'GarTrans (SAT)' DA-style",
+    "garmentgnn bench --preset learn --out o --data d --batch-size 16 --lr-factor 4.0"])
 def test_report_command_is_the_command_line(line):
     """The command the report quotes parses back to the same arguments."""
     args = build_parser().parse_args(shlex.split(line)[1:])
@@ -294,8 +295,15 @@ def test_minutes_and_methods_override_the_preset(tmp_path):
     assert _learned_overrides(conv, None, None) is conv
     with pytest.raises(ValueError, match="minutes"):
         _learned_overrides(conv, 0.0, None)
+    b = _learned_overrides(conv, None, None, 16, 4.0).learned
+    assert (b.batch_size, b.lr_factor, b.minutes) == (16, 4.0, conv.learned.minutes)
+    for args, flag in (((0, None), "--batch-size"), ((None, -1.0), "--lr-factor")):
+        with pytest.raises(ValueError, match=flag):
+            _learned_overrides(conv, None, None, *args)
     out = str(tmp_path / "o")
     assert cli_main(["bench", "--out", out, "--no-learned", "--minutes", "1"]) == 2
+    assert cli_main(["bench", "--out", out, "--no-learned", "--batch-size", "4"]) == 2
+    assert cli_main(["bench", "--out", out, "--batch-size", "0"]) == 2
     with pytest.raises(SystemExit):  # argparse: not a method name
         cli_main(["bench", "--out", out, "--methods", "no-such-method"])
     assert not (tmp_path / "o").exists()

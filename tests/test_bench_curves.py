@@ -139,6 +139,7 @@ def test_curve_points_snapshot_and_excluded_validation_time(tmp_path):
     total = time.perf_counter() - t0
     assert [p["step"] for p in curve.points] == [0, 4, 8, 12, 16]
     assert [p["epoch"] for p in curve.points] == [0, 0, 0, 1, 1]
+    assert [p["chunks"] for p in curve.points] == [0, 4, 8, 12, 16]  # a tuple batch: one
     last = float(module.lin.weight.detach().abs().sum())
     assert curve.points[-1]["E_dist"] == pytest.approx(last)
     # 5 validations of >= 50 ms each: counted apart, neither as training nor in the budget
@@ -185,6 +186,16 @@ def test_converge_preset():
     assert set(b.methods) == set(methods.METHOD_NAMES) and b.seeds == 3
 
 
+def test_learn_preset():
+    """Every method, batched, on the `learn` dataset: its curve points and epochs count
+    chunks, so they are whole steps of its batch."""
+    b = presets.preset("learn").learned
+    assert presets.preset("learn").dataset == "learn" and b.batch_size > 1
+    assert set(b.methods) == set(methods.METHOD_NAMES) and b.seeds == 3
+    assert b.curve_every % b.batch_size == 0 and b.epoch_chunks % b.batch_size == 0
+    assert b.val_sequences and b.test_sequences and b.equal_steps
+
+
 # --------------------------------------------------------------------------- the bench
 @pytest.fixture(scope="module")
 def data_with_val(tmp_path_factory):
@@ -193,25 +204,30 @@ def data_with_val(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, tmp_path):
+@pytest.mark.parametrize("batch", [1, 2])
+def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, tmp_path, batch):
     full, da = next(iter(methods.GARTRANS)), methods.DA
     p = presets.preset("tiny")
+    steps = 4 // batch
     p = dataclasses.replace(
         p, cases=(), budgets=(), stability_cases=(), scaling_item=None, leaveout=False,
         precision_methods=(), long_item=None,
-        # 2 train sequences of 4 frames: one chunk each, 2 steps per epoch
+        # 2 train sequences of 4 frames: one chunk each, 2 // batch steps per epoch; a point
+        # every `batch` chunks is a point every step
         learned=dataclasses.replace(p.learned, methods=(full, da, methods.LBS), epochs=2,
-                                    stability_cases=(), curve_every=1, equal_steps=4))
+                                    stability_cases=(), curve_every=batch, equal_steps=steps,
+                                    batch_size=batch))
     summary = runner.run(p, tmp_path, data=data_with_val, progress=False)
     recs = {r["method"]: r for r in json.loads((tmp_path / "results.json").read_text())["records"]
             if r["kind"] == learned.KIND}
     assert summary.failed == 0
     for m in (full, da):
         r = recs[m]
-        assert r["steps"] == 4 and r["device"] == "cpu"
-        assert [q["step"] for q in r["curve"]["points"]] == [0, 1, 2, 3, 4]
+        assert r["steps"] == steps and r["device"] == "cpu"
+        assert [q["step"] for q in r["curve"]["points"]] == list(range(steps + 1))
+        assert [q["chunks"] for q in r["curve"]["points"]] == list(range(0, 5, batch))
         # the snapshot after the last step is the final model
-        assert r["equal_steps"]["reached"] and r["equal_steps"]["step"] == 4
+        assert r["equal_steps"]["reached"] and r["equal_steps"]["step"] == steps
         assert r["equal_steps"]["metrics"]["E_dist"] == pytest.approx(r["metrics"]["E_dist"])
     assert "curve" not in recs[methods.LBS]
     # the last point and the LBS line scored by evaluate_split (its own loop) on `val`
@@ -223,4 +239,4 @@ def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, 
     assert recs[full]["curve"]["lbs_E_dist"] == pytest.approx(ref["lbs"]["E_dist"], rel=1e-4)
     text = (tmp_path / "report.md").read_text()
     assert "## Learning curves (validation split) and equal steps" in text
-    assert "E_dist at 4 steps (cm)" in text and (tmp_path / "learning_curves.png").exists()
+    assert f"E_dist at {steps} steps (cm)" in text and (tmp_path / "learning_curves.png").exists()

@@ -381,6 +381,50 @@ def test_bad_arguments(data, tmp_path):
     assert summary.failed == 1 and "another dataset or configuration" in rec["message"]
 
 
+def test_batched_runs_take_fewer_steps_at_the_scaled_learning_rate(data, tmp_path):
+    """``batch_size``: the two training chunks are one optimizer step per epoch (two with
+    one chunk a step); ``lr_factor`` multiplies the configured learning rate; both are
+    in the run's configuration, so a folder trained otherwise is not resumed; the
+    learning curve counts chunks."""
+    full = next(iter(methods.GARTRANS))
+    steps = {}
+    for b in (1, 2):
+        out = tmp_path / f"b{b}"
+        p = learned_only(methods=(full, methods.DA), epochs=2, batch_size=b, lr_factor=2.0)
+        assert runner.run(p, out, data=data, progress=False).failed == 0
+        for r in records_of(out):
+            steps[r["method"], b] = r["steps"]
+            run = json.loads((out / "models" / f"{tables.slug(r['method'])}--s0"
+                              / "run.json").read_text())
+            # batch 1 stays out of the configuration: earlier folders resume as they were
+            assert run["config"].get("batch_size", 1) == b and run["config"]["lr_factor"] == 2.0
+            ckpt = torch.load(r["checkpoint"], map_location="cpu", weights_only=False)
+            spec = (methods.variant_settings(full)[0] if r["method"] == full
+                    else methods.BASELINES[methods.DA])
+            assert ckpt["hyper_parameters"]["lr"] == pytest.approx(2 * spec["init_args"]["lr"])
+    assert steps == {(full, 1): 4, (methods.DA, 1): 4, (full, 2): 2, (methods.DA, 2): 2}
+
+
+def test_epoch_chunks_count_chunks_and_curves_read_a_subset(data, tmp_path):
+    """``epoch_chunks`` is in chunks whatever the batch size (Lightning's limit is in
+    batches, rounded up); ``val_sequences`` draws like ``scoring.stratified``."""
+    info = learned.prepare_dataset(data)
+    r = learned.LearnedRunner(info, methods.LearnedBudget(epoch_chunks=5, batch_size=2),
+                              tmp_path, (1,), 0, 1)
+    assert r._epoch_batches(r._datamodule(0)) == 3
+    assert r._epoch_batches(r._datamodule(0, "test")) == 5  # NCS-style: one chunk a step
+    whole = r._whole("train", None)
+    one = r._whole("train", 1)
+    assert len(whole) == 2 and [it.seq_id for it in one] == \
+        scoring.stratified(whole.records, 1)
+    with pytest.raises(ValueError, match="batch_size"):
+        methods.LearnedBudget(batch_size=0)
+    with pytest.raises(ValueError, match="lr_factor"):
+        methods.LearnedBudget(lr_factor=0.0)
+    with pytest.raises(ValueError, match="val_sequences"):
+        methods.LearnedBudget(val_sequences=0)
+
+
 @pytest.mark.slow
 def test_time_budget_seed_plan_and_long_run(data, tmp_path):
     """A wall-clock budget per run, every seed for the full model and for the best

@@ -146,6 +146,32 @@ def test_report_shows_the_floor_from_the_results_file(tmp_path, monkeypatch):
     assert "noise floor" not in md
 
 
+def test_floor_reads_the_frames_valid_in_both_runs():
+    """A run's ``valid`` leaves frames out of the floor (as every score leaves out frames
+    that are not valid ground truth); the mean with them is kept beside it."""
+    runs = _runs()[:2]
+    runs[0] = dict(runs[0], valid=[True, False, True])  # 0.0, (0.1), 0.2
+    f = nf.summarize(runs)["torch"]
+    assert f["frames"] == 4 and f["left_out"] == 1
+    assert f["mean_cm"] == pytest.approx(0.5 / 4) and f["all_frames_mean_cm"] == \
+        pytest.approx(0.6 / 5)
+    assert f["max_cm"] == 5.0
+    none = nf.summarize([dict(runs[1], valid=[False, False])])["torch"]
+    assert none["frames"] == 0 and none["max_cm"] == 0.0 and none["mean_cm"] != none["mean_cm"]
+
+
+def test_a_dataset_preset_reads_its_own_committed_floor(tmp_path, monkeypatch):
+    default = tmp_path / "gt_noise.json"
+    monkeypatch.setattr(nf, "COMMITTED", default)
+    monkeypatch.delenv(nf.ENV, raising=False)
+    assert nf.committed("learn") == default and nf.committed(None) == default
+    own = tmp_path / "gt_noise_learn.json"
+    own.write_text(json.dumps({"meta": {}, "floor": nf.summarize(_runs()), "runs": []}))
+    assert nf.committed("learn") == own and nf.committed("small") == default
+    assert nf.load_floor(dataset="learn")["floor"]["torch"]["frames"] == 5
+    assert nf.load_floor(dataset="small") is None  # no default file in tmp_path
+
+
 def test_committed_results_file_loads_when_present():
     loaded = nf.load_floor(nf.COMMITTED)
     if loaded is None:

@@ -3,6 +3,8 @@
 the supervised loss, and a Blender item with such frames is simulated once more."""
 import json
 import math
+import runpy
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +23,8 @@ from garmentgnn.training.evaluate import evaluate_split
 
 from garmentgnn.models import GarTrans
 from garmentgnn.sim.stand_in import skinned_wobble
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: per-frame depth inside the body (m) the double reports; frame 2 sits exactly on the line
 DEPTHS = (0.0, 0.004, VALID_PENETRATION, 0.0101, 0.03, 0.0, 0.02, 0.0)
@@ -298,3 +302,20 @@ def test_no_valid_frame_leaves_the_physics_terms():
         with pytest.raises(err, match="frame_mask"):
             loss(LossInputs(pred=pred, faces=faces, gt=pos.expand(2, -1, -1), rest=rest,
                             frame_mask=bad))
+
+
+def test_the_valid_frames_table_counts_the_exact_frames(deep, tmp_path):
+    """``benchmarks/valid_frames.py``: per split and in all, the frames of the double's
+    hand-written oracle (per sequence: frame 5 not converged; frames 3, 4, 6 deeper than
+    1 cm; 4 frames left out; 3 cm deepest)."""
+    script = runpy.run_path(str(ROOT / "benchmarks" / "valid_frames.py"), run_name="script")
+    script["main"](["--data", str(deep), "--out", str(tmp_path / "vf")])
+    rows = {r["split"]: r for r in json.loads((tmp_path / "vf.json").read_text())["rows"]}
+    splits = [rec["split"] for rec in read_manifest(deep)["items"]]
+    n = {s: splits.count(s) if s != "all" else len(splits) for s in rows}
+    for split, r in rows.items():
+        assert r["sequences"] == n[split] and r["frames"] == 8 * n[split]
+        assert (r["not_converged"], r["deep"], r["left_out"], r["with_invalid"]) == \
+            (n[split], 3 * n[split], VALID.count(False) * n[split], n[split])
+        assert r["deepest_m"] == pytest.approx(0.03) and r["resimulated"] == 0
+    assert n["all"] == 8 and "| 32 (50.0%) |" in (tmp_path / "vf.md").read_text()

@@ -1,5 +1,5 @@
 """``garmentgnn bench --preset NAME --out DIR [--seeds N] [--data DATASET] [--no-learned]
-[--minutes M] [--methods NAME ...] [--shard I/N]``.
+[--minutes M] [--batch-size N] [--lr-factor F] [--methods NAME ...] [--shard I/N]``.
 
 :mod:`garmentgnn.cli` adds it with ``add_parser(subparsers)`` and calls ``main(args)``
 for ``args.command == "bench"``.
@@ -41,6 +41,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="training minutes of every learned run, instead of the preset's "
                         "(e.g. an hours-long budget on a GPU; use a new --out: finished "
                         "records in OUT are kept; default: the preset's)")
+    b.add_argument("--batch-size", type=int, default=None, metavar="N",
+                   help="training chunks per optimizer step of every learned run (chunks of "
+                        "other sequences as one batch; use a new --out; default: the preset's)")
+    b.add_argument("--lr-factor", type=float, default=None, metavar="F",
+                   help="every learned method's learning rate multiplied by F (e.g. the square "
+                        "root of --batch-size; use a new --out; default: the preset's)")
     b.add_argument("--methods", nargs="+", default=None, metavar="NAME", action=Accumulate,
                    choices=METHOD_NAMES,
                    help="run only these learned methods (quote names with spaces; "
@@ -60,7 +66,8 @@ def _command(args: argparse.Namespace) -> str:
     """The ``garmentgnn bench`` command line that ``args`` stand for."""
     parts = ["garmentgnn", "bench", "--preset", args.preset, "--out", str(args.out)]
     for flag, value in (("--seeds", args.seeds), ("--data", args.data),
-                        ("--minutes", args.minutes), ("--shard", args.shard)):
+                        ("--minutes", args.minutes), ("--batch-size", args.batch_size),
+                        ("--lr-factor", args.lr_factor), ("--shard", args.shard)):
         if value is not None:
             parts += [flag, str(value)]
     if args.methods:
@@ -72,16 +79,23 @@ def _command(args: argparse.Namespace) -> str:
     return " ".join(parts)
 
 
-def _learned_overrides(p: Preset, minutes, methods) -> Preset:
-    """``p`` with its learned runs' ``minutes`` and ``methods`` replaced (``None``: the
-    preset's); the preset's seeded methods that are left out drop from its seed plan."""
-    if minutes is None and methods is None:
+def _learned_overrides(p: Preset, minutes, methods, batch_size=None, lr_factor=None
+                       ) -> Preset:
+    """``p`` with its learned runs' ``minutes``, ``methods``, ``batch_size`` and
+    ``lr_factor`` replaced (``None``: the preset's); the preset's seeded methods that are
+    left out drop from its seed plan."""
+    if minutes is None and methods is None and batch_size is None and lr_factor is None:
         return p
     if p.learned is None:
-        raise ValueError(f"--minutes/--methods: preset {p.name!r} has no learned methods")
-    if minutes is not None and not 0 < minutes < float("inf"):
-        raise ValueError(f"--minutes must be a positive number, got {minutes}")
-    kw = {} if minutes is None else {"minutes": minutes}
+        raise ValueError(f"--minutes/--methods/--batch-size/--lr-factor: preset {p.name!r} "
+                         "has no learned methods")
+    for flag, v in (("--minutes", minutes), ("--lr-factor", lr_factor)):
+        if v is not None and not 0 < v < float("inf"):
+            raise ValueError(f"{flag} must be a positive number, got {v}")
+    if batch_size is not None and batch_size < 1:
+        raise ValueError(f"--batch-size must be a positive number of chunks, got {batch_size}")
+    kw = {k: v for k, v in (("minutes", minutes), ("batch_size", batch_size),
+                            ("lr_factor", lr_factor)) if v is not None}
     if methods is not None:
         kw["methods"] = tuple(dict.fromkeys(methods))
         if p.learned.seed_methods is not None:
@@ -110,9 +124,12 @@ def main(args: argparse.Namespace) -> int:
             return 2
         shard = (i, n)
     try:
-        if args.no_learned and (args.minutes is not None or args.methods):
-            raise ValueError("--minutes/--methods set the learned runs; --no-learned runs none")
-        p = _learned_overrides(preset(args.preset), args.minutes, args.methods)
+        if args.no_learned and (args.minutes is not None or args.methods or
+                                args.batch_size is not None or args.lr_factor is not None):
+            raise ValueError("--minutes/--methods/--batch-size/--lr-factor set the learned "
+                             "runs; --no-learned runs none")
+        p = _learned_overrides(preset(args.preset), args.minutes, args.methods,
+                               args.batch_size, args.lr_factor)
         summary = run(p, args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,
                       data=args.data, learned=not args.no_learned,

@@ -25,7 +25,7 @@ from garmentgnn.harness.tables import fmt, save_figure, table
 from garmentgnn.data import store
 from garmentgnn.training import TimeBudget
 
-__all__ = ["LearningCurve", "markdown", "plateau", "plot"]
+__all__ = ["LearningCurve", "TrainClock", "markdown", "plateau", "plot"]
 
 #: the record kind of :mod:`garmentgnn.harness.learned` (restated: that module imports this)
 _KIND = "learned"
@@ -33,6 +33,30 @@ _KIND = "learned"
 #: error by less than 2%
 TAIL, TOLERANCE = 0.25, 0.02
 _now = time.perf_counter
+
+
+class TrainClock(L.Callback):
+    """Wall time of the training epochs and their count, kept in the checkpoint (so a
+    resumed run reports the total); ``restored_epochs``: epochs done before this fit."""
+
+    def __init__(self) -> None:
+        self.seconds, self.epochs, self.restored_epochs = 0.0, 0, 0
+        self._t0 = 0.0
+
+    def state_dict(self) -> Dict[str, Any]:
+        return {"seconds": self.seconds, "epochs": self.epochs}
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        self.seconds = float(state["seconds"])
+        self.epochs = self.restored_epochs = int(state["epochs"])
+
+    def on_train_epoch_start(self, trainer, pl_module) -> None:
+        self._t0 = time.perf_counter()
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        self.seconds += time.perf_counter() - self._t0
+        self.epochs += 1
+
 
 
 class LearningCurve(L.Callback):
@@ -49,7 +73,8 @@ class LearningCurve(L.Callback):
         budget: the fit's :class:`TimeBudget`, paused while validating.
 
     Attributes:
-        points: ``{"step", "epoch", "seconds", "E_dist"}`` per validation.
+        points: ``{"step", "epoch", "chunks", "seconds", "E_dist"}`` per validation
+            (``chunks``: training chunks seen, a batch of ``N`` chunks counting ``N``).
         seconds: training wall time so far (validation excluded).
         eval_seconds: validation wall time so far.
     """
@@ -69,15 +94,17 @@ class LearningCurve(L.Callback):
         self.snapshot_path = None if snapshot_path is None else Path(snapshot_path)
         self.points: List[Dict[str, float]] = []
         self.seconds = self.eval_seconds = 0.0
+        self.chunks = 0
         self._t0: Optional[float] = None
 
     def state_dict(self) -> Dict[str, Any]:
         return {"points": list(self.points), "seconds": self.seconds,
-                "eval_seconds": self.eval_seconds}
+                "eval_seconds": self.eval_seconds, "chunks": self.chunks}
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
         self.points = [dict(p) for p in state["points"]]
         self.seconds, self.eval_seconds = float(state["seconds"]), float(state["eval_seconds"])
+        self.chunks = int(state.get("chunks", 0))
 
     def to_json(self) -> Dict[str, Any]:
         """What a bench record keeps."""
@@ -96,7 +123,7 @@ class LearningCurve(L.Callback):
                 module.train(was)
         self.eval_seconds += _now() - t
         self.points.append({"step": int(trainer.global_step), "epoch": int(trainer.current_epoch),
-                            "seconds": self.seconds, "E_dist": err})
+                            "chunks": self.chunks, "seconds": self.seconds, "E_dist": err})
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not self.points:
@@ -109,6 +136,7 @@ class LearningCurve(L.Callback):
                            batch: Any, batch_idx: int) -> None:
         if self._t0 is not None:
             self.seconds += _now() - self._t0
+        self.chunks += getattr(batch, "num_chunks", 1)
         step = int(trainer.global_step)
         if step == self.snapshot_step:
             buf = io.BytesIO()

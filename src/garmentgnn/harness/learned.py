@@ -42,7 +42,7 @@ from torch import Tensor
 
 from garmentgnn.harness import stability as stab
 from garmentgnn.harness import scoring
-from garmentgnn.harness.curves import LearningCurve
+from garmentgnn.harness.curves import LearningCurve, TrainClock
 from garmentgnn.harness.dataset import DatasetInfo, prepare_dataset
 from garmentgnn.harness.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
                                         HOOD, LONG, METHOD_NAMES, NCS, LearnedBudget,
@@ -90,29 +90,6 @@ def _quiet_lightning() -> Iterator[None]:
         logger.setLevel(level)
 
 
-class TrainClock(L.Callback):
-    """Wall time of the training epochs and their count, kept in the checkpoint (so a
-    resumed run reports the total); ``restored_epochs``: epochs done before this fit."""
-
-    def __init__(self) -> None:
-        self.seconds, self.epochs, self.restored_epochs = 0.0, 0, 0
-        self._t0 = 0.0
-
-    def state_dict(self) -> Dict[str, Any]:
-        return {"seconds": self.seconds, "epochs": self.epochs}
-
-    def load_state_dict(self, state: Dict[str, Any]) -> None:
-        self.seconds = float(state["seconds"])
-        self.epochs = self.restored_epochs = int(state["epochs"])
-
-    def on_train_epoch_start(self, trainer, pl_module) -> None:
-        self._t0 = time.perf_counter()
-
-    def on_train_epoch_end(self, trainer, pl_module) -> None:
-        self.seconds += time.perf_counter() - self._t0
-        self.epochs += 1
-
-
 @dataclass
 class _Predictor:
     """A trained method: ``predict(ds, i, item)`` the garment ``[T, V, 3]`` of ``item``,
@@ -147,20 +124,25 @@ class LearnedRunner:
             raise ValueError(f"`budget`: expected a LearnedBudget, got {type(budget).__name__}")
         self.data, self.budget, self.out = data, budget, Path(out)
         self.batches, self.warmup, self.repeats = tuple(batches), warmup, repeats
-        kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
-                  num_landmarks=DATA["num_landmarks"], cache_size=64)
-        self.test = SequenceChunks(data.root, "test", **kw)
-        if budget.test_sequences is not None:  # the same subset for every method
-            ids = scoring.stratified(self.test.records, budget.test_sequences)
-            self.test = SequenceChunks(data.root, "test", ids=ids, **kw)
+        self.test = self._whole("test", budget.test_sequences)  # the same for every method
         self.val: Optional[SequenceChunks] = None
         if budget.curve_every is not None:
             if not data.sequences.get("val"):
                 raise ValueError(f"`budget`: curve_every needs a `val` split; {data.root} has "
                                  "none (set curve_every=None)")
-            self.val = SequenceChunks(data.root, "val", **kw)
+            self.val = self._whole("val", budget.val_sequences)
         self._trained: Dict[Tuple[str, int], Tuple[_Predictor, Dict[str, Any]]] = {}
         self._warm_up_compiled_search()
+
+    def _whole(self, split: str, n: Optional[int]) -> SequenceChunks:
+        """``split``'s whole sequences, or ``n`` of them drawn evenly from the held-out
+        groups (:func:`~garmentgnn.harness.scoring.stratified`)."""
+        kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
+                  num_landmarks=DATA["num_landmarks"], cache_size=64)
+        seqs = SequenceChunks(self.data.root, split, **kw)
+        if n is None:
+            return seqs
+        return SequenceChunks(self.data.root, split, ids=scoring.stratified(seqs.records, n), **kw)
 
     def _warm_up_compiled_search(self) -> None:
         """Compile the nearest-face search (``compile_search`` of the configs) once,
@@ -339,7 +321,8 @@ class LearnedRunner:
         curve = None
         if predict is not None and self.val is not None:
             snap = self.budget.equal_steps
-            curve = LearningCurve(self.budget.curve_every, self.val_error(predict), snap,
+            every = max(1, self.budget.curve_every // dm.hparams.batch_size)
+            curve = LearningCurve(every, self.val_error(predict), snap,
                                   None if snap is None else folder / "equal_steps.pt",
                                   budget[0] if budget else None)
         # save_top_k=1 without a monitor keeps the latest epoch's checkpoint; last.ckpt
@@ -358,7 +341,7 @@ class LearnedRunner:
                                 enable_model_summary=False,
                                 callbacks=[*callbacks, *budget, *([curve] if curve else []),
                                            clock, ckpt], limit_val_batches=0,
-                                limit_train_batches=self.budget.epoch_chunks,
+                                limit_train_batches=self._epoch_batches(dm),
                                 num_sanity_val_steps=0, default_root_dir=folder)
             trainer.fit(module, dm, ckpt_path=str(last) if last.exists() else None)
         device = str(trainer.strategy.root_device)
@@ -377,13 +360,28 @@ class LearnedRunner:
     def _datamodule(self, seed: int, split: str = "train",
                     ids: Optional[Sequence[str]] = None) -> GarmentDataModule:
         return GarmentDataModule(self.data.root, val_split=None, seed=seed, train_split=split,
-                                 train_ids=ids, cache_size=64, **DATA)
+                                 train_ids=ids, cache_size=64, **DATA,
+                                 batch_size=self.budget.batch_size if split == "train" else 1)
+
+    def _epoch_batches(self, dm: GarmentDataModule) -> Optional[int]:
+        """Lightning's ``limit_train_batches``: the budget's ``epoch_chunks`` in ``dm``'s
+        batches."""
+        n = self.budget.epoch_chunks
+        return None if n is None else -(-n // dm.hparams.batch_size)
+
+    def _module(self, spec: Dict[str, Any], dims: Dict[str, Any]) -> L.LightningModule:
+        """The module of ``spec`` with the budget's ``lr_factor`` applied."""
+        module = instantiate(spec, dims)
+        module.hparams.lr = module.hparams.lr * self.budget.lr_factor
+        return module
 
     # -- GarTrans ---------------------------------------------------------------------
     def _limits(self, minutes: Optional[float]) -> Dict[str, Any]:
         """The training limits of a run, recorded in its ``run.json``."""
-        return {"epochs": self.budget.epochs, "minutes": minutes,
-                "epoch_chunks": self.budget.epoch_chunks}
+        b = self.budget
+        return {"epochs": b.epochs, "minutes": minutes, "epoch_chunks": b.epoch_chunks,
+                **({"batch_size": b.batch_size} if b.batch_size != 1 else {}),
+                **({"lr_factor": b.lr_factor} if b.lr_factor != 1 else {})}
 
     def _gartrans(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
         long = method == LONG
@@ -396,7 +394,7 @@ class LearnedRunner:
                   "config": f"ablations/{v.config}" if v.config else "gartrans"}
         folder = self._folder(method, seed, config)
         dm = self._datamodule(seed)
-        module = instantiate(hp, dm.dims)
+        module = self._module(hp, dm.dims)
         sched = ProgressiveSchedule(**sched_kw)
         info = self.fit(module, dm, folder, self.budget.epochs, [sched], minutes,
                         predict=lambda m, item: m(item)["final"])
@@ -417,7 +415,7 @@ class LearnedRunner:
     # -- baselines --------------------------------------------------------------------
     def _baseline_module(self, method: str, dm: GarmentDataModule,
                          num_vertices: Optional[int] = None) -> BaselineModule:
-        return instantiate(BASELINES[method], dict(dm.dims, num_vertices=num_vertices))
+        return self._module(BASELINES[method], dict(dm.dims, num_vertices=num_vertices))
 
     @staticmethod
     def _batch_fn(module: BaselineModule) -> Callable[[GarmentInputs, int], Callable[[], Any]]:
@@ -494,5 +492,5 @@ class LearnedRunner:
              "config": {"weights": "the skinning weights stored with each sequence"}}
 
 
-__all__ = ["KIND", "SIMULATOR", "STABILITY_KIND", "DatasetInfo", "LearnedRunner", "TrainClock",
+__all__ = ["KIND", "SIMULATOR", "STABILITY_KIND", "DatasetInfo", "LearnedRunner",
            "prepare_dataset"]

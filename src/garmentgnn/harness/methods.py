@@ -104,9 +104,14 @@ class LearnedBudget:
             (:class:`~garmentgnn.training.TimeBudget`: stop when spent, learning rate
             annealed over it); NCS-style splits it evenly over its per-garment models.
             ``None``: train ``epochs`` epochs instead.
-        epoch_chunks: chunks per epoch (Lightning's ``limit_train_batches``), so that a
-            budget on a large dataset still has epochs for the schedule and checkpoints;
-            ``None``: the whole train split.
+        epoch_chunks: chunks per epoch (Lightning's ``limit_train_batches`` is this over
+            ``batch_size``, rounded up), so that a budget on a large dataset still has
+            epochs for the schedule and checkpoints; ``None``: the whole train split.
+        batch_size: training chunks per optimizer step (``GarmentDataModule``'s
+            ``batch_size``: chunks of other sequences collated as one batch); NCS-style's
+            per-garment models, on a few sequences each, train one chunk per step.
+        lr_factor: every method's learning rate multiplied by this (e.g. ``batch_size **
+            0.5`` to keep the step's noise scale with larger batches).
         seed_methods: the methods trained with every seed; the other methods get seed
             0 only, except the best GarTrans ablation and the best baseline (lowest
             seed-0 test E_dist), which get every seed too.  ``None``: every method
@@ -116,9 +121,12 @@ class LearnedBudget:
         test_sequences: score every method on this many test sequences, the same for
             all, drawn evenly from the held-out groups
             (:func:`garmentgnn.harness.scoring.stratified`); ``None``: all of them.
-        curve_every: record the validation E_dist every this many optimizer steps
+        curve_every: record the validation E_dist every this many training chunks, in
+            whole optimizer steps of ``batch_size`` chunks (at least one)
             (:class:`garmentgnn.harness.curves.LearningCurve`; needs a ``val`` split);
             ``None``: no learning curves.
+        val_sequences: the learning curves' validation sequences, drawn evenly from the
+            held-out groups like ``test_sequences``; ``None``: all of them.
         equal_steps: also score every method trained on the train split (not NCS-style)
             with its weights after this many optimizer steps, so that the methods are
             compared at equal steps as well as at equal time (needs ``curve_every``);
@@ -133,14 +141,17 @@ class LearnedBudget:
     stability_cases: Tuple[str, ...] = ()
     minutes: Optional[float] = None
     epoch_chunks: Optional[int] = None
+    batch_size: int = 1
+    lr_factor: float = 1.0
     seed_methods: Optional[Tuple[str, ...]] = None
     long_minutes: Optional[float] = None
     test_sequences: Optional[int] = None
     curve_every: Optional[int] = None
+    val_sequences: Optional[int] = None
     equal_steps: Optional[int] = None
 
     def __post_init__(self) -> None:
-        for name in ("seeds", "epochs", "window", "ncs_epochs"):
+        for name in ("seeds", "epochs", "window", "ncs_epochs", "batch_size"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"`{name}`: expected a positive int, got {v!r}")
@@ -149,7 +160,11 @@ class LearnedBudget:
             if v is not None and not (isinstance(v, (int, float)) and 0 < v < float("inf")):
                 raise ValueError(f"`{name}`: expected a positive number of minutes or None, "
                                  f"got {v!r}")
-        for name in ("epoch_chunks", "test_sequences", "curve_every", "equal_steps"):
+        if not (isinstance(self.lr_factor, (int, float)) and not isinstance(self.lr_factor, bool)
+                and 0 < self.lr_factor < float("inf")):
+            raise ValueError(f"`lr_factor`: expected a positive number, got {self.lr_factor!r}")
+        for name in ("epoch_chunks", "test_sequences", "curve_every", "val_sequences",
+                     "equal_steps"):
             c = getattr(self, name)
             if c is not None and (not isinstance(c, int) or isinstance(c, bool) or c < 1):
                 raise ValueError(f"`{name}`: expected a positive int or None, got {c!r}")

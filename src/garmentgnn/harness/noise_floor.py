@@ -80,28 +80,43 @@ def summarize(runs: Sequence[Dict[str, Any]], scale: float = FLOOR_SCALE_M,
               what: str = "garment") -> Dict[str, Dict[str, Any]]:
     """Per engine, the floor: over its ok runs perturbing ``what`` by ``scale``, the mean
     of the per-frame mean distances (cm; comparable with ``E_dist``, the mean per-vertex
-    distance) and the largest per-frame max (cm)."""
+    distance) and the largest per-frame max (cm), over the frames that are valid ground
+    truth in both runs (a run's ``valid``, ``[T]`` bools, as every score reads them;
+    every frame for a run without it); ``left_out``: the frames that are not, and
+    ``all_frames_mean_cm`` the mean with them."""
     out: Dict[str, Dict[str, Any]] = {}
     for engine in sorted({r["engine"] for r in runs}):
         rs = [r for r in runs if r["engine"] == engine and r["what"] == what
               and r.get("status", "ok") == "ok" and math.isclose(r["scale_m"], scale)]
         if not rs:
             continue
-        means = [m for r in rs for m in r["mean_cm"]]
+        keep = [r.get("valid") or [True] * len(r["mean_cm"]) for r in rs]
+        means = [m for r, k in zip(rs, keep) for m, ok in zip(r["mean_cm"], k) if ok]
+        every = [m for r in rs for m in r["mean_cm"]]
         out[engine] = {"what": what, "scale_m": scale, "preset": rs[0].get("preset"),
                        "sequences": len({r["sequence"] for r in rs}),
-                       "frames": len(means), "mean_cm": sum(means) / len(means),
-                       "max_cm": max(m for r in rs for m in r["max_cm"])}
+                       "frames": len(means), "left_out": len(every) - len(means),
+                       "mean_cm": sum(means) / len(means) if means else float("nan"),
+                       "all_frames_mean_cm": sum(every) / len(every),
+                       "max_cm": max((m for r, k in zip(rs, keep)
+                                      for m, ok in zip(r["max_cm"], k) if ok), default=0.0)}
     return out
 
 
-def load_floor(path=None) -> Optional[Dict[str, Any]]:
+def committed(dataset: Optional[str] = None) -> Path:
+    """The committed results file of ``dataset``'s preset (``gt_noise_<name>.json``
+    beside :data:`COMMITTED`) when there is one, else :data:`COMMITTED`."""
+    own = COMMITTED.with_name(f"gt_noise_{dataset}.json") if dataset else None
+    return own if own is not None and own.is_file() else COMMITTED
+
+
+def load_floor(path=None, dataset: Optional[str] = None) -> Optional[Dict[str, Any]]:
     """The results file's ``floor`` and where it came from (``{"path", "floor",
     "dataset"}``), from ``path``, else ``$GARMENTGNN_NOISE_FLOOR``, else the committed
-    ``benchmarks/results/gt_noise.json``; ``None`` when no such file exists.  A file that
-    is not such a results file raises ``ValueError`` naming it."""
+    one of the ``dataset`` preset's name (:func:`committed`); ``None`` when no such file
+    exists.  A file that is not such a results file raises ``ValueError`` naming it."""
     if path is None:
-        path = os.environ.get(ENV) or COMMITTED
+        path = os.environ.get(ENV) or committed(dataset)
     path = Path(path)
     if not path.is_file():
         return None
@@ -144,17 +159,19 @@ def markdown(loaded: Optional[Dict[str, Any]]) -> List[str]:
              f"From `{loaded['path']}` (`benchmarks/gt_noise.py`): each engine simulated the "
              "same sequences again with every rest-garment vertex moved by the distance "
              "shown in a random direction; mean and largest per-vertex distance to the "
-             "unperturbed run. `E_dist` differences between methods below the mean are "
-             "below what the simulation itself decides.", "",
-             "| floor | preset | sequences | frames | mean (cm) | max (cm) |",
-             "|---|---|---:|---:|---:|---:|"]
+             "unperturbed run, on the frames that are valid ground truth in both runs. "
+             "`E_dist` differences between methods below the mean are below what the "
+             "simulation itself decides.", "",
+             "| floor | preset | sequences | frames | left out | mean (cm) | max (cm) |",
+             "|---|---|---:|---:|---:|---:|---:|"]
     for e, f in sorted(loaded["floor"].items()):
         lines.append(f"| {label(e, f)} | {f.get('preset', '-')} | {f.get('sequences', '-')} | "
-                     f"{f.get('frames', '-')} | {float(f['mean_cm']):.3g} | "
-                     f"{float(f['max_cm']):.3g} |")
+                     f"{f.get('frames', '-')} | {f.get('left_out', '-')} | "
+                     f"{float(f['mean_cm']):.3g} | {float(f['max_cm']):.3g} |")
     return lines + [""]
 
 
-__all__ = ["COMMITTED", "ENV", "FLOOR_SCALE_M", "WHATS", "bands", "divergence", "label",
+__all__ = ["COMMITTED", "ENV", "FLOOR_SCALE_M", "WHATS", "bands", "committed", "divergence",
+           "label",
            "load_floor", "markdown", "perturbed_garment", "perturbed_motion", "random_offsets",
            "summarize"]

@@ -1,6 +1,6 @@
 """The ``garmentgnn bench`` presets: which cases, simulator budgets, extra reports and
 learned-method budget one run covers (``tiny``: the CI smoke test; ``small``: a quick
-run; ``medium``, ``converge``: the learned methods; see docs/bench.md)."""
+run; ``medium``, ``converge``, ``learn``: the learned methods; see docs/bench.md)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -169,10 +169,23 @@ def preset(name: str) -> Preset:
                 seeds=3, epochs=1000, window=3, ncs_epochs=1000, minutes=10.0,
                 seed_methods=(next(iter(methods.GARTRANS)),), curve_every=100,
                 equal_steps=500))
+    if name == "learn":
+        # every learned method to a validation plateau on the Blender `learn` dataset (420
+        # sequences; generate it with --engine blender, pass it with --data), batched:
+        # sized in docs/bench.md ("learn"); hours on 2 cores, resumable across sessions
+        return Preset(
+            name="learn", cases=(), seeds=1, reference=SimBudget(8, 50), budgets=(),
+            methods=(), batches=(1, 8, 32), warmup=1, repeats=3, threads=2,
+            dataset="learn", data_workers=2,
+            learned=methods.LearnedBudget(
+                seeds=3, epochs=1000, window=3, ncs_epochs=1000, minutes=30.0,
+                epoch_chunks=400, batch_size=16, lr_factor=4.0,
+                seed_methods=(next(iter(methods.GARTRANS)),), curve_every=400,
+                val_sequences=8, equal_steps=500, test_sequences=40))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 
-PRESET_NAMES = ("tiny", "small", "medium", "converge")
+PRESET_NAMES = ("tiny", "small", "medium", "converge", "learn")
 #: the scaling garment (its resolution is replaced per size): a knee skirt, walking
 _SCALING_ITEM = case_item("scaling-skirt-walk", "skirt", 1000, "walk", 8, {"length": "knee"})
 

@@ -299,11 +299,12 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     (:func:`garmentgnn.harness.page.write_media`); returns their paths.  ``floor``: the
     ground truth's noise floor, a ``benchmarks/gt_noise.py`` results file (default
     :func:`garmentgnn.harness.noise_floor.load_floor`'s: ``$GARMENTGNN_NOISE_FLOOR`` or the
-    committed one; none there: no floor shown)."""
+    committed one of the records' dataset preset; none there: no floor shown)."""
     if isinstance(records, dict):
         raise ValueError("`records`: expected a list of records, got a dict")
     clean = [check_record(r) for r in records]
-    loaded = noise_floor.load_floor(floor)
+    names = {r["dataset"].get("name") for r in clean if isinstance(r.get("dataset"), dict)}
+    loaded = noise_floor.load_floor(floor, next(iter(names)) if len(names) == 1 else None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths: Dict[str, Path] = {}
