@@ -117,7 +117,7 @@ def runs_of(engine: str, item, scales, log=print):
     return out
 
 
-def markdown(runs, floor, header):
+def markdown(runs, floor, header, name="gt_noise.json"):
     rows = []
     for r in runs:
         if r["status"] != "ok":
@@ -136,7 +136,7 @@ def markdown(runs, floor, header):
              "largest distance at a few frames (cm).", ""]
     lines += table(["engine", "sequence", "perturbed", "by (m)", "mean (cm)", "max (cm)",
                     "max at frames (cm)", "s"], rows)
-    lines += [""] + nf.markdown({"path": "gt_noise.json", "floor": floor})[2:]
+    lines += [""] + nf.markdown({"path": name, "floor": floor})[2:]
     return "\n".join(lines) + "\n"
 
 
@@ -220,7 +220,7 @@ def main(argv=None) -> None:
               f"{meta['torch_threads']} torch thread(s), {platform.machine()}.")
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out.with_suffix(".json"), {"meta": meta, "floor": floor, "runs": runs})
-    text = markdown(runs, floor, header)
+    text = markdown(runs, floor, header, out.with_suffix(".json").name)
     atomic_write_bytes(out.with_suffix(".md"), text.encode())
     plot(runs, out.with_suffix(".png"))
     print(text)

@@ -36,7 +36,6 @@ checkpoints, in ``DIR/checkpoints``.  The packaged configs set ``runs/<name>``.
 """
 from __future__ import annotations
 
-import importlib
 import importlib.util
 import inspect
 import os
