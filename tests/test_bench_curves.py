@@ -80,11 +80,21 @@ def test_plot_marks_only_curves_that_leave_the_frame(tmp_path, monkeypatch):
                 "steps": 40, "metrics": {"E_dist": 9.5},
                 "curve": {"every": 10, "points": _pts(errors), "lbs_E_dist": 2.0}}
 
-    curves.plot([rec("A", [2.1, 2.2, 2.1]), rec("B", [2.1, 3.02, 2.9]),
-                 rec("C", [2.1, 50.0, 70.0])], tmp_path / "c.png")
-    ax = got["fig"].axes[0]
+    b = rec("B", [2.1, 3.02, 2.9])
+    for p, e in zip(b["curve"]["points"], [2.0, 1.5, 1.0]):  # its training-sequence curve
+        p["train_E_dist"] = e
+    curves.plot([rec("A", [2.1, 2.2, 2.1]), b, rec("C", [2.1, 50.0, 70.0])], tmp_path / "c.png")
+    fig = got["fig"]
+    assert [a.get_xlabel() for a in fig.axes] == ["optimizer steps", "epochs of the training "
+                                                  "split", "training wall time (min)"]
+    for a in fig.axes:  # B's dashed training curve on every axis
+        dashed = [ln for ln in a.get_lines() if ln.get_linestyle() == "--"
+                  and list(ln.get_ydata()) == [2.0, 1.5, 1.0]]
+        assert len(dashed) == 1
+    ax = fig.axes[0]
     top = ax.get_ylim()[1]
     labels = dict(zip(["A", "B", "C"], ax.get_legend_handles_labels()[1]))
+    assert "dashed: training sequences" in ax.get_legend_handles_labels()[1]
     assert 3.0 < 3.02 < top < 50.0  # 1.5x LBS plus the margin
     assert labels["A"] == "A" and labels["B"] == "B"
     assert labels["C"] == "C (up to 70 cm, above the frame)"
@@ -156,6 +166,25 @@ def test_curve_points_snapshot_and_excluded_validation_time(tmp_path):
     assert not torch.equal(snap["state_dict"]["lin.weight"], module.lin.weight)
 
 
+def test_curve_scores_the_training_sequences_beside_validation():
+    """``train_evaluate``: each point's ``train_E_dist``, the model in eval mode as for
+    validation; ``train_chunks`` kept for the epochs axis."""
+    seen = []
+
+    def fit_error(module):
+        seen.append(module.training)
+        return 2.0 * float(module.lin.bias.detach())
+
+    curve = curves.LearningCurve(4, lambda m: float(m.lin.bias.detach()),
+                                 train_evaluate=fit_error, train_chunks=32)
+    _fit([curve], max_steps=8)
+    assert [p["train_E_dist"] for p in curve.points] == \
+        pytest.approx([2.0 * p["E_dist"] for p in curve.points])
+    assert seen == [False] * 3 and curve.to_json()["train_chunks"] == 32
+    rec = {"curve": curve.to_json()}
+    assert curves._epochs(rec) == [0.0, 0.125, 0.25]  # 4 and 8 chunks of 32
+
+
 def test_curve_state_round_trips_and_a_resumed_fit_adds_no_step_zero_point():
     curve = curves.LearningCurve(4, lambda m: 1.0)
     _fit([curve], max_steps=8)
@@ -193,7 +222,7 @@ def test_learn_preset():
     assert presets.preset("learn").dataset == "learn" and b.batch_size > 1
     assert set(b.methods) == set(methods.METHOD_NAMES) and b.seeds == 3
     assert b.curve_every % b.batch_size == 0 and b.epoch_chunks % b.batch_size == 0
-    assert b.val_sequences and b.test_sequences and b.equal_steps
+    assert b.val_sequences and b.train_sequences and b.test_sequences and b.equal_steps
 
 
 # --------------------------------------------------------------------------- the bench
@@ -216,7 +245,7 @@ def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, 
         # every `batch` chunks is a point every step
         learned=dataclasses.replace(p.learned, methods=(full, da, methods.LBS), epochs=2,
                                     stability_cases=(), curve_every=batch, equal_steps=steps,
-                                    batch_size=batch))
+                                    batch_size=batch, train_sequences=2))
     summary = runner.run(p, tmp_path, data=data_with_val, progress=False)
     recs = {r["method"]: r for r in json.loads((tmp_path / "results.json").read_text())["records"]
             if r["kind"] == learned.KIND}
@@ -237,6 +266,11 @@ def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, 
     assert recs[full]["curve"]["points"][-1]["E_dist"] == pytest.approx(
         ref["gartrans"]["E_dist"], rel=1e-4)
     assert recs[full]["curve"]["lbs_E_dist"] == pytest.approx(ref["lbs"]["E_dist"], rel=1e-4)
+    fit = evaluate_split(module, data_with_val, "train", modes=("gartrans",), history=3,
+                         nystrom_dim=16, num_landmarks=64)
+    assert recs[full]["curve"]["points"][-1]["train_E_dist"] == pytest.approx(
+        fit["gartrans"]["E_dist"], rel=1e-4)
+    assert recs[full]["curve"]["train_chunks"] == 2
     text = (tmp_path / "report.md").read_text()
     assert "## Learning curves (validation split) and equal steps" in text
     assert f"E_dist at {steps} steps (cm)" in text and (tmp_path / "learning_curves.png").exists()

@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import statistics
 import time
+import warnings
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
 
 import lightning as L
 import torch
@@ -25,7 +27,7 @@ from garmentgnn.harness.tables import fmt, save_figure, table
 from garmentgnn.data import store
 from garmentgnn.training import TimeBudget
 
-__all__ = ["LearningCurve", "TrainClock", "markdown", "plateau", "plot"]
+__all__ = ["LearningCurve", "TrainClock", "markdown", "plateau", "plot", "quiet_lightning"]
 
 #: the record kind of :mod:`garmentgnn.harness.learned` (restated: that module imports this)
 _KIND = "learned"
@@ -33,6 +35,22 @@ _KIND = "learned"
 #: error by less than 2%
 TAIL, TOLERANCE = 0.25, 0.02
 _now = time.perf_counter
+
+
+@contextlib.contextmanager
+def quiet_lightning() -> Iterator[None]:
+    """Lightning's info messages and possible-user warnings off inside the block."""
+    logger = logging.getLogger("lightning.pytorch")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", module=r"lightning\..*")
+            warnings.filterwarnings("ignore", message=r".*(num_workers|does not have many "
+                                                      r"workers|Checkpoint directory).*")
+            yield
+    finally:
+        logger.setLevel(level)
 
 
 class TrainClock(L.Callback):
@@ -58,7 +76,6 @@ class TrainClock(L.Callback):
         self.epochs += 1
 
 
-
 class LearningCurve(L.Callback):
     """Validation error every ``every`` optimizer steps (and before the first), against
     the steps and the training wall time, validation time not counted (nor in
@@ -71,17 +88,25 @@ class LearningCurve(L.Callback):
             ``torch.no_grad()``.
         snapshot_step, snapshot_path: where the equal-step weights go (both or neither).
         budget: the fit's :class:`TimeBudget`, paused while validating.
+        train_evaluate: the same error on (a subset of) the training split, recorded
+            beside it as ``train_E_dist`` (its time counted as validation time).
+        train_chunks: the training split's chunks (an epoch of the whole split), kept in
+            :meth:`to_json` so that a plot can read ``chunks`` as epochs.
 
     Attributes:
         points: ``{"step", "epoch", "chunks", "seconds", "E_dist"}`` per validation
-            (``chunks``: training chunks seen, a batch of ``N`` chunks counting ``N``).
+            (``chunks``: training chunks seen, a batch of ``N`` chunks counting ``N``;
+            ``epoch``: the trainer's, which counts limited epochs), and
+            ``train_E_dist`` with ``train_evaluate``.
         seconds: training wall time so far (validation excluded).
         eval_seconds: validation wall time so far.
     """
 
     def __init__(self, every: int, evaluate: Callable[[L.LightningModule], float],
                  snapshot_step: Optional[int] = None, snapshot_path=None,
-                 budget: Optional[TimeBudget] = None) -> None:
+                 budget: Optional[TimeBudget] = None,
+                 train_evaluate: Optional[Callable[[L.LightningModule], float]] = None,
+                 train_chunks: Optional[int] = None) -> None:
         if not isinstance(every, int) or isinstance(every, bool) or every < 1:
             raise ValueError(f"`every`: expected a positive number of steps, got {every!r}")
         if (snapshot_step is None) != (snapshot_path is None):
@@ -90,6 +115,7 @@ class LearningCurve(L.Callback):
                                           or snapshot_step < 1):
             raise ValueError(f"`snapshot_step`: expected a positive int, got {snapshot_step!r}")
         self.every, self.evaluate, self.budget = every, evaluate, budget
+        self.train_evaluate, self.train_chunks = train_evaluate, train_chunks
         self.snapshot_step = snapshot_step
         self.snapshot_path = None if snapshot_path is None else Path(snapshot_path)
         self.points: List[Dict[str, float]] = []
@@ -109,21 +135,24 @@ class LearningCurve(L.Callback):
     def to_json(self) -> Dict[str, Any]:
         """What a bench record keeps."""
         return {"every": self.every, "points": self.points, "eval_seconds": self.eval_seconds,
-                "snapshot_step": self.snapshot_step}
+                "snapshot_step": self.snapshot_step, "train_chunks": self.train_chunks}
 
     def _validate(self, trainer: L.Trainer, module: L.LightningModule) -> None:
         t = _now()
         with self.budget.paused() if self.budget is not None else contextlib.nullcontext():
             was = module.training
             module.eval()
+            point = {"step": int(trainer.global_step), "epoch": int(trainer.current_epoch),
+                     "chunks": self.chunks, "seconds": self.seconds}
             try:
                 with torch.no_grad():
-                    err = float(self.evaluate(module))
+                    point["E_dist"] = float(self.evaluate(module))
+                    if self.train_evaluate is not None:
+                        point["train_E_dist"] = float(self.train_evaluate(module))
             finally:
                 module.train(was)
         self.eval_seconds += _now() - t
-        self.points.append({"step": int(trainer.global_step), "epoch": int(trainer.current_epoch),
-                            "chunks": self.chunks, "seconds": self.seconds, "E_dist": err})
+        self.points.append(point)
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not self.points:
@@ -195,6 +224,7 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
              + f"Plateau: the best error of the last {TAIL:.0%} of the steps is less than "
              f"{TOLERANCE:.0%} below the best before it. p: paired two-sided Wilcoxon "
              "over the test sequences (means over seeds).", ""]
+    train = any("train_E_dist" in p for r in rs for p in r["curve"]["points"])
     rows = []
     for r in rs:
         pts = r["curve"]["points"]
@@ -208,9 +238,11 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
             verdict, best = "too few points", "—"
         rows.append([r["method"], str(r["seed"]), str(pts[-1]["step"]), str(r.get("epochs", "—")),
                      f"{pts[0]['E_dist']:.3f}", best, f"{pts[-1]['E_dist']:.3f}",
-                     verdict])
+                     verdict] + ([fmt([pts[-1]["train_E_dist"]]) if "train_E_dist" in pts[-1]
+                                  else "—"] if train else []))
     lines += table(["method", "seed", "steps", "epochs", "start (cm)", "best (cm) @ step",
-                    "last (cm)", "plateau"], rows) + [""]
+                    "last (cm)", "plateau"] + (["last on training sequences (cm)"] if train
+                                               else []), rows) + [""]
     if png:
         lines += [f"![learning curves]({png})", ""]
     snap = [r for r in rs if r.get("equal_steps")]
@@ -245,11 +277,20 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
     return lines
 
 
+def _epochs(r: Dict[str, Any]) -> List[float]:
+    """A curve's points in epochs of the whole training split (the trainer's own epochs
+    for a curve recorded without ``train_chunks``)."""
+    n = r["curve"].get("train_chunks")
+    return [p["chunks"] / n if n and "chunks" in p else float(p["epoch"])
+            for p in r["curve"]["points"]]
+
+
 def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
-    """``learning_curves.png``: validation E_dist of every method's first seed against
-    optimizer steps (left) and training wall time (right), LBS as a dashed line; the
-    error axis stops at 1.5x LBS's error, and a method whose curve goes above is marked so
-    in the legend; ``None`` without curves."""
+    """``learning_curves.png``: validation E_dist of every method's first seed (solid) and,
+    where recorded, its error on the training sequences (dashed) against optimizer steps,
+    epochs of the training split and training wall time, LBS on the validation split as a
+    black dashed line; the error axis stops at 1.5x LBS's error, and a method whose curve
+    goes above is marked so in the legend; ``None`` without curves."""
     rs = _curved(records)
     if not rs:
         return None
@@ -258,28 +299,38 @@ def plot(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
     for r in sorted(rs, key=lambda r: r["seed"]):
         first.setdefault(r["method"], r)
     lbs = next((r["curve"].get("lbs_E_dist") for r in rs if r["curve"].get("lbs_E_dist")), None)
-    errs = [p["E_dist"] for r in first.values() for p in r["curve"]["points"]]
+    errs = [p[k] for r in first.values() for p in r["curve"]["points"]
+            for k in ("E_dist", "train_E_dist") if k in p]
     top = max(errs) if lbs is None else min(max(errs), 1.5 * lbs)
     bottom = min(errs + ([lbs] if lbs else []))
     lo, hi = bottom - 0.05 * (top - bottom), top + 0.05 * (top - bottom)
-    fig, axes = plt.subplots(1, 2, figsize=(12.8, 5.2), sharey=True)
+    fig, axes = plt.subplots(1, 3, figsize=(16.0, 5.2), sharey=True)
     for i, (method, r) in enumerate(first.items()):
         pts = r["curve"]["points"]
         y = [p["E_dist"] for p in pts]
         label = method + (f" (up to {max(y):.3g} cm, above the frame)" if max(y) > hi else "")
         style = dict(color=plt.get_cmap("tab10")(i % 10), marker=".", markersize=3, lw=1.2)
-        axes[0].plot([p["step"] for p in pts], y, label=label, **style)
-        axes[1].plot([p["seconds"] / 60.0 for p in pts], y, **style)
-    for ax, xlabel in zip(axes, ("optimizer steps", "training wall time (min)")):
+        xs = ([p["step"] for p in pts], _epochs(r), [p["seconds"] / 60.0 for p in pts])
+        trained = [(k, p["train_E_dist"]) for k, p in enumerate(pts) if "train_E_dist" in p]
+        for ax, x in zip(axes, xs):
+            ax.plot(x, y, label=label if ax is axes[0] else None, **style)
+            if trained:
+                ax.plot([x[k] for k, _ in trained], [e for _, e in trained], ls="--",
+                        color=style["color"], lw=1.0, alpha=0.8)
+    if any("train_E_dist" in p for r in first.values() for p in r["curve"]["points"]):
+        axes[0].plot([], [], color="grey", ls="--", label="dashed: training sequences")
+    for ax, xlabel in zip(axes, ("optimizer steps", "epochs of the training split",
+                                 "training wall time (min)")):
         if lbs:
             ax.axhline(lbs, color="black", ls="--", lw=1,
-                       label=f"LBS: {lbs:.3g} cm" if ax is axes[0] else None)
+                       label=f"LBS (validation): {lbs:.3g} cm" if ax is axes[0] else None)
         ax.set_xlabel(xlabel)
         ax.grid(True, alpha=0.3)
     axes[0].set_ylim(lo, hi)
-    axes[0].set_ylabel("validation E_dist (cm)")
-    axes[0].set_title("against optimizer steps")
-    axes[1].set_title("against training wall time")
+    axes[0].set_ylabel("E_dist (cm): validation solid")
+    for ax, title in zip(axes, ("against optimizer steps", "against epochs",
+                                "against training wall time")):
+        ax.set_title(title)
     fig.suptitle("Learning curves (first seed of each method)")
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=8,

@@ -24,15 +24,12 @@ One bench run (:func:`garmentgnn.harness.runner.run`) with a preset that has a
 """
 from __future__ import annotations
 
-import contextlib
 import io
 import json
-import logging
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import lightning as L
 import numpy as np
@@ -42,7 +39,7 @@ from torch import Tensor
 
 from garmentgnn.harness import stability as stab
 from garmentgnn.harness import scoring
-from garmentgnn.harness.curves import LearningCurve, TrainClock
+from garmentgnn.harness.curves import LearningCurve, TrainClock, quiet_lightning
 from garmentgnn.harness.dataset import DatasetInfo, prepare_dataset
 from garmentgnn.harness.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
                                         HOOD, LONG, METHOD_NAMES, NCS, LearnedBudget,
@@ -74,22 +71,6 @@ SIMULATOR_SKIPS: Tuple[str, ...] = ("long_1000",)
 
 
 # --------------------------------------------------------------------------- helpers
-@contextlib.contextmanager
-def _quiet_lightning() -> Iterator[None]:
-    """Lightning's info messages and possible-user warnings off inside the block."""
-    logger = logging.getLogger("lightning.pytorch")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", module=r"lightning\..*")
-            warnings.filterwarnings("ignore", message=r".*(num_workers|does not have many "
-                                                      r"workers|Checkpoint directory).*")
-            yield
-    finally:
-        logger.setLevel(level)
-
-
 @dataclass
 class _Predictor:
     """A trained method: ``predict(ds, i, item)`` the garment ``[T, V, 3]`` of ``item``,
@@ -126,11 +107,14 @@ class LearnedRunner:
         self.batches, self.warmup, self.repeats = tuple(batches), warmup, repeats
         self.test = self._whole("test", budget.test_sequences)  # the same for every method
         self.val: Optional[SequenceChunks] = None
+        self.train_fit: Optional[SequenceChunks] = None  # the curves' training sequences
         if budget.curve_every is not None:
             if not data.sequences.get("val"):
                 raise ValueError(f"`budget`: curve_every needs a `val` split; {data.root} has "
                                  "none (set curve_every=None)")
             self.val = self._whole("val", budget.val_sequences)
+            if budget.train_sequences is not None:
+                self.train_fit = self._whole("train", budget.train_sequences)
         self._trained: Dict[Tuple[str, int], Tuple[_Predictor, Dict[str, Any]]] = {}
         self._warm_up_compiled_search()
 
@@ -142,7 +126,12 @@ class LearnedRunner:
         seqs = SequenceChunks(self.data.root, split, **kw)
         if n is None:
             return seqs
-        return SequenceChunks(self.data.root, split, ids=scoring.stratified(seqs.records, n), **kw)
+        if split == "train":  # no held-out groups: evenly spaced in id order
+            ids = sorted(r["id"] for r in seqs.records)
+            ids = [ids[i * len(ids) // n] for i in range(min(n, len(ids)))]
+        else:
+            ids = scoring.stratified(seqs.records, n)
+        return SequenceChunks(self.data.root, split, ids=ids, **kw)
 
     def _warm_up_compiled_search(self) -> None:
         """Compile the nearest-face search (``compile_search`` of the configs) once,
@@ -261,13 +250,16 @@ class LearnedRunner:
         return {"step": int(state["step"]), "reached": True, "metrics": res["metrics"],
                 "per_sequence": res["per_sequence"]}
 
-    def val_error(self, predict: Callable[[L.LightningModule, GarmentInputs], Tensor]
-                  ) -> Callable[[L.LightningModule], float]:
+    def val_error(self, predict: Callable[[L.LightningModule, GarmentInputs], Tensor],
+                  seqs: Optional[SequenceChunks] = None) -> Callable[[L.LightningModule], float]:
         """The validation E_dist (cm) of a module: ``predict(module, item)`` scored on
-        every ``val`` sequence (:mod:`garmentgnn.harness.scoring`), on the module's device."""
+        every ``val`` sequence of the curves (or of ``seqs``;
+        :mod:`garmentgnn.harness.scoring`), on the module's device."""
+        seqs = self.val if seqs is None else seqs
+
         def run(module: L.LightningModule) -> float:
             per = scoring.score(lambda i, item: predict(module, item.to(module.device)).cpu(),
-                                self.val)
+                                seqs)
             return scoring.aggregate(per)["all"]["E_dist"]
         return run
 
@@ -320,11 +312,13 @@ class LearnedRunner:
         budget = [TimeBudget(60.0 * minutes)] if minutes is not None else []
         curve = None
         if predict is not None and self.val is not None:
+            dm.setup("fit")  # its train_set: an epoch of the whole split, in chunks
             snap = self.budget.equal_steps
             every = max(1, self.budget.curve_every // dm.hparams.batch_size)
+            fit = None if self.train_fit is None else self.val_error(predict, self.train_fit)
             curve = LearningCurve(every, self.val_error(predict), snap,
                                   None if snap is None else folder / "equal_steps.pt",
-                                  budget[0] if budget else None)
+                                  budget[0] if budget else None, fit, len(dm.train_set))
         # save_top_k=1 without a monitor keeps the latest epoch's checkpoint; last.ckpt
         # links to it (Lightning writes last.ckpt only along with a top-k checkpoint)
         ckpt = ModelCheckpoint(dirpath=folder, save_last="link", save_top_k=1,
@@ -335,7 +329,7 @@ class LearnedRunner:
                 torch.load(last, map_location="cpu", weights_only=False)
             except Exception:
                 last.replace(folder / "last.ckpt.unreadable")
-        with _quiet_lightning():
+        with quiet_lightning():
             trainer = L.Trainer(max_epochs=epochs, accelerator="auto", devices=1, logger=False,
                                 enable_checkpointing=True, enable_progress_bar=False,
                                 enable_model_summary=False,

@@ -127,6 +127,9 @@ class LearnedBudget:
             ``None``: no learning curves.
         val_sequences: the learning curves' validation sequences, drawn evenly from the
             held-out groups like ``test_sequences``; ``None``: all of them.
+        train_sequences: the learning curves also score this many training sequences
+            (evenly spaced in id order), the fit beside the validation error; ``None``:
+            not.
         equal_steps: also score every method trained on the train split (not NCS-style)
             with its weights after this many optimizer steps, so that the methods are
             compared at equal steps as well as at equal time (needs ``curve_every``);
@@ -148,6 +151,7 @@ class LearnedBudget:
     test_sequences: Optional[int] = None
     curve_every: Optional[int] = None
     val_sequences: Optional[int] = None
+    train_sequences: Optional[int] = None
     equal_steps: Optional[int] = None
 
     def __post_init__(self) -> None:
@@ -164,7 +168,7 @@ class LearnedBudget:
                 and 0 < self.lr_factor < float("inf")):
             raise ValueError(f"`lr_factor`: expected a positive number, got {self.lr_factor!r}")
         for name in ("epoch_chunks", "test_sequences", "curve_every", "val_sequences",
-                     "equal_steps"):
+                     "train_sequences", "equal_steps"):
             c = getattr(self, name)
             if c is not None and (not isinstance(c, int) or isinstance(c, bool) or c < 1):
                 raise ValueError(f"`{name}`: expected a positive int or None, got {c!r}")
