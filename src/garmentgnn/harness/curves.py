@@ -217,9 +217,11 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
     if not rs:
         return []
     lbs = next((r["curve"].get("lbs_E_dist") for r in rs if r["curve"].get("lbs_E_dist")), None)
+    batch = (rs[0].get("config") or {}).get("batch_size", 1)
     lines = ["## Learning curves (validation split) and equal steps", "",
-             f"Validation E_dist every {rs[0]['curve']['every']} optimizer steps while each "
-             "method trains (the validation time is not counted in its budget); "
+             f"Validation E_dist every {rs[0]['curve']['every']} optimizer steps"
+             + (f" of {batch} chunks" if batch > 1 else "") + " while each method trains "
+             "(the validation time is not counted in its budget); "
              + (f"LBS on the validation split: {lbs:.3f} cm. " if lbs else "")
              + f"Plateau: the best error of the last {TAIL:.0%} of the steps is less than "
              f"{TOLERANCE:.0%} below the best before it. p: paired two-sided Wilcoxon "

@@ -119,8 +119,9 @@ class LearnedRunner:
         self._warm_up_compiled_search()
 
     def _whole(self, split: str, n: Optional[int]) -> SequenceChunks:
-        """``split``'s whole sequences, or ``n`` of them drawn evenly from the held-out
-        groups (:func:`~garmentgnn.harness.scoring.stratified`)."""
+        """``split``'s whole sequences, or ``n`` of them: drawn evenly from the held-out
+        groups (:func:`~garmentgnn.harness.scoring.stratified`), or evenly spaced in id
+        order for ``train``, which holds nothing out."""
         kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
                   num_landmarks=DATA["num_landmarks"], cache_size=64)
         seqs = SequenceChunks(self.data.root, split, **kw)
