@@ -11,7 +11,7 @@ Run the bench once per setting, each in its own ``--out`` (the same preset, data
 
 An epoch is the dataset's training chunks (``train_chunks`` of the first run's dataset at
 the bench's chunk length), the curve's ``chunks`` the chunks trained on so far.  Reports,
-per run: steps, epochs and training minutes; the validation E_dist at the end of the
+per run: steps, epochs (steps x batch size) and training minutes (validation excluded); the validation E_dist at the end of the
 budget (equal wall time), at the epochs every run reached (equal epochs, linearly
 interpolated between curve points) and its best; the test E_dist at the end, and a paired
 Wilcoxon test of each run's test sequences against the first run's.
@@ -74,9 +74,11 @@ def compare(runs: List[Tuple[str, Dict[str, Any]]], train_chunks: int) -> Dict[s
         err = [p["E_dist"] for p in pts]
         mine = {s["sequence"]: s["metrics"]["E_dist"] for s in r["per_sequence"]}
         p = None if r is first else scoring.wilcoxon(ref, mine)["p"]
-        rows.append({"label": label, "batch_size": r["config"].get("batch_size", 1),
+        batch = r["config"].get("batch_size", 1)
+        rows.append({"label": label, "batch_size": batch,
                      "lr_factor": r["config"].get("lr_factor", 1.0), "steps": r["steps"],
-                     "epochs": ep[-1], "minutes": pts[-1]["seconds"] / 60.0,
+                     "epochs": r["steps"] * batch / train_chunks,
+                     "minutes": r["train_seconds"] / 60.0,
                      "val_end": err[-1], "val_equal_epochs": at(ep, err, common),
                      "val_best": min(err), "test_end": r["metrics"]["E_dist"], "p": p,
                      "epochs_curve": ep, "minutes_curve": [q["seconds"] / 60 for q in pts],

@@ -15,7 +15,7 @@ def _record(batch, chunks, errs, test, lr=1.0):
     pts = [{"step": c // batch, "epoch": 0, "chunks": c, "seconds": 60.0 * i, "E_dist": e}
            for i, (c, e) in enumerate(zip(chunks, errs))]
     return {"kind": "learned", "method": "M", "seed": 0, "status": "ok",
-            "steps": chunks[-1] // batch,
+            "steps": chunks[-1] // batch, "train_seconds": 60.0 * len(chunks),
             "config": {"batch_size": batch, "lr_factor": lr} if batch > 1 else {},
             "curve": {"points": pts, "lbs_E_dist": 5.0}, "metrics": {"E_dist": test[0]},
             "per_sequence": [{"sequence": f"s{i}", "metrics": {"E_dist": v}}
@@ -34,7 +34,7 @@ def test_equal_epochs_are_interpolated_on_each_curve():
     assert r16["val_equal_epochs"] == pytest.approx(3.6 - 0.25 * 0.6)
     assert r16["val_end"] == 2.8 and r16["epochs"] == pytest.approx(1.2)
     assert (r16["batch_size"], r16["lr_factor"], r1["batch_size"]) == (16, 4.0, 1)
-    assert 0 <= r16["p"] <= 1 and r16["minutes"] == pytest.approx(3.0)
+    assert 0 <= r16["p"] <= 1 and r16["minutes"] == pytest.approx(4.0)
 
 
 def test_a_folder_without_results_is_one_error_line(tmp_path, capsys):
