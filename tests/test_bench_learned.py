@@ -419,6 +419,10 @@ def test_epoch_chunks_count_chunks_and_curves_read_a_subset(data, tmp_path):
         scoring.stratified(whole.records, 1)
     with pytest.raises(ValueError, match="batch_size"):
         methods.LearnedBudget(batch_size=0)
+    with pytest.raises(ValueError, match="--batch-size: 3 is more than the 2 training chunks"):
+        learned.LearnedRunner(info, methods.LearnedBudget(batch_size=3), tmp_path, (1,), 0, 1)
+    assert cli_main(["bench", "--out", str(tmp_path / "b"), "--data", str(data),
+                     "--batch-size", "3", "--no-progress"]) == 2
     with pytest.raises(ValueError, match="lr_factor"):
         methods.LearnedBudget(lr_factor=0.0)
     with pytest.raises(ValueError, match="val_sequences"):

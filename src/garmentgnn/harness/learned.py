@@ -105,6 +105,11 @@ class LearnedRunner:
             raise ValueError(f"`budget`: expected a LearnedBudget, got {type(budget).__name__}")
         self.data, self.budget, self.out = data, budget, Path(out)
         self.batches, self.warmup, self.repeats = tuple(batches), warmup, repeats
+        chunks = len(SequenceChunks(data.root, "train", DATA["chunk"], DATA["history"],
+                                    DATA["nystrom_dim"], DATA["num_landmarks"]))
+        if budget.batch_size > chunks:
+            raise ValueError(f"--batch-size: {budget.batch_size} is more than the {chunks} "
+                             f"training chunks of {data.root}; give at most {chunks}")
         self.test = self._whole("test", budget.test_sequences)  # the same for every method
         self.val: Optional[SequenceChunks] = None
         self.train_fit: Optional[SequenceChunks] = None  # the curves' training sequences
