@@ -11,10 +11,11 @@ Run the bench once per setting, each in its own ``--out`` (the same preset, data
 
 An epoch is the dataset's training chunks (``train_chunks`` of the first run's dataset at
 the bench's chunk length), the curve's ``chunks`` the chunks trained on so far.  Reports,
-per run: steps, epochs (steps x batch size) and training minutes (validation excluded); the validation E_dist at the end of the
-budget (equal wall time), at the epochs every run reached (equal epochs, linearly
-interpolated between curve points) and its best; the test E_dist at the end, and a paired
-Wilcoxon test of each run's test sequences against the first run's.
+per run: steps, epochs (steps x batch size) and training minutes (validation excluded);
+the validation E_dist at the end of the budget (equal wall time), at the epochs every run
+reached (equal epochs, linearly interpolated between curve points) and its best; the test
+E_dist at the end, and a paired Wilcoxon test of each run's test sequences against the
+first run's.
 """
 from __future__ import annotations
 
