@@ -5,7 +5,9 @@ methods are compared at equal steps as well as at equal wall time.
 
 The report reads the curves (:func:`markdown`, :func:`plot`): whether each run reached a
 validation plateau (:func:`plateau`), at which epoch, and every method's test error at
-the equal-step snapshot beside its error at the end of the equal time budget.
+the equal-step snapshot beside its error at the end of the equal time budget.  The bench's
+other training-time helpers live here too: :class:`TrainClock` (training wall time and
+epochs, kept in checkpoints) and :func:`quiet_lightning`.
 """
 from __future__ import annotations
 
