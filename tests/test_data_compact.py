@@ -168,6 +168,28 @@ def test_splits_choose_what_is_packed(root, tmp_path):
         SequenceChunks(tmp_path / "t", "train")
 
 
+def test_ids_pack_exactly_those_sequences(root, tmp_path):
+    """A one-sequence sample: that sequence's arrays come back as a whole-dataset pack
+    gives them, and nothing else is in it."""
+    man = json.loads((root / "manifest.json").read_text())
+    one = sorted(r["id"] for r in man["items"] if r["split"] == "test")[1]
+    res = compact.pack(root, tmp_path / "one.zip", ids=[one, one])
+    assert res.sequences == [one] and res.splits == {"test": 1} and not res.left_out
+    compact.unpack(tmp_path / "one.zip", tmp_path / "one", cache_dir=tmp_path / "c")
+    compact.pack(root, tmp_path / "all.zip")
+    compact.unpack(tmp_path / "all.zip", tmp_path / "all", cache_dir=tmp_path / "c")
+    a, b = SequenceChunks(tmp_path / "one", "test"), SequenceChunks(tmp_path / "all", "test")
+    assert [r["id"] for r in a.records] == [one]
+    j = [r["id"] for r in b.records].index(one)
+    assert torch.equal(a[0].gt, b[j].gt) and torch.equal(a[0].body_pos, b[j].body_pos)
+    with pytest.raises(ValueError, match="`ids`: \\['nope'\\] not among"):
+        compact.pack(root, tmp_path / "x.zip", ids=["nope"])
+    with pytest.raises(ValueError, match="`ids`"):
+        compact.pack(root, tmp_path / "x.zip", splits=["train"], ids=[one])
+    with pytest.raises(TypeError, match="`ids`: expected a list"):
+        compact.pack(root, tmp_path / "x.zip", ids=one)
+
+
 def test_anny_body_cache_files_travel(root, tmp_path, monkeypatch):
     data = tmp_path / "anny"
     shutil.copytree(root, data)

@@ -230,9 +230,11 @@ def _body_files(records: List[Dict[str, Any]]) -> Tuple[Dict[str, Path], List[st
 
 # --------------------------------------------------------------------------- pack
 def pack(root: PathLike, out_file: PathLike, splits: Optional[Iterable[str]] = None,
-         max_bytes: int = DEFAULT_MAX_BYTES, tolerance: float = TOLERANCE) -> PackResult:
+         max_bytes: int = DEFAULT_MAX_BYTES, tolerance: float = TOLERANCE,
+         ids: Optional[Iterable[str]] = None) -> PackResult:
     """Pack the ok sequences of ``splits`` (default: every split) of the dataset at
-    ``root`` into ``out_file`` (see the module doc), at most ``max_bytes`` bytes."""
+    ``root`` into ``out_file`` (see the module doc), at most ``max_bytes`` bytes;
+    ``ids``: only these sequences (e.g. a one-sequence sample a test scores)."""
     root = Path(root)
     if isinstance(max_bytes, bool) or not isinstance(max_bytes, int):
         raise TypeError(f"`max_bytes`: expected an int (bytes, e.g. 40_000_000), got "
@@ -248,6 +250,15 @@ def pack(root: PathLike, out_file: PathLike, splits: Optional[Iterable[str]] = N
     items = manifest["items"]
     splits = _check_splits(splits, items, root)
     records = {r["id"]: r for r in items if r.get("status") == "ok" and r["split"] in splits}
+    if ids is not None:
+        if isinstance(ids, (str, bytes)):
+            raise TypeError(f"`ids`: expected a list of sequence ids, got {ids!r}")
+        ids = list(dict.fromkeys(ids))
+        unknown = [i for i in ids if i not in records]
+        if not ids or unknown:
+            raise ValueError(f"`ids`: {unknown or 'an empty list'} not among the ok sequences "
+                             f"of {splits} in {root}; name ids its manifest lists")
+        records = {i: records[i] for i in ids}
     members: Dict[str, bytes] = {}
     entries: Dict[str, Dict[str, Any]] = {}
     for rid in sorted(records):
@@ -371,6 +382,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("root", help="dataset folder (manifest.json + sequences/)")
     p.add_argument("out_file", help="the file to write")
     p.add_argument("--splits", nargs="+", default=None, help="splits (default: all)")
+    p.add_argument("--ids", nargs="+", default=None,
+                   help="only these sequence ids (default: every sequence of the splits)")
     p.add_argument("--max-mb", type=float, default=DEFAULT_MAX_BYTES / 1e6,
                    help="size limit in MB (10^6 bytes)")
     u = sub.add_parser("unpack", help="write a packed file's dataset folder")
@@ -383,7 +396,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if a.cmd == "pack":
             if not a.max_mb > 0:
                 ap.error(f"--max-mb: expected a positive size, got {a.max_mb}")
-            res: Any = pack(a.root, a.out_file, a.splits, int(a.max_mb * 1e6))
+            res: Any = pack(a.root, a.out_file, a.splits, int(a.max_mb * 1e6), ids=a.ids)
         else:
             res = unpack(a.file, a.root, a.cache_dir)
     except (OSError, ValueError, TypeError) as e:
