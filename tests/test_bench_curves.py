@@ -55,6 +55,21 @@ def test_report_plateau_column_says_which_way_the_last_quarter_moved():
     assert "better" not in text
 
 
+def test_report_gives_the_fit_to_the_training_sequences_against_lbs():
+    pts = _pts([6.0, 5.0, 4.8, 4.7])
+    for p, e in zip(pts, [4.0, 3.0, 2.5, 2.0]):
+        p["train_E_dist"] = e
+    rec = {"kind": "learned", "status": "ok", "method": "GarTrans (SAT)", "seed": 0,
+           "epochs": 1, "steps": 30, "metrics": {"E_dist": 9.5}, "config": {"batch_size": 16},
+           "curve": {"every": 10, "points": pts, "lbs_E_dist": 6.0, "train_lbs_E_dist": 4.0}}
+    text = "\n".join(curves.markdown([rec, dict(rec, seed=1, curve=dict(rec["curve"],
+                                                                      train_lbs_E_dist=None))]))
+    rows = [line for line in text.splitlines() if line.startswith("| GarTrans (SAT) |")]
+    assert rows[0].endswith("| 2.000 (0.50x) |") and rows[1].endswith("| 2.000 |")
+    assert "last on training sequences (cm, x LBS)" in text
+    assert "every 10 optimizer steps of 16 chunks" in text
+
+
 def test_report_when_no_method_reached_the_equal_step_snapshot():
     """Every run stopped by its time before the snapshot: the section names them and
     shows no equal-step table (this crashed the report once)."""
@@ -271,6 +286,10 @@ def test_bench_records_curves_and_scores_the_equal_step_snapshot(data_with_val, 
     assert recs[full]["curve"]["points"][-1]["train_E_dist"] == pytest.approx(
         fit["gartrans"]["E_dist"], rel=1e-4)
     assert recs[full]["curve"]["train_chunks"] == 2
+    lbs_fit = evaluate_split(module, data_with_val, "train", modes=("lbs",), history=3,
+                             nystrom_dim=16, num_landmarks=64)
+    assert recs[full]["curve"]["train_lbs_E_dist"] == pytest.approx(lbs_fit["lbs"]["E_dist"],
+                                                                    rel=1e-4)
     text = (tmp_path / "report.md").read_text()
     assert "## Learning curves (validation split) and equal steps" in text
     assert f"E_dist at {steps} steps (cm)" in text and (tmp_path / "learning_curves.png").exists()

@@ -211,6 +211,14 @@ def _per_sequence(records: Sequence[Dict[str, Any]], method: str) -> Dict[str, f
     return {k: statistics.fmean(v) for k, v in vals.items()}
 
 
+def _fit(r: Dict[str, Any]) -> str:
+    """A run's last error on the curves' training sequences, and its ratio to LBS's."""
+    last, lbs = r["curve"]["points"][-1].get("train_E_dist"), r["curve"].get("train_lbs_E_dist")
+    if last is None:
+        return "—"
+    return f"{last:.3f}" + (f" ({last / lbs:.2f}x)" if lbs else "")
+
+
 def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> List[str]:
     """The "Learning curves" section of ``report.md`` (empty without curves): per run,
     the validation error at the start, its best and last points, and the plateau test;
@@ -242,11 +250,10 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
             verdict, best = "too few points", "—"
         rows.append([r["method"], str(r["seed"]), str(pts[-1]["step"]), str(r.get("epochs", "—")),
                      f"{pts[0]['E_dist']:.3f}", best, f"{pts[-1]['E_dist']:.3f}",
-                     verdict] + ([fmt([pts[-1]["train_E_dist"]]) if "train_E_dist" in pts[-1]
-                                  else "—"] if train else []))
+                     verdict] + ([_fit(r)] if train else []))
     lines += table(["method", "seed", "steps", "epochs", "start (cm)", "best (cm) @ step",
-                    "last (cm)", "plateau"] + (["last on training sequences (cm)"] if train
-                                               else []), rows) + [""]
+                    "last (cm)", "plateau"] + (["last on training sequences (cm, x LBS)"]
+                                               if train else []), rows) + [""]
     if png:
         lines += [f"![learning curves]({png})", ""]
     snap = [r for r in rs if r.get("equal_steps")]

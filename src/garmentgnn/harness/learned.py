@@ -352,8 +352,12 @@ class LearnedRunner:
         if budget:
             info.update(budget_seconds=budget[0].seconds)
         if curve is not None:
-            lbs = self.val_error(lambda m, item: item.skinned())(module)
-            info.update(curve=dict(curve.to_json(), lbs_E_dist=lbs),
+            def skinned(m: L.LightningModule, item: GarmentInputs) -> Tensor:  # LBS
+                return item.skinned()
+            lbs = {"lbs_E_dist": self.val_error(skinned)(module)}
+            if self.train_fit is not None:
+                lbs["train_lbs_E_dist"] = self.val_error(skinned, self.train_fit)(module)
+            info.update(curve=dict(curve.to_json(), **lbs),
                         train_seconds=clock.seconds - curve.eval_seconds)
         return info
 
