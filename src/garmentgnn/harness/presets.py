@@ -181,7 +181,7 @@ def preset(name: str) -> Preset:
                 seeds=3, epochs=1000, window=3, ncs_epochs=1000, minutes=30.0,
                 epoch_chunks=400, batch_size=16, lr_factor=4.0,
                 seed_methods=(next(iter(methods.GARTRANS)),), curve_every=400,
-                val_sequences=8, train_sequences=8, equal_steps=500, test_sequences=40))
+                val_sequences=8, train_sequences=8, equal_steps=200, test_sequences=40))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 
