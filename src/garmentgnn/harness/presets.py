@@ -3,7 +3,7 @@ learned-method budget one run covers (``tiny``: the CI smoke test; ``small``: a 
 run; ``medium``, ``converge``, ``learn``: the learned methods; see docs/bench.md)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Dict, List, Optional, Tuple
 
 from garmentgnn.harness import methods, precision
@@ -170,18 +170,14 @@ def preset(name: str) -> Preset:
                 seed_methods=(next(iter(methods.GARTRANS)),), curve_every=100,
                 equal_steps=500))
     if name == "learn":
-        # every learned method to a validation plateau on the Blender `learn` dataset (420
-        # sequences; generate it with --engine blender, pass it with --data), batched:
-        # sized in docs/bench.md ("learn"); hours on 2 cores, resumable across sessions
-        return Preset(
-            name="learn", cases=(), seeds=1, reference=SimBudget(8, 50), budgets=(),
-            methods=(), batches=(1, 8, 32), warmup=1, repeats=3, threads=2,
-            dataset="learn", data_workers=2,
-            learned=methods.LearnedBudget(
-                seeds=3, epochs=1000, window=3, ncs_epochs=1000, minutes=30.0,
-                epoch_chunks=400, batch_size=16, lr_factor=4.0,
-                seed_methods=(next(iter(methods.GARTRANS)),), curve_every=400,
-                val_sequences=8, train_sequences=8, equal_steps=200, test_sequences=40))
+        # `converge`'s design on the Blender `learn` dataset (420 sequences; generate it with
+        # --engine blender, pass it with --data), batched: sized in docs/bench.md ("learn");
+        # hours on 2 cores, resumable across sessions
+        conv = preset("converge")
+        return replace(conv, name="learn", dataset="learn", learned=replace(
+            conv.learned, minutes=30.0, epoch_chunks=400, batch_size=16, lr_factor=4.0,
+            curve_every=400, val_sequences=8, train_sequences=8, equal_steps=200,
+            test_sequences=40))
     raise ValueError(f"`preset`: unknown {name!r}; choose one of {PRESET_NAMES}")
 
 
