@@ -18,7 +18,7 @@ dataset of that preset reads::
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --engines torch --sequences 1
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --commit
     OMP_NUM_THREADS=1 python benchmarks/gt_noise.py --engines blender --preset learn \
-        --sequences 8 --scales 1e-7 --commit
+        --sequences 12 --scales 1e-7 --commit
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ import platform
 import random
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -48,7 +49,7 @@ COMMITTED = HERE / "results" / "gt_noise"
 PRESETS = {"blender": "small", "torch": "tiny"}
 
 
-def pick(engine: str, n: int, name: str = None):
+def pick(engine: str, n: int, name: Optional[str] = None):
     """``n`` items of the engine's preset (``name``: another), spread over garment kinds
     (the first of each kind in spec order, then the next ones), each with its ``preset``."""
     name = name or PRESETS[engine]
