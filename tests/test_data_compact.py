@@ -119,6 +119,33 @@ def test_quantisation_error_and_wrapping():
     assert np.array_equal(compact.dequantise(*compact.quantise(flat)), flat)
 
 
+def test_a_run_across_14_m_packs_about_its_root(root, tmp_path):
+    """A body that runs 14 m in 60 frames (a `learn` item): its garment spans 14 m in the
+    world but under 2 m about the root, so it packs within 0.1 mm (16 bits over 14 m
+    would be off by 0.11 mm, which was refused)."""
+    data = tmp_path / "far"
+    shutil.copytree(root, data)
+    rec = json.loads((data / "manifest.json").read_text())["items"][0]
+    path = store.sequence_path(data, rec)
+    a = arrays(path)
+    T = a["positions"].shape[0]
+    shift = np.zeros((T, 3), np.float32)
+    shift[:, 1] = -np.linspace(0.0, 14.0, T, dtype=np.float32)
+    a["positions"] = a["positions"] + shift[:, None, :]
+    a["motion_translation"] = a["motion_translation"] + shift
+    meta = json.loads(a.pop("meta_json").tobytes().decode())
+    store.write_sequence(path, a, meta)
+    store.rebuild_manifest(data)
+    delta, off, scale = compact.quantise(a["positions"])  # without the root: over 0.1 mm
+    assert np.abs(compact.dequantise(delta, off, scale) - a["positions"]).max() > TOL
+    res = compact.pack(data, tmp_path / "far.zip")
+    assert res.max_position_error_m <= TOL
+    compact.unpack(tmp_path / "far.zip", tmp_path / "back", cache_dir=tmp_path / "c")
+    got = arrays(store.sequence_path(tmp_path / "back", rec))
+    assert np.abs(got["positions"] - a["positions"]).max() <= TOL
+    assert np.array_equal(got["motion_translation"], a["motion_translation"])
+
+
 def test_a_span_over_the_tolerance_is_refused(root, tmp_path):
     with pytest.raises(ValueError, match="`tolerance`.*off by up to"):
         compact.pack(root, tmp_path / "x.zip", tolerance=1e-7)

@@ -13,12 +13,14 @@ up exactly)::
                                   machine without the ``anny`` package builds the bodies
                                   from them, :func:`garmentgnn.body.anny_body.body_cache_path`)
 
-**Positions** are quantised per sequence and axis to 16 bits: ``q = round((p - offset) /
-scale)`` with ``offset`` the axis minimum and ``scale`` its range over 65,535, stored as
-frame-to-frame differences (modulo 2^16, so they deflate well).  The round trip is
-checked at pack time: a sequence whose largest error exceeds ``tolerance`` (0.1 mm) is a
-``ValueError`` (it would need a range over 13 m).  Every other array, ``meta_json``
-included, is kept bit for bit.
+**Positions** are quantised per sequence and axis to 16 bits, relative to the frame's
+``motion_translation`` (the body's root, which the garment travels with: a run of 60
+frames goes 14 m, while the garment spans under 2 m about its root): ``q = round((p -
+root_t - offset) / scale)`` with ``offset`` the axis minimum and ``scale`` its range over
+65,535, stored as frame-to-frame differences (modulo 2^16, so they deflate well).  The
+round trip is checked at pack time: a sequence whose largest error exceeds ``tolerance``
+(0.1 mm) is a ``ValueError`` (it would need a range over 13 m about its root).  Every
+other array, ``meta_json`` included, is kept bit for bit.
 
 :func:`unpack` writes a dataset folder that :class:`~garmentgnn.data.SequenceChunks` and
 :class:`~garmentgnn.training.GarmentDataModule` read like the original: the same ids,
@@ -58,7 +60,7 @@ __all__ = ["DEFAULT_MAX_BYTES", "FORMAT", "PackResult", "TOLERANCE", "UnpackResu
 PathLike = Union[str, os.PathLike]
 
 FORMAT = "garmentgnn-compact"
-VERSION = 1
+VERSION = 2  # 2: positions relative to motion_translation
 #: default size limit of a packed file (40 MB)
 DEFAULT_MAX_BYTES = 40_000_000
 #: largest position error of the quantisation (metres)
@@ -97,9 +99,13 @@ class UnpackResult:
 
 
 # --------------------------------------------------------------------------- arrays
-def quantise(positions: np.ndarray) -> Tuple[np.ndarray, List[float], List[float]]:
-    """``[T, V, 3]`` positions as uint16 frame differences, with per-axis offset and scale."""
+def quantise(positions: np.ndarray, origin: Optional[np.ndarray] = None
+             ) -> Tuple[np.ndarray, List[float], List[float]]:
+    """``[T, V, 3]`` positions (less ``origin [T, 3]``, each frame's) as uint16 frame
+    differences, with per-axis offset and scale."""
     p = np.asarray(positions, np.float64)
+    if origin is not None:
+        p = p - np.asarray(origin, np.float64)[:, None, :]
     lo = p.reshape(-1, 3).min(0) if p.size else np.zeros(3)
     hi = p.reshape(-1, 3).max(0) if p.size else np.zeros(3)
     scale = np.where(hi > lo, (hi - lo) / _LEVELS, 1.0)
@@ -109,12 +115,22 @@ def quantise(positions: np.ndarray) -> Tuple[np.ndarray, List[float], List[float
     return delta, lo.tolist(), scale.tolist()
 
 
-def dequantise(delta: np.ndarray, offset: Sequence[float], scale: Sequence[float]
-               ) -> np.ndarray:
-    """The float32 positions of :func:`quantise`'s output."""
+def dequantise(delta: np.ndarray, offset: Sequence[float], scale: Sequence[float],
+               origin: Optional[np.ndarray] = None) -> np.ndarray:
+    """The float32 positions of :func:`quantise`'s output (``origin``: the one it was
+    given)."""
     q = np.cumsum(np.asarray(delta, np.uint16), axis=0, dtype=np.uint16)
-    return (q * np.asarray(scale, np.float64) + np.asarray(offset, np.float64)
-            ).astype(np.float32)
+    p = q * np.asarray(scale, np.float64) + np.asarray(offset, np.float64)
+    if origin is not None:
+        p = p + np.asarray(origin, np.float64)[:, None, :]
+    return p.astype(np.float32)
+
+
+def _origin(arrays: Dict[str, np.ndarray]) -> Optional[np.ndarray]:
+    """The per-frame origin of a sequence's positions: its ``motion_translation``."""
+    root, pos = arrays.get("motion_translation"), arrays["positions"]
+    ok = root is not None and root.shape == (pos.shape[0], 3)
+    return root if ok else None
 
 
 def _npz_bytes(arrays: Dict[str, np.ndarray]) -> bytes:
@@ -143,16 +159,18 @@ def _packed_sequence(root: Path, rec: Dict[str, Any], tolerance: float
     path = store.sequence_path(root, rec)
     with np.load(path, allow_pickle=False) as z:  # every array, meta_json included
         arrays = {k: z[k] for k in z.files}
-    pos = arrays["positions"]
-    delta, offset, scale = quantise(pos)
-    err = float(np.abs(dequantise(delta, offset, scale) - pos).max()) if pos.size else 0.0
+    pos, origin = arrays["positions"], _origin(arrays)
+    delta, offset, scale = quantise(pos, origin)
+    back = dequantise(delta, offset, scale, origin)
+    err = float(np.abs(back - pos).max()) if pos.size else 0.0
     if not err <= tolerance:
-        span = float((pos.reshape(-1, 3).max(0) - pos.reshape(-1, 3).min(0)).max())
+        span = float(max(np.asarray(scale) * _LEVELS))
         raise ValueError(f"`tolerance`: the 16-bit positions of {rec['id']} are off by up to "
-                         f"{err:.3g} m (they span {span:.3g} m), over {tolerance:g} m; "
-                         f"raise tolerance or leave this sequence's split out")
+                         f"{err:.3g} m (they span {span:.3g} m about their root), over "
+                         f"{tolerance:g} m; raise tolerance or leave this sequence's split out")
     arrays["positions"] = delta
     entry = {"dtype": str(pos.dtype), "encoding": "uint16 frame differences",
+             "origin": None if origin is None else "motion_translation",
              "offset": offset, "scale": scale, "max_error_m": err}
     return _npz_bytes(arrays), entry
 
@@ -347,8 +365,9 @@ def unpack(file: PathLike, root: PathLike, cache_dir: Optional[PathLike] = None
         for rec in doc["records"]:
             arrays = _read_npz(zf.read(f"sequences/{rec['id']}.npz"))
             q = doc["positions"][rec["id"]]
-            arrays["positions"] = dequantise(arrays["positions"], q["offset"], q["scale"]
-                                             ).astype(q["dtype"])
+            origin = arrays["motion_translation"] if q["origin"] else None
+            arrays["positions"] = dequantise(arrays["positions"], q["offset"], q["scale"],
+                                             origin).astype(q["dtype"])
             meta = json.loads(arrays.pop("meta_json").tobytes().decode())
             path = store.write_sequence(root / store.SEQUENCES / f"{rec['id']}.npz",
                                         arrays, meta)
