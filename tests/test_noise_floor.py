@@ -1,6 +1,7 @@
 """The ground truth's noise floor: perturbations, per-frame divergence, the floor's summary,
 and the bench report showing a floor read from a results file (synthetic records)."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -157,7 +158,7 @@ def test_floor_reads_the_frames_valid_in_both_runs():
         pytest.approx(0.6 / 5)
     assert f["max_cm"] == 5.0
     none = nf.summarize([dict(runs[1], valid=[False, False])])["torch"]
-    assert none["frames"] == 0 and none["max_cm"] == 0.0 and none["mean_cm"] != none["mean_cm"]
+    assert none["frames"] == 0 and none["max_cm"] == 0.0 and math.isnan(none["mean_cm"])
 
 
 def test_a_dataset_preset_reads_its_own_committed_floor(tmp_path, monkeypatch):

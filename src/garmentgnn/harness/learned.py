@@ -105,8 +105,9 @@ class LearnedRunner:
             raise ValueError(f"`budget`: expected a LearnedBudget, got {type(budget).__name__}")
         self.data, self.budget, self.out = data, budget, Path(out)
         self.batches, self.warmup, self.repeats = tuple(batches), warmup, repeats
-        chunks = len(SequenceChunks(data.root, "train", DATA["chunk"], DATA["history"],
-                                    DATA["nystrom_dim"], DATA["num_landmarks"]))
+        self.train_chunks = chunks = len(SequenceChunks(  # an epoch of the whole split
+            data.root, "train", DATA["chunk"], DATA["history"], DATA["nystrom_dim"],
+            DATA["num_landmarks"]))
         if budget.batch_size > chunks:
             raise ValueError(f"--batch-size: {budget.batch_size} is more than the {chunks} "
                              f"training chunks of {data.root}; give at most {chunks}")
@@ -318,13 +319,12 @@ class LearnedRunner:
         budget = [TimeBudget(60.0 * minutes)] if minutes is not None else []
         curve = None
         if predict is not None and self.val is not None:
-            dm.setup("fit")  # its train_set: an epoch of the whole split, in chunks
             snap = self.budget.equal_steps
             every = max(1, self.budget.curve_every // dm.hparams.batch_size)
             fit = None if self.train_fit is None else self.val_error(predict, self.train_fit)
             curve = LearningCurve(every, self.val_error(predict), snap,
                                   None if snap is None else folder / "equal_steps.pt",
-                                  budget[0] if budget else None, fit, len(dm.train_set))
+                                  budget[0] if budget else None, fit, self.train_chunks)
         # save_top_k=1 without a monitor keeps the latest epoch's checkpoint; last.ckpt
         # links to it (Lightning writes last.ckpt only along with a top-k checkpoint)
         ckpt = ModelCheckpoint(dirpath=folder, save_last="link", save_top_k=1,
