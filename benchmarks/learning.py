@@ -12,10 +12,13 @@ same Lightning ``Trainer``:
   E_dist on the chunk against steps, and LBS's.
 * ``curves``: GarTrans settings and the DA- and HOOD-style baselines (``--variants``,
   :data:`VARIANTS`; NCS-style trains per garment on test poses) trained for the same
-  ``--steps`` on the training split; E_dist on the training and test sequences every
-  ``--every`` steps, as a ratio to LBS's on the same sequences (``--surface``: the
-  normal, edge-length and curvature errors too); with several ``--seed``, the mean over
-  seeds and a paired Wilcoxon test of each variant against the first.
+  ``--steps`` on the training split; E_dist on the valid frames of the training and test
+  sequences every ``--every`` steps, as a ratio to LBS's on the same frames, and per
+  held-out group at the end (``--surface``: the normal, edge-length and curvature errors
+  too); with several ``--seed``, the mean over seeds and a paired Wilcoxon test of each
+  variant against the first.  Each finished (variant, seed) run is kept in
+  ``curves.done.json``, so the same command run again after an interruption goes on
+  where it stopped.
 * ``energy``: the HOOD- and NCS-style models a ``garmentgnn bench`` run trained
   (``--bench``): their own objective, the physics terms they were trained on, on their
   test predictions against the same objective on the LBS garment, beside E_dist.
@@ -54,14 +57,14 @@ from learning_parts.curves import (curves_markdown, merge_curves, plot_curves,  
                                    read_curves)
 from learning_parts.objective import (objective_rollout, own_objective,  # noqa: E402
                                       part_energy, part_oracle)
-from learning_parts.train import (evenly, part_curves, part_grad,  # noqa: E402
-                                  part_overfit)
+from learning_parts.train import (evenly, frame_errors, part_curves,  # noqa: E402
+                                  part_grad, part_overfit)
 from learning_parts.variants import VARIANTS  # noqa: E402
 
 #: the functions this script offers to code that loads it (``runpy.run_path``)
-__all__ = ["VARIANTS", "curves_markdown", "evenly", "main", "merge_curves", "objective_rollout",
-           "own_objective", "parse_args", "part_curves", "part_energy", "part_grad",
-           "part_oracle", "part_overfit", "plot_curves"]
+__all__ = ["VARIANTS", "curves_markdown", "evenly", "frame_errors", "main", "merge_curves",
+           "objective_rollout", "own_objective", "parse_args", "part_curves", "part_energy",
+           "part_grad", "part_oracle", "part_overfit", "plot_curves"]
 
 RESULTS = HERE.parent / "docs" / "results" / "learning"
 
@@ -98,8 +101,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     ap.add_argument("--train-sequences", type=int_at_least(1), default=6,
                     help="training sequences measured by `curves` (evenly spaced)")
     ap.add_argument("--test-sequences", type=int_at_least(1), default=None,
-                    help="test sequences measured by `curves` and `oracle` (evenly spaced; "
-                         "default: all)")
+                    help="test sequences measured by `curves` (from each held-out group in "
+                         "turn) and `oracle` (evenly spaced); default: all")
     ap.add_argument("--seed", type=int, nargs="+", default=[0], action=Accumulate,
                     help="training seeds (curves: each variant once per seed; repeat the "
                          "flag or list several); the bench run's seed (energy: one)")
@@ -173,7 +176,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         else:
             r = part_curves(root, args.steps, args.every, args.variants or list(VARIANTS),
                             args.train_sequences, args.seed, args.surface,
-                            args.test_sequences)
+                            args.test_sequences, done=out / "curves.done.json")
             plot_curves(r["results"], out / f"{part}.png")
         (out / f"{part}.json").write_text(json.dumps({"command": command, **r["results"]},
                                                      indent=1))

@@ -487,3 +487,37 @@ def test_dataset_stamp_is_the_manifests_content_hash(dm):
     assert dataset_stamp(dm) == {"root": str(dm.root), "content_sha256": store.read_manifest(
         dm.root)["content_sha256"]}
     assert dataset_stamp(None) == {}
+
+
+def test_curves_score_valid_frames_and_held_out_groups():
+    """``curves`` measures E_dist on an item's valid frames only (the oracle: numpy's mean
+    over the kept frames), and its group table is each group's frame-weighted E_dist over
+    LBS's on the same sequences, by hand."""
+    bench = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
+                               "learning.py"), run_name="groups_check")
+    g = torch.Generator().manual_seed(0)
+    gt = torch.randn(5, 7, 3, generator=g)
+    pred = gt + 0.01 * torch.randn(5, 7, 3, generator=g)
+    valid = torch.tensor([True, False, True, True, False])
+    item = GarmentInputs(gt=gt, valid=valid)
+    per_frame = 100 * np.linalg.norm((pred - gt).numpy(), axis=-1).mean(-1)
+    np.testing.assert_allclose(bench["frame_errors"](pred, item).numpy(),
+                               per_frame[valid.numpy()], rtol=1e-6)
+    assert bench["frame_errors"](pred, GarmentInputs(gt=gt)).shape == (5,)
+    facts = {"a": {"group": "unseen body", "frames": 60, "lbs": 4.0},
+             "b": {"group": "unseen body", "frames": 20, "lbs": 8.0},
+             "c": {"group": "unseen motion", "frames": 50, "lbs": 5.0}}
+    last = {"step": 3, "train": 1.0, "test": 2.0,
+            "test_sequences": {"a": 2.0, "b": 6.0, "c": 4.0}}
+    res = {"lbs": {"train": 2.0, "test": 5.0}, "steps": 3, "seeds": [0],
+           "sequences": {"test": facts},
+           "variants": {"v": {"runs": [{"seed": 0, "status": "ok", "seconds": 90.0,
+                                        "curve": [last]}]}}}
+    lines = bench["curves_markdown"](res)
+    head = next(i for i, line in enumerate(lines) if line.startswith("Test split by held-out"))
+    assert "unseen body 2, unseen motion 1" in lines[head]
+    rows = {line.split(" | ")[0]: line.split(" | ") for line in lines[head:] if "|" in line}
+    body = (2.0 * 60 + 6.0 * 20) / 80 / ((4.0 * 60 + 8.0 * 20) / 80)
+    assert rows["| v"][1:] == [f"{body:.3f}", f"{4.0 / 5.0:.3f} |"]
+    assert rows["| LBS (cm)"][1] == f"{(4.0 * 60 + 8.0 * 20) / 80:.3f}"
+    assert next(line for line in lines if line.startswith("| v |")).split(" | ")[6] == "1.5"

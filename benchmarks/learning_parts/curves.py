@@ -50,7 +50,7 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
         failures = "; ".join(f"seed {run['seed']}: {run['status']}" for run in r["runs"]
                              if run["status"] != "ok")
         if not ok:
-            rows.append([name, "—", "—", "—", "—", "—", failures])
+            rows.append([name, "—", "—", "—", "—", "—", "—", failures])
             continue
         c = mean_curve(ok)
         best = min(c, key=lambda row: row["test"])
@@ -64,7 +64,8 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
         rows.append([name, str(ok[0]["curve"][-1]["step"]),
                      spread([run["curve"][-1]["train"] / lbs["train"] for run in ok]),
                      spread([run["curve"][-1]["test"] / lbs["test"] for run in ok]),
-                     f"{best['test'] / lbs['test']:.3f} @ {best['step']}", p, failures])
+                     f"{best['test'] / lbs['test']:.3f} @ {best['step']}", p,
+                     _minutes(ok), failures])
     lines = [f"E_dist / LBS's (LBS: train {lbs['train']:.3f} cm over {count['train']} "
              f"sequences, test {lbs['test']:.3f} cm over {count['test']}); "
              f"{'seed' if len(seeds) == 1 else 'mean ± std over seeds'} "
@@ -72,7 +73,8 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
              f"`{names[0] if names else ''}` over (seed, test sequence) at the last step, "
              "with the median difference:", ""]
     lines += table(["variant", "steps", "train", "test", "best test (seed mean)",
-                    "p vs first", "failure"], rows)
+                    "p vs first", "minutes", "failure"], rows)
+    lines += group_lines(res)
     phased = [(name, run["seed"], run["transitions"]) for name, r in res["variants"].items()
               for run in r["runs"] if "transitions" in run]
     if phased:
@@ -94,6 +96,49 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
                   ""]
         lines += table(["variant", "steps", *SURFACE], srows)
     return lines
+
+
+def _minutes(runs: List[Dict[str, Any]]) -> str:
+    """The runs' mean wall time in minutes (training and its measurements)."""
+    secs = [run["seconds"] for run in runs if "seconds" in run]
+    return f"{statistics.mean(secs) / 60:.1f}" if secs else "—"
+
+
+def group_lines(res: Dict[str, Any]) -> List[str]:
+    """The test split's held-out groups at the last step: each variant's E_dist (mean
+    over seeds, frame-weighted over the group's sequences) over LBS's on the same frames
+    (results that record their ``sequences``; none before)."""
+    facts = res.get("sequences", {}).get("test")
+    if not facts:
+        return []
+    groups = sorted({f["group"] for f in facts.values()})
+
+    def weighted(per_seq: Dict[str, float], group: str) -> Optional[float]:
+        seqs = [q for q, f in facts.items() if f["group"] == group and q in per_seq]
+        if not seqs:
+            return None
+        w = sum(facts[q]["frames"] for q in seqs)
+        return sum(per_seq[q] * facts[q]["frames"] for q in seqs) / w
+
+    lbs = {q: f["lbs"] for q, f in facts.items()}
+    rows = [["LBS (cm)"] + [f"{weighted(lbs, g):.3f}" for g in groups]]
+    for name, r in res["variants"].items():
+        ok = [run for run in r["runs"] if run["curve"]]
+        if not ok:
+            continue
+        mean = {q: statistics.mean(run["curve"][-1]["test_sequences"][q] for run in ok)
+                for q in ok[0]["curve"][-1]["test_sequences"]}
+        cells = []
+        for g in groups:
+            m = weighted(mean, g)
+            # LBS on the very sequences the variant was scored on
+            ref = weighted({q: lbs[q] for q in mean if q in lbs}, g)
+            cells.append("—" if m is None or ref is None else f"{m / ref:.3f}")
+        rows.append([name] + cells)
+    counts = ", ".join(f"{g} {sum(f['group'] == g for f in facts.values())}" for g in groups)
+    return (["", "Test split by held-out group at the last step (E_dist / LBS's on the same "
+             f"valid frames; sequences per group: {counts}):", ""]
+            + table(["variant", *groups], rows))
 
 
 def _errors(variant: Dict[str, Any]) -> List[Any]:

@@ -14,6 +14,8 @@ import lightning as L
 import torch
 
 from garmentgnn.data import SequenceChunks
+from garmentgnn.data.store import read_manifest
+from garmentgnn.harness import scoring
 from garmentgnn.harness.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
                                         variant_settings)
 from garmentgnn.harness.tables import table
@@ -76,12 +78,13 @@ def methods(dims: Dict[str, int], num_vertices: int, only: Optional[Sequence[str
     return out
 
 
-def whole_sequences(root: Path, split: str, history: Optional[int] = None) -> SequenceChunks:
-    """``split``'s sequences, one item each, with the bench's data settings (``history``:
-    another pose history length)."""
+def whole_sequences(root: Path, split: str, history: Optional[int] = None,
+                    ids: Optional[Sequence[str]] = None) -> SequenceChunks:
+    """``split``'s sequences (``ids``: these alone), one item each, with the bench's data
+    settings (``history``: another pose history length)."""
     return SequenceChunks(root, split, chunk=10 ** 9, history=history or DATA["history"],
                           nystrom_dim=DATA["nystrom_dim"], num_landmarks=DATA["num_landmarks"],
-                          cache_size=64)
+                          cache_size=64, ids=ids)
 
 
 class _Fixed(torch.utils.data.Dataset):
@@ -110,9 +113,23 @@ def predict(module: L.LightningModule, item) -> torch.Tensor:
     return out["final"] if isinstance(out, dict) else out
 
 
+def frame_errors(pred: torch.Tensor, item) -> torch.Tensor:
+    """E_dist (cm) of each of ``item``'s valid ground-truth frames (``item.valid``: every
+    frame where the item does not say)."""
+    err = vertex_distance(pred, item.gt)  # [T]
+    valid = item.get("valid")
+    return err if valid is None else err[valid]
+
+
+def split_error(errors: Sequence[torch.Tensor]) -> float:
+    """The frame mean of per-sequence :func:`frame_errors` (cm)."""
+    return float(torch.cat(list(errors)).mean())
+
+
 class Probe(L.Callback):
-    """E_dist (cm) of ``sets`` (name -> list of whole-sequence items) every ``every``
-    optimizer steps, and at step 0."""
+    """E_dist (cm, on valid frames) of ``sets`` (name -> list of whole-sequence items)
+    every ``every`` optimizer steps, and at step 0; per sequence its mean and its valid
+    frame count."""
 
     def __init__(self, sets: Dict[str, List[Any]], every: int, label: str = "",
                  surface: bool = False) -> None:
@@ -128,10 +145,10 @@ class Probe(L.Callback):
         row: Dict[str, Any] = {"step": step, "train_seconds": self.train_seconds}
         for name, items in self.sets.items():
             preds = [predict(module, it) for it in items]
-            errs = [float(vertex_distance(p, it.gt).mean()) for p, it in zip(preds, items)]
-            row[f"{name}_sequences"] = {it.seq_id: e for it, e in zip(items, errs)}
-            row[name] = (sum(e * it.gt.shape[0] for e, it in zip(errs, items))
-                         / sum(it.gt.shape[0] for it in items))
+            errs = [frame_errors(p, it) for p, it in zip(preds, items)]
+            row[f"{name}_sequences"] = {it.seq_id: float(e.mean()) for it, e in zip(items, errs)
+                                        if e.numel()}
+            row[name] = split_error(errs)
             if self.surface:  # the other Table 3 metrics, frame-weighted
                 row[f"{name}_metrics"] = self.weighted(
                     [(evaluate_inputs(p, it), it) for p, it in zip(preds, items)])
@@ -159,8 +176,21 @@ class Probe(L.Callback):
 
 
 def lbs_error(items: Sequence[Any]) -> float:
-    num = sum(float(vertex_distance(it.skinned(), it.gt).mean()) * it.gt.shape[0] for it in items)
-    return num / sum(it.gt.shape[0] for it in items)
+    """LBS's E_dist (cm) on ``items``' valid frames."""
+    return split_error([frame_errors(it.skinned(), it) for it in items])
+
+
+def sequence_facts(items: Sequence[Any], records: Dict[str, Dict[str, Any]]
+                   ) -> Dict[str, Dict[str, Any]]:
+    """Per item: its held-out group, valid frame count and LBS's E_dist (cm) there."""
+    out = {}
+    for it in items:
+        e = frame_errors(it.skinned(), it)
+        if e.numel():
+            out[it.seq_id] = {"group": scoring.group_of(records[it.seq_id].get("held_out", []))
+                              or "nothing held out", "frames": int(e.numel()),
+                              "lbs": float(e.mean())}
+    return out
 
 
 # ------------------------------------------------------------------------- the parts
@@ -234,29 +264,49 @@ def evenly(items: Sequence[Any], n: int) -> List[Any]:
 
 def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 train_sequences: int, seeds: Sequence[int],
-                surface: bool = False, test_sequences: Optional[int] = None) -> Dict[str, Any]:
+                surface: bool = False, test_sequences: Optional[int] = None,
+                done: Optional[Path] = None) -> Dict[str, Any]:
     """Each variant trained once per seed; the table gives the mean over seeds at the last
     step and, against the first variant, a paired Wilcoxon test over (seed, test sequence).
-    ``test_sequences``: that many of the test split, evenly spaced (default: all)."""
+    ``test_sequences``: that many of the test split, taken in turn from each held-out
+    group (:func:`~garmentgnn.harness.scoring.stratified`; default: all).  Errors are on
+    valid ground-truth frames.  ``done``: a file that keeps every finished (variant,
+    seed) run, so that the part run again with the same settings after an interruption
+    trains only the runs it had not finished."""
     dims = datamodule(root, seeds[0]).dims
+    records = {r["id"]: r for r in read_manifest(root)["items"]}
+    test_ids = None
+    if test_sequences:
+        test_ids = scoring.stratified([r for r in records.values() if r["split"] == "test"
+                                       and r["status"] == "ok"], test_sequences)
 
     def sequences(history: Optional[int] = None) -> Dict[str, List[Any]]:
-        test = whole_sequences(root, "test", history)
+        test = whole_sequences(root, "test", history, test_ids)
         train = whole_sequences(root, "train", history)
-        return {"train": evenly(train, train_sequences),
-                "test": evenly(test, test_sequences or len(test))}
+        return {"train": evenly(train, train_sequences), "test": list(test)}
 
     sets = sequences()
     lbs = {k: lbs_error(v) for k, v in sets.items()}
-    res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seeds": list(seeds), "variants": {}}
+    res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seeds": list(seeds), "variants": {},
+                           "sequences": {k: sequence_facts(v, records) for k, v in sets.items()}}
     if surface:
         res["lbs_metrics"] = {k: Probe.weighted([(evaluate_inputs(it.skinned(), it), it)
                                                   for it in v]) for k, v in sets.items()}
+    key = {"data": str(root), "steps": steps, "every": every, "train_sequences":
+           train_sequences, "test_sequences": test_sequences, "surface": surface}
+    kept: Dict[str, Any] = {}
+    if done is not None and done.is_file():
+        saved = json.loads(done.read_text())
+        kept = saved["runs"] if saved.get("key") == key else {}
     for name in variants:
         v = VARIANTS[name]
         data = v.get("data")
         runs = []
         for seed in seeds:
+            old = [r for r in kept.get(name, []) if r["seed"] == seed and r["status"] == "ok"]
+            if old:  # finished before an interruption
+                runs.append(old[0])
+                continue
             L.seed_everything(seed, verbose=False)
             module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
                       else gartrans(dims, overrides=v.get("model")))
@@ -279,5 +329,8 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
             print(f"curves {name}, seed {seed}: " + ", ".join(
                 f"{k} {last.get(k, math.nan) / lbs[k]:.3f}" for k in sets)
                 + f" x LBS ({status})", flush=True)
+            if done is not None:
+                kept.setdefault(name, []).append(runs[-1])
+                done.write_text(json.dumps({"key": key, "runs": kept}))
         res["variants"][name] = {"settings": v, "runs": runs}
     return {"results": res, "markdown": curves_markdown(res, surface)}

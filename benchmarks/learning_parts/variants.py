@@ -95,3 +95,25 @@ _FORMER_INPUTS: Dict[str, Any] = {"local_frame": False, "input_norm": False}
 for _name, _v in VARIANTS.items():
     if _name != "config" and "baseline" not in _v:
         _v["model"] = dict(_FORMER_INPUTS, **_v.get("model", {}))
+
+#: the bench's ``learn`` settings: 16 chunks a step, 4x the learning rate
+_LEARN: Dict[str, Any] = {"model": {"lr": 0.012}, "data": {"batch_size": 16}}
+#: which model can hold the garment's state (docs/experiments.md), today's config at the
+#: ``learn`` settings, one garment state each (``models/state.py``)
+STATE: Dict[str, Dict[str, Any]] = {
+    "state: frame-parallel (the paper)": {},
+    # the GRU's code over a 1 s pose history into the dynamic stack's vertices too
+    "state: motion code to the dynamic stack, 1 s history": {
+        "model": {"dynamic_code": True}, "data": {"history": 30}},
+    # a latent of 16 channels per vertex, truncated backpropagation through each chunk
+    "state: recurrent vertex latent": {"model": {"vertex_state": 16}},
+    # its own previous offsets, MeshGraphNets'/HOOD's recipe: 3 mm noise on the
+    # simulated start frames, rollouts growing 1 -> 5 frames, gradients clipped at 1
+    "state: autoregressive, 3 mm noise, rollout 1-5, clip 1": {
+        "model": {"autoregressive": True, "rollout": 5, "rollout_ramp": 100,
+                  "rollout_noise": 0.003}, "trainer": {"gradient_clip_val": 1.0}},
+}
+for _v in STATE.values():
+    for _k, _base in _LEARN.items():
+        _v[_k] = dict(_base, **_v.get(_k, {}))
+VARIANTS.update(STATE)

@@ -6,7 +6,7 @@ rebuilt from its checkpoint."""
 from __future__ import annotations
 
 import inspect
-from typing import Any, Dict, List, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -17,7 +17,7 @@ from torch.nn.parameter import UninitializedParameter
 from garmentgnn.nn import TensorCache, make_layer
 
 __all__ = ["AttentionStack", "Configurable", "RunningNormalizer", "batch_edges",
-           "cached_batch_edges", "geometric_init_", "mlp"]
+           "cached_batch_edges", "check_arguments", "geometric_init_", "mlp"]
 
 
 class Configurable:
@@ -207,3 +207,32 @@ class AttentionStack(nn.Module):
             if i < len(self.layers) - 1 or self.last_act:
                 x = self.act_(x) if not torch.is_grad_enabled() else self.act(x)
         return x
+
+
+def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
+                    accel_unit: Optional[float], strain_limit: int,
+                    collision_projection: Optional[float], vertex_state: int,
+                    autoregressive: bool) -> None:
+    """A ``ValueError`` naming the first bad argument of
+    :class:`~garmentgnn.models.GarTrans` (its docstring says what each means)."""
+    if lbs_start and not skin_prior:
+        raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
+                         "(or set `lbs_start=False`)")
+    if not gate_init >= 0:
+        raise ValueError(f"`gate_init`: expected a value >= 0, got {gate_init}")
+    if accel_unit is not None and not accel_unit > 0:
+        raise ValueError(f"`accel_unit`: expected metres per output unit > 0 or None, "
+                         f"got {accel_unit}")
+    if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
+        raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got "
+                         f"{strain_limit!r}")
+    if collision_projection is not None and not collision_projection >= 0:
+        raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
+                         f"None, got {collision_projection}")
+    if not isinstance(vertex_state, int) or isinstance(vertex_state, bool) \
+            or vertex_state < 0:
+        raise ValueError(f"`vertex_state`: expected a latent width >= 0, got "
+                         f"{vertex_state!r}")
+    if vertex_state and autoregressive:
+        raise ValueError("`vertex_state`, `autoregressive`: one garment state at a time; "
+                         "set `vertex_state=0` or `autoregressive=False`")

@@ -10,7 +10,8 @@ The project's defaults differ from the paper where measured better (docs/model.m
 :meth:`GarTrans.paper` (``configs/ablations/paper.yaml``) is the paper's form.  Choices
 where the paper is vague: per-vertex Nyström features (``V x k`` through FC layers);
 ``Θ^[1]`` = the GRU's last hidden state -> linear -> ``S``; ``a`` added to the coarse mesh
-(frame-parallel); any registry layer in any slot.
+(frame-parallel, unless a state is carried: :mod:`~garmentgnn.models.state`); any
+registry layer in any slot.
 """
 from __future__ import annotations
 
@@ -20,26 +21,27 @@ import torch
 from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
-from garmentgnn.geometry import (edge_features, edge_lengths, project_edge_lengths,
-                                unique_edges, vertex_normals)
+from garmentgnn.geometry import edge_features, edge_lengths, unique_edges, vertex_normals
 from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNormalizer,
-                                      cached_batch_edges, geometric_init_, mlp)
+                                      cached_batch_edges, check_arguments, geometric_init_,
+                                      mlp)
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.models.sequence import ChunkLayout, SequencePrediction, StaticFeatures
+from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
+                                        StaticFeatures)
+from garmentgnn.models.state import TeacherForcing, autoregressive_steps, recurrent_steps
 
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
 BLEND_UNIT = 0.01
 
-#: the :class:`GarTrans` arguments of the paper's own form (§3.1, §4.1): from-scratch
-#: skinning weights, no gates, the blend shape, an acceleration output, no strain limit,
-#: no collision projection, no input normalisers, a world-frame dynamic stack
+#: the :class:`GarTrans` arguments of the paper's own form (§3.1, §4.1; the Args below
+#: say what each switches off)
 PAPER_FORM: Dict[str, Any] = {"skin_prior": False, "lbs_start": False, "gate_init": 0.0,
                               "blend_shape": True, "accel_unit": None, "input_norm": False,
                               "local_frame": False, "strain_limit": 0,
                               "collision_projection": None}
 
 
-class GarTrans(Configurable, SequencePrediction, nn.Module):
+class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
     """The full model.  Layer slots take registry names (``sat``, ``gt``, ``gt_edge``,
     ``structure_aware``, ``gat``), so the paper's ablations are one argument.  The
     defaults are the project's; :meth:`paper` builds the paper's form (:data:`PAPER_FORM`).
@@ -52,14 +54,12 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
         heads: attention heads (4 in the paper).  fps: frame rate (velocities, ``dt^2``).
         use_body: feed the body-vertex-to-joint distances (``False``: a learned per-joint
             code for ``b^[1]``, for scenes without a body).
-        skin_prior: ``W^t`` starts from the garment's skinning weights
-            (``softmax(log W_prior + x''')``); ``False`` (the paper) learns them from
-            scratch, which on small datasets leaves the coarse mesh far from plain LBS.
+        skin_prior: ``W^t`` starts from the garment's skinning weights (``softmax(log
+            W_prior + x''')``); ``False`` (the paper): learned from scratch.
         lbs_start: ReZero-style gates (three learnable scalars started at ``gate_init``)
             on what each learned branch adds to plain skinning: the skinning logits, the
-            blend shape and the dynamic output (needs ``skin_prior``).  At ``gate_init``
-            0 the untrained model is exactly LBS but the gated branches get no gradient
-            until the gates move; at 1 every branch learns from the first step.
+            blend shape and the dynamic output (needs ``skin_prior``).  At 0 the untrained
+            model is LBS but gated branches get no gradient until the gates move.
         blend_shape: the blend shape ``B^t`` and its stack (the paper).
         accel_unit: metres per unit of the dynamic output (``0.01``: centimetres); ``None``
             (the paper): an acceleration, ``a dt^2``.
@@ -69,13 +69,16 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
             (the rotation of its blended skinning transform, Eq. 1): velocity and normal
             enter as ``R_v^T x`` with the local gravity direction and the rest position as
             six more features, and the output is turned back by ``R_v``.
-        strain_limit: sweeps of a differentiable step shortening edges longer than at
-            rest (Provot's strain limit, :func:`~garmentgnn.geometry.project_edge_lengths`);
-            ``0`` (the paper): none.
+        strain_limit: sweeps of Provot's strain limit, shortening edges longer than at
+            rest (:func:`~garmentgnn.geometry.project_edge_lengths`); ``0`` (the paper): none.
         collision_projection: margin ``eps`` (metres) of a last differentiable step moving
             vertices closer than ``eps`` to the body (or inside it) to ``eps`` outside
             (:func:`~garmentgnn.geometry.push_outside`); ``None`` (the paper): none.
         compile_search: ``torch.compile`` the projection's nearest-face search (faster).
+        dynamic_code: the GRU's code ``Θ^[1]`` also enters the dynamic stack's vertices.
+        vertex_state, autoregressive: a garment state (:mod:`~garmentgnn.models.state`):
+            a recurrent latent of this width per vertex (``0``: none), or the own offsets
+            from the coarse mesh at the two frames before.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -85,22 +88,13 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
                  blend_shape: bool = False, accel_unit: Optional[float] = 0.01,
                  input_norm: bool = True, local_frame: bool = True, strain_limit: int = 10,
                  collision_projection: Optional[float] = 0.002,
-                 compile_search: bool = False) -> None:
+                 compile_search: bool = False, dynamic_code: bool = False,
+                 vertex_state: int = 0, autoregressive: bool = False) -> None:
         super().__init__()
-        if lbs_start and not skin_prior:
-            raise ValueError("`lbs_start`: starting from LBS needs `skin_prior=True` "
-                             "(or set `lbs_start=False`)")
-        if not gate_init >= 0:
-            raise ValueError(f"`gate_init`: expected a value >= 0, got {gate_init}")
-        if accel_unit is not None and not accel_unit > 0:
-            raise ValueError(f"`accel_unit`: expected metres per output unit > 0 or None, "
-                             f"got {accel_unit}")
-        if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) or strain_limit < 0:
-            raise ValueError(f"`strain_limit`: expected a number of sweeps >= 0, got "
-                             f"{strain_limit!r}")
-        if collision_projection is not None and not collision_projection >= 0:
-            raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
-                             f"None, got {collision_projection}")
+        check_arguments(lbs_start=lbs_start, skin_prior=skin_prior, gate_init=gate_init,
+                        accel_unit=accel_unit, strain_limit=strain_limit,
+                        collision_projection=collision_projection, vertex_state=vertex_state,
+                        autoregressive=autoregressive)
         S = num_joints
         self.num_joints, self.num_body_vertices, self.fps, self.edge_dim = \
             S, num_body_vertices, fps, edge_dim
@@ -108,7 +102,8 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
         self.gate_init, self.accel_unit = float(gate_init), accel_unit
         self.input_norm, self.local_frame = bool(input_norm), bool(local_frame)
         self.strain_limit, self.collision_projection = strain_limit, collision_projection
-        self.compile_search = bool(compile_search)
+        self.compile_search, self.dynamic_code, self.vertex_state, self.autoregressive = \
+            bool(compile_search), bool(dynamic_code), vertex_state, bool(autoregressive)
         self.rest_fc = mlp([6 + S, 128, 128, 128], nn.Tanh())
         self.rest_attn = AttentionStack(rest_layer, 128, [64, 64, 128], heads, edge_dim, "tanh",
                                         last_act=True)
@@ -120,9 +115,11 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
         self.gru_out = nn.Linear(128, S)
         self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
                                     last_act=False) if blend_shape else None
-        dyn_in = 3 + 3 + S + (6 if self.local_frame else 0)  # + rest position, gravity
-        self.dynamic = AttentionStack(dynamic_layer, dyn_in, [32, 64, 64, 64, 32, 3], heads,
-                                      edge_dim, "elu", last_act=False)
+        dyn_in = (3 + 3 + S + (6 if self.local_frame else 0)  # + rest position, gravity
+                  + (S if dynamic_code else 0) + vertex_state + (6 if autoregressive else 0))
+        self.dynamic = AttentionStack(dynamic_layer, dyn_in, [32, 64, 64, 64, 32,
+                                                              3 + 2 * vertex_state],
+                                      heads, edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
         self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
         norm = RunningNormalizer if self.input_norm else (lambda size: nn.Identity())
@@ -207,14 +204,16 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
         return torch.where(still.unsqueeze(1), ones, code) if bool(still.any()) else code
 
     def coarse(self, inputs: GarmentInputs, static: StaticFeatures
-               ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+               ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Optional[Tensor]]:
         """Coarse meshes ``M^{t-1,c}, M^{t,c}`` ``[B, V, 3]`` (frame t's weights for
         both), the skinning weights ``W^t`` ``[B, V, S]``, the posed joints ``[N, B, S,
-        3]`` and each vertex's skinning rotation ``R_v`` ``[B, V, 3, 3]`` at frame t."""
+        3]``, each vertex's skinning rotation ``R_v`` ``[B, V, 3, 3]`` at frame t and
+        (``dynamic_code``; else ``None``) each vertex's motion code ``[B, V, S]``."""
         lay = ChunkLayout(inputs)
         N, B, V = lay.N, lay.B, inputs.num_vertices
         code = self.motion_code(lay.rotations.flatten(0, 1), lay.translation.flatten(0, 1))
-        x3 = static.x2.unsqueeze(0) * lay.per_vertex(code.view(N, B, -1))  # [B, V, S]
+        code = lay.per_vertex(code.view(N, B, -1))
+        x3 = static.x2.unsqueeze(0) * code  # [B, V, S]
         logits = x3 if static.log_prior is None else self._gate(0, x3) + static.log_prior
         W = torch.softmax(logits, -1)  # W^t
         template = inputs.rest_pos.unsqueeze(0).expand(B, V, 3)
@@ -235,13 +234,16 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
             M = lay.blend_transforms(W, A[:, :, k])  # [B, V, 4, 4]
             verts.append((M[..., :3, :3] @ template.unsqueeze(-1)).squeeze(-1)
                          + M[..., :3, 3])
-        return verts[0], verts[1], W, joints[:, :, 1], M[..., :3, :3]
+        code = code.expand(B, V, -1) if self.dynamic_code else None
+        return verts[0], verts[1], W, joints[:, :, 1], M[..., :3, :3], code
 
     # -- 3. SAT deformation ---------------------------------------------------------------
     def deform(self, inputs: GarmentInputs, prev: Tensor, cur: Tensor, joints: Tensor,
-               R: Tensor) -> Tensor:
-        """The dynamic stack's output ``a`` ``[B, V, 3]`` for the coarse mesh ``cur`` (world
-        frame, in units of :attr:`unit` metres), from its velocity since ``prev``."""
+               R: Tensor, extra: Optional[Tensor] = None) -> Tensor:
+        """The dynamic stack's output ``a`` ``[B, V, 3 + 2 vertex_state]`` for the coarse
+        mesh ``cur`` (world frame, in units of :attr:`unit` metres; the state's channels
+        after), from its velocity since ``prev``; ``extra`` ``[B, V, k]``: more vertex
+        features (motion code, state)."""
         lay = ChunkLayout(inputs)
         B, V = cur.shape[:2]
         vel, n = (cur - prev) * self.fps, vertex_normals(cur, inputs.faces)
@@ -251,12 +253,13 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
             down = R.new_tensor([0.0, 0.0, -1.0]).expand(B, V, 3)
             vel, n, down = (torch.einsum("bvji,bvj->bvi", R, x) for x in (vel, n, down))
             feats = [vel, n, dj, inputs.rest_pos.unsqueeze(0).expand(B, V, 3), down]
-        x = self.dynamic_norm(torch.cat(feats, -1).reshape(B * V, -1))
+        x = self.dynamic_norm(torch.cat(feats + [extra] * (extra is not None), -1)
+                              .reshape(B * V, -1))
         ei = cached_batch_edges(inputs.edge_index, B, V)
         e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))
-        a = self.dynamic(x, ei, e).view(B, V, 3)
+        a = self.dynamic(x, ei, e).view(B, V, -1)
         if self.local_frame:  # back to the world: R_v a
-            a = torch.einsum("bvij,bvj->bvi", R, a)
+            a = torch.cat([torch.einsum("bvij,bvj->bvi", R, a[..., :3]), a[..., 3:]], -1)
         return a
 
     @property
@@ -264,37 +267,34 @@ class GarTrans(Configurable, SequencePrediction, nn.Module):
         """Metres per unit of the dynamic output (``dt^2``: the paper's acceleration)."""
         return self.fps ** -2 if self.accel_unit is None else self.accel_unit
 
-    # -- 4. post-steps ----------------------------------------------------------------------
-    def post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor) -> Tensor:
-        """The strain limit, then the collision projection against each chunk's body."""
-        if self.strain_limit:
-            edges, lengths = static.strain_edges, static.strain_lengths
-            if edges is None:  # static features made by a model without the strain limit
-                edges = unique_edges(inputs.faces, inputs.num_vertices).edges
-                lengths = edge_lengths(inputs.rest_pos, edges)
-            x = project_edge_lengths(x, edges, lengths, self.strain_limit, stretch_only=True)
-        body = inputs.get("body_pos")
-        if self.collision_projection is None or body is None:
-            return x
-        return ChunkLayout(inputs).push_outside(x, inputs, self.collision_projection,
-                                                compiled=self.compile_search)
-
     def forward(self, inputs: GarmentInputs, static: Optional[StaticFeatures] = None,
-                prev_final: Optional[Tensor] = None) -> Dict[str, Tensor]:
+                prev_final: Optional[Tensor] = None, state: Optional[Tensor] = None,
+                teacher: Optional[TeacherForcing] = None) -> Dict[str, Tensor]:
         """``M^{t,d}`` of every frame of ``inputs`` (frame-parallel; a ``Batch`` of chunks
         as one union graph).  ``static``: a cached :meth:`encode_static` of the same
         garments; ``prev_final`` ``[B, V, 3]``: the garment at frame ``t-1`` in place of
-        the coarse ``M^{t-1,c}`` (autoregressive use, :meth:`rollout`).
+        the coarse ``M^{t-1,c}`` (autoregressive use, :meth:`rollout`).  With a garment
+        state the frames run in order from ``state`` (``None``: a motion's start) and
+        ``teacher`` trains ``autoregressive`` (:mod:`~garmentgnn.models.state`).
 
-        Returns ``final``, ``coarse``, ``accel`` (``[B, V, 3]``) and ``weights``
-        (``[B, V, S]``)."""
+        Returns ``final``, ``coarse``, ``accel`` (``[B, V, 3]``), ``weights`` (``[B, V,
+        S]``) and, with a garment state, the ``state`` a next call continues from."""
         static = self.encode_static(inputs) if static is None else static
-        prev, cur, W, joints, R = self.coarse(inputs, static)
+        prev, cur, W, joints, R, code = self.coarse(inputs, static)
+        out = {"coarse": cur, "weights": W}
+        if self.vertex_state or self.autoregressive:
+            run = recurrent_steps if self.vertex_state else autoregressive_steps
+            out["final"], out["accel"], out["state"] = run(
+                self, inputs, static, prev, cur, joints, R, code, state, teacher, prev_final)
+            return out
+        if state is not None or teacher is not None:
+            raise ValueError("`state`, `teacher`: for a model with a garment state "
+                             "(`vertex_state` or `autoregressive`)")
         if prev_final is not None:
             if prev_final.shape != cur.shape:
                 raise ValueError(f"`prev_final`: expected {tuple(cur.shape)}, got "
                                  f"{tuple(prev_final.shape)}")
             prev = prev_final
-        accel = self.deform(inputs, prev, cur, joints, R)
-        final = self.post_steps(inputs, static, cur + self._gate(2, accel * self.unit))
-        return {"final": final, "coarse": cur, "accel": accel, "weights": W}
+        out["accel"] = a = self.deform(inputs, prev, cur, joints, R, code)
+        out["final"] = self.post_steps(inputs, static, cur + self._gate(2, a * self.unit))
+        return out

@@ -181,11 +181,13 @@ class GarmentInputs(Data):
 
     def select(self, idx: Tensor) -> "GarmentInputs":
         """The same garment restricted to frames ``idx`` (per-frame keys indexed, static
-        keys shared, not copied)."""
+        keys shared, not copied); of a batch, the same frames of every chunk (its
+        stacked per-frame keys indexed along their frame axis, dim 1)."""
         out = copy.copy(self)
+        batched = isinstance(self, Batch)
         for k in FRAME_KEYS:
             if k in self:
-                out[k] = self[k][idx]
+                out[k] = (self[k][:, idx] if batched and k in STACKED_KEYS else self[k][idx])
         return out
 
     def cycled(self, b: int) -> "GarmentInputs":

@@ -11,7 +11,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from garmentgnn.geometry import push_outside
+from garmentgnn.geometry import edge_lengths, project_edge_lengths, push_outside, unique_edges
 from garmentgnn.models.inputs import FRAME_KEYS, GarmentInputs
 
 
@@ -151,6 +151,25 @@ class ChunkLayout:
         return parts[0] if len(parts) == 1 else torch.cat(parts, 1)
 
 
+class PostSteps:
+    """GarTrans's last steps after the dynamic stack (not in the paper): the strain limit
+    (``strain_limit`` sweeps) and the collision projection (``collision_projection``)."""
+
+    def post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor) -> Tensor:
+        """The strain limit, then the collision projection against each chunk's body."""
+        if self.strain_limit:
+            edges, lengths = static.strain_edges, static.strain_lengths
+            if edges is None:  # static features made by a model without the strain limit
+                edges = unique_edges(inputs.faces, inputs.num_vertices).edges
+                lengths = edge_lengths(inputs.rest_pos, edges)
+            x = project_edge_lengths(x, edges, lengths, self.strain_limit, stretch_only=True)
+        body = inputs.get("body_pos")
+        if self.collision_projection is None or body is None:
+            return x
+        return ChunkLayout(inputs).push_outside(x, inputs, self.collision_projection,
+                                                compiled=self.compile_search)
+
+
 class SequencePrediction:
     """:meth:`predict_sequence` and :meth:`rollout` for a model with GarTrans's
     ``forward(inputs, static, prev_final)`` and ``encode_static(inputs)``."""
@@ -168,7 +187,8 @@ class SequencePrediction:
         :func:`~garmentgnn.models.inputs.with_frames` of all its frames), frame-parallel,
         ``batch_size`` frames at a time under ``torch.inference_mode``; the static branch
         once (``static``: a cached one), the batched graph and its CSR plans once.
-        Equals :meth:`forward` on each frame alone up to float round-off.
+        Equals :meth:`forward` on each frame alone up to float round-off (a model with a
+        garment state: on all frames at once, its state carried from call to call).
 
         Args:
             batch_size: frames per call; ``None``: about :attr:`CHUNK_VERTICES` vertices.
@@ -199,8 +219,11 @@ class SequencePrediction:
             static = self.encode_static(inputs) if static is None else static
             out = {k: inputs.rest_pos.new_empty(T, V, self.num_joints if k == "weights"
                                                 else 3) for k in outputs}
+            state = None  # a garment state (models/state.py) runs on across the calls
             for t0 in range(0, T, b):
-                o = self.forward(inputs.select(torch.arange(t0, min(t0 + b, T))), static)
+                o = self.forward(inputs.select(torch.arange(t0, min(t0 + b, T))), static,
+                                 **({} if state is None else {"state": state}))
+                state = o.get("state")
                 for k in outputs:
                     out[k][t0:t0 + b] = o[k]
         return out
