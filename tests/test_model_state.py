@@ -191,6 +191,7 @@ def test_the_motion_code_reaches_the_dynamic_stack(scene):  # noqa: F811
 
 
 # --------------------------------------------------------------------------- training
+@pytest.mark.slow
 def test_the_module_ramps_the_rollout_and_trains_each_state(scene):  # noqa: F811
     inp = with_keys(scene.inputs, gt=fake_gt(scene.inputs))
     module = GarTransModule(build(scene, autoregressive=True).train(), rollout=5,
