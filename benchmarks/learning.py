@@ -57,12 +57,12 @@ from learning_parts.curves import (curves_markdown, merge_curves, plot_curves,  
                                    read_curves)
 from learning_parts.objective import (objective_rollout, own_objective,  # noqa: E402
                                       part_energy, part_oracle)
-from learning_parts.train import (evenly, frame_errors, part_curves,  # noqa: E402
-                                  part_grad, part_overfit)
+from learning_parts.train import (Probe, evenly, frame_errors,  # noqa: E402
+                                  part_curves, part_grad, part_overfit)
 from learning_parts.variants import VARIANTS  # noqa: E402
 
 #: the functions this script offers to code that loads it (``runpy.run_path``)
-__all__ = ["VARIANTS", "curves_markdown", "evenly", "frame_errors", "main", "merge_curves",
+__all__ = ["Probe", "VARIANTS", "curves_markdown", "evenly", "frame_errors", "main", "merge_curves",
            "objective_rollout", "own_objective", "parse_args", "part_curves", "part_energy",
            "part_grad", "part_oracle", "part_overfit", "plot_curves"]
 

@@ -521,3 +521,27 @@ def test_curves_score_valid_frames_and_held_out_groups():
     assert rows["| v"][1:] == [f"{body:.3f}", f"{4.0 / 5.0:.3f} |"]
     assert rows["| LBS (cm)"][1] == f"{(4.0 * 60 + 8.0 * 20) / 80:.3f}"
     assert next(line for line in lines if line.startswith("| v |")).split(" | ")[6] == "1.5"
+
+
+def test_a_resumed_curves_run_keeps_its_measurements_and_time():
+    """What ``curves`` keeps in a run's checkpoint: the measurements so far, the training
+    time and the wall time; a resumed run does not measure its start again and counts
+    its time on from there."""
+    bench = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
+                               "learning.py"), run_name="resume_check")
+    first = bench["Probe"]({}, every=1)
+    first.rows = [{"step": 0, "train": 1.0}, {"step": 5, "train": 0.9}]
+    first.train_seconds, first.seconds_before = 12.5, 100.0
+    state = json.loads(json.dumps(first.state_dict()))  # as a checkpoint keeps it
+    again = bench["Probe"]({}, every=1)
+    again.load_state_dict(state)
+    assert again.rows == first.rows and again.train_seconds == 12.5
+    assert 100.0 <= again.seconds() < state["seconds"] + 5.0
+    measured = []
+    again.measure = lambda module, step: measured.append(step)
+    again.on_train_start(None, None)
+    assert measured == [] and again.train_seconds == 12.5
+    fresh = bench["Probe"]({}, every=1)
+    fresh.measure = lambda module, step: measured.append(step)
+    fresh.on_train_start(None, None)
+    assert measured == [0]

@@ -3,6 +3,7 @@ Lightning ``Trainer`` and measured on whole sequences while they train (:class:`
 and the parts that train them: ``grad``, ``overfit`` and ``curves``."""
 from __future__ import annotations
 
+import hashlib
 import inspect
 import json
 import math
@@ -12,13 +13,14 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import lightning as L
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 
 from garmentgnn.data import SequenceChunks
 from garmentgnn.data.store import read_manifest
 from garmentgnn.harness import scoring
 from garmentgnn.harness.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
                                         variant_settings)
-from garmentgnn.harness.tables import table
+from garmentgnn.harness.tables import slug, table
 from garmentgnn.models import GarTrans
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
@@ -100,11 +102,18 @@ class _Fixed(torch.utils.data.Dataset):
         return self.item
 
 
-def _trainer(steps: int, callbacks=(), **kw) -> L.Trainer:
+def _trainer(steps: int, callbacks=(), folder: Optional[Path] = None, every: int = 0,
+             **kw) -> L.Trainer:
+    """A CPU Trainer for ``steps`` optimizer steps; with ``folder``, ``last.ckpt`` there
+    every ``every`` steps (what :func:`part_curves` resumes from)."""
+    callbacks = list(callbacks)
+    if folder is not None:
+        callbacks.append(ModelCheckpoint(dirpath=folder, save_last=True, save_top_k=0,
+                                         every_n_train_steps=every))
     return L.Trainer(max_steps=steps, accelerator="cpu", devices=1, logger=False,
-                     enable_checkpointing=False, enable_progress_bar=False,
+                     enable_checkpointing=folder is not None, enable_progress_bar=False,
                      enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
-                     callbacks=list(callbacks), **kw)
+                     callbacks=callbacks, **kw)
 
 
 def predict(module: L.LightningModule, item) -> torch.Tensor:
@@ -137,6 +146,22 @@ class Probe(L.Callback):
         self.rows: List[Dict[str, Any]] = []
         self.t0 = time.perf_counter()
         self.train_seconds = 0.0
+        #: wall seconds of the run before this process (a resumed run)
+        self.seconds_before = 0.0
+        self.started = time.perf_counter()
+
+    def state_dict(self) -> Dict[str, Any]:  # kept in the run's checkpoint
+        return {"rows": self.rows, "train_seconds": self.train_seconds,
+                "seconds": self.seconds()}
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        self.rows, self.train_seconds = list(state["rows"]), float(state["train_seconds"])
+        self.seconds_before = float(state["seconds"])
+        self.started = time.perf_counter()
+
+    def seconds(self) -> float:
+        """Wall seconds of the run so far, a resumed run's earlier processes included."""
+        return self.seconds_before + time.perf_counter() - self.started
 
     def measure(self, module: L.LightningModule, step: int) -> None:
         t = time.perf_counter()
@@ -165,8 +190,9 @@ class Probe(L.Callback):
         return {k: sum(m[k] * it.gt.shape[0] for m, it in scored) / frames for k in SURFACE}
 
     def on_train_start(self, trainer, pl_module) -> None:
-        self.t0 = time.perf_counter()
-        self.measure(pl_module, 0)
+        self.t0 = time.perf_counter() - self.train_seconds
+        if not self.rows:  # a resumed run measured its start before
+            self.measure(pl_module, 0)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         self.train_seconds = time.perf_counter() - self.t0
@@ -271,8 +297,9 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
     ``test_sequences``: that many of the test split, taken in turn from each held-out
     group (:func:`~garmentgnn.harness.scoring.stratified`; default: all).  Errors are on
     valid ground-truth frames.  ``done``: a file that keeps every finished (variant,
-    seed) run, so that the part run again with the same settings after an interruption
-    trains only the runs it had not finished."""
+    seed) run, beside a folder of each run's checkpoint (``runs/``, every ``every``
+    steps, its curve in it), so that the part run again with the same settings after an
+    interruption keeps the finished runs and resumes the one it was in."""
     dims = datamodule(root, seeds[0]).dims
     records = {r["id"]: r for r in read_manifest(root)["items"]}
     test_ids = None
@@ -294,6 +321,9 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                                                   for it in v]) for k, v in sets.items()}
     key = {"data": str(root), "steps": steps, "every": every, "train_sequences":
            train_sequences, "test_sequences": test_sequences, "surface": surface}
+    # each run's checkpoints, under a name of these settings
+    runs_dir = None if done is None else done.parent / "runs" / hashlib.sha1(
+        json.dumps(key, sort_keys=True).encode()).hexdigest()[:10]
     kept: Dict[str, Any] = {}
     if done is not None and done.is_file():
         saved = json.loads(done.read_text())
@@ -314,16 +344,19 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
             # the bench's schedule of full GarTrans, with v's settings
             sched = (ProgressiveSchedule(**dict(variant_settings(FULL)[1], **v["schedule"]))
                      if "schedule" in v else None)
-            t = time.perf_counter()
+            folder = None if runs_dir is None else runs_dir / f"{slug(name)}--s{seed}"
+            last_ckpt = None if folder is None else folder / "last.ckpt"
             try:
-                _trainer(steps, [probe] + ([sched] if sched else []),
+                _trainer(steps, [probe] + ([sched] if sched else []), folder, every,
                          **v.get("trainer", {})).fit(
-                    module, datamodule(root, seed, data=data))
+                    module, datamodule(root, seed, data=data),
+                    ckpt_path=last_ckpt if last_ckpt is not None and last_ckpt.is_file()
+                    else None)
                 status = "ok"
             except Exception as err:
                 status = f"{type(err).__name__}: {err}"
             runs.append({"seed": seed, "curve": probe.rows, "status": status,
-                         "seconds": time.perf_counter() - t,
+                         "seconds": probe.seconds(),
                          **({"transitions": sched.transitions} if sched else {})})
             last = probe.rows[-1] if probe.rows else {}
             print(f"curves {name}, seed {seed}: " + ", ".join(
