@@ -200,6 +200,8 @@ def test_the_module_ramps_the_rollout_and_trains_each_state(scene):  # noqa: F81
         with mock.patch.object(GarTransModule, "global_step", step):
             assert module.teacher(inp).rollout == k
     assert GarTransModule(build(scene)).teacher(inp) is None
+    with pytest.raises(ValueError, match="`batch`: an autoregressive GarTrans trains from"):
+        module.teacher(with_keys(inp, gt=None))
     for kw in ({"autoregressive": True}, {"vertex_state": 4}, {"dynamic_code": True}):
         module = GarTransModule(build(scene, **kw).train())
         opt = torch.optim.Adam(module.parameters(), lr=1e-3)

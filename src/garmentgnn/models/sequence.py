@@ -222,7 +222,7 @@ class SequencePrediction:
             state = None  # a garment state (models/state.py) runs on across the calls
             for t0 in range(0, T, b):
                 o = self.forward(inputs.select(torch.arange(t0, min(t0 + b, T))), static,
-                                 **({} if state is None else {"state": state}))
+                                 state=state)
                 state = o.get("state")
                 for k in outputs:
                     out[k][t0:t0 + b] = o[k]

@@ -161,6 +161,9 @@ class GarTransModule(GarmentModule):
         another model): ``rollout`` frames, ramped up from 1 over ``rollout_ramp`` steps."""
         if not self.model.autoregressive:
             return None
+        if batch.get("gt") is None:
+            raise ValueError("`batch`: an autoregressive GarTrans trains from the simulated "
+                             "garment (`gt`), which these chunks lack")
         hp = self.hparams
         k = hp.rollout if not hp.rollout_ramp else \
             1 + int((hp.rollout - 1) * min(1.0, self.global_step / hp.rollout_ramp))
