@@ -332,19 +332,25 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
         v = VARIANTS[name]
         data = v.get("data")
         runs = []
+        # a kept run and a checkpoint count only for these very settings
+        settings = json.loads(json.dumps(v))
+        tag = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:8]
         for seed in seeds:
-            old = [r for r in kept.get(name, []) if r["seed"] == seed and r["status"] == "ok"]
+            old = [r for r in kept.get(name, []) if r["seed"] == seed and r["status"] == "ok"
+                   and r.get("settings") == settings]
             if old:  # finished before an interruption
                 runs.append(old[0])
                 continue
             L.seed_everything(seed, verbose=False)
             module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
                       else gartrans(dims, overrides=v.get("model")))
+            if v.get("anneal"):  # the cosine's period: the run's epochs
+                module.hparams.t_max = math.ceil(steps / v["trainer"]["limit_train_batches"])
             probe = Probe(sequences(data.get("history")) if data else sets, every, name, surface)
             # the bench's schedule of full GarTrans, with v's settings
             sched = (ProgressiveSchedule(**dict(variant_settings(FULL)[1], **v["schedule"]))
                      if "schedule" in v else None)
-            folder = None if runs_dir is None else runs_dir / f"{slug(name)}--s{seed}"
+            folder = None if runs_dir is None else runs_dir / f"{slug(name)}-{tag}--s{seed}"
             last_ckpt = None if folder is None else folder / "last.ckpt"
             try:
                 _trainer(steps, [probe] + ([sched] if sched else []), folder, every,
@@ -363,7 +369,7 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 f"{k} {last.get(k, math.nan) / lbs[k]:.3f}" for k in sets)
                 + f" x LBS ({status})", flush=True)
             if done is not None:
-                kept.setdefault(name, []).append(runs[-1])
+                kept.setdefault(name, []).append(dict(runs[-1], settings=settings))
                 done.write_text(json.dumps({"key": key, "runs": kept}))
         res["variants"][name] = {"settings": v, "runs": runs}
     return {"results": res, "markdown": curves_markdown(res, surface)}
