@@ -206,12 +206,12 @@ def lbs_error(items: Sequence[Any]) -> float:
     return split_error([frame_errors(it.skinned(), it) for it in items])
 
 
-def sequence_facts(items: Sequence[Any], records: Dict[str, Dict[str, Any]]
-                   ) -> Dict[str, Dict[str, Any]]:
-    """Per item: its held-out group, valid frame count and LBS's E_dist (cm) there."""
+def sequence_facts(items: Sequence[Any], lbs_errors: Sequence[torch.Tensor],
+                   records: Dict[str, Dict[str, Any]]) -> Dict[str, Dict[str, Any]]:
+    """Per item: its held-out group, valid frame count and LBS's E_dist (cm) there, from
+    the items' LBS :func:`frame_errors` (``lbs_errors``)."""
     out = {}
-    for it in items:
-        e = frame_errors(it.skinned(), it)
+    for it, e in zip(items, lbs_errors):
         if e.numel():
             out[it.seq_id] = {"group": scoring.group_of(records[it.seq_id].get("held_out", []))
                               or "nothing held out", "frames": int(e.numel()),
@@ -313,9 +313,11 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
         return {"train": evenly(train, train_sequences), "test": list(test)}
 
     sets = sequences()
-    lbs = {k: lbs_error(v) for k, v in sets.items()}
+    lbs_errs = {k: [frame_errors(it.skinned(), it) for it in v] for k, v in sets.items()}
+    lbs = {k: split_error(e) for k, e in lbs_errs.items()}
     res: Dict[str, Any] = {"lbs": lbs, "steps": steps, "seeds": list(seeds), "variants": {},
-                           "sequences": {k: sequence_facts(v, records) for k, v in sets.items()}}
+                           "sequences": {k: sequence_facts(v, lbs_errs[k], records)
+                                         for k, v in sets.items()}}
     if surface:
         res["lbs_metrics"] = {k: Probe.weighted([(evaluate_inputs(it.skinned(), it), it)
                                                   for it in v]) for k, v in sets.items()}

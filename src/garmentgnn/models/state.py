@@ -122,7 +122,7 @@ def autoregressive_steps(model: nn.Module, inputs: GarmentInputs, static: Static
             gt = gt + teacher.noise * torch.randn_like(gt)
         known = gt - cur
     D = torch.cat([start, known])  # D[f + 2]: the offset at frame f
-    final, accel = [cur] * B, [cur] * B
+    final, accel = torch.empty_like(cur), torch.empty_like(cur)  # every frame written below
     for j in range(min(k, B)):
         f = torch.arange(j, B, k, device=cur.device)
         d1, d2 = D[f + 1], D[f]  # the offsets at t-1 and t-2
@@ -134,9 +134,8 @@ def autoregressive_steps(model: nn.Module, inputs: GarmentInputs, static: Static
         x = model.post_steps(inputs.select(f), static,
                              cur[f] + d1 + model._gate(2, a * model.unit))
         D = D.index_copy(0, f + 2, x - cur[f])
-        for i, t in enumerate(f.tolist()):
-            final[t], accel[t] = x[i], a[i]
-    return torch.stack(final), torch.stack(accel), D[-2:]
+        final, accel = final.index_copy(0, f, x), accel.index_copy(0, f, a)
+    return final, accel, D[-2:]
 
 
 def _checked(state: Tensor, shape: Tuple[int, ...]) -> Tensor:
