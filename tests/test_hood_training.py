@@ -10,6 +10,7 @@ import torch
 from garmentgnn.harness.methods import BASELINES, HOOD
 from garmentgnn.models.baselines import CoarseLevel, HOODStyle
 from garmentgnn.models.blocks import RunningNormalizer
+from garmentgnn.models.state import TeacherForcing
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, GarmentDataModule)
 from garmentgnn.training.module import loss_inputs
@@ -229,3 +230,115 @@ def test_own_objective_is_the_mean_of_the_per_frame_training_losses(data):
         per_frame.append(float(total))
     assert got["total"] == pytest.approx(np.mean(per_frame), rel=1e-5)
     assert {"inertia", "stretch", "collision"} <= set(got)
+
+
+def _recorded_rollout(module, item):
+    """``module.compute_loss(item)`` with every ``HOODStyle.step``'s input positions and
+    output, and the loss's inputs, recorded."""
+    calls, seen = [], []
+    step = module.model.step
+
+    def record_step(inp, coarse, x_prev, x_curr, *a, **kw):
+        out = step(inp, coarse, x_prev, x_curr, *a, **kw)
+        calls.append((x_prev[0].detach(), x_curr[0].detach(), out[0].detach()))
+        return out
+
+    module.model.step = record_step
+    module.loss_fn.register_forward_pre_hook(lambda _, args: seen.append(args[0]))
+    module.compute_loss(item)
+    return calls, seen[0]
+
+
+@pytest.mark.parametrize("rollout", [1, 3])
+def test_hood_rollouts_restart_from_the_lbs_garment(data, rollout):
+    """HOOD's recipe: a rollout restarts every ``rollout`` frames from the LBS garment of
+    the two frames before it; between restarts each step continues from the last two
+    outputs.  Oracle: the LBS garment of the whole sequence."""
+    item = SequenceChunks(data, "train", chunk=4)[1]  # frames 4-7
+    assert int(item.frames[0]) == 4
+    path = SequenceChunks(data, "train", chunk=10 ** 9)[0].skinned()
+    torch.manual_seed(0)
+    module = _module(GarmentDataModule(data, chunk=4).dims, rollout=rollout)
+    calls, _ = _recorded_rollout(module, item)
+    assert len(calls) == 4
+    for b, (p, c, _) in enumerate(calls):
+        if b % rollout == 0:  # from the LBS garment of frames 4 + b - 2, 4 + b - 1
+            torch.testing.assert_close(p, path[2 + b])
+            torch.testing.assert_close(c, path[3 + b])
+        else:
+            assert torch.equal(c, calls[b - 1][2])
+            assert torch.equal(p, calls[b - 1][1])
+    whole = _module(GarmentDataModule(data, chunk=4).dims)  # None: one rollout per chunk
+    calls, _ = _recorded_rollout(whole, item)
+    assert all(torch.equal(calls[b][1], calls[b - 1][2]) for b in range(1, 4))
+
+
+def test_hood_noise_on_the_current_and_previous_positions(data):
+    """3 mm of Gaussian noise on both input positions of every step (their std, from
+    ``4 x 200 x 3`` samples each, within 5%), the inertial prediction ``2 c - p`` of the
+    noisy positions, and the noise-free states carried on."""
+    item = SequenceChunks(data, "train", chunk=4)[1]
+    path = SequenceChunks(data, "train", chunk=10 ** 9)[0].skinned()
+    torch.manual_seed(0)
+    module = _module(GarmentDataModule(data, chunk=4).dims, rollout=1, rollout_noise=0.003)
+    calls, li = _recorded_rollout(module, item)
+    dp = torch.stack([p - path[2 + b] for b, (p, _, _) in enumerate(calls)])
+    dc = torch.stack([c - path[3 + b] for b, (_, c, _) in enumerate(calls)])
+    for d in (dp, dc):
+        assert float(d.mean().abs()) < 3e-4
+        assert float(d.std()) == pytest.approx(0.003, rel=0.05)
+    assert float((dp - dc).std()) == pytest.approx(0.003 * 2 ** 0.5, rel=0.05)  # independent
+    expected = torch.stack([2 * c - p for p, c, _ in calls])
+    torch.testing.assert_close(li.predicted, expected)
+    torch.testing.assert_close(li.pred.detach(), torch.stack([o for _, _, o in calls]))
+
+
+def test_rollout_length_ramp():
+    assert [TeacherForcing.length(5, 100, s) for s in (0, 24, 25, 50, 99, 100, 10 ** 6)] == \
+        [1, 1, 2, 3, 4, 5, 5]
+    assert TeacherForcing.length(5, 0, 0) == 5
+
+
+def test_hood_warmup_scales_the_learning_rate_of_each_step(data):
+    """The rate seen by the optimizer at step ``s`` is ``lr (s + 1) / warmup``; the
+    oracle for the first: Adam's first update moves every parameter with a gradient
+    well above its ``eps`` by exactly the rate."""
+    dm = GarmentDataModule(data, chunk=4, val_split=None)
+    L.seed_everything(0, verbose=False)
+    module = _module(dm.dims, warmup=4, lr=1e-3)
+    before = {k: v.detach().clone() for k, v in module.model.named_parameters()}
+    rates, grads = [], {}
+
+    class Record(L.Callback):
+        def on_before_optimizer_step(self, trainer, pl_module, optimizer):
+            rates.append(optimizer.param_groups[0]["lr"])
+            if not grads:
+                grads.update({k: v.grad.detach().clone()
+                              for k, v in pl_module.model.named_parameters()
+                              if v.grad is not None})
+
+    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, limit_val_batches=0, callbacks=[Record()])
+    trainer.fit(module, dm)
+    moved = [(module.model.get_parameter(k).detach() - before[k])[g.abs() > 1e-4]
+             for k, g in grads.items()]
+    moved = torch.cat([m.abs() for m in moved])
+    assert moved.numel() > 100
+    torch.testing.assert_close(moved, torch.full_like(moved, 0.25e-3), rtol=1e-3, atol=0)
+    assert trainer.optimizers[0].param_groups[0]["lr"] == 1e-3  # put back after the step
+    L.Trainer(max_steps=4, accelerator="cpu", logger=False, enable_checkpointing=False,
+              enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+              callbacks=[Record()]).fit(_module(dm.dims, warmup=4, lr=1e-3), dm)
+    assert rates == pytest.approx([0.25e-3, 0.25e-3, 0.5e-3, 0.75e-3, 1e-3])
+
+
+def test_hood_recipe_arguments(data):
+    dims = GarmentDataModule(data, chunk=4).dims
+    for kw, name in (({"rollout": 0}, "rollout"), ({"rollout_noise": -0.1}, "rollout_noise"),
+                     ({"rollout_ramp": -1}, "rollout_ramp"), ({"warmup": -1}, "warmup"),
+                     ({"warmup": 2.5}, "warmup")):
+        with pytest.raises(ValueError, match=f"`{name}`"):
+            _module(dims, **kw)
+    with pytest.raises(ValueError, match="`rollout`"):
+        BaselineModule(DAStyle(dims["num_joints"]), rollout=5)

@@ -122,3 +122,23 @@ for _v in STATE.values():
     for _k, _base in _LEARN.items():
         _v[_k] = dict(_base, **_v.get(_k, {})) if isinstance(_base, dict) else _base
 VARIANTS.update(STATE)
+
+#: HOOD-style at the ``learn`` settings: its configuration, and HOOD's published recipe
+#: where it fits (docs/experiments.md, "HOOD-style at its fair best"): 3 mm noise on the
+#: current and previous positions, rollouts from the LBS garment growing 1 -> 5 frames
+#: with detached steps, gradients clipped at 1, 100 warm-up steps; at the bench's
+#: learning rate (the configuration's x 4, ``lr_factor``) and at HOOD's (5e-5 x 4)
+_HOOD_RECIPE: Dict[str, Any] = {"start_state": "lbs", "rollout": 5, "rollout_ramp": 100,
+                                "rollout_noise": 0.003, "warmup": 100}
+HOOD_LEARN: Dict[str, Dict[str, Any]] = {
+    "HOOD-style, learn settings": {"baseline": HOOD, "module": {"lr": 4e-3}},
+    "HOOD-style, HOOD's recipe": {"baseline": HOOD, "module": dict(_HOOD_RECIPE, lr=4e-3),
+                                  "trainer": {"gradient_clip_val": 1.0}},
+    "HOOD-style, HOOD's recipe and learning rate": {
+        "baseline": HOOD, "module": dict(_HOOD_RECIPE, lr=2e-4),
+        "trainer": {"gradient_clip_val": 1.0}},
+}
+for _v in HOOD_LEARN.values():
+    _v["data"] = {"batch_size": 16}
+    _v["trainer"] = dict(_v.get("trainer", {}), limit_train_batches=25)
+VARIANTS.update(HOOD_LEARN)

@@ -50,12 +50,24 @@ class TeacherForcing:
         self.check(self.rollout, self.noise)
 
     @staticmethod
-    def check(rollout: int, noise: float) -> None:
-        """A ``ValueError`` unless ``rollout`` is an int >= 1 and ``noise`` >= 0."""
+    def check(rollout: int, noise: float, ramp: int = 0) -> None:
+        """A ``ValueError`` unless ``rollout`` is an int >= 1, ``noise`` >= 0 and ``ramp``
+        an int >= 0."""
         if not isinstance(rollout, int) or isinstance(rollout, bool) or rollout < 1:
             raise ValueError(f"`rollout`: expected frames >= 1, got {rollout!r}")
         if not (isinstance(noise, (int, float)) and noise >= 0):
             raise ValueError(f"`rollout_noise`: expected metres >= 0, got {noise!r}")
+        if not isinstance(ramp, int) or isinstance(ramp, bool) or ramp < 0:
+            raise ValueError(f"`rollout_ramp`: expected optimizer steps >= 0, got {ramp!r}")
+
+    @staticmethod
+    def length(rollout: int, ramp: int, step: int) -> int:
+        """The rollout length at optimizer step ``step``: ``1 + (rollout - 1) min(1, step /
+        ramp)`` rounded down, growing from 1 to ``rollout`` over ``ramp`` steps (HOOD: by
+        one every 5,000 iterations); ``rollout`` from the start where ``ramp`` is 0."""
+        if not ramp:
+            return rollout
+        return 1 + int((rollout - 1) * min(1.0, step / ramp))
 
 
 def _cat(*parts: Optional[Tensor]) -> Optional[Tensor]:

@@ -13,9 +13,11 @@ plus its losses plus a configuration (``garmentgnn/configs/baselines/*.yaml``,
   (inertia included); trained one step at a time on its own rollout of each chunk,
   started from the LBS garment of the two frames before the chunk (or, with
   ``start_state="own"``, from its own states there, left by its latest training
-  rollout of the chunk before), inputs detached between steps; predicts by an
-  autoregressive rollout over the whole input from the LBS garment of its first two
-  frames, pinned vertices driven by LBS.
+  rollout of the chunk before), inputs detached between steps; HOOD's recipe adds noise
+  on the input positions (``rollout_noise``), rollouts restarted from the LBS garment
+  every ``rollout`` frames, growing over ``rollout_ramp`` steps, and a learning-rate
+  warm-up (``warmup``); predicts by an autoregressive rollout over the whole input from
+  the LBS garment of its first two frames, pinned vertices driven by LBS.
 * ``ncs`` (:class:`~garmentgnn.models.baselines.NCSStyle`): garment-specific and
   self-supervised -- the physics terms on its own predictions of three consecutive
   frames; the chunks' simulated positions are removed before the loss ever sees them.
@@ -32,6 +34,7 @@ from torch import Tensor
 from garmentgnn.losses.gartrans_loss import GarTransLoss
 from garmentgnn.models.baselines import CoarseLevel, DAStyle, HOODStyle, NCSStyle
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.models.state import TeacherForcing
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.module import chunk_mean_loss, loss_inputs
 
@@ -69,6 +72,16 @@ class BaselineModule(GarmentModule):
             (two frames per chunk) travel in the checkpoint; with DDP each process keeps
             those of the chunks it trained, and the checkpoint holds rank 0's.
         max_start_drift: see ``start_state``.
+        rollout, rollout_ramp, rollout_noise: ``hood``'s training rollouts (HOOD's
+            recipe, detached steps): a rollout restarts from the LBS garment of the two
+            frames before it every ``rollout`` frames of a chunk (``None``: one rollout
+            per chunk), ``rollout`` growing from 1 over the first ``rollout_ramp``
+            optimizer steps (:meth:`TeacherForcing.length`); every step's current and
+            previous positions get Gaussian noise of ``rollout_noise`` metres, and its
+            inertial prediction is taken from those noisy positions (HOOD: 3 mm).
+        warmup: the learning rate grows linearly over the first ``warmup`` optimizer
+            steps (HOOD: 100), on top of any schedule.  Gradient clipping (HOOD: 1.0)
+            is the Trainer's ``gradient_clip_val``.
     """
 
     #: the method of each model class
@@ -77,7 +90,8 @@ class BaselineModule(GarmentModule):
     def __init__(self, model: Union[DAStyle, HOODStyle, NCSStyle], lr: float = 1e-3,
                  loss: Optional[Dict[str, Any]] = None, coarse: Optional[Dict[str, Any]] = None,
                  fps: float = 30.0, start_state: str = "lbs",
-                 max_start_drift: float = 0.25) -> None:
+                 max_start_drift: float = 0.25, rollout: Optional[int] = None,
+                 rollout_ramp: int = 0, rollout_noise: float = 0.0, warmup: int = 0) -> None:
         super().__init__()
         if type(model) not in self.METHODS:
             raise TypeError(f"`model`: expected a DAStyle, HOODStyle or NCSStyle, got "
@@ -92,6 +106,13 @@ class BaselineModule(GarmentModule):
                              f"start state; leave it at 'lbs' for {type(model).__name__}")
         if not max_start_drift > 0:
             raise ValueError(f"`max_start_drift`: expected metres > 0, got {max_start_drift!r}")
+        TeacherForcing.check(1 if rollout is None else rollout, rollout_noise, rollout_ramp)
+        if (rollout is not None or rollout_ramp or rollout_noise) and self.method != "hood":
+            raise ValueError(f"`rollout`, `rollout_ramp`, `rollout_noise`: only the "
+                             f"autoregressive HOOD-style model rolls out in training; leave "
+                             f"them unset for {type(model).__name__}")
+        if not isinstance(warmup, int) or isinstance(warmup, bool) or warmup < 0:
+            raise ValueError(f"`warmup`: expected optimizer steps >= 0, got {warmup!r}")
         if not fps > 0:
             raise ValueError(f"`fps`: expected frames per second > 0, got {fps!r}")
         self.dt = 1.0 / fps
@@ -192,16 +213,31 @@ class BaselineModule(GarmentModule):
         lbs = inp.skinned()
         before = self._lbs_before(inp)
         x_prev, x_curr = self._start(inp, before)
+        k = self.rollout_length()
+        noise = self.hparams.rollout_noise
         preds, inertial = [], []
         for b in range(lbs.shape[0]):  # one step at a time on its own rollout
-            nxt = self.model.step(inp, coarse, x_prev[None], x_curr[None],
+            if k and b and b % k == 0:  # a new rollout, from the LBS garment of frames b-2, b-1
+                x_prev, x_curr = (lbs[b - 2] if b > 1 else before[1]), lbs[b - 1]
+            p, c = x_prev, x_curr
+            if noise:  # HOOD: noise on the current and previous positions
+                p, c = p + noise * torch.randn_like(p), c + noise * torch.randn_like(c)
+            nxt = self.model.step(inp, coarse, p[None], c[None],
                                   inp.body_pos[b:b + 1], lbs[b:b + 1])[0]
             preds.append(nxt)
-            inertial.append(2 * x_curr - x_prev)
+            inertial.append(2 * c - p)
             x_prev, x_curr = x_curr, nxt.detach()
         self._keep(inp, x_prev, x_curr)
         return self.loss_fn(loss_inputs(inp, torch.stack(preds), self.dt,
                                         predicted=torch.stack(inertial), ground_truth=False))
+
+    def rollout_length(self) -> Optional[int]:
+        """``hood``: the frames of a training rollout at this step (``None``: a chunk's
+        rollout is never restarted)."""
+        hp = self.hparams
+        if hp.rollout is None:
+            return None
+        return TeacherForcing.length(hp.rollout, hp.rollout_ramp, self.global_step)
 
     @staticmethod
     def _lbs_before(inp: GarmentInputs) -> Tuple[Tensor, Tensor]:
@@ -252,3 +288,21 @@ class BaselineModule(GarmentModule):
 
     def configure_optimizers(self):
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+    def warmup_factor(self) -> float:
+        """The factor on the learning rate at this step: ``min(1, (step + 1) / warmup)``."""
+        w = self.hparams.warmup
+        return min(1.0, (self.global_step + 1) / w) if w else 1.0
+
+    def optimizer_step(self, epoch, batch_idx, optimizer, optimizer_closure=None) -> None:
+        """The optimizer's step at the warmed-up rate (:meth:`warmup_factor` times the rate
+        its schedule or :class:`TimeBudget` set), which is put back after the step."""
+        f = self.warmup_factor()
+        rates = [g["lr"] for g in optimizer.param_groups]
+        for g in optimizer.param_groups:
+            g["lr"] *= f
+        try:
+            super().optimizer_step(epoch, batch_idx, optimizer, optimizer_closure)
+        finally:
+            for g, lr in zip(optimizer.param_groups, rates):
+                g["lr"] = lr

@@ -101,11 +101,7 @@ class GarTransModule(GarmentModule):
         if not isinstance(model, GarTrans):
             raise TypeError(f"`model`: expected a GarTrans, got {type(model).__name__}; "
                             f"GarTransModule(GarTrans(**datamodule.dims))")
-        TeacherForcing.check(rollout, rollout_noise)
-        if not isinstance(rollout_ramp, int) or isinstance(rollout_ramp, bool) \
-                or rollout_ramp < 0:
-            raise ValueError(f"`rollout_ramp`: expected optimizer steps >= 0, got "
-                             f"{rollout_ramp!r}")
+        TeacherForcing.check(rollout, rollout_noise, rollout_ramp)
         enabled = sorted(enabled)
         self.save_hyperparameters(ignore=["model"])
         if optimizer not in OPTIMIZERS:
@@ -165,8 +161,7 @@ class GarTransModule(GarmentModule):
             raise ValueError("`batch`: an autoregressive GarTrans trains from the simulated "
                              "garment (`gt`), which these chunks lack")
         hp = self.hparams
-        k = hp.rollout if not hp.rollout_ramp else \
-            1 + int((hp.rollout - 1) * min(1.0, self.global_step / hp.rollout_ramp))
+        k = TeacherForcing.length(hp.rollout, hp.rollout_ramp, self.global_step)
         return TeacherForcing(batch.gt, k, hp.rollout_noise)
 
     def training_step(self, batch: GarmentInputs, batch_idx: int):
