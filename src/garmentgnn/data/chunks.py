@@ -15,7 +15,11 @@ transfer recomputed.
 
 The static inputs (edge index, Nyström features, ClothRest, masses, rest body) are
 computed once per sequence and cached (``static_cache`` entries, LRU); positions and
-motion are cached per sequence file (``cache_size`` files, LRU).
+motion are cached per sequence file (``cache_size`` files, LRU).  The Nyström features,
+most of a static build's time, are also kept on disk beside the dataset, as PyG keeps a
+dataset's ``processed`` folder: ``ROOT/processed/nystrom-k<nystrom_dim>-z<num_landmarks>/
+<sequence sha256>.npy``, written once by whichever run first needs them (atomically; a
+cut-off or foreign file is computed again; a read-only dataset computes them each time).
 
 Each item with ground truth carries ``valid [B]`` (:meth:`SequenceChunks.valid`): the
 frames that are ground truth (converged, and the body not through the cloth), the only
@@ -30,6 +34,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
+import io
+
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -38,11 +44,16 @@ from garmentgnn.body.factory import build_body
 from garmentgnn.data import store
 from garmentgnn.data.validity import sequence_valid
 from garmentgnn.garments.skinning import transfer_skinning_weights
-from garmentgnn.models.inputs import GarmentInputs, build_static, check_history, with_frames
+from garmentgnn.models.inputs import (GarmentInputs, build_static, check_history,
+                                     nystrom_features, with_frames)
 
 __all__ = ["DEFAULT_DENSITY", "SequenceChunks"]
 
 DEFAULT_DENSITY = 0.15
+
+
+#: the folder beside a dataset's sequences that keeps their preprocessing (PyG's name)
+PROCESSED = "processed"
 
 
 class SequenceChunks(Dataset):
@@ -117,6 +128,7 @@ class SequenceChunks(Dataset):
         self._static = store.LRUCache(self.static_cache)
         self.num_file_loads = 0
         self.num_static_builds = 0
+        self.num_nystrom_builds = 0
 
     def __len__(self) -> int:
         return len(self.index)
@@ -169,13 +181,14 @@ class SequenceChunks(Dataset):
                                              body.weights.float())
         pinned = np.asarray(seq["garment_pinned"]).astype(bool)
         try:
+            ny = self._nystrom(i, rest_pos, faces)
             st = build_static(
                 rest_pos, faces, body, torch.as_tensor(np.asarray(skin, np.float32)),
                 face_uv=torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32)),
                 density=float((meta.get("material_params") or {}).get("density",
                                                                       DEFAULT_DENSITY)),
                 pinned=torch.from_numpy(pinned) if pinned.any() else None,
-                nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks)
+                nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks, nystrom=ny)
         except ValueError as exc:  # the Nyström features' `k` is our nystrom_dim
             msg = str(exc)
             if not msg.startswith(("`k`", "`num_landmarks`")):
@@ -187,6 +200,38 @@ class SequenceChunks(Dataset):
                              f"lower nystrom_dim or raise num_landmarks") from None
         self.num_static_builds += 1
         return st, body
+
+    def nystrom_path(self, i: int) -> Optional[Path]:
+        """Where sequence ``i``'s Nyström features are kept (``None``: a record without
+        its file's ``sha256``, whose features are computed each time)."""
+        sha = self.records[i].get("sha256")
+        if not sha:
+            return None
+        return (self.root / PROCESSED / f"nystrom-k{self.nystrom_dim}-z{self.num_landmarks}"
+                / f"{sha}.npy")
+
+    def _nystrom(self, i: int, rest_pos: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+        """Sequence ``i``'s Nyström features ``[V, nystrom_dim]``: read from
+        :meth:`nystrom_path`, or computed and written there."""
+        path = self.nystrom_path(i)
+        if path is not None and path.is_file():
+            try:
+                ny = np.load(path, allow_pickle=False)
+                if ny.shape == (len(rest_pos), self.nystrom_dim) and ny.dtype == np.float32 \
+                        and np.isfinite(ny).all():
+                    return torch.from_numpy(ny)
+            except (OSError, ValueError, EOFError):  # cut off by a kill: computed again
+                pass
+        ny = nystrom_features(rest_pos, faces, self.nystrom_dim, self.num_landmarks)
+        self.num_nystrom_builds += 1
+        if path is not None:
+            buf = io.BytesIO()
+            np.save(buf, ny.numpy(), allow_pickle=False)
+            try:
+                store.atomic_write_bytes(path, buf.getvalue())
+            except OSError:  # a read-only dataset
+                pass
+        return ny
 
     # -- items --------------------------------------------------------------------
     def frame_counts(self) -> List[int]:

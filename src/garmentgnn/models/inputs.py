@@ -53,7 +53,7 @@ from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
 from garmentgnn.physics import ClothRest
 
 __all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "check_history",
-           "check_pose", "history_frames", "skin", "with_frames"]
+           "check_pose", "history_frames", "nystrom_features", "skin", "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
 FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames", "converged", "valid")
@@ -309,10 +309,23 @@ def build_garment(rest_pos: Tensor, faces: Tensor, skin_weights: Tensor, rest_jo
                          parents=parents.long(), pinned=pinned, num_nodes=V)
 
 
+def nystrom_features(rest_pos: Tensor, faces: Tensor, nystrom_dim: int = 16,
+                     num_landmarks: int = 64) -> Tensor:
+    """The garment's Nyström features ``[V, nystrom_dim]`` float32 (paper §3.1,
+    :func:`~garmentgnn.geometry.geodesic_nystrom_features` in float64), zero-padded to
+    ``nystrom_dim`` columns on meshes with fewer landmarks."""
+    rest_pos = torch.as_tensor(rest_pos)
+    ny = geodesic_nystrom_features(rest_pos.double(), torch.as_tensor(faces).long(),
+                                   k=nystrom_dim, num_landmarks=num_landmarks).float()
+    if ny.shape[1] < nystrom_dim:  # tiny meshes: fewer landmarks than k
+        ny = torch.cat([ny, ny.new_zeros(len(ny), nystrom_dim - ny.shape[1])], 1)
+    return ny
+
+
 def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tensor,
                  face_uv: Optional[Tensor] = None, density: float = 0.15,
                  pinned: Optional[Tensor] = None, nystrom_dim: int = 16,
-                 num_landmarks: int = 64) -> GarmentInputs:
+                 num_landmarks: int = 64, nystrom: Optional[Tensor] = None) -> GarmentInputs:
     """The per-garment, per-body-shape part of the inputs (computed once per sequence):
     :func:`build_garment` in float32 plus the Nyström features, the cloth rest state,
     vertex masses and the rest body.
@@ -323,8 +336,8 @@ def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tens
         face_uv: ``[F, 3, 2]`` material coordinates (default: each rest triangle laid
             flat, :meth:`ClothRest.from_mesh`).
         density: surface density (kg/m^2) for the vertex masses.
-        nystrom_dim, num_landmarks: the Nyström features (zero-padded to ``nystrom_dim``
-            columns on meshes with fewer landmarks).
+        nystrom_dim, num_landmarks: the Nyström features (:func:`nystrom_features`).
+        nystrom: those features where already computed (``[V, nystrom_dim]``).
     """
     if not isinstance(body, Body):
         raise TypeError(f"`body`: expected a garmentgnn.body.Body, got {type(body).__name__}")
@@ -333,10 +346,13 @@ def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tens
                         torch.as_tensor(skin_weights).float(), joints, body.skeleton.parents,
                         pinned)
     V = out.num_vertices
-    ny = geodesic_nystrom_features(out.rest_pos.double(), out.faces, k=nystrom_dim,
-                                   num_landmarks=num_landmarks).float()
-    if ny.shape[1] < nystrom_dim:  # tiny meshes: fewer landmarks than k
-        ny = torch.cat([ny, ny.new_zeros(V, nystrom_dim - ny.shape[1])], 1)
+    if nystrom is None:
+        ny = nystrom_features(out.rest_pos, out.faces, nystrom_dim, num_landmarks)
+    else:
+        ny = torch.as_tensor(nystrom).float()
+        if ny.shape != (V, nystrom_dim):
+            raise ValueError(f"`nystrom`: expected [{V}, {nystrom_dim}] (vertices, "
+                             f"nystrom_dim), got {tuple(ny.shape)}")
     face_uv = None if face_uv is None else torch.as_tensor(face_uv).float()
     rest = ClothRest.from_mesh(out.rest_pos, out.faces, face_uv)
     out.nystrom, out.rest = ny, rest
