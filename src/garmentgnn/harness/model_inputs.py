@@ -59,7 +59,7 @@ class BenchChunks(SequenceChunks):
         self.index = [(0, t0, min(chunk, T - t0)) for t0 in range(0, T, chunk)]
         self._seqs = store.LRUCache(1)
         self._static = store.LRUCache(1)
-        self.num_file_loads = self.num_static_builds = 0
+        self.num_file_loads = self.num_static_builds = self.num_nystrom_builds = 0
         g, m = seq.garment, seq.motion
         positions = (gt.detach().float().numpy() if gt is not None
                      else np.zeros((T, 0, 3), np.float32))
