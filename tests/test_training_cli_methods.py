@@ -5,6 +5,8 @@ independent whole-sequence evaluation, and checkpoints in the layout written bef
 the CLI covered every method."""
 from pathlib import Path
 
+import inspect
+
 import lightning as L
 import pytest
 import torch
@@ -13,7 +15,7 @@ import yaml
 from garmentgnn.cli import main as cli_main
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
-from garmentgnn.training.configs import available, config_path, module_spec
+from garmentgnn.training.configs import available, config_path, module_spec, named_module
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
@@ -200,3 +202,42 @@ def test_data_module_keeps_its_arguments_and_sets_up_per_stage(root):  # noqa: F
     assert [r["id"] for r in dm.predict_set.records] == [r["id"] for r in dm.test_set.records]
     with pytest.raises(ValueError, match="`stage`"):
         dm.setup("train")
+
+
+@pytest.mark.parametrize("how", ["flags", "short name", "own config"])
+def test_a_module_named_by_the_user_gets_its_own_defaults(root, tmp_path, how):  # noqa: F811
+    """A module named on the command line or in the user's own config, not by a packaged
+    config, is built with its own defaults (the oracle: its signature), not with the
+    same-named arguments of the default module (GarTransModule's learning rate 3e-3 and
+    rollout settings)."""
+    module = "BaselineModule" if how == "short name" else "garmentgnn.training.BaselineModule"
+    logger = ["--trainer.logger", "lightning.pytorch.loggers.CSVLogger"]
+    named = ["--model", module, "--model.init_args.model", "garmentgnn.models.baselines.DAStyle"]
+    if how == "own config":
+        cfg = tmp_path / "mine.yaml"
+        cfg.write_text(yaml.safe_dump({"model": {"class_path": module, "init_args": {
+            "model": {"class_path": "garmentgnn.models.baselines.DAStyle"}}}}))
+        named = ["--config", str(cfg)]
+    args = named + logger + _test_args(root, tmp_path)
+    cli = train_main(args, run=False)
+    assert isinstance(cli.model, BaselineModule)
+    own = inspect.signature(BaselineModule.__init__).parameters
+    for name in ("lr", "rollout", "rollout_noise", "warmup"):
+        assert cli.model.hparams[name] == own[name].default, name
+    assert cli.model.hparams.lr != inspect.signature(
+        GarTransModule.__init__).parameters["lr"].default  # the case that went wrong
+    given = train_main(args + ["--model.init_args.lr", "0.003"], run=False)
+    assert given.model.hparams.lr == 0.003
+
+
+def test_named_module_reads_flags_and_configs_in_order():
+    hood, gartrans = str(config_path("baselines/hood")), str(config_path("gartrans"))
+    assert named_module(["--data.root", "x"]) is None
+    assert named_module(["--config", hood]) == "garmentgnn.training.BaselineModule"
+    assert named_module(["--config", hood, "--config", gartrans]) == \
+        "garmentgnn.training.GarTransModule"
+    assert named_module([f"--config={gartrans}", "--model=BaselineModule"]) == \
+        "garmentgnn.training.BaselineModule"
+    assert named_module(["--model.class_path", "my.pkg.Module", "--config", hood]) == \
+        "garmentgnn.training.BaselineModule"
+    assert named_module(["--model", "cfg.yaml"]) is None  # a file of arguments

@@ -142,6 +142,25 @@ def _module_named(path: str) -> Optional[str]:
         else None
 
 
+def named_module(args: Sequence[str]) -> Optional[str]:
+    """The module class that ``args`` (after :func:`resolve_config_args`) train: the last
+    ``--model X`` / ``--model.class_path X`` flag or ``--config`` file that names one
+    (LightningCLI applies them in order); ``None`` where none does.  A bare class name
+    (``BaselineModule``) is one of :mod:`garmentgnn.training`'s."""
+    found: Optional[str] = None
+    for i, a in enumerate(args):
+        key, _, value = a.partition("=")
+        if not value and i + 1 < len(args):
+            value = args[i + 1]
+        if key == "--config" and Path(value).is_file():
+            found = _module_named(value) or found
+        elif key in ("--model", "--model.class_path") and value \
+                and not value.lstrip().startswith(("{", "class_path")) \
+                and not value.endswith((".yaml", ".yml")):
+            found = value if "." in value else f"garmentgnn.training.{value}"
+    return found
+
+
 def resolve_config_args(args: Sequence[str]) -> List[str]:
     """``args`` with each ``--config NAME`` (or ``--config=NAME``) that is not an existing
     file but a packaged configuration's name replaced by that file's path.

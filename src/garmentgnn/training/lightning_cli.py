@@ -52,7 +52,7 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 from garmentgnn.training.base import LBS_PREFIX, GarmentModule
-from garmentgnn.training.configs import import_class, resolve_config_args
+from garmentgnn.training.configs import import_class, named_module, resolve_config_args
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.evaluate import markdown_table
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
@@ -179,8 +179,10 @@ class GarmentCLI(LightningCLI):
     :class:`~garmentgnn.training.integrity.CheckpointError`
     (the model is rebuilt from X's hyper-parameters)."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, default_model: Optional[str] = None, **kwargs: Any) -> None:
         kwargs.setdefault("subclass_mode_model", True)
+        #: the module class the parser starts from (:func:`named_module` of the arguments)
+        self.default_model = default_model or DEFAULT_MODEL
         super().__init__(*args, **kwargs)
 
     def parse_arguments(self, parser: Any, args: Any) -> None:
@@ -264,8 +266,13 @@ class GarmentCLI(LightningCLI):
         return trainer
 
     def add_arguments_to_parser(self, parser: Any) -> None:
-        parser.set_defaults({"model": {"class_path": DEFAULT_MODEL, "init_args": {
-            "model": {"class_path": DEFAULT_MODEL_MODEL}}}})
+        # the parser starts from the module the arguments name: jsonargparse keeps the
+        # values of same-named arguments when a config switches the class, so starting
+        # from GarTransModule would hand a BaselineModule GarTransModule's defaults
+        # (its learning rate, its rollout settings) where the config leaves them out
+        nested = {"model": {"class_path": DEFAULT_MODEL_MODEL}} \
+            if self.default_model == DEFAULT_MODEL else {}
+        parser.set_defaults({"model": {"class_path": self.default_model, "init_args": nested}})
         for name in LINKS["parse"]:
             parser.link_arguments(f"data.{name}", f"{LINK_TARGET}.{name}")
         # every logger writes under the trainer's root folder (the current folder when it
@@ -324,6 +331,7 @@ def main(args: Optional[Sequence[str]] = None, run: bool = True,
     :class:`PredictionWriter` and a TensorBoard log (:func:`add_tensorboard`)."""
     args = resolve_config_args(sys.argv[1:] if args is None else args)
     return GarmentCLI(GarmentModule, GarmentDataModule, args=args,
+                      default_model=named_module(args),
                       run=run, seed_everything_default=0,
                       parser_kwargs={"prog": prog} if prog else None,
                       save_config_kwargs={"overwrite": True},
