@@ -20,7 +20,7 @@ VIEWER := build/viewer/viewer.bundle.js
 # Debian packages for headless rendering (EGL for VTK) and the viewer test (chromium)
 APT_PKGS ?= libegl1 libgl1-mesa-dri chromium
 
-.PHONY: install system-deps demo test test-fast bench-layers clean
+.PHONY: install system-deps demo test test-slow bench-layers clean
 
 install: $(STAMP) system-deps $(VIEWER)
 
@@ -64,21 +64,26 @@ demo: install
 	$(PY) examples/layer_demo.py
 	$(PY) examples/train_demo.py --out demo_out
 
-# The linter first (ruff, configured in pyproject.toml), then the whole suite with
-# torch-scatter, then the fast suite again with it hidden
-# (PyG's native scatter path).  Slow tests run too; `make test-fast` skips them.
-# Last, the tests marked `float_sensitive` under two other MKL code paths (~20 s each), so
+# The linter first (ruff, configured in pyproject.toml), then the suite without the tests
+# marked `slow`, with torch-scatter; then the tests of the code that scatters (the layers,
+# the models, the baselines) again with torch-scatter hidden (PyG's native scatter path);
+# last, the tests marked `float_sensitive` under two other MKL code paths (~20 s each), so
 # a comparison that holds on this CPU's path only fails here too, not on a user's CPU.
+# The tests marked `slow` (minutes each: Blender and Ray end to end, training through the
+# CLI and the bench, the committed checkpoint's row) run with `make test-slow`.
+SCATTER_TESTS := tests/test_nn_*.py tests/test_sat_conv.py tests/test_layers_contract.py \
+	tests/test_baseline_layers.py tests/test_model.py tests/test_model_inference.py \
+	tests/test_model_state.py tests/test_baselines.py tests/test_batching.py
 test: install
 	$(PY) -m ruff check src tests benchmarks examples
-	GARMENTGNN_EXPECT_SCATTER=1 GARMENTGNN_EXPECT_BLENDER=$(EXPECT_BLENDER) $(PY) -m pytest $(PYTEST_ARGS)
-	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+	GARMENTGNN_EXPECT_SCATTER=1 GARMENTGNN_EXPECT_BLENDER=$(EXPECT_BLENDER) $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+	GARMENTGNN_NO_SCATTER=1 $(PY) -m pytest -q -m "not slow" $(SCATTER_TESTS) $(PYTEST_ARGS)
 	for path in AVX2 COMPATIBLE; do \
 	  MKL_CBWR=$$path $(PY) -m pytest -q -m "float_sensitive and not slow" $(PYTEST_ARGS) || exit 1; \
 	done
 
-test-fast: install
-	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+test-slow: install
+	GARMENTGNN_EXPECT_SCATTER=1 GARMENTGNN_EXPECT_BLENDER=$(EXPECT_BLENDER) $(PY) -m pytest -m slow $(PYTEST_ARGS)
 
 bench-layers: $(STAMP)
 	$(PY) benchmarks/layers.py

@@ -36,6 +36,7 @@ def _same_dataset(a: Path, b: Path, atol: float):
     assert {k: r["status"] for k, r in ra.items()} == {k: r["status"] for k, r in rb.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not blender_available(), reason="bpy not installed (make install)")
 def test_ray_equals_local_with_blender(tmp_path):
     """Blender's run-to-run spread for these settings was measured as zero (bitwise equal
