@@ -278,6 +278,7 @@ def alive(pid):
     return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
 
 
+@pytest.mark.slow
 def test_workers_die_when_generate_is_killed(tmp_path):
     pids = tmp_path / "pids"
     e = env()

@@ -182,6 +182,7 @@ def test_generate_writes_files_and_manifest(clean_run):
     assert not list(Path(clean_run).rglob(".*tmp*"))  # no temporaries left
 
 
+@pytest.mark.slow
 def test_deterministic_and_parallel_equal(clean_run, tmp_path):
     out = tmp_path / "par"
     s = generate(preset("tiny"), out, workers=2, simulate_fn=fake_simulate, progress=False)
@@ -207,6 +208,7 @@ def test_resume_after_kill_in_process(clean_run, tmp_path, monkeypatch):
     assert (s.done, s.skipped) == (0, 8) and len(calls(log)) == 8
 
 
+@pytest.mark.slow
 def test_resume_after_worker_death(clean_run, tmp_path, monkeypatch):
     out, log = tmp_path / "run", tmp_path / "calls.txt"
     monkeypatch.setenv("GG_CALLS", str(log))

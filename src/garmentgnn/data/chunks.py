@@ -31,10 +31,9 @@ ones training targets and metrics use; ``converged [B]`` is the engine's own fla
 """
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
-
-import io
 
 import numpy as np
 import torch
