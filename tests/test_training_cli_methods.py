@@ -227,7 +227,7 @@ def test_a_module_named_by_the_user_gets_its_own_defaults(root, tmp_path, how): 
     assert cli.model.hparams.lr != inspect.signature(
         GarTransModule.__init__).parameters["lr"].default  # the case that went wrong
     given = train_main(args + ["--model.init_args.lr", "0.003"], run=False)
-    assert given.model.hparams.lr == 0.003
+    assert given.model.hparams.lr == pytest.approx(0.003, rel=1e-12)
 
 
 def test_named_module_reads_flags_and_configs_in_order():

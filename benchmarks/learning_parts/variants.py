@@ -138,7 +138,7 @@ HOOD_LEARN: Dict[str, Dict[str, Any]] = {
         "baseline": HOOD, "module": dict(_HOOD_RECIPE, lr=2e-4),
         "trainer": {"gradient_clip_val": 1.0}},
 }
-for _v in HOOD_LEARN.values():
-    _v["data"] = {"batch_size": 16}
-    _v["trainer"] = dict(_v.get("trainer", {}), limit_train_batches=25)
+for _v in HOOD_LEARN.values():  # _LEARN's batches and epochs (its lr and anneal are GarTrans's)
+    _v["data"] = dict(_LEARN["data"])
+    _v["trainer"] = dict(_LEARN["trainer"], **_v.get("trainer", {}))
 VARIANTS.update(HOOD_LEARN)
