@@ -10,7 +10,7 @@ import torch
 from garmentgnn.harness.methods import BASELINES, HOOD
 from garmentgnn.models.baselines import CoarseLevel, HOODStyle
 from garmentgnn.models.blocks import RunningNormalizer
-from garmentgnn.models.state import TeacherForcing
+from garmentgnn.training.baselines import ramped_length
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, GarmentDataModule)
 from garmentgnn.training.module import loss_inputs
@@ -294,9 +294,9 @@ def test_hood_noise_on_the_current_and_previous_positions(data):
 
 
 def test_rollout_length_ramp():
-    assert [TeacherForcing.length(5, 100, s) for s in (0, 24, 25, 50, 99, 100, 10 ** 6)] == \
+    assert [ramped_length(5, 100, s) for s in (0, 24, 25, 50, 99, 100, 10 ** 6)] == \
         [1, 1, 2, 3, 4, 5, 5]
-    assert TeacherForcing.length(5, 0, 0) == 5
+    assert ramped_length(5, 0, 0) == 5
 
 
 def test_hood_warmup_scales_the_learning_rate_of_each_step(data):

@@ -232,6 +232,41 @@ def test_checkpoint_with_a_removed_option_on_is_refused(tmp_path, change):
         GarTransModule.load_from_checkpoint(path)
 
 
+def _with_garment_state_settings(module, path, model_args, module_args) -> None:
+    """``module`` saved in today's layout with the garment-state settings of the layout
+    before their removal written in (``model_args`` into the model's spec)."""
+    hp = dict(module.hparams, **module_args)
+    hp["model"] = {"class_path": "garmentgnn.models.gartrans.GarTrans",
+                   "init_args": {**module.model.init_args, **model_args}}
+    ckpt = {"state_dict": module.state_dict(), "hyper_parameters": hp,
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, path)
+
+
+OFF_STATES = {"dynamic_code": False, "autoregressive": False}
+ROLLOUT = {"rollout": 5, "rollout_ramp": 0, "rollout_noise": 0.003}
+
+
+def test_checkpoint_with_the_garment_states_off_loads_as_todays_model(dm, tmp_path):
+    module = gartrans(dm).eval()
+    _with_garment_state_settings(module, tmp_path / "s.ckpt", OFF_STATES, ROLLOUT)
+    loaded = GarTransModule.load_from_checkpoint(tmp_path / "s.ckpt").eval()
+    assert set(OFF_STATES).isdisjoint(loaded.model.init_args)
+    assert set(ROLLOUT).isdisjoint(loaded.hparams)
+    item = dm.train_set[1]
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(item)["final"], module(item)["final"])
+
+
+@pytest.mark.parametrize("change", [{"dynamic_code": True}, {"autoregressive": True}])
+def test_checkpoint_with_a_garment_state_on_is_refused(dm, tmp_path, change):
+    _with_garment_state_settings(gartrans(dm), tmp_path / "s.ckpt", {**OFF_STATES, **change},
+                                 ROLLOUT)
+    with pytest.raises(CheckpointError, match=f"{next(iter(change))}=.*removed"):
+        GarTransModule.load_from_checkpoint(tmp_path / "s.ckpt")
+
+
 def test_an_old_checkpoint_is_read_twice_at_most(dm, tmp_path, monkeypatch):
     """Looking up the former defaults verifies the file; loading it reads it once more
     (Lightning), not a third time to verify it again."""

@@ -449,3 +449,15 @@ def test_collate_refuses_chunks_of_different_frame_counts(chunks):
     with pytest.raises(ValueError, match=r"`items`.*same frame count.*\[3, 4\].*"
                                          r"cut sequences into chunks of one length"):
         GarmentInputs.collate([a, b.select(torch.arange(3))])
+
+
+def test_select_of_a_batch_selects_the_same_frames_of_every_chunk(chunks):
+    """The oracle: the batch of each chunk's own selection (per-frame keys of a batch
+    are stacked ``[N, B, ...]`` or concatenated ``[B, sum V, ...]``)."""
+    a, b = chunks
+    idx = torch.tensor([3, 1])
+    got = GarmentInputs.collate([a, b]).select(idx)
+    want = GarmentInputs.collate([a.select(idx), b.select(idx)])
+    for k in ("rotations", "translation", "body_pos", "frames"):
+        torch.testing.assert_close(got[k], want[k], msg=k)
+    assert got.num_frames == 2 and got.rotations.shape[:2] == (2, 2)

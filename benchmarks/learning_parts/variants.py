@@ -104,19 +104,13 @@ for _name, _v in VARIANTS.items():
 _LEARN: Dict[str, Any] = {"model": {"lr": 0.012}, "data": {"batch_size": 16},
                           "trainer": {"limit_train_batches": 25}, "anneal": True}
 #: which model can hold the garment's state (docs/experiments.md), today's config at the
-#: ``learn`` settings, one garment state each (``models/state.py``)
+#: ``learn`` settings: frame-parallel, and with a recurrent latent of 16 channels per
+#: vertex (truncated backpropagation through each chunk).  The motion code in the dynamic
+#: stack and the autoregressive offsets, measured beside them, left the model (their
+#: runs name the commit they ran at)
 STATE: Dict[str, Dict[str, Any]] = {
     "state: frame-parallel (the paper)": {},
-    # the GRU's code over a 1 s pose history into the dynamic stack's vertices too
-    "state: motion code to the dynamic stack, 1 s history": {
-        "model": {"dynamic_code": True}, "data": {"history": 30}},
-    # a latent of 16 channels per vertex, truncated backpropagation through each chunk
     "state: recurrent vertex latent": {"model": {"vertex_state": 16}},
-    # its own previous offsets, MeshGraphNets'/HOOD's recipe: 3 mm noise on the
-    # simulated start frames, rollouts growing 1 -> 5 frames, gradients clipped at 1
-    "state: autoregressive, 3 mm noise, rollout 1-5, clip 1": {
-        "model": {"autoregressive": True, "rollout": 5, "rollout_ramp": 100,
-                  "rollout_noise": 0.003}, "trainer": {"gradient_clip_val": 1.0}},
 }
 for _v in STATE.values():
     for _k, _base in _LEARN.items():

@@ -211,8 +211,7 @@ class AttentionStack(nn.Module):
 
 def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
                     accel_unit: Optional[float], strain_limit: int,
-                    collision_projection: Optional[float], vertex_state: int,
-                    autoregressive: bool) -> None:
+                    collision_projection: Optional[float], vertex_state: int) -> None:
     """A ``ValueError`` naming the first bad argument of
     :class:`~garmentgnn.models.GarTrans` (its docstring says what each means)."""
     if lbs_start and not skin_prior:
@@ -233,6 +232,3 @@ def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
             or vertex_state < 0:
         raise ValueError(f"`vertex_state`: expected a latent width >= 0, got "
                          f"{vertex_state!r}")
-    if vertex_state and autoregressive:
-        raise ValueError("`vertex_state`, `autoregressive`: one garment state at a time; "
-                         "set `vertex_state=0` or `autoregressive=False`")

@@ -10,8 +10,8 @@ The project's defaults differ from the paper where measured better (docs/model.m
 :meth:`GarTrans.paper` (``configs/ablations/paper.yaml``) is the paper's form.  Choices
 where the paper is vague: per-vertex Nyström features (``V x k`` through FC layers);
 ``Θ^[1]`` = the GRU's last hidden state -> linear -> ``S``; ``a`` added to the coarse mesh
-(frame-parallel, unless a state is carried: :mod:`~garmentgnn.models.state`); any
-registry layer in any slot.
+(frame-parallel, unless ``vertex_state`` carries a latent: :mod:`~garmentgnn.models.state`);
+any registry layer in any slot.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNorma
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
                                         StaticFeatures)
-from garmentgnn.models.state import TeacherForcing, autoregressive_steps, recurrent_steps
+from garmentgnn.models.state import recurrent_steps
 
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
 BLEND_UNIT = 0.01
@@ -75,10 +75,8 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             vertices closer than ``eps`` to the body (or inside it) to ``eps`` outside
             (:func:`~garmentgnn.geometry.push_outside`); ``None`` (the paper): none.
         compile_search: ``torch.compile`` the projection's nearest-face search (faster).
-        dynamic_code: the GRU's code ``Θ^[1]`` also enters the dynamic stack's vertices.
-        vertex_state, autoregressive: a garment state (:mod:`~garmentgnn.models.state`):
-            a recurrent latent of this width per vertex (``0``: none), or the own offsets
-            from the coarse mesh at the two frames before.
+        vertex_state: channels of a recurrent latent per vertex carried frame to frame
+            (:mod:`~garmentgnn.models.state`); ``0`` (the paper): none, frame-parallel.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
@@ -88,13 +86,11 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
                  blend_shape: bool = False, accel_unit: Optional[float] = 0.01,
                  input_norm: bool = True, local_frame: bool = True, strain_limit: int = 10,
                  collision_projection: Optional[float] = 0.002,
-                 compile_search: bool = False, dynamic_code: bool = False,
-                 vertex_state: int = 0, autoregressive: bool = False) -> None:
+                 compile_search: bool = False, vertex_state: int = 0) -> None:
         super().__init__()
         check_arguments(lbs_start=lbs_start, skin_prior=skin_prior, gate_init=gate_init,
                         accel_unit=accel_unit, strain_limit=strain_limit,
-                        collision_projection=collision_projection, vertex_state=vertex_state,
-                        autoregressive=autoregressive)
+                        collision_projection=collision_projection, vertex_state=vertex_state)
         S = num_joints
         self.num_joints, self.num_body_vertices, self.fps, self.edge_dim = \
             S, num_body_vertices, fps, edge_dim
@@ -102,8 +98,7 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         self.gate_init, self.accel_unit = float(gate_init), accel_unit
         self.input_norm, self.local_frame = bool(input_norm), bool(local_frame)
         self.strain_limit, self.collision_projection = strain_limit, collision_projection
-        self.compile_search, self.dynamic_code, self.vertex_state, self.autoregressive = \
-            bool(compile_search), bool(dynamic_code), vertex_state, bool(autoregressive)
+        self.compile_search, self.vertex_state = bool(compile_search), vertex_state
         self.rest_fc = mlp([6 + S, 128, 128, 128], nn.Tanh())
         self.rest_attn = AttentionStack(rest_layer, 128, [64, 64, 128], heads, edge_dim, "tanh",
                                         last_act=True)
@@ -115,11 +110,10 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         self.gru_out = nn.Linear(128, S)
         self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
                                     last_act=False) if blend_shape else None
-        dyn_in = (3 + 3 + S + (6 if self.local_frame else 0)  # + rest position, gravity
-                  + (S if dynamic_code else 0) + vertex_state + (6 if autoregressive else 0))
-        self.dynamic = AttentionStack(dynamic_layer, dyn_in, [32, 64, 64, 64, 32,
-                                                              3 + 2 * vertex_state],
-                                      heads, edge_dim, "elu", last_act=False)
+        dyn_in = 3 + 3 + S + (6 if self.local_frame else 0) + vertex_state  # rest, gravity
+        self.dynamic = AttentionStack(dynamic_layer, dyn_in,
+                                      [32, 64, 64, 64, 32, 3 + 2 * vertex_state], heads,
+                                      edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
         self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
         norm = RunningNormalizer if self.input_norm else (lambda size: nn.Identity())
@@ -204,11 +198,10 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         return torch.where(still.unsqueeze(1), ones, code) if bool(still.any()) else code
 
     def coarse(self, inputs: GarmentInputs, static: StaticFeatures
-               ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Optional[Tensor]]:
+               ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Coarse meshes ``M^{t-1,c}, M^{t,c}`` ``[B, V, 3]`` (frame t's weights for
         both), the skinning weights ``W^t`` ``[B, V, S]``, the posed joints ``[N, B, S,
-        3]``, each vertex's skinning rotation ``R_v`` ``[B, V, 3, 3]`` at frame t and
-        (``dynamic_code``; else ``None``) each vertex's motion code ``[B, V, S]``."""
+        3]`` and each vertex's skinning rotation ``R_v`` ``[B, V, 3, 3]`` at frame t."""
         lay = ChunkLayout(inputs)
         N, B, V = lay.N, lay.B, inputs.num_vertices
         code = self.motion_code(lay.rotations.flatten(0, 1), lay.translation.flatten(0, 1))
@@ -234,16 +227,15 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             M = lay.blend_transforms(W, A[:, :, k])  # [B, V, 4, 4]
             verts.append((M[..., :3, :3] @ template.unsqueeze(-1)).squeeze(-1)
                          + M[..., :3, 3])
-        code = code.expand(B, V, -1) if self.dynamic_code else None
-        return verts[0], verts[1], W, joints[:, :, 1], M[..., :3, :3], code
+        return verts[0], verts[1], W, joints[:, :, 1], M[..., :3, :3]
 
     # -- 3. SAT deformation ---------------------------------------------------------------
     def deform(self, inputs: GarmentInputs, prev: Tensor, cur: Tensor, joints: Tensor,
-               R: Tensor, extra: Optional[Tensor] = None) -> Tensor:
+               R: Tensor, latent: Optional[Tensor] = None) -> Tensor:
         """The dynamic stack's output ``a`` ``[B, V, 3 + 2 vertex_state]`` for the coarse
-        mesh ``cur`` (world frame, in units of :attr:`unit` metres; the state's channels
-        after), from its velocity since ``prev``; ``extra`` ``[B, V, k]``: more vertex
-        features (motion code, state)."""
+        mesh ``cur`` (world frame, in units of :attr:`unit` metres; the latent's update
+        channels after), from its velocity since ``prev``; ``latent`` ``[B, V, L]``: the
+        recurrent latent, more vertex features."""
         lay = ChunkLayout(inputs)
         B, V = cur.shape[:2]
         vel, n = (cur - prev) * self.fps, vertex_normals(cur, inputs.faces)
@@ -253,7 +245,7 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             down = R.new_tensor([0.0, 0.0, -1.0]).expand(B, V, 3)
             vel, n, down = (torch.einsum("bvji,bvj->bvi", R, x) for x in (vel, n, down))
             feats = [vel, n, dj, inputs.rest_pos.unsqueeze(0).expand(B, V, 3), down]
-        x = self.dynamic_norm(torch.cat(feats + [extra] * (extra is not None), -1)
+        x = self.dynamic_norm(torch.cat(feats + [latent] * (latent is not None), -1)
                               .reshape(B * V, -1))
         ei = cached_batch_edges(inputs.edge_index, B, V)
         e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))
@@ -268,33 +260,35 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         return self.fps ** -2 if self.accel_unit is None else self.accel_unit
 
     def forward(self, inputs: GarmentInputs, static: Optional[StaticFeatures] = None,
-                prev_final: Optional[Tensor] = None, state: Optional[Tensor] = None,
-                teacher: Optional[TeacherForcing] = None) -> Dict[str, Tensor]:
+                prev_final: Optional[Tensor] = None, state: Optional[Tensor] = None
+                ) -> Dict[str, Tensor]:
         """``M^{t,d}`` of every frame of ``inputs`` (frame-parallel; a ``Batch`` of chunks
         as one union graph).  ``static``: a cached :meth:`encode_static` of the same
         garments; ``prev_final`` ``[B, V, 3]``: the garment at frame ``t-1`` in place of
-        the coarse ``M^{t-1,c}`` (autoregressive use, :meth:`rollout`).  With a garment
-        state the frames run in order from ``state`` (``None``: a motion's start) and
-        ``teacher`` trains ``autoregressive`` (:mod:`~garmentgnn.models.state`).
+        the coarse ``M^{t-1,c}`` (autoregressive use, :meth:`rollout`).  With a
+        ``vertex_state`` the frames run in order from the latent ``state`` ``[V, L]``
+        (``None``: a motion's start, zeros).
 
         Returns ``final``, ``coarse``, ``accel`` (``[B, V, 3]``), ``weights`` (``[B, V,
-        S]``) and, with a garment state, the ``state`` a next call continues from."""
+        S]``) and, with a ``vertex_state``, the ``state`` a next call continues from."""
         static = self.encode_static(inputs) if static is None else static
-        prev, cur, W, joints, R, code = self.coarse(inputs, static)
+        prev, cur, W, joints, R = self.coarse(inputs, static)
         out = {"coarse": cur, "weights": W}
-        if self.vertex_state or self.autoregressive:
-            run = recurrent_steps if self.vertex_state else autoregressive_steps
-            out["final"], out["accel"], out["state"] = run(
-                self, inputs, static, prev, cur, joints, R, code, state, teacher, prev_final)
+        if self.vertex_state:
+            if prev_final is not None:
+                raise ValueError("`prev_final`: a model with a `vertex_state` carries its "
+                                 "own state; pass the `state` output of the call before")
+            out["final"], out["accel"], out["state"] = recurrent_steps(
+                self, inputs, static, prev, cur, joints, R, state)
             return out
-        if state is not None or teacher is not None:
-            raise ValueError("`state`, `teacher`: for a model with a garment state "
-                             "(`vertex_state` or `autoregressive`)")
+        if state is not None:
+            raise ValueError("`state`: for a model with a `vertex_state` (this one is "
+                             "frame-parallel)")
         if prev_final is not None:
             if prev_final.shape != cur.shape:
                 raise ValueError(f"`prev_final`: expected {tuple(cur.shape)}, got "
                                  f"{tuple(prev_final.shape)}")
             prev = prev_final
-        out["accel"] = a = self.deform(inputs, prev, cur, joints, R, code)
+        out["accel"] = a = self.deform(inputs, prev, cur, joints, R)
         out["final"] = self.post_steps(inputs, static, cur + self._gate(2, a * self.unit))
         return out

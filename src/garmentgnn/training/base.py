@@ -59,6 +59,13 @@ def dataset_stamp(datamodule: Any) -> Dict[str, Any]:
 LBS_PREFIX = "test_lbs"
 
 
+def _init_args(hparams: Dict[str, Any]) -> Dict[str, Any]:
+    """The ``init_args`` of the model spec in ``hparams`` (``{}`` where it has none)."""
+    spec = hparams.get("model")
+    init = spec.get("init_args") if isinstance(spec, dict) else None
+    return init if isinstance(init, dict) else {}
+
+
 def _destroy_process_group() -> None:
     if dist.is_initialized():
         dist.destroy_process_group()
@@ -92,12 +99,19 @@ class GarmentModule(L.LightningModule):
     #: hyper-parameters that no longer exist, with the only value a checkpoint may hold
     #: for them (anything else was another model: :meth:`check_removed` refuses it)
     removed_switches: ClassVar[Dict[str, Any]] = {}
+    #: the same for the model's own arguments (the ``init_args`` of its spec)
+    removed_model_switches: ClassVar[Dict[str, Any]] = {}
+    #: hyper-parameters that acted only with a removed switch on: dropped, whatever value
+    inert_settings: ClassVar[Tuple[str, ...]] = ()
 
     @classmethod
     def check_removed(cls, hparams: Dict[str, Any], where: str = "checkpoint") -> None:
-        """A :class:`CheckpointError` when ``hparams`` switch on a removed option."""
-        bad = {k: hparams[k] for k, off in cls.removed_switches.items()
-               if k in hparams and hparams[k] != off}
+        """A :class:`CheckpointError` when ``hparams`` (or its model's ``init_args``)
+        switch on a removed option."""
+        init = _init_args(hparams)
+        bad = {k: v[k] for v, switches in ((hparams, cls.removed_switches),
+                                           (init, cls.removed_model_switches))
+               for k, off in switches.items() if k in v and v[k] != off}
         if bad:
             what = ", ".join(f"{k}={v!r}" for k, v in sorted(bad.items()))
             raise CheckpointError(f"{where}: trained with {what}, an option measured not to "
@@ -205,8 +219,14 @@ class GarmentModule(L.LightningModule):
         if isinstance(saved.get("model"), Configurable):  # written in by load_from_checkpoint
             saved["model"] = saved["model"].spec()
         cls.check_removed(saved, where)
-        saved = cls.upgrade_hparams({k: v for k, v in saved.items()
-                                     if k not in cls.removed_switches})
+        saved = {k: v for k, v in saved.items()
+                 if k not in cls.removed_switches and k not in cls.inert_settings}
+        if _init_args(saved):
+            spec = saved["model"]
+            saved["model"] = dict(spec, init_args={
+                k: v for k, v in spec["init_args"].items()
+                if k not in cls.removed_model_switches})
+        saved = cls.upgrade_hparams(saved)
         saved.pop("_instantiator", None)
         return saved
 

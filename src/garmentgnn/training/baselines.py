@@ -34,7 +34,6 @@ from torch import Tensor
 from garmentgnn.losses.gartrans_loss import GarTransLoss
 from garmentgnn.models.baselines import CoarseLevel, DAStyle, HOODStyle, NCSStyle
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.models.state import TeacherForcing
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.module import chunk_mean_loss, loss_inputs
 
@@ -46,6 +45,24 @@ BASELINE_METHODS = ("da", "hood", "ncs")
 START_STATES = ("lbs", "own")
 #: checkpoint key of the kept start states (``start_state="own"``)
 STATES_KEY = "garmentgnn_start_states"
+
+
+def ramped_length(rollout: int, ramp: int, step: int) -> int:
+    """The training rollout's length at optimizer step ``step``: ``1 + (rollout - 1)
+    min(1, step / ramp)`` rounded down, growing from 1 to ``rollout`` over ``ramp`` steps
+    (HOOD: by one every 5,000 iterations); ``rollout`` from the start where ``ramp`` is 0."""
+    if not ramp:
+        return rollout
+    return 1 + int((rollout - 1) * min(1.0, step / ramp))
+
+
+def _check_rollout(rollout: int, noise: float, ramp: int) -> None:
+    if not isinstance(rollout, int) or isinstance(rollout, bool) or rollout < 1:
+        raise ValueError(f"`rollout`: expected frames >= 1, got {rollout!r}")
+    if not (isinstance(noise, (int, float)) and noise >= 0):
+        raise ValueError(f"`rollout_noise`: expected metres >= 0, got {noise!r}")
+    if not isinstance(ramp, int) or isinstance(ramp, bool) or ramp < 0:
+        raise ValueError(f"`rollout_ramp`: expected optimizer steps >= 0, got {ramp!r}")
 
 
 class BaselineModule(GarmentModule):
@@ -76,7 +93,7 @@ class BaselineModule(GarmentModule):
             recipe, detached steps): a rollout restarts from the LBS garment of the two
             frames before it every ``rollout`` frames of a chunk (``None``: one rollout
             per chunk), ``rollout`` growing from 1 over the first ``rollout_ramp``
-            optimizer steps (:meth:`TeacherForcing.length`); every step's current and
+            optimizer steps (:func:`ramped_length`); every step's current and
             previous positions get Gaussian noise of ``rollout_noise`` metres, and its
             inertial prediction is taken from those noisy positions (HOOD: 3 mm).
         warmup: the learning rate grows linearly over the first ``warmup`` optimizer
@@ -106,7 +123,7 @@ class BaselineModule(GarmentModule):
                              f"start state; leave it at 'lbs' for {type(model).__name__}")
         if not max_start_drift > 0:
             raise ValueError(f"`max_start_drift`: expected metres > 0, got {max_start_drift!r}")
-        TeacherForcing.check(1 if rollout is None else rollout, rollout_noise, rollout_ramp)
+        _check_rollout(1 if rollout is None else rollout, rollout_noise, rollout_ramp)
         if (rollout is not None or rollout_ramp or rollout_noise) and self.method != "hood":
             raise ValueError(f"`rollout`, `rollout_ramp`, `rollout_noise`: only the "
                              f"autoregressive HOOD-style model rolls out in training; leave "
@@ -237,7 +254,7 @@ class BaselineModule(GarmentModule):
         hp = self.hparams
         if hp.rollout is None:
             return None
-        return TeacherForcing.length(hp.rollout, hp.rollout_ramp, self.global_step)
+        return ramped_length(hp.rollout, hp.rollout_ramp, self.global_step)
 
     @staticmethod
     def _lbs_before(inp: GarmentInputs) -> Tuple[Tensor, Tensor]:

@@ -17,7 +17,6 @@ import torch
 from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs, vertex_loss
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.models.state import TeacherForcing
 from garmentgnn.training.base import GarmentModule
 
 
@@ -83,25 +82,17 @@ class GarTransModule(GarmentModule):
             paper), ``"adam"`` or ``"adamw"``.
         loss_weights, edge_reduction, collision_margin: :class:`GarTransLoss` settings.
         enabled, supervised_scale: initial loss terms / scale (phase 1).
-        rollout, rollout_ramp, rollout_noise: how an ``autoregressive`` model trains
-            (:class:`~garmentgnn.models.state.TeacherForcing`, MeshGraphNets' and HOOD's
-            recipe): rollouts of ``rollout`` frames, growing from 1 over the first
-            ``rollout_ramp`` optimizer steps (``0``: ``rollout`` from the start), from
-            the simulated frames with Gaussian noise of ``rollout_noise`` metres.  With
-            gradient clipping: the Trainer's ``gradient_clip_val``.
     """
 
     def __init__(self, model: GarTrans, lr: float = 3e-3, t_max: Optional[int] = None,
                  eta_min: float = 0.0, optimizer: str = "adamax",
                  loss_weights: Optional[Dict[str, float]] = None,
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
-                 enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 rollout: int = 5, rollout_ramp: int = 0, rollout_noise: float = 0.003) -> None:
+                 enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0) -> None:
         super().__init__()
         if not isinstance(model, GarTrans):
             raise TypeError(f"`model`: expected a GarTrans, got {type(model).__name__}; "
                             f"GarTransModule(GarTrans(**datamodule.dims))")
-        TeacherForcing.check(rollout, rollout_noise, rollout_ramp)
         enabled = sorted(enabled)
         self.save_hyperparameters(ignore=["model"])
         if optimizer not in OPTIMIZERS:
@@ -152,20 +143,8 @@ class GarTransModule(GarmentModule):
         :class:`NonFiniteLossError` naming the term)."""
         return chunk_mean_loss(self.loss_fn, batch, out["final"], 1.0 / self.model.fps)
 
-    def teacher(self, batch: GarmentInputs) -> Optional[TeacherForcing]:
-        """An ``autoregressive`` model's training rollouts at this step (``None`` for
-        another model): ``rollout`` frames, ramped up from 1 over ``rollout_ramp`` steps."""
-        if not self.model.autoregressive:
-            return None
-        if batch.get("gt") is None:
-            raise ValueError("`batch`: an autoregressive GarTrans trains from the simulated "
-                             "garment (`gt`), which these chunks lack")
-        hp = self.hparams
-        k = TeacherForcing.length(hp.rollout, hp.rollout_ramp, self.global_step)
-        return TeacherForcing(batch.gt, k, hp.rollout_noise)
-
     def training_step(self, batch: GarmentInputs, batch_idx: int):
-        out = self.model(batch, teacher=self.teacher(batch))
+        out = self.model(batch)
         B = out["final"].shape[0] * batch.num_chunks
         # raises NonFiniteLossError naming the term; Trainer.fit re-raises it (stops)
         total, terms = self.compute_loss(batch, out)
@@ -186,6 +165,9 @@ class GarTransModule(GarmentModule):
     removed_switches: ClassVar[Dict[str, Any]] = {
         "garment_state": False, "state_noise": 0.0, "state_dropout": 0.0,
         "state_rollout": False, "motion_history": 1}
+    removed_model_switches: ClassVar[Dict[str, Any]] = {"dynamic_code": False,
+                                                         "autoregressive": False}
+    inert_settings: ClassVar[Tuple[str, ...]] = ("rollout", "rollout_ramp", "rollout_noise")
 
     @classmethod
     def upgrade_hparams(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
