@@ -101,7 +101,8 @@ class GarmentModule(L.LightningModule):
     removed_switches: ClassVar[Dict[str, Any]] = {}
     #: the same for the model's own arguments (the ``init_args`` of its spec)
     removed_model_switches: ClassVar[Dict[str, Any]] = {}
-    #: hyper-parameters that acted only with a removed switch on: dropped, whatever value
+    #: hyper-parameters that acted only with a removed model switch on: dropped, whatever
+    #: their value, from a checkpoint whose model names those switches (its layout had them)
     inert_settings: ClassVar[Tuple[str, ...]] = ()
 
     @classmethod
@@ -219,13 +220,12 @@ class GarmentModule(L.LightningModule):
         if isinstance(saved.get("model"), Configurable):  # written in by load_from_checkpoint
             saved["model"] = saved["model"].spec()
         cls.check_removed(saved, where)
-        saved = {k: v for k, v in saved.items()
-                 if k not in cls.removed_switches and k not in cls.inert_settings}
-        if _init_args(saved):
-            spec = saved["model"]
-            saved["model"] = dict(spec, init_args={
-                k: v for k, v in spec["init_args"].items()
-                if k not in cls.removed_model_switches})
+        saved = {k: v for k, v in saved.items() if k not in cls.removed_switches}
+        init = _init_args(saved)
+        if any(k in init for k in cls.removed_model_switches):
+            saved = {k: v for k, v in saved.items() if k not in cls.inert_settings}
+            saved["model"] = dict(saved["model"], init_args={
+                k: v for k, v in init.items() if k not in cls.removed_model_switches})
         saved = cls.upgrade_hparams(saved)
         saved.pop("_instantiator", None)
         return saved
