@@ -73,6 +73,7 @@ class Clock(L.Callback):
     def __init__(self) -> None:
         self.t: List[float] = []
         self.work: List[int] = []
+        self.loss: List[float] = []
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         if torch.cuda.is_available():
@@ -84,13 +85,14 @@ class Clock(L.Callback):
         if torch.cuda.is_available():
             torch.cuda.synchronize()
         self.t.append(time.perf_counter())
+        self.loss.append(float(outputs["loss"]))
 
 
 def measure(chunks: SequenceChunks, method: str, batch: int, threads: int,
             a: argparse.Namespace, precision: str = "32-true") -> Dict[str, Any]:
     torch.set_num_threads(threads)
     dm = GarmentDataModule(chunks.root, chunk=8, history=3, val_split=None, seed=0,
-                           batch_size=batch, cache_size=64)
+                           batch_size=batch, cache_size=64, num_workers=a.workers)
     dm.train_set = chunks  # every sequence's static inputs built once (warm)
     module = module_for(method, dm.dims)
     steps = a.warmup + max(3, -(-a.chunks // batch))
@@ -104,8 +106,9 @@ def measure(chunks: SequenceChunks, method: str, batch: int, threads: int,
     w = a.warmup
     seconds = clock.t[-1] - clock.t[2 * w]
     work = sum(clock.work[w:])
+    # the first step's loss: same weights and batch in every precision (seed 0)
     return {"vertex_frames_per_s": work / seconds, "steps": len(clock.work) - w,
-            "seconds": seconds}
+            "seconds": seconds, "first_loss": clock.loss[0]}
 
 
 def warm(root: Path) -> SequenceChunks:
@@ -134,7 +137,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2, help="rounds over the configurations")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="accelerator")
     ap.add_argument("--bf16", action="store_true",
-                    help="also bf16 autocast rows (GPU), with the loss difference")
+                    help="also bf16 autocast rows (GPU), with the relative difference of "
+                         "their first step's loss from float32's")
+    ap.add_argument("--workers", type=int, default=0,
+                    help="data loader worker processes (0: loading in the training process)")
     add_output_args(ap, RESULTS, "the throughput tables")
     a = ap.parse_args()
     for flag in ("batches", "threads"):
@@ -143,6 +149,8 @@ def main() -> None:
             ap.error(f"--{flag}: expected distinct values >= 1, got {getattr(a, flag)}")
     if a.chunks < 1 or a.warmup < 1 or a.repeats < 1:
         ap.error("--chunks, --warmup and --repeats: expected values >= 1")
+    if a.workers < 0:
+        ap.error(f"--workers: expected 0 or more loader processes, got {a.workers}")
     out = output_path(a, RESULTS)
     cache = benchmark_cache()
     roots = {s: dataset(s, cache) for s in a.sizes}
@@ -173,7 +181,12 @@ def main() -> None:
         one = next(x for x in rows if x["batch"] == min(a.batches) and all(
             x[k] == r[k] for k in ("size", "method", "threads", "precision")))
         r["x_batch1"] = r["vertex_frames_per_s"] / one["vertex_frames_per_s"]
+        fp32 = next(x for x in rows if x["precision"] == "32-true" and all(
+            x[k] == r[k] for k in ("size", "method", "threads", "batch")))
+        first = [statistics.median(x["first_loss"] for x in q["runs"]) for q in (r, fp32)]
+        r["loss_rel_diff"] = abs(first[0] - first[1]) / max(abs(first[1]), 1e-12)
     info = {"command": command_line("benchmarks/train_throughput.py"), "device": a.device,
+            "loader_workers": a.workers,
             "device_name": torch.cuda.get_device_name() if a.device == "cuda"
             else platform.processor() or platform.machine(),
             "torch": torch.__version__, "datasets": {
@@ -187,12 +200,15 @@ def main() -> None:
              f"`{info['command']}`", "",
              "Vertex-frames per second of training steps (median of the rounds); x batch 1:"
              " against the same method, threads and size at batch 1, measured in the same"
-             " run.", "",
-             "| size | method | threads | precision | batch | vertex-frames/s | x batch 1 |",
-             "|---|---|---:|---|---:|---:|---:|"]
+             f" run; loss vs fp32: the relative difference of the first step's loss from"
+             f" float32's (same weights and batch).  Loader workers: {a.workers}.", "",
+             "| size | method | threads | precision | batch | vertex-frames/s | x batch 1 |"
+             " loss vs fp32 |",
+             "|---|---|---:|---|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['size']} | {r['method']} | {r['threads']} | {r['precision']} | "
-                     f"{r['batch']} | {r['vertex_frames_per_s']:.0f} | {r['x_batch1']:.2f} |")
+                     f"{r['batch']} | {r['vertex_frames_per_s']:.0f} | {r['x_batch1']:.2f} | "
+                     f"{r['loss_rel_diff']:.1e} |")
     lines += ["", "Datasets (positions: skinned garment + wobble, see the script): " + ", ".join(
         f"{s} `{(d['content_sha256'] or '?')[:12]}`" for s, d in info["datasets"].items())]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")

@@ -80,7 +80,7 @@ def test_throughput_rows_of_a_finished_and_of_a_cut_run(tmp_path):
     assert [(r["precision"], r["batch"], r["vertex_frames_per_s"]) for r in rows] == \
         [("32-true", 1, 1234.0), ("bf16-mixed", 4, 56789.0)]
     row = {"size": "small", "method": "da", "threads": 8, "precision": "32-true", "batch": 4,
-           "vertex_frames_per_s": 10.0, "x_batch1": 2.0, "runs": []}
+           "vertex_frames_per_s": 10.0, "x_batch1": 2.0, "loss_rel_diff": 0.0, "runs": []}
     (tmp_path / "train_throughput_cuda.json").write_text(json.dumps({"rows": [row]}))
     rows = GW["throughput_rows"](tmp_path, log, "cuda")  # the results file wins
     assert rows == [{k: v for k, v in row.items() if k != "runs"}]
