@@ -26,6 +26,7 @@ from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNorma
                                       cached_batch_edges, check_arguments, geometric_init_,
                                       mlp)
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.models.precision import full_precision
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
                                         StaticFeatures)
 from garmentgnn.models.state import recurrent_steps
@@ -219,15 +220,13 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             template = template + self._gate(1, BLEND_UNIT * blend.view(B, V, 3))
         rot2, tr2 = lay.rotations[:, :, -2:], lay.translation[:, :, -2:]  # [N, B, 2, ...]
         rj = lay.rest_joints.repeat_interleave(B * 2, 0)
-        A, joints = forward_kinematics(rot2.reshape(N * B * 2, self.num_joints, 3), rj,
-                                       lay.parents, tr2.reshape(N * B * 2, 3))
+        with full_precision(rot2):  # float32 kinematics under autocast
+            A, joints = forward_kinematics(rot2.reshape(N * B * 2, self.num_joints, 3), rj,
+                                           lay.parents, tr2.reshape(N * B * 2, 3))
         A, joints = A.view(N, B, 2, *A.shape[1:]), joints.view(N, B, 2, -1, 3)
-        verts = []
-        for k in (0, 1):  # Eq. 1 with frame t's template and weights, frames t-1 and t
-            M = lay.blend_transforms(W, A[:, :, k])  # [B, V, 4, 4]
-            verts.append((M[..., :3, :3] @ template.unsqueeze(-1)).squeeze(-1)
-                         + M[..., :3, 3])
-        return verts[0], verts[1], W, joints[:, :, 1], M[..., :3, :3]
+        # Eq. 1 with frame t's template and weights, frames t-1 and t (float32)
+        (prev, _), (cur, M) = (lay.skin(W, A[:, :, k], template) for k in (0, 1))
+        return prev, cur, W, joints[:, :, 1], M[..., :3, :3]
 
     # -- 3. SAT deformation ---------------------------------------------------------------
     def deform(self, inputs: GarmentInputs, prev: Tensor, cur: Tensor, joints: Tensor,

@@ -50,6 +50,7 @@ from torch_geometric.data import Batch, Data
 from garmentgnn.body.body import Body
 from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
+from garmentgnn.models.precision import full_precision
 from garmentgnn.physics import ClothRest
 
 __all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "check_history",
@@ -268,10 +269,12 @@ def skin(scene: GarmentInputs, rotations: Tensor, translation: Optional[Tensor] 
     """
     check_pose(scene, rotations, translation)
     dt = scene.rest_pos.dtype
-    A, joints = forward_kinematics(rotations.to(dt), scene.rest_joints.to(dt), scene.parents,
-                                   None if translation is None else translation.to(dt))
-    verts = scene.rest_pos if offsets is None else scene.rest_pos + offsets
-    return linear_blend_skinning(verts, scene.skin_weights.to(dt), A), joints
+    with full_precision(scene.rest_pos) as up:  # float32 under autocast
+        A, joints = forward_kinematics(rotations.to(dt), scene.rest_joints.to(dt),
+                                       scene.parents,
+                                       None if translation is None else translation.to(dt))
+        verts = scene.rest_pos if offsets is None else scene.rest_pos + up(offsets)
+        return linear_blend_skinning(verts, scene.skin_weights.to(dt), A), joints
 
 
 def build_garment(rest_pos: Tensor, faces: Tensor, skin_weights: Tensor, rest_joints: Tensor,

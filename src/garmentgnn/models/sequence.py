@@ -13,6 +13,7 @@ from torch import Tensor
 
 from garmentgnn.geometry import edge_lengths, project_edge_lengths, push_outside, unique_edges
 from garmentgnn.models.inputs import FRAME_KEYS, GarmentInputs
+from garmentgnn.models.precision import full_precision
 
 
 @dataclass
@@ -125,6 +126,15 @@ class ChunkLayout:
         M = torch.einsum("nvbs,nbsij->nvbij", Wp, A)
         return self.from_padded(M).transpose(0, 1)
 
+    def skin(self, W: Tensor, A: Tensor, template: Tensor) -> Tuple[Tensor, Tensor]:
+        """Eq. 1 in float32 (also under autocast): ``template`` ``[B, V, 3]`` (or ``[V,
+        3]``) posed by the blended transforms ``M`` ``[B, V, 4, 4]`` of weights ``W`` ``[B,
+        V, S]`` and ``A`` ``[N, B, S, 4, 4]``: (positions ``[B, V, 3]``, ``M``)."""
+        with full_precision(template) as up:
+            M = self.blend_transforms(up(W), up(A))
+            pos = (M[..., :3, :3] @ up(template).unsqueeze(-1)).squeeze(-1) + M[..., :3, 3]
+        return pos, M
+
     def bodies(self, inputs: GarmentInputs) -> List[Tuple[Tuple[int, int], Tuple[int, int],
                                                           Tensor]]:
         """Per chunk: its vertex range in the union graph, its body's vertex range in
@@ -156,7 +166,12 @@ class PostSteps:
     (``strain_limit`` sweeps) and the collision projection (``collision_projection``)."""
 
     def post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor) -> Tensor:
-        """The strain limit, then the collision projection against each chunk's body."""
+        """The strain limit, then the collision projection against each chunk's body (in
+        float32, also under autocast)."""
+        with full_precision(x) as up:
+            return self._post_steps(inputs, static, up(x))
+
+    def _post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor) -> Tensor:
         if self.strain_limit:
             edges, lengths = static.strain_edges, static.strain_lengths
             if edges is None:  # static features made by a model without the strain limit

@@ -11,6 +11,7 @@ from garmentgnn.geometry import edge_features, vertex_joint_distances, vertex_no
 from garmentgnn.models.baselines.common import skin, small_init_
 from garmentgnn.models.blocks import Configurable, batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.models.precision import full_precision
 from garmentgnn.models.sequence import ChunkLayout
 from garmentgnn.nn import GATBaselineConv
 
@@ -80,12 +81,12 @@ class DAStyle(Configurable, nn.Module):
         lay = ChunkLayout(scene)
         N, B, S = rotations.shape[:3]
         dt = scene.rest_pos.dtype
-        A, joints = forward_kinematics(rotations.reshape(N * B, S, 3).to(dt),
-                                       lay.rest_joints.to(dt).repeat_interleave(B, 0),
-                                       lay.parents, translation.reshape(N * B, 3).to(dt))
+        with full_precision(rotations):  # float32 kinematics under autocast
+            A, joints = forward_kinematics(rotations.reshape(N * B, S, 3).to(dt),
+                                           lay.rest_joints.to(dt).repeat_interleave(B, 0),
+                                           lay.parents, translation.reshape(N * B, 3).to(dt))
         W = scene.skin_weights.to(dt).expand(B, -1, -1)
-        M = lay.blend_transforms(W, A.view(N, B, *A.shape[1:]))
-        verts = (M[..., :3, :3] @ scene.rest_pos.unsqueeze(-1)).squeeze(-1) + M[..., :3, 3]
+        verts, _ = lay.skin(W, A.view(N, B, *A.shape[1:]), scene.rest_pos)
         return verts, joints.view(N, B, S, 3)
 
     def forward(self, scene: GarmentInputs, rotations: Tensor,
