@@ -207,9 +207,7 @@ def test_precision_rows_lbs(seq):
     ref = _lbs(seq)
     for (d, mode), r in rows.items():
         assert r["verdict"] in ("stable", "degraded", "failed")
-        if r["status"] != "ok":
-            assert r["message"].startswith("unsupported:") and r["verdict"] == "failed"
-            continue
+        assert r["status"] == "ok", r.get("message")  # the cast mode runs too
         assert (r["max_dev_m"] is None) == (r["nonfinite"] > 0)
         if mode == "autocast" and r["max_dev_m"] is not None:  # independent recomputation
             with torch.autocast("cpu", dtype=precision.DTYPES[d]):
@@ -225,9 +223,12 @@ def test_precision_rows_gartrans_never_crash(seq):
     assert rec["module_kwargs"] == PAPER_FORM
     rows = {(r["dtype"], r["mode"]): r for r in rec["rows"]}
     assert rows["float32", "reference"]["max_dev_m"] == 0.0
-    for r in rec["rows"]:  # each low-precision row either ran or says why not
-        assert r["status"] in ("ok", "unsupported")
-        assert r["status"] == "ok" or r["message"].startswith("unsupported:")
+    for r in rec["rows"]:  # each low-precision row ran (the cast mode on a cast copy)
+        assert r["status"] == "ok", r.get("message")
+    # autocast: the networks in low precision, the kinematics and skinning in float32
+    # (bfloat16 positions alone are ~1 cm off at metre-scale coordinates)
+    assert rows["bfloat16", "autocast"]["max_dev_m"] < 1e-3
+    assert rows["bfloat16", "cast"]["max_dev_m"] > 1e-3
     assert "## Reduced precision" in "\n".join(precision.markdown([rec]))
     with pytest.raises(ValueError, match="method"):
         precision.run_record(seq, "nope")

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -46,6 +46,7 @@ from garmentgnn.harness.tables import table
 from garmentgnn.harness.timing import measure
 from garmentgnn.models import PAPER_FORM
 from garmentgnn.models.baselines import LBSBaseline
+from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.evaluate import predict
 
 DTYPES: Dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16,
@@ -123,9 +124,9 @@ def precision_verdict(row: Dict[str, Any], th: PrecisionThresholds = PRECISION_T
     return "stable", ""
 
 
-def _cast_floats(item: Dict[str, Any], dtype: torch.dtype) -> Dict[str, Any]:
-    return {k: v.to(dtype) if isinstance(v, Tensor) and v.is_floating_point() else v
-            for k, v in item.items()}
+def _cast_floats(item: GarmentInputs, dtype: torch.dtype) -> GarmentInputs:
+    """A copy of ``item`` with its floating-point tensors in ``dtype``."""
+    return item.clone().apply(lambda t: t.to(dtype) if t.is_floating_point() else t)
 
 
 def _predictors(seq: BenchSequence, method: str, seed: int, history: int, nystrom_dim: int,
@@ -148,9 +149,7 @@ def _predictors(seq: BenchSequence, method: str, seed: int, history: int, nystro
         rot, tr = seq.motion.rotations, seq.motion.translation
 
         def cast_lbs(dt: torch.dtype) -> Callable[[], Tensor]:
-            sc = seq.scene
-            scene = replace(sc, rest_pos=sc.rest_pos.to(dt), weights=sc.weights.to(dt),
-                            rest_joints=sc.rest_joints.to(dt))
+            scene = _cast_floats(seq.scene, dt)
             return lambda: lbs(scene, rot.to(dt), tr.to(dt))
         return lambda: lbs(seq.scene, rot, tr), cast_lbs, {}
     raise ValueError(f"`method`: expected one of {sorted(METHODS)}, got {method!r}")
