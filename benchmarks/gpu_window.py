@@ -317,7 +317,7 @@ class Window:
                   "--trainer.accelerator", accel, "--trainer.enable_progress_bar", "false"]
         fit = self.py("-m", "garmentgnn.cli", "train", "fit", *common,
                       "--data.batch_size", str(batch), "--data.val_split", val,
-                  "--data.num_workers", str(self.a.loader_workers),
+                      "--data.num_workers", str(self.a.loader_workers),
                       "--trainer.max_time", hms(times["max_time"]),
                       "--trainer.max_epochs", "100000",
                       "--trainer.default_root_dir", str(folder / "fit"))
