@@ -1,16 +1,9 @@
 """One GPU window: the measurements and training runs that need a GPU, in one command of
 under ten minutes on a bare machine that reaches no network (docs/bench.md, "A GPU
-window").
-
-``prepare`` (here, with a network): packs the datasets (:mod:`garmentgnn.data.compact`)
-and downloads the wheels the GPU image lacks into ``build/gpu_window/`` (ignored by git,
-carried to the machine)::
-
-    python benchmarks/gpu_window.py prepare [--train DATASET]
-
-``run`` (there, through ``benchmarks/gpu_window.sh``, which installs the wheels first):
+window").  ``benchmarks/gpu_window_prepare.py`` makes its carried folder here;
+``benchmarks/gpu_window.sh`` installs the wheels there and calls this driver, which
 unpacks the datasets, then runs each stage as its own process with a share of the time
-left, so a stage that fails or runs out of time loses only its own results:
+left (a stage that fails or runs out of time loses only its own results):
 
 1. ``throughput_gartrans``, ``throughput_da``: ``benchmarks/train_throughput.py`` at
    batch 1/4/16/64 (and bf16 on a GPU) on the packed ``throughput-small``;
@@ -18,9 +11,9 @@ left, so a stage that fails or runs out of time loses only its own results:
 3. ``train_gartrans``, ``train_da``: ``garmentgnn train fit`` for the stage's time
    (``--trainer.max_time``), then ``train test`` of its best checkpoint.
 
-Each stage's folder goes to ``OUT/<stage>.tar.gz`` as soon as it ends (its checkpoints
-without the optimizer state, under the device's 16 MiB a file), and ``OUT/summary.md`` /
-``summary.json`` are rewritten after every stage: seven files in all.
+Each stage's folder goes to ``OUT/<stage>.tar.gz`` as soon as it ends (checkpoints without
+the optimizer state, under the device's 16 MiB a file); ``OUT/summary.{md,json}`` are
+rewritten after every stage.
 """
 from __future__ import annotations
 
@@ -58,8 +51,7 @@ FILE_LIMIT = 16 * 2 ** 20 - 2 ** 16
 #: seconds kept after the last stage for the last bundle and summary
 MARGIN_S = 20.0
 #: each stage's share of the time left when it starts (unused time goes to the later ones)
-#: (the first H200 window: GarTrans's throughput and test needed more than 0.13 and a
-#: quarter of 0.35, DA-style's and the inference less than 0.10 and 0.14)
+#: (set from the first H200 window's stage times, docs/results/gpu_window_h200)
 WEIGHTS = {"throughput_gartrans": 0.17, "throughput_da": 0.10, "inference": 0.11,
            "train_gartrans": 0.37, "train_da": 0.25}
 CONFIGS = {"train_gartrans": "gartrans", "train_da": "baselines/da"}
@@ -142,10 +134,9 @@ def throughput_rows(folder: Path, log: Path, device: str) -> List[Dict[str, Any]
         m = THROUGHPUT_LINE.match(line.strip())
         if m:
             size, method, threads, prec, batch = json.loads(m.group(1))
-            rows.append({"size": size, "method": method, "threads": threads,
-                         "precision": prec, "batch": batch,
-                         "vertex_frames_per_s": float(m.group(2)), "x_batch1": None,
-                         "loss_rel_diff": None})
+            rows.append({"size": size, "method": method, "threads": threads, "precision": prec,
+                         "batch": batch, "vertex_frames_per_s": float(m.group(2)),
+                         "x_batch1": None, "loss_rel_diff": None})
     return rows
 
 
@@ -489,9 +480,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                     default=[1, 4, 16, 32], help="inference: frames per call")
     ap.add_argument("--train-batch", type=int_at_least(1), default=8,
                     help="training: chunks per step")
-    ap.add_argument("--loader-workers", type=int, default=None,
-                    help="data loader processes of the throughput and training stages "
-                         "(default: 6 on cuda, where the machine has 16 cores; 0 on cpu)")
+    ap.add_argument("--loader-workers", type=int_at_least(0), default=None,
+                    help="data loader processes of every stage (default: 6 on cuda, 0 on cpu)")
     ap.add_argument("--startup-s", type=float, default=45.0,
                     help="training: seconds a fit needs before its first step (imports, "
                          "static inputs, compilation), kept out of its max_time")
@@ -500,10 +490,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         ap.error(f"--budget-s: expected a positive number of seconds, got {a.budget_s}")
     if not a.startup_s >= 0:
         ap.error(f"--startup-s: expected seconds >= 0, got {a.startup_s}")
-    if a.loader_workers is None:
+    if a.loader_workers is None:  # the GPU machine has 16 cores; here loading shares 2
         a.loader_workers = 6 if a.device == "cuda" else 0
-    if a.loader_workers < 0:
-        ap.error(f"--loader-workers: expected 0 or more processes, got {a.loader_workers}")
     a.out = str(output_path(a, RESULTS))
     return run(a)
 
