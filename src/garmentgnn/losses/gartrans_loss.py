@@ -31,12 +31,13 @@ The physics terms, which never read the ground truth, keep every frame.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Dict, Iterable, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
 
+from garmentgnn.geometry.precision import full_precision
 from garmentgnn.geometry import (NearestFaceCache, angle_defect_difference, edge_lengths,
                                  signed_distance, unique_edges, vertex_normals)
 from garmentgnn.physics import (
@@ -191,6 +192,13 @@ class GarTransLoss(nn.Module):
                                compiled=self.compile_search).distance
 
     def forward(self, inp: LossInputs):
+        """``(total, terms)``, in float32 also under autocast (a low-precision ``pred`` or
+        ``predicted`` is cast up; the energies' products stay float32)."""
+        with full_precision(inp.pred) as up:
+            return self._forward(replace(inp, pred=up(inp.pred), predicted=None if
+                                         inp.predicted is None else up(inp.predicted)))
+
+    def _forward(self, inp: LossInputs):
         w = self.weights
         pred = inp.pred
         need_gt = self.enabled & set(NEEDS_GT)

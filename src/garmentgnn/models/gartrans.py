@@ -26,7 +26,7 @@ from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNorma
                                       cached_batch_edges, check_arguments, geometric_init_,
                                       mlp)
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.models.precision import full_precision
+from garmentgnn.geometry.precision import full_precision
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
                                         StaticFeatures)
 from garmentgnn.models.state import recurrent_steps

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from garmentgnn.geometry import edge_lengths, project_edge_lengths, push_outside, unique_edges
 from garmentgnn.models.inputs import FRAME_KEYS, GarmentInputs
-from garmentgnn.models.precision import full_precision
+from garmentgnn.geometry.precision import full_precision
 
 
 @dataclass

@@ -17,7 +17,6 @@ import torch
 from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs, vertex_loss
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.models.precision import full_precision
 from garmentgnn.training.base import GarmentModule
 
 
@@ -39,16 +38,7 @@ def chunk_mean_loss(loss_fn: GarTransLoss, batch: GarmentInputs, pred: torch.Ten
                     dt: float, predicted: Optional[torch.Tensor] = None,
                     ground_truth: bool = True) -> Tuple[torch.Tensor, Dict[str, torch.Tensor]]:
     """``loss_fn`` of a prediction ``pred [B, V, 3]`` of ``batch`` (one chunk, or a
-    ``Batch`` of chunks: the mean over its chunks of each chunk's total and terms), in
-    float32 also under autocast."""
-    with full_precision(pred) as up:
-        return _chunk_mean_loss(loss_fn, batch, up(pred), dt,
-                                None if predicted is None else up(predicted), ground_truth)
-
-
-def _chunk_mean_loss(loss_fn: GarTransLoss, batch: GarmentInputs, pred: torch.Tensor,
-                     dt: float, predicted: Optional[torch.Tensor],
-                     ground_truth: bool) -> Tuple[torch.Tensor, Dict[str, torch.Tensor]]:
+    ``Batch`` of chunks: the mean over its chunks of each chunk's total and terms)."""
     if batch.num_chunks == 1:
         return loss_fn(loss_inputs(batch, pred, dt, predicted, ground_truth))
     totals, terms, v0 = [], {}, 0

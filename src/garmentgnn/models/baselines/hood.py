@@ -10,6 +10,7 @@ from torch import Tensor, nn
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter
 
+from garmentgnn.geometry.precision import full_precision
 from garmentgnn.geometry import farthest_point_sampling, vertex_normals
 from garmentgnn.models.baselines.common import small_init_
 from garmentgnn.models.blocks import Configurable, RunningNormalizer, batch_edges, mlp
@@ -228,10 +229,13 @@ class HOODStyle(Configurable, nn.Module):
         """Next state ``[B, V, 3]``: ``2 x_curr - x_prev + a dt^2``; pinned vertices are
         set to ``pinned_target [B, V, 3]`` when given (else kept at ``x_curr``)."""
         a = self(scene, coarse, x_prev, x_curr, body)
-        x_next = 2 * x_curr.to(a.dtype) - x_prev.to(a.dtype) + a * self.dt ** 2
-        if scene.get("pinned") is not None:
-            target = x_curr.to(a.dtype) if pinned_target is None else pinned_target.to(a.dtype)
-            x_next = torch.where(scene.pinned_mask().view(1, -1, 1), target, x_next)
+        with full_precision(x_curr) as up:  # the integration in float32 under autocast
+            a = up(a)
+            x_next = 2 * x_curr.to(a.dtype) - x_prev.to(a.dtype) + a * self.dt ** 2
+            if scene.get("pinned") is not None:
+                target = x_curr if pinned_target is None else pinned_target
+                x_next = torch.where(scene.pinned_mask().view(1, -1, 1), target.to(a.dtype),
+                                     x_next)
         return x_next
 
     def rollout(self, scene: GarmentInputs, coarse: CoarseLevel, x0: Tensor, x1: Tensor,

@@ -1,4 +1,5 @@
-"""Mixed precision in the models: which parts stay float32 under ``torch.autocast``."""
+"""Mixed precision: positions and what is computed from them stay float32 under
+``torch.autocast`` (the models' kinematics, skinning and post-steps, and the losses)."""
 from __future__ import annotations
 
 import contextlib
