@@ -414,13 +414,12 @@ def test_batched_equals_per_mesh(fn, noisy_sheet):
 
 
 def test_full_precision_lifts_low_precision_only_under_autocast():
-    full_precision = G.full_precision
     x, lo, wide = torch.randn(4, 4), torch.randn(4, 4).bfloat16(), torch.randn(4, 4).double()
-    with full_precision(x) as up:  # no autocast: nothing changes
+    with G.full_precision(x) as up:  # no autocast: nothing changes
         assert up(lo) is lo and up(wide) is wide and (x @ x).dtype == torch.float32
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert (x @ x).dtype == torch.bfloat16  # what autocast does outside
-        with full_precision(x) as up:
+        with G.full_precision(x) as up:
             assert (x @ x).dtype == torch.float32  # autocast off inside
             assert up(lo).dtype == torch.float32 and up(wide).dtype == torch.float64
             torch.testing.assert_close(up(lo), lo.float(), rtol=0, atol=0)

@@ -22,9 +22,9 @@ from garmentgnn.geometry.measures import (angle_defect, angle_defect_difference,
 from garmentgnn.geometry.mesh import (EdgeTopology, FaceAdjacency, boundary_vertex_mask,
                                       edge_features, face_adjacency, faces_to_edge_index,
                                       grid_mesh, unique_edges)
-from garmentgnn.geometry.precision import full_precision
 from garmentgnn.geometry.normals import (face_angles, face_areas, face_normals,
                                          scatter_faces_to_vertices, vertex_normals)
+from garmentgnn.geometry.precision import full_precision
 from garmentgnn.geometry.sdf import plane_distance, sphere_distance
 from garmentgnn.geometry.rotations import (axis_angle_to_matrix, euler_to_matrix,
                                            matrix_to_axis_angle, matrix_to_euler,

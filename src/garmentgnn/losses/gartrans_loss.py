@@ -37,9 +37,9 @@ from typing import Dict, Iterable, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
-from garmentgnn.geometry.precision import full_precision
 from garmentgnn.geometry import (NearestFaceCache, angle_defect_difference, edge_lengths,
-                                 signed_distance, unique_edges, vertex_normals)
+                                 full_precision, signed_distance, unique_edges,
+                                 vertex_normals)
 from garmentgnn.physics import (
     ClothRest,
     bending_energy,

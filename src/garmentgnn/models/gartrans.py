@@ -21,12 +21,12 @@ import torch
 from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
-from garmentgnn.geometry import edge_features, edge_lengths, unique_edges, vertex_normals
+from garmentgnn.geometry import (edge_features, edge_lengths, unique_edges, vertex_normals,
+                                 full_precision)
 from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNormalizer,
                                       cached_batch_edges, check_arguments, geometric_init_,
                                       mlp)
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.geometry.precision import full_precision
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
                                         StaticFeatures)
 from garmentgnn.models.state import recurrent_steps

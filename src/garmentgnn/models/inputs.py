@@ -49,8 +49,7 @@ from torch_geometric.data import Batch, Data
 
 from garmentgnn.body.body import Body
 from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_blend_skinning
-from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features
-from garmentgnn.geometry.precision import full_precision
+from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features, full_precision
 from garmentgnn.physics import ClothRest
 
 __all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "check_history",

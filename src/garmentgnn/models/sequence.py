@@ -11,9 +11,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from garmentgnn.geometry import edge_lengths, project_edge_lengths, push_outside, unique_edges
+from garmentgnn.geometry import (edge_lengths, project_edge_lengths, push_outside, unique_edges,
+                                 full_precision)
 from garmentgnn.models.inputs import FRAME_KEYS, GarmentInputs
-from garmentgnn.geometry.precision import full_precision
 
 
 @dataclass

@@ -7,11 +7,11 @@ import torch
 from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
-from garmentgnn.geometry import edge_features, vertex_joint_distances, vertex_normals
+from garmentgnn.geometry import (edge_features, vertex_joint_distances, vertex_normals,
+                                 full_precision)
 from garmentgnn.models.baselines.common import skin, small_init_
 from garmentgnn.models.blocks import Configurable, batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.geometry.precision import full_precision
 from garmentgnn.models.sequence import ChunkLayout
 from garmentgnn.nn import GATBaselineConv
 

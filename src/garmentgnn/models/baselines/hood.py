@@ -10,8 +10,7 @@ from torch import Tensor, nn
 from torch_geometric.nn.conv import MessagePassing
 from torch_geometric.utils import scatter
 
-from garmentgnn.geometry.precision import full_precision
-from garmentgnn.geometry import farthest_point_sampling, vertex_normals
+from garmentgnn.geometry import farthest_point_sampling, vertex_normals, full_precision
 from garmentgnn.models.baselines.common import small_init_
 from garmentgnn.models.blocks import Configurable, RunningNormalizer, batch_edges, mlp
 from garmentgnn.models.inputs import GarmentInputs
