@@ -81,7 +81,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     ap.add_argument("--data", default=None,
                     help="a generated dataset folder (every part but merge)")
     ap.add_argument("--curves", nargs="+", default=None, action=Accumulate, type=existing_file,
-                    help="merge: curves.json files of the same dataset, steps and seeds")
+                    help="merge: curves.json files of the same dataset and steps (other "
+                         "variants, or other seeds of a variant)")
     ap.add_argument("--bench", default=None,
                     help="energy: the output folder of a `garmentgnn bench` run on --data")
     add_output_args(ap, RESULTS, "folder for <part>.json, .md and .png")

@@ -370,7 +370,9 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
         return {"seed": seed, "status": "ok",
                 "curve": [{"step": 0, "train": 2.0, "test": 4.0}, last]}
 
-    res = {"lbs": lbs, "steps": 10, "seeds": [0, 1, 2], "variants": {
+    res = {"lbs": lbs, "steps": 10, "seeds": [0, 1, 2], "sequences": {"test": {
+        q: {"group": f"g{i % 2}", "frames": 10 + i, "lbs": 4.0} for i, q in enumerate(seqs)}},
+        "variants": {
         "a": {"runs": [run(s, 0.0) for s in range(3)]},
         "b": {"runs": [run(s, -0.2) for s in range(3)]}}}
 
@@ -390,9 +392,29 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
     merged = bench["merge_curves"]([tmp_path / "a.json", tmp_path / "b.json"])
     assert bench["curves_markdown"](merged) == lines
     assert [src["command"] for src in merged["sources"]] == ["run a", "run b"]
-    (tmp_path / "c.json").write_text(json.dumps(dict(res, seeds=[0, 1], variants={})))
-    with pytest.raises(ValueError, match="another seeds"):
+    (tmp_path / "c.json").write_text(json.dumps(dict(res, lbs={"train": 2.0, "test": 4.5})))
+    with pytest.raises(ValueError, match="another lbs"):
         bench["merge_curves"]([tmp_path / "a.json", tmp_path / "c.json"])
+    # each seed of each variant run in its own process, merged in any order: the same table
+    for name in ("a", "b"):
+        for run in res["variants"][name]["runs"]:
+            part = dict(res, command=f"run {name} {run['seed']}", seeds=[run["seed"]],
+                        variants={name: {"runs": [run]}})
+            (tmp_path / f"{name}-s{run['seed']}.json").write_text(json.dumps(part))
+    files = [tmp_path / f"{name}-s{s}.json" for name in ("a", "b") for s in (2, 0, 1)]
+    by_seed = bench["merge_curves"](files)
+    assert by_seed["seeds"] == [0, 1, 2]
+    assert bench["curves_markdown"](by_seed) == lines
+    # a variant with fewer seeds than the table says so in its rows
+    fewer = bench["merge_curves"](files[:3] + files[4:])
+    assert fewer["seeds"] == [0, 1, 2]
+    assert sum(line.startswith("| b (seeds 0, 1) |")  # the table and the group table
+               for line in bench["curves_markdown"](fewer)) == 2
+    other = json.loads((tmp_path / "a-s1.json").read_text())
+    other["variants"]["a"]["settings"] = {"model": "another"}
+    (tmp_path / "a-other.json").write_text(json.dumps(other))
+    with pytest.raises(ValueError, match="more than one file, with other settings"):
+        bench["merge_curves"]([tmp_path / "a-s0.json", tmp_path / "a-other.json"])
     # a variant in two files: kept once where a rerun reproduced its errors (timings
     # differ), refused where an error differs
     rerun = json.loads((tmp_path / "a.json").read_text())
@@ -416,8 +438,8 @@ def test_curves_table_means_over_seeds_and_tests_pairs_against_scipy(tmp_path):
     with pytest.raises(ValueError, match="in none of the files"):
         bench["merge_curves"]([tmp_path / "a.json"], only=["b"])
     # every run failed: the table still renders, naming the failure
-    failed = dict(res, variants={"a": {"runs": [{"seed": 0, "status": "RuntimeError: boom",
-                                                 "curve": []}]}})
+    failed = dict(res, sequences={}, variants={"a": {"runs": [
+        {"seed": 0, "status": "RuntimeError: boom", "curve": []}]}})
     assert bench["curves_markdown"](failed)[-1].endswith("| seed 0: RuntimeError: boom |")
 
 

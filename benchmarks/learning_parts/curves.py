@@ -49,8 +49,9 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
         ok = [run for run in r["runs"] if run["curve"]]
         failures = "; ".join(f"seed {run['seed']}: {run['status']}" for run in r["runs"]
                              if run["status"] != "ok")
+        label = _label(name, r["runs"], seeds)
         if not ok:
-            rows.append([name, "—", "—", "—", "—", "—", "—", failures])
+            rows.append([label, "—", "—", "—", "—", "—", "—", failures])
             continue
         c = mean_curve(ok)
         best = min(c, key=lambda row: row["test"])
@@ -61,7 +62,7 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
                 p = f"{w['p']:.2g} ({w['median_diff']:+.3f} cm)"
             except ValueError:
                 pass
-        rows.append([name, str(ok[0]["curve"][-1]["step"]),
+        rows.append([label, str(ok[0]["curve"][-1]["step"]),
                      spread([run["curve"][-1]["train"] / lbs["train"] for run in ok]),
                      spread([run["curve"][-1]["test"] / lbs["test"] for run in ok]),
                      f"{best['test'] / lbs['test']:.3f} @ {best['step']}", p,
@@ -96,6 +97,15 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
                   ""]
         lines += table(["variant", "steps", *SURFACE], srows)
     return lines
+
+
+def _label(name: str, runs: List[Dict[str, Any]], seeds: Sequence[int]) -> str:
+    """A variant's name in a table, with its seeds where they are not all the table's
+    (merged files where it ran fewer)."""
+    own = [run["seed"] for run in runs]
+    if own == list(seeds):
+        return name
+    return f"{name} (seed{'s' * (len(own) > 1)} {', '.join(map(str, own))})"
 
 
 def _minutes(runs: List[Dict[str, Any]]) -> str:
@@ -134,7 +144,7 @@ def group_lines(res: Dict[str, Any]) -> List[str]:
             # LBS on the very sequences the variant was scored on
             ref = weighted({q: lbs[q] for q in mean if q in lbs}, g)
             cells.append("—" if m is None or ref is None else f"{m / ref:.3f}")
-        rows.append([name] + cells)
+        rows.append([_label(name, r["runs"], res["seeds"])] + cells)
     counts = ", ".join(f"{g} {sum(f['group'] == g for f in facts.values())}" for g in groups)
     return (["", "Test split by held-out group at the last step (E_dist / LBS's on the same "
              f"valid frames; sequences per group: {counts}):", ""]
@@ -163,34 +173,47 @@ def read_curves(path: Path) -> Dict[str, Any]:
 
 
 def merge_curves(files: Sequence[Path], only: Optional[Sequence[str]] = None) -> Dict[str, Any]:
-    """The ``curves.json`` of runs made in separate processes (other variants, the same
-    dataset, steps and seeds) as one result; the first file's first variant kept is then
-    the reference of every paired test.  ``only``: keep these variants alone.  A variant
-    in more than one file is kept once where its errors agree exactly (a rerun that
-    reproduced it), and refused where they differ."""
+    """The ``curves.json`` of runs made in separate processes (other variants or other
+    seeds of the same dataset and steps) as one result; the first file's first variant
+    kept is then the reference of every paired test.  ``only``: keep these variants alone.
+    A variant in more than one file has its seeds joined where its settings agree; a seed
+    in two files is kept once where its errors agree exactly (a rerun that reproduced it),
+    and refused where they differ."""
     parts = [read_curves(Path(f)) for f in files]
     res = {k: v for k, v in parts[0].items() if k != "command"}
     res.update(variants={}, sources=[{"file": str(f), "command": p.get("command")}
                                      for f, p in zip(files, parts)])
     for f, part in zip(files, parts):
-        for key in ("lbs", "steps", "seeds"):
-            if part.get(key) != res.get(key):
+        for key in ("lbs", "steps", "sequences"):  # older results record no sequences
+            if part.get(key) != res.get(key) and (key != "sequences" or None not in (
+                    part.get(key), res.get(key))):
                 raise ValueError(f"`files`: {f} has another {key} ({part.get(key)} against "
                                  f"{res.get(key)}): not runs that can be compared")
         for name, v in part["variants"].items():
             if only is not None and name not in only:
                 continue
-            if name in res["variants"]:
-                if _errors(res["variants"][name]) != _errors(v):
-                    raise ValueError(f"`files`: variant {name!r} is in more than one file, "
-                                     f"with other errors")
-                continue  # a rerun that reproduced the first to the last digit: kept once
-            res["variants"][name] = v
+            if name not in res["variants"]:
+                res["variants"][name] = dict(v, runs=list(v["runs"]))
+                continue
+            kept = res["variants"][name]
+            if kept.get("settings") != v.get("settings"):
+                raise ValueError(f"`files`: variant {name!r} is in more than one file, "
+                                 f"with other settings")
+            seeds = {run["seed"]: run for run in kept["runs"]}
+            for run in v["runs"]:
+                if run["seed"] not in seeds:
+                    kept["runs"].append(run)
+                elif _errors({"runs": [seeds[run["seed"]]]}) != _errors({"runs": [run]}):
+                    raise ValueError(f"`files`: variant {name!r}, seed {run['seed']}, is in "
+                                     f"more than one file, with other errors")
+                # else: a rerun that reproduced it to the last digit: kept once
+            kept["runs"].sort(key=lambda run: run["seed"])
     missing = [name for name in only or () if name not in res["variants"]]
     if missing:
         raise ValueError(f"`only`: {missing} in none of the files")
+    res["seeds"] = sorted({run["seed"] for v in res["variants"].values() for run in v["runs"]}
+                          or res["seeds"])
     return res
-
 
 
 #: the curves plot's top (E_dist / LBS): a diverging variant is clipped there and says so
