@@ -229,8 +229,16 @@ def plot_curves(res: Dict[str, Any], path: Path) -> None:
     rows = len(res["variants"])  # legend lines, below each panel (not over its curves)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2 + 0.16 * rows), sharey=True)
     n = len(res.get("seeds", [0]))  # files written before the seeds: one run, "curve"
-    curves = {name if n == 1 else f"{name} (mean of {n} seeds)":
-              mean_curve(r.get("runs", [r])) for name, r in res["variants"].items()}
+
+    def label(name: str, runs: List[Dict[str, Any]]) -> str:  # merged: seeds may differ
+        ok = [run for run in runs if run["curve"]]
+        if n == 1 or not ok:
+            return name
+        return (f"{name} (mean of {len(ok)} seeds)" if len(ok) > 1
+                else f"{name} (seed {ok[0].get('seed')})")
+
+    curves = {label(name, r.get("runs", [r])): mean_curve(r.get("runs", [r]))
+              for name, r in res["variants"].items()}
     curves = {name: c for name, c in curves.items() if c}
     clip = any(max(row[s] / res["lbs"][s] for row in c) <= PLOT_TOP
                for c in curves.values() for s in ("train", "test"))
