@@ -72,8 +72,9 @@ def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
                          "E_dist_lbs": float(vertex_distance(lbs[ok], item.gt[ok]).mean())})
         res["methods"][method] = rows
     lines = [f"Each method's own objective (its physics terms, mean per frame) on its test "
-             f"predictions and on the LBS garment; E_dist in cm over the frames the engine "
-             f"converged on, as the bench scores it; bench `{bench.name}`, seed {seed}:", ""]
+             f"predictions and on the LBS garment; E_dist in cm over the valid frames "
+             f"(converged, the garment not inside the body), as the bench scores it; "
+             f"bench `{bench.name}`, seed {seed}:", ""]
     out = []
     for method, rows in res["methods"].items():
         if not rows:
@@ -134,7 +135,7 @@ def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[in
                 max_iter: int = 200) -> Dict[str, Any]:
     """For each physics-trained variant (its objective: the loss terms and weights of
     its configuration), :func:`objective_rollout` on the test sequences against the
-    LBS garment: E_dist (the frames the engine converged on, as the bench scores it),
+    LBS garment: E_dist (the valid frames, as the bench scores it),
     its objective and how far it is from LBS at the last frame."""
     wrong = [name for name in variants if VARIANTS[name].get("baseline") != HOOD]
     if wrong:
@@ -182,9 +183,9 @@ def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[in
                     f"{100 * sum(r['from_lbs_last'] for r in rows) / len(rows):.1f}"])
     lines = [f"The trajectory that minimises each objective frame by frame (L-BFGS, at most "
              f"{max_iter} iterations a frame, from the LBS garment of frames 0 and 1) on "
-             f"{len(picked)} of {len(test)} test sequences; E_dist in cm over the frames the "
-             f"engine converged on, frame-weighted; p: paired Wilcoxon test against LBS over "
-             f"sequences:", ""]
+             f"{len(picked)} of {len(test)} test sequences; E_dist in cm over the valid frames "
+             f"(converged, the garment not inside the body), frame-weighted; p: paired "
+             f"Wilcoxon test against LBS over sequences:", ""]
     lines += table(["objective of", "sequences", "E_dist", "E_dist, LBS", "x LBS",
                     "sequences below LBS", "p", "objective / LBS's",
                     "from LBS at the last frame (cm)"], out)
