@@ -151,12 +151,11 @@ def group_lines(res: Dict[str, Any]) -> List[str]:
             + table(["variant", *groups], rows))
 
 
-def _errors(variant: Dict[str, Any]) -> List[Any]:
-    """A variant's runs without their timings: what a rerun must reproduce exactly."""
+def _errors(run: Dict[str, Any]) -> Dict[str, Any]:
+    """A run without its timings: what a rerun must reproduce exactly."""
     def drop(d: Dict[str, Any]) -> Dict[str, Any]:
         return {k: v for k, v in d.items() if "seconds" not in k}
-    return [dict(drop(run), curve=[drop(p) for p in run.get("curve", [])])
-            for run in variant.get("runs", [])]
+    return dict(drop(run), curve=[drop(p) for p in run.get("curve", [])])
 
 
 def read_curves(path: Path) -> Dict[str, Any]:
@@ -184,11 +183,13 @@ def merge_curves(files: Sequence[Path], only: Optional[Sequence[str]] = None) ->
     res.update(variants={}, sources=[{"file": str(f), "command": p.get("command")}
                                      for f, p in zip(files, parts)])
     for f, part in zip(files, parts):
-        for key in ("lbs", "steps", "sequences"):  # older results record no sequences
-            if part.get(key) != res.get(key) and (key != "sequences" or None not in (
-                    part.get(key), res.get(key))):
-                raise ValueError(f"`files`: {f} has another {key} ({part.get(key)} against "
-                                 f"{res.get(key)}): not runs that can be compared")
+        for key in ("lbs", "steps", "sequences"):
+            mine, first = part.get(key), res.get(key)
+            if key == "sequences" and None in (mine, first):  # older results record none
+                continue
+            if mine != first:
+                raise ValueError(f"`files`: {f} has another {key} ({mine} against {first}): "
+                                 f"not runs that can be compared")
         for name, v in part["variants"].items():
             if only is not None and name not in only:
                 continue
@@ -203,7 +204,7 @@ def merge_curves(files: Sequence[Path], only: Optional[Sequence[str]] = None) ->
             for run in v["runs"]:
                 if run["seed"] not in seeds:
                     kept["runs"].append(run)
-                elif _errors({"runs": [seeds[run["seed"]]]}) != _errors({"runs": [run]}):
+                elif _errors(seeds[run["seed"]]) != _errors(run):
                     raise ValueError(f"`files`: variant {name!r}, seed {run['seed']}, is in "
                                      f"more than one file, with other errors")
                 # else: a rerun that reproduced it to the last digit: kept once
