@@ -165,6 +165,31 @@ def test_learn_preset_has_its_stated_counts_and_held_out_groups():
         assert stated in row, stated
 
 
+def test_learn_long_holds_out_what_learn_holds_out_over_300_frames():
+    """``learn_long``: 300-frame sequences whose held-out garments, bodies and motions are
+    ``learn``'s test ones (the motion at 300 frames: the same generator, speed and
+    amplitude), so a model trained on ``learn`` meets them as held out."""
+    spec, learn = preset("learn_long", engine="blender"), preset("learn", engine="blender")
+    items = spec.items()
+    assert {m["num_frames"] for m in spec.motions} == {300}
+    test = [it for it in items if it["split"] == "test"]
+    assert len(test) >= 10 and {it["split"] for it in items} <= {"train", "test"}
+    held = learn.held_out["test"]
+    for it in test:
+        m = dict(it["motion"], num_frames=60)
+        for part, key in (("garment", garment_key(it["garment"])),
+                          ("body", body_key(it["body"])), ("motion", motion_key(m))):
+            assert (part in it["held_out"]) == (key in held[part + "s" if part != "body"
+                                                             else "bodies"]), (it["id"], part)
+    assert {len(it["held_out"]) > 1 for it in test} == {True, False}  # single and several
+    learn_parts = ({garment_key(g) for g in learn.garments}, {body_key(b) for b in learn.bodies},
+                   {motion_key(dict(m, num_frames=60)) for m in learn.motions})
+    for it in items:  # every part is one of learn's
+        m = dict(it["motion"], num_frames=60)
+        assert garment_key(it["garment"]) in learn_parts[0] and body_key(it["body"]) in \
+            learn_parts[1] and motion_key(m) in learn_parts[2]
+
+
 # --------------------------------------------------------------------------- generation
 def test_generate_writes_files_and_manifest(clean_run):
     man = read_manifest(clean_run)

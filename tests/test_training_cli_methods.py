@@ -14,7 +14,8 @@ import yaml
 
 from garmentgnn.cli import main as cli_main
 from garmentgnn.metrics import evaluate_inputs
-from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
+from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
+                                 SimulatorModule)
 from garmentgnn.training.configs import available, config_path, module_spec, named_module
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
@@ -27,7 +28,8 @@ from test_training_cli import fast_args
 OLD_LAYOUT = Path(__file__).parent / "data" / "gartrans_old_layout.pt"
 
 CLASSES = {"garmentgnn.training.GarTransModule": GarTransModule,
-           "garmentgnn.training.BaselineModule": BaselineModule}
+           "garmentgnn.training.BaselineModule": BaselineModule,
+           "garmentgnn.training.SimulatorModule": SimulatorModule}
 
 
 def _config_args(name):
@@ -44,7 +46,7 @@ def _test_args(data_root, tmp_path):
 
 def test_every_method_has_a_packaged_config():
     assert [n for n in available() if not n.startswith("ablations/")] == [
-        "baselines/da", "baselines/hood", "baselines/ncs", "gartrans"]
+        "baselines/da", "baselines/hood", "baselines/ncs", "gartrans", "mgn"]
 
 
 @pytest.mark.parametrize("name", available())
@@ -153,7 +155,14 @@ def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
                    str(tmp_path / "da.ckpt")] + args)
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1
-    assert "not of garmentgnn.training.GarTransModule" in err[0] and "--config" in err[0]
+    assert "a checkpoint of DAStyle, not of GarTrans; give --config baselines/da" in err[0]
+    # the same module class with another model: the method named, and its config
+    capsys.readouterr()
+    rc = cli_main(["train", "test", "--config", "baselines/hood", "--ckpt_path",
+                   str(tmp_path / "da.ckpt")] + args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1
+    assert "a checkpoint of DAStyle, not of HOODStyle; give --config baselines/da" in err[0]
 
 
 def test_the_cli_names_the_conversion_of_a_checkpoint_of_the_earlier_layout(

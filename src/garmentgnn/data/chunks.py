@@ -45,6 +45,7 @@ from garmentgnn.data.validity import sequence_valid
 from garmentgnn.garments.skinning import transfer_skinning_weights
 from garmentgnn.models.inputs import (GarmentInputs, build_static, check_history,
                                      nystrom_features, with_frames)
+from garmentgnn.physics import MATERIALS, material_features
 
 __all__ = ["DEFAULT_DENSITY", "SequenceChunks"]
 
@@ -64,6 +65,11 @@ class SequenceChunks(Dataset):
             does not list, or one without ok sequences, is a ``ValueError``.
         chunk: frames per chunk ``B``; a sequence is cut into ``ceil(T / chunk)``
             chunks (the last may be shorter) -- ``drop_last=True`` drops a short one.
+        stride: frames between the starts of consecutive chunks (default ``chunk``:
+            disjoint chunks); ``stride < chunk`` gives overlapping windows, each
+            starting at ``0, stride, 2 stride, ...`` (e.g. every frame triple of a
+            sequence with ``chunk=3, stride=1, drop_last=True``: a learned simulator's
+            one-step samples).
         history: previous frames per pose history (``H = history + 1 >= 2``).
         nystrom_dim, num_landmarks: Nyström features (``k`` must equal the model's
             ``nystrom_dim``).
@@ -76,9 +82,13 @@ class SequenceChunks(Dataset):
     def __init__(self, root, split: Optional[str] = "train", chunk: int = 8, history: int = 3,
                  nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
                  cache_size: int = 4, static_cache: int = 64,
-                 ids: Optional[Sequence[str]] = None) -> None:
+                 ids: Optional[Sequence[str]] = None, stride: Optional[int] = None) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
+        stride = chunk if stride is None else stride
+        if not isinstance(stride, int) or isinstance(stride, bool) or stride < 1:
+            raise ValueError(f"`stride`: expected frames >= 1 (or None: `chunk`), got "
+                             f"{stride!r}")
         if not isinstance(num_landmarks, int) or num_landmarks < 1:
             raise ValueError(f"`num_landmarks`: expected an int >= 1, got {num_landmarks!r}")
         if not isinstance(nystrom_dim, int) or not 1 <= nystrom_dim <= num_landmarks:
@@ -88,7 +98,7 @@ class SequenceChunks(Dataset):
                              f"num_landmarks")
         check_history(history)
         self.root = Path(root)
-        self.split, self.chunk, self.history = split, chunk, history
+        self.split, self.chunk, self.history, self.stride = split, chunk, history, stride
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
         manifest = store.read_manifest(self.root)
@@ -119,10 +129,12 @@ class SequenceChunks(Dataset):
         self.index: List[Tuple[int, int, int]] = []  # (record, first frame, frames)
         for i, r in enumerate(self.records):
             T = int(r["num_frames"])
-            for t0 in range(0, T, chunk):
+            for t0 in range(0, T, stride):
                 n = min(chunk, T - t0)
                 if n == chunk or not drop_last:
                     self.index.append((i, t0, n))
+                if t0 + chunk >= T:  # this window reached the end
+                    break
         self._seqs = store.LRUCache(self.cache_size)
         self._static = store.LRUCache(self.static_cache)
         self.num_file_loads = 0
@@ -187,7 +199,8 @@ class SequenceChunks(Dataset):
                 density=float((meta.get("material_params") or {}).get("density",
                                                                       DEFAULT_DENSITY)),
                 pinned=torch.from_numpy(pinned) if pinned.any() else None,
-                nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks, nystrom=ny)
+                nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks, nystrom=ny,
+                material=self._material(meta))
         except ValueError as exc:  # the Nyström features' `k` is our nystrom_dim
             msg = str(exc)
             if not msg.startswith(("`k`", "`num_landmarks`")):
@@ -199,6 +212,16 @@ class SequenceChunks(Dataset):
                              f"lower nystrom_dim or raise num_landmarks") from None
         self.num_static_builds += 1
         return st, body
+
+    @staticmethod
+    def _material(meta: Dict[str, Any]) -> Optional[torch.Tensor]:
+        """The fabric's features (:func:`~garmentgnn.physics.material_features`) of a
+        sequence: its ``material_params``, else its named preset, else ``None``."""
+        params = meta.get("material_params")
+        if params:
+            return material_features(params)
+        name = meta.get("material")
+        return material_features(MATERIALS[name]) if name in MATERIALS else None
 
     def nystrom_path(self, i: int) -> Optional[Path]:
         """Where sequence ``i``'s Nyström features are kept (``None``: a record without

@@ -42,7 +42,8 @@ from garmentgnn.harness import scoring
 from garmentgnn.harness.curves import LearningCurve, TrainClock, quiet_lightning
 from garmentgnn.harness.dataset import DatasetInfo, prepare_dataset
 from garmentgnn.harness.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
-                                        HOOD, LONG, METHOD_NAMES, NCS, LearnedBudget,
+                                        HOOD, LONG, METHOD_NAMES, MGN, MGN_DATA, MGN_MODULE,
+                                        NCS, LearnedBudget,
                                         variant_settings)
 from garmentgnn.harness.model_inputs import BenchChunks
 from garmentgnn.harness.page import MEDIA
@@ -199,6 +200,8 @@ class LearnedRunner:
                 self._trained[key] = self._ncs(seed)
             elif method in BASELINES:
                 self._trained[key] = self._baseline(method, seed)
+            elif method == MGN:
+                self._trained[key] = self._mgn(seed)
             else:
                 self._trained[key] = self._lbs()
         return self._trained[key]
@@ -222,7 +225,7 @@ class LearnedRunner:
         else:
             def predict(seq) -> Tensor:
                 pred, _ = self.trained(method, seed)
-                ds = BenchChunks(seq, chunk=None if method == HOOD else STABILITY_CHUNK,
+                ds = BenchChunks(seq, chunk=None if method in (HOOD, MGN) else STABILITY_CHUNK,
                                  history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
                                  num_landmarks=DATA["num_landmarks"])
                 with torch.no_grad():
@@ -444,6 +447,35 @@ class LearnedRunner:
         note = ("one autoregressive step of `batch` independent sequences per call"
                 if method == HOOD else "one call predicting `batch` frames")
         return _Predictor(lambda ds, i, item: module(item), self._batch_fn(module), note,
+                          module, folder / "equal_steps.pt"), dict(info, config=config)
+
+    # -- the MGN-style learned simulator ---------------------------------------------------
+    def _mgn(self, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
+        """Trained on windows of frames (``configs/mgn.yaml``'s data settings, the budget's
+        batch size); it predicts a sequence by a rollout from the LBS garment of its first
+        two frames (the ground truth is never an input, as for every other method)."""
+        config = {"module": MGN_MODULE, **self._limits(self.budget.minutes), "config": "mgn",
+                  "data": MGN_DATA}
+        folder = self._folder(MGN, seed, config)
+        dm = GarmentDataModule(self.data.root, val_split=None, seed=seed, cache_size=512,
+                               **MGN_DATA, batch_size=self.budget.batch_size)
+        module = self._module(MGN_MODULE, {})
+
+        def rollout(m: L.LightningModule, item: GarmentInputs) -> Tensor:
+            return m.rollout(item, start="lbs")
+
+        info = self.fit(module, dm, folder, self.budget.epochs, minutes=self.budget.minutes,
+                        predict=rollout)
+
+        def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
+            # one step of `b` independent garments, its inputs prepared outside the call
+            it = GarmentInputs.collate([item.select(torch.arange(3))] * b)
+            motion = module.model.scene_motion(it)
+            lbs = motion.lbs
+            return lambda: module.model.step(it, motion, 2, lbs[0], lbs[1])
+
+        return _Predictor(lambda ds, i, item: rollout(module, item), make_batch,
+                          "one autoregressive step of `batch` independent garments per call",
                           module, folder / "equal_steps.pt"), dict(info, config=config)
 
     def _ncs(self, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:

@@ -9,7 +9,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 from garmentgnn.harness import scoring
 from garmentgnn.harness.learned import KIND
-from garmentgnn.harness.methods import (DA, FULL, GARTRANS, HOOD, LBS, LONG, METHOD_NAMES,
+from garmentgnn.harness.methods import (DA, FULL, GARTRANS, HOOD, LBS, LONG, METHOD_NAMES, MGN,
                                       NCS)
 from garmentgnn.harness.tables import (METRICS, UNITS, fmt, mean_std, plot_points, plot_summary,
                                      table)
@@ -19,7 +19,7 @@ __all__ = ["comparison_markdown", "engine_points", "markdown", "per_sequence", "
 
 #: the record kind of :mod:`garmentgnn.harness.engines`
 ENGINE_KIND = "engine"
-BASELINES_ORDER = (DA, HOOD, NCS)
+BASELINES_ORDER = (DA, HOOD, NCS, MGN)
 
 
 def _ordered(records: Sequence[Dict[str, Any]]) -> List[str]:

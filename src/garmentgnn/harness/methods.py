@@ -8,6 +8,9 @@ nothing here restates a hyper-parameter.
 * the DA-, HOOD- and NCS-style baselines (:data:`BASELINES`):
   ``configs/baselines/<name>.yaml``, trained by
   :class:`~garmentgnn.training.BaselineModule`;
+* the MGN-style learned simulator (:data:`MGN`): ``configs/mgn.yaml``, trained by
+  :class:`~garmentgnn.training.SimulatorModule` on that file's data settings (windows of
+  frames, :data:`MGN_DATA`);
 * ``LBS only``: the rest garment skinned with the stored skinning weights, no learning.
 """
 from __future__ import annotations
@@ -21,8 +24,8 @@ from garmentgnn.training.configs import load_config, module_spec, schedule_args
 from garmentgnn.training.schedule import ProgressiveSchedule
 
 __all__ = ["BASELINES", "BASELINE_CONFIGS", "DATA", "GARTRANS", "GARTRANS_MODULE", "LBS",
-           "LONG", "METHOD_NAMES", "NCS", "HOOD", "DA", "SEED_FREE", "LearnedBudget",
-           "Variant", "seed_plan", "variant_settings"]
+           "LONG", "METHOD_NAMES", "MGN", "MGN_DATA", "MGN_MODULE", "NCS", "HOOD", "DA",
+           "SEED_FREE", "LearnedBudget", "Variant", "seed_plan", "variant_settings"]
 
 _BASE = load_config("gartrans")
 #: ``configs/gartrans.yaml``'s module (its ``model:`` entry: ``class_path`` and
@@ -56,8 +59,8 @@ GARTRANS: Dict[str, Variant] = {
 }
 #: full GarTrans, the variant every comparison is made against
 FULL = next(iter(GARTRANS))
-NCS, HOOD, DA, LBS = "NCS-style", "HOOD-style", "DA-style", "LBS only"
-METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, LBS)
+NCS, HOOD, DA, MGN, LBS = "NCS-style", "HOOD-style", "DA-style", "MGN-style", "LBS only"
+METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, MGN, LBS)
 #: methods without training or randomness: run for the first seed only
 SEED_FREE: Tuple[str, ...] = (LBS,)
 #: each baseline's packaged configuration
@@ -67,6 +70,12 @@ BASELINE_CONFIGS: Dict[str, str] = {DA: "baselines/da", HOOD: "baselines/hood",
 #: :class:`~garmentgnn.training.BaselineModule` handed the model it names)
 BASELINES: Dict[str, Dict[str, Any]] = {name: module_spec(cfg)
                                         for name, cfg in BASELINE_CONFIGS.items()}
+#: the MGN-style simulator's module (``configs/mgn.yaml``'s ``model:`` entry) and data
+#: settings (its ``data:`` section without ``root``, ``num_workers`` and ``batch_size``,
+#: which the bench sets)
+MGN_MODULE: Dict[str, Any] = module_spec("mgn")
+MGN_DATA: Dict[str, Any] = {k: v for k, v in load_config("mgn")["data"].items()
+                            if k not in ("root", "num_workers", "batch_size")}
 
 
 def variant_settings(method: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
@@ -197,7 +206,7 @@ def seed_plan(budget: LearnedBudget, seed0: Dict[str, float]) -> Dict[str, int]:
         return {m: (1 if m in SEED_FREE else n) for m in budget.methods}
     full = set(budget.seed_methods)
     for pool in ([m for m in budget.methods if m in GARTRANS and m != FULL],
-                 [m for m in budget.methods if m in BASELINES]):
+                 [m for m in budget.methods if m in BASELINES or m == MGN]):
         if pool:
             full.add(min(pool, key=lambda m: seed0.get(m, float("inf"))))
     return {m: (n if m in full and m not in SEED_FREE else 1) for m in budget.methods}

@@ -1,5 +1,8 @@
-"""GarTrans and its building blocks (never imports the simulator)."""
+"""GarTrans, the MGN-style learned simulator and their building blocks (never imports the
+simulator)."""
 from garmentgnn.models.blocks import batch_edges, geometric_init_
 from garmentgnn.models.gartrans import PAPER_FORM, GarTrans, StaticFeatures
+from garmentgnn.models.mgn import MGNStyle, SceneMotion
 
-__all__ = ["PAPER_FORM", "GarTrans", "StaticFeatures", "batch_edges", "geometric_init_"]
+__all__ = ["PAPER_FORM", "GarTrans", "MGNStyle", "SceneMotion", "StaticFeatures", "batch_edges",
+           "geometric_init_"]

@@ -18,7 +18,8 @@ Keys (``V`` garment vertices, ``S`` joints, ``Vb`` body vertices, ``B`` frames,
   [2, E]`` (both directions, target-sorted), ``nystrom [V, k]``, ``rest``
   (:class:`~garmentgnn.physics.ClothRest`), ``mass [V]``, ``skin_weights [V, S]``,
   ``pinned [V]`` bool, ``rest_joints [S, 3]``, ``parents [S]``, ``body_joint_dists
-  [Vb, S]``, ``body_faces [Fb, 3]``;
+  [Vb, S]``, ``body_faces [Fb, 3]``, optionally ``material [K]`` (the fabric,
+  :func:`~garmentgnn.physics.material_features`: what a learned simulator reads);
 * per frame: ``rotations [B, H, S, 3]``, ``translation [B, H, 3]`` (the poses of frames
   ``t - history .. t``; frame 0 repeated before the start), ``body_pos [B, Vb, 3]``
   (the posed body), ``frames [B]``, optionally ``gt [B, V, 3]`` (the simulated
@@ -35,8 +36,8 @@ does; ``batch [sum V]`` names each vertex's chunk), whose per-frame vertex keys 
 concatenated along the vertex axis (``gt``, ``body_pos``: ``[B, sum V, 3]``, ``[B, sum
 Vb, 3]``) and whose per-chunk keys are stacked (``rotations [N, B, H, S, 3]``,
 ``translation [N, B, H, 3]``, ``frames``, ``converged``/``valid [N, B]``, ``rest_joints
-[N, S, 3]``, ``parents [N, S]``); ``rest`` and ``seq_id`` become lists.  Every chunk's body has the
-same vertex count (one body model).
+[N, S, 3]``, ``parents [N, S]``, ``material [N, K]``); ``rest`` and ``seq_id`` become
+lists.  Every chunk's body has the same vertex count (one body model).
 """
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ FRAME_KEYS = ("rotations", "translation", "gt", "body_pos", "frames", "converged
 VERTEX_FRAME_KEYS = ("gt", "body_pos")
 #: per-chunk keys a batch stacks (a new leading dimension)
 STACKED_KEYS = ("rotations", "translation", "frames", "converged", "valid", "rest_joints",
-                "parents")
+                "parents", "material")
 #: face-like keys: concatenated along dim 0 (PyG would use the last dimension)
 FACE_KEYS = ("faces", "face_uv", "body_faces", "body_joint_dists")
 
@@ -327,7 +328,8 @@ def nystrom_features(rest_pos: Tensor, faces: Tensor, nystrom_dim: int = 16,
 def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tensor,
                  face_uv: Optional[Tensor] = None, density: float = 0.15,
                  pinned: Optional[Tensor] = None, nystrom_dim: int = 16,
-                 num_landmarks: int = 64, nystrom: Optional[Tensor] = None) -> GarmentInputs:
+                 num_landmarks: int = 64, nystrom: Optional[Tensor] = None,
+                 material: Optional[Tensor] = None) -> GarmentInputs:
     """The per-garment, per-body-shape part of the inputs (computed once per sequence):
     :func:`build_garment` in float32 plus the Nyström features, the cloth rest state,
     vertex masses and the rest body.
@@ -340,6 +342,8 @@ def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tens
         density: surface density (kg/m^2) for the vertex masses.
         nystrom_dim, num_landmarks: the Nyström features (:func:`nystrom_features`).
         nystrom: those features where already computed (``[V, nystrom_dim]``).
+        material: the fabric's features ``[K]``
+            (:func:`~garmentgnn.physics.material_features`), kept as ``material``.
     """
     if not isinstance(body, Body):
         raise TypeError(f"`body`: expected a garmentgnn.body.Body, got {type(body).__name__}")
@@ -363,6 +367,13 @@ def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tens
     out.body_faces = body.faces.long()
     if face_uv is not None:
         out.face_uv = face_uv
+    if material is not None:
+        material = torch.as_tensor(material).float()
+        if material.dim() != 1 or not torch.isfinite(material).all():
+            raise ValueError(f"`material`: expected finite features [K] "
+                             f"(garmentgnn.physics.material_features), got "
+                             f"{tuple(material.shape)}")
+        out.material = material
     return out
 
 

@@ -3,9 +3,11 @@ from garmentgnn.physics.energies import (GRAVITY, ClothRest, bending_energy, col
                                          gravity_energy, inertia_energy, shear_energy,
                                          stretch_energy, stvk_energy)
 from garmentgnn.physics.friction import friction_energy, friction_hessian
-from garmentgnn.physics.materials import MATERIALS, Material, material
+from garmentgnn.physics.materials import (MATERIAL_FEATURES, MATERIALS, Material, material,
+                                          material_features)
 
-__all__ = ["GRAVITY", "MATERIALS", "ClothRest", "Material", "bending_energy", "collision_energy",
-           "friction_energy", "friction_hessian",
-           "gravity_energy", "inertia_energy", "material", "shear_energy", "stretch_energy",
+__all__ = ["GRAVITY", "MATERIAL_FEATURES", "MATERIALS", "ClothRest", "Material",
+           "bending_energy", "collision_energy", "friction_energy", "friction_hessian",
+           "gravity_energy", "inertia_energy", "material", "material_features", "shear_energy",
+           "stretch_energy",
            "stvk_energy"]

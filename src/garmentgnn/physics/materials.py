@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Dict
+import math
+from typing import Dict, Mapping, Tuple, Union
+
+import torch
 
 
 @dataclass(frozen=True)
@@ -69,3 +72,21 @@ def material(name: str) -> Material:
     if name not in MATERIALS:
         raise ValueError(f"`material`: unknown preset {name!r}; choose one of {sorted(MATERIALS)}")
     return MATERIALS[name]
+
+
+#: the fabric as a learned model reads it (:func:`material_features`)
+MATERIAL_FEATURES: Tuple[str, ...] = ("stretch", "shear", "bending", "density")
+
+
+def material_features(fabric: Union[Material, Mapping[str, float]]) -> torch.Tensor:
+    """``[4]`` float32: the natural logs of :data:`MATERIAL_FEATURES` of ``fabric`` (a
+    :class:`Material`, or a mapping with those keys, such as a sequence's
+    ``material_params``): the fabric input of a learned simulator."""
+    get = (lambda k: getattr(fabric, k)) if isinstance(fabric, Material) else fabric.get
+    values = []
+    for k in MATERIAL_FEATURES:
+        v = get(k)
+        if not isinstance(v, (int, float)) or not v > 0 or not math.isfinite(v):
+            raise ValueError(f"`fabric`: expected a positive {k!r}, got {v!r}")
+        values.append(math.log(float(v)))
+    return torch.tensor(values, dtype=torch.float32)

@@ -1,5 +1,5 @@
-"""Lightning training: the data module, the GarTrans and baseline LightningModules
-(both :class:`GarmentModule`), the progressive schedule callback (paper §4.1), a
+"""Lightning training: the data module, the GarTrans, baseline and learned-simulator
+LightningModules (each a :class:`GarmentModule`), the progressive schedule callback (paper §4.1), a
 wall-clock training budget and the packaged configurations."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
@@ -10,6 +10,7 @@ from garmentgnn.training.baselines import BaselineModule
 from garmentgnn.training.budget import TimeBudget
 from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
+from garmentgnn.training.simulator import SimulatorModule
 
 __all__ = [
            "PHASE_TERMS",
@@ -20,6 +21,7 @@ __all__ = [
            "GarmentModule",
            "GarmentDataModule",
            "ProgressiveSchedule",
+           "SimulatorModule",
            "TimeBudget",
            "loss_inputs",
 ]

@@ -29,8 +29,8 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import yaml
 
-__all__ = ["available", "config_path", "import_class", "instantiate", "load_config", "merge",
-           "module_spec", "resolve_config_args", "schedule_args"]
+__all__ = ["available", "config_path", "configs_of_model", "import_class", "instantiate",
+           "load_config", "merge", "module_spec", "resolve_config_args", "schedule_args"]
 
 _ROOT = resources.files("garmentgnn") / "configs"
 
@@ -80,6 +80,21 @@ def module_spec(*names: str) -> Dict[str, Any]:
     for name in names:
         spec = merge(spec, load_config(name).get("model") or {})
     return spec
+
+
+def configs_of_model(class_path: str) -> List[str]:
+    """The packaged configurations (ablations left out) whose module trains a model of
+    class ``class_path`` (compared by class name): what a checkpoint of that model was
+    trained with."""
+    name = str(class_path).rsplit(".", 1)[-1]
+    out = []
+    for cfg in available():
+        if cfg.startswith("ablations/"):
+            continue
+        model = (module_spec(cfg).get("init_args") or {}).get("model") or {}
+        if str(model.get("class_path", "")).rsplit(".", 1)[-1] == name:
+            out.append(cfg)
+    return out
 
 
 def import_class(class_path: str) -> type:

@@ -107,6 +107,12 @@ class GarmentDataModule(L.LightningDataModule):
 
     :attr:`dims` (for building a model) are read from the first training chunk.
 
+    ``stride`` spaces the training chunks' first frames (default ``chunk``: disjoint
+    chunks; ``chunk=3, stride=1, drop_last=True``: every frame triple, the one-step
+    samples of a learned simulator); ``eval_chunk`` is the frames of a validation, test
+    and predict chunk (default ``chunk``; the sequence length: whole sequences, which an
+    autoregressive method rolls out; ``drop_last`` does not apply to them).
+
     Resuming: the epoch to continue with is kept in the checkpoint
     (:meth:`state_dict`) and the training sampler starts there, because Lightning
     (2.6) builds a resumed fit's first data iterator *before* it calls the
@@ -119,8 +125,13 @@ class GarmentDataModule(L.LightningDataModule):
                  shuffle: bool = True, seed: int = 0, drop_last: bool = False,
                  test_split: str = "test", train_ids: Optional[Sequence[str]] = None,
                  cache_size: int = 4, predict_split: Optional[str] = None,
-                 batch_size: int = 1) -> None:
+                 batch_size: int = 1, stride: Optional[int] = None,
+                 eval_chunk: Optional[int] = None) -> None:
         super().__init__()
+        if eval_chunk is not None and (not isinstance(eval_chunk, int)
+                                       or isinstance(eval_chunk, bool) or eval_chunk < 1):
+            raise ValueError(f"--data.eval_chunk: expected frames >= 1 or null (--data.chunk), "
+                             f"got {eval_chunk!r}")
         if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1:
             raise ValueError(f"--data.batch_size: expected a number of chunks >= 1, got "
                              f"{batch_size!r}")
@@ -154,10 +165,14 @@ class GarmentDataModule(L.LightningDataModule):
         """The chunks of ``split``, the value of argument ``name`` (``"val_split"``, ...):
         an error about the split names that argument."""
         hp = self.hparams
+        train = name == "train_split"
+        whole = not train and hp.get("eval_chunk") is not None
+        chunk = hp.eval_chunk if whole else hp.chunk
         try:
-            return SequenceChunks(self.root, split, hp.chunk, hp.history, hp.nystrom_dim,
-                                  hp.num_landmarks, drop_last=hp.drop_last,
-                                  cache_size=hp.cache_size, ids=ids)
+            return SequenceChunks(self.root, split, chunk, hp.history, hp.nystrom_dim,
+                                  hp.num_landmarks, drop_last=hp.drop_last and not whole,
+                                  cache_size=hp.cache_size, ids=ids,
+                                  stride=hp.get("stride") if train else None)
         except ValueError as exc:
             msg = str(exc)
             if not msg.startswith("`split`"):

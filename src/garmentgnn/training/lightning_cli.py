@@ -52,7 +52,8 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 from garmentgnn.training.base import LBS_PREFIX, GarmentModule
-from garmentgnn.training.configs import import_class, named_module, resolve_config_args
+from garmentgnn.training.configs import (configs_of_model, import_class, named_module,
+                                         resolve_config_args)
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.evaluate import markdown_table
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
@@ -233,16 +234,24 @@ class GarmentCLI(LightningCLI):
                                   f"--ckpt_path NEW_PATH")
         params = inspect.signature(module_cls.__init__).parameters
         foreign = sorted(k for k in stored if k not in params)
+        spec, given = stored.get("model"), _plain(model.get("init_args"))
+        saved_model = spec.get("class_path") if isinstance(spec, dict) else None
+        given_model = _plain(given.get("model")).get("class_path")
         if (saved_cls and saved_cls.rsplit(".", 1)[-1] != cls_path.rsplit(".", 1)[-1]) \
-                or foreign:
-            what = saved_cls or f"a module with {foreign}"
-            raise CheckpointError(f"{ckpt_path}: a checkpoint of {what}, not of {cls_path}; "
-                                  f"give the --config of the method it was trained with")
-        given = _plain(model.get("init_args"))
+                or foreign or (saved_model and given_model and saved_model.rsplit(".", 1)[-1]
+                               != given_model.rsplit(".", 1)[-1]):
+            what = (saved_model.rsplit(".", 1)[-1] if saved_model else
+                    saved_cls or f"a module with {foreign}")
+            fits = configs_of_model(saved_model) if saved_model else []
+            mine = (given_model or cls_path).rsplit(".", 1)[-1]
+            hint = (f"give --config {fits[0]}" if fits else
+                    "give the --config of the method it was trained with")
+            raise CheckpointError(f"{ckpt_path}: a checkpoint of {what}, not of {mine}; "
+                                  f"{hint}")
         bad = {f"--model.{k}": c for k, c in hparam_conflicts(
             {k: v for k, v in given.items() if k != "model"}, _defaults(module_cls),
             stored).items()}
-        spec, given_spec = stored.get("model"), _plain(given.get("model"))
+        given_spec = _plain(given.get("model"))
         if isinstance(spec, dict) and "class_path" in spec:
             model_cls = import_class(spec["class_path"])
             # a size linked from the data is no flag: the check of the sizes names it

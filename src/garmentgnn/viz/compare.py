@@ -17,7 +17,8 @@ import torch
 
 from garmentgnn.data import store
 from garmentgnn.data.gltf import GltfMesh, write_gltf
-from garmentgnn.training import BaselineModule, GarTransModule
+from garmentgnn.models import MGNStyle
+from garmentgnn.training import BaselineModule, GarTransModule, SimulatorModule
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
 from garmentgnn.training.integrity import load_checkpoint_file
@@ -70,8 +71,9 @@ def unique_names(named: Sequence[Tuple[str, str]]) -> None:
 
 
 def load_checkpoint(path: PathLike):
-    """The trained method of a Lightning checkpoint (a :class:`GarTransModule`, or a
-    :class:`BaselineModule` when its model is a baseline's), on the CPU, in eval mode."""
+    """The trained method of a Lightning checkpoint (a :class:`GarTransModule`, a
+    :class:`BaselineModule` when its model is a baseline's, a :class:`SimulatorModule`
+    when it is the MGN-style simulator), on the CPU, in eval mode."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     hp = load_checkpoint_file(path).get("hyper_parameters") or {}
@@ -79,7 +81,8 @@ def load_checkpoint(path: PathLike):
     model_cls = str(model.get("class_path", "")) if isinstance(model, dict) else ""
     baseline = hp.get("method") is not None or model_cls.rsplit(".", 1)[-1] in {
         c.__name__ for c in BaselineModule.METHODS}
-    cls = BaselineModule if baseline else GarTransModule
+    simulator = model_cls.rsplit(".", 1)[-1] == MGNStyle.__name__
+    cls = SimulatorModule if simulator else BaselineModule if baseline else GarTransModule
     try:
         return cls.load_from_checkpoint(str(path), map_location="cpu").eval()
     except (ValueError, TypeError):

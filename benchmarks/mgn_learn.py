@@ -1,0 +1,464 @@
+"""The MGN-style learned simulator on a generated dataset: learning curves, rollout scores
+against LBS and the frame-parallel methods, error per frame, and the sweeps' table.
+
+    # one-step and 60-frame rollout error of every step checkpoint of a run, on train and
+    # validation sequences
+    python benchmarks/mgn_learn.py curves --run RUN --data DATA --out OUT [--sequences 8]
+    # every test sequence rolled out (from the first two simulated frames and from a
+    # settled drape) beside LBS and other checkpoints, paired Wilcoxon tests, per group
+    python benchmarks/mgn_learn.py score --mgn CKPT --data DATA --out OUT \\
+        [--other "GarTrans (SAT)=CKPT" ...] [--split test]
+    # the sweep runs' last validation (rollout E_dist) and training one-step error
+    python benchmarks/mgn_learn.py sweep --runs NAME=RUN ... --out OUT
+    # a branch of a run from one of its checkpoints with pushforward rollouts (the
+    # learning rate continues the run's decay from that step)
+    python benchmarks/mgn_learn.py branch --from CKPT --data DATA --out OUT --rollout 3 \
+        --steps N
+    # the stability suite (stiff, extreme pose, 5x speed, 1000 frames, degenerate faces)
+    # on the first test sequence, rolled out from the LBS garment of its first two frames
+    python benchmarks/mgn_learn.py stability --mgn CKPT --data DATA --out OUT
+
+Every method is scored on the same frames: the valid ground-truth frames from frame 2 on
+(the rollout is given frames 0 and 1).  Outputs: ``OUT/<command>.json``, ``.md`` and
+``.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import inspect
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger
+
+from garmentgnn.data import SequenceChunks
+from garmentgnn.data.store import read_manifest
+from garmentgnn._plotting import pyplot
+from garmentgnn.harness import stability as stab
+from garmentgnn.harness.model_inputs import BenchChunks
+from garmentgnn.harness.scoring import GROUPS, aggregate, score, stratified, wilcoxon
+from garmentgnn.training import GarmentDataModule, SimulatorModule
+from garmentgnn.training.integrity import load_checkpoint_file
+from garmentgnn.training.base import GarmentModule
+from garmentgnn.viz.compare import load_checkpoint
+
+#: the frames a rollout is given (not scored, for any method)
+GIVEN = 2
+METRICS = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
+
+
+class Scored(SequenceChunks):
+    """Whole sequences whose first :data:`GIVEN` frames are not scored."""
+
+    def valid(self, idx: int) -> torch.Tensor:
+        v = super().valid(idx).clone()
+        v[:GIVEN] = False
+        return v
+
+
+def load_module(path: str) -> GarmentModule:
+    """The module a checkpoint holds, on the CPU, in eval mode."""
+    return load_checkpoint(path)
+
+
+def sequences(module: GarmentModule, data: str, split: str,
+              ids: Optional[Sequence[str]] = None) -> Scored:
+    """``split``'s whole sequences as ``module`` reads them (its pose history and Nyström
+    width)."""
+    init = getattr(module.model, "init_args", {})
+    history = 1 if isinstance(module, SimulatorModule) else 3
+    ny = init.get("nystrom_dim") or 16
+    return Scored(data, split, chunk=10 ** 6, history=history, nystrom_dim=ny,
+                  num_landmarks=64, cache_size=2, static_cache=2, ids=ids)
+
+
+def per_frame(pred: torch.Tensor, item) -> List[Optional[float]]:
+    """E_dist (cm) of each frame (``None`` where the frame is not scored)."""
+    d = (pred - item.gt).norm(dim=-1).mean(-1) * 100.0
+    return [float(x) for x in d]
+
+
+def run_score(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    methods: Dict[str, Callable[[Any], torch.Tensor]] = {}
+    modules: Dict[str, GarmentModule] = {}
+    mgn = load_module(args.mgn)
+    for start in args.starts:
+        name = f"MGN-style ({start})"
+        modules[name] = mgn
+        methods[name] = (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
+    for spec in args.other:
+        name, _, path = spec.partition("=")
+        m = load_module(path)
+        modules[name] = m
+        methods[name] = m.predict_garment
+    manifest = read_manifest(args.data)
+    ids = None
+    if args.sequences:
+        ids = stratified([r for r in manifest["items"]
+                          if r["split"] == args.split and r["status"] == "ok"], args.sequences)
+    results: Dict[str, Any] = {"data": str(args.data),
+                               "content_sha256": manifest.get("content_sha256"),
+                               "split": args.split, "methods": {}, "per_frame": {},
+                               "seconds": {}}
+    lbs_done = False
+    for name, predict in methods.items():
+        test = sequences(modules[name], args.data, args.split, ids)
+        frames: Dict[str, List[float]] = {}
+        t0 = time.perf_counter()
+
+        def pred(i, item, predict=predict, frames=frames):
+            p = predict(item)
+            frames[item.seq_id] = per_frame(p, item)
+            return p
+        results["methods"][name] = score(pred, test)
+        results["seconds"][name] = time.perf_counter() - t0
+        results["per_frame"][name] = frames
+        print(f"{name}: {len(test)} sequences in {results['seconds'][name]:.0f} s",
+              flush=True)
+        if not lbs_done:
+            lbs_frames: Dict[str, List[float]] = {}
+
+            def lbs(i, item):
+                p = item.skinned()
+                lbs_frames[item.seq_id] = per_frame(p, item)
+                return p
+            results["methods"]["LBS only"] = score(lbs, test)
+            results["per_frame"]["LBS only"] = lbs_frames
+            lbs_done = True
+    results["valid"] = {s["sequence"]: [bool(v) for v in test.valid(i)]
+                        for i, s in enumerate(results["methods"]["LBS only"])} \
+        if len(results["methods"]["LBS only"]) == len(test) else {}
+    (out / "score.json").write_text(json.dumps(results, indent=1))
+    (out / "score.md").write_text(score_table(results))
+    plot_per_frame(results, out / "per_frame.png")
+    print(score_table(results))
+
+
+def _by_seq(records, metric="E_dist") -> Dict[str, float]:
+    return {r["sequence"]: r["metrics"][metric] for r in records}
+
+
+def score_table(results: Dict[str, Any]) -> str:
+    meth = results["methods"]
+    lbs = aggregate(meth["LBS only"])
+    lines = [f"Dataset `{str(results.get('content_sha256'))[:12]}`, split "
+             f"`{results['split']}`, {len(meth['LBS only'])} sequences, valid frames from "
+             f"frame {GIVEN} on.", "",
+             "| method | " + " | ".join(METRICS) + " | x LBS (E_dist) | s/sequence |",
+             "|---|" + "---:|" * (len(METRICS) + 2)]
+    for name, recs in meth.items():
+        a = aggregate(recs)["all"]
+        secs = results["seconds"].get(name)
+        lines.append(f"| {name} | " + " | ".join(f"{a[m]:.4g}" for m in METRICS)
+                     + f" | {a['E_dist'] / lbs['all']['E_dist']:.3f} | "
+                     + (f"{secs / max(1, len(recs)):.2f}" if secs else "—") + " |")
+    lines += ["", "Per held-out group, E_dist as a ratio to LBS's:", "",
+              "| method | " + " | ".join(GROUPS) + " |", "|---|" + "---:|" * len(GROUPS)]
+    lines.append("| LBS only (cm) | " + " | ".join(
+        f"{lbs[g]['E_dist']:.2f}" if g in lbs else "—" for g in GROUPS) + " |")
+    for name, recs in meth.items():
+        if name == "LBS only":
+            continue
+        a = aggregate(recs)
+        lines.append(f"| {name} | " + " | ".join(
+            f"{a[g]['E_dist'] / lbs[g]['E_dist']:.3f}" if g in a and g in lbs else "—"
+            for g in GROUPS) + " |")
+    mgn = [n for n in meth if n.startswith("MGN-style")]
+    lines += ["", "Paired Wilcoxon signed-rank tests over sequences (median difference "
+              "in cm, negative: the first lower; wins: share of sequences where it is "
+              "lower):", "", "| pair | metric | n | median diff | wins | p |",
+              "|---|---|---:|---:|---:|---:|"]
+    for a in mgn:
+        for b in meth:
+            if b.startswith("MGN-style"):
+                continue
+            for metric in ("E_dist", "E_len", "E_curv", "collision_rate"):
+                try:
+                    w = wilcoxon(_by_seq(meth[a], metric), _by_seq(meth[b], metric))
+                except ValueError:
+                    continue
+                lines.append(f"| {a} vs {b} | {metric} | {w['n']} | {w['median_diff']:.4g} | "
+                             f"{w['wins']:.2f} | {w['p']:.2g} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_per_frame(results: Dict[str, Any], path: Path) -> None:
+    plt = pyplot()
+    valid = results.get("valid") or {}
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, frames in results["per_frame"].items():
+        T = max(len(v) for v in frames.values())
+        sums, counts = np.zeros(T), np.zeros(T)
+        for seq, vals in frames.items():
+            ok = valid.get(seq, [True] * len(vals))
+            for t, (v, k) in enumerate(zip(vals, ok)):
+                if k:
+                    sums[t] += v
+                    counts[t] += 1
+        mean = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+        ax.plot(np.arange(T), mean, label=name, lw=1.5 if "MGN" in name else 1.0)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("E_dist (cm), mean over sequences")
+    ax.set_title(f"error per frame, {results['split']} "
+                 f"({str(results.get('content_sha256'))[:8]})")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# -- learning curves -------------------------------------------------------------------------
+def one_step_and_rollout(module: SimulatorModule, test: Scored) -> Dict[str, float]:
+    """Mean over ``test``'s sequences of the one-step error (each frame predicted from the
+    two simulated frames before it) and the rollout E_dist (from frames 0 and 1), cm, on
+    the scored frames."""
+    model = module.model
+    one, roll, n = 0.0, 0.0, 0
+    with torch.no_grad():
+        for i in range(len(test)):
+            item = test[i]
+            keep = test.valid(i)
+            if not bool(keep.any()):
+                continue
+            m = model.scene_motion(item)
+            gt = item.gt
+            steps = [gt[0], gt[1]] + [model.step(item, m, t, gt[t - 2], gt[t - 1])
+                                      for t in range(2, gt.shape[0])]
+            d1 = (torch.stack(steps) - gt).norm(dim=-1).mean(-1)[keep].mean()
+            d2 = (module.rollout(item, start="gt") - gt).norm(dim=-1).mean(-1)[keep].mean()
+            one, roll, n = one + float(d1), roll + float(d2), n + 1
+    return {"one_step_cm": 100 * one / n, "rollout_cm": 100 * roll / n, "sequences": n}
+
+
+def run_curves(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpts = sorted(Path(args.run).rglob("step-*.ckpt"),
+                   key=lambda p: int(p.stem.split("=")[-1].split("-")[0]))
+    if not ckpts:
+        sys.exit(f"error: --run: no step-*.ckpt under {args.run}")
+    manifest = read_manifest(args.data)
+    picks = {}
+    for split in ("train", "val"):
+        recs = [r for r in manifest["items"] if r["split"] == split and r["status"] == "ok"]
+        picks[split] = sorted(r["id"] for r in recs)[::max(1, len(recs) // args.sequences)][
+            :args.sequences] if split == "train" else stratified(recs, args.sequences)
+    path = out / "curves.json"
+    curves = json.loads(path.read_text()) if path.exists() else {"points": []}
+    done = {p["step"] for p in curves["points"]}
+    lbs: Dict[str, float] = curves.get("lbs", {})
+    for ck in ckpts:
+        step = int(ck.stem.split("=")[-1].split("-")[0])
+        if step in done:
+            continue
+        module = load_module(str(ck))
+        point: Dict[str, Any] = {"step": step}
+        for split, ids in picks.items():
+            test = sequences(module, args.data, split, ids)
+            point[split] = one_step_and_rollout(module, test)
+            if split not in lbs:
+                tot = 0.0
+                for i in range(len(test)):
+                    item, keep = test[i], test.valid(i)
+                    tot += float((item.skinned() - item.gt).norm(dim=-1).mean(-1)[keep].mean())
+                lbs[split] = 100 * tot / len(test)
+        curves["points"].append(point)
+        curves["points"].sort(key=lambda p: p["step"])
+        curves.update(lbs=lbs, picks=picks, content_sha256=manifest.get("content_sha256"))
+        path.write_text(json.dumps(curves, indent=1))
+        print(json.dumps(point), flush=True)
+    plot_curves(curves, out / "curves.png")
+
+
+def plot_curves(curves: Dict[str, Any], path: Path) -> None:
+    plt = pyplot()
+    pts = curves["points"]
+    steps = [p["step"] for p in pts]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, title in ((axes[0], "one_step_cm", "one-step error"),
+                           (axes[1], "rollout_cm", "rollout E_dist (from frames 0, 1)")):
+        for split, style in (("train", "-"), ("val", "--")):
+            ax.plot(steps, [p[split][key] for p in pts], style, marker="o", ms=3,
+                    label=f"{split}")
+            if key == "rollout_cm":
+                ax.axhline(curves["lbs"][split], ls=style, color="grey", lw=0.8,
+                           label=f"LBS ({split})")
+        ax.set_xlabel("optimizer step")
+        ax.set_ylabel("cm")
+        ax.set_title(title)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# -- sweeps ------------------------------------------------------------------------------------
+def _metrics_rows(run: Path) -> List[Dict[str, str]]:
+    files = sorted(run.rglob("metrics.csv"))
+    if not files:
+        sys.exit(f"error: --runs: no metrics.csv under {run}")
+    rows: List[Dict[str, str]] = []
+    for f in files:
+        with open(f) as fh:
+            rows += list(csv.DictReader(fh))
+    return rows
+
+
+def run_sweep(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table: Dict[str, Any] = {}
+    for spec in args.runs:
+        name, _, run = spec.partition("=")
+        rows = _metrics_rows(Path(run))
+        val = [(int(r["step"]), float(r["val/E_dist"])) for r in rows if r.get("val/E_dist")]
+        one = [(int(r["step"]), float(r["train/one_step_m"])) for r in rows
+               if r.get("train/one_step_m")]
+        table[name] = {"val_E_dist": val, "train_one_step_m": one,
+                       "steps": max(int(r["step"]) for r in rows) + 1}
+    (out / "sweep.json").write_text(json.dumps(table, indent=1))
+    lines = ["| run | steps | val E_dist (cm) at each validation | last train one-step (mm) |",
+             "|---|---:|---|---:|"]
+    for name, t in table.items():
+        vals = ", ".join(f"{v:.2f}@{s}" for s, v in t["val_E_dist"])
+        last = t["train_one_step_m"][-1][1] * 1000 if t["train_one_step_m"] else math.nan
+        lines.append(f"| {name} | {t['steps']} | {vals} | {last:.2f} |")
+    (out / "sweep.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+# -- a branch with pushforward ------------------------------------------------------------------
+def run_branch(args: argparse.Namespace) -> None:
+    src = load_checkpoint_file(args.source)
+    step0 = int(src["global_step"])
+    hp = SimulatorModule.saved_hparams(src)
+    # the rate at step0 of the run's decay, decaying on from there at the same pace
+    lr = max(hp["lr_min"], hp["lr"] * hp["decay"] ** (step0 / hp["decay_steps"]))
+    module = SimulatorModule.load_from_checkpoint(
+        args.source, map_location="cpu", rollout=args.rollout, rollout_start=0, lr=lr,
+        stats_steps=0)
+    params = inspect.signature(GarmentDataModule.__init__).parameters
+    dm_hp = {k: v for k, v in (src.get("datamodule_hyper_parameters") or {}).items()
+             if k in params}
+    dm = GarmentDataModule(**dict(dm_hp, root=args.data, chunk=2 + args.rollout,
+                                  seed=int(dm_hp.get("seed", 0)) + 1))
+    trainer = L.Trainer(max_steps=args.steps, accelerator="cpu", devices=1,
+                        default_root_dir=args.out, val_check_interval=args.every,
+                        check_val_every_n_epoch=None, limit_val_batches=args.val_batches,
+                        log_every_n_steps=25, enable_progress_bar=False,
+                        logger=CSVLogger(args.out, name="logs"),
+                        callbacks=[ModelCheckpoint(every_n_train_steps=args.every,
+                                                   save_top_k=-1, filename="branch-{step}")])
+    trainer.fit(module, dm)
+    print(f"branched from step {step0} at lr {lr:.3g}: {args.steps} steps with rollout "
+          f"{args.rollout}; checkpoints under {args.out}")
+
+
+# -- stability ----------------------------------------------------------------------------------
+def run_stability(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    mgn = load_module(args.mgn)
+    if not isinstance(mgn, SimulatorModule):
+        sys.exit(f"error: --mgn: {args.mgn} is not an MGN-style checkpoint")
+    test = SequenceChunks(args.data, "test", chunk=10 ** 6, history=1, nystrom_dim=16,
+                          num_landmarks=64)
+    base = test.records[0]
+    item = {k: base[k] for k in ("garment", "body", "motion", "material", "settings")}
+
+    def inputs(seq):
+        ds = BenchChunks(seq, history=1)
+        return ds[0]
+
+    predictors = {"MGN-style (from LBS)": lambda seq: mgn.rollout(inputs(seq), start="lbs"),
+                  "LBS only": lambda seq: inputs(seq).skinned()}
+    records = []
+    for case in args.cases:
+        for name, predict in predictors.items():
+            def run(seq, predict=predict):
+                with torch.no_grad():
+                    return predict(seq)
+            rec = stab.run_case(case, dict(item, name=case), int(base["seed"]), run, name)
+            rec["sequence"] = base["id"]
+            records.append(rec)
+            m = rec.get("metrics", {})
+            print(f"{case:15s} {name:22s} {rec['verdict']:9s} {rec.get('reason', '')}  "
+                  f"max speed {m.get('max_speed', float('nan')):.3g} m/s  "
+                  f"growth {m.get('energy_growth', float('nan')):.3g}  "
+                  f"penetration {m.get('max_penetration_m', float('nan')):.3g} m", flush=True)
+    (out / "stability.json").write_text(json.dumps(records, indent=1, default=str))
+    lines = [f"Stability suite on test sequence `{base['id']}` (rollout from the LBS garment "
+             f"of its first two frames; verdict rules: `garmentgnn.harness.stability`).", "",
+             "| case | method | verdict | non-finite | max speed (m/s) | energy growth | "
+             "deepest penetration (mm) | reason |", "|---|---|---|---:|---:|---:|---:|---|"]
+    for r in records:
+        m = r.get("metrics", {})
+        lines.append(f"| {r['case']} | {r['method']} | {r['verdict']} | "
+                     f"{m.get('nonfinite', float('nan')):.0f} | "
+                     f"{m.get('max_speed', float('nan')):.3g} | "
+                     f"{m.get('energy_growth', float('nan')):.3g} | "
+                     f"{1000 * m.get('max_penetration_m', float('nan')):.3g} | "
+                     f"{r.get('reason', '')} |")
+    (out / "stability.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("score", help="rollouts of a split beside LBS and other checkpoints")
+    s.add_argument("--mgn", required=True, help="the MGN-style checkpoint")
+    s.add_argument("--data", required=True)
+    s.add_argument("--out", required=True)
+    s.add_argument("--split", default="test")
+    s.add_argument("--starts", nargs="+", default=["gt", "drape"],
+                   choices=["gt", "drape", "lbs"])
+    s.add_argument("--other", nargs="*", default=[], metavar="NAME=CKPT")
+    s.add_argument("--sequences", type=int, default=None,
+                   help="only this many, drawn evenly from the held-out groups")
+    c = sub.add_parser("curves", help="one-step and rollout error of each step checkpoint")
+    c.add_argument("--run", required=True)
+    c.add_argument("--data", required=True)
+    c.add_argument("--out", required=True)
+    c.add_argument("--sequences", type=int, default=8)
+    w = sub.add_parser("sweep", help="the sweep runs' validation table")
+    w.add_argument("--runs", nargs="+", required=True, metavar="NAME=RUN")
+    w.add_argument("--out", required=True)
+    b = sub.add_parser("branch", help="a run continued from a checkpoint with pushforward")
+    b.add_argument("--from", dest="source", required=True, metavar="CKPT")
+    b.add_argument("--data", required=True)
+    b.add_argument("--out", required=True)
+    b.add_argument("--rollout", type=int, default=3)
+    b.add_argument("--steps", type=int, required=True)
+    b.add_argument("--every", type=int, default=500)
+    b.add_argument("--val-batches", type=int, default=16)
+    t = sub.add_parser("stability", help="the stability suite, rolled out from LBS")
+    t.add_argument("--mgn", required=True)
+    t.add_argument("--data", required=True)
+    t.add_argument("--out", required=True)
+    t.add_argument("--cases", nargs="+", default=["baseline", "stiff_x1000", "extreme_pose",
+                                                  "fast_x5", "long_1000", "sliver_face",
+                                                  "zero_area_face"])
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    {"score": run_score, "curves": run_curves, "sweep": run_sweep, "branch": run_branch,
+     "stability": run_stability}[args.command](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,289 @@
+"""MGN-style learned simulator: MeshGraphNets' encode-process-decode on the toolkit's layers.
+
+MeshGraphNets (Pfaff, Fortunato, Sanchez-Gonzalez & Battaglia, *Learning Mesh-Based
+Simulation with Graph Networks*, ICLR 2021) carries the garment's state from frame to
+frame: from the two latest garment states ``x_{t-2}, x_{t-1}`` and the body it predicts an
+acceleration ``a``, and the next state is ``x_t = 2 x_{t-1} - x_{t-2} + a`` (a in metres
+per frame squared, so the model is tied to the frame rate it learned at, ``fps``).
+:class:`MGNStyle` is that network, with
+
+* **encode**: node inputs (the velocity ``x_{t-1} - x_{t-2}``, the LBS garment's motion
+  ``l_t - l_{t-1}`` and the offset from it ``x_{t-1} - l_{t-1}``, all in the body's
+  local frame -- the root joint's rotation at ``t-1`` -- plus the pinned flag and the
+  fabric, :func:`~garmentgnn.physics.material_features`), mesh-edge inputs (current
+  relative position in the local frame and length, rest relative position and length) and
+  **body edges**: each garment vertex to its ``body_k`` nearest body vertices within
+  ``body_radius`` (MeshGraphNets' world edges, HOOD's body edges), with the offset to the
+  body at ``t`` in the local frame, its length and the body's motion ``b_t - b_{t-1}``.
+  Body edges are encoded once and summed into their garment vertex (HOOD and
+  MeshGraphNets update them in every block: a cost per block this model leaves out).
+  All inputs are normalised by running statistics (:class:`RunningNormalizer`);
+* **process**: a residual stack of ``layers`` blocks, each a :mod:`garmentgnn.nn` layer
+  (``layer``: SATConv by default, any name of :data:`garmentgnn.nn.LAYERS`) over the mesh
+  graph with its edge features carried block to block (Eqs. 5-6 for SATConv), followed
+  by a LayerNorm'd MLP (MeshGraphNets' node update), each with a residual connection;
+* **decode**: an MLP to the normalised local-frame acceleration; :meth:`acceleration`
+  undoes the normalisation (running statistics of the training targets) and the frame.
+
+Pinned vertices follow the LBS garment.  The model never sees the ground truth: the
+training module (:class:`~garmentgnn.training.SimulatorModule`) gives it states and
+compares its output with the normalised target.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import torch
+from torch import Tensor, nn
+
+from garmentgnn.body.lbs import forward_kinematics
+from garmentgnn.models.blocks import Configurable, RunningNormalizer, mlp
+from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.models.sequence import ChunkLayout
+from garmentgnn.nn import LAYERS, make_layer
+from garmentgnn.physics import MATERIAL_FEATURES
+
+__all__ = ["MGNStyle", "SceneMotion"]
+
+
+@dataclass
+class SceneMotion:
+    """What a step of :class:`MGNStyle` reads besides the garment states, for the ``N``
+    garments of a :class:`GarmentInputs` over its ``T`` frames (computed once per batch
+    or sequence by :meth:`MGNStyle.scene_motion`).
+
+    Attributes:
+        lbs: ``[T, V, 3]`` the rest garment skinned to each frame (Eq. 1).
+        body: ``[T, N, Vb, 3]`` each garment's body per frame.
+        frame: ``[T, V, 3, 3]`` the body's local frame per vertex (its root joint's
+            world rotation).
+        vertex_chunk: ``[V]`` the garment of each vertex; ``slot [V]`` its row in the
+            padded ``[N, Vmax]`` layout (``None`` for one garment).
+        material: ``[V, K]`` the fabric of each vertex.
+        pinned: ``[V]`` bool.
+    """
+
+    lbs: Tensor
+    body: Tensor
+    frame: Tensor
+    vertex_chunk: Tensor
+    slot: Optional[Tensor]
+    vmax: int
+    material: Tensor
+    pinned: Tensor
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.lbs.shape[0])
+
+
+def _mlp_ln(sizes) -> nn.Sequential:
+    """A ReLU MLP ending in ``LayerNorm`` (MeshGraphNets' encoder and update MLPs)."""
+    return mlp(sizes, nn.ReLU(), last_act=False).append(nn.LayerNorm(sizes[-1]))
+
+
+def _local(frame: Tensor, v: Tensor) -> Tensor:
+    """``R^T v`` per row: ``frame [..., 3, 3]``, ``v [..., 3]``."""
+    return (v.unsqueeze(-2) @ frame).squeeze(-2)
+
+
+class MGNStyle(Configurable, nn.Module):
+    """MGN-style learned simulator (module doc): ``x_t = 2 x_{t-1} - x_{t-2} + a``.
+
+    Args:
+        hidden: latent width of every MLP and layer.
+        layers: processor blocks (MeshGraphNets: 15).
+        layer: the :mod:`garmentgnn.nn` layer of each block (``"sat"``, ``"gt"``,
+            ``"gt_edge"``, ``"structure_aware"``, ``"gat"``).
+        heads: attention heads of each layer (``hidden`` must be a multiple).
+        body_radius: body edges reach body vertices within this distance (m).
+        body_k: body edges per garment vertex (its nearest body vertices).
+        fps: the frame rate the accelerations are learned at (frames per second).
+        norm_updates: training calls that update the input and target statistics
+            (MeshGraphNets: the first 1,000 steps).
+    """
+
+    NODE_IN = 10 + len(MATERIAL_FEATURES)
+    EDGE_IN = 8
+    BODY_IN = 7
+
+    def __init__(self, hidden: int = 64, layers: int = 8, layer: str = "sat", heads: int = 4,
+                 body_radius: float = 0.05, body_k: int = 4, fps: float = 30.0,
+                 norm_updates: int = 1000) -> None:
+        super().__init__()
+        for name, v in (("hidden", hidden), ("layers", layers), ("heads", heads),
+                        ("body_k", body_k)):
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"`{name}`: expected a positive int, got {v!r}")
+        if layer not in LAYERS:
+            raise ValueError(f"`layer`: unknown {layer!r}; choose one of {sorted(LAYERS)}")
+        if hidden % heads:
+            raise ValueError(f"`heads`: {heads} heads do not divide hidden={hidden}; give a "
+                             f"divisor of it")
+        if not body_radius > 0:
+            raise ValueError(f"`body_radius`: expected metres > 0, got {body_radius!r}")
+        if not fps > 0:
+            raise ValueError(f"`fps`: expected frames per second > 0, got {fps!r}")
+        self.hidden, self.fps = hidden, float(fps)
+        self.body_radius, self.body_k = float(body_radius), body_k
+        self.node_norm = RunningNormalizer(self.NODE_IN, norm_updates)
+        self.edge_norm = RunningNormalizer(self.EDGE_IN, norm_updates)
+        self.body_norm = RunningNormalizer(self.BODY_IN, norm_updates)
+        #: statistics of the training targets (local-frame accelerations)
+        self.target_norm = RunningNormalizer(3, norm_updates)
+        self.node_enc = _mlp_ln([self.NODE_IN, hidden, hidden])
+        self.edge_enc = _mlp_ln([self.EDGE_IN, hidden, hidden])
+        self.body_enc = _mlp_ln([self.BODY_IN, hidden, hidden])
+        self.convs = nn.ModuleList(
+            make_layer(layer, hidden, hidden // heads, edge_dim=hidden, heads=heads,
+                       concat=True, validate=False, check_finite=False)
+            for _ in range(layers))
+        self.conv_norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(layers))
+        self.updates = nn.ModuleList(_mlp_ln([hidden, 2 * hidden, hidden])
+                                     for _ in range(layers))
+        self.decoder = mlp([hidden, hidden, 3], nn.ReLU(), last_act=False)
+        self._freeze_dead_edge_output()
+
+    def _freeze_dead_edge_output(self) -> None:
+        """The last block's edge output (``lin_edge_out`` of an edge-updating layer) is
+        never read: mark what gets no gradient in a probe through the processor
+        ``requires_grad=False``, so that DDP finds a gradient for every trainable
+        parameter."""
+        ei = torch.tensor([[0, 1, 2, 1], [1, 2, 0, 0]])
+        with torch.enable_grad():
+            self.process(torch.randn(3, self.hidden), ei,
+                         torch.randn(4, self.hidden)).sum().backward()
+        for p in self.convs[-1].parameters():
+            if p.grad is None:
+                p.requires_grad_(False)
+        self.zero_grad(set_to_none=True)
+
+    def process(self, h: Tensor, edge_index: Tensor, e: Tensor) -> Tensor:
+        """The processor: ``layers`` residual blocks over the mesh graph, each a layer
+        (its edge features carried to the next block) and a LayerNorm'd MLP."""
+        for conv, norm, update in zip(self.convs, self.conv_norms, self.updates):
+            h2, e = conv(h, edge_index, e, return_edge_attr=True)
+            h = norm(h2)
+            h = h + update(h)
+        return h
+
+    # -- what a step reads ---------------------------------------------------------------
+    def scene_motion(self, scene: GarmentInputs) -> SceneMotion:
+        """The LBS garment, bodies, local frames and fabric of ``scene``'s frames."""
+        for key in ("body_pos", "material"):
+            if key not in scene:
+                fix = ("set it with garmentgnn.physics.material_features(MATERIALS[name])"
+                       if key == "material" else "build the inputs with a body")
+                raise ValueError(f"`scene.{key}`: missing; the MGN-style model reads it ({fix})")
+        layout = ChunkLayout(scene)
+        N, T, V = layout.N, layout.B, layout.V
+        rot = layout.rotations[:, :, -1]  # [N, T, S, 3]
+        tr = layout.translation[:, :, -1]  # [N, T, 3]
+        A, _ = forward_kinematics(rot.reshape(N * T, *rot.shape[2:]),
+                                  layout.rest_joints.repeat_interleave(T, 0), layout.parents,
+                                  tr.reshape(N * T, 3))
+        A = A.view(N, T, *A.shape[1:])
+        W = scene.skin_weights.unsqueeze(0).expand(T, -1, -1)
+        lbs, _ = layout.skin(W, A, scene.rest_pos)
+        root = A[:, :, 0, :3, :3]  # [N, T, 3, 3] the root joint's world rotation
+        chunk = scene.vertex_chunk()
+        frame = root.transpose(0, 1)[:, chunk]  # [T, V, 3, 3]
+        body = scene.body_pos.view(T, N, -1, 3)
+        material = scene.material.reshape(N, -1).to(lbs.dtype)[chunk]
+        slot, vmax = (None, V) if N == 1 else (layout.index, layout.Vmax)
+        return SceneMotion(lbs=lbs, body=body, frame=frame, vertex_chunk=chunk, slot=slot,
+                           vmax=vmax, material=material, pinned=scene.pinned_mask())
+
+    def body_edges(self, motion: SceneMotion, x: Tensor, t: int) -> Tuple[Tensor, Tensor]:
+        """``(garment vertex [Eb], body vertex [Eb] of its own garment's body at ``t``)``:
+        each vertex's ``body_k`` nearest body vertices within ``body_radius`` of ``x``."""
+        body = motion.body[t]  # [N, Vb, 3]
+        N, Vb = body.shape[:2]
+        k = min(self.body_k, Vb)
+        with torch.no_grad():
+            if motion.slot is None:
+                d, j = torch.cdist(x.unsqueeze(0), body).topk(k, -1, largest=False)
+                d, j = d[0], j[0]
+            else:
+                xp = x.new_zeros(N * motion.vmax, 3).index_copy(0, motion.slot, x)
+                d, j = torch.cdist(xp.view(N, motion.vmax, 3), body).topk(k, -1, largest=False)
+                d, j = d.view(-1, k)[motion.slot], j.view(-1, k)[motion.slot]
+            keep = d < self.body_radius
+            src = torch.arange(x.shape[0], device=x.device).unsqueeze(1).expand_as(j)[keep]
+            dst = (j + (motion.vertex_chunk * Vb).unsqueeze(1))[keep]
+        return src, dst
+
+    # -- the network -------------------------------------------------------------------------
+    def forward(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
+                x_curr: Tensor) -> Tensor:
+        """The normalised local-frame acceleration ``[V, 3]`` that takes ``x_prev``
+        (``x_{t-2}``) and ``x_curr`` (``x_{t-1}``) to frame ``t`` of ``motion``
+        (:meth:`acceleration` turns it into metres per frame squared)."""
+        V = scene.num_vertices
+        if not 1 <= t < motion.num_frames:
+            raise ValueError(f"`t`: expected a frame in [1, {motion.num_frames}), got {t}")
+        for name, s in (("x_prev", x_prev), ("x_curr", x_curr)):
+            if s.shape != (V, 3):
+                raise ValueError(f"`{name}`: expected [{V}, 3], got {tuple(s.shape)}")
+        R = motion.frame[t - 1]  # [V, 3, 3]
+        lbs_prev, lbs_next = motion.lbs[t - 1], motion.lbs[t]
+        # node inputs (local frame): velocity, the LBS garment's motion and the offset from it
+        node = torch.cat([_local(R, x_curr - x_prev), _local(R, lbs_next - lbs_prev),
+                          _local(R, x_curr - lbs_prev),
+                          motion.pinned.to(x_curr.dtype).unsqueeze(1), motion.material], 1)
+        # mesh edges: current (local frame) and rest relative positions and lengths
+        src, dst = scene.edge_index
+        xl = _local(R, x_curr)
+        d = xl[src] - xl[dst]
+        d0 = scene.rest_pos[src] - scene.rest_pos[dst]
+        edge = torch.cat([d, d.norm(dim=1, keepdim=True), d0, d0.norm(dim=1, keepdim=True)], 1)
+        # body edges: offset to the body at t, its length, the body's motion
+        bs, bd = self.body_edges(motion, x_curr, t)
+        body_t = motion.body[t].reshape(-1, 3)
+        body_prev = motion.body[t - 1].reshape(-1, 3)
+        Rb = R[bs]
+        off = _local(Rb, body_t[bd] - x_curr[bs])
+        bedge = torch.cat([off, off.norm(dim=1, keepdim=True),
+                           _local(Rb, body_t[bd] - body_prev[bd])], 1)
+
+        h = self.node_enc(self.node_norm(node))
+        h = h.index_add(0, bs, self.body_enc(self.body_norm(bedge)))
+        e = self.edge_enc(self.edge_norm(edge))
+        return self.decoder(self.process(h, scene.edge_index, e))
+
+    def acceleration(self, out: Tensor, motion: SceneMotion, t: int) -> Tensor:
+        """The network's output ``out [V, 3]`` for frame ``t`` in metres per frame
+        squared, world frame."""
+        mean, std = self.target_norm.mean_std()
+        a_local = out * std.to(out.dtype) + mean.to(out.dtype)
+        return (motion.frame[t - 1] @ a_local.unsqueeze(-1)).squeeze(-1)
+
+    def normalized_target(self, a: Tensor, motion: SceneMotion, t: int) -> Tensor:
+        """A world-frame acceleration ``a [V, 3]`` of frame ``t`` as the network's output
+        would give it (the target statistics are updated in training mode)."""
+        return self.target_norm(_local(motion.frame[t - 1], a))
+
+    def step(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
+             x_curr: Tensor) -> Tensor:
+        """Frame ``t`` ``[V, 3]``: ``2 x_{t-1} - x_{t-2} + a``; pinned vertices on LBS."""
+        a = self.acceleration(self(scene, motion, t, x_prev, x_curr), motion, t)
+        x_next = 2 * x_curr - x_prev + a
+        return torch.where(motion.pinned.unsqueeze(1), motion.lbs[t], x_next)
+
+    def rollout(self, scene: GarmentInputs, x0: Tensor, x1: Tensor,
+                motion: Optional[SceneMotion] = None) -> Tensor:
+        """The garment ``[T, V, 3]`` over every frame of ``scene``, rolled out from its
+        states at frames 0 and 1 (``x0, x1 [V, 3]``, returned as the first two frames).
+        Wrap in ``torch.no_grad()`` for inference."""
+        motion = self.scene_motion(scene) if motion is None else motion
+        T, V = motion.num_frames, scene.num_vertices
+        if T < 2:
+            raise ValueError(f"`scene`: a rollout needs at least 2 frames, got {T}")
+        if x0.shape != (V, 3) or x1.shape != (V, 3):
+            raise ValueError(f"`x0`/`x1`: expected [{V}, 3], got {tuple(x0.shape)}, "
+                             f"{tuple(x1.shape)}")
+        out = [x0, x1]
+        for t in range(2, T):
+            out.append(self.step(scene, motion, t, out[-2], out[-1]))
+        return torch.stack(out)

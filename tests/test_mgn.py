@@ -1,0 +1,346 @@
+"""The MGN-style learned simulator and its training recipe: body edges against a k-d
+tree, invariance to the body's rigid motion (analytic), a batch against its garments
+alone, the integration and pinning, a gradient in every branch for every layer, the
+noise-corrected target, the overfit of one batch, windows of the data module, and the
+checks a run makes at set-up."""
+import math
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from garmentgnn.data import SequenceChunks
+from garmentgnn.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from garmentgnn.models import MGNStyle
+from garmentgnn.models.baselines import DAStyle
+from garmentgnn.nn import LAYERS
+from garmentgnn.physics import MATERIALS, material_features
+from garmentgnn.training import BaselineModule, GarmentDataModule, SimulatorModule
+from garmentgnn.training.configs import configs_of_model
+from garmentgnn.training.integrity import CheckpointError
+
+from conftest import skirt_dataset
+
+NY = 8
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    return skirt_dataset(tmp_path_factory.mktemp("mgn"), ["walk", "run", "jump"], 8,
+                         held_out={"val": ["run"]}, name="mgn")
+
+
+def windows(root, chunk=3):
+    return SequenceChunks(root, "train", chunk=chunk, stride=1, drop_last=True, history=1,
+                          nystrom_dim=NY, num_landmarks=16)
+
+
+def trained_stats(model, batch):
+    """``model`` with its normalisation statistics taken from ``batch``, in eval mode."""
+    module = SimulatorModule(model, stats_steps=1)
+    module.train()
+    with torch.no_grad():
+        module.window_loss(batch)
+    return model.eval()
+
+
+def test_windows_start_at_every_frame(root):
+    ds = windows(root, chunk=3)
+    per_seq = {}
+    for i, t0, n in ds.index:
+        per_seq.setdefault(i, []).append((t0, n))
+    assert all(v == [(t, 3) for t in range(6)] for v in per_seq.values())  # 8 frames: 0..5
+    item = ds[4]
+    full = SequenceChunks(root, "train", chunk=8, history=1, nystrom_dim=NY, num_landmarks=16)
+    torch.testing.assert_close(item.gt, full[0].gt[4:7])
+    with pytest.raises(ValueError, match="`stride`"):
+        SequenceChunks(root, "train", chunk=3, stride=0)
+    dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
+                           history=1, nystrom_dim=NY, num_landmarks=16)
+    dm.setup("fit")
+    assert len(dm.train_set) == 2 * 6
+    assert [n for _, _, n in dm.val_set.index] == [8]  # whole sequences, never dropped
+    with pytest.raises(ValueError, match="--data.eval_chunk"):
+        GarmentDataModule(root, eval_chunk=0)
+
+
+def test_items_carry_their_fabric(root):
+    item = windows(root)[0]
+    torch.testing.assert_close(item.material, material_features(MATERIALS["silk"]))
+    np.testing.assert_allclose(item.material.numpy(),
+                               np.log([23600.0, 8000.0, 3.96e-5, 0.20022]), rtol=1e-6)
+    batch = windows(root)[[0, 7]]
+    assert batch.material.shape == (2, 4)
+    with pytest.raises(ValueError, match="`fabric`"):
+        material_features({"stretch": 1.0, "shear": -1.0, "bending": 1.0, "density": 1.0})
+
+
+def test_body_edges_are_the_nearest_body_vertices_within_the_radius(root):
+    model = MGNStyle(hidden=8, layers=1, heads=1, body_radius=0.08, body_k=3)
+    batch = windows(root)[[1, 9]]
+    motion = model.scene_motion(batch)
+    x = batch.gt[1]
+    src, dst = model.body_edges(motion, x, 2)
+    body = motion.body[2]  # [N, Vb, 3]
+    Vb = body.shape[1]
+    want = set()
+    for n in range(2):
+        verts = (motion.vertex_chunk == n).nonzero().flatten()
+        d, j = cKDTree(body[n].numpy()).query(x[verts].numpy(), k=3)
+        for v, dd, jj in zip(verts.tolist(), d, j):
+            want |= {(v, n * Vb + int(b)) for b, e in zip(jj, dd) if e < 0.08}
+    assert set(zip(src.tolist(), dst.tolist())) == want
+    assert len(want) > 0
+
+
+def _rigid(batch, Q, shift):
+    """``batch`` with the world rotated by ``Q`` and shifted by ``shift``: the root's
+    rotation and translation changed so that every posed point p becomes Q p + shift."""
+    out = batch.clone()
+    rot = batch.rotations.clone()  # [B, H, S, 3]
+    R0 = axis_angle_to_matrix(rot[..., 0, :].double())
+    rot[..., 0, :] = matrix_to_axis_angle(Q.double() @ R0).float()
+    j0 = batch.rest_joints[0]
+    # posed root position j0 + t  ->  Q (j0 + t) + shift
+    out.translation = ((j0 + batch.translation) @ Q.T + shift - j0)
+    out.rotations = rot
+    out.body_pos = batch.body_pos @ Q.T + shift
+    out.gt = batch.gt @ Q.T + shift
+    return out
+
+
+def test_the_acceleration_turns_and_moves_with_the_body(root):
+    torch.manual_seed(0)
+    batch = windows(root)[3]
+    model = trained_stats(MGNStyle(hidden=16, layers=2, heads=2, body_radius=0.1), batch)
+    Q = axis_angle_to_matrix(torch.tensor([0.3, -1.1, 0.7]))
+    moved = _rigid(batch, Q, torch.tensor([0.4, -0.2, 1.5]))
+    with torch.no_grad():
+        m0, m1 = model.scene_motion(batch), model.scene_motion(moved)
+        torch.testing.assert_close(m1.lbs, m0.lbs @ Q.T + torch.tensor([0.4, -0.2, 1.5]),
+                                   atol=1e-5, rtol=0)
+        out0 = model(batch, m0, 2, batch.gt[0], batch.gt[1])
+        out1 = model(moved, m1, 2, moved.gt[0], moved.gt[1])
+        torch.testing.assert_close(out1, out0, atol=2e-4, rtol=1e-4)  # local-frame output
+        a0, a1 = model.acceleration(out0, m0, 2), model.acceleration(out1, m1, 2)
+        torch.testing.assert_close(a1, a0 @ Q.T, atol=1e-6, rtol=1e-4)
+
+
+def test_a_batch_is_its_garments_alone(root):
+    ds = windows(root)
+    batch = ds[[2, 8]]
+    model = trained_stats(MGNStyle(hidden=16, layers=2, heads=2), batch)
+    with torch.no_grad():
+        mb = model.scene_motion(batch)
+        both = model.step(batch, mb, 2, batch.gt[0], batch.gt[1])
+        alone = []
+        for i in (2, 8):
+            item = ds[i]
+            m = model.scene_motion(item)
+            alone.append(model.step(item, m, 2, item.gt[0], item.gt[1]))
+    torch.testing.assert_close(both, torch.cat(alone), atol=1e-5, rtol=1e-5)
+
+
+def test_a_step_integrates_the_acceleration_and_pins_to_lbs(root):
+    batch = windows(root)[5]
+    pinned = torch.zeros(batch.num_vertices, dtype=torch.bool)
+    pinned[:20] = True
+    batch.pinned = pinned
+    model = trained_stats(MGNStyle(hidden=16, layers=2, heads=2), batch)
+    with torch.no_grad():
+        m = model.scene_motion(batch)
+        xp, xc = batch.gt[0], batch.gt[1]
+        a = model.acceleration(model(batch, m, 2, xp, xc), m, 2)
+        nxt = model.step(batch, m, 2, xp, xc)
+    torch.testing.assert_close(nxt[20:], (2 * xc - xp + a)[20:])
+    torch.testing.assert_close(nxt[:20], m.lbs[2, :20])
+    full = SequenceChunks(root, "train", chunk=8, history=1, nystrom_dim=NY,
+                          num_landmarks=16)[1]
+    with torch.no_grad():
+        roll = model.rollout(full, full.gt[0], full.gt[1])
+    assert roll.shape == full.gt.shape and torch.equal(roll[:2], full.gt[:2])
+    assert torch.isfinite(roll).all()
+
+
+@pytest.mark.parametrize("layer", sorted(LAYERS))
+def test_every_parameter_learns_with_every_layer(root, layer):
+    torch.manual_seed(0)
+    batch = windows(root)[[0, 6]]
+    model = MGNStyle(hidden=16, layers=2, heads=2, layer=layer, body_radius=0.2)
+    module = SimulatorModule(model, stats_steps=0, noise=1e-3)
+    loss, _ = module.window_loss(batch)
+    loss.backward()
+    dead = [n for n, p in model.named_parameters()
+            if p.requires_grad and (p.grad is None or not p.grad.abs().sum() > 0)]
+    frozen = [n for n, p in model.named_parameters() if not p.requires_grad]
+    assert all(n.startswith("convs.1.") for n in frozen)  # the last block's edge output
+    if layer in ("gat", "gt"):  # layers that do not read the edges: the edge encoder is idle
+        dead = [n for n in dead if not n.startswith("edge_enc")]
+    assert not dead
+
+
+def test_the_target_keeps_its_share_of_the_noise(root):
+    batch = windows(root)[[1, 7]]
+    model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
+    trained_stats(model, batch)  # then frozen: the oracle below sees the same statistics
+    for gamma in (0.0, 0.1):
+        module = SimulatorModule(model, stats_steps=0, noise=0.01, noise_gamma=gamma)
+        module.train()
+        torch.manual_seed(3)
+        loss, _ = module.window_loss(batch)
+        # the oracle: the same noise drawn again, the target written out
+        m = model.scene_motion(batch)
+        torch.manual_seed(3)
+        free = ~batch.pinned_mask()
+        n = 0.01 * torch.randn_like(batch.gt[1]) * free.unsqueeze(1)
+        xc = batch.gt[1] + n
+        want_pos = batch.gt[2] + (1 - gamma) * n
+        with torch.no_grad():
+            out = model(batch, m, 2, batch.gt[0], xc)
+            a = model.acceleration(out, m, 2)
+            # the target as positions: 2 x + a_target - x_prev
+            R = m.frame[1]
+            mean, std = model.target_norm.mean_std()
+            a_want = want_pos - 2 * xc + batch.gt[0]
+            tgt = ((a_want.unsqueeze(-2) @ R).squeeze(-2) - mean.float()) / std.float()
+            expected = ((out - tgt) ** 2).sum(1)[free].mean()
+        assert float(loss) == pytest.approx(float(expected), rel=1e-4)
+        assert a.shape == n.shape
+
+
+def test_one_batch_is_learnt(root):
+    torch.manual_seed(0)
+    batch = windows(root)[[0, 4, 8]]
+    model = MGNStyle(hidden=32, layers=2, heads=2)
+    module = SimulatorModule(model, stats_steps=1, noise=0.0)
+    module.train()
+    with torch.no_grad():
+        module.window_loss(batch)
+    opt = torch.optim.Adam(module.parameters(), 3e-3)
+    first = None
+    for _ in range(120):
+        loss, extra = module.window_loss(batch)
+        first = first if first is not None else float(extra["one_step_m"])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    _, extra = module.window_loss(batch)
+    assert float(extra["one_step_m"]) < first / 5
+
+
+def test_the_learning_rate_decays_exponentially(root):
+    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), lr=1e-3, decay=0.1,
+                             decay_steps=100, lr_min=2e-5)
+    cfg = module.configure_optimizers()
+    opt, sched = cfg["optimizer"], cfg["lr_scheduler"]["scheduler"]
+    rates = []
+    for _ in range(251):
+        rates.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert rates[0] == pytest.approx(1e-3)
+    assert rates[50] == pytest.approx(1e-3 * 0.1 ** 0.5)
+    assert rates[100] == pytest.approx(1e-4)
+    assert rates[250] == pytest.approx(2e-5)  # the floor
+
+
+def test_bad_arguments_and_inputs(root):
+    for kw, name in (({"hidden": 10, "heads": 4}, "`heads`"), ({"layer": "nope"}, "`layer`"),
+                     ({"body_radius": 0.0}, "`body_radius`"), ({"fps": -1.0}, "`fps`")):
+        with pytest.raises(ValueError, match=name):
+            MGNStyle(**kw)
+    model = MGNStyle(hidden=8, layers=1, heads=1)
+    for kw, name in (({"rollout": 0}, "`rollout`"), ({"noise": -1.0}, "`noise`"),
+                     ({"start": "x"}, "`start`"), ({"noise_gamma": 2.0}, "`noise_gamma`"),
+                     ({"stats_steps": 10 ** 6}, "`stats_steps`")):
+        with pytest.raises(ValueError, match=name):
+            SimulatorModule(model, **kw)
+    with pytest.raises(TypeError, match="`model`"):
+        SimulatorModule(torch.nn.Linear(2, 2))
+    item = windows(root)[0]
+    short = item.select(torch.tensor([0, 1]))
+    module = SimulatorModule(model)
+    with pytest.raises(ValueError, match="at least 3 frames"):
+        module.rollout(short)
+    bare = item.clone()
+    del bare.material
+    with pytest.raises(ValueError, match="`scene.material`"):
+        model.scene_motion(bare)
+    with pytest.raises(ValueError, match=r"2 \+ rollout = 3 frames, got 4"):
+        SimulatorModule(model, rollout=1).window_loss(windows(root, chunk=4)[0])
+
+
+def _trainer(tmp_path, steps):
+    return L.Trainer(max_steps=steps, accelerator="cpu", logger=False,
+                     enable_progress_bar=False, enable_model_summary=False,
+                     default_root_dir=str(tmp_path), limit_val_batches=1,
+                     val_check_interval=steps, check_val_every_n_epoch=None)
+
+
+def test_set_up_refuses_other_windows_and_frame_rates(root, tmp_path):
+    dm = GarmentDataModule(root, chunk=4, stride=1, drop_last=True, eval_chunk=100,
+                           history=1, nystrom_dim=NY, num_landmarks=16)
+    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=0)
+    with pytest.raises(ValueError, match="--data.chunk 3"):
+        _trainer(tmp_path, 2).fit(module, dm)
+    dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
+                           history=1, nystrom_dim=NY, num_landmarks=16)
+    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1, fps=60.0), stats_steps=0)
+    with pytest.raises(ValueError, match="at 30 fps.*60 fps"):
+        _trainer(tmp_path, 2).fit(module, dm)
+
+
+def test_fit_checkpoint_and_rollout_scores(root, tmp_path):
+    L.seed_everything(0)
+    dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
+                           history=1, nystrom_dim=NY, num_landmarks=16, batch_size=4)
+    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=1)
+    trainer = _trainer(tmp_path, 3)
+    trainer.fit(module, dm)
+    path = tmp_path / "m.ckpt"
+    trainer.save_checkpoint(path)
+    back = SimulatorModule.load_from_checkpoint(str(path)).eval()
+    assert int(back.model.target_norm.updates) == 3  # the statistics travel with it
+    assert torch.equal(back.model.node_norm.total, module.model.node_norm.total)
+    val = dm.val_set[0]
+    with torch.no_grad():
+        a, b = module.eval().rollout(val), back.rollout(val)
+    torch.testing.assert_close(a, b)
+    assert math.isfinite(float(trainer.callback_metrics["val/E_dist"]))
+    other = BaselineModule(DAStyle(num_joints=val.num_joints))
+    with pytest.raises(CheckpointError, match="MGNStyle"):
+        other.on_load_checkpoint(torch.load(path, weights_only=False))
+
+
+def test_pushforward_trains_from_its_own_state(root):
+    batch = windows(root, chunk=4)[[0, 5]]
+    model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
+    module = SimulatorModule(model, stats_steps=0, noise=0.0, rollout=2)
+    module.train()
+    with torch.no_grad():
+        module.window_loss(batch)  # the statistics, then frozen
+        loss, _ = module.window_loss(batch)
+        m = model.scene_motion(batch)
+        x2 = model.step(batch, m, 2, batch.gt[0], batch.gt[1])  # its own frame 2
+        out = model(batch, m, 3, batch.gt[1], x2)
+        want = model.normalized_target(batch.gt[3] - 2 * x2 + batch.gt[1], m, 3)
+        free = ~batch.pinned_mask()
+        assert float(loss) == pytest.approx(float(((out - want) ** 2).sum(1)[free].mean()),
+                                            rel=1e-5)
+        # before `rollout_start`: one step on the window's last three frames
+        one = SimulatorModule(model, stats_steps=0, noise=0.0, rollout=2, rollout_start=10)
+        last3 = batch.select(torch.arange(1, 4))
+        m3 = model.scene_motion(last3)
+        out = model(last3, m3, 2, last3.gt[0], last3.gt[1])
+        want = model.normalized_target(last3.gt[2] - 2 * last3.gt[1] + last3.gt[0], m3, 2)
+        assert float(one.window_loss(batch)[0]) == pytest.approx(
+            float(((out - want) ** 2).sum(1)[free].mean()), rel=1e-5)
+
+
+def test_the_packaged_configs_name_the_model_they_train():
+    assert configs_of_model("garmentgnn.models.MGNStyle") == ["mgn"]
+    assert configs_of_model("x.GarTrans") == ["gartrans"]
+    assert configs_of_model("DAStyle") == ["baselines/da"]
+    assert configs_of_model("Nothing") == []
