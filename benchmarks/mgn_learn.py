@@ -14,6 +14,9 @@ against LBS and the frame-parallel methods, error per frame, and the sweeps' tab
     # learning rate continues the run's decay from that step)
     python benchmarks/mgn_learn.py branch --from CKPT --data DATA --out OUT --rollout 3 \
         --steps N
+    # ms per training step against width, depth and batch on one and two threads, every
+    # size timed interleaved with the others (side by side)
+    python benchmarks/mgn_learn.py steptime --data DATA --out OUT
     # the stability suite (stiff, extreme pose, 5x speed, 1000 frames, degenerate faces)
     # on the first test sequence, rolled out from the LBS garment of its first two frames
     python benchmarks/mgn_learn.py stability --mgn CKPT --data DATA --out OUT
@@ -25,31 +28,32 @@ Every method is scored on the same frames: the valid ground-truth frames from fr
 from __future__ import annotations
 
 import argparse
-import csv
-import inspect
 import json
-import math
 import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
-import lightning as L
 import numpy as np
 import torch
-from lightning.pytorch.callbacks import ModelCheckpoint
-from lightning.pytorch.loggers import CSVLogger
 
 from garmentgnn.data import SequenceChunks
 from garmentgnn.data.store import read_manifest
+from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
 from garmentgnn._plotting import pyplot
 from garmentgnn.harness import stability as stab
 from garmentgnn.harness.model_inputs import BenchChunks
 from garmentgnn.harness.scoring import GROUPS, aggregate, score, stratified, wilcoxon
-from garmentgnn.training import GarmentDataModule, SimulatorModule
-from garmentgnn.training.integrity import load_checkpoint_file
+from garmentgnn.training import SimulatorModule
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.viz.compare import load_checkpoint
+
+#: the folder of this script and its parts (``mgn_parts``): on ``sys.path`` when it is
+#: imported from elsewhere (tests)
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:
+    sys.path.append(str(HERE))
+from mgn_parts.runs import run_branch, run_steptime, run_sweep  # noqa: E402
 
 #: the frames a rollout is given (not scored, for any method)
 GIVEN = 2
@@ -92,8 +96,8 @@ def run_score(args: argparse.Namespace) -> None:
     out.mkdir(parents=True, exist_ok=True)
     methods: Dict[str, Callable[[Any], torch.Tensor]] = {}
     modules: Dict[str, GarmentModule] = {}
-    mgn = load_module(args.mgn)
-    for start in args.starts:
+    mgn = load_module(args.mgn) if args.mgn else None
+    for start in args.starts if mgn is not None else ():
         name = f"MGN-style ({start})"
         modules[name] = mgn
         methods[name] = (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
@@ -139,6 +143,15 @@ def run_score(args: argparse.Namespace) -> None:
     results["valid"] = {s["sequence"]: [bool(v) for v in test.valid(i)]
                         for i, s in enumerate(results["methods"]["LBS only"])} \
         if len(results["methods"]["LBS only"]) == len(test) else {}
+    for path in args.merge:  # methods scored earlier on the same sequences
+        other = json.loads(Path(path).read_text())
+        if (other.get("content_sha256"), other.get("split")) != (
+                results["content_sha256"], results["split"]) or \
+                _by_seq(other["methods"]["LBS only"]) != _by_seq(results["methods"]["LBS only"]):
+            sys.exit(f"error: --merge: {path} scored other sequences or another dataset")
+        for key in ("methods", "per_frame", "seconds"):
+            for name, v in other[key].items():
+                results[key].setdefault(name, v)
     (out / "score.json").write_text(json.dumps(results, indent=1))
     (out / "score.md").write_text(score_table(results))
     plot_per_frame(results, out / "per_frame.png")
@@ -245,10 +258,11 @@ def one_step_and_rollout(module: SimulatorModule, test: Scored) -> Dict[str, flo
 def run_curves(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    ckpts = sorted(Path(args.run).rglob("step-*.ckpt"),
+    ckpts = sorted((p for p in Path(args.run).rglob("*step=*.ckpt")
+                    if not p.name.startswith(("best", "latest"))),
                    key=lambda p: int(p.stem.split("=")[-1].split("-")[0]))
     if not ckpts:
-        sys.exit(f"error: --run: no step-*.ckpt under {args.run}")
+        sys.exit(f"error: --run: no step checkpoints (*step=N.ckpt) under {args.run}")
     manifest = read_manifest(args.data)
     picks = {}
     for split in ("train", "val"):
@@ -260,7 +274,7 @@ def run_curves(args: argparse.Namespace) -> None:
     done = {p["step"] for p in curves["points"]}
     lbs: Dict[str, float] = curves.get("lbs", {})
     for ck in ckpts:
-        step = int(ck.stem.split("=")[-1].split("-")[0])
+        step = int(ck.stem.split("=")[-1].split("-")[0]) + args.step_offset
         if step in done:
             continue
         module = load_module(str(ck))
@@ -304,68 +318,6 @@ def plot_curves(curves: Dict[str, Any], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-# -- sweeps ------------------------------------------------------------------------------------
-def _metrics_rows(run: Path) -> List[Dict[str, str]]:
-    files = sorted(run.rglob("metrics.csv"))
-    if not files:
-        sys.exit(f"error: --runs: no metrics.csv under {run}")
-    rows: List[Dict[str, str]] = []
-    for f in files:
-        with open(f) as fh:
-            rows += list(csv.DictReader(fh))
-    return rows
-
-
-def run_sweep(args: argparse.Namespace) -> None:
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    table: Dict[str, Any] = {}
-    for spec in args.runs:
-        name, _, run = spec.partition("=")
-        rows = _metrics_rows(Path(run))
-        val = [(int(r["step"]), float(r["val/E_dist"])) for r in rows if r.get("val/E_dist")]
-        one = [(int(r["step"]), float(r["train/one_step_m"])) for r in rows
-               if r.get("train/one_step_m")]
-        table[name] = {"val_E_dist": val, "train_one_step_m": one,
-                       "steps": max(int(r["step"]) for r in rows) + 1}
-    (out / "sweep.json").write_text(json.dumps(table, indent=1))
-    lines = ["| run | steps | val E_dist (cm) at each validation | last train one-step (mm) |",
-             "|---|---:|---|---:|"]
-    for name, t in table.items():
-        vals = ", ".join(f"{v:.2f}@{s}" for s, v in t["val_E_dist"])
-        last = t["train_one_step_m"][-1][1] * 1000 if t["train_one_step_m"] else math.nan
-        lines.append(f"| {name} | {t['steps']} | {vals} | {last:.2f} |")
-    (out / "sweep.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-
-
-# -- a branch with pushforward ------------------------------------------------------------------
-def run_branch(args: argparse.Namespace) -> None:
-    src = load_checkpoint_file(args.source)
-    step0 = int(src["global_step"])
-    hp = SimulatorModule.saved_hparams(src)
-    # the rate at step0 of the run's decay, decaying on from there at the same pace
-    lr = max(hp["lr_min"], hp["lr"] * hp["decay"] ** (step0 / hp["decay_steps"]))
-    module = SimulatorModule.load_from_checkpoint(
-        args.source, map_location="cpu", rollout=args.rollout, rollout_start=0, lr=lr,
-        stats_steps=0)
-    params = inspect.signature(GarmentDataModule.__init__).parameters
-    dm_hp = {k: v for k, v in (src.get("datamodule_hyper_parameters") or {}).items()
-             if k in params}
-    dm = GarmentDataModule(**dict(dm_hp, root=args.data, chunk=2 + args.rollout,
-                                  seed=int(dm_hp.get("seed", 0)) + 1))
-    trainer = L.Trainer(max_steps=args.steps, accelerator="cpu", devices=1,
-                        default_root_dir=args.out, val_check_interval=args.every,
-                        check_val_every_n_epoch=None, limit_val_batches=args.val_batches,
-                        log_every_n_steps=25, enable_progress_bar=False,
-                        logger=CSVLogger(args.out, name="logs"),
-                        callbacks=[ModelCheckpoint(every_n_train_steps=args.every,
-                                                   save_top_k=-1, filename="branch-{step}")])
-    trainer.fit(module, dm)
-    print(f"branched from step {step0} at lr {lr:.3g}: {args.steps} steps with rollout "
-          f"{args.rollout}; checkpoints under {args.out}")
 
 
 # -- stability ----------------------------------------------------------------------------------
@@ -417,46 +369,70 @@ def run_stability(args: argparse.Namespace) -> None:
     print("\n".join(lines))
 
 
+#: the committed copy of the results (``--commit``)
+RESULTS = Path("docs/results/mgn_learn")
+#: what each command needs besides ``--out``
+NEEDS = {"score": ("data",), "curves": ("run", "data"), "sweep": ("runs",),
+         "branch": ("source", "data", "steps"), "steptime": ("data",),
+         "stability": ("mgn", "data")}
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    s = sub.add_parser("score", help="rollouts of a split beside LBS and other checkpoints")
-    s.add_argument("--mgn", required=True, help="the MGN-style checkpoint")
-    s.add_argument("--data", required=True)
-    s.add_argument("--out", required=True)
-    s.add_argument("--split", default="test")
-    s.add_argument("--starts", nargs="+", default=["gt", "drape"],
-                   choices=["gt", "drape", "lbs"])
-    s.add_argument("--other", nargs="*", default=[], metavar="NAME=CKPT")
-    s.add_argument("--sequences", type=int, default=None,
-                   help="only this many, drawn evenly from the held-out groups")
-    c = sub.add_parser("curves", help="one-step and rollout error of each step checkpoint")
-    c.add_argument("--run", required=True)
-    c.add_argument("--data", required=True)
-    c.add_argument("--out", required=True)
-    c.add_argument("--sequences", type=int, default=8)
-    w = sub.add_parser("sweep", help="the sweep runs' validation table")
-    w.add_argument("--runs", nargs="+", required=True, metavar="NAME=RUN")
-    w.add_argument("--out", required=True)
-    b = sub.add_parser("branch", help="a run continued from a checkpoint with pushforward")
-    b.add_argument("--from", dest="source", required=True, metavar="CKPT")
-    b.add_argument("--data", required=True)
-    b.add_argument("--out", required=True)
-    b.add_argument("--rollout", type=int, default=3)
-    b.add_argument("--steps", type=int, required=True)
-    b.add_argument("--every", type=int, default=500)
-    b.add_argument("--val-batches", type=int, default=16)
-    t = sub.add_parser("stability", help="the stability suite, rolled out from LBS")
-    t.add_argument("--mgn", required=True)
-    t.add_argument("--data", required=True)
-    t.add_argument("--out", required=True)
-    t.add_argument("--cases", nargs="+", default=["baseline", "stiff_x1000", "extreme_pose",
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=HelpFormatter)
+    p.add_argument("command", choices=list(NEEDS),
+                   help="score: rollouts of a split beside LBS and other checkpoints; "
+                        "curves: one-step and rollout error of each step checkpoint of a "
+                        "run; sweep: the sweep runs' validation table; branch: a run "
+                        "continued from a checkpoint with pushforward; steptime: ms per "
+                        "training step against size and threads; stability: the stability "
+                        "suite, rolled out from LBS")
+    p.add_argument("--data", default=None, help="generated dataset folder")
+    add_output_args(p, RESULTS, "folder for <command>.json, .md and .png")
+    p.add_argument("--mgn", default=None, help="the MGN-style checkpoint (score, stability)")
+    p.add_argument("--split", default="test", help="score: the split rolled out")
+    p.add_argument("--starts", nargs="+", default=["gt", "drape"],
+                   choices=["gt", "drape", "lbs"], help="score: where the rollouts start")
+    p.add_argument("--other", nargs="*", default=[], metavar="NAME=CKPT",
+                   help="score: other checkpoints scored beside it")
+    p.add_argument("--merge", nargs="*", default=[], metavar="SCORE.json",
+                   help="score: add the methods of earlier scores of the same sequences")
+    p.add_argument("--sequences", type=int, default=None,
+                   help="score: only this many, drawn evenly from the held-out groups "
+                        "(default: all); curves: per split (default there: 8)")
+    p.add_argument("--run", default=None, help="curves: the run folder (its checkpoints)")
+    p.add_argument("--step-offset", type=int, default=0,
+                   help="curves: added to the checkpoints' steps (a branch: the step it "
+                        "left at)")
+    p.add_argument("--runs", nargs="+", default=None, metavar="NAME=RUN",
+                   help="sweep: the runs")
+    p.add_argument("--from", dest="source", default=None, metavar="CKPT",
+                   help="branch: the checkpoint it continues from")
+    p.add_argument("--rollout", type=int, default=3, help="branch: frames a window rolls")
+    p.add_argument("--steps", type=int, default=None, help="branch: optimizer steps")
+    p.add_argument("--every", type=int, default=500,
+                   help="branch: steps between validations and checkpoints")
+    p.add_argument("--val-batches", type=int, default=16,
+                   help="branch: validation sequences")
+    p.add_argument("--threads", type=int, nargs="+", default=[1, 2],
+                   help="steptime: torch threads")
+    p.add_argument("--repeats", type=int, default=8, help="steptime: timed steps per size")
+    p.add_argument("--cases", nargs="+", default=["baseline", "stiff_x1000", "extreme_pose",
                                                   "fast_x5", "long_1000", "sliver_face",
-                                                  "zero_area_face"])
+                                                  "zero_area_face"],
+                   help="stability: the cases")
     args = p.parse_args(argv)
-    torch.set_num_threads(1)
+    missing = [k for k in NEEDS[args.command] if getattr(args, k) in (None, [])]
+    if missing:
+        flag = {"source": "--from"}.get(missing[0], f"--{missing[0]}")
+        p.error(f"{args.command}: give {flag}")
+    if args.command == "curves" and args.sequences is None:
+        args.sequences = 8
+    args.out = output_path(args, RESULTS)
+    if args.command != "steptime":
+        torch.set_num_threads(1)
     {"score": run_score, "curves": run_curves, "sweep": run_sweep, "branch": run_branch,
-     "stability": run_stability}[args.command](args)
+     "steptime": run_steptime, "stability": run_stability}[args.command](args)
     return 0
 
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from garmentgnn.cli import main as cli_main
 from garmentgnn.data import SequenceChunks
 from garmentgnn.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from garmentgnn.models import MGNStyle
@@ -39,7 +40,7 @@ def windows(root, chunk=3):
 
 def trained_stats(model, batch):
     """``model`` with its normalisation statistics taken from ``batch``, in eval mode."""
-    module = SimulatorModule(model, stats_steps=1)
+    module = SimulatorModule(model, stats_steps=1, rollout=1)
     module.train()
     with torch.no_grad():
         module.window_loss(batch)
@@ -169,7 +170,7 @@ def test_every_parameter_learns_with_every_layer(root, layer):
     torch.manual_seed(0)
     batch = windows(root)[[0, 6]]
     model = MGNStyle(hidden=16, layers=2, heads=2, layer=layer, body_radius=0.2)
-    module = SimulatorModule(model, stats_steps=0, noise=1e-3)
+    module = SimulatorModule(model, stats_steps=0, noise=1e-3, rollout=1)
     loss, _ = module.window_loss(batch)
     loss.backward()
     dead = [n for n, p in model.named_parameters()
@@ -186,7 +187,8 @@ def test_the_target_keeps_its_share_of_the_noise(root):
     model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
     trained_stats(model, batch)  # then frozen: the oracle below sees the same statistics
     for gamma in (0.0, 0.1):
-        module = SimulatorModule(model, stats_steps=0, noise=0.01, noise_gamma=gamma)
+        module = SimulatorModule(model, stats_steps=0, noise=0.01, noise_gamma=gamma,
+                                 rollout=1)
         module.train()
         torch.manual_seed(3)
         loss, _ = module.window_loss(batch)
@@ -214,7 +216,7 @@ def test_one_batch_is_learnt(root):
     torch.manual_seed(0)
     batch = windows(root)[[0, 4, 8]]
     model = MGNStyle(hidden=32, layers=2, heads=2)
-    module = SimulatorModule(model, stats_steps=1, noise=0.0)
+    module = SimulatorModule(model, stats_steps=1, noise=0.0, rollout=1)
     module.train()
     with torch.no_grad():
         module.window_loss(batch)
@@ -282,12 +284,13 @@ def _trainer(tmp_path, steps):
 def test_set_up_refuses_other_windows_and_frame_rates(root, tmp_path):
     dm = GarmentDataModule(root, chunk=4, stride=1, drop_last=True, eval_chunk=100,
                            history=1, nystrom_dim=NY, num_landmarks=16)
-    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=0)
+    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=0, rollout=1)
     with pytest.raises(ValueError, match="--data.chunk 3"):
         _trainer(tmp_path, 2).fit(module, dm)
     dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
                            history=1, nystrom_dim=NY, num_landmarks=16)
-    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1, fps=60.0), stats_steps=0)
+    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1, fps=60.0), stats_steps=0,
+                             rollout=1)
     with pytest.raises(ValueError, match="at 30 fps.*60 fps"):
         _trainer(tmp_path, 2).fit(module, dm)
 
@@ -296,7 +299,7 @@ def test_fit_checkpoint_and_rollout_scores(root, tmp_path):
     L.seed_everything(0)
     dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
                            history=1, nystrom_dim=NY, num_landmarks=16, batch_size=4)
-    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=1)
+    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=1, rollout=1)
     trainer = _trainer(tmp_path, 3)
     trainer.fit(module, dm)
     path = tmp_path / "m.ckpt"
@@ -317,7 +320,7 @@ def test_fit_checkpoint_and_rollout_scores(root, tmp_path):
 def test_pushforward_trains_from_its_own_state(root):
     batch = windows(root, chunk=4)[[0, 5]]
     model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
-    module = SimulatorModule(model, stats_steps=0, noise=0.0, rollout=2)
+    module = SimulatorModule(model, stats_steps=0, noise=0.0, rollout=2, rollout_start=0)
     module.train()
     with torch.no_grad():
         module.window_loss(batch)  # the statistics, then frozen
@@ -344,3 +347,45 @@ def test_the_packaged_configs_name_the_model_they_train():
     assert configs_of_model("x.GarTrans") == ["gartrans"]
     assert configs_of_model("DAStyle") == ["baselines/da"]
     assert configs_of_model("Nothing") == []
+
+
+def _cli_args(root, tmp_path):
+    return ["--data.root", str(root), "--data.nystrom_dim", str(NY), "--data.num_landmarks",
+            "16", "--data.batch_size", "2", "--trainer.max_steps", "2",
+            "--trainer.limit_val_batches", "1", "--trainer.enable_progress_bar", "false",
+            "--trainer.default_root_dir", str(tmp_path),
+            "--trainer.logger.init_args.save_dir", str(tmp_path)]
+
+
+def _one_error_line(capsys, argv):
+    capsys.readouterr()
+    rc = cli_main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:"), err
+    return err[0]
+
+
+def test_the_command_line_refuses_what_the_model_cannot_run(root, tmp_path, capsys):
+    """One ``error:`` line each: a motion at another frame rate than the model learned
+    at, a checkpoint of another method, sequences shorter than a rollout needs."""
+    args = ["train", "fit", "--config", "mgn"] + _cli_args(root, tmp_path / "a")
+    line = _one_error_line(capsys, args + ["--model.model.init_args.fps", "60"])
+    assert "--data.root" in line and "30 fps" in line and "60 fps" in line
+    assert not (tmp_path / "a" / "logs").exists() or not list((tmp_path / "a").rglob("*.ckpt"))
+    # a DA-style checkpoint given to the MGN-style configuration
+    dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16)
+    da = BaselineModule(DAStyle(num_joints=dm.dims["num_joints"]))
+    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False,
+                        enable_progress_bar=False, enable_model_summary=False,
+                        limit_val_batches=0, default_root_dir=str(tmp_path / "da"))
+    trainer.fit(da, dm)
+    trainer.save_checkpoint(tmp_path / "da.ckpt")
+    line = _one_error_line(capsys, ["train", "test", "--config", "mgn", "--ckpt_path",
+                                    str(tmp_path / "da.ckpt")] + _cli_args(root, tmp_path / "b"))
+    assert "a checkpoint of DAStyle, not of MGNStyle; give --config baselines/da" in line
+    # two-frame sequences: nothing to roll out from
+    short = skirt_dataset(tmp_path / "short", ["walk"], 2, held_out={"val": []}, name="s")
+    line = _one_error_line(capsys, ["train", "fit", "--config", "mgn", "--data.drop_last",
+                                    "false"] + _cli_args(short, tmp_path / "c")
+                           + ["--data.batch_size", "1", "--data.val_split", "null"])
+    assert "2 + rollout = 5 frames, got 2" in line and "--data.chunk 5" in line

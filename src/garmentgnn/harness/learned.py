@@ -9,7 +9,8 @@ One bench run (:func:`garmentgnn.harness.runner.run`) with a preset that has a
    existing folder given by ``--data``);
 2. trains each method of the budget for each training seed for the budget's epochs or
    wall-clock minutes (:class:`TimeBudget`): :class:`GarTransModule` (GarTrans, Table 1
-   variants) or :class:`BaselineModule` (DA-, HOOD-, NCS-style) with the packaged YAML
+   variants), :class:`BaselineModule` (DA-, HOOD-, NCS-style) or :class:`SimulatorModule`
+   (MGN-style) with the packaged YAML
    settings (:mod:`~garmentgnn.harness.methods`), on a :class:`GarmentDataModule`, by one
    Lightning ``Trainer`` set-up (:meth:`LearnedRunner.fit`) that resumes from
    ``OUT/models/<method>--s<seed>/``; NCS-style trains one model per (garment, body) of
@@ -27,7 +28,6 @@ from __future__ import annotations
 import io
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -45,7 +45,8 @@ from garmentgnn.harness.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL,
                                         HOOD, LONG, METHOD_NAMES, MGN, MGN_DATA, MGN_MODULE,
                                         NCS, LearnedBudget,
                                         variant_settings)
-from garmentgnn.harness.model_inputs import BenchChunks
+from garmentgnn.harness.model_inputs import (BenchChunks, Predictor, baseline_batches,
+                                             lbs_predictor)
 from garmentgnn.harness.page import MEDIA
 from garmentgnn.harness.records import failure
 from garmentgnn.harness.tables import slug
@@ -72,21 +73,6 @@ SIMULATOR_SKIPS: Tuple[str, ...] = ("long_1000",)
 
 
 # --------------------------------------------------------------------------- helpers
-@dataclass
-class _Predictor:
-    """A trained method: ``predict(ds, i, item)`` the garment ``[T, V, 3]`` of ``item``,
-    item ``i`` of ``ds`` (the whole-sequence test set, or the :class:`BenchChunks` of a
-    stability case); ``make_batch(item, b)`` a function predicting ``b`` frames of
-    ``item`` per call (inputs prepared outside it) for the timing sweep."""
-
-    predict: Callable[[SequenceChunks, int, GarmentInputs], Tensor]
-    make_batch: Callable[[GarmentInputs, int], Callable[[], Any]]
-    note: str
-    #: the trained module and its weights at the budget's ``equal_steps`` (if reached)
-    module: Optional[torch.nn.Module] = None
-    snapshot: Optional[Path] = None
-
-
 # --------------------------------------------------------------------------- runner
 class LearnedRunner:
     """Trains and scores the learned methods on one dataset (see the module doc).
@@ -122,7 +108,7 @@ class LearnedRunner:
             self.val = self._whole("val", budget.val_sequences)
             if budget.train_sequences is not None:
                 self.train_fit = self._whole("train", budget.train_sequences)
-        self._trained: Dict[Tuple[str, int], Tuple[_Predictor, Dict[str, Any]]] = {}
+        self._trained: Dict[Tuple[str, int], Tuple[Predictor, Dict[str, Any]]] = {}
         self._warm_up_compiled_search()
 
     def _whole(self, split: str, n: Optional[int]) -> SequenceChunks:
@@ -175,7 +161,7 @@ class LearnedRunner:
         rec["seconds"] = time.perf_counter() - t0
         return rec
 
-    def save_prediction(self, method: str, pred: "_Predictor") -> Path:
+    def save_prediction(self, method: str, pred: "Predictor") -> Path:
         """``OUT/media/predictions/<method>.npy``: ``method``'s ``[T, V, 3]`` prediction
         of the first test sequence, a panel of the report's animation
         (:mod:`garmentgnn.harness.page`)."""
@@ -187,7 +173,7 @@ class LearnedRunner:
         return store.atomic_write_bytes(self.out / MEDIA / "predictions" / f"{slug(method)}.npy",
                                         buf.getvalue())
 
-    def trained(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
+    def trained(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
         """``method`` trained with ``seed`` (trained, or resumed from its checkpoint, on
         the first call; kept until another method is asked for: it holds its data caches)."""
         key = (method, seed)
@@ -203,7 +189,7 @@ class LearnedRunner:
             elif method == MGN:
                 self._trained[key] = self._mgn(seed)
             else:
-                self._trained[key] = self._lbs()
+                self._trained[key] = lbs_predictor()
         return self._trained[key]
 
     def stability_record(self, method: str, seed: int, case: str) -> Dict[str, Any]:
@@ -235,7 +221,7 @@ class LearnedRunner:
                    sequence=base["id"])
         return rec
 
-    def evaluate(self, pred: _Predictor) -> Dict[str, Any]:
+    def evaluate(self, pred: Predictor) -> Dict[str, Any]:
         """``metrics`` (frame-weighted means over the valid ground-truth frames of every test
         sequence), ``groups`` (per held-out group), ``per_sequence`` and ``test_frames``
         (:mod:`garmentgnn.harness.scoring`)."""
@@ -244,7 +230,7 @@ class LearnedRunner:
         return {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
                 "test_frames": sum(s["frames"] for s in per_seq)}
 
-    def at_snapshot(self, pred: _Predictor) -> Dict[str, Any]:
+    def at_snapshot(self, pred: Predictor) -> Dict[str, Any]:
         """:meth:`evaluate` of ``pred``'s weights after the budget's ``equal_steps``
         (``reached: False`` when its training stopped before)."""
         step = self.budget.equal_steps
@@ -273,7 +259,7 @@ class LearnedRunner:
             return scoring.aggregate(per)["all"]["E_dist"]
         return run
 
-    def timing(self, pred: _Predictor) -> Dict[str, Any]:
+    def timing(self, pred: Predictor) -> Dict[str, Any]:
         """Latency at batch 1, throughput at the best batch, peak memory of predicting
         the first test sequence."""
         item = self.test[0]
@@ -390,7 +376,7 @@ class LearnedRunner:
                 **({"batch_size": b.batch_size} if b.batch_size != 1 else {}),
                 **({"lr_factor": b.lr_factor} if b.lr_factor != 1 else {})}
 
-    def _gartrans(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
+    def _gartrans(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
         long = method == LONG
         variant = FULL if long else method
         hp, sched_kw = variant_settings(variant)
@@ -414,7 +400,7 @@ class LearnedRunner:
 
         info.update(phase=sched.phase, config=config,
                     transitions={str(k): e for k, e in sched.transitions.items()})
-        return _Predictor(lambda ds, i, item: module(item)["final"], make_batch,
+        return Predictor(lambda ds, i, item: module(item)["final"], make_batch,
                           "frame-parallel forward of `batch` frames, static branch "
                           "(encode_static) computed once per garment outside the timed call",
                           module, folder / "equal_steps.pt"), info
@@ -424,19 +410,7 @@ class LearnedRunner:
                          num_vertices: Optional[int] = None) -> BaselineModule:
         return self._module(BASELINES[method], dict(dm.dims, num_vertices=num_vertices))
 
-    @staticmethod
-    def _batch_fn(module: BaselineModule) -> Callable[[GarmentInputs, int], Callable[[], Any]]:
-        def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-            it = item.cycled(b)
-            if module.method != "hood":
-                return lambda: module(it)
-            # one autoregressive step per frame, its inputs prepared outside the timed call
-            coarse, lbs = module.coarse_level(it), it.skinned()
-            prev, curr = it.history_slot(-3).skinned(), it.history_slot(-2).skinned()
-            return lambda: module.model.step(it, coarse, prev, curr, it.body_pos, lbs)
-        return make_batch
-
-    def _baseline(self, method: str, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
+    def _baseline(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
         config = {"module": BASELINES[method], **self._limits(self.budget.minutes),
                   "config": BASELINE_CONFIGS[method]}
         folder = self._folder(method, seed, config)
@@ -446,19 +420,18 @@ class LearnedRunner:
                         predict=lambda m, item: m(item))
         note = ("one autoregressive step of `batch` independent sequences per call"
                 if method == HOOD else "one call predicting `batch` frames")
-        return _Predictor(lambda ds, i, item: module(item), self._batch_fn(module), note,
+        return Predictor(lambda ds, i, item: module(item), baseline_batches(module), note,
                           module, folder / "equal_steps.pt"), dict(info, config=config)
 
     # -- the MGN-style learned simulator ---------------------------------------------------
-    def _mgn(self, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
-        """Trained on windows of frames (``configs/mgn.yaml``'s data settings, the budget's
-        batch size); it predicts a sequence by a rollout from the LBS garment of its first
-        two frames (the ground truth is never an input, as for every other method)."""
+    def _mgn(self, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
+        """Trained on windows of frames (``configs/mgn.yaml``'s data settings); predicts by a
+        rollout from the LBS garment of the first two frames (never the ground truth)."""
         config = {"module": MGN_MODULE, **self._limits(self.budget.minutes), "config": "mgn",
                   "data": MGN_DATA}
         folder = self._folder(MGN, seed, config)
-        dm = GarmentDataModule(self.data.root, val_split=None, seed=seed, cache_size=512,
-                               **MGN_DATA, batch_size=self.budget.batch_size)
+        dm = GarmentDataModule(self.data.root, val_split=None, seed=seed, **MGN_DATA,
+                               batch_size=self.budget.batch_size)
         module = self._module(MGN_MODULE, {})
 
         def rollout(m: L.LightningModule, item: GarmentInputs) -> Tensor:
@@ -468,17 +441,15 @@ class LearnedRunner:
                         predict=rollout)
 
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-            # one step of `b` independent garments, its inputs prepared outside the call
-            it = GarmentInputs.collate([item.select(torch.arange(3))] * b)
-            motion = module.model.scene_motion(it)
-            lbs = motion.lbs
-            return lambda: module.model.step(it, motion, 2, lbs[0], lbs[1])
+            it = GarmentInputs.collate([item.select(torch.arange(3))] * b)  # b garments
+            m = module.model.scene_motion(it)  # prepared outside the timed call
+            return lambda: module.model.step(it, m, 2, m.lbs[0], m.lbs[1])
 
-        return _Predictor(lambda ds, i, item: rollout(module, item), make_batch,
+        return Predictor(lambda ds, i, item: rollout(module, item), make_batch,
                           "one autoregressive step of `batch` independent garments per call",
                           module, folder / "equal_steps.pt"), dict(info, config=config)
 
-    def _ncs(self, seed: int) -> Tuple[_Predictor, Dict[str, Any]]:
+    def _ncs(self, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
         groups: Dict[Tuple[str, str], List[str]] = {}  # (garment, body) -> sequence ids
         for r in self.test.records:
             groups.setdefault((garment_key(r["garment"]), body_key(r["body"])), []).append(r["id"])
@@ -512,20 +483,11 @@ class LearnedRunner:
             return modules[(garment_key(r["garment"]), body_key(r["body"]))]
 
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-            return self._batch_fn(module_of(self.test, 0))(item, b)
+            return baseline_batches(module_of(self.test, 0))(item, b)
 
-        return _Predictor(lambda ds, i, item: module_of(ds, i)(item), make_batch,
+        return Predictor(lambda ds, i, item: module_of(ds, i)(item), make_batch,
                           "one call predicting `batch` frames (the first test garment's "
                           "model)"), dict(total, config=config, models=len(groups))
-
-    def _lbs(self) -> Tuple[_Predictor, Dict[str, Any]]:
-        def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-            return item.cycled(b).skinned
-
-        return _Predictor(lambda ds, i, item: item.skinned(), make_batch,
-                          "one call skinning `batch` frames"), \
-            {"epochs": 0, "train_seconds": 0.0, "resumed_from_epoch": 0,
-             "config": {"weights": "the skinning weights stored with each sequence"}}
 
 
 __all__ = ["KIND", "SIMULATOR", "STABILITY_KIND", "DatasetInfo", "LearnedRunner",

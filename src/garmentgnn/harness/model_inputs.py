@@ -7,12 +7,14 @@ index, Nyström features, ClothRest, masses, body distances, transferred skinnin
 weights; pose histories from ``SequenceChunks.__getitem__``) are exactly what
 ``garmentgnn train`` feeds the model, so what the bench times is what training and
 evaluation run.  :func:`untrained_module` builds a seeded, untrained
-:class:`~garmentgnn.training.GarTransModule` sized for such an item.
+:class:`~garmentgnn.training.GarTransModule` sized for such an item; a
+:class:`Predictor` is a trained method as the bench runs it.
 """
 from __future__ import annotations
 
-from dataclasses import asdict
-from typing import Any, Dict, Optional
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -20,10 +22,26 @@ from torch import Tensor
 
 from garmentgnn.harness.sequences import BenchSequence
 from garmentgnn.data import store
-from garmentgnn.models.inputs import check_history
+from garmentgnn.models.inputs import GarmentInputs, check_history
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import GarTransModule
 from garmentgnn.models import GarTrans
+
+
+@dataclass
+class Predictor:
+    """A trained method: ``predict(ds, i, item)`` the garment ``[T, V, 3]`` of ``item``,
+    item ``i`` of ``ds`` (the whole-sequence test set, or the :class:`BenchChunks` of a
+    stability case); ``make_batch(item, b)`` a function predicting ``b`` frames of
+    ``item`` per call (inputs prepared outside it) for the timing sweep."""
+
+    predict: Callable[[SequenceChunks, int, GarmentInputs], Tensor]
+    make_batch: Callable[[GarmentInputs, int], Callable[[], Any]]
+    note: str
+    #: the trained module and its weights at the budget's ``equal_steps`` (if reached)
+    module: Optional[torch.nn.Module] = None
+    snapshot: Optional[Path] = None
+
 
 
 class BenchChunks(SequenceChunks):
@@ -98,3 +116,28 @@ def untrained_module(item: Dict[str, Any], seed: int = 0, **kwargs: Any) -> GarT
                                          num_body_vertices=item["body_joint_dists"].shape[0],
                                          nystrom_dim=item["nystrom"].shape[1], **kwargs))
     return module.eval()
+
+
+def baseline_batches(module) -> Callable[[GarmentInputs, int], Callable[[], Any]]:
+    """The timing sweep's ``make_batch`` of a :class:`~garmentgnn.training.BaselineModule`:
+    one call predicting ``b`` frames, or (HOOD-style) one autoregressive step of ``b``
+    frames, its inputs prepared outside the timed call."""
+    def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
+        it = item.cycled(b)
+        if module.method != "hood":
+            return lambda: module(it)
+        coarse, lbs = module.coarse_level(it), it.skinned()
+        prev, curr = it.history_slot(-3).skinned(), it.history_slot(-2).skinned()
+        return lambda: module.model.step(it, coarse, prev, curr, it.body_pos, lbs)
+    return make_batch
+
+
+def lbs_predictor() -> Tuple[Predictor, Dict[str, Any]]:
+    """``LBS only`` as a bench method: the rest garment skinned to each frame."""
+    def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
+        return item.cycled(b).skinned
+
+    return Predictor(lambda ds, i, item: item.skinned(), make_batch,
+                     "one call skinning `batch` frames"), \
+        {"epochs": 0, "train_seconds": 0.0, "resumed_from_epoch": 0,
+         "config": {"weights": "the skinning weights stored with each sequence"}}

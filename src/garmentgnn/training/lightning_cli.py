@@ -110,7 +110,8 @@ def method_name(model: LightningModule) -> str:
     """The table row name of a trained module: ``"DA-style"``, ``"GarTrans (sat)"``..."""
     method = getattr(model, "method", None)
     if method is not None:
-        return {"da": "DA-style", "hood": "HOOD-style", "ncs": "NCS-style"}.get(method, method)
+        return {"da": "DA-style", "hood": "HOOD-style", "ncs": "NCS-style",
+                "mgn": "MGN-style"}.get(method, method)
     layer = getattr(getattr(model, "model", None), "init_args", {}).get("dynamic_layer")
     return f"GarTrans ({layer})" if layer else type(model).__name__
 

@@ -1,0 +1,149 @@
+"""The runs of ``benchmarks/mgn_learn.py``: the sweeps' table (``sweep``), a run branched
+from one of its checkpoints with pushforward (``branch``) and the cost of a training step
+against size, batch and threads (``steptime``)."""
+from __future__ import annotations
+
+import argparse
+import csv
+import inspect
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Dict, List
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger
+
+from garmentgnn.data import SequenceChunks
+from garmentgnn.models import MGNStyle
+from garmentgnn.training import GarmentDataModule, SimulatorModule
+from garmentgnn.training.integrity import load_checkpoint_file
+
+__all__ = ["STEP_SIZES", "run_branch", "run_steptime", "run_sweep"]
+
+
+# -- sweeps ------------------------------------------------------------------------------------
+def _metrics_rows(run: Path) -> List[Dict[str, str]]:
+    files = sorted(run.rglob("metrics.csv"))
+    if not files:
+        sys.exit(f"error: --runs: no metrics.csv under {run}")
+    rows: List[Dict[str, str]] = []
+    for f in files:
+        with open(f) as fh:
+            rows += list(csv.DictReader(fh))
+    return rows
+
+
+def run_sweep(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table: Dict[str, Any] = {}
+    for spec in args.runs:
+        name, _, run = spec.partition("=")
+        rows = _metrics_rows(Path(run))
+        val = [(int(r["step"]), float(r["val/E_dist"])) for r in rows if r.get("val/E_dist")]
+        one = [(int(r["step"]), float(r["train/one_step_m"])) for r in rows
+               if r.get("train/one_step_m")]
+        table[name] = {"val_E_dist": val, "train_one_step_m": one,
+                       "steps": max(int(r["step"]) for r in rows) + 1}
+    (out / "sweep.json").write_text(json.dumps(table, indent=1))
+    lines = ["| run | steps | val E_dist (cm) at each validation | last train one-step (mm) |",
+             "|---|---:|---|---:|"]
+    for name, t in table.items():
+        vals = ", ".join(f"{v:.2f}@{s}" for s, v in t["val_E_dist"])
+        last = t["train_one_step_m"][-1][1] * 1000 if t["train_one_step_m"] else math.nan
+        lines.append(f"| {name} | {t['steps']} | {vals} | {last:.2f} |")
+    (out / "sweep.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+# -- a branch with pushforward ------------------------------------------------------------------
+def run_branch(args: argparse.Namespace) -> None:
+    src = load_checkpoint_file(args.source)
+    step0 = int(src["global_step"])
+    hp = SimulatorModule.saved_hparams(src)
+    # the rate at step0 of the run's decay, decaying on from there at the same pace
+    lr = max(hp["lr_min"], hp["lr"] * hp["decay"] ** (step0 / hp["decay_steps"]))
+    module = SimulatorModule.load_from_checkpoint(
+        args.source, map_location="cpu", rollout=args.rollout, rollout_start=0, lr=lr,
+        stats_steps=0)
+    params = inspect.signature(GarmentDataModule.__init__).parameters
+    dm_hp = {k: v for k, v in (src.get("datamodule_hyper_parameters") or {}).items()
+             if k in params}
+    dm = GarmentDataModule(**dict(dm_hp, root=args.data, chunk=2 + args.rollout,
+                                  seed=int(dm_hp.get("seed", 0)) + 1))
+    trainer = L.Trainer(max_steps=args.steps, accelerator="cpu", devices=1,
+                        default_root_dir=args.out, val_check_interval=args.every,
+                        check_val_every_n_epoch=None, limit_val_batches=args.val_batches,
+                        log_every_n_steps=25, enable_progress_bar=False,
+                        logger=CSVLogger(args.out, name="logs"),
+                        callbacks=[ModelCheckpoint(every_n_train_steps=args.every,
+                                                   save_top_k=-1, filename="branch-{step}")])
+    trainer.fit(module, dm)
+    print(f"branched from step {step0} at lr {lr:.3g}: {args.steps} steps with rollout "
+          f"{args.rollout}; checkpoints under {args.out}")
+
+
+# -- step time -------------------------------------------------------------------------------------
+#: (width, blocks, garments a step) timed by ``steptime``
+STEP_SIZES = ((64, 8, 1), (64, 10, 1), (128, 15, 1), (32, 8, 16), (64, 4, 16), (64, 8, 16),
+              (64, 10, 16), (128, 8, 16))
+
+
+def run_steptime(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ds = SequenceChunks(args.data, "train", chunk=3, stride=1, drop_last=True, history=1,
+                        nystrom_dim=16, num_landmarks=64, cache_size=512, static_cache=512)
+    g = torch.Generator().manual_seed(0)
+    results: Dict[str, Any] = {"data": args.data, "sizes": {}, "torch": torch.__version__}
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        steps = {}
+        for hidden, layers, n in STEP_SIZES:
+            torch.manual_seed(0)
+            module = SimulatorModule(MGNStyle(hidden=hidden, layers=layers), stats_steps=0,
+                                     rollout=1)
+            module.train()
+            opt = torch.optim.Adam(module.parameters(), 1e-4)
+            batches = [ds[torch.randperm(len(ds), generator=g)[:n].tolist()] if n > 1 else
+                       ds[int(torch.randint(len(ds), (1,), generator=g))]
+                       for _ in range(args.repeats + 2)]
+            it = iter(range(10 ** 9))
+
+            def step(module=module, opt=opt, batches=batches, it=it):
+                b = batches[next(it) % len(batches)]
+                loss, _ = module.window_loss(b)
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+            steps[(hidden, layers, n)] = step
+        times: Dict[Any, List[float]] = {k: [] for k in steps}
+        for r in range(args.repeats + 2):  # interleaved: each size in every round
+            for k, fn in steps.items():
+                t0 = time.perf_counter()
+                fn()
+                if r >= 2:
+                    times[k].append(time.perf_counter() - t0)
+        for (hidden, layers, n), ts in times.items():
+            med = 1e3 * float(np.median(ts))
+            results["sizes"][f"{hidden}x{layers}, {n} a step, {threads} thread(s)"] = {
+                "hidden": hidden, "layers": layers, "garments": n, "threads": threads,
+                "median_ms": med, "ms_per_garment_frame": med / n,
+                "hours_per_1e5_garment_frames": med / n * 1e5 / 3.6e6,
+                "min_ms": 1e3 * min(ts), "max_ms": 1e3 * max(ts), "repeats": len(ts)}
+    (out / "steptime.json").write_text(json.dumps(results, indent=1))
+    lines = ["| width x blocks | garments a step | threads | ms / step (median, min-max) | "
+             "ms / garment-frame | h / 10^5 garment-frames |", "|---|---:|---:|---|---:|---:|"]
+    for r in results["sizes"].values():
+        lines.append(f"| {r['hidden']} x {r['layers']} | {r['garments']} | {r['threads']} | "
+                     f"{r['median_ms']:.0f} ({r['min_ms']:.0f}-{r['max_ms']:.0f}) | "
+                     f"{r['ms_per_garment_frame']:.1f} | "
+                     f"{r['hours_per_1e5_garment_frames']:.2f} |")
+    (out / "steptime.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
