@@ -425,14 +425,20 @@ class LearnedRunner:
 
     # -- the MGN-style learned simulator ---------------------------------------------------
     def _mgn(self, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        """Trained on windows of frames (``configs/mgn.yaml``'s data settings); predicts by a
+        """Trained on windows of frames (``configs/mgn.yaml``'s; on shorter training
+        sequences the longest pushforward they hold, recorded in the config); predicts by a
         rollout from the LBS garment of the first two frames (never the ground truth)."""
-        config = {"module": MGN_MODULE, **self._limits(self.budget.minutes), "config": "mgn",
-                  "data": MGN_DATA}
-        folder = self._folder(MGN, seed, config)
-        dm = GarmentDataModule(self.data.root, val_split=None, seed=seed, **MGN_DATA,
-                               batch_size=self.budget.batch_size)
         module = self._module(MGN_MODULE, {})
+        shortest = min(int(r["num_frames"]) for r in store.read_manifest(self.data.root)[
+            "items"] if r["split"] == "train" and r["status"] == "ok")
+        rollout = max(1, min(module.hparams.rollout, shortest - 2))
+        module.hparams.rollout = rollout
+        data = dict(MGN_DATA, chunk=2 + rollout)
+        config = {"module": MGN_MODULE, **self._limits(self.budget.minutes), "config": "mgn",
+                  "data": data, **({"rollout": rollout} if data != MGN_DATA else {})}
+        folder = self._folder(MGN, seed, config)
+        dm = GarmentDataModule(self.data.root, val_split=None, seed=seed, **data,
+                               batch_size=self.budget.batch_size)
 
         def rollout(m: L.LightningModule, item: GarmentInputs) -> Tensor:
             return m.rollout(item, start="lbs")
