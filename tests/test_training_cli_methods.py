@@ -153,19 +153,16 @@ def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
     assert saved.keys() == cli.model.state_dict().keys()
     assert all(torch.equal(v, saved[k]) for k, v in cli.model.state_dict().items())
     assert "test/E_dist" in cli.trainer.callback_metrics
-    capsys.readouterr()
-    rc = cli_main(["train", "test", "--config", "gartrans", "--ckpt_path",
-                   str(tmp_path / "da.ckpt")] + args)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1
-    assert "a checkpoint of DAStyle, not of GarTrans; give --config baselines/da" in err[0]
-    # the same module class with another model: the method named, and its config
-    capsys.readouterr()
-    rc = cli_main(["train", "test", "--config", "baselines/hood", "--ckpt_path",
-                   str(tmp_path / "da.ckpt")] + args)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1
-    assert "a checkpoint of DAStyle, not of HOODStyle; give --config baselines/da" in err[0]
+    # another module class, and the same module class with another model: the method
+    # the checkpoint holds is named, with its config
+    for config, model in (("gartrans", "GarTrans"), ("baselines/hood", "HOODStyle")):
+        capsys.readouterr()
+        rc = cli_main(["train", "test", "--config", config, "--ckpt_path",
+                       str(tmp_path / "da.ckpt")] + args)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1
+        assert (f"a checkpoint of DAStyle, not of {model}; give --config baselines/da"
+                in err[0])
 
 
 def test_the_cli_names_the_conversion_of_a_checkpoint_of_the_earlier_layout(

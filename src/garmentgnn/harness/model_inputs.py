@@ -43,7 +43,6 @@ class Predictor:
     snapshot: Optional[Path] = None
 
 
-
 class BenchChunks(SequenceChunks):
     """Chunks of ``chunk`` consecutive frames of one :class:`BenchSequence`.
 

@@ -58,8 +58,9 @@ class SceneMotion:
         body: ``[T, N, Vb, 3]`` each garment's body per frame.
         frame: ``[T, V, 3, 3]`` the body's local frame per vertex (its root joint's
             world rotation).
-        vertex_chunk: ``[V]`` the garment of each vertex; ``slot [V]`` its row in the
-            padded ``[N, Vmax]`` layout (``None`` for one garment).
+        vertex_chunk: ``[V]`` the garment of each vertex.
+        layout: the garments' :class:`~garmentgnn.models.sequence.ChunkLayout` (their
+            padded ``[N, Vmax]`` layout).
         material: ``[V, K]`` the fabric of each vertex.
         pinned: ``[V]`` bool.
     """
@@ -68,8 +69,7 @@ class SceneMotion:
     body: Tensor
     frame: Tensor
     vertex_chunk: Tensor
-    slot: Optional[Tensor]
-    vmax: int
+    layout: ChunkLayout
     material: Tensor
     pinned: Tensor
 
@@ -177,7 +177,7 @@ class MGNStyle(Configurable, nn.Module):
                        if key == "material" else "build the inputs with a body")
                 raise ValueError(f"`scene.{key}`: missing; the MGN-style model reads it ({fix})")
         layout = ChunkLayout(scene)
-        N, T, V = layout.N, layout.B, layout.V
+        N, T = layout.N, layout.B
         rot = layout.rotations[:, :, -1]  # [N, T, S, 3]
         tr = layout.translation[:, :, -1]  # [N, T, 3]
         A, _ = forward_kinematics(rot.reshape(N * T, *rot.shape[2:]),
@@ -191,24 +191,23 @@ class MGNStyle(Configurable, nn.Module):
         frame = root.transpose(0, 1)[:, chunk]  # [T, V, 3, 3]
         body = scene.body_pos.view(T, N, -1, 3)
         material = scene.material.reshape(N, -1).to(lbs.dtype)[chunk]
-        slot, vmax = (None, V) if N == 1 else (layout.index, layout.Vmax)
-        return SceneMotion(lbs=lbs, body=body, frame=frame, vertex_chunk=chunk, slot=slot,
-                           vmax=vmax, material=material, pinned=scene.pinned_mask())
+        return SceneMotion(lbs=lbs, body=body, frame=frame, vertex_chunk=chunk, layout=layout,
+                           material=material, pinned=scene.pinned_mask())
 
     def body_edges(self, motion: SceneMotion, x: Tensor, t: int) -> Tuple[Tensor, Tensor]:
         """``(garment vertex [Eb], body vertex [Eb] of its own garment's body at ``t``)``:
         each vertex's ``body_k`` nearest body vertices within ``body_radius`` of ``x``."""
         body = motion.body[t]  # [N, Vb, 3]
-        N, Vb = body.shape[:2]
+        Vb = body.shape[1]
         k = min(self.body_k, Vb)
         with torch.no_grad():
-            if motion.slot is None:
+            layout = motion.layout
+            if layout.N == 1:
                 d, j = torch.cdist(x.unsqueeze(0), body).topk(k, -1, largest=False)
                 d, j = d[0], j[0]
-            else:
-                xp = x.new_zeros(N * motion.vmax, 3).index_copy(0, motion.slot, x)
-                d, j = torch.cdist(xp.view(N, motion.vmax, 3), body).topk(k, -1, largest=False)
-                d, j = d.view(-1, k)[motion.slot], j.view(-1, k)[motion.slot]
+            else:  # each garment against its own body, in the padded layout
+                d, j = torch.cdist(layout.to_padded(x), body).topk(k, -1, largest=False)
+                d, j = layout.from_padded(d), layout.from_padded(j)
             keep = d < self.body_radius
             src = torch.arange(x.shape[0], device=x.device).unsqueeze(1).expand_as(j)[keep]
             dst = (j + (motion.vertex_chunk * Vb).unsqueeze(1))[keep]
