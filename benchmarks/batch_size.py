@@ -26,8 +26,8 @@ from typing import Any, Dict, List, Tuple
 
 import numpy as np
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, command_line,
-                                  output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  command_line, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.data import SequenceChunks
 from garmentgnn.harness import scoring
@@ -133,8 +133,8 @@ def plot(res: Dict[str, Any], method: str, path: Path) -> Path:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--run", dest="runs", nargs="+", required=True, type=labelled_run,
                     action=Accumulate, metavar="LABEL=DIR",
                     help="bench output folders, the first the reference")

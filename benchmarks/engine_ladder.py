@@ -13,7 +13,6 @@ cache folder (``--out`` elsewhere; ``--commit``: the committed ``benchmarks/resu
 """
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import time
@@ -21,8 +20,8 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import (HelpFormatter, add_output_args, dataset_dir, int_at_least,
-                                  output_path)
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
+                                  int_at_least, output_path)
 from garmentgnn.harness.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
                                       default_settings, engine_record, item_engine,
                                       pick_sequences)
@@ -32,8 +31,8 @@ RESULTS = HERE / "results" / "engine_ladder"
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--data", required=True, type=dataset_dir,
                     help="a generated dataset folder")
     ap.add_argument("--frames", type=int_at_least(2), default=DEFAULT_FRAMES,

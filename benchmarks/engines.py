@@ -27,7 +27,6 @@ and ``drape`` the distance between the two engines' garments.  Sizes above
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -40,8 +39,8 @@ import numpy as np
 import torch
 import trimesh
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
-                                  int_at_least, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  check_unique, int_at_least, output_path)
 from garmentgnn.data.store import read_json
 from garmentgnn.data.presets import BLENDER_SETTINGS, build_inputs, preset
 from garmentgnn.garments import Garment
@@ -209,8 +208,8 @@ def table(rows) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--sizes", type=int_at_least(4), nargs="+", default=[300, 1000, 4000],
                     action=Accumulate,
                     help="sheet sizes (vertices) of the hang and drape cases")

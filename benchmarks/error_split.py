@@ -29,14 +29,14 @@ each removes, and writes ``error_split.{json,md}`` into a cache folder (``--out`
 """
 from __future__ import annotations
 
-import argparse
 import json
 from collections import defaultdict
 from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, dataset_dir, output_path
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
+                                  output_path)
 from garmentgnn.data.store import read_manifest
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics import vertex_distance
@@ -47,8 +47,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--data", required=True, type=dataset_dir,
                     help="a generated dataset folder")
     ap.add_argument("--split", default=None, help="train / val / test (default: every split)")

@@ -41,7 +41,8 @@ from typing import Any, Callable, Dict, List
 import torch
 
 from garmentgnn import geometry as G
-from garmentgnn._argparse import HelpFormatter, add_output_args, command_line, output_path
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, command_line,
+                                  output_path)
 from garmentgnn.body.factory import build_body
 from garmentgnn.garments import make_garment
 from garmentgnn.motion import make_motion
@@ -177,7 +178,7 @@ def markdown(rows: List[Dict[str, Any]], meta: Dict[str, Any]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     d = " (default: %(default)s)"
     ap.add_argument("--sizes", type=int, nargs="+", default=[400, 1500],
                     help="t-shirt target vertex counts" + d)

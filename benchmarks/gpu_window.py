@@ -33,8 +33,8 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, int_at_least, output_path
-
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, int_at_least,
+                                  output_path)
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 #: the carried folder (``build/`` is ignored by git)
@@ -454,8 +454,8 @@ def run(a: argparse.Namespace) -> int:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.split("\n\n")[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--dir", default=str(DIR), help="the carried folder")
     add_output_args(ap, RESULTS, "the folder for summary.{md,json} and the stages' bundles "
                     "(gpu_window.sh passes the device tool's $OUT)")

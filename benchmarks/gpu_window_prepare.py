@@ -21,7 +21,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from garmentgnn._argparse import HelpFormatter, add_output_args, benchmark_cache, output_path
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, benchmark_cache,
+                                  output_path)
 from garmentgnn.data import compact
 
 HERE = Path(__file__).resolve().parent
@@ -107,8 +108,8 @@ def prepare(a: argparse.Namespace) -> int:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.split("\n\n")[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--dir", default=str(DIR), help="the folder to carry")
     ap.add_argument("--throughput", default=str(benchmark_cache() / "throughput-small"),
                     help="the training-throughput dataset (train_throughput.py --sizes small)")

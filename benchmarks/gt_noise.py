@@ -22,7 +22,6 @@ dataset of that preset reads::
 """
 from __future__ import annotations
 
-import argparse
 import platform
 import random
 import time
@@ -32,8 +31,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
-                                  float_above, int_at_least, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  check_unique, float_above, int_at_least, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.harness import noise_floor as nf
 from garmentgnn.harness.tables import save_figure, table
@@ -183,8 +182,8 @@ def plot(runs, path):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--engines", nargs="+", choices=tuple(PRESETS), default=list(PRESETS),
                     action=Accumulate,
                     help="the engines to perturb and simulate again")

@@ -37,7 +37,6 @@ the committed ``benchmarks/results/inference.*``).
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import copy
 import json
@@ -53,8 +52,8 @@ import numpy as np
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
-                                  int_at_least, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  check_unique, int_at_least, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
 from garmentgnn.harness.sequences import case_item, make_sequence
@@ -343,8 +342,8 @@ def plot(rows: List[Dict[str, Any]], path: Path, device: str = "cpu") -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--sizes", type=int_at_least(4), nargs="+", default=[1000, 4000, 10000],
                     action=Accumulate,
                     help="template resolutions (requested vertex counts)")

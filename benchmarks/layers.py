@@ -27,7 +27,6 @@ the ``<!-- bench:layers -->`` markers in ``docs/layers.md``.
 """
 from __future__ import annotations
 
-import argparse
 import importlib
 import itertools
 import json
@@ -45,8 +44,8 @@ import torch_geometric
 import torch_geometric.typing
 from torch_geometric.nn import GATv2Conv, TransformerConv
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
-                                  existing_dir, int_at_least, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  check_unique, existing_dir, int_at_least, output_path)
 from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh
 from garmentgnn.nn import LAYERS, make_layer
 
@@ -213,8 +212,8 @@ def markdown(res: dict) -> str:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--nx", type=int_at_least(2), default=100,
                     help="mesh is nx x nx vertices (100 -> 10K)")
     ap.add_argument("--width", type=int_at_least(1), default=64, help="node feature width")

@@ -44,8 +44,9 @@ from typing import Optional, Sequence
 
 import torch
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
-                                  command_line, existing_file, int_at_least, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  check_unique, command_line, existing_file, int_at_least,
+                                  output_path)
 from garmentgnn.data.store import read_manifest
 
 #: the folder of this script and its parts (``learning_parts``): on ``sys.path`` when it is
@@ -73,8 +74,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     """The command line, checked: a repeated list flag (``--seed 0 --seed 1``) adds up,
     a value given twice, a count below 1, ``--every`` over ``--steps``, a missing
     dataset or ``--curves`` file end in one ``error:`` line (exit status 2)."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("parts", nargs="+", choices=("grad", "overfit", "curves", "energy", "oracle",
                                                   "merge"),
                     help="what to run (merge: the `curves` results of --curves as one table)")

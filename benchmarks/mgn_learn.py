@@ -38,8 +38,8 @@ import numpy as np
 import torch
 
 from garmentgnn.data import SequenceChunks
-from garmentgnn.data.store import read_manifest
-from garmentgnn._argparse import HelpFormatter, add_output_args, output_path
+from garmentgnn.data.store import read_json, read_manifest
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, add_output_args, output_path
 from garmentgnn._plotting import pyplot
 from garmentgnn.harness import stability as stab
 from garmentgnn.harness.model_inputs import BenchChunks
@@ -86,7 +86,25 @@ def per_frame(pred: torch.Tensor, item) -> List[Optional[float]]:
     return [float(x) for x in d]
 
 
+def read_score(path: str) -> Dict[str, Any]:
+    """A ``score.json`` of an earlier ``score`` run (for ``--merge``); exits with one
+    ``error:`` line naming the file when it is missing or is not one."""
+    fix = "give a score.json written by `python benchmarks/mgn_learn.py score`"
+    try:
+        doc = read_json(path, fix)
+    except (OSError, ValueError) as e:
+        sys.exit(f"error: --merge: {e if isinstance(e, ValueError) else f'{path}: no such file'}")
+    lbs = (doc.get("methods") or {}).get("LBS only") if isinstance(doc.get("methods"), dict) \
+        else None
+    if not isinstance(lbs, list) or not all(isinstance(doc.get(k), dict)
+                                            for k in ("per_frame", "seconds")):
+        sys.exit(f"error: --merge: {path}: no 'methods' with 'LBS only', 'per_frame' and "
+                 f"'seconds'; {fix}")
+    return doc
+
+
 def run_score(args: argparse.Namespace) -> None:
+    earlier = {path: read_score(path) for path in args.merge}  # checked before any work
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     methods: Dict[str, Callable[[Any], torch.Tensor]] = {}
@@ -138,8 +156,7 @@ def run_score(args: argparse.Namespace) -> None:
     results["valid"] = {s["sequence"]: [bool(v) for v in test.valid(i)]
                         for i, s in enumerate(results["methods"]["LBS only"])} \
         if len(results["methods"]["LBS only"]) == len(test) else {}
-    for path in args.merge:  # methods scored earlier on the same sequences
-        other = json.loads(Path(path).read_text())
+    for path, other in earlier.items():  # methods scored earlier on the same sequences
         if (other.get("content_sha256"), other.get("split")) != (
                 results["content_sha256"], results["split"]) or \
                 _by_seq(other["methods"]["LBS only"]) != _by_seq(results["methods"]["LBS only"]):
@@ -374,8 +391,8 @@ NEEDS = {"score": ("data",), "curves": ("run", "data"), "sweep": ("runs",),
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=HelpFormatter)
+    p = ArgumentParser(description=__doc__.split("\n\n")[0],
+                       formatter_class=HelpFormatter)
     p.add_argument("command", choices=list(NEEDS),
                    help="score: rollouts of a split beside LBS and other checkpoints; "
                         "curves: one-step and rollout error of each step checkpoint of a "

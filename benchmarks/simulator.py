@@ -13,7 +13,6 @@ into a cache folder (``--out`` elsewhere; ``--commit``: the committed ``benchmar
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -23,8 +22,8 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
-                                  float_above, int_at_least, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  check_unique, float_above, int_at_least, output_path)
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import grid_mesh
 from garmentgnn.motion import Motion
@@ -66,8 +65,8 @@ def run(num_vertices: int, threads: int, stiffness: float, frames: int, substeps
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--sizes", type=int_at_least(4), nargs="+", default=[1000, 5000, 10000],
                     action=Accumulate,
                     help="sheet sizes (vertices)")

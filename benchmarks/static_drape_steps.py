@@ -26,13 +26,12 @@ One training seed, so this is a pointer, not a significance claim. It writes
 """
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Dict, List
 
-from garmentgnn._argparse import HelpFormatter, dataset_dir, float_above
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, dataset_dir, float_above
 from garmentgnn.data.store import read_json
 from garmentgnn.harness import runner
 from garmentgnn.harness.methods import DA, LBS
@@ -73,8 +72,8 @@ def markdown(rows_: List[Dict[str, Any]]) -> List[str]:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--data", required=True, type=dataset_dir,
                     help="the generated `medium` dataset folder")
     ap.add_argument("--out", default=str(Path.home() / ".cache" / "garmentgnn" / "bench" /

@@ -13,7 +13,6 @@ about 23 MB a step (docs/bench.md, "Memory").  Writes ``train_memory.json`` into
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -22,8 +21,8 @@ from typing import Any, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
-from garmentgnn._argparse import (HelpFormatter, add_output_args, command_line, dataset_dir,
-                                  int_at_least, output_path)
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, command_line,
+                                  dataset_dir, int_at_least, output_path)
 from garmentgnn.harness.methods import DATA, FULL, GARTRANS, variant_settings
 from garmentgnn.harness.timing import status_kb
 from garmentgnn.data.store import code_version
@@ -53,8 +52,8 @@ class RSSProbe(L.Callback):
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--data", required=True, type=dataset_dir,
                     help="a generated dataset folder")
     ap.add_argument("--method", default=FULL, choices=list(GARTRANS),

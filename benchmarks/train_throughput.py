@@ -32,7 +32,7 @@ from typing import Any, Dict, List
 import lightning as L
 import torch
 
-from garmentgnn._argparse import (HelpFormatter, add_output_args, benchmark_cache,
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, benchmark_cache,
                                   command_line, output_path)
 from garmentgnn.data import Spec, generate, store
 from garmentgnn.data import SequenceChunks
@@ -123,7 +123,7 @@ def warm(root: Path) -> SequenceChunks:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--sizes", nargs="+", choices=sorted(SIZES), default=["small", "medium"],
                     help="garment sizes")
     ap.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS),

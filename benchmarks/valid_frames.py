@@ -13,14 +13,13 @@ the committed ``benchmarks/results/valid_frames.{json,md}``::
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import Any, Dict, List
 
 import numpy as np
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, add_output_args, check_unique,
-                                  command_line, existing_dir, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  check_unique, command_line, existing_dir, output_path)
 from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, load_record_sequence,
                                    read_manifest)
 from garmentgnn.data.validity import VALID_PENETRATION, sequence_valid
@@ -87,8 +86,8 @@ def markdown(rows: List[Dict[str, Any]], command: str) -> str:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=HelpFormatter)
+    ap = ArgumentParser(description=__doc__.splitlines()[0],
+                        formatter_class=HelpFormatter)
     ap.add_argument("--data", nargs="+", required=True, type=existing_dir, action=Accumulate,
                     help="generated dataset folders")
     add_output_args(ap, COMMITTED, "writes OUT.json and OUT.md")

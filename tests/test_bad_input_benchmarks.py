@@ -106,6 +106,53 @@ def test_learning_merge_names_a_missing_or_corrupt_file(capsys, tmp_path):
         script("learning")["merge_curves"]([tmp_path / "none.json"])
 
 
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
+
+
+def test_learning_merge_reads_the_first_curves_layout(tmp_path):
+    """`merge --curves docs/results/learning/curves.json` (a file of the first layout: one
+    seed, each variant's curve beside its settings) ended in `KeyError: 'runs'`."""
+    merge = script("learning")["merge_curves"]
+    old = RESULTS / "learning" / "curves.json"
+    doc = json.loads(old.read_text())
+    assert "seed" in doc and all("curve" in v for v in doc["variants"].values())
+    res = merge([old])
+    assert res["seeds"] == [doc["seed"]]
+    for name, v in doc["variants"].items():
+        (run,) = res["variants"][name]["runs"]
+        assert run["curve"] == v["curve"] and run["seed"] == doc["seed"]
+    assert script("learning")["curves_markdown"](res)  # the table reads it too
+    new = RESULTS / "learning" / "curves_seeds.json"  # today's layout, several seeds
+    assert merge([new])["variants"] == json.loads(new.read_text())["variants"]
+
+
+def test_learning_merge_refuses_another_results_file_before_merging(capsys, tmp_path):
+    """Every file is read and checked before anything is merged; one that holds no
+    learning curve (an oracle result has 'variants' too) is named."""
+    main = script("learning")["main"]
+    oracle = RESULTS / "learning" / "oracle.json"
+    refused(capsys, main, ["merge", "--curves", str(RESULTS / "learning" / "curves_seeds.json"),
+                           str(oracle), "--out", str(tmp_path / "o")],
+            f"--curves: {oracle}", "holds no learning curve")
+    assert not (tmp_path / "o").exists()
+
+
+def test_mgn_learn_merge_checks_its_files_before_scoring(capsys, tmp_path):
+    """`mgn_learn.py score --merge X.json` read X only after scoring every method, and a
+    file of another kind ended in `KeyError: 'methods'`."""
+    run_score = script("mgn_learn")["run_score"]
+    other = RESULTS / "mgn_learn" / "curves.json"
+    for path, words in ((other, [f"--merge: {other}", "no 'methods'"]),
+                        (tmp_path / "none.json", ["--merge", "none.json: no such file"])):
+        args = argparse.Namespace(merge=[str(path)], out=str(tmp_path / "o"), mgn=None,
+                                  data=None, other=[], starts=[], split="test",
+                                  sequences=None)
+        with pytest.raises(SystemExit) as e:
+            run_score(args)
+        assert all(w in str(e.value.code) for w in words), e.value.code
+    assert not (tmp_path / "o").exists()
+
+
 # ------------------------------------------------------------------ the other scripts
 CASES = [
     ("engine_ladder", ["--data", "{typo}"], ["argument --data", "garmentgnn generate"]),

@@ -321,3 +321,78 @@ def test_bench_methods_given_twice_add_up():
     a, b = METHOD_NAMES[:2]
     args = build_parser().parse_args(["bench", "--out", "x", "--methods", a, "--methods", b])
     assert args.methods == [a, b]
+
+
+# ------------------------------------------------------------------ what a run leaves out
+LEARN_CKPT = str(ROOT / "tests" / "data" / "gartrans_learn.ckpt")
+
+
+def test_show_a_checkpoint_of_another_skeleton_names_the_sizes(dataset, tmp_path, capsys):
+    """`show` answered "`inputs.rest_joints`: a skeleton of 17 joints, this model has 31
+    (`num_joints`)": now the words `train` uses for the same checkpoint."""
+    rc = cli_main(["show", "--data", str(dataset), "--ckpt", LEARN_CKPT,
+                   "--out", str(tmp_path / "s")])
+    last = one_error(capsys, rc, f"--ckpt {LEARN_CKPT}", "other sizes", "num_joints 31 (the data:",
+                     "use it on data of its body model")
+    assert "`inputs" not in last and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("flag, value, trained", [("--num-landmarks", "32", "num_landmarks 64"),
+                                                  ("--history", "2", "history 3")])
+def test_show_data_settings_other_than_the_checkpoints_are_refused(dataset, tmp_path, capsys,
+                                                                   flag, value, trained):
+    """`show --num-landmarks 32` on a model trained with 64 landmarks fed it other Nyström
+    features than it learned from, silently (and the default 64 did so for a model trained
+    with 32): the settings now follow the checkpoint."""
+    rc = cli_main(["show", "--data", str(dataset), "--ckpt", LEARN_CKPT, flag, value,
+                   "--out", str(tmp_path / "s")])
+    one_error(capsys, rc, f"{flag} {value}", f"was trained with {trained}", "drop the flag")
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("fmt, name", [("blend", "scene.blend"), ("abc", "scene.abc"),
+                                       ("gltf", "scene.glb"), ("pc2", "scene.pc2")])
+def test_export_to_an_existing_folder_is_refused_before_any_work(dataset, tmp_path, capsys,
+                                                                  fmt, name):
+    """`export --format blend --out DIR` (an existing folder) ended in Blender's own
+    traceback."""
+    out = tmp_path / name
+    out.mkdir()
+    rc = cli_main(["export", "--seq", str(first_file(dataset)), "--format", fmt,
+                   "--out", str(out)])
+    one_error(capsys, rc, f"--out {out}", "is a folder", "name a file")
+    assert not list(out.iterdir())
+
+
+def test_export_below_a_file_is_refused(dataset, tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "x.glb"
+    rc = cli_main(["export", "--seq", str(first_file(dataset)), "--format", "gltf",
+                   "--out", str(out)])
+    one_error(capsys, rc, f"--out {out}", f"{tmp_path / 'afile'} is a file")
+
+
+def test_bench_that_would_run_nothing_is_refused(tmp_path, capsys):
+    """`bench --preset converge --no-learned` wrote a report whose every section was
+    empty, exit 0."""
+    rc = cli_main(["bench", "--preset", "converge", "--no-learned", "--no-progress",
+                   "--out", str(tmp_path / "b")])
+    one_error(capsys, rc, "--no-learned", "'converge'", "nothing would run")
+    assert not (tmp_path / "b").exists()
+
+
+def test_a_value_starting_with_a_minus_reaches_its_flag(dataset, tmp_path, capsys):
+    """`bench --shard -1/2` answered argparse's "expected one argument"; the shard's own
+    check now says what is wrong.  A negative start frame in exponent form is a value."""
+    rc = cli_main(["bench", "--preset", "tiny", "--out", str(tmp_path / "b"), "--shard", "-1/2"])
+    one_error(capsys, rc, "--shard", "0 <= I < N", "'-1/2'")
+    rc = cli_main(["export", "--seq", str(first_file(dataset)), "--format", "pc2",
+                   "--out", str(tmp_path / "x.pc2"), "--start-frame", "-1e3"])
+    assert rc == 0
+    head = pc2_header(tmp_path / "x.pc2")
+    assert head[3] == -1000.0
+
+
+def pc2_header(path):
+    from garmentgnn.data import export  # noqa: PLC0415
+    return export.PC2_HEADER.unpack(path.read_bytes()[:export.PC2_HEADER.size])

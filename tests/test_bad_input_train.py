@@ -4,15 +4,20 @@ Nyström sizes that cannot fit, a NaN in a training file.  Each ended in a silen
 or an error naming an internal argument; now each is one ``error:`` line naming the flag
 (or the file and the array) and the fix."""
 import shutil
+import subprocess
+import sys
 
+import lightning as L
 import numpy as np
 import pytest
 
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import read_manifest, store
 from garmentgnn.data import SequenceChunks
-from garmentgnn.training import GarmentDataModule
+from garmentgnn.models.baselines import NCSStyle
+from garmentgnn.training import BaselineModule, GarmentDataModule
 from garmentgnn.training.configs import config_path, resolve_config_args
+from garmentgnn.training.lightning_cli import count_first
 
 from test_bad_input_cli import edit_sequence, one_error
 from test_training import NY, root  # noqa: F401  (module-scoped toy dataset: train + val)
@@ -149,3 +154,83 @@ def test_nan_in_a_training_file_names_the_file_and_the_array(root, tmp_path, cap
     rc = cli_main(["train", "fit", "--config", "baselines/da"] + data_args(out, tmp_path / "r"))
     one_error(capsys, rc, str(path), "motion_rotations contain NaN/inf in 1 of",
               "(first at index (2, 1, 0))")
+
+
+# ------------------------------------------------------------------ int flags
+def test_limit_test_batches_1_tests_one_batch(root, da_checkpoint, tmp_path):  # noqa: F811
+    """`garmentgnn train test ... --trainer.limit_test_batches 1` tested every batch: `1`
+    was read as the fraction 1.0.  (In a process of its own, as the command runs: the
+    modules it imports first wrote ``Union[float, int]``, and typing's union cache, which
+    ignores order, then made the Trainer's ``Optional[Union[int, float]]`` float-first.)"""
+    code = "import sys; from garmentgnn.cli import main; sys.exit(main(sys.argv[1:]))"
+    args = ["train", "test", "--config", "baselines/da", "--data.test_split", "val",
+            "--ckpt_path", str(da_checkpoint), "--trainer.limit_test_batches", "1"]
+    out = subprocess.run([sys.executable, "-c", code] + args + data_args(root, tmp_path),
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    log = out.stdout + out.stderr
+    assert "`Trainer(limit_test_batches=1)` was configured so 1 batch will be used" in log
+    assert "`Trainer(limit_val_batches=1)`" in log and "=1.0)" not in log
+    dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16,
+                           test_split="val")
+    dm.setup("test")
+    assert len(dm.test_dataloader()) > 1  # one batch is less than the split
+
+
+def test_count_first_keeps_fractions_and_other_types():
+    from typing import Optional, Union  # noqa: PLC0415
+    u = type(Union[int, str])(Union, (float, int, str, type(None)))
+    assert count_first(u).__args__ == (int, float, str, type(None))
+    assert count_first(Optional[int]) is Optional[int]
+    assert count_first(int) is int
+
+
+# ------------------------------------------------------------------ nothing would run
+@pytest.mark.parametrize("sub, flag", [("fit", "max_steps"), ("fit", "max_epochs"),
+                                       ("fit", "limit_train_batches"),
+                                       ("test", "limit_test_batches")])
+def test_a_run_that_would_do_nothing_is_refused(root, da_checkpoint, tmp_path, capsys,  # noqa: F811
+                                                sub, flag):
+    """`fit --trainer.max_steps 0` exited 0 with no step and no checkpoint."""
+    ckpt = ["--ckpt_path", str(da_checkpoint), "--data.test_split", "val"] if sub == "test" \
+        else []
+    rc = cli_main(["train", sub, "--config", "baselines/da"] + ckpt + data_args(root, tmp_path)
+                  + [f"--trainer.{flag}", "0"])
+    one_error(capsys, rc, f"--trainer.{flag} 0", f"`{sub}` would", "give a positive value")
+    assert not list(tmp_path.rglob("*.ckpt"))
+
+
+# ------------------------------------------------------------------ method needs
+@pytest.mark.parametrize("config, history, need", [("baselines/hood", "1", "2")])
+def test_a_history_too_short_for_the_method_is_refused_at_set_up(root, tmp_path, capsys,  # noqa: F811
+                                                                 config, history, need):
+    """`--data.history 1` with HOOD-style failed at the first step with "`j`: expected an
+    int with -2 <= j <= -1"."""
+    args = fast_args(root, tmp_path, history=int(history), train_batches=1)
+    rc = cli_main(["train", "fit", "--config", config] + args)
+    last = one_error(capsys, rc, f"--data.history {history}", "HOOD-style",
+                     f"--data.history {need} or more")
+    assert "`j`" not in last and not list(tmp_path.rglob("*.ckpt"))
+
+
+def test_ncs_history_is_checked_at_set_up(root):  # noqa: F811
+    """NCS-style with model history h reads h + 3 poses: refused when the run is built."""
+    dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
+    dm.setup("fit")
+    module = BaselineModule(NCSStyle(dm.dims["num_vertices"], dm.dims["num_joints"],
+                                     history=1, hidden=8))
+    trainer = L.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        max_steps=1)
+    with pytest.raises(ValueError, match=r"--data.history 2: NCS-style \(model history 1\) "
+                                         r"reads 4 poses.*--data.history 3 or more"):
+        trainer.fit(module, dm)
+
+
+# ------------------------------------------------------------------ config names
+def test_unknown_config_name_lists_the_packaged_ones(root, tmp_path, capsys):  # noqa: F811
+    """`--config nosuch` printed the whole usage and "File does not exist"."""
+    rc = cli_main(["train", "fit", "--config", "nosuch"] + data_args(root, tmp_path))
+    last = one_error(capsys, rc, "--config nosuch", "no packaged configuration",
+                     "gartrans", "baselines/da", "ablations/gat")
+    assert "usage" not in capsys.readouterr().err
+    assert last.count("error:") == 1

@@ -33,8 +33,8 @@ def curves_markdown(res: Dict[str, Any], surface: bool = False) -> List[str]:
     count = {k: len(measured.get(f"{k}_sequences", ())) for k in ("train", "test")}
 
     def last_sequences(runs):  # {"seed/sequence": E_dist} of the test split, last step
-        return {f"{r['seed']}/{q}": e for r in runs if r["curve"]
-                for q, e in r["curve"][-1]["test_sequences"].items()}
+        return {f"{r['seed']}/{q}": e for r in runs if r["curve"]  # (none in the first layout)
+                for q, e in r["curve"][-1].get("test_sequences", {}).items()}
 
     def spread(values):
         m = sum(values) / len(values)
@@ -168,6 +168,31 @@ def read_curves(path: Path) -> Dict[str, Any]:
                           "curves`")
     if not isinstance(doc.get("variants"), dict):
         raise ValueError(f"`files`: {path}: no 'variants': not the results of `curves`")
+    return as_runs(doc, path)
+
+
+def as_runs(doc: Dict[str, Any], path: Path) -> Dict[str, Any]:
+    """``doc`` in today's layout: each variant a list of ``runs`` (one per seed, with
+    ``seed``, ``status``, ``seconds`` and ``curve``) under ``seeds``.  The first layout
+    (one seed, ``seed`` at the top; a variant's ``status``, ``seconds`` and ``curve``
+    beside its ``settings``) is read into it; anything else is a ``ValueError`` naming
+    ``path`` and the variant."""
+    doc = dict(doc, variants=dict(doc["variants"]))
+    old = "seed" in doc and "seeds" not in doc
+    for name, v in doc["variants"].items():
+        if isinstance(v, dict) and old and isinstance(v.get("curve"), list):
+            run = {"seed": doc["seed"], "status": v.get("status"), "seconds": v.get("seconds"),
+                   "curve": v["curve"]}
+            doc["variants"][name] = {"settings": v.get("settings"), "runs": [run]}
+        elif not (isinstance(v, dict) and isinstance(v.get("runs"), list)
+                  and all(isinstance(r, dict) and "seed" in r and isinstance(r.get("curve"),
+                                                                               list)
+                          for r in v["runs"])):
+            raise ValueError(f"`files`: {path}: variant {name!r} holds no learning curve "
+                             f"(no 'runs' with a seed and a 'curve'): not the results of "
+                             f"`curves`")
+    if old:
+        doc["seeds"] = [doc.pop("seed")]
     return doc
 
 

@@ -5,7 +5,8 @@ committed copy is asked for), and argument types and actions that refuse what wo
 otherwise run silently wrong: counts below their minimum (:func:`int_at_least`), NaN or
 infinite numbers (:func:`finite_float`), a list flag given twice (:class:`Accumulate`:
 the values add up instead of the last flag winning) and repeated values
-(:func:`check_unique`)."""
+(:func:`check_unique`), and a parser (:class:`ArgumentParser`) that hands a value starting
+with a minus to the flag it follows, for the flag's own check to judge."""
 from __future__ import annotations
 
 import argparse
@@ -130,6 +131,18 @@ def dataset_dir(text: str) -> str:
 def existing_dir(text: str) -> str:
     """An argparse type: the path of an existing folder (``~`` expanded)."""
     return _existing(text, "folder", os.path.isdir, "file", os.path.exists)
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` that reads a word starting with a minus and a digit
+    (``--shard -1/2``, ``--start-frame -1e3``) as the value of the flag before it, as
+    Python 3.12's argparse does; Python 3.11's takes only plain negative numbers so, and
+    answered "expected one argument", which names no reason.  The flag's own type or
+    check then says what is wrong with the value.  Sub-parsers are of this class too."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

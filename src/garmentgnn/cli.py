@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
 import garmentgnn
-from garmentgnn._argparse import HelpFormatter, finite_float, nonempty_path
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, finite_float, nonempty_path
 from garmentgnn.harness import cli as harness_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
@@ -124,9 +124,6 @@ def _interrupted(out, args: argparse.Namespace) -> int:
     return 130
 
 
-#: the file name ending each single-file export format needs (obj writes a folder)
-EXPORT_SUFFIX = {"pc2": ".pc2", "gltf": ".glb", "abc": ".abc", "blend": ".blend"}
-
 
 def add_export_parser(sub) -> argparse.ArgumentParser:
     """The ``export`` sub-command: one sequence file as PC2, OBJs or glTF."""
@@ -156,15 +153,6 @@ def export_main(args: argparse.Namespace) -> int:
     if not Path(args.seq).is_file():
         print(f"error: --seq {args.seq}: no such file (a sequences/<id>.npz of a "
               f"dataset made by `garmentgnn generate`)", file=sys.stderr)
-        return 2
-    if args.format == "obj" and Path(args.out).exists() and not Path(args.out).is_dir():
-        print(f"error: --out {args.out}: is a file, and --format obj writes a folder of "
-              f"OBJs; name a folder", file=sys.stderr)
-        return 2
-    suffix = EXPORT_SUFFIX.get(args.format)
-    if suffix and Path(args.out).suffix.lower() != suffix:
-        print(f"error: --out {args.out}: --format {args.format} writes a file whose "
-              f"name must end in {suffix}", file=sys.stderr)
         return 2
     if args.start_frame is not None and args.format != "pc2":
         print(f"error: --start-frame: only --format pc2 stores a start frame; drop it for "
@@ -265,8 +253,8 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``garmentgnn`` parser with every sub-command of :data:`COMMANDS`."""
-    p = argparse.ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0],
-                                formatter_class=HelpFormatter)
+    p = ArgumentParser(prog="garmentgnn", description=__doc__.splitlines()[0],
+                       formatter_class=HelpFormatter)
     p.add_argument("--version", action="version", version=f"garmentgnn {garmentgnn.__version__}")
     p.add_argument("--debug", action="store_true",
                    help="show the full traceback of an error (also GARMENTGNN_DEBUG=1)")

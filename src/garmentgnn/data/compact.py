@@ -39,7 +39,6 @@ is deterministic.  The same input gives a byte-identical file.
 """
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import os
@@ -51,6 +50,7 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from garmentgnn._argparse import ArgumentParser
 from garmentgnn.body import anny_body
 from garmentgnn.data import store
 
@@ -394,8 +394,8 @@ def unpack(file: PathLike, root: PathLike, cache_dir: Optional[PathLike] = None
 
 # --------------------------------------------------------------------------- command line
 def main(argv: Optional[List[str]] = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m garmentgnn.data.compact",
-                                 description=__doc__.split("\n\n")[0])
+    ap = ArgumentParser(prog="python -m garmentgnn.data.compact",
+                        description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("pack", help="pack a dataset folder into one file")
     p.add_argument("root", help="dataset folder (manifest.json + sequences/)")

@@ -3,6 +3,7 @@ per-frame OBJs, or glTF (:mod:`garmentgnn.data.gltf`)."""
 from __future__ import annotations
 
 import math
+import os
 import struct
 from pathlib import Path
 from typing import List
@@ -66,6 +67,32 @@ def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarra
 
 #: the formats of :func:`export_sequence` (``abc`` and ``blend`` need Blender's ``bpy``)
 EXPORT_FORMATS = ("pc2", "obj", "gltf", "abc", "blend")
+#: the file name ending each single-file format needs (obj writes a folder)
+EXPORT_SUFFIX = {"pc2": ".pc2", "gltf": ".glb", "abc": ".abc", "blend": ".blend"}
+
+
+def check_output(out: PathLike, fmt: str) -> Path:
+    """``out`` as a path ``fmt`` can write to: a file (a folder of OBJs for ``obj``) that
+    is not a folder (a file), below a writable folder or one that can be made (no file in
+    the way).  Otherwise a ``ValueError`` naming ``out`` and the fix, before any work:
+    Blender, handed a folder, ended in its own traceback."""
+    path = Path(out)
+    folder = fmt == "obj"
+    if not str(out).strip():
+        raise ValueError("`out`: empty path; name a file (a folder for obj)")
+    if path.is_dir() and not folder:
+        raise ValueError(f"`out` {out}: is a folder, and {fmt} writes one file; name a file "
+                         f"in it, e.g. {path / ('sequence' + EXPORT_SUFFIX[fmt])}")
+    if path.exists() and not path.is_dir() and folder:
+        raise ValueError(f"`out` {out}: is a file, and obj writes a folder of OBJs; name a "
+                         f"folder")
+    parent = next(q for q in path.absolute().parents if q.exists())
+    if not parent.is_dir():
+        raise ValueError(f"`out` {out}: {parent} is a file, so nothing can be made below it; "
+                         f"name another path")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"`out` {out}: {parent} is not writable by you; name another path")
+    return path
 
 
 def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: float = 0.0,
@@ -79,7 +106,11 @@ def export_sequence(seq_path: PathLike, fmt: str, out: PathLike, start_frame: fl
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"`fmt`: expected one of {', '.join(map(repr, EXPORT_FORMATS))}, "
                          f"got {fmt!r}")
-    if fmt in ("abc", "blend"):  # the clear error before loading anything
+    if EXPORT_SUFFIX.get(fmt) and Path(out).suffix.lower() != EXPORT_SUFFIX[fmt]:
+        raise ValueError(f"`out` {out}: {fmt} writes a file whose name must end in "
+                         f"{EXPORT_SUFFIX[fmt]}")
+    check_output(out, fmt)
+    if fmt in ("abc", "blend"):  # the clear errors before loading anything
         require_blender()
     # the whole file, checked (shapes, faces in range, NaN frames, vertex order)
     seq = checked_sequence(seq_path, load_sequence(seq_path))

@@ -60,7 +60,9 @@ def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
               for s in ("train", "val", "test")}
     for s in ("train", "test"):
         if not seqs[s]:
-            raise ValueError(f"`data`: {root} has no ok {s!r} sequences ({man.get('counts')})")
+            raise ValueError(f"`data` (--data): {root} has no ok {s!r} sequences, which the "
+                             f"learned methods {'train' if s == 'train' else 'are scored'} on "
+                             f"({man.get('counts')}); give a dataset with a {s!r} split")
     digest = hashlib.sha1(json.dumps(sorted(
         (r["id"], r["split"], int(r["num_frames"]), str((r.get("code") or {}).get("version")))
         for r in ok)).encode())

@@ -103,8 +103,8 @@ class LearnedRunner:
         self.train_fit: Optional[SequenceChunks] = None  # the curves' training sequences
         if budget.curve_every is not None:
             if not data.sequences.get("val"):
-                raise ValueError(f"`budget`: curve_every needs a `val` split; {data.root} has "
-                                 "none (set curve_every=None)")
+                raise ValueError(f"`data` (--data): {data.root} has no `val` split for the "
+                                 "preset's learning curves; give a dataset with one")
             self.val = self._whole("val", budget.val_sequences)
             if budget.train_sequences is not None:
                 self.train_fit = self._whole("train", budget.train_sequences)

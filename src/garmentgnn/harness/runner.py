@@ -360,6 +360,9 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     if data is not None and (not learned or p.learned is None):
         raise ValueError("`data`: given, but no learned methods run (learned=False or the "
                          "preset has none)")
+    if not learned and p.learned is not None and not tasks(p, list(range(n))):
+        raise ValueError(f"`learned=False` (--no-learned): preset {p.name!r} runs learned "
+                         f"methods only, so nothing would run; run it with them")
     out = Path(out)
     for sub in ("records", "cache"):
         (out / sub).mkdir(parents=True, exist_ok=True)

@@ -123,8 +123,22 @@ class GarmentModule(L.LightningModule):
         """The garment ``[B, V, 3]`` of every frame of ``batch``."""
         raise NotImplementedError(f"{type(self).__name__}: define predict_garment")
 
+    def min_history(self) -> Tuple[int, str]:
+        """The fewest previous poses per frame (the data module's ``history``) this
+        method reads, and what reads them; checked when a run is set up."""
+        return 1, f"{type(self).__name__} reads the pose before each frame"
+
     def setup(self, stage: str) -> None:
         destroy_gloo_group_at_exit()  # on every replica, once its process group exists
+        try:
+            dm = self.trainer.datamodule
+        except RuntimeError:  # no trainer attached
+            dm = None
+        have = getattr(getattr(dm, "hparams", None), "history", None)
+        need, why = self.min_history()
+        if isinstance(have, int) and have < need:  # checked here, not at the first step
+            raise ValueError(f"--data.history {have}: {why}; give --data.history {need} "
+                             f"or more")
 
     # -- training ---------------------------------------------------------------------
     def log_training_step(self, total: Tensor, terms: Dict[str, Tensor], batch_size: int,
@@ -284,6 +298,9 @@ class GarmentModule(L.LightningModule):
         if not _VERIFIED.get():
             verify_checkpoint(checkpoint)
         saved = self.saved_hparams(checkpoint)
+        #: the dataset and data settings it was trained with (``show`` follows them)
+        self.trained_on = checkpoint.get(DATASET_KEY)
+        self.trained_data = checkpoint.get("datamodule_hyper_parameters") or {}
         if saved:  # (a checkpoint without hyper-parameters cannot say what it was)
             self.check_model(self.model_spec(saved), checkpoint.get(DATASET_KEY))
 
@@ -311,20 +328,41 @@ class GarmentModule(L.LightningModule):
                if k in mine and k not in self.RUNTIME_ARGS and saved[k] != mine[k]}
         sizes = {k: v for k, v in bad.items() if k in self.DATA_SIZES}
         if sizes:
-            what = saved.get("dynamic_layer") or ""
-            text = ", ".join(f"{k} {c} (the data: {d})" for k, (c, d) in sorted(sizes.items()))
-            data = (f" (dataset {dataset.get('content_sha256', '?')[:12]} at "
-                    f"{dataset.get('root')})" if dataset else "")
-            raise CheckpointError(f"a checkpoint of {type(self).__name__} ({name}"
-                                  f"{f', {what}' if what else ''}) trained on data{data} of "
-                                  f"other sizes: {text}; score it on data of its body model "
-                                  f"and --data.nystrom_dim, or train a new model on this data")
+            raise CheckpointError(self.sizes_message(sizes, saved, dataset,
+                                                     "and --data.nystrom_dim"))
         if bad:
             text = ", ".join(f"{k}={c!r} (this model: {d!r})"
                              for k, (c, d) in sorted(bad.items()))
             raise CheckpointError(f"a checkpoint of {name} with other settings: {text}; "
                                   f"build the model with the checkpoint's settings, or load "
                                   f"it with {type(self).__name__}.load_from_checkpoint")
+
+    def sizes_message(self, sizes: Dict[str, Tuple[Any, Any]], init: Dict[str, Any],
+                      dataset: Optional[Dict[str, Any]] = None, also: str = "") -> str:
+        """What :meth:`check_model` and :meth:`check_data` say of a checkpoint whose model
+        (``init``: its arguments) has other data ``sizes`` (name -> (checkpoint's, the
+        data's)) than the data it is given: the sizes, the dataset it was trained on and
+        the fix (``also``: the flag that sets a size too)."""
+        name = type(self.model).__name__
+        what = init.get("dynamic_layer") or ""
+        text = ", ".join(f"{k} {c} (the data: {d})" for k, (c, d) in sorted(sizes.items()))
+        data = (f" (dataset {dataset.get('content_sha256', '?')[:12]} at "
+                f"{dataset.get('root')})" if dataset else "")
+        return (f"a checkpoint of {type(self).__name__} ({name}{f', {what}' if what else ''}) "
+                f"trained on data{data} of other sizes: {text}; use it on data of its body "
+                f"model{f' {also}' if also else ''}, or train a new model on this data")
+
+    def check_data(self, dims: Dict[str, Optional[int]], where: str = "checkpoint") -> None:
+        """A :class:`CheckpointError` (prefixed ``where``: the file) when the data sizes
+        ``dims`` (as :attr:`GarmentDataModule.dims`) differ from those this module's model
+        was built with; :meth:`check_model`'s words, before a forward pass fails on
+        them."""
+        init = self.model.init_args
+        sizes = {k: (init[k], d) for k, d in dims.items() if k in self.DATA_SIZES
+                 and init.get(k) is not None and d is not None and init[k] != d}
+        if sizes:
+            raise CheckpointError(f"{where}: " + self.sizes_message(
+                sizes, init, getattr(self, "trained_on", None)))
 
 
 def build_model(spec: Dict[str, Any]) -> nn.Module:

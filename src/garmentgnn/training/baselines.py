@@ -165,6 +165,16 @@ class BaselineModule(GarmentModule):
                         "init_args": kw}
         return out
 
+    def min_history(self) -> Tuple[int, str]:
+        if self.method == "hood":
+            return 2, ("HOOD-style starts each rollout from the LBS garment of the 2 frames "
+                       "before a chunk")
+        if self.method == "ncs":
+            h = self.model.history
+            return h + 2, (f"NCS-style (model history {h}) reads {h + 3} poses per frame "
+                           f"for its loss's inertia term")
+        return super().min_history()
+
     # -- pieces ---------------------------------------------------------------------
     def coarse_level(self, inp: GarmentInputs) -> CoarseLevel:
         """HOOD's coarse level of ``inp``'s garment (built once per sequence and device)."""

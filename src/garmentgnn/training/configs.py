@@ -178,7 +178,9 @@ def named_module(args: Sequence[str]) -> Optional[str]:
 
 def resolve_config_args(args: Sequence[str]) -> List[str]:
     """``args`` with each ``--config NAME`` (or ``--config=NAME``) that is not an existing
-    file but a packaged configuration's name replaced by that file's path.
+    file but a packaged configuration's name replaced by that file's path; a value that
+    is neither (nor an inline YAML/JSON document) is a ``ValueError`` listing the
+    packaged names.
 
     An ablation (``ablations/<name>``) says only what it changes on top of GarTrans: given
     without a configuration before it that names the module (``--config gartrans``), it
@@ -197,7 +199,9 @@ def resolve_config_args(args: Sequence[str]) -> List[str]:
             try:
                 out[j] = prefix + str(config_path(value))
             except (ValueError, TypeError):
-                pass  # not a packaged name either: LightningCLI reports it
+                raise ValueError(f"--config {value}: no such file, and no packaged "
+                                 f"configuration of that name; give a YAML file or one of "
+                                 f"{', '.join(available())}") from None
         path = out[j][len(prefix):]
         ablation = _ablation_name(path) if Path(path).is_file() else None
         if ablation is not None and not (base == "" or str(base).endswith("GarTransModule")):

@@ -41,7 +41,7 @@ import inspect
 import os
 import sys
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -69,6 +69,16 @@ SPECIAL_CKPT = ("last", "best", "hpc", "registry")
 #: the subcommands that score a trained model (refused without ``--ckpt_path``): what
 #: each would do with an untrained one
 EVALUATING = {"validate": "validate", "test": "test", "predict": "predict with"}
+#: per subcommand, the trainer settings at which it would run nothing, and what is lost:
+#: ``fit`` would exit 0 with no step and no checkpoint, ``test`` with an empty table
+NOTHING_RUNS = {
+    "fit": (("max_steps", "train no step and write no checkpoint", "-1: no limit"),
+            ("max_epochs", "train no epoch and write no checkpoint", "-1: no limit"),
+            ("limit_train_batches", "train on no batch", "1.0: every batch")),
+    "validate": (("limit_val_batches", "validate no batch", "1.0: every batch"),),
+    "test": (("limit_test_batches", "test no batch", "1.0: every batch"),),
+    "predict": (("limit_predict_batches", "predict no batch", "1.0: every batch"),),
+}
 #: the sizes linked from the data module into the model a module is handed, when the
 #: classes are built (:attr:`GarmentDataModule.dims`) or parsed (its arguments); a model
 #: class that does not take one is left without it
@@ -164,6 +174,27 @@ def _dim(name: str):
     return get
 
 
+def count_first(typehint: Any) -> Any:
+    """``typehint`` with ``int`` tried before ``float`` in every union it holds.
+
+    Lightning reads an int as a count and a float as a fraction
+    (``--trainer.limit_test_batches 1`` is one batch, ``1.0`` all of them), and the
+    parser tries a union's types in order.  ``typing`` caches unions by equality, which
+    ignores order: a library that wrote ``Union[float, int]`` first (PyG does) makes the
+    Trainer's ``Optional[Union[int, float]]`` float-first, so ``1`` was read as ``1.0``.
+    A union is rebuilt directly (``Union[...]`` would return the cached one)."""
+    args = getattr(typehint, "__args__", None)
+    if getattr(typehint, "__origin__", None) is not Union or not isinstance(args, tuple):
+        return typehint
+    new = tuple(count_first(a) for a in args)
+    if int in new and float in new and new.index(float) < new.index(int):
+        new = tuple(a for a in new if a is not float)
+        new = new[:new.index(int) + 1] + (float,) + new[new.index(int) + 1:]
+    if all(a is b for a, b in zip(new, args)):
+        return typehint
+    return type(typehint)(Union, new)
+
+
 def _defaults(cls: type) -> Dict[str, Any]:
     return {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
             if p.default is not inspect.Parameter.empty}
@@ -189,6 +220,7 @@ class GarmentCLI(LightningCLI):
 
     def parse_arguments(self, parser: Any, args: Any) -> None:
         super().parse_arguments(parser, args)
+        self.check_something_runs()
         self.check_checkpoint_given()
         cls_path = self.check_checkpoint_flags()
         if cls_path is not None:
@@ -196,6 +228,17 @@ class GarmentCLI(LightningCLI):
             # a checkpoint written outside LightningCLI does not name its class, which is
             # then the configured one (not the parser's default)
             parser.set_defaults({f"{self.config.subcommand}.model": {"class_path": cls_path}})
+
+    def check_something_runs(self) -> None:
+        """A trainer setting of 0 that leaves the subcommand nothing to do
+        (:data:`NOTHING_RUNS`: ``fit --trainer.max_steps 0`` exited 0 without a step or a
+        checkpoint) is a ``ValueError`` naming the flag."""
+        sub = self.config.get("subcommand") if self.config is not None else None
+        trainer = _plain(self.config[sub].get("trainer")) if sub else {}
+        for key, lost, hint in NOTHING_RUNS.get(sub, ()):
+            if trainer.get(key) == 0 and not isinstance(trainer.get(key), bool):
+                raise ValueError(f"--trainer.{key} {trainer[key]}: `{sub}` would {lost}; "
+                                 f"give a positive value ({hint})")
 
     def check_checkpoint_given(self) -> None:
         """``validate``, ``test`` and ``predict`` score a trained model: without
@@ -276,6 +319,9 @@ class GarmentCLI(LightningCLI):
         return trainer
 
     def add_arguments_to_parser(self, parser: Any) -> None:
+        for action in parser._actions:  # an int flag stays a count (:func:`count_first`)
+            if getattr(action, "_typehint", None) is not None:
+                action._typehint = count_first(action._typehint)
         # the parser starts from the module the arguments name: jsonargparse keeps the
         # values of same-named arguments when a config switches the class, so starting
         # from GarTransModule would hand a BaselineModule GarTransModule's defaults

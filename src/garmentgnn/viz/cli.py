@@ -28,10 +28,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--mode", choices=("gartrans", "gartrans_ar"), default="gartrans",
                    help="frame-parallel or autoregressive prediction")
     s.add_argument("--no-lbs", action="store_true", help="leave out the LBS-only panel")
-    s.add_argument("--history", type=int, default=3,
-                   help="past frames each prediction sees (as the checkpoints were trained)")
-    s.add_argument("--num-landmarks", type=int, default=64,
-                   help="Nystrom landmarks of the garment's geodesic features")
+    s.add_argument("--history", type=int_at_least(1), default=None,
+                   help="past frames each prediction sees (default: as the checkpoints were "
+                        "trained; the data module's default without one)")
+    s.add_argument("--num-landmarks", type=int_at_least(1), default=None,
+                   help="Nystrom landmarks of the garment's geodesic features (default: as "
+                        "the checkpoints were trained; the data module's default without one)")
     s.add_argument("--max-frames", type=int_at_least(1), default=None,
                    help="show at most this many frames (default: the whole sequence)")
     s.add_argument("--height", type=int, default=896, help="frame height in px (>= 720)")

@@ -7,6 +7,7 @@ body, ready for :func:`~garmentgnn.viz.animate.render_animation` or for glTF exp
 """
 from __future__ import annotations
 
+import inspect
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +19,8 @@ import torch
 from garmentgnn.data import store
 from garmentgnn.data.gltf import GltfMesh, write_gltf
 from garmentgnn.models import MGNStyle
-from garmentgnn.training import BaselineModule, GarTransModule, SimulatorModule
+from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
+                                 SimulatorModule)
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
 from garmentgnn.training.integrity import load_checkpoint_file
@@ -94,7 +96,8 @@ def load_checkpoint(path: PathLike):
 
 def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str] = "test",
                index: Union[int, str] = 0, mode: str = "gartrans", lbs: bool = True,
-               history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
+               history: Optional[int] = None, num_landmarks: Optional[int] = None,
+               max_frames: Optional[int] = None,
                predictions: Optional[Mapping[str, object]] = None) -> Comparison:
     """Ground truth, each of ``models`` (name -> :class:`GarTransModule` or checkpoint
     path; ``mode`` ``"gartrans"`` frame-parallel or ``"gartrans_ar"`` autoregressive),
@@ -102,7 +105,11 @@ def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str
     method's garment on this sequence, in our vertex order) and, with ``lbs``, the
     LBS-only coarse garment, on the ``index``-th sequence of ``split`` under ``root``
     (or, with a string ``index``, on the sequence of that id).
-    Models run in eval mode (their mode is restored)."""
+    Models run in eval mode (their mode is restored).  ``history`` and ``num_landmarks``
+    (the data's pose history and Nyström landmarks) default to those the checkpoints were
+    trained with (:func:`data_settings`); a model built for another skeleton, body or
+    garment size than the sequence's is refused naming the sizes
+    (:meth:`GarmentModule.check_data`)."""
     if mode not in ("gartrans", "gartrans_ar"):
         raise ValueError(f"`mode`: expected 'gartrans' or 'gartrans_ar', got {mode!r}")
     if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(
@@ -112,23 +119,59 @@ def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str
     # loaded with autograd on: building the model runs a backward pass
     loaded = {name: (load_checkpoint(m) if isinstance(m, (str, os.PathLike)) else m)
               for name, m in models.items()}
+    where = {name: str(m) if isinstance(m, (str, os.PathLike)) else f"`models`[{name!r}]"
+             for name, m in models.items()}
+    history, num_landmarks = data_settings(loaded, where, history, num_landmarks)
     modes = {name: m.training for name, m in loaded.items()}
     try:
         for m in loaded.values():
             m.eval()
         with torch.no_grad():
             return _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks,
-                               max_frames, dict(predictions or {}))
+                               max_frames, dict(predictions or {}), where)
     finally:
         for name, m in loaded.items():
             m.train(modes[name])
 
 
+#: the data settings a checkpoint's data module fixes, and the flag of each
+TRAINED_DATA = {"history": "--history", "num_landmarks": "--num-landmarks"}
+
+
+def data_settings(loaded: Mapping[str, object], where: Mapping[str, str],
+                  history: Optional[int], num_landmarks: Optional[int]) -> Tuple[int, int]:
+    """``(history, num_landmarks)`` for the sequence the models are shown on: the values
+    the checkpoints' data modules were trained with (the data module's defaults where
+    none says), which a given value must match (another value would give the model
+    other inputs than it learned from, silently); ``ValueError`` naming the flag, or the
+    two checkpoints that disagree."""
+    given = {"history": history, "num_landmarks": num_landmarks}
+    out = {k: v for k, v in given.items() if v is not None}
+    source: Dict[str, str] = {}
+    for name, m in loaded.items():
+        for key, value in (getattr(m, "trained_data", None) or {}).items():
+            if key not in TRAINED_DATA or value is None:
+                continue
+            if key in source and out[key] != value:
+                raise ValueError(f"`models`: {where[name]} was trained with {key} {value}, "
+                                 f"{source[key]} with {out[key]}; show them separately")
+            if given[key] is not None and given[key] != value:
+                raise ValueError(f"`{key}` {given[key]}: {where[name]} was trained with "
+                                 f"{key} {value}; drop the flag ({TRAINED_DATA[key]} "
+                                 f"follows the checkpoint)")
+            out[key], source[key] = value, where[name]
+    defaults = inspect.signature(GarmentDataModule.__init__).parameters
+    return tuple(out.get(k, defaults[k].default) for k in TRAINED_DATA)  # type: ignore
+
+
 def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames,
-                predictions) -> Comparison:
+                predictions, where) -> Comparison:
     nys = {int(m.nystrom_dim) for m in loaded.values() if m.nystrom_dim is not None} or {16}
     if len(nys) > 1:
         raise ValueError(f"`models`: checkpoints disagree on nystrom_dim {sorted(nys)}")
+    if min(nys) > num_landmarks:
+        raise ValueError(f"`num_landmarks` {num_landmarks}: the models read {min(nys)} "
+                         f"Nyström features, which need at least as many landmarks")
     ids = None
     if isinstance(index, str):  # a sequence id: that sequence alone
         ids, index = [index], 0
@@ -139,6 +182,11 @@ def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, m
     if not 0 <= index < len(ds):
         raise ValueError(f"`index`: {split!r} has {len(ds)} sequences, got index {index}")
     item = ds[index]
+    dims = {"num_joints": item["rest_joints"].shape[0],
+            "num_body_vertices": item["body_pos"].shape[1], "num_vertices": item.num_vertices}
+    for name, module in loaded.items():
+        if hasattr(module, "check_data"):
+            module.check_data(dims, where[name])
     gt = item["gt"].double().numpy()
     panels = [Panel("simulated (ground truth)", gt, color=GT_COLOR)]
     for name, module in loaded.items():
@@ -173,7 +221,8 @@ def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, m
 def show(root: PathLike, checkpoints: Mapping[str, object], out: PathLike, *,
          split: Optional[str] = "test", index: Union[int, str] = 0, mode: str = "gartrans",
          lbs: bool = True,
-         history: int = 3, num_landmarks: int = 64, max_frames: Optional[int] = None,
+         history: Optional[int] = None, num_landmarks: Optional[int] = None,
+         max_frames: Optional[int] = None,
          predictions: Optional[Mapping[str, object]] = None, gltf: bool = True,
          html: bool = False, **render_kw) -> Dict[str, object]:
     """Render the comparison of one held-out sequence to ``<out>.mp4/.gif/.png`` and,
