@@ -10,6 +10,7 @@ for the resumed one; a copy of the dataset with altered test positions for NCS."
 import dataclasses
 import gc
 import importlib
+import inspect
 import json
 import math
 import multiprocessing
@@ -27,10 +28,11 @@ from garmentgnn.cli import main as cli_main
 from garmentgnn.data import store
 from garmentgnn.models import gartrans
 from garmentgnn.models.baselines import DAStyle
-from garmentgnn.training import BaselineModule, GarTransModule, GarmentDataModule
+from garmentgnn.training import (BaselineModule, GarTransModule, GarmentDataModule,
+                                 ProgressiveSchedule)
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
-from garmentgnn.training.configs import instantiate
+from garmentgnn.training.configs import import_class, instantiate
 from garmentgnn.sim.stand_in import skinned_wobble
 
 from conftest import ZERO_AREA_M2, numbers, skirt_dataset
@@ -333,11 +335,8 @@ def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
     assert {k: model[k] for k in given["model"]["init_args"]} == given["model"]["init_args"]
     built = instantiate(spec, cli.datamodule.dims)
     assert built.model.init_args == cli.model.model.init_args
-    cbs = [c for c in cli.config["trainer"]["callbacks"]
-           if c["class_path"].endswith("ProgressiveSchedule")]
-    assert len(cbs) == 1
-    built = {k: x for k, x in dict(cbs[0]["init_args"]).items() if k not in ("window", "window2")}
-    assert built == sched
+    (cb,) = cli.model.configure_callbacks()  # the module's own schedule
+    assert vars(cb) == vars(ProgressiveSchedule(**sched, window=cb.window, window2=cb.window2))
     assert methods.DATA == {k: x for k, x in dict(cli.config["data"]).items()
                             if k in methods.DATA}
 
@@ -401,7 +400,9 @@ def test_batched_runs_take_fewer_steps_at_the_scaled_learning_rate(data, tmp_pat
             ckpt = torch.load(r["checkpoint"], map_location="cpu", weights_only=False)
             spec = (methods.variant_settings(full)[0] if r["method"] == full
                     else methods.BASELINES[methods.DA])
-            assert ckpt["hyper_parameters"]["lr"] == pytest.approx(2 * spec["init_args"]["lr"])
+            lr = spec["init_args"].get("lr", inspect.signature(  # the recipe's, or the default
+                import_class(spec["class_path"]).__init__).parameters["lr"].default)
+            assert ckpt["hyper_parameters"]["lr"] == pytest.approx(2 * lr)
     assert steps == {(full, 1): 4, (methods.DA, 1): 4, (full, 2): 2, (methods.DA, 2): 2}
 
 

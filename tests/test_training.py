@@ -38,6 +38,17 @@ def make(root, **kw):
     return dm, module
 
 
+#: the paper's schedule (no extra terms, one window and threshold) with one-epoch windows
+#: and a threshold every epoch passes: a phase change at the end of every second epoch
+FAST = {"window": 1, "threshold": 10.0, "window2": None, "threshold2": None,
+        "extra_terms": [], "extra_from": 3}
+
+
+def schedule_of(tr):
+    """The module's own schedule in trainer ``tr`` (``GarTransModule.configure_callbacks``)."""
+    return next(c for c in tr.callbacks if isinstance(c, ProgressiveSchedule))
+
+
 def trainer(max_epochs, callbacks=(), **kw):
     return L.Trainer(max_epochs=max_epochs, accelerator="cpu", devices=1, logger=False,
                      enable_checkpointing=False, enable_progress_bar=False,
@@ -86,18 +97,19 @@ def test_training_reduces_loss(root):
 
 
 def test_schedule_passes_all_three_phases(root):
-    dm, module = make(root)
+    dm, module = make(root, schedule=FAST)
     seen = {}
 
     class Record(L.Callback):
         def on_train_epoch_end(self, trainer, pl_module):  # runs before the schedule's
-            seen[trainer.current_epoch] = (sched.phase, set(pl_module.loss_fn.enabled),
+            seen[trainer.current_epoch] = (schedule_of(trainer).phase,
+                                           set(pl_module.loss_fn.enabled),
                                            pl_module.loss_fn.supervised_scale,
                                            set(trainer.callback_metrics))
 
-    sched = ProgressiveSchedule(window=1, threshold=10.0)
-    tr = trainer(5, callbacks=[Record(), sched], limit_train_batches=1, limit_val_batches=0)
+    tr = trainer(5, callbacks=[Record()], limit_train_batches=1, limit_val_batches=0)
     tr.fit(module, dm)
+    sched = schedule_of(tr)
     phases = [seen[e][0] for e in range(5)]
     assert phases == [1, 1, 2, 2, 3]
     assert sched.transitions == {2: 1, 3: 3}
@@ -116,7 +128,8 @@ def test_schedule_passes_all_three_phases(root):
 
 
 def test_schedule_extra_terms_join_from_their_phase(root):
-    dm, module = make(root, loss_weights={"bending": 0.1})
+    dm, module = make(root, loss_weights={"bending": 0.1},
+                      schedule=dict(FAST, extra_terms=["bending"], extra_from=2))
     seen = {}
 
     class Record(L.Callback):
@@ -124,9 +137,7 @@ def test_schedule_extra_terms_join_from_their_phase(root):
             seen[trainer.current_epoch] = (set(pl_module.loss_fn.enabled),
                                            set(trainer.callback_metrics))
 
-    sched = ProgressiveSchedule(window=1, threshold=10.0, extra_terms=["bending"], extra_from=2)
-    trainer(3, callbacks=[Record(), sched], limit_train_batches=1, limit_val_batches=0).fit(
-        module, dm)
+    trainer(3, callbacks=[Record()], limit_train_batches=1, limit_val_batches=0).fit(module, dm)
     assert "bending" not in seen[0][0] and "train/bending" not in seen[0][1]
     assert seen[2][0] == set(PHASE_TERMS[2]) | {"bending"} and "train/bending" in seen[2][1]
     with pytest.raises(ValueError, match="extra_terms"):
@@ -152,13 +163,12 @@ def test_collision_projection_runs_in_training_and_keeps_the_garment_out(root):
 @pytest.mark.parametrize("freeze", [True, False])
 def test_frozen_rest_branch_does_not_change(root, freeze):
     """Phase 3 freezes the rest-pose branch (the paper); ``freeze_rest=False`` trains it."""
-    dm, module = make(root)
-    sched = ProgressiveSchedule(start_phase=3, freeze_rest=freeze)
+    dm, module = make(root, schedule={"start_phase": 3, "freeze_rest": freeze})
     with torch.no_grad():  # open the lbs_start gates so every branch gets gradient at once
         module.model.gates.fill_(0.5)
     before = [p.detach().clone() for p in module.rest_branch_parameters()]
     dyn = [p.detach().clone() for p in module.model.dynamic.parameters()]
-    trainer(1, callbacks=[sched], limit_train_batches=1, limit_val_batches=0).fit(module, dm)
+    trainer(1, limit_train_batches=1, limit_val_batches=0).fit(module, dm)
     same = [torch.equal(a, p) for a, p in zip(before, module.rest_branch_parameters())]
     assert all(same) if freeze else not any(same)
     assert any(not torch.equal(a, p) for a, p in zip(dyn, module.model.dynamic.parameters()))
@@ -168,25 +178,27 @@ def test_frozen_rest_branch_does_not_change(root, freeze):
 def test_checkpoint_resume_is_exact(root, tmp_path):
     kw = {"limit_val_batches": 0}
     # uninterrupted: 4 epochs x 2 chunks, phase changes at the end of epochs 1 and 3
-    dm, full = make(root, t_max=4)
-    s_full = ProgressiveSchedule(window=1, threshold=10.0)
-    trainer(4, callbacks=[s_full], **kw).fit(full, dm)
+    dm, full = make(root, t_max=4, schedule=FAST)
+    t_full = trainer(4, **kw)
+    t_full.fit(full, dm)
+    s_full = schedule_of(t_full)
     # interrupted after 1 epoch (phase 1, one epoch of history), resumed to 4; the chunk
     # order of epoch 1 differs from epoch 0's, so replaying epoch 0's order would show
     sampler = EpochShuffleSampler(len(dm.train_set), dm.hparams.seed)
     epoch0 = list(sampler)
     sampler.set_epoch(1)
     assert list(sampler) != epoch0
-    dm, part = make(root, t_max=4)
-    s1 = ProgressiveSchedule(window=1, threshold=10.0)
-    t1 = trainer(1, callbacks=[s1], **kw)
+    dm, part = make(root, t_max=4, schedule=FAST)
+    t1 = trainer(1, **kw)
     t1.fit(part, dm)
+    s1 = schedule_of(t1)
     assert s1.phase == 1 and len(s1.history) == 1
     ckpt = tmp_path / "mid.ckpt"
     t1.save_checkpoint(ckpt)
-    dm, resumed = make(root, t_max=4)  # fresh weights, overwritten by the checkpoint
-    s2 = ProgressiveSchedule(window=1, threshold=10.0)
-    trainer(4, callbacks=[s2], **kw).fit(resumed, dm, ckpt_path=str(ckpt))
+    dm, resumed = make(root, t_max=4, schedule=FAST)  # fresh weights, overwritten by the ckpt
+    t2 = trainer(4, **kw)
+    t2.fit(resumed, dm, ckpt_path=str(ckpt))
+    s2 = schedule_of(t2)
     assert s2.phase == s_full.phase == 3 and s2.transitions == s_full.transitions
     for (n, a), b in zip(full.named_parameters(), resumed.parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=n)

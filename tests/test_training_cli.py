@@ -58,9 +58,33 @@ def test_config_builds_the_variant(root, tmp_path, variant):  # noqa: F811
     assert model["dynamic_layer"] == expected
     if variant == "paper.yaml":
         assert {k: model[k] for k in PAPER_FORM} == PAPER_FORM
-    sched = [c for c in cli.trainer.callbacks if isinstance(c, ProgressiveSchedule)]
-    assert len(sched) == 1
-    assert sched[0].max_phase == (1 if variant == "wo_unsup.yaml" else 3)
+    assert not [c for c in cli.trainer.callbacks if isinstance(c, ProgressiveSchedule)]
+    (sched,) = m.configure_callbacks()  # the module's own schedule
+    assert isinstance(sched, ProgressiveSchedule)
+    assert sched.max_phase == (1 if variant == "wo_unsup.yaml" else 3)
+
+
+def test_python_quick_start_is_the_gartrans_recipe(root, tmp_path):  # noqa: F811
+    """`GarTransModule(GarTrans(**sizes))` and `--config gartrans` build identical
+    hyper-parameters (model, module, schedule) and one data module's settings: what
+    trains is written once."""
+    cli = train_main(["--config", "gartrans", "--data.root", str(root),
+                      "--trainer.default_root_dir", str(tmp_path)], run=False)
+    lightning_keys = ("_class_path", "_instantiator")  # what LightningCLI adds
+    dm = GarmentDataModule(root)
+    py = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
+    recipe = {k: v for k, v in cli.model.hparams.items() if k not in lightning_keys}
+    mine = dict(py.hparams)
+    # the recipe's one model setting beyond the defaults: compile the face search
+    assert recipe.pop("model")["init_args"] == dict(mine.pop("model")["init_args"],
+                                                    compile_search=True)
+    assert recipe == mine
+    assert {k: v for k, v in cli.datamodule.hparams.items() if k not in lightning_keys} \
+        == dict(dm.hparams)
+    ours, theirs = cli.model.configure_callbacks()[0], py.configure_callbacks()[0]
+    assert vars(ours) == vars(theirs)
+    assert py.loss_fn.weights == cli.model.loss_fn.weights
+    assert py.loss_fn.weights["edge"] == 150.0 and py.loss_fn.weights["curv"] == 200.0
 
 
 def test_cli_fit_writes_checkpoint_and_resumes(root, tmp_path):  # noqa: F811
@@ -127,7 +151,8 @@ def test_ddp_two_cpu_processes_gloo(root, tmp_path, phase):  # noqa: F811
     """Plain DDP (every trainable parameter gets a gradient) in phase 1; phase 3 freezes
     the rest branch mid-run, which DDP only allows with ``find_unused_parameters``."""
     dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
-    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)),
+                            schedule={"start_phase": phase})
     with torch.no_grad():  # open the lbs_start gates so every branch gets gradient at once
         module.model.gates.fill_(0.5)
     strategy = DDPStrategy(start_method="spawn", find_unused_parameters=phase == 3)
@@ -135,7 +160,7 @@ def test_ddp_two_cpu_processes_gloo(root, tmp_path, phase):  # noqa: F811
                         limit_train_batches=2, limit_val_batches=0, logger=False,
                         enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False,
-                        callbacks=[_ReplicasEqual(), ProgressiveSchedule(start_phase=phase)],
+                        callbacks=[_ReplicasEqual()],
                         default_root_dir=str(tmp_path))
     before = {n: p.detach().clone() for n, p in module.named_parameters()}
     trainer.fit(module, dm)
@@ -177,7 +202,7 @@ def _fit_recorded(root, tmp_path, init, devices, accumulate):  # noqa: F811
                         accumulate_grad_batches=accumulate, limit_val_batches=0,
                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, default_root_dir=str(tmp_path),
-                        callbacks=[_Record(tmp_path), ProgressiveSchedule()])
+                        callbacks=[_Record(tmp_path)])  # and the module's own schedule
     trainer.fit(module, dm)  # spawn: the trained weights come back to this process
     recs = [torch.load(tmp_path / f"rank{r}.pt") for r in range(devices)]
     return module, recs

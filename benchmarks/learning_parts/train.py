@@ -9,7 +9,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Union
 
 import lightning as L
 import torch
@@ -41,12 +41,15 @@ def datamodule(root: Path, seed: int = 0, split: str = "train",
 
 
 def gartrans(dims: Dict[str, int], method: str = "GarTrans (SAT)",
-             overrides: Optional[Dict[str, Any]] = None) -> GarTransModule:
+             overrides: Optional[Dict[str, Any]] = None,
+             schedule: Union[bool, Dict[str, Any]] = False) -> GarTransModule:
     """GarTrans variant ``method`` as the bench builds it, with ``overrides`` (settings of
-    the model or of the module, by name)."""
+    the model or of the module, by name) and the module's ``schedule`` (default: none,
+    phase 1's losses throughout; a dict: :class:`ProgressiveSchedule` arguments)."""
     spec, _ = variant_settings(method)
     ov, model_args = overrides or {}, inspect.signature(GarTrans.__init__).parameters
-    spec = merge(spec, {"init_args": {**{k: v for k, v in ov.items() if k not in model_args},
+    spec = merge(spec, {"init_args": {"schedule": schedule,
+                                      **{k: v for k, v in ov.items() if k not in model_args},
                                       "model": {"init_args": {k: v for k, v in ov.items()
                                                               if k in model_args}}}})
     return instantiate(spec, dims)
@@ -344,19 +347,19 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 runs.append(old[0])
                 continue
             L.seed_everything(seed, verbose=False)
+            # the bench's schedule of full GarTrans, with v's settings (none without them)
+            sched = ({**variant_settings(FULL)[1], "window2": v["schedule"].get("window"),
+                      **v["schedule"]} if "schedule" in v else False)
             module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
-                      else gartrans(dims, overrides=v.get("model")))
+                      else gartrans(dims, overrides=v.get("model"), schedule=sched))
             if v.get("anneal"):  # the cosine's period: the run's epochs
                 module.hparams.t_max = math.ceil(steps / v["trainer"]["limit_train_batches"])
             probe = Probe(sequences(data.get("history")) if data else sets, every, name, surface)
-            # the bench's schedule of full GarTrans, with v's settings
-            sched = (ProgressiveSchedule(**dict(variant_settings(FULL)[1], **v["schedule"]))
-                     if "schedule" in v else None)
             folder = None if runs_dir is None else runs_dir / f"{slug(name)}-{tag}--s{seed}"
             last_ckpt = None if folder is None else folder / "last.ckpt"
+            trainer = _trainer(steps, [probe], folder, every, **v.get("trainer", {}))
             try:
-                _trainer(steps, [probe] + ([sched] if sched else []), folder, every,
-                         **v.get("trainer", {})).fit(
+                trainer.fit(
                     module, datamodule(root, seed, data=data),
                     ckpt_path=last_ckpt if last_ckpt is not None and last_ckpt.is_file()
                     else None)
@@ -365,7 +368,9 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 status = f"{type(err).__name__}: {err}"
             runs.append({"seed": seed, "curve": probe.rows, "status": status,
                          "seconds": probe.seconds(),
-                         **({"transitions": sched.transitions} if sched else {})})
+                         **({"transitions": next((
+                             c.transitions for c in trainer.callbacks
+                             if isinstance(c, ProgressiveSchedule)), {})} if sched else {})})
             last = probe.rows[-1] if probe.rows else {}
             print(f"curves {name}, seed {seed}: " + ", ".join(
                 f"{k} {last.get(k, math.nan) / lbs[k]:.3f}" for k in sets)

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.body.factory import build_body
 from garmentgnn.data import store
 from garmentgnn.data.validity import sequence_valid
@@ -79,8 +80,9 @@ class SequenceChunks(Dataset):
     ``chunks[i]`` is one chunk; ``chunks[[i, j, ...]]`` those chunks as one batch.
     """
 
-    def __init__(self, root, split: Optional[str] = "train", chunk: int = 8, history: int = 3,
-                 nystrom_dim: int = 16, num_landmarks: int = 64, drop_last: bool = False,
+    def __init__(self, root, split: Optional[str] = "train", chunk: int = 8,
+                 history: int = HISTORY, nystrom_dim: int = NYSTROM_DIM,
+                 num_landmarks: int = NUM_LANDMARKS, drop_last: bool = False,
                  cache_size: int = 4, static_cache: int = 64,
                  ids: Optional[Sequence[str]] = None, stride: Optional[int] = None) -> None:
         if chunk < 1:

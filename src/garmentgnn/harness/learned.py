@@ -43,8 +43,7 @@ from garmentgnn.harness.curves import LearningCurve, TrainClock, quiet_lightning
 from garmentgnn.harness.dataset import DatasetInfo, prepare_dataset
 from garmentgnn.harness.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
                                         HOOD, LONG, METHOD_NAMES, MGN, MGN_DATA, MGN_MODULE,
-                                        NCS, LearnedBudget,
-                                        variant_settings)
+                                        NCS, LearnedBudget, variant_settings, with_schedule)
 from garmentgnn.harness.model_inputs import (BenchChunks, Predictor, baseline_batches,
                                              lbs_predictor)
 from garmentgnn.harness.page import MEDIA
@@ -380,7 +379,8 @@ class LearnedRunner:
         long = method == LONG
         variant = FULL if long else method
         hp, sched_kw = variant_settings(variant)
-        sched_kw = dict(sched_kw, window=self.budget.window)
+        sched_kw = dict(sched_kw, window=self.budget.window, window2=self.budget.window)
+        hp = with_schedule(hp, sched_kw)
         minutes = self.budget.long_minutes if long else self.budget.minutes
         v = GARTRANS[variant]
         config = {"model": hp, "schedule": sched_kw, "data": DATA, **self._limits(minutes),
@@ -388,9 +388,9 @@ class LearnedRunner:
         folder = self._folder(method, seed, config)
         dm = self._datamodule(seed)
         module = self._module(hp, dm.dims)
-        sched = ProgressiveSchedule(**sched_kw)
-        info = self.fit(module, dm, folder, self.budget.epochs, [sched], minutes,
+        info = self.fit(module, dm, folder, self.budget.epochs, (), minutes,
                         predict=lambda m, item: m(item)["final"])
+        sched = next(c for c in module.trainer.callbacks if isinstance(c, ProgressiveSchedule))
 
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
             it = item.cycled(b)

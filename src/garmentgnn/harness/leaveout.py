@@ -34,6 +34,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
 from garmentgnn.harness.records import failure, section
 from garmentgnn.harness.sequences import BenchSequence
@@ -108,8 +109,8 @@ def active(module, item: Dict[str, Any]) -> Dict[str, Any]:
 
 
 def run_record(seq: BenchSequence, gt: Tensor, seed: int = 0, warmup: int = 2,
-               repeats: int = 5, history: int = 3, nystrom_dim: int = 16,
-               num_landmarks: int = 64, module_kwargs: Optional[Dict[str, Any]] = None
+               repeats: int = 5, history: int = HISTORY, nystrom_dim: int = NYSTROM_DIM,
+               num_landmarks: int = NUM_LANDMARKS, module_kwargs: Optional[Dict[str, Any]] = None
                ) -> Dict[str, Any]:
     """The leave-out report of one sequence; a ``kind="leaveout"`` record.
 

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 from garmentgnn.harness import stability as stab
-from garmentgnn.training.configs import load_config, module_spec, schedule_args
+from garmentgnn.training.configs import load_config, module_spec
+from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.schedule import ProgressiveSchedule
 
 __all__ = ["BASELINES", "BASELINE_CONFIGS", "DATA", "GARTRANS", "GARTRANS_MODULE", "LBS",
@@ -31,10 +32,12 @@ _BASE = load_config("gartrans")
 #: ``configs/gartrans.yaml``'s module (its ``model:`` entry: ``class_path`` and
 #: ``init_args``, the GarTrans it trains nested in them)
 GARTRANS_MODULE: Dict[str, Any] = module_spec("gartrans")
-#: ``configs/gartrans.yaml``'s ``data:`` section without ``root`` and ``num_workers``
-DATA: Dict[str, Any] = {k: v for k, v in _BASE["data"].items()
-                        if k not in ("root", "num_workers")}
-#: the schedule arguments that the bench budget sets (the config's belong to its epochs)
+#: the data settings GarTrans trains on: the data module's (its defaults, under
+#: ``configs/gartrans.yaml``'s ``data:`` section) chunk length, history and Nyström sizes
+DATA: Dict[str, Any] = {k: v for k, v in dict(
+    {k: p.default for k, p in inspect.signature(GarmentDataModule.__init__).parameters.items()},
+    **_BASE["data"]).items() if k in ("chunk", "history", "nystrom_dim", "num_landmarks")}
+#: the schedule arguments that the bench budget sets (the module's belong to its epochs)
 _WINDOWS = ("window", "window2")
 _SCHEDULE_DEFAULTS = {k: p.default for k, p in
                       inspect.signature(ProgressiveSchedule.__init__).parameters.items()
@@ -82,14 +85,19 @@ def variant_settings(method: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
     """``(module spec, ProgressiveSchedule arguments without the windows)`` of GarTrans
     variant ``method``: ``gartrans.yaml`` merged with its ablation file the way
     LightningCLI merges two ``--config`` files (a list, like ``callbacks``, replaces);
-    :func:`~garmentgnn.training.configs.instantiate` builds the module."""
+    :func:`~garmentgnn.training.configs.instantiate` builds the module.  The schedule is
+    the module's own (its ``schedule`` argument; :func:`with_schedule` sets it)."""
     v = GARTRANS[method]
-    cfg = load_config(f"ablations/{v.config}") if v.config else {}
     model = module_spec("gartrans", *([f"ablations/{v.config}"] if v.config else []))
-    sched = schedule_args(cfg)
-    sched = schedule_args(_BASE) if sched is None else sched
-    full = dict(_SCHEDULE_DEFAULTS, **sched)
+    sched = (model.get("init_args") or {}).get("schedule", True)
+    full = dict(_SCHEDULE_DEFAULTS, **(sched if isinstance(sched, dict) else {}))
     return model, {k: val for k, val in full.items() if k not in _WINDOWS}
+
+
+def with_schedule(spec: Dict[str, Any], schedule: Dict[str, Any]) -> Dict[str, Any]:
+    """A GarTrans module ``spec`` that trains with the :class:`ProgressiveSchedule` of
+    arguments ``schedule``."""
+    return dict(spec, init_args=dict(spec.get("init_args") or {}, schedule=dict(schedule)))
 
 
 #: the long run of full GarTrans (:attr:`LearnedBudget.long_minutes`)

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.harness.sequences import BenchSequence
 from garmentgnn.data import store
 from garmentgnn.models.inputs import GarmentInputs, check_history
@@ -55,8 +56,8 @@ class BenchChunks(SequenceChunks):
             items' ``gt``; ``None``: items carry no ``gt`` key (nothing is made up).
     """
 
-    def __init__(self, seq: BenchSequence, chunk: Optional[int] = None, history: int = 3,
-                 nystrom_dim: int = 16, num_landmarks: int = 64,
+    def __init__(self, seq: BenchSequence, chunk: Optional[int] = None, history: int = HISTORY,
+                 nystrom_dim: int = NYSTROM_DIM, num_landmarks: int = NUM_LANDMARKS,
                  gt: Optional[Tensor] = None) -> None:
         if not isinstance(seq, BenchSequence):
             raise ValueError(f"`seq`: expected a BenchSequence, got {type(seq).__name__}")

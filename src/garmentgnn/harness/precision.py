@@ -38,6 +38,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.harness import stability as stab
 from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
 from garmentgnn.harness.records import failure, section
@@ -156,8 +157,8 @@ def _predictors(seq: BenchSequence, method: str, seed: int, history: int, nystro
 
 
 def run_record(seq: BenchSequence, method: str, seed: int = 0, warmup: int = 2,
-               repeats: int = 5, history: int = 3, nystrom_dim: int = 16,
-               num_landmarks: int = 64, module_kwargs: Optional[Dict[str, Any]] = None,
+               repeats: int = 5, history: int = HISTORY, nystrom_dim: int = NYSTROM_DIM,
+               num_landmarks: int = NUM_LANDMARKS, module_kwargs: Optional[Dict[str, Any]] = None,
                thresholds: PrecisionThresholds = PRECISION_THRESHOLDS) -> Dict[str, Any]:
     """float32 / bfloat16 / float16 rows of ``method`` (``"gartrans"`` or ``"lbs"``) on
     ``seq``; a ``kind="precision"`` record."""
@@ -260,8 +261,9 @@ def long_verdict(m: Dict[str, float], thresholds: LongThresholds = LONG_THRESHOL
     return ("degraded", "; ".join(bad)) if bad else ("stable", "")
 
 
-def run_long(item: Dict[str, Any], seed: int = 0, history: int = 3, nystrom_dim: int = 16,
-             num_landmarks: int = 64, module_kwargs: Optional[Dict[str, Any]] = None,
+def run_long(item: Dict[str, Any], seed: int = 0, history: int = HISTORY,
+             nystrom_dim: int = NYSTROM_DIM, num_landmarks: int = NUM_LANDMARKS,
+             module_kwargs: Optional[Dict[str, Any]] = None,
              thresholds: LongThresholds = LONG_THRESHOLDS) -> Dict[str, Any]:
     """Autoregressive rollout of an untrained GarTrans over ``item``'s whole motion (a
     :func:`~garmentgnn.harness.sequences.case_item`); a ``kind="long_sequence"`` record."""

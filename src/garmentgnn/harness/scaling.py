@@ -31,6 +31,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import torch
 
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn._plotting import pyplot
 from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
 from garmentgnn.harness.records import failure, section
@@ -62,7 +63,8 @@ def scaling_items(template: Dict[str, Any], resolutions: Sequence[int]) -> List[
 
 
 def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: int = 5,
-               history: int = 3, nystrom_dim: int = 16, num_landmarks: int = 64,
+               history: int = HISTORY, nystrom_dim: int = NYSTROM_DIM,
+               num_landmarks: int = NUM_LANDMARKS,
                module_kwargs: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
     """Time one garment size; a ``kind="scaling"`` record (``status="failed"`` with the
     message when building or running raised).

@@ -20,6 +20,7 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
+from garmentgnn.models.inputs import NYSTROM_DIM
 from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import (edge_features, edge_lengths, unique_edges, vertex_normals,
                                  full_precision)
@@ -80,7 +81,7 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             (:mod:`~garmentgnn.models.state`); ``0`` (the paper): none, frame-parallel.
     """
 
-    def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = 16,
+    def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = NYSTROM_DIM,
                  rest_layer: str = "gt", blend_layer: str = "gt", dynamic_layer: str = "sat",
                  heads: int = 4, fps: float = 30.0, edge_dim: int = 4, use_body: bool = True,
                  skin_prior: bool = True, lbs_start: bool = True, gate_init: float = 1.0,

@@ -53,7 +53,15 @@ from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_ble
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features, full_precision
 from garmentgnn.physics import ClothRest
 
-__all__ = ["FRAME_KEYS", "GarmentInputs", "build_garment", "build_static", "check_history",
+#: the data sizes every entry point defaults to, defined here once: previous poses per
+#: frame (``H = HISTORY + 1``), Nyström features of the garment's geodesic distances and
+#: the landmarks they are computed over
+HISTORY = 3
+NYSTROM_DIM = 16
+NUM_LANDMARKS = 64
+
+__all__ = ["FRAME_KEYS", "HISTORY", "NUM_LANDMARKS", "NYSTROM_DIM", "GarmentInputs",
+           "build_garment", "build_static", "check_history",
            "check_pose", "history_frames", "nystrom_features", "skin", "with_frames"]
 
 #: the per-frame keys (indexed along the first dimension by :meth:`GarmentInputs.select`)
@@ -312,8 +320,8 @@ def build_garment(rest_pos: Tensor, faces: Tensor, skin_weights: Tensor, rest_jo
                          parents=parents.long(), pinned=pinned, num_nodes=V)
 
 
-def nystrom_features(rest_pos: Tensor, faces: Tensor, nystrom_dim: int = 16,
-                     num_landmarks: int = 64) -> Tensor:
+def nystrom_features(rest_pos: Tensor, faces: Tensor, nystrom_dim: int = NYSTROM_DIM,
+                     num_landmarks: int = NUM_LANDMARKS) -> Tensor:
     """The garment's Nyström features ``[V, nystrom_dim]`` float32 (paper §3.1,
     :func:`~garmentgnn.geometry.geodesic_nystrom_features` in float64), zero-padded to
     ``nystrom_dim`` columns on meshes with fewer landmarks."""
@@ -327,8 +335,8 @@ def nystrom_features(rest_pos: Tensor, faces: Tensor, nystrom_dim: int = 16,
 
 def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tensor,
                  face_uv: Optional[Tensor] = None, density: float = 0.15,
-                 pinned: Optional[Tensor] = None, nystrom_dim: int = 16,
-                 num_landmarks: int = 64, nystrom: Optional[Tensor] = None,
+                 pinned: Optional[Tensor] = None, nystrom_dim: int = NYSTROM_DIM,
+                 num_landmarks: int = NUM_LANDMARKS, nystrom: Optional[Tensor] = None,
                  material: Optional[Tensor] = None) -> GarmentInputs:
     """The per-garment, per-body-shape part of the inputs (computed once per sequence):
     :func:`build_garment` in float32 plus the Nyström features, the cloth rest state,

@@ -15,6 +15,7 @@ import torch
 from torch.utils.data import DataLoader
 from torch.utils.data.distributed import DistributedSampler
 
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.data import store
 from garmentgnn.data.chunks import SequenceChunks
 from garmentgnn.data.keys import body_key, garment_key
@@ -119,8 +120,9 @@ class GarmentDataModule(L.LightningDataModule):
     sampler's ``set_epoch``, which would replay epoch 0's chunk order.
     """
 
-    def __init__(self, root: Union[str, Path], chunk: int = 8, history: int = 3,
-                 num_workers: int = 0, nystrom_dim: int = 16, num_landmarks: int = 64,
+    def __init__(self, root: Union[str, Path], chunk: int = 8, history: int = HISTORY,
+                 num_workers: int = 0, nystrom_dim: int = NYSTROM_DIM,
+                 num_landmarks: int = NUM_LANDMARKS,
                  train_split: str = "train", val_split: Optional[str] = "val",
                  shuffle: bool = True, seed: int = 0, drop_last: bool = False,
                  test_split: str = "test", train_ids: Optional[Sequence[str]] = None,

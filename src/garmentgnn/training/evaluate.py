@@ -23,6 +23,7 @@ from typing import Dict, Optional, Sequence
 
 import torch
 
+from garmentgnn.models.inputs import NUM_LANDMARKS
 from garmentgnn.metrics import METRIC_UNITS, evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.module import GarTransModule
@@ -45,7 +46,7 @@ def predict(module, item: GarmentInputs, mode: str) -> torch.Tensor:
 @torch.no_grad()
 def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MODES,
                    history: Optional[int] = None, nystrom_dim: Optional[int] = None,
-                   num_landmarks: int = 64) -> Dict[str, Dict[str, float]]:
+                   num_landmarks: int = NUM_LANDMARKS) -> Dict[str, Dict[str, float]]:
     """``{mode: {metric: frame-weighted mean, ..., "frames": n, "ms_per_frame": t}}``
     over every sequence of ``split`` under ``root``."""
     for mode in modes:

@@ -7,7 +7,6 @@ body, ready for :func:`~garmentgnn.viz.animate.render_animation` or for glTF exp
 """
 from __future__ import annotations
 
-import inspect
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,8 +18,8 @@ import torch
 from garmentgnn.data import store
 from garmentgnn.data.gltf import GltfMesh, write_gltf
 from garmentgnn.models import MGNStyle
-from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 SimulatorModule)
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS
+from garmentgnn.training import BaselineModule, GarTransModule, SimulatorModule
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
 from garmentgnn.training.integrity import load_checkpoint_file
@@ -141,10 +140,10 @@ TRAINED_DATA = {"history": "--history", "num_landmarks": "--num-landmarks"}
 def data_settings(loaded: Mapping[str, object], where: Mapping[str, str],
                   history: Optional[int], num_landmarks: Optional[int]) -> Tuple[int, int]:
     """``(history, num_landmarks)`` for the sequence the models are shown on: the values
-    the checkpoints' data modules were trained with (the data module's defaults where
-    none says), which a given value must match (another value would give the model
-    other inputs than it learned from, silently); ``ValueError`` naming the flag, or the
-    two checkpoints that disagree."""
+    the checkpoints' data modules were trained with (``HISTORY`` and ``NUM_LANDMARKS`` of
+    :mod:`garmentgnn.models.inputs` where none says), which a given value must match
+    (another value would give the model other inputs than it learned from, silently);
+    ``ValueError`` naming the flag, or the two checkpoints that disagree."""
     given = {"history": history, "num_landmarks": num_landmarks}
     out = {k: v for k, v in given.items() if v is not None}
     source: Dict[str, str] = {}
@@ -160,8 +159,7 @@ def data_settings(loaded: Mapping[str, object], where: Mapping[str, str],
                                  f"{key} {value}; drop the flag ({TRAINED_DATA[key]} "
                                  f"follows the checkpoint)")
             out[key], source[key] = value, where[name]
-    defaults = inspect.signature(GarmentDataModule.__init__).parameters
-    return tuple(out.get(k, defaults[k].default) for k in TRAINED_DATA)  # type: ignore
+    return out.get("history", HISTORY), out.get("num_landmarks", NUM_LANDMARKS)
 
 
 def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames,

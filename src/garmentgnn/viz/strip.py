@@ -12,6 +12,7 @@ from typing import Tuple, Union
 
 import torch
 
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
@@ -22,8 +23,8 @@ __all__ = ["render_strip"]
 
 @torch.no_grad()
 def render_strip(module: GarmentModule, root: Union[str, os.PathLike], split: str,
-                 path: Union[str, os.PathLike], index: int = 0, history: int = 3,
-                 num_landmarks: int = 64, num_frames: int = 4) -> Tuple[Path, str]:
+                 path: Union[str, os.PathLike], index: int = 0, history: int = HISTORY,
+                 num_landmarks: int = NUM_LANDMARKS, num_frames: int = 4) -> Tuple[Path, str]:
     """PNG: rows simulated / GarTrans / LBS only, columns evenly spaced frames of the
     ``index``-th sequence of ``split``; returns ``(path, sequence id)``."""
     ds = SequenceChunks(root, split, chunk=10 ** 9, history=history,
