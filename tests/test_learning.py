@@ -24,7 +24,7 @@ from garmentgnn.training.configs import instantiate, merge, module_spec
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 from garmentgnn.training.base import DATASET_KEY, dataset_stamp
 from garmentgnn.training.integrity import CheckpointError, stamp_checkpoint
-from garmentgnn.models.baselines import DAStyle, HOODStyle, NCSStyle
+from garmentgnn.models.baselines import DAStyle
 
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 
@@ -108,13 +108,13 @@ def test_attention_stack_initialisation_is_kaiming(layer):
     assert seen >= 3
 
 
-def _save_checkpoint(module, path, drop=()) -> dict:
-    """``module`` saved as a stamped Lightning checkpoint of the earlier layout (the
-    model's settings among the module's) without the hyper-parameters ``drop`` (a
-    checkpoint written before they existed); returns what was saved."""
-    flat = {**{k: v for k, v in module.hparams.items() if k != "model"},
-            **module.model.init_args}
-    hp = {k: v for k, v in flat.items() if k not in drop}
+def _earlier_layout(module, path, flat=True, **changes) -> dict:
+    """``module`` saved as a stamped checkpoint of an earlier layout: ``flat``, the model's
+    settings among the module's (no model spec); ``changes`` added to the module's
+    hyper-parameters (options since removed).  Returns what was saved."""
+    hp = dict(module.hparams, **changes)
+    if flat:
+        hp = {**{k: v for k, v in hp.items() if k != "model"}, **module.model.init_args}
     ckpt = {"state_dict": module.state_dict(), "hyper_parameters": hp,
             "pytorch-lightning_version": L.__version__}
     stamp_checkpoint(ckpt)
@@ -122,163 +122,34 @@ def _save_checkpoint(module, path, drop=()) -> dict:
     return ckpt
 
 
-def test_checkpoint_from_before_accel_unit_keeps_its_acceleration_output(dm, tmp_path):
-    """A checkpoint saved before ``accel_unit`` existed holds no such hyper-parameter;
-    its model output an acceleration.  Loaded with today's default (centimetres) it
-    would predict other positions without a word; it loads as it was saved."""
-    old = gartrans(dm, accel_unit=None).eval()
-    item = dm.train_set[1]
-    paths = {"old": tmp_path / "old.ckpt", "new": tmp_path / "new.ckpt"}
-    _save_checkpoint(old, paths["old"], drop=("accel_unit",))
-    _save_checkpoint(old, paths["new"])
-    loaded = GarTransModule.load_from_checkpoint(paths["old"]).eval()
-    assert loaded.model.accel_unit is None
-    assert loaded.hparams.model["init_args"]["accel_unit"] is None
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(item)["final"], old(item)["final"])
-    assert GarTransModule.load_from_checkpoint(paths["new"]).model.accel_unit is None
-    assert GarTrans(**dm.model_sizes(GarTrans)).accel_unit == 0.01  # today's default
+@pytest.mark.parametrize("layout", [{"flat": True}, {"flat": False, "garment_state": False},
+                                    {"flat": False, "motion_history": 3}])
+def test_a_checkpoint_of_an_earlier_layout_is_refused_saying_to_retrain(dm, tmp_path,
+                                                                        layout):
+    """There is no conversion of earlier layouts: a checkpoint whose hyper-parameters this
+    version does not take is refused in one line naming them and saying to retrain."""
+    _earlier_layout(gartrans(dm), tmp_path / "old.ckpt", **layout)
+    with pytest.raises(CheckpointError) as e:
+        GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt")
+    msg = str(e.value)
+    assert "earlier layout of GarTransModule" in msg and "retrain it" in msg
+    assert "\n" not in msg
+    named = [k for k in layout if k != "flat"] or ["rest_layer"]
+    assert all(k in msg for k in named), msg
 
 
-def test_checkpoint_from_before_the_local_frame_loads_as_it_was_trained(dm, tmp_path):
-    """A checkpoint saved before ``local_frame`` (and ``input_norm``) existed was a
-    world-frame model without normalisers; it loads as that model, not with today's
-    defaults (which would not even fit its weights), unless the caller names them."""
-    old = gartrans(dm, local_frame=False, input_norm=False).eval()
-    item = dm.train_set[1]
-    ckpt = _save_checkpoint(old, tmp_path / "old.ckpt", drop=("local_frame", "input_norm"))
-    loaded = GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt").eval()
-    assert not loaded.model.local_frame and not loaded.model.input_norm
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(item)["final"], old(item)["final"])
-    with pytest.raises(RuntimeError, match="state_dict"):
-        GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt", local_frame=True)
-    # an override is no edit of the file (Lightning writes it into the loaded
-    # hyper-parameters before the digest was checked: every override was refused)
-    assert GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt", lr=1e-4).hparams.lr \
+def test_an_edited_checkpoint_is_refused_and_an_override_is_no_edit(dm, tmp_path):
+    """Lightning writes a keyword override into the loaded hyper-parameters before the
+    digest was checked (every override was refused); an edited file still is."""
+    module = gartrans(dm)
+    ckpt = _earlier_layout(module, tmp_path / "m.ckpt", flat=False)
+    assert GarTransModule.load_from_checkpoint(tmp_path / "m.ckpt", lr=1e-4).hparams.lr \
         == 1e-4
-    ckpt["hyper_parameters"]["lr"] = 0.5  # an edited file is still refused
+    ckpt["hyper_parameters"]["lr"] = 0.5
     torch.save(ckpt, tmp_path / "edited.ckpt")
     for kw in ({}, {"lr": 1e-4}):
         with pytest.raises(CheckpointError, match="integrity digest"):
             GarTransModule.load_from_checkpoint(tmp_path / "edited.ckpt", **kw)
-    new = GarTrans(**dm.model_sizes(GarTrans))
-    assert new.local_frame and new.input_norm  # today's defaults
-
-
-OLD_LAYOUT = Path(__file__).parent / "data" / "gartrans_old_layout.pt"
-
-
-def _old_layout(tmp_path, **changes):
-    """The committed checkpoint written by an earlier layout of GarTransModule (its
-    hyper-parameters name the options removed since, all off), saved to a file with
-    ``changes`` to its hyper-parameters (re-stamped); returns (path, scene, prediction)."""
-    saved = torch.load(OLD_LAYOUT, weights_only=False)
-    ckpt = saved["checkpoint"]
-    ckpt["hyper_parameters"].update(changes)
-    stamp_checkpoint(ckpt)
-    torch.save(ckpt, tmp_path / "old.ckpt")
-    scene = GarmentInputs(**saved["scene"], num_nodes=saved["scene"]["rest_pos"].shape[0])
-    return tmp_path / "old.ckpt", scene, saved["final"]
-
-
-def test_old_layout_checkpoint_predicts_the_positions_it_did(tmp_path):
-    path, scene, final = _old_layout(tmp_path)
-    assert {"garment_state", "motion_history", "state_noise"} <= set(
-        torch.load(path, weights_only=False)["hyper_parameters"])
-    module = GarTransModule.load_from_checkpoint(path).eval()
-    with torch.no_grad():
-        pred = module(scene)["final"]
-    assert float((pred - final).abs().max()) <= 1e-6
-
-
-@pytest.mark.parametrize("method", ["da", "hood", "ncs"])
-def test_baseline_checkpoint_of_the_earlier_layout_loads_as_its_model(dm, tmp_path, method):
-    """A baseline checkpoint of the earlier layout names its ``method``, the data sizes and
-    the model's keyword arguments among the module's: it loads as the model it was (the
-    same weights, the same prediction), and ``upgrade_checkpoint`` writes it in today's
-    layout, which loads the same."""
-    item = dm.train_set[1]
-    S, V = dm.dims["num_joints"], item.num_vertices
-    model = {"da": lambda: DAStyle(S, hidden=16), "hood": lambda: HOODStyle(hidden=8),
-             "ncs": lambda: NCSStyle(V, S, history=1, hidden=8)}[method]()
-    new = BaselineModule(model).eval()
-    kw = {"da": {"hidden": 16}, "hood": {"hidden": 8}, "ncs": {"history": 1, "hidden": 8}}
-    old_hp = {"method": method, "num_joints": S, "num_vertices": V, "model": kw[method],
-              "lr": 1e-3, "loss": None, "coarse": None, "fps": 30.0, "history": 3,
-              "num_body_vertices": None, "nystrom_dim": None, "start_state": "lbs",
-              "max_start_drift": 0.25}
-    ckpt = {"state_dict": new.state_dict(), "hyper_parameters": old_hp,
-            "pytorch-lightning_version": L.__version__}
-    stamp_checkpoint(ckpt)
-    torch.save(ckpt, tmp_path / "old.ckpt")
-    BaselineModule.upgrade_checkpoint(tmp_path / "old.ckpt", tmp_path / "new.ckpt")
-    assert torch.load(tmp_path / "new.ckpt", weights_only=False)["hyper_parameters"][
-        "model"]["class_path"].endswith(type(model).__name__)
-    with torch.no_grad():
-        want = new(item)
-        for path in ("old.ckpt", "new.ckpt"):
-            loaded = BaselineModule.load_from_checkpoint(tmp_path / path).eval()
-            assert loaded.method == method and type(loaded.model) is type(model)
-            assert loaded.model.init_args == model.init_args
-            torch.testing.assert_close(loaded(item), want)
-
-
-@pytest.mark.parametrize("change", [{"garment_state": True}, {"motion_history": 3},
-                                    {"state_rollout": True}])
-def test_checkpoint_with_a_removed_option_on_is_refused(tmp_path, change):
-    path, _, _ = _old_layout(tmp_path, **change)
-    with pytest.raises(CheckpointError, match=next(iter(change))):
-        GarTransModule.load_from_checkpoint(path)
-
-
-def _with_garment_state_settings(module, path, model_args, module_args) -> None:
-    """``module`` saved in today's layout with the garment-state settings of the layout
-    before their removal written in (``model_args`` into the model's spec)."""
-    hp = dict(module.hparams, **module_args)
-    hp["model"] = {"class_path": "garmentgnn.models.gartrans.GarTrans",
-                   "init_args": {**module.model.init_args, **model_args}}
-    ckpt = {"state_dict": module.state_dict(), "hyper_parameters": hp,
-            "pytorch-lightning_version": L.__version__}
-    stamp_checkpoint(ckpt)
-    torch.save(ckpt, path)
-
-
-OFF_STATES = {"dynamic_code": False, "autoregressive": False}
-ROLLOUT = {"rollout": 5, "rollout_ramp": 0, "rollout_noise": 0.003}
-
-
-def test_checkpoint_with_the_garment_states_off_loads_as_todays_model(dm, tmp_path):
-    module = gartrans(dm).eval()
-    _with_garment_state_settings(module, tmp_path / "s.ckpt", OFF_STATES, ROLLOUT)
-    loaded = GarTransModule.load_from_checkpoint(tmp_path / "s.ckpt").eval()
-    assert set(OFF_STATES).isdisjoint(loaded.model.init_args)
-    assert set(ROLLOUT).isdisjoint(loaded.hparams)
-    item = dm.train_set[1]
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(item)["final"], module(item)["final"])
-
-
-@pytest.mark.parametrize("change", [{"dynamic_code": True}, {"autoregressive": True}])
-def test_checkpoint_with_a_garment_state_on_is_refused(dm, tmp_path, change):
-    _with_garment_state_settings(gartrans(dm), tmp_path / "s.ckpt", {**OFF_STATES, **change},
-                                 ROLLOUT)
-    with pytest.raises(CheckpointError, match=f"{next(iter(change))}=.*removed"):
-        GarTransModule.load_from_checkpoint(tmp_path / "s.ckpt")
-
-
-def test_an_old_checkpoint_is_read_twice_at_most(dm, tmp_path, monkeypatch):
-    """Looking up the former defaults verifies the file; loading it reads it once more
-    (Lightning), not a third time to verify it again."""
-    old = gartrans(dm, local_frame=False, input_norm=False)
-    _save_checkpoint(old, tmp_path / "old.ckpt", drop=("local_frame", "input_norm"))
-    reads, load = [], torch.load
-    monkeypatch.setattr(torch, "load", lambda *a, **kw: reads.append(1) or load(*a, **kw))
-    for kw in ({}, {"lr": 1e-4}):
-        reads.clear()
-        loaded = GarTransModule.load_from_checkpoint(tmp_path / "old.ckpt", **kw)
-        assert not loaded.model.local_frame
-        assert len(reads) == 2
 
 
 def test_model_can_be_built_under_no_grad(dm):
@@ -493,12 +364,11 @@ def test_oracle_refuses_a_method_without_a_physics_objective(tmp_path, learning)
         learning["part_oracle"](tmp_path, ["HOOD-style", "DA-style"], 1)
 
 
-def test_checkpoint_of_other_data_sizes_names_them(tmp_path):
+def test_checkpoint_of_other_data_sizes_names_them(dm, tmp_path):
     """A checkpoint scored on data of another body model or Nyström width (as ``train test
     --ckpt_path X`` on another dataset builds the module from that data) is refused
     naming each size, not with torch's "Error(s) in loading state_dict"."""
-    path, _, _ = _old_layout(tmp_path)
-    ckpt = torch.load(path, weights_only=False)
+    ckpt = _earlier_layout(gartrans(dm), tmp_path / "m.ckpt", flat=False)
     init = GarTransModule.saved_hparams(ckpt)["model"]["init_args"]
     other = GarTransModule(GarTrans(**dict(init, num_joints=init["num_joints"] + 2,
                                            nystrom_dim=4)))
@@ -521,13 +391,13 @@ def test_checkpoint_of_other_data_sizes_names_them(tmp_path):
         da.on_load_checkpoint(da_ckpt)
 
 
-def test_show_loads_a_baseline_checkpoint_as_its_method(tmp_path):
+def test_show_loads_a_baseline_checkpoint_as_its_method(dm, tmp_path):
     """``garmentgnn show --ckpt`` of a DA-style checkpoint: loaded as the baseline it is
     (it was refused as a GarTrans checkpoint with Lightning's "blocked to prevent
     arbitrary code execution") and predicts as ``BaselineModule.predict_garment``."""
     from garmentgnn.training.evaluate import predict  # noqa: PLC0415
     from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415  (viz: optional extra)
-    _, scene, _ = _old_layout(tmp_path)
+    scene = dm.train_set[1]
     L.seed_everything(0)
     da = BaselineModule(DAStyle(scene.num_joints)).eval()
     ckpt = {"state_dict": da.state_dict(), "hyper_parameters": dict(da.hparams),

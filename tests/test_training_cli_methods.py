@@ -20,12 +20,13 @@ from garmentgnn.training.configs import available, config_path, module_spec, nam
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
+from garmentgnn.models import GarTrans
 from garmentgnn.models.baselines import NCSStyle
+from garmentgnn.training.integrity import stamp_checkpoint
 from garmentgnn.training.configs import instantiate
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 from test_training_cli import fast_args
 
-OLD_LAYOUT = Path(__file__).parent / "data" / "gartrans_old_layout.pt"
 
 CLASSES = {"garmentgnn.training.GarTransModule": GarTransModule,
            "garmentgnn.training.BaselineModule": BaselineModule,
@@ -165,22 +166,26 @@ def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
                 in err[0])
 
 
-def test_the_cli_names_the_conversion_of_a_checkpoint_of_the_earlier_layout(
+def test_the_cli_refuses_a_checkpoint_of_an_earlier_layout_saying_to_retrain(
         root, tmp_path, capsys):  # noqa: F811
-    """``--ckpt_path`` rebuilds the module from the file's hyper-parameters as Lightning
-    reads them: a checkpoint of the earlier layout (the model's settings among the
-    module's) is refused in one line naming the conversion, and the converted file holds
-    the model's spec."""
+    """``--ckpt_path`` rebuilds the module from the file's hyper-parameters: a checkpoint
+    of an earlier layout (the model's settings among the module's) is refused in one line
+    that says to retrain (there is no conversion)."""
+    dm = GarmentDataModule(root, chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
+    hp = {**{k: v for k, v in module.hparams.items() if k != "model"},
+          **module.model.init_args, "garment_state": False}
     old = tmp_path / "old.ckpt"
-    torch.save(torch.load(OLD_LAYOUT, weights_only=False)["checkpoint"], old)
+    ckpt = {"state_dict": module.state_dict(), "hyper_parameters": hp,
+            "pytorch-lightning_version": L.__version__}
+    stamp_checkpoint(ckpt)
+    torch.save(ckpt, old)
     rc = cli_main(["train", "test", "--config", "gartrans", "--ckpt_path", str(old)]
                   + _test_args(root, tmp_path / "run"))
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "GarTransModule.upgrade_checkpoint(" in err[0]
-    GarTransModule.upgrade_checkpoint(old, tmp_path / "new.ckpt")
-    hp = torch.load(tmp_path / "new.ckpt", weights_only=False)["hyper_parameters"]
-    assert hp["model"]["class_path"].endswith(".GarTrans")
-    assert "garment_state" not in hp and "rest_layer" not in hp
+    assert rc == 2 and len(err) == 1, err
+    assert f"--ckpt_path {old}" in err[0] and "earlier layout" in err[0], err[0]
+    assert "garment_state" in err[0] and "retrain it" in err[0], err[0]
 
 
 def test_ncs_refuses_a_data_module_of_several_garments(root, tmp_path):  # noqa: F811

@@ -16,7 +16,7 @@ import contextvars
 import inspect
 import io
 import os
-from typing import Any, ClassVar, Dict, Optional, Tuple, Union
+from typing import Any, ClassVar, Dict, Optional, Tuple
 
 import lightning as L
 import torch
@@ -95,29 +95,6 @@ class GarmentModule(L.LightningModule):
     Lightning's system style: the module is handed its model (``model=GarTrans(...)``;
     in YAML, ``model: init_args: model: class_path: ...``) and says how it trains it.
     """
-
-    #: hyper-parameters that no longer exist, with the only value a checkpoint may hold
-    #: for them (anything else was another model: :meth:`check_removed` refuses it)
-    removed_switches: ClassVar[Dict[str, Any]] = {}
-    #: the same for the model's own arguments (the ``init_args`` of its spec)
-    removed_model_switches: ClassVar[Dict[str, Any]] = {}
-    #: hyper-parameters that acted only with a removed model switch on: dropped, whatever
-    #: their value, from a checkpoint whose model names those switches (its layout had them)
-    inert_settings: ClassVar[Tuple[str, ...]] = ()
-
-    @classmethod
-    def check_removed(cls, hparams: Dict[str, Any], where: str = "checkpoint") -> None:
-        """A :class:`CheckpointError` when ``hparams`` (or its model's ``init_args``)
-        switch on a removed option."""
-        init = _init_args(hparams)
-        bad = {k: v[k] for v, switches in ((hparams, cls.removed_switches),
-                                           (init, cls.removed_model_switches))
-               for k, off in switches.items() if k in v and v[k] != off}
-        if bad:
-            what = ", ".join(f"{k}={v!r}" for k, v in sorted(bad.items()))
-            raise CheckpointError(f"{where}: trained with {what}, an option measured not to "
-                                  f"help and removed (docs/experiments.md); this version "
-                                  f"cannot rebuild that model")
 
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         """The garment ``[B, V, 3]`` of every frame of ``batch``."""
@@ -219,41 +196,36 @@ class GarmentModule(L.LightningModule):
         return getattr(self.model, "init_args", {}).get("nystrom_dim")
 
     @classmethod
-    def upgrade_hparams(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
-        """A checkpoint's hyper-parameters in today's layout (``model``: the model's
-        spec).  The base returns them as they are; a module whose earlier layout
-        differs converts it here."""
-        return dict(saved)
-
-    @classmethod
     def saved_hparams(cls, checkpoint: Dict[str, Any], where: str = "checkpoint"
                       ) -> Dict[str, Any]:
-        """A checkpoint's hyper-parameters, removed options refused
-        (:meth:`check_removed`), in today's layout (:meth:`upgrade_hparams`)."""
+        """A checkpoint's hyper-parameters: the module's arguments and ``model``, its
+        model's spec.  A checkpoint whose hyper-parameters this version's module or model
+        does not take (written by an earlier layout) is a :class:`CheckpointError` that
+        says to retrain: there is no conversion."""
         saved = dict(checkpoint.get("hyper_parameters") or {})
         if isinstance(saved.get("model"), Configurable):  # written in by load_from_checkpoint
             saved["model"] = saved["model"].spec()
-        cls.check_removed(saved, where)
-        saved = {k: v for k, v in saved.items() if k not in cls.removed_switches}
-        init = _init_args(saved)
-        if any(k in init for k in cls.removed_model_switches):
-            saved = {k: v for k, v in saved.items() if k not in cls.inert_settings}
-            saved["model"] = dict(saved["model"], init_args={
-                k: v for k, v in init.items() if k not in cls.removed_model_switches})
-        saved = cls.upgrade_hparams(saved)
         saved.pop("_instantiator", None)
+        other = str(saved.pop("_class_path", "")).rsplit(".", 1)[-1]
+        if other and other != cls.__name__:
+            raise CheckpointError(f"{where}: a checkpoint of {other}, not of {cls.__name__}; "
+                                  f"load it with {other}.load_from_checkpoint")
+        spec = saved.get("model")
+        unknown = [k for k in saved if k not in inspect.signature(cls.__init__).parameters]
+        if isinstance(spec, dict) and "class_path" in spec:
+            try:
+                params = inspect.signature(import_class(spec["class_path"]).__init__).parameters
+            except ValueError:
+                params = {}
+            unknown += [f"model.{k}" for k in spec.get("init_args") or {} if k not in params]
+        if unknown or not (isinstance(spec, dict) and "class_path" in spec):
+            what = f"it holds {', '.join(sorted(unknown))}" if unknown else "it names no model"
+            raise CheckpointError(f"{where}: a checkpoint of an earlier layout of "
+                                  f"{cls.__name__}, or of another module ({what}, which "
+                                  f"this version's {cls.__name__} does not take); load it "
+                                  f"with the module it was trained with, or retrain it with "
+                                  f"this version (garmentgnn train fit)")
         return saved
-
-    @classmethod
-    def upgrade_checkpoint(cls, src: Union[str, os.PathLike],
-                           dst: Union[str, os.PathLike]) -> None:
-        """Write checkpoint ``src`` (verified) to ``dst`` with its hyper-parameters in
-        today's layout (:meth:`saved_hparams`), stamped anew: what ``garmentgnn train
-        ... --ckpt_path`` reads."""
-        ckpt = load_checkpoint_file(src)
-        ckpt["hyper_parameters"] = cls.saved_hparams(ckpt, str(src))
-        stamp_checkpoint(ckpt)
-        torch.save(ckpt, dst)
 
     @classmethod
     def model_spec(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
@@ -269,7 +241,7 @@ class GarmentModule(L.LightningModule):
     def load_from_checkpoint(cls, checkpoint_path, *args, **kwargs):
         """Lightning's ``load_from_checkpoint``, with the model rebuilt from the
         checkpoint's spec (``hparams["model"]``; a checkpoint of an earlier layout is
-        converted, :meth:`upgrade_hparams`).  ``kwargs`` naming an argument of the model
+        refused, :meth:`saved_hparams`).  ``kwargs`` naming an argument of the model
         change its spec; the others are the module's, as in Lightning.  The file is
         verified as it was written (:mod:`~garmentgnn.training.integrity`)."""
         if not isinstance(checkpoint_path, (str, os.PathLike)):

@@ -144,27 +144,6 @@ class BaselineModule(GarmentModule):
         # start_state "own": sequence id -> frame -> the state of the latest rollout (CPU)
         self._states: Dict[str, Dict[int, Tensor]] = {}
 
-    @classmethod
-    def upgrade_hparams(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
-        """A checkpoint of the earlier layout (the method's name, the data sizes and the
-        model's keyword arguments among the module's) in today's: the model's spec."""
-        if "method" not in saved:
-            return dict(saved)
-        method, kw = saved["method"], dict(saved.get("model") or {})
-        if method in ("da", "ncs"):
-            kw["num_joints"] = saved["num_joints"]
-        if method == "ncs":
-            kw["num_vertices"] = saved.get("num_vertices")
-        if method == "hood":
-            kw["dt"] = 1.0 / saved.get("fps", 30.0)
-        model = {v: k for k, v in cls.METHODS.items()}[method]
-        out = {k: v for k, v in saved.items() if k not in (
-            "method", "num_joints", "num_vertices", "num_body_vertices", "nystrom_dim",
-            "history")}
-        out["model"] = {"class_path": f"{model.__module__}.{model.__qualname__}",
-                        "init_args": kw}
-        return out
-
     def min_history(self) -> Tuple[int, str]:
         if self.method == "hood":
             return 2, ("HOOD-style starts each rollout from the LBS garment of the 2 frames "

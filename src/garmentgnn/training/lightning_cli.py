@@ -207,8 +207,8 @@ class GarmentCLI(LightningCLI):
 
     ``validate``, ``test`` and ``predict`` need ``--ckpt_path`` (without it they would
     score an untrained model).  ``--ckpt_path X`` is checked first: an unreadable or
-    changed file, a checkpoint of another module class, or a ``--model.*`` flag (or
-    config value) that differs from X's hyper-parameters, is a
+    changed file, a checkpoint of another module class or of an earlier layout, or a
+    ``--model.*`` flag (or config value) that differs from X's hyper-parameters, is a
     :class:`~garmentgnn.training.integrity.CheckpointError`
     (the model is rebuilt from X's hyper-parameters)."""
 
@@ -266,32 +266,22 @@ class GarmentCLI(LightningCLI):
         cls_path = model.get("class_path") or DEFAULT_MODEL
         saved_cls = raw.pop("_class_path", None)
         module_cls = import_class(cls_path)
-        stored = module_cls.saved_hparams(ckpt, str(ckpt_path)) \
-            if issubclass(module_cls, GarmentModule) else raw
-        stored.pop("_class_path", None)
-        if stored != {k: v for k, v in raw.items() if k != "_instantiator"}:
-            # Lightning rebuilds the module from the file's own hyper-parameters next
-            raise CheckpointError(f"{ckpt_path}: a checkpoint of an earlier layout of "
-                                  f"{cls_path.rsplit('.', 1)[-1]}; convert it once: "
-                                  f"{cls_path.rsplit('.', 1)[-1]}.upgrade_checkpoint("
-                                  f"{str(ckpt_path)!r}, NEW_PATH) (Python), then pass "
-                                  f"--ckpt_path NEW_PATH")
-        params = inspect.signature(module_cls.__init__).parameters
-        foreign = sorted(k for k in stored if k not in params)
-        spec, given = stored.get("model"), _plain(model.get("init_args"))
+        spec, given = raw.get("model"), _plain(model.get("init_args"))
         saved_model = spec.get("class_path") if isinstance(spec, dict) else None
         given_model = _plain(given.get("model")).get("class_path")
         if (saved_cls and saved_cls.rsplit(".", 1)[-1] != cls_path.rsplit(".", 1)[-1]) \
-                or foreign or (saved_model and given_model and saved_model.rsplit(".", 1)[-1]
-                               != given_model.rsplit(".", 1)[-1]):
-            what = (saved_model.rsplit(".", 1)[-1] if saved_model else
-                    saved_cls or f"a module with {foreign}")
+                or (saved_model and given_model and saved_model.rsplit(".", 1)[-1]
+                    != given_model.rsplit(".", 1)[-1]):
+            what = saved_model.rsplit(".", 1)[-1] if saved_model else saved_cls
             fits = configs_of_model(saved_model) if saved_model else []
             mine = (given_model or cls_path).rsplit(".", 1)[-1]
             hint = (f"give --config {fits[0]}" if fits else
                     "give the --config of the method it was trained with")
             raise CheckpointError(f"{ckpt_path}: a checkpoint of {what}, not of {mine}; "
                                   f"{hint}")
+        # the configured module's: an earlier layout of it is refused, saying to retrain
+        stored = module_cls.saved_hparams(ckpt, str(ckpt_path)) \
+            if issubclass(module_cls, GarmentModule) else raw
         bad = {f"--model.{k}": c for k, c in hparam_conflicts(
             {k: v for k, v in given.items() if k != "model"}, _defaults(module_cls),
             stored).items()}

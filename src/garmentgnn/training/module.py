@@ -9,8 +9,7 @@ the supervised scale and whether the rest-pose branch is frozen are switched by
 """
 from __future__ import annotations
 
-import inspect
-from typing import Any, ClassVar, Dict, Iterable, Iterator, List, Optional, Tuple, Union
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Tuple, Union
 
 import torch
 
@@ -184,37 +183,6 @@ class GarTransModule(GarmentModule):
         self.log_training_step(total, terms, B, extra={"vert_err": vert_err})
         return {"loss": total, "vert_err": vert_err.detach(),
                 "terms": {k: v.detach() for k, v in terms.items()}}
-
-    # -- checkpoints of earlier layouts -------------------------------------------------
-    #: model settings whose default has changed, with the value a checkpoint that does
-    #: not name them was trained with (``accel_unit``: its dynamic output was an
-    #: acceleration, ``a dt^2``)
-    former_defaults: ClassVar[Dict[str, Any]] = {"input_norm": False, "local_frame": False,
-                                                 "accel_unit": None}
-    #: switches measured not to help and removed (docs/experiments.md), with the value
-    #: that meant "off": a checkpoint that has them off loads as today's model
-    removed_switches: ClassVar[Dict[str, Any]] = {
-        "garment_state": False, "state_noise": 0.0, "state_dropout": 0.0,
-        "state_rollout": False, "motion_history": 1}
-    removed_model_switches: ClassVar[Dict[str, Any]] = {"dynamic_code": False,
-                                                         "autoregressive": False}
-    inert_settings: ClassVar[Tuple[str, ...]] = ("rollout", "rollout_ramp", "rollout_noise")
-
-    @classmethod
-    def upgrade_hparams(cls, saved: Dict[str, Any]) -> Dict[str, Any]:
-        """A checkpoint of the earlier layout (the model's settings among the module's,
-        no ``model`` spec) in today's: the model's settings move into its spec, those it
-        does not name get their :attr:`former_defaults`."""
-        if isinstance(saved.get("model"), dict):
-            return dict(saved)
-        model_args = inspect.signature(GarTrans.__init__).parameters
-        init = {**{k: v for k, v in cls.former_defaults.items() if k not in saved},
-                **{k: v for k, v in saved.items() if k in model_args and k != "self"}}
-        # (num_vertices and history: data sizes the earlier layout accepted and ignored)
-        out = {k: v for k, v in saved.items()
-               if k not in model_args and k not in ("num_vertices", "history")}
-        out["model"] = {"class_path": f"{GarTrans.__module__}.GarTrans", "init_args": init}
-        return out
 
     def configure_optimizers(self):
         opt = OPTIMIZERS[self.hparams.get("optimizer", "adamax")](self.parameters(),
