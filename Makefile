@@ -73,7 +73,7 @@ demo: install
 # CLI and the bench, the committed checkpoint's row) run with `make test-slow`.
 SCATTER_TESTS := tests/test_nn_*.py tests/test_sat_conv.py tests/test_layers_contract.py \
 	tests/test_baseline_layers.py tests/test_model.py tests/test_model_inference.py \
-	tests/test_model_state.py tests/test_baselines.py
+	tests/test_baselines.py
 test: install
 	$(PY) -m ruff check src tests benchmarks examples
 	GARMENTGNN_EXPECT_SCATTER=1 GARMENTGNN_EXPECT_BLENDER=$(EXPECT_BLENDER) $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)

@@ -104,13 +104,11 @@ for _name, _v in VARIANTS.items():
 _LEARN: Dict[str, Any] = {"model": {"lr": 0.012}, "data": {"batch_size": 16},
                           "trainer": {"limit_train_batches": 25}, "anneal": True}
 #: which model can hold the garment's state (docs/experiments.md), today's config at the
-#: ``learn`` settings: frame-parallel, and with a recurrent latent of 16 channels per
-#: vertex (truncated backpropagation through each chunk).  The motion code in the dynamic
-#: stack and the autoregressive offsets, measured beside them, left the model (their
-#: runs name the commit they ran at)
+#: ``learn`` settings: frame-parallel.  The motion code in the dynamic stack, the
+#: autoregressive offsets and the recurrent vertex latent, measured beside it, left the
+#: model (their runs name the commit they ran at)
 STATE: Dict[str, Dict[str, Any]] = {
     "state: frame-parallel (the paper)": {},
-    "state: recurrent vertex latent": {"model": {"vertex_state": 16}},
 }
 for _v in STATE.values():
     for _k, _base in _LEARN.items():

@@ -211,7 +211,7 @@ class AttentionStack(nn.Module):
 
 def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
                     accel_unit: Optional[float], strain_limit: int,
-                    collision_projection: Optional[float], vertex_state: int) -> None:
+                    collision_projection: Optional[float]) -> None:
     """A ``ValueError`` naming the first bad argument of
     :class:`~garmentgnn.models.GarTrans` (its docstring says what each means)."""
     if lbs_start and not skin_prior:
@@ -228,7 +228,3 @@ def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
     if collision_projection is not None and not collision_projection >= 0:
         raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
                          f"None, got {collision_projection}")
-    if not isinstance(vertex_state, int) or isinstance(vertex_state, bool) \
-            or vertex_state < 0:
-        raise ValueError(f"`vertex_state`: expected a latent width >= 0, got "
-                         f"{vertex_state!r}")

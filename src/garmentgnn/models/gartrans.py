@@ -10,7 +10,7 @@ The project's defaults differ from the paper where measured better (docs/model.m
 :meth:`GarTrans.paper` (``configs/ablations/paper.yaml``) is the paper's form.  Choices
 where the paper is vague: per-vertex Nyström features (``V x k`` through FC layers);
 ``Θ^[1]`` = the GRU's last hidden state -> linear -> ``S``; ``a`` added to the coarse mesh
-(frame-parallel, unless ``vertex_state`` carries a latent: :mod:`~garmentgnn.models.state`);
+(frame-parallel);
 any registry layer in any slot.
 """
 from __future__ import annotations
@@ -30,7 +30,6 @@ from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNorma
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
                                         StaticFeatures)
-from garmentgnn.models.state import recurrent_steps
 
 #: metres per unit of the blend-shape stack's output (it predicts centimetres)
 BLEND_UNIT = 0.01
@@ -77,8 +76,6 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             vertices closer than ``eps`` to the body (or inside it) to ``eps`` outside
             (:func:`~garmentgnn.geometry.push_outside`); ``None`` (the paper): none.
         compile_search: ``torch.compile`` the projection's nearest-face search (faster).
-        vertex_state: channels of a recurrent latent per vertex carried frame to frame
-            (:mod:`~garmentgnn.models.state`); ``0`` (the paper): none, frame-parallel.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = NYSTROM_DIM,
@@ -88,11 +85,11 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
                  blend_shape: bool = False, accel_unit: Optional[float] = 0.01,
                  input_norm: bool = True, local_frame: bool = True, strain_limit: int = 10,
                  collision_projection: Optional[float] = 0.002,
-                 compile_search: bool = False, vertex_state: int = 0) -> None:
+                 compile_search: bool = False) -> None:
         super().__init__()
         check_arguments(lbs_start=lbs_start, skin_prior=skin_prior, gate_init=gate_init,
                         accel_unit=accel_unit, strain_limit=strain_limit,
-                        collision_projection=collision_projection, vertex_state=vertex_state)
+                        collision_projection=collision_projection)
         S = num_joints
         self.num_joints, self.num_body_vertices, self.fps, self.edge_dim = \
             S, num_body_vertices, fps, edge_dim
@@ -100,7 +97,7 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         self.gate_init, self.accel_unit = float(gate_init), accel_unit
         self.input_norm, self.local_frame = bool(input_norm), bool(local_frame)
         self.strain_limit, self.collision_projection = strain_limit, collision_projection
-        self.compile_search, self.vertex_state = bool(compile_search), vertex_state
+        self.compile_search = bool(compile_search)
         self.rest_fc = mlp([6 + S, 128, 128, 128], nn.Tanh())
         self.rest_attn = AttentionStack(rest_layer, 128, [64, 64, 128], heads, edge_dim, "tanh",
                                         last_act=True)
@@ -112,9 +109,8 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         self.gru_out = nn.Linear(128, S)
         self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
                                     last_act=False) if blend_shape else None
-        dyn_in = 3 + 3 + S + (6 if self.local_frame else 0) + vertex_state  # rest, gravity
-        self.dynamic = AttentionStack(dynamic_layer, dyn_in,
-                                      [32, 64, 64, 64, 32, 3 + 2 * vertex_state], heads,
+        dyn_in = 3 + 3 + S + (6 if self.local_frame else 0)  # + rest, gravity: local frame
+        self.dynamic = AttentionStack(dynamic_layer, dyn_in, [32, 64, 64, 64, 32, 3], heads,
                                       edge_dim, "elu", last_act=False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
         self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
@@ -231,11 +227,10 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
 
     # -- 3. SAT deformation ---------------------------------------------------------------
     def deform(self, inputs: GarmentInputs, prev: Tensor, cur: Tensor, joints: Tensor,
-               R: Tensor, latent: Optional[Tensor] = None) -> Tensor:
-        """The dynamic stack's output ``a`` ``[B, V, 3 + 2 vertex_state]`` for the coarse
-        mesh ``cur`` (world frame, in units of :attr:`unit` metres; the latent's update
-        channels after), from its velocity since ``prev``; ``latent`` ``[B, V, L]``: the
-        recurrent latent, more vertex features."""
+               R: Tensor) -> Tensor:
+        """The dynamic stack's output ``a`` ``[B, V, 3]`` for the coarse mesh ``cur``
+        (world frame, in units of :attr:`unit` metres), from its velocity since
+        ``prev``."""
         lay = ChunkLayout(inputs)
         B, V = cur.shape[:2]
         vel, n = (cur - prev) * self.fps, vertex_normals(cur, inputs.faces)
@@ -245,8 +240,7 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             down = R.new_tensor([0.0, 0.0, -1.0]).expand(B, V, 3)
             vel, n, down = (torch.einsum("bvji,bvj->bvi", R, x) for x in (vel, n, down))
             feats = [vel, n, dj, inputs.rest_pos.unsqueeze(0).expand(B, V, 3), down]
-        x = self.dynamic_norm(torch.cat(feats + [latent] * (latent is not None), -1)
-                              .reshape(B * V, -1))
+        x = self.dynamic_norm(torch.cat(feats, -1).reshape(B * V, -1))
         ei = cached_batch_edges(inputs.edge_index, B, V)
         e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))
         a = self.dynamic(x, ei, e).view(B, V, -1)
@@ -260,30 +254,17 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         return self.fps ** -2 if self.accel_unit is None else self.accel_unit
 
     def forward(self, inputs: GarmentInputs, static: Optional[StaticFeatures] = None,
-                prev_final: Optional[Tensor] = None, state: Optional[Tensor] = None
-                ) -> Dict[str, Tensor]:
+                prev_final: Optional[Tensor] = None) -> Dict[str, Tensor]:
         """``M^{t,d}`` of every frame of ``inputs`` (frame-parallel; a ``Batch`` of chunks
         as one union graph).  ``static``: a cached :meth:`encode_static` of the same
         garments; ``prev_final`` ``[B, V, 3]``: the garment at frame ``t-1`` in place of
-        the coarse ``M^{t-1,c}`` (autoregressive use, :meth:`rollout`).  With a
-        ``vertex_state`` the frames run in order from the latent ``state`` ``[V, L]``
-        (``None``: a motion's start, zeros).
+        the coarse ``M^{t-1,c}`` (autoregressive use, :meth:`rollout`).
 
-        Returns ``final``, ``coarse``, ``accel`` (``[B, V, 3]``), ``weights`` (``[B, V,
-        S]``) and, with a ``vertex_state``, the ``state`` a next call continues from."""
+        Returns ``final``, ``coarse``, ``accel`` (``[B, V, 3]``) and ``weights`` (``[B, V,
+        S]``)."""
         static = self.encode_static(inputs) if static is None else static
         prev, cur, W, joints, R = self.coarse(inputs, static)
         out = {"coarse": cur, "weights": W}
-        if self.vertex_state:
-            if prev_final is not None:
-                raise ValueError("`prev_final`: a model with a `vertex_state` carries its "
-                                 "own state; pass the `state` output of the call before")
-            out["final"], out["accel"], out["state"] = recurrent_steps(
-                self, inputs, static, prev, cur, joints, R, state)
-            return out
-        if state is not None:
-            raise ValueError("`state`: for a model with a `vertex_state` (this one is "
-                             "frame-parallel)")
         if prev_final is not None:
             if prev_final.shape != cur.shape:
                 raise ValueError(f"`prev_final`: expected {tuple(cur.shape)}, got "

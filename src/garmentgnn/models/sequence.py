@@ -202,8 +202,7 @@ class SequencePrediction:
         :func:`~garmentgnn.models.inputs.with_frames` of all its frames), frame-parallel,
         ``batch_size`` frames at a time under ``torch.inference_mode``; the static branch
         once (``static``: a cached one), the batched graph and its CSR plans once.
-        Equals :meth:`forward` on each frame alone up to float round-off (a model with a
-        ``vertex_state``: on all frames at once, its latent carried from call to call).
+        Equals :meth:`forward` on each frame alone up to float round-off.
 
         Args:
             batch_size: frames per call; ``None``: about :attr:`CHUNK_VERTICES` vertices.
@@ -234,11 +233,8 @@ class SequencePrediction:
             static = self.encode_static(inputs) if static is None else static
             out = {k: inputs.rest_pos.new_empty(T, V, self.num_joints if k == "weights"
                                                 else 3) for k in outputs}
-            state = None  # a recurrent latent (models/state.py) runs on across the calls
             for t0 in range(0, T, b):
-                o = self.forward(inputs.select(torch.arange(t0, min(t0 + b, T))), static,
-                                 state=state)
-                state = o.get("state")
+                o = self.forward(inputs.select(torch.arange(t0, min(t0 + b, T))), static)
                 for k in outputs:
                     out[k][t0:t0 + b] = o[k]
         return out
