@@ -1,0 +1,254 @@
+"""Every code block in the README and docs/ runs as a test, or is marked as output.
+
+* ``text`` blocks are output (layouts, synopses, transcripts): not run.
+* ``bash`` blocks run under bash, in a folder of their own, with the project's commands
+  (``garmentgnn``, ``python``, ``make``) and the tools they name (``pip``, ``apt-get``,
+  ``cp``, ``tensorboard``) stubbed to record their arguments, and no other program on the
+  ``PATH``: the shell's own loops, variables and functions run for real.  Each recorded
+  ``garmentgnn`` command is then parsed by the command line itself (``train``: by
+  LightningCLI, every flag and value checked against the classes), each ``python
+  benchmarks/X.py`` and ``python -m MODULE`` by that script's own parser, each ``make``
+  target looked up in the Makefile.  Nothing is simulated or trained: a block of
+  hour-long runs is checked for what it says, not for its results.
+* ``python`` blocks run as written, in a folder holding what they name: ``data/tiny`` (the
+  ``tiny`` preset made with the simulator double), ``data/small`` and ``data/learn`` (the
+  same), ``model.ckpt`` (GarTrans trained one step on it) and ``seq.glb`` (one of its
+  sequences); a block that renders is skipped where no renderer is, one that writes the
+  HTML viewer where its bundle is not built.  The README's quick start
+  (``tests/test_readme.py``) and docs/layers.md (``tests/test_nn_docs.py``) have tests of
+  their own.
+"""
+import argparse
+import os
+import re
+import runpy
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md"] + sorted((ROOT / "docs").rglob("*.md"))
+FENCE = re.compile(r"^```([^\n`]*)\n(.*?)^```", re.S | re.M)
+#: the languages a block may have: run (bash, python) or output (text)
+LANGUAGES = ("bash", "python", "text")
+#: python blocks with a test of their own
+OWN_TESTS = {("README.md", 0): "tests/test_readme.py", ("docs/layers.md", 0):
+             "tests/test_nn_docs.py", ("docs/layers.md", 1): "tests/test_nn_docs.py",
+             ("docs/layers.md", 2): "tests/test_nn_docs.py"}
+#: the commands a bash block may call, stubbed (the project's are parsed afterwards)
+STUBS = ("garmentgnn", "python", "make", "pip", "apt-get", "cp", "tensorboard")
+
+
+def blocks():
+    """``(doc, index among its language, language, code)`` of every fenced block."""
+    out = []
+    for doc in DOCS:
+        seen = {}
+        for lang, code in FENCE.findall(doc.read_text()):
+            lang = lang.strip()
+            i = seen[lang] = seen.get(lang, -1) + 1
+            out.append((str(doc.relative_to(ROOT)), i, lang, code))
+    return out
+
+
+BLOCKS = blocks()
+BASH = [b for b in BLOCKS if b[2] == "bash"]
+PYTHON = [b for b in BLOCKS if b[2] == "python" and (b[0], b[1]) not in OWN_TESTS]
+
+
+def test_every_block_says_what_it_is():
+    """A block is run (bash, python) or marked as output (text); none is left unmarked."""
+    bad = [f"{doc} block {i + 1}: ```{lang}" for doc, i, lang, _ in BLOCKS
+           if lang not in LANGUAGES]
+    assert not bad, bad
+    assert len(BASH) > 20 and len(PYTHON) >= 5
+    for (doc, i), test in OWN_TESTS.items():
+        assert any(b[:3] == (doc, i, "python") for b in BLOCKS), (doc, i)
+        assert (ROOT / test).is_file()
+
+
+# ------------------------------------------------------------------ bash
+def run_bash(code: str, tmp: Path):
+    """Run ``code`` with the stubs; the recorded commands, as argument lists."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    log = tmp / "commands.log"
+    # one write per command: backgrounded calls (``cmd &``) do not interleave their lines
+    stubs = "".join(f"{name}() {{ local l; l=$(printf '%s\\x1f' {name} \"$@\"); "
+                    f"printf '%s\\n' \"$l\" >> \"$LOG\"; }}\n" for name in STUBS)
+    empty = tmp / "bin"
+    empty.mkdir()
+    (tmp / "block.sh").write_text(stubs + code)
+    env = {"PATH": str(empty), "HOME": str(tmp / "home"), "LOG": str(log)}
+    run = subprocess.run(["/bin/bash", "--noprofile", "--norc", "-e", str(tmp / "block.sh")],
+                         cwd=tmp, env=env, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    lines = log.read_text().splitlines() if log.exists() else []
+    return [line.split("\x1f")[:-1] for line in lines]
+
+
+class Parsed(Exception):
+    pass
+
+
+def parse_train(args):
+    """LightningCLI's parse of ``garmentgnn train`` ``args`` (the packaged configuration
+    names resolved), without checking files or building anything."""
+    from lightning.pytorch.cli import LightningCLI  # noqa: PLC0415
+    from garmentgnn.training.configs import named_module, resolve_config_args  # noqa: PLC0415
+    from garmentgnn.training.lightning_cli import GarmentCLI  # noqa: PLC0415
+
+    class ParseOnly(GarmentCLI):
+        def parse_arguments(self, parser, argv):
+            LightningCLI.parse_arguments(self, parser, argv)
+            raise Parsed
+
+    from garmentgnn.training import GarmentDataModule, GarmentModule  # noqa: PLC0415
+    args = resolve_config_args(args)
+    try:
+        ParseOnly(GarmentModule, GarmentDataModule, args=args, default_model=named_module(args))
+    except Parsed:
+        return
+    except SystemExit as e:  # --print_config: parsed, printed, exit 0
+        if e.code != 0:
+            raise
+        return
+    raise AssertionError(f"train {shlex.join(args)}: not parsed")
+
+
+def files_exist(m: pytest.MonkeyPatch) -> None:
+    """Within ``m``: every path a parser checks exists (a documented command names the
+    outputs of the commands before it, or of runs made elsewhere): the parse judges the
+    flags and values, not what is on this disk."""
+    import garmentgnn._argparse as ap  # noqa: PLC0415
+    for name in ("is_file", "is_dir", "exists"):
+        m.setattr(Path, name, lambda self: True)
+    for name in ("isfile", "isdir", "exists"):
+        m.setattr(os.path, name, lambda path: True)
+    m.setattr(ap, "dataset_dir", lambda text: os.path.expanduser(text))
+
+
+def parse_script(argv, monkeypatch):
+    """``python`` ``argv`` run up to its first ``parse_args`` (its parser's verdict)."""
+    real = argparse.ArgumentParser.parse_known_args
+
+    def parse_known_args(self, args=None, namespace=None):
+        out = real(self, args, namespace)
+        raise Parsed(out)
+
+    if argv[0] == "-m":
+        name, rest = argv[1], argv[2:]
+    else:
+        name, rest = ROOT / argv[0], argv[1:]
+        assert name.is_file(), f"no such script: {argv[0]}"
+    with monkeypatch.context() as m:
+        if argv[0] != "-m":
+            m.syspath_prepend(str(name.parent))
+        m.setattr(sys, "argv", [str(name)] + rest)
+        files_exist(m)
+        m.setattr(argparse.ArgumentParser, "parse_known_args", parse_known_args)
+        with pytest.raises(Parsed):
+            if argv[0] == "-m":
+                runpy.run_module(name, run_name="__main__", alter_sys=True)
+            else:
+                runpy.run_path(str(name), run_name="__main__")
+
+
+def check_command(cmd, monkeypatch, capsys):
+    name, args = cmd[0], cmd[1:]
+    if name == "garmentgnn":
+        if args[:1] == ["train"]:
+            parse_train(args[1:])
+        else:
+            from garmentgnn.cli import build_parser  # noqa: PLC0415
+            try:
+                build_parser().parse_args(args)
+            except SystemExit as e:
+                raise AssertionError(f"{shlex.join(cmd)}: {capsys.readouterr().err}") from e
+    elif name == "python":
+        try:
+            parse_script(args, monkeypatch)
+        except SystemExit as e:
+            raise AssertionError(f"{shlex.join(cmd)}: {capsys.readouterr().err}") from e
+    elif name == "make":
+        targets = re.findall(r"^([\w-]+):", (ROOT / "Makefile").read_text(), re.M)
+        assert set(args) <= set(targets), (cmd, targets)
+
+
+@pytest.mark.parametrize("doc, i, code", [(d, i, c) for d, i, _, c in BASH],
+                         ids=[f"{d}#{i + 1}" for d, i, _, _ in BASH])
+def test_bash_block_runs(doc, i, code, tmp_path, monkeypatch, capsys):
+    commands = run_bash(code, tmp_path)
+    assert commands, f"{doc} bash block {i + 1} ran no command"
+    for cmd in commands:
+        check_command(cmd, monkeypatch, capsys)
+
+
+# ------------------------------------------------------------------ python
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """A folder with what the python blocks name (module doc)."""
+    import lightning as L  # noqa: PLC0415
+    from garmentgnn.data import export_sequence, generate, preset, store  # noqa: PLC0415
+    from garmentgnn.models import GarTrans  # noqa: PLC0415
+    from garmentgnn.training import GarmentDataModule, GarTransModule  # noqa: PLC0415
+    from test_data import fake_simulate  # noqa: PLC0415
+    tmp = tmp_path_factory.mktemp("docs")
+    tiny = tmp / "data" / "tiny"
+    generate(preset("tiny"), tiny, workers=0, simulate_fn=fake_simulate, progress=False)
+    for name in ("small", "learn"):
+        (tmp / "data" / name).symlink_to(tiny)
+    dm = GarmentDataModule(tiny, val_split=None)
+    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)), schedule=False)
+    trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False,
+                        default_root_dir=str(tmp))
+    trainer.fit(module, dm)
+    trainer.save_checkpoint(tmp / "model.ckpt")
+    seq = sorted((tiny / store.SEQUENCES).glob("*.npz"))[0]
+    export_sequence(seq, "gltf", tmp / "seq.glb")
+    return tmp
+
+
+@pytest.mark.parametrize("doc, i, code", [(d, i, c) for d, i, _, c in PYTHON],
+                         ids=[f"{d}#{i + 1}" for d, i, _, _ in PYTHON])
+def test_python_block_runs(doc, i, code, folder, monkeypatch):
+    if "render_animation" in code or "show(" in code:
+        from garmentgnn.viz.animate import renderer_unavailable  # noqa: PLC0415
+        reason = renderer_unavailable()
+        if reason is not None:
+            pytest.skip(f"no renderer here: {reason}")
+    if "write_viewer" in code:
+        from garmentgnn.viz.viewer import viewer_bundle  # noqa: PLC0415
+        try:
+            viewer_bundle()
+        except (OSError, ValueError) as e:
+            pytest.skip(f"the viewer bundle is not built here ({e})")
+    monkeypatch.chdir(folder)
+    exec(compile(code, f"{doc} python block {i + 1}", "exec"), {"__name__": "__main__"})
+
+
+def test_bash_stubs_see_what_bash_expands(tmp_path):
+    """The harness itself: loops, brace expansion, functions and backgrounded calls reach
+    the stubs as a shell would pass them; an unknown program fails the block."""
+    got = run_bash('for i in 0 1; do garmentgnn bench --shard $i/2 & done; wait\n'
+                   'run() { make "$@"; }; run test\ncp a/{x,y}.md b/\n', tmp_path / "a")
+    assert sorted(got) == sorted([["garmentgnn", "bench", "--shard", "0/2"],
+                                  ["garmentgnn", "bench", "--shard", "1/2"],
+                                  ["make", "test"], ["cp", "a/x.md", "a/y.md", "b/"]])
+    (tmp_path / "b").mkdir()
+    with pytest.raises(AssertionError, match="command not found"):
+        run_bash("ls\n", tmp_path / "b")
+
+
+def test_parsers_refuse_a_stale_flag(monkeypatch, capsys):
+    """The checks can fail: a flag the command no longer has is an error."""
+    with pytest.raises(AssertionError):
+        check_command(["garmentgnn", "bench", "--preset", "tiny", "--out", "x", "--no-such"],
+                      monkeypatch, capsys)
+    with pytest.raises(SystemExit):
+        parse_train(["fit", "--config", "gartrans", "--model.init_args.no_such", "1"])
+    with pytest.raises(AssertionError):
+        check_command(["make", "no-such-target"], monkeypatch, capsys)
