@@ -1,6 +1,8 @@
 """Every code block in the README and docs/ runs as a test, or is marked as output.
 
-* ``text`` blocks are output (layouts, synopses, transcripts): not run.
+* ``text`` blocks are output (layouts, synopses, transcripts): not run; ``yaml`` blocks
+  are parsed.  A fence that names a file (```python toy_conv.py) holds that file, which
+  the doc's bash blocks find beside them.
 * ``bash`` blocks run under bash, in a folder of their own, with the project's commands
   (``garmentgnn``, ``python``, ``make``) and the tools they name (``pip``, ``apt-get``,
   ``cp``, ``tensorboard``) stubbed to record their arguments, and no other program on the
@@ -32,8 +34,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md"] + sorted((ROOT / "docs").rglob("*.md"))
 FENCE = re.compile(r"^```([^\n`]*)\n(.*?)^```", re.S | re.M)
-#: the languages a block may have: run (bash, python) or output (text)
-LANGUAGES = ("bash", "python", "text")
+#: the languages a block may have: run (bash, python), parsed (yaml) or output (text)
+LANGUAGES = ("bash", "python", "yaml", "text")
 #: python blocks with a test of their own
 OWN_TESTS = {("README.md", 0): "tests/test_readme.py", ("docs/layers.md", 0):
              "tests/test_nn_docs.py", ("docs/layers.md", 1): "tests/test_nn_docs.py",
@@ -43,30 +45,42 @@ STUBS = ("garmentgnn", "python", "make", "pip", "apt-get", "cp", "tensorboard")
 
 
 def blocks():
-    """``(doc, index among its language, language, code)`` of every fenced block."""
+    """``(doc, index among its language, language, code)`` of every fenced block; a block
+    whose fence names a file (```python toy_conv.py) is that file's content
+    (:data:`FILES`), written beside the doc's bash blocks when they run."""
     out = []
     for doc in DOCS:
         seen = {}
-        for lang, code in FENCE.findall(doc.read_text()):
-            lang = lang.strip()
+        for info, code in FENCE.findall(doc.read_text()):
+            lang, _, name = info.strip().partition(" ")
             i = seen[lang] = seen.get(lang, -1) + 1
-            out.append((str(doc.relative_to(ROOT)), i, lang, code))
+            out.append((str(doc.relative_to(ROOT)), i, lang, code, name.strip()))
     return out
 
 
 BLOCKS = blocks()
-BASH = [b for b in BLOCKS if b[2] == "bash"]
-PYTHON = [b for b in BLOCKS if b[2] == "python" and (b[0], b[1]) not in OWN_TESTS]
+#: doc -> {file name: content} of its file blocks
+FILES = {}
+for _doc, _, _, _code, _name in BLOCKS:
+    if _name:
+        FILES.setdefault(_doc, {})[_name] = _code
+BASH = [b[:4] for b in BLOCKS if b[2] == "bash"]
+PYTHON = [b[:4] for b in BLOCKS
+          if b[2] == "python" and not b[4] and (b[0], b[1]) not in OWN_TESTS]
 
 
 def test_every_block_says_what_it_is():
     """A block is run (bash, python) or marked as output (text); none is left unmarked."""
-    bad = [f"{doc} block {i + 1}: ```{lang}" for doc, i, lang, _ in BLOCKS
+    bad = [f"{doc} block {i + 1}: ```{lang}" for doc, i, lang, _, _ in BLOCKS
            if lang not in LANGUAGES]
     assert not bad, bad
+    import yaml  # noqa: PLC0415
+    for doc, i, lang, code, _ in BLOCKS:
+        if lang == "yaml":
+            assert isinstance(yaml.safe_load(code), dict), f"{doc} yaml block {i + 1}"
     assert len(BASH) > 20 and len(PYTHON) >= 5
     for (doc, i), test in OWN_TESTS.items():
-        assert any(b[:3] == (doc, i, "python") for b in BLOCKS), (doc, i)
+        assert any(b[:3] == (doc, i, "python") and not b[4] for b in BLOCKS), (doc, i)
         assert (ROOT / test).is_file()
 
 
@@ -180,8 +194,12 @@ def check_command(cmd, monkeypatch, capsys):
 @pytest.mark.parametrize("doc, i, code", [(d, i, c) for d, i, _, c in BASH],
                          ids=[f"{d}#{i + 1}" for d, i, _, _ in BASH])
 def test_bash_block_runs(doc, i, code, tmp_path, monkeypatch, capsys):
+    for name, content in FILES.get(doc, {}).items():  # the files the doc writes out
+        (tmp_path / name).write_text(content)
     commands = run_bash(code, tmp_path)
     assert commands, f"{doc} bash block {i + 1} ran no command"
+    # commands run from the repository's root, beside the doc's files where it has some
+    monkeypatch.chdir(tmp_path if doc in FILES else ROOT)
     for cmd in commands:
         check_command(cmd, monkeypatch, capsys)
 

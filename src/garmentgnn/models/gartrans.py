@@ -51,7 +51,8 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         num_joints: ``S``.
         num_body_vertices: body vertex count (input width of the body FC branch).
         nystrom_dim: number of Nyström eigenvector features per vertex.
-        rest_layer, blend_layer, dynamic_layer: registry names of the three slots.
+        rest_layer, blend_layer, dynamic_layer: the layers of the three slots: names of
+            :data:`garmentgnn.nn.LAYERS` or layer class paths (:func:`~garmentgnn.nn.make_layer`).
         heads: attention heads (4 in the paper).  fps: frame rate (velocities, ``dt^2``).
         use_body: feed the body-vertex-to-joint distances (``False``: a learned per-joint
             code for ``b^[1]``, for scenes without a body).

@@ -19,7 +19,8 @@ per frame squared, so the model is tied to the frame rate it learned at, ``fps``
   MeshGraphNets update them in every block: a cost per block this model leaves out).
   All inputs are normalised by running statistics (:class:`RunningNormalizer`);
 * **process**: a residual stack of ``layers`` blocks, each a :mod:`garmentgnn.nn` layer
-  (``layer``: SATConv by default, any name of :data:`garmentgnn.nn.LAYERS`) over the mesh
+  (``layer``: SATConv by default, any name of :data:`garmentgnn.nn.LAYERS` or a layer's
+  class path) over the mesh
   graph with its edge features carried block to block (Eqs. 5-6 for SATConv), followed
   by a LayerNorm'd MLP (MeshGraphNets' node update), each with a residual connection;
 * **decode**: an MLP to the normalised local-frame acceleration; :meth:`acceleration`
@@ -41,7 +42,7 @@ from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.models.blocks import Configurable, RunningNormalizer, mlp
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import ChunkLayout
-from garmentgnn.nn import LAYERS, make_layer
+from garmentgnn.nn import layer_class, make_layer
 from garmentgnn.physics import MATERIAL_FEATURES
 
 __all__ = ["MGNStyle", "SceneMotion"]
@@ -116,8 +117,10 @@ class MGNStyle(Configurable, nn.Module):
                         ("body_k", body_k)):
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"`{name}`: expected a positive int, got {v!r}")
-        if layer not in LAYERS:
-            raise ValueError(f"`layer`: unknown {layer!r}; choose one of {sorted(LAYERS)}")
+        try:
+            layer_class(layer)
+        except ValueError as err:
+            raise ValueError(f"`layer`: {str(err).split(': ', 1)[1]}") from None
         if hidden % heads:
             raise ValueError(f"`heads`: {heads} heads do not divide hidden={hidden}; give a "
                              f"divisor of it")

@@ -3,7 +3,7 @@ from garmentgnn.nn._graph import TensorCache
 from garmentgnn.nn.edge_transformer_conv import EdgeTransformerConv
 from garmentgnn.nn.gat_conv import GATBaselineConv
 from garmentgnn.nn.gt_conv import GraphTransformerConv
-from garmentgnn.nn.registry import LAYERS, make_layer
+from garmentgnn.nn.registry import LAYERS, layer_class, make_layer
 from garmentgnn.nn.sat_conv import SATConv
 from garmentgnn.nn.structure_aware_conv import StructureAwareTransformerConv
 
@@ -14,6 +14,7 @@ __all__ = [
     "StructureAwareTransformerConv",
     "GATBaselineConv",
     "make_layer",
+    "layer_class",
     "LAYERS",
     "TensorCache",
 ]

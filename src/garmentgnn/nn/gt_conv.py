@@ -66,6 +66,9 @@ class GraphTransformerConv(AttentionConv):
           ``return_edge_attr=True`` also ``edge_attr`` as given.
     """
 
+    #: the name :func:`~garmentgnn.nn.make_layer` and the configs know it by
+    layer_name = "gt"
+
     def __init__(
         self,
         in_channels: Union[int, Tuple[int, int]],

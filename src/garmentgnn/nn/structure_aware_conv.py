@@ -93,6 +93,9 @@ class StructureAwareTransformerConv(AttentionConv):
           ``return_edge_attr=True`` also ``edge_attr`` as given.
     """
 
+    #: the name :func:`~garmentgnn.nn.make_layer` and the configs know it by
+    layer_name = "structure_aware"
+
     def __init__(
         self,
         in_channels: Union[int, Tuple[int, int]],

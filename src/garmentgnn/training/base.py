@@ -200,8 +200,9 @@ class GarmentModule(L.LightningModule):
                       ) -> Dict[str, Any]:
         """A checkpoint's hyper-parameters: the module's arguments and ``model``, its
         model's spec.  A checkpoint whose hyper-parameters this version's module or model
-        does not take (written by an earlier layout) is a :class:`CheckpointError` that
-        says to retrain: there is no conversion."""
+        does not take (another module's, or an earlier layout's) is a
+        :class:`CheckpointError` that says so and to retrain: there is no conversion.  A
+        checkpoint without hyper-parameters gives ``{}`` (it cannot say what it was)."""
         saved = dict(checkpoint.get("hyper_parameters") or {})
         if isinstance(saved.get("model"), Configurable):  # written in by load_from_checkpoint
             saved["model"] = saved["model"].spec()
@@ -218,13 +219,15 @@ class GarmentModule(L.LightningModule):
             except ValueError:
                 params = {}
             unknown += [f"model.{k}" for k in spec.get("init_args") or {} if k not in params]
-        if unknown or not (isinstance(spec, dict) and "class_path" in spec):
-            what = f"it holds {', '.join(sorted(unknown))}" if unknown else "it names no model"
-            raise CheckpointError(f"{where}: a checkpoint of an earlier layout of "
-                                  f"{cls.__name__}, or of another module ({what}, which "
-                                  f"this version's {cls.__name__} does not take); load it "
-                                  f"with the module it was trained with, or retrain it with "
-                                  f"this version (garmentgnn train fit)")
+        if saved and (unknown or not (isinstance(spec, dict) and "class_path" in spec)):
+            model = (f"(its model: {str(spec['class_path']).rsplit('.', 1)[-1]}) "
+                     if isinstance(spec, dict) and "class_path" in spec else "")
+            what = (f"its hyper-parameters {', '.join(sorted(unknown))} are not "
+                    f"{cls.__name__}'s" if unknown else "it names no model")
+            raise CheckpointError(f"{where}: a checkpoint {model}of another module or of an "
+                                  f"earlier layout of {cls.__name__} ({what}); load it with "
+                                  f"the module it was trained with, or retrain it with this "
+                                  f"version (garmentgnn train fit)")
         return saved
 
     @classmethod
