@@ -1,5 +1,6 @@
 """Command line: ``garmentgnn generate ...``, ``garmentgnn export ...``,
 ``garmentgnn manifest ...``, ``garmentgnn show ...`` (see :mod:`garmentgnn.viz`),
+``garmentgnn predict ...`` (see :mod:`garmentgnn.inference`),
 ``garmentgnn train ...`` (Lightning's CLI, see
 :mod:`garmentgnn.training.lightning_cli`), ``garmentgnn bench ...`` (see
 :mod:`garmentgnn.harness`) (also ``python -m garmentgnn.cli``).
@@ -25,6 +26,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 import garmentgnn
 from garmentgnn._argparse import ArgumentParser, HelpFormatter, finite_float, nonempty_path
 from garmentgnn.harness import cli as harness_cli
+from garmentgnn.inference import cli as inference_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
 from garmentgnn.data.presets import ENGINES, PRESETS
@@ -261,6 +263,7 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
     "manifest": (add_manifest_parser, manifest_main),
     "bench": (harness_cli.add_parser, harness_cli.main),
     "show": (viz_cli.add_parser, viz_cli.main),
+    "predict": (inference_cli.add_parser, inference_cli.main),
     "train": (add_train_parser, train_main),
 }
 

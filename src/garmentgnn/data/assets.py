@@ -175,7 +175,7 @@ def motion_from_entry(entry: Dict[str, Any], body: Body, fps: float,
     """The motion of a BVH entry on ``body``: read (``scale``, ``up``), retargeted by
     name, role or ``mapping`` (:func:`retarget` with both rests), resampled to ``fps``
     (rotations by slerp, :meth:`Motion.resample`), frames ``start ..
-    start + num_frames``."""
+    start + num_frames`` (default the entry's ``num_frames``, else every frame)."""
     path = checked_path(entry)
     hierarchy, motion = read_bvh_file(path, entry.get("scale", 1.0), entry.get("up", "Y"))
     stated = entry.get("fps")
@@ -193,9 +193,9 @@ def motion_from_entry(entry: Dict[str, Any], body: Body, fps: float,
     except ValueError as exc:
         raise ValueError(f"{path}: {str(exc).replace('`name_map`', '`mapping`')}") from None
     moved = moved.resample(float(fps)) if abs(moved.fps - fps) > 1e-9 else moved
-    n = int(num_frames or entry["num_frames"])
     start = int(entry.get("start", 0))
     have = moved.num_frames - start
+    n = num_frames or entry.get("num_frames") or max(have, 1)  # none given: every frame
     if have < n:
         raise ValueError(f"{path}: {have} frames at {fps:g} fps (from {motion.num_frames} at "
                          f"{motion.fps:g} fps{f', after start {start}' if start else ''}), "
