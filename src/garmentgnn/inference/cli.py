@@ -40,8 +40,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--garment", required=True,
                    help="a mesh file (OBJ, PLY, glTF) or a template name (skirt, dress, ...)")
     p.add_argument("--body", default="regular",
-                   help="anny's named shape (thin, regular, fat, ...) or 6 comma-separated "
-                        "shape parameters")
+                   help="anny's named shape (thin, regular, fat, ...), MODEL:SHAPE "
+                        "(capsule:regular) or anny's 6 comma-separated shape parameters")
     p.add_argument("--motion", required=True,
                    help="a BVH file or a generator name (walk, run, twirl, ...)")
     p.add_argument("--out", required=True, type=nonempty_path,

@@ -67,10 +67,11 @@ class Prediction:
 
 # --------------------------------------------------------------------------- inputs
 def body_entry(body: Union[str, List[float], Mapping[str, Any]]) -> Dict[str, Any]:
-    """A body spec entry: anny's named shape (``"regular"``), its 6 shape parameters, or
-    ``{"model", "shape"}``."""
+    """A body spec entry: anny's named shape (``"regular"``), ``"MODEL:SHAPE"``
+    (``"capsule:regular"``), anny's 6 shape parameters, or ``{"model", "shape"}``."""
     if isinstance(body, str):
-        return {"model": "anny", "shape": body}
+        model, _, shape = body.rpartition(":")
+        return {"model": model or "anny", "shape": shape}
     if isinstance(body, Mapping):
         return {"model": body.get("model", "anny"), "shape": body.get("shape", "regular")}
     if isinstance(body, (list, tuple)):
