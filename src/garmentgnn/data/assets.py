@@ -165,9 +165,10 @@ def check_roles(path, source_names, body: Body, mapping: Optional[Dict[str, str]
     if missing:
         raise ValueError(
             f"{path}: its joints ({', '.join(list(source_names)[:6])}, ...) match none of "
-            f"the body's {', '.join(missing)}; add a `mapping:` of file joint -> body joint "
-            f"or role ({', '.join(ROLES[:3])}, ...) to the motion entry, e.g. "
-            f"{{{list(source_names)[0]}: pelvis}}")
+            f"the body's {', '.join(missing)}; map them: a `mapping:` of file joint -> body "
+            f"joint or role ({', '.join(ROLES[:3])}, ...) on the spec's motion entry, e.g. "
+            f"{{{list(source_names)[0]}: pelvis}} (predict: --mapping "
+            f"{list(source_names)[0]}=pelvis,...)")
 
 
 def motion_from_entry(entry: Dict[str, Any], body: Body, fps: float,
