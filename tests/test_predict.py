@@ -20,6 +20,7 @@ from garmentgnn.inference import predict_garment_motion
 from garmentgnn.models.baselines import NCSStyle
 from garmentgnn.motion.sequence import Motion
 from garmentgnn.training.baselines import BaselineModule
+from garmentgnn.viz.animate import renderer_unavailable
 from test_data import fake_simulate
 from test_own_garment import files, one_error, write_spec  # noqa: F401 (a fixture)
 
@@ -135,3 +136,15 @@ def test_predict_help_lists_its_inputs(capsys):
     text = capsys.readouterr().out
     assert all(f in text for f in ("--ckpt", "--method", "--garment", "--body", "--motion",
                                    "--mapping", "--device", "--show"))
+
+
+def test_show_renders_the_prediction_on_the_body(tmp_path, capsys):
+    why = renderer_unavailable()
+    if why:
+        pytest.skip(why)
+    assert cli_main(["predict", "--method", "lbs", "--garment", "skirt", "--body", "thin",
+                     "--motion", "walk", "--frames", "3", "--out", str(tmp_path / "w"),
+                     "--show"]) == 0
+    for suffix in (".glb", ".pc2", ".mp4", ".gif", ".png"):
+        assert (tmp_path / f"w{suffix}").stat().st_size > 0, suffix
+    assert len(list((tmp_path / "w_obj").glob("*.obj"))) == 3
