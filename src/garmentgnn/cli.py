@@ -1,5 +1,6 @@
 """Command line: ``garmentgnn generate ...``, ``garmentgnn export ...``,
 ``garmentgnn manifest ...``, ``garmentgnn show ...`` (see :mod:`garmentgnn.viz`),
+``garmentgnn predict ...`` (see :mod:`garmentgnn.inference`),
 ``garmentgnn train ...`` (Lightning's CLI, see
 :mod:`garmentgnn.training.lightning_cli`), ``garmentgnn bench ...`` (see
 :mod:`garmentgnn.harness`) (also ``python -m garmentgnn.cli``).
@@ -25,9 +26,11 @@ from typing import Callable, Dict, List, Optional, Tuple
 import garmentgnn
 from garmentgnn._argparse import ArgumentParser, HelpFormatter, finite_float, nonempty_path
 from garmentgnn.harness import cli as harness_cli
+from garmentgnn.inference import cli as inference_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
 from garmentgnn.data.presets import ENGINES, PRESETS
+from garmentgnn.data.spec_file import load_spec
 from garmentgnn.data.store import (SEQUENCES, IntegrityError, data_root, read_manifest,
                                    rebuild_manifest)
 from garmentgnn.training.integrity import CheckpointError
@@ -51,15 +54,23 @@ _path = nonempty_path  # an argparse type: --out "" would write into the current
 
 
 def add_generate_parser(sub) -> argparse.ArgumentParser:
-    """The ``generate`` sub-command: simulate a dataset preset into a folder."""
-    g = sub.add_parser("generate", help="simulate a dataset preset into a folder (resumable)",
-                       description="Simulate a dataset preset into a folder: one sequence "
-                       "file per item and a manifest; rerun to resume.",
+    """The ``generate`` sub-command: simulate a dataset preset or spec into a folder."""
+    g = sub.add_parser("generate", help="simulate a dataset preset or spec file into a folder "
+                       "(resumable)",
+                       description="Simulate a dataset preset, or a spec file of your own "
+                       "garments and motions, into a folder: one sequence file per item and "
+                       "a manifest; rerun to resume.",
                        formatter_class=HelpFormatter)
-    g.add_argument("--preset", choices=PRESETS, default="tiny", help="dataset preset")
-    g.add_argument("--engine", choices=("auto",) + ENGINES, default="auto",
+    which = g.add_mutually_exclusive_group()
+    which.add_argument("--preset", choices=PRESETS, default=None,
+                       help="dataset preset (default tiny)")
+    which.add_argument("--spec", type=_path, default=None,
+                       help="a YAML dataset spec: your garment meshes and BVH motions, "
+                            "templates, generators (docs/own_garment.md)")
+    g.add_argument("--engine", choices=("auto",) + ENGINES, default=None,
                    help="simulation engine: Blender's cloth (run in worker processes) or the "
-                        "torch reference simulator; auto = blender where `bpy` is installed")
+                        "torch reference simulator; auto = blender where `bpy` is installed "
+                        "(default: the spec's, else auto)")
     g.add_argument("--out", default=None, type=_path,
                    help="output folder (rerun to resume); default $GARMENTGNN_DATA_DIR/"
                         "<preset>-<engine>, $GARMENTGNN_DATA_DIR defaulting to "
@@ -74,7 +85,8 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--address", default=None,
                    help="with --backend ray: the cluster to join (HOST:PORT); default a "
                         "local cluster of --workers CPUs")
-    g.add_argument("--seed", type=int, default=0, help="base seed of the spec")
+    g.add_argument("--seed", type=int, default=None,
+                   help="base seed of the spec (default: the spec file's, else 0)")
     g.add_argument("--limit", type=int, default=None,
                    help="simulate at most N pending items in this run (default: all)")
     g.add_argument("--retry-failed", action="store_true",
@@ -92,7 +104,11 @@ def generate_main(args: argparse.Namespace) -> int:
     out = args.out
     try:
         sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
-        spec = preset(args.preset, seed=args.seed, engine=args.engine)
+        if args.spec is not None:
+            spec = load_spec(args.spec, engine=args.engine, seed=args.seed)
+        else:
+            spec = preset(args.preset or "tiny", seed=args.seed or 0,
+                          engine=args.engine or "auto")
         out = args.out
         if out is None:
             out = data_root() / f"{spec.name}-{spec.engine}"
@@ -247,6 +263,7 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
     "manifest": (add_manifest_parser, manifest_main),
     "bench": (harness_cli.add_parser, harness_cli.main),
     "show": (viz_cli.add_parser, viz_cli.main),
+    "predict": (inference_cli.add_parser, inference_cli.main),
     "train": (add_train_parser, train_main),
 }
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -55,6 +55,42 @@ DEFAULT_DENSITY = 0.15
 
 #: the folder beside a dataset's sequences that keeps their preprocessing (PyG's name)
 PROCESSED = "processed"
+
+
+def sequence_material(meta: Dict[str, Any]) -> Optional[torch.Tensor]:
+    """The fabric's features (:func:`~garmentgnn.physics.material_features`) of a
+    sequence: its ``material_params``, else its named preset, else ``None``."""
+    params = meta.get("material_params")
+    if params:
+        return material_features(params)
+    name = meta.get("material")
+    return material_features(MATERIALS[name]) if name in MATERIALS else None
+
+
+def static_inputs(seq: Dict[str, Any], meta: Dict[str, Any], nystrom_dim: int = 16,
+                  num_landmarks: int = 64, nystrom: Optional[Callable] = None
+                  ) -> Tuple[GarmentInputs, Any]:
+    """``(static inputs, rest body)`` of a sequence's arrays (a sequence file's, or
+    :func:`garmentgnn.data.worker.input_arrays` of a garment, body and motion) and its
+    meta (``body``, ``material_params`` / ``material``): what every reader of model
+    inputs builds.  ``nystrom(rest_pos, faces)``: the features where cached."""
+    rest_pos = torch.from_numpy(np.asarray(seq["garment_vertices"], np.float32))
+    faces = torch.from_numpy(np.asarray(seq["garment_faces"])).long()
+    body = build_body(meta["body"])
+    skin = seq.get("garment_skin_weights")
+    if skin is None:  # files written before the weights were stored: the same transfer
+        skin = transfer_skinning_weights(rest_pos, faces, body.vertices.float(),
+                                         body.weights.float())
+    pinned = np.asarray(seq["garment_pinned"]).astype(bool)
+    ny = None if nystrom is None else nystrom(rest_pos, faces)
+    st = build_static(
+        rest_pos, faces, body, torch.as_tensor(np.asarray(skin, np.float32)),
+        face_uv=torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32)),
+        density=float((meta.get("material_params") or {}).get("density", DEFAULT_DENSITY)),
+        pinned=torch.from_numpy(pinned) if pinned.any() else None,
+        nystrom_dim=nystrom_dim, num_landmarks=num_landmarks, nystrom=ny,
+        material=sequence_material(meta))
+    return st, body
 
 
 class SequenceChunks(Dataset):
@@ -184,25 +220,10 @@ class SequenceChunks(Dataset):
 
     def _build_static(self, i: int) -> Tuple[GarmentInputs, Any]:
         seq = self.sequence(i)
-        meta = seq["meta"]
-        rest_pos = torch.from_numpy(np.asarray(seq["garment_vertices"], np.float32))
-        faces = torch.from_numpy(np.asarray(seq["garment_faces"])).long()
-        body = build_body(meta["body"])
-        skin = seq.get("garment_skin_weights")
-        if skin is None:  # files written before the weights were stored: the same transfer
-            skin = transfer_skinning_weights(rest_pos, faces, body.vertices.float(),
-                                             body.weights.float())
-        pinned = np.asarray(seq["garment_pinned"]).astype(bool)
         try:
-            ny = self._nystrom(i, rest_pos, faces)
-            st = build_static(
-                rest_pos, faces, body, torch.as_tensor(np.asarray(skin, np.float32)),
-                face_uv=torch.from_numpy(np.asarray(seq["garment_face_uv"], np.float32)),
-                density=float((meta.get("material_params") or {}).get("density",
-                                                                      DEFAULT_DENSITY)),
-                pinned=torch.from_numpy(pinned) if pinned.any() else None,
-                nystrom_dim=self.nystrom_dim, num_landmarks=self.num_landmarks, nystrom=ny,
-                material=self._material(meta))
+            st, body = static_inputs(seq, seq["meta"], self.nystrom_dim, self.num_landmarks,
+                                     nystrom=lambda rest_pos, faces: self._nystrom(
+                                         i, rest_pos, faces))
         except ValueError as exc:  # the Nyström features' `k` is our nystrom_dim
             msg = str(exc)
             if not msg.startswith(("`k`", "`num_landmarks`")):
@@ -210,20 +231,11 @@ class SequenceChunks(Dataset):
             path = store.sequence_path(self.root, self.records[i])
             raise ValueError(f"`nystrom_dim`: {self.nystrom_dim} Nyström features with "
                              f"num_landmarks={self.num_landmarks} do not fit the garment of "
-                             f"{path} ({len(rest_pos)} vertices; {msg.split(': ', 1)[-1]}); "
-                             f"lower nystrom_dim or raise num_landmarks") from None
+                             f"{path} ({len(seq['garment_vertices'])} vertices; "
+                             f"{msg.split(': ', 1)[-1]}); lower nystrom_dim or raise "
+                             f"num_landmarks") from None
         self.num_static_builds += 1
         return st, body
-
-    @staticmethod
-    def _material(meta: Dict[str, Any]) -> Optional[torch.Tensor]:
-        """The fabric's features (:func:`~garmentgnn.physics.material_features`) of a
-        sequence: its ``material_params``, else its named preset, else ``None``."""
-        params = meta.get("material_params")
-        if params:
-            return material_features(params)
-        name = meta.get("material")
-        return material_features(MATERIALS[name]) if name in MATERIALS else None
 
     def nystrom_path(self, i: int) -> Optional[Path]:
         """Where sequence ``i``'s Nyström features are kept (``None``: a record without

@@ -119,7 +119,8 @@ def _load_existing(out: Path, spec_json: Dict[str, Any], force: bool = False
             raise SpecMismatch(
                 f"{out} holds a different dataset (spec {old.get('name')!r}, seed "
                 f"{old.get('seed')}); use another --out, or --force to overwrite it")
-        accepted = store.listed_ok(out)  # another dataset's files kept by an earlier --force
+        # another dataset's files kept by an earlier --force (a manifest of this spec's)
+        accepted = store.listed_ok(out, spec_json["items"])
     if not force:  # sequence files of another dataset, whatever spec or manifest is there
         foreign = store.foreign_sequence_files(out, spec_json["items"], accepted)
         if foreign:

@@ -10,7 +10,10 @@ from typing import Any, Dict
 
 
 def garment_key(g: Dict[str, Any]) -> str:
-    """``kind-param=value...@resolution`` of a garment entry."""
+    """``kind-param=value...@resolution`` of a garment entry (``file:NAME@SHA8`` of a
+    mesh file's)."""
+    if "file" in g:
+        return f"file:{g['file']}@{g['sha256'][:8]}"
     params = "".join(f"-{k}={v}" for k, v in sorted(g.get("params", {}).items()))
     return f"{g['kind']}{params}@{g['resolution']}"
 
@@ -23,7 +26,10 @@ def body_key(b: Dict[str, Any]) -> str:
 
 
 def motion_key(m: Dict[str, Any]) -> str:
-    """``name-s<speed>-a<amplitude>-n<frames>`` of a motion entry."""
+    """``name-s<speed>-a<amplitude>-n<frames>`` of a motion entry (``file:NAME@SHA8-n<frames>``
+    of a BVH file's)."""
+    if "file" in m:
+        return f"file:{m['file']}@{m['sha256'][:8]}-n{m['num_frames']}"
     return f"{m['name']}-s{m.get('speed', 1.0):g}-a{m.get('amplitude', 1.0):g}-n{m['num_frames']}"
 
 

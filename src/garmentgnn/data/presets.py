@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from garmentgnn.body.factory import body_model, build_body
+from garmentgnn.data.assets import garment_from_entry, motion_from_entry
 from garmentgnn.data.keys import body_key, garment_key, motion_key
 from garmentgnn.garments import make_garment
 from garmentgnn.motion import make_motion
@@ -47,6 +48,13 @@ def _canon(obj: Any) -> str:
 
 
 _PART = {"garments": "garment", "bodies": "body", "motions": "motion"}
+
+
+def _portable(desc: Dict[str, Any]) -> Dict[str, Any]:
+    """``desc`` without the absolute ``path`` of its file entries (their name and
+    content hash stay): an item's id does not depend on where the files lie."""
+    return {k: ({kk: vv for kk, vv in v.items() if kk != "path"}
+                if isinstance(v, dict) and "file" in v else v) for k, v in desc.items()}
 
 
 @dataclass
@@ -95,7 +103,8 @@ class Spec:
                     "settings": self.settings}
             if self.engine != "torch":  # torch items keep the ids they had before engines
                 desc["engine"] = self.engine
-            digest = hashlib.sha1(f"{_canon(desc)}|seed={self.seed}".encode()).hexdigest()
+            digest = hashlib.sha1(f"{_canon(_portable(desc))}|seed={self.seed}".encode()
+                                  ).hexdigest()
             shape = b["shape"] if isinstance(b["shape"], str) else "custom"
             iid = f"{g['kind']}-{b['model']}-{shape}-{m['name']}-{mat}-{digest[:10]}"
             split, parts = self.held_out_parts(g, b, m)
@@ -368,16 +377,25 @@ def _learn_long(seed: int) -> Spec:
 
 # --------------------------------------------------------------------------- one item
 def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
-    """``(garment, body, motion, material)`` of an item."""
+    """``(garment, body, motion, material)`` of an item: templates and generators, or
+    the mesh and BVH files its entries name (:mod:`garmentgnn.data.assets`, refused
+    when a file changed since the spec was read)."""
     body = build_body(item["body"])
     g = item["garment"]
-    garment = make_garment(g["kind"], body, resolution=g["resolution"], **g.get("params", {}))
+    if "file" in g:
+        garment = garment_from_entry(g, body)
+    else:
+        garment = make_garment(g["kind"], body, resolution=g["resolution"],
+                               **g.get("params", {}))
     m = item["motion"]
-    model = body_model(item["body"]["model"])
-    motion = make_motion(m["name"], model.skeleton, num_frames=num_frames or m["num_frames"],
-                         fps=float(item["settings"].get("fps", 30.0)), speed=m["speed"],
-                         amplitude=m["amplitude"], seed=item["seed"],
-                         rest_joints=body.joints.to(torch.float64))
+    fps = float(item["settings"].get("fps", 30.0))
+    if "file" in m:
+        motion = motion_from_entry(m, body, fps, num_frames)
+    else:
+        model = body_model(item["body"]["model"])
+        motion = make_motion(m["name"], model.skeleton, num_frames=num_frames or m["num_frames"],
+                             fps=fps, speed=m["speed"], amplitude=m["amplitude"],
+                             seed=item["seed"], rest_joints=body.joints.to(torch.float64))
     material = MATERIALS[item["material"]]
     return garment, body, motion, material
 

@@ -334,13 +334,21 @@ def _engine_name(meta_or_item: Dict[str, Any]) -> str:
     return str(engine or "torch")  # written before engines were recorded: torch
 
 
-def listed_ok(out: PathLike) -> set:
+def listed_ok(out: PathLike, items: Optional[List[Dict[str, Any]]] = None) -> set:
     """The ids ``OUT/manifest.json`` lists as ok (empty when it is missing or unreadable):
-    files of another dataset listed there were accepted by an earlier ``--force``."""
+    files of another dataset listed there were accepted by an earlier ``--force``.
+    Given the spec's ``items``, only a manifest written for that spec (one listing every
+    item) accepts anything: a spec copied in beside another dataset's manifest does not
+    make that dataset's files its own."""
     try:
-        return {r["id"] for r in read_manifest(out)["items"] if r.get("status") == "ok"}
+        records = read_manifest(out)["items"]
+        listed = {r["id"] for r in records}
+        ok = {r["id"] for r in records if r.get("status") == "ok"}
     except (OSError, ValueError, KeyError, TypeError):
         return set()
+    if items is not None and not {it.get("id") for it in items} <= listed:
+        return set()
+    return ok
 
 
 def foreign_sequence_files(out: PathLike, items: List[Dict[str, Any]],
@@ -394,8 +402,8 @@ def rebuild_manifest(out: PathLike, write: bool = True, force: bool = False) -> 
                 not all(isinstance(it, dict) and "id" in it for it in spec["items"]):
             raise ValueError(f"{spec_path}: no valid 'items' list; delete it (items without "
                              f"a file are then not listed)")
-        foreign = [] if force else foreign_sequence_files(out, spec["items"],
-                                                          listed_ok(out))
+        foreign = [] if force else foreign_sequence_files(
+            out, spec["items"], listed_ok(out, spec["items"]))
         if foreign:
             raise ValueError(foreign_message(out, foreign, f"{spec_path} describes",
                                              "the manifest is not rebuilt"))

@@ -115,6 +115,30 @@ def _simulate(sim, inputs, settings) -> Dict[str, Any]:
             "invalid": invalid_frame_count(converged, pen)}
 
 
+def input_arrays(garment, body, motion) -> Dict[str, np.ndarray]:
+    """The arrays of a sequence file that hold its inputs (garment, body shape, motion),
+    as the model inputs read them (:func:`garmentgnn.data.chunks.static_inputs`): what
+    a prediction on a new garment, body and motion builds without simulating."""
+    V = garment.num_vertices
+    return {
+        "garment_vertices": garment.vertices.numpy().astype(np.float32),
+        "garment_faces": garment.faces.numpy().astype(np.int64),
+        "garment_uv": garment.uv.numpy().astype(np.float32),
+        "garment_face_uv": garment.face_uv.numpy().astype(np.float32),
+        "garment_pinned": (np.zeros(V, bool) if garment.pinned is None
+                           else garment.pinned.numpy().astype(bool)),
+        # the weights the engine skinned the garment with (the rest pose, the pre-roll,
+        # pins), stored so the model inputs read them instead of recomputing them
+        "garment_skin_weights": transfer_skinning_weights(
+            garment.vertices.float(), garment.faces, body.vertices.float(),
+            body.weights.float()).numpy().astype(np.float32),
+        "body_shape": (np.zeros(0, np.float64) if body.shape is None
+                       else body.shape.double().numpy()),
+        "motion_rotations": motion.rotations.float().numpy(),
+        "motion_translation": motion.translation.float().numpy(),
+    }
+
+
 def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = None,
              settings_fn: Optional[Callable] = None) -> Dict[str, Any]:
     """Simulate one item and write ``OUT/sequences/<id>.npz``; returns its manifest record.
@@ -153,27 +177,9 @@ def run_item(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable] = N
                     run, used, resimulated["kept"] = again, raised, "resimulated"
         T, V = motion.num_frames, garment.num_vertices
         converged, pen = run["converged"], run["pen"]
-        arrays = {
-            "garment_vertices": garment.vertices.numpy().astype(np.float32),
-            "garment_faces": garment.faces.numpy().astype(np.int64),
-            "garment_uv": garment.uv.numpy().astype(np.float32),
-            "garment_face_uv": garment.face_uv.numpy().astype(np.float32),
-            "garment_pinned": (np.zeros(V, bool) if garment.pinned is None
-                               else garment.pinned.numpy().astype(bool)),
-            # the weights the engine skinned the garment with (the rest pose, the pre-roll,
-            # pins), stored so the model inputs read them instead of recomputing them
-            "garment_skin_weights": transfer_skinning_weights(
-                garment.vertices.float(), garment.faces, body.vertices.float(),
-                body.weights.float()).numpy().astype(np.float32),
-            "body_shape": (np.zeros(0, np.float64) if body.shape is None
-                           else body.shape.double().numpy()),
-            "motion_rotations": motion.rotations.float().numpy(),
-            "motion_translation": motion.translation.float().numpy(),
-            "positions": run["positions"],
-            "converged": converged,
-            "newton_iterations": run["newton_iterations"],
-            "residual": run["residual"],
-        }
+        arrays = dict(input_arrays(garment, body, motion), positions=run["positions"],
+                      converged=converged, newton_iterations=run["newton_iterations"],
+                      residual=run["residual"])
         if pen is not None:
             arrays["penetration"] = pen
         bad = nonfinite_arrays(arrays)  # a file that would fail store.check_sequence
@@ -215,5 +221,6 @@ def init_worker(parent_pid: Optional[int] = None) -> None:
         pass
 
 
-__all__ = ["RESIMULATE", "default_simulate", "engine_info", "init_worker", "item_settings",
+__all__ = ["RESIMULATE", "default_simulate", "engine_info", "init_worker", "input_arrays",
+           "item_settings",
            "plain_settings", "resimulation_settings", "run_item"]

@@ -1,0 +1,283 @@
+"""A trained method on a garment, body and motion of your own: the deformed garment of
+every frame, without simulating (``garmentgnn predict``; docs/own_garment.md).
+
+The inputs are built as a dataset's sequence file holds them
+(:func:`garmentgnn.data.worker.input_arrays`) and read as every reader of model inputs
+reads them (:func:`garmentgnn.data.chunks.static_inputs`,
+:func:`garmentgnn.models.inputs.with_frames`), so a checkpoint predicts here what
+``garmentgnn train predict`` predicts on a simulated sequence of the same garment, body
+and motion.  Frame-parallel methods (GarTrans, DA-, HOOD-, NCS-style) run in chunks of
+the frames they were evaluated with; the MGN-style simulator rolls out over the whole
+motion from the skinned garment; ``lbs`` is the rest garment skinned to the body.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Mapping, Optional, Union
+
+import numpy as np
+import torch
+
+from garmentgnn.body.body import Body
+from garmentgnn.body.factory import build_body
+from garmentgnn.data.assets import (check_fit, file_name, motion_from_entry, read_garment_file,
+                                    sha256_of)
+from garmentgnn.data.chunks import static_inputs
+from garmentgnn.data.worker import input_arrays
+from garmentgnn.garments import make_garment
+from garmentgnn.garments.garment import Garment
+from garmentgnn.garments.templates import TEMPLATES
+from garmentgnn.models.inputs import GarmentInputs, with_frames
+from garmentgnn.motion import MOTIONS, make_motion
+from garmentgnn.motion.sequence import Motion
+from garmentgnn.physics.materials import MATERIALS
+from garmentgnn.training.simulator import SimulatorModule
+from garmentgnn.viz.compare import data_settings, load_checkpoint
+
+PathLike = Union[str, Path]
+#: the method that needs no checkpoint: the rest garment skinned to the body
+LBS = "lbs"
+#: frames per frame-parallel chunk when a checkpoint does not say (the data module's)
+DEFAULT_CHUNK = 8
+
+
+@dataclass
+class Prediction:
+    """The garment of every frame and what it was made from.
+
+    ``positions [T, V, 3]`` float32 metres, ``faces [F, 3]``, ``seq``: the arrays and
+    meta of a sequence file with these positions (what :mod:`garmentgnn.data.gltf` and
+    :mod:`garmentgnn.data.export` write), ``frame_seconds [T]``: each frame's share of
+    the time the method took, ``autoregressive``: rolled out frame by frame."""
+
+    positions: np.ndarray
+    faces: np.ndarray
+    fps: float
+    method: str
+    seq: Dict[str, Any]
+    frame_seconds: List[float] = field(default_factory=list)
+    autoregressive: bool = False
+
+    @property
+    def total_seconds(self) -> float:
+        return float(sum(self.frame_seconds))
+
+
+# --------------------------------------------------------------------------- inputs
+def body_entry(body: Union[str, List[float], Mapping[str, Any]]) -> Dict[str, Any]:
+    """A body spec entry: anny's named shape (``"regular"``), ``"MODEL:SHAPE"``
+    (``"capsule:regular"``), anny's 6 shape parameters, or ``{"model", "shape"}``."""
+    if isinstance(body, str):
+        model, _, shape = body.rpartition(":")
+        return {"model": model or "anny", "shape": shape}
+    if isinstance(body, Mapping):
+        return {"model": body.get("model", "anny"), "shape": body.get("shape", "regular")}
+    if isinstance(body, (list, tuple)):
+        return {"model": "anny", "shape": [float(x) for x in body]}
+    raise TypeError(f"`body`: expected a shape name, parameters or {{model, shape}}, got "
+                    f"{type(body).__name__}")
+
+
+def _is_path(x: Any) -> bool:
+    return isinstance(x, Path) or (isinstance(x, str) and ("/" in x or "." in x))
+
+
+def resolve_garment(garment: Union[PathLike, Garment], body: Body, resolution: int = 300,
+                    params: Optional[Mapping[str, Any]] = None) -> Garment:
+    """A :class:`Garment` as it is, a mesh file (read and checked against ``body``,
+    :mod:`garmentgnn.data.assets`), or a template name built on ``body``."""
+    if isinstance(garment, Garment):
+        return garment
+    if _is_path(garment):
+        path = Path(garment)
+        if not path.is_file():
+            raise ValueError(f"`garment`: {path}: no such file; give a mesh file (OBJ, PLY, "
+                             f"glTF) or a template name ({', '.join(TEMPLATES)})")
+        g = read_garment_file(path)
+        check_fit(g, body, str(path))
+        return g
+    if garment not in TEMPLATES:
+        raise ValueError(f"`garment`: {garment!r} is neither a mesh file nor a template; "
+                         f"templates: {', '.join(TEMPLATES)}")
+    return make_garment(garment, body, resolution=resolution, **dict(params or {}))
+
+
+def resolve_motion(motion: Union[PathLike, Motion], body: Body, fps: float,
+                   frames: Optional[int], scale: float = 1.0, up: str = "Y",
+                   mapping: Optional[Mapping[str, str]] = None, start: int = 0,
+                   seed: int = 0, speed: float = 1.0, amplitude: float = 1.0) -> Motion:
+    """A :class:`Motion` (on ``body``'s joints), a BVH file (read, retargeted and
+    resampled to ``fps`` as a dataset spec's, :func:`motion_from_entry`; default every
+    frame from ``start``) or a generator name (``frames`` frames, default 60)."""
+    if isinstance(motion, Motion):
+        return motion if frames is None else Motion(
+            motion.rotations[:frames], motion.translation[:frames],
+            list(motion.joint_names), motion.fps)
+    if _is_path(motion):
+        path = Path(motion)
+        if not path.is_file():
+            raise ValueError(f"`motion`: {path}: no such file; give a BVH file or a "
+                             f"generator name ({', '.join(sorted(MOTIONS))})")
+        entry = {"file": path.name, "path": str(path.resolve()), "sha256": sha256_of(path),
+                 "scale": scale, "up": up, "mapping": dict(mapping or {}), "start": start}
+        return motion_from_entry(entry, body, fps, frames)
+    return make_motion(motion, body.skeleton, num_frames=frames or 60, fps=float(fps),
+                       speed=speed, amplitude=amplitude, seed=seed,
+                       rest_joints=body.joints.to(torch.float64))
+
+
+def sequence_of(garment: Garment, body: Body, body_spec: Dict[str, Any], motion: Motion,
+                material: str = "silk") -> Dict[str, Any]:
+    """The arrays and meta of a sequence file of this garment, body and motion, without
+    its simulated positions."""
+    if material not in MATERIALS:
+        raise ValueError(f"`material`: unknown {material!r}; choose from {sorted(MATERIALS)}")
+    seq: Dict[str, Any] = input_arrays(garment, body, motion)
+    seq["meta"] = {"id": f"{garment.name}-{motion.num_frames}f", "body": body_spec,
+                   "material": material, "material_params": asdict(MATERIALS[material]),
+                   "garment": {"kind": garment.name}, "settings": {"fps": float(motion.fps)},
+                   "fps": float(motion.fps), "num_frames": motion.num_frames,
+                   "num_vertices": garment.num_vertices}
+    return seq
+
+
+# --------------------------------------------------------------------------- methods
+def _settings(module, where: str):
+    """``(history, num_landmarks, nystrom_dim, chunk)`` the module was trained and
+    evaluated with."""
+    if module is None:
+        return 3, 64, 16, DEFAULT_CHUNK
+    history, landmarks = data_settings({"m": module}, {"m": where}, None, None)
+    trained = getattr(module, "trained_data", None) or {}
+    chunk = trained.get("eval_chunk") or trained.get("chunk") or DEFAULT_CHUNK
+    ny = getattr(module, "nystrom_dim", None) or trained.get("nystrom_dim") or 16
+    return int(history), int(landmarks), int(ny), int(chunk)
+
+
+def check_method(module, item: GarmentInputs, where: str) -> None:
+    """Refuse a checkpoint whose model cannot take this garment (NCS-style is specific
+    to the garment it was trained on) or these data sizes (its module's
+    ``check_data``)."""
+    if getattr(module, "method", None) == "ncs" and \
+            item.num_vertices != module.model.num_vertices:
+        raise ValueError(f"`ckpt`: {where} is an NCS-style model, specific to the garment "
+                         f"it was trained on ({module.model.num_vertices} vertices); this "
+                         f"garment has {item.num_vertices}; train NCS-style on this garment, "
+                         f"or use a GarTrans, DA-, HOOD- or MGN-style checkpoint")
+    dims = {"num_joints": item["rest_joints"].shape[0],
+            "num_body_vertices": item["body_pos"].shape[1], "num_vertices": item.num_vertices}
+    if hasattr(module, "check_data"):
+        module.check_data(dims, where)
+
+
+@torch.no_grad()
+def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
+                     device: Union[str, torch.device] = "cpu",
+                     on_frames: Optional[Callable[[int, int, float], None]] = None):
+    """``(positions [T, V, 3] float32, frame_seconds [T], autoregressive)`` of ``module``
+    (``None``: LBS) on a sequence's arrays (:func:`sequence_of`, or a sequence file
+    loaded with :func:`garmentgnn.data.store.load_sequence`).  ``on_frames(first, count,
+    seconds)`` is called after every chunk."""
+    history, landmarks, ny, chunk = _settings(module, where)
+    static, body = static_inputs(seq, seq["meta"], ny, landmarks)
+    rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
+    tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
+    T = rot.shape[0]
+    autoregressive = isinstance(module, SimulatorModule)
+    if autoregressive and T < 3:
+        raise ValueError(f"`motion`: {T} frames; the MGN-style simulator rolls out from two "
+                         f"frames and needs 3 or more")
+    step = T if autoregressive else max(1, chunk)
+    device = torch.device(device)
+    if module is not None:
+        module.to(device)
+    out, seconds = [], []
+    for t0 in range(0, T, step):
+        n = min(step, T - t0)
+        item = with_frames(static, body, rot, tr, torch.arange(t0, t0 + n), history,
+                           seq_id=str(seq["meta"].get("id", "sequence")))
+        if module is not None and t0 == 0:
+            check_method(module, item, where)
+        item = item.to(device)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t = time.perf_counter()
+        if module is None:
+            pred = item.skinned()
+        elif autoregressive:
+            pred = module.rollout(item, start="lbs")
+        else:
+            pred = module.predict_garment(item)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        dt = time.perf_counter() - t
+        pred = pred.detach().float().cpu()
+        if not torch.isfinite(pred).all():
+            raise ValueError(f"`ckpt`: {where} predicted NaN/inf on frames {t0}..{t0 + n - 1}")
+        out.append(pred)
+        seconds += [dt / n] * n
+        if on_frames is not None:
+            on_frames(t0, n, dt)
+    return torch.cat(out).numpy(), seconds, autoregressive
+
+
+def load_method(ckpt: Optional[PathLike] = None, method: Optional[str] = None):
+    """``(module or None, name)``: a checkpoint of any learned method
+    (:func:`garmentgnn.viz.compare.load_checkpoint`), or ``method="lbs"``."""
+    if (ckpt is None) == (method is None):
+        raise ValueError("`ckpt`: give a checkpoint of a learned method, or method='lbs' "
+                         "(not both)")
+    if method is not None:
+        if method != LBS:
+            raise ValueError(f"`method`: only {LBS!r} runs without a checkpoint; give "
+                             f"`ckpt` for a learned method")
+        return None, LBS
+    if not Path(ckpt).is_file():
+        raise ValueError(f"`ckpt`: {ckpt}: no such file; give a checkpoint written by "
+                         f"`garmentgnn train fit`")
+    module = load_checkpoint(ckpt)
+    name = getattr(module, "method", None) or (
+        "mgn" if isinstance(module, SimulatorModule) else "gartrans")
+    return module, str(name)
+
+
+def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regular",
+                           motion: Union[PathLike, Motion] = "walk", *,
+                           ckpt: Optional[PathLike] = None, method: Optional[str] = None,
+                           frames: Optional[int] = None, fps: float = 30.0,
+                           material: str = "silk", device: str = "cpu",
+                           scale: float = 1.0, up: str = "Y",
+                           mapping: Optional[Mapping[str, str]] = None, start: int = 0,
+                           resolution: int = 300, seed: int = 0,
+                           on_frames: Optional[Callable[[int, int, float], None]] = None
+                           ) -> Prediction:
+    """The garment of a trained method (``ckpt``, or ``method="lbs"``) on ``garment``
+    (a mesh file or a template name), ``body`` (:func:`body_entry`) and ``motion`` (a BVH
+    file, with ``scale``, ``up``, ``mapping``, ``start`` as in a dataset spec, or a
+    generator name), ``frames`` frames at ``fps``."""
+    if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not 0 < fps <= 1000:
+        raise ValueError(f"`fps`: expected frames per second, e.g. 30, got {fps!r}")
+    if frames is not None and (not isinstance(frames, int) or frames < 1):
+        raise ValueError(f"`frames`: expected 1 or more frames, got {frames!r}")
+    module, name = load_method(ckpt, method)
+    spec = body_entry(body)
+    try:
+        b = build_body(spec)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"`body`: {exc}") from None
+    g = resolve_garment(garment, b, resolution)
+    m = resolve_motion(motion, b, float(fps), frames, scale, up, mapping, start, seed)
+    seq = sequence_of(g, b, spec, m, material)
+    if isinstance(garment, (str, Path)) and _is_path(garment):
+        seq["meta"]["garment"] = {"kind": file_name({"file": str(garment)})}
+    where = str(ckpt) if ckpt is not None else LBS
+    pos, secs, ar = predict_sequence(module, seq, where, device, on_frames)
+    seq["positions"] = pos
+    return Prediction(pos, np.asarray(seq["garment_faces"]), float(m.fps), name, seq, secs, ar)
+
+
+__all__ = ["LBS", "Prediction", "body_entry", "check_method", "load_method",
+           "predict_garment_motion", "predict_sequence", "resolve_garment", "resolve_motion",
+           "sequence_of"]

@@ -1,0 +1,150 @@
+"""``garmentgnn predict`` / :func:`garmentgnn.inference.predict_garment_motion`: a trained
+method on a garment mesh, a body and a BVH take of one's own, without simulating.
+Oracles: ``garmentgnn train predict`` on a dataset sequence of the same garment, body and
+motion (to 1e-6 m), the garment file's own vertices (LBS at rest), the files read back
+(PC2 bytes, OBJ vertices, the glTF's meshes through trimesh)."""
+import struct
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from garmentgnn.body.factory import build_body
+from garmentgnn.cli import main as cli_main
+from garmentgnn.data import generate
+from garmentgnn.data.spec_file import load_spec
+from garmentgnn.inference import predict_garment_motion
+from garmentgnn.models.baselines import NCSStyle
+from garmentgnn.motion.sequence import Motion
+from garmentgnn.training.baselines import BaselineModule
+from garmentgnn.viz.animate import renderer_unavailable
+from test_data import fake_simulate
+from test_own_garment import files, one_error, write_spec  # noqa: F401 (a fixture)
+
+ROOT = Path(__file__).resolve().parents[1]
+GARTRANS = ROOT / "tests" / "data" / "gartrans_learn.ckpt"
+MGN = ROOT / "tests" / "data" / "mgn_learn.ckpt"
+CONFIG = str(ROOT / "src" / "garmentgnn" / "configs" / "gartrans.yaml")
+
+
+def read_pc2(path: Path) -> np.ndarray:
+    raw = Path(path).read_bytes()
+    assert raw[:12] == b"POINTCACHE2\0"
+    _, points, _, _, samples = struct.unpack("<iiffi", raw[12:32])
+    return np.frombuffer(raw[32:], "<f4").reshape(samples, points, 3)
+
+
+def test_predict_is_train_predict_on_the_same_inputs(files, tmp_path, capsys):  # noqa: F811
+    """A dataset of the skirt file walking and twirling (the twirl held out for test);
+    `train predict` of the committed GarTrans on it, and `predict` of the same checkpoint
+    on the skirt file, the regular body and the twirl take: the same garment."""
+    data = tmp_path / "data"
+    spec = load_spec(write_spec(files))
+    assert generate(spec, data, workers=0, simulate_fn=fake_simulate, progress=False).done == 2
+    assert cli_main(["train", "predict", "--config", CONFIG, "--data.root", str(data),
+                     "--ckpt_path", str(GARTRANS), "--trainer.default_root_dir", str(tmp_path),
+                     "--trainer.logger", "false", "--trainer.enable_progress_bar",
+                     "false"]) == 0
+    (npz,) = tmp_path.rglob("predictions/*.npz")
+    trained = np.load(npz)["positions"]
+    capsys.readouterr()
+    out = tmp_path / "pred" / "twirl"
+    assert cli_main(["predict", "--ckpt", str(GARTRANS), "--garment",
+                     str(files / "skirt.obj"), "--body", "regular", "--motion",
+                     str(files / "twirl.bvh"), "--scale", "0.01", "--frames", "5",
+                     "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("ms\n") == 5 and "gartrans (frame-parallel): 5 frames" in printed
+    got = read_pc2(out.with_suffix(".pc2"))
+    assert got.shape == trained.shape == (5, 192, 3)
+    assert np.abs(got - trained).max() <= 1e-6
+    objs = sorted((tmp_path / "pred" / "twirl_obj").glob("*.obj"))
+    assert len(objs) == 5
+    first = trimesh.load(objs[0], process=False)
+    assert np.abs(np.asarray(first.vertices) - trained[0]).max() <= 1e-6
+    scene = trimesh.load(out.with_suffix(".glb"))
+    counts = sorted(len(g.vertices) for g in scene.geometry.values())
+    assert counts == [192, 1229]  # the garment and the body
+
+
+def test_lbs_at_rest_is_the_garment_file(files, tmp_path):  # noqa: F811
+    body = build_body({"model": "anny", "shape": "regular"})
+    S = body.skeleton.num_joints
+    rest = Motion(torch.zeros(3, S, 3), torch.zeros(3, 3), list(body.skeleton.joint_names))
+    pred = predict_garment_motion(files / "skirt.obj", "regular", rest, method="lbs")
+    want = np.asarray(trimesh.load(files / "skirt.obj", process=False).vertices)
+    assert pred.positions.shape == (3, len(want), 3)
+    assert np.abs(pred.positions - want).max() <= 1e-5
+
+
+def test_mgn_style_rolls_out_from_the_skinned_garment(files):  # noqa: F811
+    kw = dict(frames=4, scale=0.01)
+    pred = predict_garment_motion(files / "skirt.obj", "regular", files / "walk.bvh",
+                                  ckpt=MGN, **kw)
+    lbs = predict_garment_motion(files / "skirt.obj", "regular", files / "walk.bvh",
+                                 method="lbs", **kw)
+    assert pred.autoregressive and pred.method == "mgn"
+    assert pred.positions.shape == lbs.positions.shape == (4, 192, 3)
+    assert np.isfinite(pred.positions).all()
+    assert np.abs(pred.positions[:2] - lbs.positions[:2]).max() <= 1e-6  # its two start frames
+    assert len(pred.frame_seconds) == 4
+
+
+@pytest.fixture
+def ncs_ckpt(tmp_path):
+    """An NCS-style checkpoint of a 50-vertex garment (untrained: only its size counts)."""
+    module = BaselineModule(NCSStyle(50, 31, history=1, hidden=8))
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.strategy.connect(module)
+    path = tmp_path / "ncs.ckpt"
+    trainer.save_checkpoint(path)
+    return path
+
+
+def test_refusals_are_one_error_line_and_write_nothing(files, tmp_path, capsys,  # noqa: F811
+                                                       ncs_ckpt):
+    out = tmp_path / "out"
+    base = ["predict", "--garment", str(files / "skirt.obj"), "--motion", "walk",
+            "--frames", "4", "--out", str(out / "p")]
+    one_error(capsys, cli_main(base[:-2] + ["--ckpt", str(ncs_ckpt), "--out", str(out / "p")]),
+              "--ckpt", "NCS-style", "specific to the garment", "50 vertices", "has 192",
+              "train NCS-style on this garment")
+    one_error(capsys, cli_main(["predict", "--method", "lbs", "--garment", "cape",
+                                "--motion", "walk", "--out", str(out / "p")]),
+              "cape", "neither a mesh file nor a template", "skirt")
+    one_error(capsys, cli_main(["predict", "--method", "lbs", "--garment",
+                                str(files / "skirt.obj"), "--motion", str(files / "hand.bvh"),
+                                "--out", str(out / "p")]),
+              "hand.bvh", "mapping")
+    (tmp_path / "file").write_text("x")
+    one_error(capsys, cli_main(base[:-2] + ["--method", "lbs", "--out",
+                                            str(tmp_path / "file" / "p")]),
+              "--out", "is a file")
+    if not torch.cuda.is_available():
+        one_error(capsys, cli_main(base + ["--method", "lbs", "--device", "cuda"]),
+                  "--device cuda", "--device cpu")
+    assert not out.exists()
+
+
+def test_predict_help_lists_its_inputs(capsys):
+    with pytest.raises(SystemExit):
+        cli_main(["predict", "--help"])
+    text = capsys.readouterr().out
+    assert all(f in text for f in ("--ckpt", "--method", "--garment", "--body", "--motion",
+                                   "--mapping", "--device", "--show"))
+
+
+def test_show_renders_the_prediction_on_the_body(tmp_path, capsys):
+    why = renderer_unavailable()
+    if why:
+        pytest.skip(why)
+    assert cli_main(["predict", "--method", "lbs", "--garment", "skirt", "--body", "thin",
+                     "--motion", "walk", "--frames", "3", "--out", str(tmp_path / "w"),
+                     "--show"]) == 0
+    for suffix in (".glb", ".pc2", ".mp4", ".gif", ".png"):
+        assert (tmp_path / f"w{suffix}").stat().st_size > 0, suffix
+    assert len(list((tmp_path / "w_obj").glob("*.obj"))) == 3
