@@ -35,3 +35,17 @@ def test_layer_benchmark_runs_and_matches_a_baseline_of_the_same_source(tmp_path
     diffs = [r["max_abs_diff"] for r in rows if r["layer"].endswith("@base")]
     assert len(diffs) == sum(r["layer"] in layers for r in rows)  # one per layer row
     assert diffs and all(d == 0.0 for d in diffs)
+
+
+def test_resolution_datasets_hold_the_same_sequences_at_each_resolution():
+    """``benchmarks/resolution.py``: at every resolution the same 8 (garment, body,
+    motion) items, all in the test split, paired across resolutions by their parts."""
+    ns = runpy.run_path(str(SCRIPTS[0].parent / "resolution.py"), run_name="check")
+    parts = {}
+    for r in ns["RESOLUTIONS"]:
+        items = ns["spec"](r).items()
+        assert len(items) == 8 and {i["split"] for i in items} == {"test"}
+        assert {i["garment"]["resolution"] for i in items} == {r}
+        parts[r] = sorted(ns["_parts"](i["id"]) for i in items)
+        assert len(set(parts[r])) == 8
+    assert len({tuple(p) for p in parts.values()}) == 1
