@@ -411,8 +411,13 @@ def test_show_loads_a_baseline_checkpoint_as_its_method(dm, tmp_path):
 
 
 def test_dataset_stamp_is_the_manifests_content_hash(dm):
-    assert dataset_stamp(dm) == {"root": str(dm.root), "content_sha256": store.read_manifest(
-        dm.root)["content_sha256"]}
+    """The content hash, and the vertex counts of the training garments as the garments
+    of the training split's sequence files have them."""
+    man = store.read_manifest(dm.root)
+    counts = [store.load_sequence(store.sequence_path(dm.root, r))["positions"].shape[1]
+              for r in man["items"] if r["split"] == "train"]
+    assert dataset_stamp(dm) == {"root": str(dm.root), "content_sha256": man["content_sha256"],
+                                 "num_vertices": [min(counts), max(counts)]}
     assert dataset_stamp(None) == {}
 
 

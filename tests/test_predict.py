@@ -148,3 +148,28 @@ def test_show_renders_the_prediction_on_the_body(tmp_path, capsys):
     for suffix in (".glb", ".pc2", ".mp4", ".gif", ".png"):
         assert (tmp_path / f"w{suffix}").stat().st_size > 0, suffix
     assert len(list((tmp_path / "w_obj").glob("*.obj"))) == 3
+
+
+def test_a_garment_far_from_the_training_resolution_is_warned_about():
+    """``predict`` on a garment of many more (or fewer) vertices than the checkpoint's
+    training garments warns with the measured trend; within a factor 2 it does not."""
+    import types  # noqa: PLC0415
+    import warnings  # noqa: PLC0415
+
+    from garmentgnn.inference.predict import ResolutionWarning, check_resolution  # noqa: PLC0415
+    module = types.SimpleNamespace(trained_on={"num_vertices": [300, 500]})
+    for v in (4000, 100):
+        with pytest.warns(ResolutionWarning, match=f"{v:,} vertices.*300-500.*resolution"):
+            check_resolution(v, module, "GarTrans")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for v in (150, 300, 1000):
+            check_resolution(v, module, "GarTrans")
+        check_resolution(4000, types.SimpleNamespace(), "LBS")  # nothing to compare with
+
+
+def test_the_committed_checkpoints_say_what_they_were_trained_on():
+    from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415
+    for name in ("gartrans_learn.ckpt", "mgn_learn.ckpt"):
+        module = load_checkpoint(Path(__file__).parent / "data" / name)
+        assert module.trained_on["num_vertices"] == [296, 512]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 
 from garmentgnn._argparse import HelpFormatter, finite_float, int_at_least, nonempty_path
 
@@ -70,7 +71,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     from garmentgnn.inference.output import output_paths, write_prediction  # noqa: PLC0415
-    from garmentgnn.inference.predict import predict_garment_motion  # noqa: PLC0415
+    from garmentgnn.inference.predict import (ResolutionWarning,  # noqa: PLC0415
+                                              predict_garment_motion)
     if args.device.startswith("cuda"):
         import torch  # noqa: PLC0415
         if not torch.cuda.is_available():
@@ -91,11 +93,18 @@ def main(args: argparse.Namespace) -> int:
         for t in range(t0, t0 + n):
             print(f"frame {t}: {1e3 * seconds / n:.2f} ms", flush=True)
 
-    pred = predict_garment_motion(
-        args.garment, body, args.motion, ckpt=args.ckpt, method=args.method,
-        frames=args.frames, fps=args.fps, material=args.material, device=args.device,
-        scale=args.scale, up=args.up, mapping=args.mapping, start=args.start,
-        resolution=args.resolution, on_frames=on_frames)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ResolutionWarning)
+        pred = predict_garment_motion(
+            args.garment, body, args.motion, ckpt=args.ckpt, method=args.method,
+            frames=args.frames, fps=args.fps, material=args.material, device=args.device,
+            scale=args.scale, up=args.up, mapping=args.mapping, start=args.start,
+            resolution=args.resolution, on_frames=on_frames)
+    for w in caught:
+        if issubclass(w.category, ResolutionWarning):
+            print(f"warning: --garment {args.garment}: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     write_prediction(pred, args.out, body=not args.no_body)
     mode = "autoregressive" if pred.autoregressive else "frame-parallel"
     print(f"{pred.method} ({mode}): {len(pred.positions)} frames of "

@@ -13,6 +13,7 @@ motion from the skinned garment; ``lbs`` is the rest garment skinned to the body
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Union
@@ -63,6 +64,36 @@ class Prediction:
     @property
     def total_seconds(self) -> float:
         return float(sum(self.frame_seconds))
+
+
+class ResolutionWarning(UserWarning):
+    """A garment far from the vertex counts the checkpoint was trained on."""
+
+
+#: how far a garment's vertex count may be from the training garments' (a factor of their
+#: fewest and most) before :func:`check_resolution` warns
+RESOLUTION_FACTOR = 2.0
+#: what was measured (docs/results/resolution/): models trained on ~400-vertex garments,
+#: on the same held-out garments made at other resolutions
+RESOLUTION_TREND = ("measured on learn's held-out garments (docs/results/resolution), "
+                    "models trained at ~400 vertices kept their error relative to LBS "
+                    "within {spread} from 400 to 4,000 vertices")
+
+
+def check_resolution(num_vertices: int, module: Any, name: str) -> None:
+    """A :class:`ResolutionWarning` when ``num_vertices`` lies outside
+    :data:`RESOLUTION_FACTOR` times the range of the garments ``module``'s checkpoint was
+    trained on (its dataset stamp's ``num_vertices``; nothing to compare without one),
+    with the measured trend."""
+    trained = (getattr(module, "trained_on", None) or {}).get("num_vertices")
+    if not trained:
+        return
+    lo, hi = trained
+    if lo / RESOLUTION_FACTOR <= num_vertices <= hi * RESOLUTION_FACTOR:
+        return
+    warnings.warn(f"the garment has {num_vertices:,} vertices, {name} was trained on "
+                  f"garments of {lo:,}-{hi:,}; {RESOLUTION_TREND}", ResolutionWarning,
+                  stacklevel=3)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -268,6 +299,7 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
     except (ValueError, TypeError, KeyError) as exc:
         raise ValueError(f"`body`: {exc}") from None
     g = resolve_garment(garment, b, resolution)
+    check_resolution(int(g.vertices.shape[0]), module, name)
     m = resolve_motion(motion, b, float(fps), frames, scale, up, mapping, start, seed)
     seq = sequence_of(g, b, spec, m, material)
     if isinstance(garment, (str, Path)) and _is_path(garment):
@@ -278,6 +310,7 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
     return Prediction(pos, np.asarray(seq["garment_faces"]), float(m.fps), name, seq, secs, ar)
 
 
-__all__ = ["LBS", "Prediction", "body_entry", "check_method", "load_method",
+__all__ = ["LBS", "Prediction", "ResolutionWarning", "body_entry", "check_resolution",
+           "check_method", "load_method",
            "predict_garment_motion", "predict_sequence", "resolve_garment", "resolve_motion",
            "sequence_of"]

@@ -43,16 +43,26 @@ DATASET_KEY = "garmentgnn_dataset"
 
 
 def dataset_stamp(datamodule: Any) -> Dict[str, Any]:
-    """``{"root", "content_sha256"}`` of a data module's dataset (its manifest's content
-    hash), saved in every checkpoint a fit writes; ``{}`` without one."""
+    """``{"root", "content_sha256", "num_vertices"}`` of a data module's dataset (its
+    manifest's content hash; the fewest and most vertices of its training garments, what
+    ``garmentgnn predict`` compares a garment with), saved in every checkpoint a fit
+    writes; ``{}`` without one."""
     root = getattr(datamodule, "root", None)
     if root is None:
         return {}
     try:
-        sha = read_manifest(root).get("content_sha256")
+        man = read_manifest(root)
     except (OSError, ValueError):
         return {}
-    return {"root": str(root), "content_sha256": sha} if sha else {}
+    sha = man.get("content_sha256")
+    if not sha:
+        return {}
+    split = getattr(getattr(datamodule, "hparams", None), "train_split", "train")
+    counts = [int(r["num_vertices"]) for r in man.get("items", [])
+              if r.get("status") == "ok" and r.get("num_vertices")
+              and (split is None or r.get("split") == split)]
+    return {"root": str(root), "content_sha256": sha,
+            **({"num_vertices": [min(counts), max(counts)]} if counts else {})}
 
 
 #: the prefix of the "LBS only" metrics that ``test`` logs beside the method's ``test/...``
