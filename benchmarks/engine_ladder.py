@@ -6,7 +6,7 @@ its own settings (the oracle: its error must be ~0), for the first ``--frames`` 
 
 Prints a markdown table (seconds per simulated frame, E_dist in cm, collision rate,
 non-converged frames of the torch simulator) and writes ``engine_ladder.{json,md}`` into a
-cache folder (``--out`` elsewhere; ``--commit``: the committed ``benchmarks/results/``)::
+cache folder (``--out`` elsewhere; ``--commit``: the committed ``docs/results/benchmarks/``)::
 
     OMP_NUM_THREADS=1 python benchmarks/engine_ladder.py \
         --data ~/.cache/garmentgnn/datasets/medium-blender
@@ -27,7 +27,7 @@ from garmentgnn.harness.engines import (DEFAULT_FRAMES, EngineSetting, dataset_i
                                       pick_sequences)
 
 HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results" / "engine_ladder"
+RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "engine_ladder"
 
 
 def main(argv=None) -> None:

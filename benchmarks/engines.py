@@ -19,7 +19,7 @@ kinetic energy at the last frame (per kg of cloth, so sizes compare), and for ``
 and ``drape`` the distance between the two engines' garments.  Sizes above
 ``--torch-max-vertices`` get a torch row saying ``skipped: cost``.  Writes
 ``engines.{json,md}`` in a cache folder (``--out`` elsewhere; ``--commit``: the committed
-``benchmarks/results/engines.*``).
+``docs/results/benchmarks/engines.*``).
 
     python benchmarks/engines.py                          # 300, 1K, 4K vertices, 30 frames
     python benchmarks/engines.py --sizes 300 --frames 10 --cases hang
@@ -52,7 +52,7 @@ from garmentgnn.sim.blender import BlenderSettings, blender_config, run_worker, 
 from garmentgnn.sim.simulator import trajectories
 
 HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results" / "engines"
+RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "engines"
 TORCH = SimSettings(fps=30.0, substeps=4, friction=True)
 
 

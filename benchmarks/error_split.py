@@ -23,7 +23,7 @@ oracle covers frames 1.. only).
 
 Prints a markdown table of frame-weighted E_dist (cm) and the fraction of LBS's error
 each removes, and writes ``error_split.{json,md}`` into a cache folder (``--out`` elsewhere;
-``--commit``: the committed ``benchmarks/results/``)::
+``--commit``: the committed ``docs/results/benchmarks/``)::
 
     python benchmarks/error_split.py --data ~/.cache/garmentgnn/datasets/tiny-torch
 """
@@ -43,7 +43,7 @@ from garmentgnn.metrics import vertex_distance
 from garmentgnn.metrics.split import posed, to_rest_frame
 from garmentgnn.data import SequenceChunks
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks"
 
 
 def main(argv=None) -> None:

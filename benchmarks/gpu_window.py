@@ -40,7 +40,7 @@ REPO = HERE.parent
 #: the carried folder (``build/`` is ignored by git)
 DIR = REPO / "build" / "gpu_window"
 #: the committed copy (``--commit``; its bundles are ignored by git)
-RESULTS = HERE / "results" / "gpu_window"
+RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "gpu_window"
 THROUGHPUT_PACK = "throughput-small.zip"
 TRAIN_PACK = "train.zip"
 #: what garmentgnn imports that the GPU image lacks (its list: /work/.library/device)

@@ -10,7 +10,7 @@ directions.  Blender runs ``small`` sequences (fast; ``--preset`` another, e.g.
 valid ground truth (:mod:`garmentgnn.data.validity`: converged, the garment at most 1 cm
 inside the body), and the floor is measured on the frames valid in both runs, as every
 score is.  Writes JSON, markdown and a PNG of divergence against frame into a cache
-folder; ``--commit`` writes the committed ``benchmarks/results/gt_noise.{json,md,png}``
+folder; ``--commit`` writes the committed ``docs/results/benchmarks/gt_noise.{json,md,png}``
 (``gt_noise_<preset>`` for another Blender preset) instead, which the bench report of a
 dataset of that preset reads::
 
@@ -44,7 +44,7 @@ from garmentgnn.data.validity import valid_frames
 from garmentgnn.data.worker import default_simulate, item_settings
 
 HERE = Path(__file__).resolve().parent
-COMMITTED = HERE / "results" / "gt_noise"
+COMMITTED = HERE.parent / "docs" / "results" / "benchmarks" / "gt_noise"
 PRESETS = {"blender": "small", "torch": "tiny"}
 
 

@@ -27,7 +27,7 @@ bound) for the in-process methods; the Blender worker's peak RSS (whole process,
 ``torch.profiler`` breakdown of one GarTrans frame per size (static branch cached and
 not); ``--experiments`` times bfloat16 and ``torch.compile`` at the smallest size.
 Writes ``inference.{json,md,png}`` into a cache folder (``--out`` elsewhere; ``--commit``:
-the committed ``benchmarks/results/inference.*``).
+the committed ``docs/results/benchmarks/inference.*``).
 
     OMP_NUM_THREADS=2 python benchmarks/inference.py --profile --experiments
     # docs/inference.md's run (one core each; the machine was shared):
@@ -67,7 +67,7 @@ from garmentgnn.sim.blender import BlenderSettings, blender_available, blender_c
 from garmentgnn.sim.simulator import trajectories
 
 HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results" / "inference"
+RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "inference"
 HISTORY = 3
 #: the paper's GPU figures (10K vertices)
 PAPER = {"latency_ms": 29.0, "throughput_fps": 280.0}

@@ -22,7 +22,7 @@ Layers run with their defaults (input checks and the finite-output check on).
 forward difference between the two versions of a layer.
 
 Writes ``layers.json`` and ``layers.md`` into a cache folder (``--out`` elsewhere); with
-``--commit`` into the committed ``benchmarks/results/``, and it replaces the table between
+``--commit`` into the committed ``docs/results/benchmarks/``, and it replaces the table between
 the ``<!-- bench:layers -->`` markers in ``docs/layers.md``.
 """
 from __future__ import annotations
@@ -50,7 +50,7 @@ from garmentgnn.geometry import edge_features, faces_to_edge_index, grid_mesh
 from garmentgnn.nn import LAYERS, make_layer
 
 HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results"
+RESULTS = HERE.parent / "docs" / "results" / "benchmarks"
 DOCS = HERE.parent / "docs" / "layers.md"
 ANCHOR = "TransformerConv"
 CONFIGS = [(4, 16), (1, 64), (4, 64)]

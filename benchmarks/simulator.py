@@ -6,7 +6,7 @@ size, vertex counts at the largest thread count.  Each configuration simulates
 ``--frames`` frames at 30 fps after one warm-up frame; the table reports seconds per
 frame, frames per second, vertex-substeps per second, mean Newton iterations per frame
 and whether every frame converged.  Writes ``simulator.{json,md}``
-into a cache folder (``--out`` elsewhere; ``--commit``: the committed ``benchmarks/results/``).
+into a cache folder (``--out`` elsewhere; ``--commit``: the committed ``docs/results/benchmarks/``).
 
     python benchmarks/simulator.py                       # 1K, 5K, 10K vertices
     python benchmarks/simulator.py --sizes 1000 --frames 2
@@ -31,7 +31,7 @@ from garmentgnn.physics import material
 from garmentgnn.sim import SimSettings, simulate
 
 HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results"
+RESULTS = HERE.parent / "docs" / "results" / "benchmarks"
 
 
 def hanging_sheet(num_vertices: int, size: float = 0.5) -> Garment:

@@ -20,7 +20,7 @@ committed `medium` results).
 
 One training seed, so this is a pointer, not a significance claim. It writes
 ``static_drape_steps.{json,md}`` into ``--out`` (``--commit``: the committed
-``benchmarks/results/``)::
+``docs/results/benchmarks/``)::
 
     python benchmarks/static_drape_steps.py --data ~/.cache/garmentgnn/datasets/medium-blender
 """
@@ -41,7 +41,7 @@ from garmentgnn.harness.tables import table
 WO_UNSUP = "GarTrans w/o unsupervised loss"
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "docs" / "results" / "bench_medium" / "results.json"
-RESULTS = ROOT / "benchmarks" / "results"
+RESULTS = ROOT / "docs" / "results" / "benchmarks"
 
 
 def rows(records: List[Dict[str, Any]], minutes: str) -> List[Dict[str, Any]]:

@@ -7,7 +7,7 @@ split through the Lightning ``Trainer`` and prints the process's resident set si
 live tensors do not grow should not grow either; on the `medium` dataset a reference
 cycle among the attention layers' sparse patterns once made a GarTrans fit grow by
 about 23 MB a step (docs/bench.md, "Memory").  Writes ``train_memory.json`` into
-``--out`` (``--commit``: the committed ``benchmarks/results/``)::
+``--out`` (``--commit``: the committed ``docs/results/benchmarks/``)::
 
     python benchmarks/train_memory.py --data ~/.cache/garmentgnn/datasets/medium-blender
 """
@@ -29,7 +29,7 @@ from garmentgnn.data.store import code_version
 from garmentgnn.training import GarmentDataModule
 from garmentgnn.training.configs import instantiate
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks"
 
 
 def rss_mb() -> float:

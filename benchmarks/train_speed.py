@@ -17,7 +17,7 @@ chunk order, and reports:
 Variants alternate (``--repeats`` rounds of all of them) so a busy machine slows each
 alike; the median frames/s per variant and its ratio to the first are printed and
 written to ``train_speed.{json,md}`` in a cache folder (``--out`` elsewhere; ``--commit``:
-the committed ``benchmarks/results/train_speed.*``)::
+the committed ``docs/results/benchmarks/train_speed.*``)::
 
     python benchmarks/train_speed.py --data ~/.cache/garmentgnn/datasets/medium-blender
     python benchmarks/train_speed.py --data DATA --steps 20 --repeats 1   # quick look
@@ -41,7 +41,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 #: the last commit before the training speed-ups
 BEFORE = "098489e"
-RESULTS = HERE / "results" / "train_speed"
+RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "train_speed"
 
 
 def child(args: argparse.Namespace) -> None:

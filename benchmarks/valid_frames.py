@@ -6,7 +6,7 @@ training targets and scores, and what the generator's re-simulation did.
 The mask is the one every loader reads (:func:`garmentgnn.data.validity.sequence_valid`
 of each sequence file), so the table follows today's line, not the manifest's counts of
 the day each file was written.  Writes JSON and markdown into a cache folder, ``--commit``
-the committed ``benchmarks/results/valid_frames.{json,md}``::
+the committed ``docs/results/benchmarks/valid_frames.{json,md}``::
 
     python benchmarks/valid_frames.py --data ~/.cache/garmentgnn/datasets/learn-blender \\
         ~/.cache/garmentgnn/datasets/small-blender --commit
@@ -25,7 +25,7 @@ from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, load_r
 from garmentgnn.data.validity import VALID_PENETRATION, sequence_valid
 from garmentgnn.harness.tables import table
 
-COMMITTED = Path(__file__).resolve().parent / "results" / "valid_frames"
+COMMITTED = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks" / "valid_frames"
 SPLITS = ("train", "val", "test")
 
 

@@ -89,7 +89,7 @@ def test_benchmark_flags_have_help_with_defaults(path, monkeypatch):
 
 def test_benchmark_output_goes_to_the_cache_unless_asked(tmp_path, monkeypatch):
     monkeypatch.setenv("GARMENTGNN_CACHE_DIR", str(tmp_path))
-    committed = Path("benchmarks") / "results" / "inference"
+    committed = Path("docs") / "results" / "benchmarks" / "inference"
     ap = argparse.ArgumentParser()
     add_output_args(ap, committed, "writes OUT.json")
     assert output_path(ap.parse_args([]), committed) == tmp_path / "benchmarks" / "inference"

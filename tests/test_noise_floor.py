@@ -99,7 +99,7 @@ def test_load_floor(tmp_path, monkeypatch):
     assert nf.load_floor()["path"] == str(path)
     monkeypatch.delenv(nf.ENV)
     if nf.COMMITTED.is_file():  # the committed file is named by its place in the repository
-        assert nf.load_floor()["path"] == "benchmarks/results/gt_noise.json"
+        assert nf.load_floor()["path"] == "docs/results/benchmarks/gt_noise.json"
     bad = tmp_path / "bad.json"
     for text in ("{", '{"floor": {"torch": {"mean_cm": -1, "max_cm": 1, "scale_m": 1e-7}}}',
                  '{"runs": []}', '{"floor": {"torch": 3}}'):
@@ -176,7 +176,7 @@ def test_a_dataset_preset_reads_its_own_committed_floor(tmp_path, monkeypatch):
 def test_committed_results_file_loads_when_present():
     loaded = nf.load_floor(nf.COMMITTED)
     if loaded is None:
-        pytest.skip("benchmarks/results/gt_noise.json not written yet")
+        pytest.skip("docs/results/benchmarks/gt_noise.json not written yet")
     assert {"blender", "torch"} <= set(loaded["floor"])
     for f in loaded["floor"].values():
         assert f["scale_m"] == nf.FLOOR_SCALE_M and 0 < f["mean_cm"] <= f["max_cm"]

@@ -4,7 +4,7 @@ moves by a rounding error.
 Cloth simulation is chaotic: moving the rest garment's vertices (or the body's root) by
 1e-7 m at random gives a visibly different sequence.  ``benchmarks/gt_noise.py``
 measures it per engine (:func:`perturbed_garment`, :func:`perturbed_motion`,
-:func:`divergence`) and writes ``benchmarks/results/gt_noise.json``, whose ``floor``
+:func:`divergence`) and writes ``docs/results/benchmarks/gt_noise.json``, whose ``floor``
 (:func:`summarize`) the bench report prints beside its method rows and draws as a band on
 its error-against-time plot (:func:`load_floor`, :func:`markdown`, :func:`bands`).  A
 difference between two methods' ``E_dist`` below the floor is one the simulation itself
@@ -28,7 +28,8 @@ WHATS = ("garment", "body", "repeat")
 #: the perturbation the floor is quoted at (a float32 rounding error at metre scale)
 FLOOR_SCALE_M = 1e-7
 #: where ``benchmarks/gt_noise.py --commit`` puts the committed results
-COMMITTED = Path(__file__).resolve().parents[3] / "benchmarks" / "results" / "gt_noise.json"
+_REPO = Path(__file__).resolve().parents[3]
+COMMITTED = _REPO / "docs" / "results" / "benchmarks" / "gt_noise.json"
 #: an environment variable naming another results file for the bench report
 ENV = "GARMENTGNN_NOISE_FLOOR"
 ENGINE_NAMES = {"blender": "Blender", "torch": "torch simulator"}
@@ -132,7 +133,7 @@ def load_floor(path=None, dataset: Optional[str] = None) -> Optional[Dict[str, A
                          f"'floor': {type(e).__name__}: {e}); rerun it, or point ${ENV} at "
                          f"one") from None
     try:  # the committed file by its place in the repository, not this machine's path
-        shown = str(path.resolve().relative_to(COMMITTED.parents[2]))
+        shown = str(path.resolve().relative_to(_REPO))
     except ValueError:
         shown = str(path)
     return {"path": shown, "floor": floor, "meta": doc.get("meta", {})}
