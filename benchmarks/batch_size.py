@@ -30,9 +30,9 @@ from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add
                                   command_line, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.data import SequenceChunks
-from garmentgnn.harness import scoring
-from garmentgnn.harness.methods import DATA
-from garmentgnn.harness.tables import save_figure, table
+from garmentgnn.bench import scoring
+from garmentgnn.bench.methods import DATA
+from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
 COMMITTED = (Path(__file__).resolve().parents[1] / "docs" / "results" / "batch_size"

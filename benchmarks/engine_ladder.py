@@ -1,7 +1,7 @@
 """The physics engines' error against run time on a dataset's test sequences
-(:mod:`garmentgnn.harness.engines`): one sequence per held-out group (motion, body,
+(:mod:`garmentgnn.bench.engines`): one sequence per held-out group (motion, body,
 garment), each simulated again by every setting of
-:func:`~garmentgnn.harness.engines.default_settings` and by the dataset's own engine at
+:func:`~garmentgnn.bench.engines.default_settings` and by the dataset's own engine at
 its own settings (the oracle: its error must be ~0), for the first ``--frames`` frames.
 
 Prints a markdown table (seconds per simulated frame, E_dist in cm, collision rate,
@@ -22,7 +22,7 @@ import torch
 
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
                                   int_at_least, output_path)
-from garmentgnn.harness.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
+from garmentgnn.bench.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
                                       default_settings, engine_record, item_engine,
                                       pick_sequences)
 

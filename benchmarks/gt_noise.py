@@ -1,6 +1,6 @@
 """The ground truth's noise floor: each engine simulates a few sequences again with its
 input moved by a rounding error, and the distance to the unperturbed run is measured per
-frame (:mod:`garmentgnn.harness.noise_floor`).
+frame (:mod:`garmentgnn.bench.noise_floor`).
 
 Per sequence: the unperturbed run, a plain rerun (must be 0: the engines are
 deterministic), then the rest garment's vertices and, separately, the body motion's root
@@ -34,8 +34,8 @@ import torch
 from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
                                   check_unique, float_above, int_at_least, output_path)
 from garmentgnn._plotting import pyplot
-from garmentgnn.harness import noise_floor as nf
-from garmentgnn.harness.tables import save_figure, table
+from garmentgnn.bench import noise_floor as nf
+from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.data import preset
 from garmentgnn.data.presets import PRESETS as DATA_PRESETS
 from garmentgnn.data.presets import build_inputs

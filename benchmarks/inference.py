@@ -2,7 +2,7 @@
 side by side in one run, on the same garment, body and motion at ~1K, ~4K, ~10K vertices.
 
 The scene of each size is the scaling bench's: a knee-length skirt at the requested
-template resolution on the capsule body, walking (``garmentgnn.harness.sequences``);
+template resolution on the capsule body, walking (``garmentgnn.bench.sequences``);
 the real vertex count is recorded.  Methods:
 
 - **GarTrans** (untrained weights: the cost does not depend on their values):
@@ -21,7 +21,7 @@ the real vertex count is recorded.  Methods:
 synchronisation; their peak memory is the CUDA allocator's peak over what was allocated
 before the call); LBS and the simulators stay on the CPU.
 
-Peak memory: :func:`garmentgnn.harness.timing.peak_memory` (RSS growth of one call, a lower
+Peak memory: :func:`garmentgnn.bench.timing.peak_memory` (RSS growth of one call, a lower
 bound) for the in-process methods; the Blender worker's peak RSS (whole process, from
 ``getrusage`` of the children).  ``--profile`` adds a by-module and by-operator
 ``torch.profiler`` breakdown of one GarTrans frame per size (static branch cached and
@@ -55,9 +55,9 @@ from torch.profiler import ProfilerActivity, profile, record_function
 from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
                                   check_unique, int_at_least, output_path)
 from garmentgnn._plotting import pyplot
-from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
-from garmentgnn.harness.sequences import case_item, make_sequence
-from garmentgnn.harness.timing import device_peak_memory, measure, peak_memory, synchronised
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.sequences import case_item, make_sequence
+from garmentgnn.bench.timing import device_peak_memory, measure, peak_memory, synchronised
 from garmentgnn.data.presets import BLENDER_SETTINGS
 from garmentgnn.models import gartrans as gartrans_mod
 from garmentgnn.models.baselines import LBSBaseline

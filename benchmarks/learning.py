@@ -2,7 +2,7 @@
 
 Its parts, each on a generated dataset (``--data``, e.g. ``garmentgnn generate --preset
 small --engine blender``), every method built from its packaged configuration the way
-``garmentgnn bench`` builds it (:mod:`garmentgnn.harness.methods`) and trained through the
+``garmentgnn bench`` builds it (:mod:`garmentgnn.bench.methods`) and trained through the
 same Lightning ``Trainer``:
 
 * ``grad``: one backward pass of each method's phase-1 training loss on the first

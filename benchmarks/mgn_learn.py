@@ -41,9 +41,9 @@ from garmentgnn.data import SequenceChunks
 from garmentgnn.data.store import read_json, read_manifest
 from garmentgnn._argparse import ArgumentParser, HelpFormatter, add_output_args, output_path
 from garmentgnn._plotting import pyplot
-from garmentgnn.harness import stability as stab
-from garmentgnn.harness.model_inputs import BenchChunks
-from garmentgnn.harness.scoring import GROUPS, aggregate, score, stratified, wilcoxon
+from garmentgnn.bench import stability as stab
+from garmentgnn.bench.model_inputs import BenchChunks
+from garmentgnn.bench.scoring import GROUPS, aggregate, score, stratified, wilcoxon
 from garmentgnn.training import SimulatorModule
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.viz.compare import load_checkpoint
@@ -367,7 +367,7 @@ def run_stability(args: argparse.Namespace) -> None:
                   f"penetration {m.get('max_penetration_m', float('nan')):.3g} m", flush=True)
     (out / "stability.json").write_text(json.dumps(records, indent=1, default=str))
     lines = [f"Stability suite on test sequence `{base['id']}` (rollout from the LBS garment "
-             f"of its first two frames; verdict rules: `garmentgnn.harness.stability`).", "",
+             f"of its first two frames; verdict rules: `garmentgnn.bench.stability`).", "",
              "| case | method | verdict | non-finite | max speed (m/s) | energy growth | "
              "deepest penetration (mm) | reason |", "|---|---|---|---:|---:|---:|---:|---|"]
     for r in records:

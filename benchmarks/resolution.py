@@ -35,7 +35,7 @@ from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args
 from garmentgnn._plotting import pyplot
 from garmentgnn.data import SequenceChunks, Spec, generate, preset, read_manifest
 from garmentgnn.data.keys import body_key, garment_key, motion_key
-from garmentgnn.harness.scoring import aggregate, score, wilcoxon
+from garmentgnn.bench.scoring import aggregate, score, wilcoxon
 from garmentgnn.training import SimulatorModule
 from garmentgnn.viz.compare import load_checkpoint
 
@@ -187,9 +187,11 @@ def main(argv=None) -> None:
                     help="where the three datasets are (made)")
     ap.add_argument("--workers", type=int, default=1, help="generate: Blender workers")
     ap.add_argument("--gartrans", type=existing_file,
-                    default=str(ROOT / "tests" / "data" / "gartrans_learn.ckpt"))
+                    default=str(ROOT / "tests" / "data" / "gartrans_learn.ckpt"),
+                    help="a GarTrans checkpoint trained on learn")
     ap.add_argument("--mgn", type=existing_file,
-                    default=str(ROOT / "tests" / "data" / "mgn_learn.ckpt"))
+                    default=str(ROOT / "tests" / "data" / "mgn_learn.ckpt"),
+                    help="an MGN-style checkpoint trained on learn")
     ap.add_argument("--da", type=existing_file, default=None,
                     help="a DA-style checkpoint trained on learn (default: none)")
     add_output_args(ap, RESULTS, "the results JSON (with .md and .png beside it)")

@@ -33,10 +33,10 @@ from typing import Any, Dict, List
 
 from garmentgnn._argparse import ArgumentParser, HelpFormatter, dataset_dir, float_above
 from garmentgnn.data.store import read_json
-from garmentgnn.harness import runner
-from garmentgnn.harness.methods import DA, LBS
-from garmentgnn.harness.presets import preset
-from garmentgnn.harness.tables import table
+from garmentgnn.bench import runner
+from garmentgnn.bench.methods import DA, LBS
+from garmentgnn.bench.presets import preset
+from garmentgnn.bench.tables import table
 
 WO_UNSUP = "GarTrans w/o unsupervised loss"
 ROOT = Path(__file__).resolve().parents[1]

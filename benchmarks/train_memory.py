@@ -23,8 +23,8 @@ import torch
 
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, command_line,
                                   dataset_dir, int_at_least, output_path)
-from garmentgnn.harness.methods import DATA, FULL, GARTRANS, variant_settings
-from garmentgnn.harness.timing import status_kb
+from garmentgnn.bench.methods import DATA, FULL, GARTRANS, variant_settings
+from garmentgnn.bench.timing import status_kb
 from garmentgnn.data.store import code_version
 from garmentgnn.training import GarmentDataModule
 from garmentgnn.training.configs import instantiate

@@ -23,7 +23,7 @@ from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add
 from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, load_record_sequence,
                                    read_manifest)
 from garmentgnn.data.validity import VALID_PENETRATION, sequence_valid
-from garmentgnn.harness.tables import table
+from garmentgnn.bench.tables import table
 
 COMMITTED = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks" / "valid_frames"
 SPLITS = ("train", "val", "test")

@@ -256,12 +256,12 @@ def test_sim_imports_at_module_level():
     assert not function_level_imports(SRC, "sim")
 
 
-def test_no_private_imports_across_modules_outside_the_harness():
-    assert not [v for v in private_imports(SRC) if not v.startswith("garmentgnn.harness.")]
+def test_no_private_imports_across_modules_outside_the_bench():
+    assert not [v for v in private_imports(SRC) if not v.startswith("garmentgnn.bench.")]
 
 
-def test_harness_modules_do_not_import_each_others_private_names():
-    assert not [v for v in private_imports(SRC) if v.startswith("garmentgnn.harness.")]
+def test_bench_modules_do_not_import_each_others_private_names():
+    assert not [v for v in private_imports(SRC) if v.startswith("garmentgnn.bench.")]
 
 
 def test_lightning_public_api_only():

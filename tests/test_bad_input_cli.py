@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from garmentgnn.harness.methods import METHOD_NAMES
+from garmentgnn.bench.methods import METHOD_NAMES
 from garmentgnn.cli import build_parser
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import Spec, generate, preset, read_manifest, store

@@ -3,7 +3,7 @@ rollout, and LBS == the simulator's initial skinned state."""
 import pytest
 import torch
 
-from garmentgnn.harness.sequences import build_scene
+from garmentgnn.bench.sequences import build_scene
 from garmentgnn.body import CapsuleBodyModel
 from garmentgnn.garments import make_garment
 from garmentgnn.losses import GarTransLoss, LossInputs

@@ -1,4 +1,4 @@
-"""The benchmark harness: tiny preset end to end, resume, atomic records, report rules."""
+"""The bench: tiny preset end to end, resume, atomic records, report rules."""
 import json
 import math
 import os
@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from garmentgnn.harness import runner, precision, presets, report, stability, tables, timing
-from garmentgnn.harness.cli import _command, _learned_overrides
-from garmentgnn.harness.records import NOT_RUN, failure, section
-from garmentgnn.harness.sequences import case_item, make_sequence
+from garmentgnn.bench import runner, precision, presets, report, stability, tables, timing
+from garmentgnn.bench.cli import _command, _learned_overrides
+from garmentgnn.bench.records import NOT_RUN, failure, section
+from garmentgnn.bench.sequences import case_item, make_sequence
 from garmentgnn.cli import build_parser, main as cli_main
 from garmentgnn.data import store
 from garmentgnn.models.baselines import LBSBaseline

@@ -1,5 +1,5 @@
 """Learning curves and the equal-step snapshot of ``garmentgnn bench``
-(:mod:`garmentgnn.harness.curves`).
+(:mod:`garmentgnn.bench.curves`).
 
 Oracles: a fit stopped by ``max_steps`` at the snapshot's step (the snapshot must hold
 exactly its weights); a validation that sleeps a known time (it must not count as
@@ -13,7 +13,7 @@ import lightning as L
 import pytest
 import torch
 
-from garmentgnn.harness import curves, runner, learned, methods, presets
+from garmentgnn.bench import curves, runner, learned, methods, presets
 from garmentgnn.training import GarTransModule, TimeBudget
 from garmentgnn.training.evaluate import evaluate_split
 

@@ -1,4 +1,4 @@
-"""The engines as bench methods (:mod:`garmentgnn.harness.engines`): a dataset's sequence
+"""The engines as bench methods (:mod:`garmentgnn.bench.engines`): a dataset's sequence
 simulated again at the dataset's own settings reproduces its file (the oracle), a
 cheaper budget is worse but finite, a different scene is caught, and bad arguments and
 failing engines give clear errors and failed records."""
@@ -8,8 +8,8 @@ import random
 import pytest
 import torch
 
-from garmentgnn.harness import engines
-from garmentgnn.harness.engines import (KIND, EngineSetting, default_settings, engine_record,
+from garmentgnn.bench import engines
+from garmentgnn.bench.engines import (KIND, EngineSetting, default_settings, engine_record,
                                       pick_sequences, resolve_settings)
 from garmentgnn.data import store
 from garmentgnn.data.generate import generate

@@ -9,11 +9,11 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from garmentgnn.harness import leaveout, precision, report, scaling
-from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
-from garmentgnn.harness.sequences import build_scene, case_item, make_sequence
+from garmentgnn.bench import leaveout, precision, report, scaling
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.sequences import build_scene, case_item, make_sequence
 from garmentgnn.models import PAPER_FORM
-from garmentgnn.harness.timing import num_threads
+from garmentgnn.bench.timing import num_threads
 from garmentgnn.data import Spec, generate
 from garmentgnn.body.factory import build_body
 from garmentgnn.data.store import load_sequence, sequence_path

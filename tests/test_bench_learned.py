@@ -1,4 +1,4 @@
-"""The learned methods inside ``garmentgnn bench`` (harness.learned): every method trained
+"""The learned methods inside ``garmentgnn bench`` (bench.learned): every method trained
 and scored on one generated dataset's split, records, report table, resume, failures.
 
 The dataset is a very small generated one (a mini skirt on one body, 3 motions of 4
@@ -23,7 +23,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from garmentgnn.harness import runner, learned, methods, presets, report, scoring, stability, tables
+from garmentgnn.bench import runner, learned, methods, presets, report, scoring, stability, tables
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import store
 from garmentgnn.models import gartrans

@@ -1,4 +1,4 @@
-"""The bench report's animation of a held-out sequence (garmentgnn.harness.page): from a
+"""The bench report's animation of a held-out sequence (garmentgnn.bench.page): from a
 run's records and a GarTrans checkpoint, inline in report.md, errors checked against a
 prediction whose error is known exactly (the simulation moved by 1 cm)."""
 import json
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from garmentgnn.harness import report
-from garmentgnn.harness.page import ENV_VAR, MEDIA, write_media
+from garmentgnn.bench import report
+from garmentgnn.bench.page import ENV_VAR, MEDIA, write_media
 from garmentgnn.data import store
 from garmentgnn.training import GarTransModule, GarmentDataModule
 from garmentgnn.viz.animate import renderer_unavailable

@@ -3,7 +3,7 @@ frame-weighted means, the paired Wilcoxon test (exact small-sample p-values writ
 out here) and which methods get every seed."""
 import pytest
 
-from garmentgnn.harness import learned, learned_report, methods, scoring, tables
+from garmentgnn.bench import learned, learned_report, methods, scoring, tables
 
 
 def seq(name, frames, held, e):

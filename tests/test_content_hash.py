@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from garmentgnn.harness.learned import prepare_dataset
+from garmentgnn.bench.learned import prepare_dataset
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import generate, preset, read_manifest
 from garmentgnn.data import store

@@ -266,7 +266,7 @@ def test_python_block_runs(doc, i, code, folder, monkeypatch):
 
 
 def test_bash_stubs_see_what_bash_expands(tmp_path):
-    """The harness itself: loops, brace expansion, functions and backgrounded calls reach
+    """The bench itself: loops, brace expansion, functions and backgrounded calls reach
     the stubs as a shell would pass them; an unknown program fails the block."""
     got = run_bash('for i in 0 1; do garmentgnn bench --shard $i/2 & done; wait\n'
                    'run() { make "$@"; }; run test\ncp a/{x,y}.md b/\n', tmp_path / "a")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from garmentgnn.harness.methods import BASELINES, HOOD
+from garmentgnn.bench.methods import BASELINES, HOOD
 from garmentgnn.models.baselines import CoarseLevel, HOODStyle
 from garmentgnn.models.blocks import RunningNormalizer
 from garmentgnn.training.baselines import ramped_length

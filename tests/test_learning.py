@@ -13,7 +13,7 @@ import torch
 from scipy.stats import wilcoxon
 from torch_geometric.nn import Linear as PyGLinear
 
-from garmentgnn.harness.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
+from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
 from garmentgnn.data import store
 from garmentgnn.models import GarTrans, PAPER_FORM
 from garmentgnn.models.blocks import AttentionStack

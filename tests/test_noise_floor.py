@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from garmentgnn.harness import noise_floor as nf
-from garmentgnn.harness import report, tables
-from garmentgnn.harness.tables import METRICS
+from garmentgnn.bench import noise_floor as nf
+from garmentgnn.bench import report, tables
+from garmentgnn.bench.tables import METRICS
 from garmentgnn.garments import Garment
 from garmentgnn.motion.sequence import Motion
 

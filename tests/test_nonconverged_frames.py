@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from garmentgnn.harness import scoring
+from garmentgnn.bench import scoring
 from garmentgnn.data import generate, preset
 from garmentgnn.metrics import evaluate, evaluate_inputs
 from garmentgnn.metrics.split import split_inputs

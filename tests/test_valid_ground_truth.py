@@ -14,7 +14,7 @@ from garmentgnn.data import (VALID_PENETRATION, SequenceChunks, generate, preset
                              store, valid_frames)
 from garmentgnn.data.worker import RESIMULATE, resimulation_settings, run_item
 from garmentgnn.geometry import grid_mesh, unique_edges
-from garmentgnn.harness import scoring
+from garmentgnn.bench import scoring
 from garmentgnn.losses import GarTransLoss, LossInputs
 from garmentgnn.metrics import evaluate
 from garmentgnn.physics import ClothRest

@@ -9,8 +9,8 @@ from typing import Any, Dict, List, Optional, Sequence
 
 from garmentgnn._plotting import pyplot
 from garmentgnn.data.store import read_json
-from garmentgnn.harness import scoring
-from garmentgnn.harness.tables import table
+from garmentgnn.bench import scoring
+from garmentgnn.bench.tables import table
 
 #: the surface metrics ``curves --surface`` adds (E_dist is always measured)
 SURFACE = ("E_vnorm", "E_fnorm", "E_len", "E_curv")

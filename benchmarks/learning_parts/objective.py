@@ -11,9 +11,9 @@ from typing import Any, Callable, Dict, Optional, Sequence
 import torch
 
 from garmentgnn.data.keys import body_key, garment_key
-from garmentgnn.harness import scoring
-from garmentgnn.harness.methods import HOOD, NCS
-from garmentgnn.harness.tables import table
+from garmentgnn.bench import scoring
+from garmentgnn.bench.methods import HOOD, NCS
+from garmentgnn.bench.tables import table
 from garmentgnn.metrics.garment_metrics import vertex_distance
 from garmentgnn.training import BaselineModule
 from garmentgnn.training.module import loss_inputs

@@ -17,10 +17,10 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from garmentgnn.data import SequenceChunks
 from garmentgnn.data.store import read_manifest
-from garmentgnn.harness import scoring
-from garmentgnn.harness.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
+from garmentgnn.bench import scoring
+from garmentgnn.bench.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
                                         variant_settings)
-from garmentgnn.harness.tables import slug, table
+from garmentgnn.bench.tables import slug, table
 from garmentgnn.models import GarTrans
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
@@ -298,7 +298,7 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
     """Each variant trained once per seed; the table gives the mean over seeds at the last
     step and, against the first variant, a paired Wilcoxon test over (seed, test sequence).
     ``test_sequences``: that many of the test split, taken in turn from each held-out
-    group (:func:`~garmentgnn.harness.scoring.stratified`; default: all).  Errors are on
+    group (:func:`~garmentgnn.bench.scoring.stratified`; default: all).  Errors are on
     valid ground-truth frames.  ``done``: a file that keeps every finished (variant,
     seed) run, beside a folder of each run's checkpoint (``runs/``, every ``every``
     steps, its curve in it), so that the part run again with the same settings after an

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any, Dict
 
-from garmentgnn.harness.methods import DA, HOOD
+from garmentgnn.bench.methods import DA, HOOD
 from garmentgnn.physics.materials import MATERIALS
 
 #: HOOD-style's configuration before it started from its own states with normalised inputs

@@ -3,7 +3,7 @@
 ``garmentgnn predict ...`` (see :mod:`garmentgnn.inference`),
 ``garmentgnn train ...`` (Lightning's CLI, see
 :mod:`garmentgnn.training.lightning_cli`), ``garmentgnn bench ...`` (see
-:mod:`garmentgnn.harness`) (also ``python -m garmentgnn.cli``).
+:mod:`garmentgnn.bench`) (also ``python -m garmentgnn.cli``).
 
 Each sub-command is a pair ``add_parser(subparsers)`` / ``main(args) -> exit status``
 (:data:`COMMANDS`): the data commands are here, ``bench`` and ``show`` in their
@@ -25,7 +25,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import garmentgnn
 from garmentgnn._argparse import ArgumentParser, HelpFormatter, finite_float, nonempty_path
-from garmentgnn.harness import cli as harness_cli
+from garmentgnn.bench import cli as bench_cli
 from garmentgnn.inference import cli as inference_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
@@ -261,7 +261,7 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
     "generate": (add_generate_parser, generate_main),
     "export": (add_export_parser, export_main),
     "manifest": (add_manifest_parser, manifest_main),
-    "bench": (harness_cli.add_parser, harness_cli.main),
+    "bench": (bench_cli.add_parser, bench_cli.main),
     "show": (viz_cli.add_parser, viz_cli.main),
     "predict": (inference_cli.add_parser, inference_cli.main),
     "train": (add_train_parser, train_main),

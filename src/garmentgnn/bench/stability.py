@@ -10,7 +10,7 @@ same way.
 
 Cases (on any generated item: the bench's small garment on the capsule body for the
 simulator, a test sequence of the learned methods' dataset for them, see
-:meth:`garmentgnn.harness.learned.LearnedRunner.stability_record`):
+:meth:`garmentgnn.bench.learned.LearnedRunner.stability_record`):
 
 =================  ==============================================================
 ``baseline``       the unmodified case (reference point for the others)
@@ -39,8 +39,8 @@ from typing import Any, Callable, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from garmentgnn.harness.records import failure
-from garmentgnn.harness.sequences import BenchSequence, make_sequence
+from garmentgnn.bench.records import failure
+from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.garments import Garment
 from garmentgnn.geometry import boundary_vertex_mask, signed_distance
 from garmentgnn.geometry.rotations import euler_to_matrix, matrix_to_axis_angle
@@ -166,7 +166,7 @@ def _degenerate(seq: BenchSequence, fraction: float) -> Tuple[Garment, Dict[str,
 def stability_sequence(case: str, item: Dict[str, Any], seed: int
                        ) -> Tuple[BenchSequence, Dict[str, Any]]:
     """The :class:`BenchSequence` of stability ``case`` built on ``item`` (a
-    :func:`garmentgnn.harness.sequences.case_item`), and facts about the perturbation."""
+    :func:`garmentgnn.bench.sequences.case_item`), and facts about the perturbation."""
     if case not in CASES:
         raise ValueError(f"`case`: unknown stability case {case!r}; choose one of {sorted(CASES)}")
     item = dict(item, name=case)
@@ -293,7 +293,7 @@ def verdict(metrics: Dict[str, float], ok: bool, nonconverged: int,
 def run_case(case: str, item: Dict[str, Any], seed: int, predict: Predictor,
              method: str = "sim", thresholds: Thresholds = THRESHOLDS) -> Dict[str, Any]:
     """Build stability ``case`` on ``item``, run ``predict`` and score it; a record for
-    :mod:`garmentgnn.harness.report` (``kind="stability"``).  Exceptions from the predictor
+    :mod:`garmentgnn.bench.report` (``kind="stability"``).  Exceptions from the predictor
     (or from building the case) give ``status="failed"`` with the message."""
     rec: Dict[str, Any] = {"kind": "stability", "method": method, "case": case, "seed": seed,
                            "description": CASES.get(case, ""),

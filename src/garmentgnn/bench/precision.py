@@ -39,12 +39,12 @@ import torch
 from torch import Tensor
 
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
-from garmentgnn.harness import stability as stab
-from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
-from garmentgnn.harness.records import failure, section
-from garmentgnn.harness.sequences import BenchSequence, make_sequence
-from garmentgnn.harness.tables import table
-from garmentgnn.harness.timing import measure
+from garmentgnn.bench import stability as stab
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
+from garmentgnn.bench.sequences import BenchSequence, make_sequence
+from garmentgnn.bench.tables import table
+from garmentgnn.bench.timing import measure
 from garmentgnn.models import PAPER_FORM
 from garmentgnn.models.baselines import LBSBaseline
 from garmentgnn.models.inputs import GarmentInputs
@@ -266,7 +266,7 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = HISTORY,
              module_kwargs: Optional[Dict[str, Any]] = None,
              thresholds: LongThresholds = LONG_THRESHOLDS) -> Dict[str, Any]:
     """Autoregressive rollout of an untrained GarTrans over ``item``'s whole motion (a
-    :func:`~garmentgnn.harness.sequences.case_item`); a ``kind="long_sequence"`` record."""
+    :func:`~garmentgnn.bench.sequences.case_item`); a ``kind="long_sequence"`` record."""
     rec: Dict[str, Any] = {"kind": "long_sequence", "method": LONG_METHOD,
                            "case": item.get("name"), "seed": seed,
                            "thresholds": asdict(thresholds)}
@@ -297,7 +297,7 @@ def run_long(item: Dict[str, Any], seed: int = 0, history: int = HISTORY,
 # --------------------------------------------------------------------------- report
 def _th_line(th: Optional[Dict[str, Any]], cls: str) -> List[str]:
     return (["Thresholds: " + ", ".join(f"{k}={v}" for k, v in th.items()) +
-             f" (see `garmentgnn.harness.precision.{cls}`).", ""] if th else [])
+             f" (see `garmentgnn.bench.precision.{cls}`).", ""] if th else [])
 
 
 def markdown(records: Sequence[Dict[str, Any]]) -> List[str]:

@@ -9,7 +9,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from garmentgnn.harness.tables import slug
+from garmentgnn.bench.tables import slug
 
 __all__ = ["NOT_RUN", "STATUSES", "collect", "failure", "json_safe", "load_record",
            "record_path", "section"]

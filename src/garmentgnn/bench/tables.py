@@ -63,7 +63,7 @@ def plot_points(pts: Sequence[Tuple[str, float, float]], path, title: str,
     close together); the error axis turns logarithmic when the errors span more than a
     factor 5, so that one diverged method does not flatten the rest.  ``bands``: ``(name,
     E_dist cm)`` drawn as shaded horizontal bands from the axis' bottom up to that error
-    (the ground truth's noise floors, :mod:`garmentgnn.harness.noise_floor`)."""
+    (the ground truth's noise floors, :mod:`garmentgnn.bench.noise_floor`)."""
     plt = pyplot()
 
     front = set(pareto_front(pts))

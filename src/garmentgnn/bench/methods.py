@@ -19,7 +19,7 @@ import inspect
 from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
-from garmentgnn.harness import stability as stab
+from garmentgnn.bench import stability as stab
 from garmentgnn.training.configs import load_config, module_spec
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.schedule import ProgressiveSchedule
@@ -115,7 +115,7 @@ class LearnedBudget:
         window: :class:`ProgressiveSchedule` window in epochs.
         ncs_epochs: passes of each NCS model over its own garment's test poses.
         methods: the names of :data:`METHOD_NAMES` to run.
-        stability_cases: :data:`garmentgnn.harness.stability.CASES` run by each method
+        stability_cases: :data:`garmentgnn.bench.stability.CASES` run by each method
             (first seed's model) and the simulator on the first test sequence.
         minutes: the wall-clock training budget of every (method, seed) run
             (:class:`~garmentgnn.training.TimeBudget`: stop when spent, learning rate
@@ -137,10 +137,10 @@ class LearnedBudget:
             (:data:`LONG`): where it goes with more time; ``None``: no such run.
         test_sequences: score every method on this many test sequences, the same for
             all, drawn evenly from the held-out groups
-            (:func:`garmentgnn.harness.scoring.stratified`); ``None``: all of them.
+            (:func:`garmentgnn.bench.scoring.stratified`); ``None``: all of them.
         curve_every: record the validation E_dist every this many training chunks, in
             whole optimizer steps of ``batch_size`` chunks (at least one)
-            (:class:`garmentgnn.harness.curves.LearningCurve`; needs a ``val`` split);
+            (:class:`garmentgnn.bench.curves.LearningCurve`; needs a ``val`` split);
             ``None``: no learning curves.
         val_sequences: the learning curves' validation sequences, drawn evenly from the
             held-out groups like ``test_sequences``; ``None``: all of them.

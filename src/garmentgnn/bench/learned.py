@@ -1,8 +1,8 @@
 """The learned methods inside ``garmentgnn bench``: every method trained and evaluated on
 the same generated dataset and data split, through one training path.
 
-One bench run (:func:`garmentgnn.harness.runner.run`) with a preset that has a
-:class:`~garmentgnn.harness.methods.LearnedBudget`:
+One bench run (:func:`garmentgnn.bench.runner.run`) with a preset that has a
+:class:`~garmentgnn.bench.methods.LearnedBudget`:
 
 1. uses a generated dataset (:func:`prepare_dataset`: ``garmentgnn.data.generate``'s
    preset of the bench preset, generated -- resumably -- under ``OUT/data``, or an
@@ -11,14 +11,14 @@ One bench run (:func:`garmentgnn.harness.runner.run`) with a preset that has a
    wall-clock minutes (:class:`TimeBudget`): :class:`GarTransModule` (GarTrans, Table 1
    variants), :class:`BaselineModule` (DA-, HOOD-, NCS-style) or :class:`SimulatorModule`
    (MGN-style) with the packaged YAML
-   settings (:mod:`~garmentgnn.harness.methods`), on a :class:`GarmentDataModule`, by one
+   settings (:mod:`~garmentgnn.bench.methods`), on a :class:`GarmentDataModule`, by one
    Lightning ``Trainer`` set-up (:meth:`LearnedRunner.fit`) that resumes from
    ``OUT/models/<method>--s<seed>/``; NCS-style trains one model per (garment, body) of
    the scored test sequences on their poses (never their simulated positions);
 3. scores it on the ``test`` split (all of it, or the budget's stratified subset:
-   :mod:`garmentgnn.harness.scoring`), times it (:func:`~garmentgnn.harness.timing.batch_sweep`,
-   :func:`~garmentgnn.harness.timing.peak_memory`) and returns one record of kind
-   ``"learned"`` per (method, seed); the harness writes it atomically.
+   :mod:`garmentgnn.bench.scoring`), times it (:func:`~garmentgnn.bench.timing.batch_sweep`,
+   :func:`~garmentgnn.bench.timing.peak_memory`) and returns one record of kind
+   ``"learned"`` per (method, seed); the bench writes it atomically.
 
 ``LBS only`` is the rest garment skinned with the stored skinning weights
 (:meth:`GarmentInputs.skinned`): the reference row of the table.
@@ -37,19 +37,19 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from torch import Tensor
 
-from garmentgnn.harness import stability as stab
-from garmentgnn.harness import scoring
-from garmentgnn.harness.curves import LearningCurve, TrainClock, quiet_lightning
-from garmentgnn.harness.dataset import DatasetInfo, prepare_dataset
-from garmentgnn.harness.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
+from garmentgnn.bench import stability as stab
+from garmentgnn.bench import scoring
+from garmentgnn.bench.curves import LearningCurve, TrainClock, quiet_lightning
+from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
+from garmentgnn.bench.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
                                         HOOD, LONG, METHOD_NAMES, MGN, MGN_DATA, MGN_MODULE,
                                         NCS, LearnedBudget, variant_settings, with_schedule)
-from garmentgnn.harness.model_inputs import (BenchChunks, Predictor, baseline_batches,
+from garmentgnn.bench.model_inputs import (BenchChunks, Predictor, baseline_batches,
                                              lbs_predictor)
-from garmentgnn.harness.page import MEDIA
-from garmentgnn.harness.records import failure
-from garmentgnn.harness.tables import slug
-from garmentgnn.harness.timing import batch_sweep, peak_memory
+from garmentgnn.bench.page import MEDIA
+from garmentgnn.bench.records import failure
+from garmentgnn.bench.tables import slug
+from garmentgnn.bench.timing import batch_sweep, peak_memory
 from garmentgnn.data import SequenceChunks, store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.geometry import push_outside
@@ -112,7 +112,7 @@ class LearnedRunner:
 
     def _whole(self, split: str, n: Optional[int]) -> SequenceChunks:
         """``split``'s whole sequences, or ``n`` of them: drawn evenly from the held-out
-        groups (:func:`~garmentgnn.harness.scoring.stratified`), or evenly spaced in id
+        groups (:func:`~garmentgnn.bench.scoring.stratified`), or evenly spaced in id
         order for ``train``, which holds nothing out."""
         kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
                   num_landmarks=DATA["num_landmarks"], cache_size=64)
@@ -163,7 +163,7 @@ class LearnedRunner:
     def save_prediction(self, method: str, pred: "Predictor") -> Path:
         """``OUT/media/predictions/<method>.npy``: ``method``'s ``[T, V, 3]`` prediction
         of the first test sequence, a panel of the report's animation
-        (:mod:`garmentgnn.harness.page`)."""
+        (:mod:`garmentgnn.bench.page`)."""
         item = self.test[0]
         with torch.no_grad():
             P = pred.predict(self.test, 0, item).float().numpy()
@@ -192,7 +192,7 @@ class LearnedRunner:
         return self._trained[key]
 
     def stability_record(self, method: str, seed: int, case: str) -> Dict[str, Any]:
-        """Stability ``case`` (:mod:`garmentgnn.harness.stability`) built on the first test
+        """Stability ``case`` (:mod:`garmentgnn.bench.stability`) built on the first test
         sequence of the dataset (its body, garment, motion and motion seed), predicted by
         ``method`` trained with ``seed`` -- or by :data:`SIMULATOR` with the dataset's
         simulator settings -- and scored like the simulator's cases.  The model sees the
@@ -223,7 +223,7 @@ class LearnedRunner:
     def evaluate(self, pred: Predictor) -> Dict[str, Any]:
         """``metrics`` (frame-weighted means over the valid ground-truth frames of every test
         sequence), ``groups`` (per held-out group), ``per_sequence`` and ``test_frames``
-        (:mod:`garmentgnn.harness.scoring`)."""
+        (:mod:`garmentgnn.bench.scoring`)."""
         per_seq = scoring.score(lambda i, item: pred.predict(self.test, i, item), self.test)
         agg = scoring.aggregate(per_seq)
         return {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
@@ -249,7 +249,7 @@ class LearnedRunner:
                   seqs: Optional[SequenceChunks] = None) -> Callable[[L.LightningModule], float]:
         """The validation E_dist (cm) of a module: ``predict(module, item)`` scored on
         every ``val`` sequence of the curves (or of ``seqs``;
-        :mod:`garmentgnn.harness.scoring`), on the module's device."""
+        :mod:`garmentgnn.bench.scoring`), on the module's device."""
         seqs = self.val if seqs is None else seqs
 
         def run(module: L.LightningModule) -> float:

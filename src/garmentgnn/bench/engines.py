@@ -34,7 +34,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from garmentgnn.harness.records import failure
+from garmentgnn.bench.records import failure
 from garmentgnn.data import store
 from garmentgnn.data.presets import ENGINES, build_inputs
 from garmentgnn.data.validity import sequence_valid

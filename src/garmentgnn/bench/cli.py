@@ -12,9 +12,9 @@ import sys
 from dataclasses import replace
 
 from garmentgnn._argparse import Accumulate, HelpFormatter, nonempty_path
-from garmentgnn.harness.runner import run
-from garmentgnn.harness.methods import METHOD_NAMES
-from garmentgnn.harness.presets import PRESET_NAMES, Preset, preset
+from garmentgnn.bench.runner import run
+from garmentgnn.bench.methods import METHOD_NAMES
+from garmentgnn.bench.presets import PRESET_NAMES, Preset, preset
 from garmentgnn.data import SpecMismatch
 
 

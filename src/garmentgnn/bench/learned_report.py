@@ -1,5 +1,5 @@
 """The "Held-out test split" section of the bench report: the learned methods' records
-(:mod:`garmentgnn.harness.learned`) as a table shaped like the paper's Tables 1 and 3, and
+(:mod:`garmentgnn.bench.learned`) as a table shaped like the paper's Tables 1 and 3, and
 their error-against-run-time plot."""
 from __future__ import annotations
 
@@ -7,17 +7,17 @@ import statistics
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
-from garmentgnn.harness import scoring
-from garmentgnn.harness.learned import KIND
-from garmentgnn.harness.methods import (DA, FULL, GARTRANS, HOOD, LBS, LONG, METHOD_NAMES, MGN,
+from garmentgnn.bench import scoring
+from garmentgnn.bench.learned import KIND
+from garmentgnn.bench.methods import (DA, FULL, GARTRANS, HOOD, LBS, LONG, METHOD_NAMES, MGN,
                                       NCS)
-from garmentgnn.harness.tables import (METRICS, UNITS, fmt, mean_std, plot_points, plot_summary,
+from garmentgnn.bench.tables import (METRICS, UNITS, fmt, mean_std, plot_points, plot_summary,
                                      table)
 
 __all__ = ["comparison_markdown", "engine_points", "markdown", "per_sequence", "plot",
            "plot_engines", "summary"]
 
-#: the record kind of :mod:`garmentgnn.harness.engines`
+#: the record kind of :mod:`garmentgnn.bench.engines`
 ENGINE_KIND = "engine"
 BASELINES_ORDER = (DA, HOOD, NCS, MGN)
 

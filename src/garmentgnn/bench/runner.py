@@ -18,11 +18,11 @@ included, unless ``retry_failed``); temporaries of a killed run are deleted firs
 errors (:func:`garmentgnn.metrics.evaluate`) are against the reference simulator at the
 preset's finest budget, over frames ``1..T-1`` (frame 0 is the skinned initial state
 shared by every method).  **Stability tasks** (case x seed) run the reference
-simulator on :mod:`garmentgnn.harness.stability`'s cases.  **Extra reports** (first
-seed only): :mod:`~garmentgnn.harness.scaling` (one record per garment size),
-:mod:`~garmentgnn.harness.leaveout`, :mod:`~garmentgnn.harness.precision` (per method, and
+simulator on :mod:`garmentgnn.bench.stability`'s cases.  **Extra reports** (first
+seed only): :mod:`~garmentgnn.bench.scaling` (one record per garment size),
+:mod:`~garmentgnn.bench.leaveout`, :mod:`~garmentgnn.bench.precision` (per method, and
 the long autoregressive sequence).  **Learned tasks** (method x training seed,
-:mod:`garmentgnn.harness.learned`): GarTrans, its Table 1 variants and the DA / HOOD /
+:mod:`garmentgnn.bench.learned`): GarTrans, its Table 1 variants and the DA / HOOD /
 NCS-style baselines trained on a generated dataset's train split and scored on its
 test split, with LBS as the reference row.
 
@@ -44,16 +44,16 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from garmentgnn.harness import engines, leaveout, precision, scaling
-from garmentgnn.harness import learned as learned_mod
-from garmentgnn.harness import methods
-from garmentgnn.harness import stability as stab
-from garmentgnn.harness.presets import Preset, SimBudget
-from garmentgnn.harness.records import collect, failure, json_safe, load_record, record_path
-from garmentgnn.harness.report import check_record, write_report
-from garmentgnn.harness.tables import slug
-from garmentgnn.harness.sequences import BenchSequence, make_sequence
-from garmentgnn.harness.timing import batch_sweep, num_threads, peak_memory
+from garmentgnn.bench import engines, leaveout, precision, scaling
+from garmentgnn.bench import learned as learned_mod
+from garmentgnn.bench import methods
+from garmentgnn.bench import stability as stab
+from garmentgnn.bench.presets import Preset, SimBudget
+from garmentgnn.bench.records import collect, failure, json_safe, load_record, record_path
+from garmentgnn.bench.report import check_record, write_report
+from garmentgnn.bench.tables import slug
+from garmentgnn.bench.sequences import BenchSequence, make_sequence
+from garmentgnn.bench.timing import batch_sweep, num_threads, peak_memory
 from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, code_version,
                                    remove_stale_temporaries)
 from garmentgnn.metrics import evaluate
@@ -77,8 +77,8 @@ Method = Callable[[BenchSequence, Preset], Prediction]
 #: name -> factory(preset) -> method
 METHODS: Dict[str, Callable[[Preset], Method]] = {}
 
-#: The comparison this harness is for (paper Tables 1 and 3): the learned methods of
-#: :mod:`garmentgnn.harness.learned`.  Those that produce no record (not in the preset's
+#: The comparison this bench is for (paper Tables 1 and 3): the learned methods of
+#: :mod:`garmentgnn.bench.learned`.  Those that produce no record (not in the preset's
 #: budget, or ``run(learned=False)``) show up as "not run".
 PLANNED: Tuple[str, ...] = methods.METHOD_NAMES
 
@@ -261,10 +261,10 @@ def tasks(p: Preset, seeds: Sequence[int], learned_seeds: Sequence[int] = (),
           ) -> List[Tuple[str, str, Dict[str, Any], int]]:
     """Every ``(kind, method, case item, seed)`` of a preset, in run order; the learned
     methods (``p.learned``) for each of ``learned_seeds``, on the dataset ``data_case``
-    (:attr:`garmentgnn.harness.learned.DatasetInfo.case`); ``plan``: the number of
-    seeds of each learned method (:func:`garmentgnn.harness.methods.seed_plan`; default:
+    (:attr:`garmentgnn.bench.learned.DatasetInfo.case`); ``plan``: the number of
+    seeds of each learned method (:func:`garmentgnn.bench.methods.seed_plan`; default:
     every seed, the seed-free methods one), and with it the long run
-    (:data:`~garmentgnn.harness.methods.LONG`) when the budget has one."""
+    (:data:`~garmentgnn.bench.methods.LONG`) when the budget has one."""
     out: List[Tuple[str, str, Dict[str, Any], int]] = []
     for seed in seeds:
         for item in p.cases:
@@ -463,7 +463,7 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     planned = list(PLANNED) + ([m for m in METHODS if m not in p.method_names()]
                                if p.cases else [])
     not_run = [m for m in planned if not any(r["method"] == m for r in records)]
-    meta = {"command": command or f"garmentgnn.harness.runner.run(preset {p.name!r})",
+    meta = {"command": command or f"garmentgnn.bench.runner.run(preset {p.name!r})",
             "preset": p.name, "seeds": n, "threads": threads,
             "shards": 1 if shard is None else shard[1],
             "torch": torch.__version__, "python": platform.python_version(),

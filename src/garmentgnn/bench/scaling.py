@@ -2,9 +2,9 @@
 cached static branch.
 
 For each requested template resolution a garment is built on the capsule body
-(:func:`garmentgnn.harness.sequences.make_sequence`; the real vertex count is recorded,
+(:func:`garmentgnn.bench.sequences.make_sequence`; the real vertex count is recorded,
 templates do not hit the request exactly), driven by a procedural motion, and an
-**untrained** GarTrans (:func:`garmentgnn.harness.model_inputs.untrained_module`; the
+**untrained** GarTrans (:func:`garmentgnn.bench.model_inputs.untrained_module`; the
 weights' values do not change the amount of computation, so an untrained model costs
 what a trained one does) predicts one frame (batch 1, pose history of the data module's
 ``history``) of it:
@@ -17,9 +17,9 @@ what a trained one does) predicts one frame (batch 1, pose history of the data m
   skinning-weight transfer, body distances), ``encode_static`` and ``forward``.
 
 Both, plus their parts (Nyström features alone, all static inputs, ``encode_static``
-alone), are timed interleaved with :func:`garmentgnn.harness.timing.side_by_side`
+alone), are timed interleaved with :func:`garmentgnn.bench.timing.side_by_side`
 (median ms of ``repeats`` calls, batch 1); peak memory of one call of each with
-:func:`garmentgnn.harness.timing.peak_memory` (RSS growth, a lower bound).  Each record
+:func:`garmentgnn.bench.timing.peak_memory` (RSS growth, a lower bound).  Each record
 also holds the largest difference between the cached and the uncached prediction
 (the static branch is deterministic, so it is 0 up to float round-off).
 """
@@ -33,11 +33,11 @@ import torch
 
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn._plotting import pyplot
-from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
-from garmentgnn.harness.records import failure, section
-from garmentgnn.harness.sequences import make_sequence
-from garmentgnn.harness.tables import save_figure, table
-from garmentgnn.harness.timing import peak_memory, side_by_side
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
+from garmentgnn.bench.sequences import make_sequence
+from garmentgnn.bench.tables import save_figure, table
+from garmentgnn.bench.timing import peak_memory, side_by_side
 from garmentgnn.geometry import geodesic_nystrom_features
 
 #: the method name of scaling records
@@ -47,7 +47,7 @@ COMPONENTS = ("nystrom", "static_inputs", "encode_static", "forward")
 
 
 def scaling_items(template: Dict[str, Any], resolutions: Sequence[int]) -> List[Dict[str, Any]]:
-    """One :func:`~garmentgnn.harness.sequences.case_item` per resolution: ``template`` with
+    """One :func:`~garmentgnn.bench.sequences.case_item` per resolution: ``template`` with
     the garment's ``resolution`` replaced and ``name`` ``"<template name>@<resolution>"``."""
     if not isinstance(template, dict) or "garment" not in template:
         raise ValueError(f"`template`: expected a case_item dict, got {template!r}")
@@ -70,7 +70,7 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
     message when building or running raised).
 
     Args:
-        item: a :func:`~garmentgnn.harness.sequences.case_item` (e.g. from
+        item: a :func:`~garmentgnn.bench.sequences.case_item` (e.g. from
             :func:`scaling_items`); its motion needs at least 2 frames.
         seed: motion seed and model initialisation seed.
         warmup, repeats: :func:`side_by_side` settings.
@@ -161,7 +161,7 @@ def markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None) -> Li
               "per frame; *uncached*: the data module's static inputs (Nyström features, "
               "edge index, cloth rest state, skinning-weight transfer, body distances) + "
               "`encode_static` + `forward` every frame.  Median of the timed calls; memory: "
-              "RSS growth during one call (a lower bound, `garmentgnn.harness.timing`).  "
+              "RSS growth during one call (a lower bound, `garmentgnn.bench.timing`).  "
               "Vertices: the count the template produced for the requested resolution.", ""]
     rows = []
     for r in sorted(recs, key=lambda r: r.get("num_vertices") or r["resolution"]):

@@ -11,12 +11,12 @@ A **record** is a JSON-able dict:
   frame at batch 1), ``throughput_fps`` (at ``best_batch``), ``peak_mem_mb``,
   ``threads``; optionally ``reference: true`` (the ground truth's own run).
 * stability: ``verdict`` (stable / degraded / failed), ``reason``, ``metrics`` from
-  :func:`garmentgnn.harness.stability.stability_metrics`.
+  :func:`garmentgnn.bench.stability.stability_metrics`.
 * learned: a method trained and scored on a generated dataset's test split
-  (:mod:`garmentgnn.harness.learned`): ``metrics`` as accuracy, ``timing``,
+  (:mod:`garmentgnn.bench.learned`): ``metrics`` as accuracy, ``timing``,
   ``train_seconds``, ``epochs``.
-* scaling / leaveout / precision / long_sequence: see :mod:`garmentgnn.harness.scaling`,
-  :mod:`~garmentgnn.harness.leaveout`, :mod:`~garmentgnn.harness.precision` (an ok record
+* scaling / leaveout / precision / long_sequence: see :mod:`garmentgnn.bench.scaling`,
+  :mod:`~garmentgnn.bench.leaveout`, :mod:`~garmentgnn.bench.precision` (an ok record
   holds the field :data:`EXTRA_REQUIRED` names).
 
 Every number of a record must be finite unless its ``status`` is ``"failed"``;
@@ -30,11 +30,11 @@ import statistics
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
 
-from garmentgnn.harness import (curves, learned_report, leaveout, noise_floor, precision,
+from garmentgnn.bench import (curves, learned_report, leaveout, noise_floor, precision,
                               scaling)
-from garmentgnn.harness.page import write_media
-from garmentgnn.harness.records import NOT_RUN, STATUSES
-from garmentgnn.harness.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
+from garmentgnn.bench.page import write_media
+from garmentgnn.bench.records import NOT_RUN, STATUSES
+from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
 from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
 
 KINDS = ("accuracy", "stability", "scaling", "leaveout", "precision", "long_sequence",
@@ -175,7 +175,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                     learned_png: Optional[str] = None,
                     engines_png: Optional[str] = None,
                     floor: Optional[Dict[str, Any]] = None) -> str:
-    """The ``report.md`` text; ``floor``: a :func:`garmentgnn.harness.noise_floor.load_floor`
+    """The ``report.md`` text; ``floor``: a :func:`garmentgnn.bench.noise_floor.load_floor`
     result, printed beside the method rows and in its own section."""
     meta = meta or {}
     lines = ["# Benchmark report", ""]
@@ -202,7 +202,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                   "Metrics: per seed the mean over cases, then mean ± std over seeds. "
                   "latency: ms per frame at batch 1; throughput: frames/s at the best batch; "
                   "peak memory: RSS increase during one prediction (see "
-                  "`garmentgnn.harness.timing`).", ""]
+                  "`garmentgnn.bench.timing`).", ""]
         summ = summarize(records)
         rows = []
         for method in methods:
@@ -229,7 +229,7 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
                if r["kind"] in STABILITY_KINDS and r.get("thresholds")), None)
     if th:
         lines += ["Thresholds: " + ", ".join(f"{k}={v}" for k, v in th.items()) +
-                  " (see `garmentgnn.harness.stability.Thresholds`).", ""]
+                  " (see `garmentgnn.bench.stability.Thresholds`).", ""]
     lines += (["The simulator on the bench's stability item (a garment on the capsule "
                "body), per motion seed.", ""] + _stabilitytable(stab) if stab
               else [NOT_RUN, ""])
@@ -278,14 +278,14 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
 
 
 # --------------------------------------------------------------------------- plots
-#: the learning curves' plot (:func:`garmentgnn.harness.curves.plot`), beside report.md
+#: the learning curves' plot (:func:`garmentgnn.bench.curves.plot`), beside report.md
 CURVES_PNG = "learning_curves.png"
 
 
 def plot_pareto(records: Sequence[Dict[str, Any]], path: Path,
                 floor: Optional[Dict[str, Any]] = None) -> Optional[Path]:
     """:func:`plot_summary` of the accuracy records (:func:`summarize`), with ``floor``'s
-    engines as bands (:func:`garmentgnn.harness.noise_floor.bands`)."""
+    engines as bands (:func:`garmentgnn.bench.noise_floor.bands`)."""
     return plot_summary(summarize(records), path, "Error against run time",
                         bands=noise_floor.bands(floor))
 
@@ -296,9 +296,9 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     """Validate ``records`` and write ``results.json``, ``report.md`` and ``pareto.png``
     (when there is something to plot) into ``out``, and the animation of a held-out
     sequence into ``out/media`` when the run trained GarTrans
-    (:func:`garmentgnn.harness.page.write_media`); returns their paths.  ``floor``: the
+    (:func:`garmentgnn.bench.page.write_media`); returns their paths.  ``floor``: the
     ground truth's noise floor, a ``benchmarks/gt_noise.py`` results file (default
-    :func:`garmentgnn.harness.noise_floor.load_floor`'s: ``$GARMENTGNN_NOISE_FLOOR`` or the
+    :func:`garmentgnn.bench.noise_floor.load_floor`'s: ``$GARMENTGNN_NOISE_FLOOR`` or the
     committed one of the records' dataset preset; none there: no floor shown)."""
     if isinstance(records, dict):
         raise ValueError("`records`: expected a list of records, got a dict")
@@ -332,7 +332,7 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
                            "pareto_learned.png" if learned_png is not None else None,
                            "pareto_engines.png" if engines_png is not None else None,
                            loaded)
-    # -- the animation of a held-out sequence (garmentgnn.harness.page), appended ----
+    # -- the animation of a held-out sequence (garmentgnn.bench.page), appended ----
     media = write_media(clean, out)
     if media:
         text += "\n" + "\n".join(media)

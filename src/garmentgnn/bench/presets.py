@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any, Dict, List, Optional, Tuple
 
-from garmentgnn.harness import methods, precision
-from garmentgnn.harness.sequences import case_item
+from garmentgnn.bench import methods, precision
+from garmentgnn.bench.sequences import case_item
 
 __all__ = ["PRESET_NAMES", "Preset", "SimBudget", "preset"]
 
@@ -30,33 +30,33 @@ class Preset:
 
     Attributes:
         name: preset name.
-        cases: accuracy cases (:func:`garmentgnn.harness.sequences.case_item`).
+        cases: accuracy cases (:func:`garmentgnn.bench.sequences.case_item`).
         seeds: default number of seeds (motion jitter seeds ``0..seeds-1``).
         reference: the finest simulator budget, used as ground truth.
         budgets: cheaper simulator budgets compared against it.
         methods: further registered methods run on every accuracy case (``"lbs"``, ...).
         stability_item: the small case the stability suite perturbs.
-        stability_cases: names from :data:`garmentgnn.harness.stability.CASES`.
+        stability_cases: names from :data:`garmentgnn.bench.stability.CASES`.
         stability_settings: simulator settings of the stability runs.
         batches: batch sizes of the throughput sweep (batchable methods).
         warmup, repeats: timing warm-up calls and timed calls (median reported).
         threads: ``torch.set_num_threads`` during the run.
-        scaling_item, scaling_resolutions: :mod:`garmentgnn.harness.scaling`'s garment
+        scaling_item, scaling_resolutions: :mod:`garmentgnn.bench.scaling`'s garment
             (a case item; its resolution is replaced) and the requested resolutions.
-        leaveout: run :mod:`garmentgnn.harness.leaveout` on the first accuracy case
+        leaveout: run :mod:`garmentgnn.bench.leaveout` on the first accuracy case
             (supervised loss terms against its reference simulation).
-        precision_methods: :data:`garmentgnn.harness.precision.METHODS` keys run in
+        precision_methods: :data:`garmentgnn.bench.precision.METHODS` keys run in
             float32 / bfloat16 / float16 on the first accuracy case.
-        long_item: the case of :func:`garmentgnn.harness.precision.run_long`.
+        long_item: the case of :func:`garmentgnn.bench.precision.run_long`.
         model_inputs: ``history``, ``nystrom_dim``, ``num_landmarks`` of the GarTrans
             inputs (the data module's settings in ``garmentgnn/configs/gartrans.yaml``).
         dataset: the :func:`garmentgnn.data.generate.preset` the learned methods train
             and are tested on (generated under ``OUT/data`` unless ``run(data=...)``).
-        learned: what :mod:`garmentgnn.harness.learned` trains (methods, seeds, epochs,
+        learned: what :mod:`garmentgnn.bench.learned` trains (methods, seeds, epochs,
             schedule window); ``None``: no learned methods.
-        engines: run :func:`garmentgnn.harness.engines.default_settings` on
+        engines: run :func:`garmentgnn.bench.engines.default_settings` on
             ``engine_per_group`` test sequences of each held-out group of the dataset
-            (:func:`~garmentgnn.harness.engines.pick_sequences`), ``engine_frames``
+            (:func:`~garmentgnn.bench.engines.pick_sequences`), ``engine_frames``
             frames each (``None``: all).
         data_workers: worker processes generating the dataset.
         These extra reports run for the first seed only.

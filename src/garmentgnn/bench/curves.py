@@ -24,14 +24,14 @@ import lightning as L
 import torch
 
 from garmentgnn._plotting import pyplot
-from garmentgnn.harness import scoring
-from garmentgnn.harness.tables import fmt, save_figure, table
+from garmentgnn.bench import scoring
+from garmentgnn.bench.tables import fmt, save_figure, table
 from garmentgnn.data import store
 from garmentgnn.training import TimeBudget
 
 __all__ = ["LearningCurve", "TrainClock", "markdown", "plateau", "plot", "quiet_lightning"]
 
-#: the record kind of :mod:`garmentgnn.harness.learned` (restated: that module imports this)
+#: the record kind of :mod:`garmentgnn.bench.learned` (restated: that module imports this)
 _KIND = "learned"
 #: :func:`plateau`'s defaults: the last quarter of the steps improves the best validation
 #: error by less than 2%

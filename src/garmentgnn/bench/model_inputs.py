@@ -1,7 +1,7 @@
 """GarTrans inputs for a bench sequence, built by the training data module's own code.
 
 :class:`BenchChunks` is :class:`garmentgnn.data.SequenceChunks` reading one
-in-memory :class:`~garmentgnn.harness.sequences.BenchSequence` instead of a generated
+in-memory :class:`~garmentgnn.bench.sequences.BenchSequence` instead of a generated
 ``.npz`` file: its items (static inputs from ``SequenceChunks._build_static``: edge
 index, Nyström features, ClothRest, masses, body distances, transferred skinning
 weights; pose histories from ``SequenceChunks.__getitem__``) are exactly what
@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
-from garmentgnn.harness.sequences import BenchSequence
+from garmentgnn.bench.sequences import BenchSequence
 from garmentgnn.data import store
 from garmentgnn.models.inputs import GarmentInputs, check_history
 from garmentgnn.data import SequenceChunks

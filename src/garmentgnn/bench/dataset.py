@@ -1,5 +1,5 @@
 """The dataset a ``garmentgnn bench`` run trains and scores its learned methods on
-(:mod:`garmentgnn.harness.learned`): generated (resumably) or given, with its fingerprint
+(:mod:`garmentgnn.bench.learned`): generated (resumably) or given, with its fingerprint
 and content hash."""
 from __future__ import annotations
 

@@ -23,7 +23,7 @@ reported as ``skipped`` or ``computed`` from the measurement.
 **Time saved**: the wall time of that step (forward + loss) on the scene against the
 same step on the scene with the left-out input put back (which is the ``full``
 scene); all scenes are timed interleaved in one
-:func:`garmentgnn.harness.timing.side_by_side` run.
+:func:`garmentgnn.bench.timing.side_by_side` run.
 """
 from __future__ import annotations
 
@@ -35,11 +35,11 @@ import torch
 from torch import Tensor
 
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
-from garmentgnn.harness.model_inputs import BenchChunks, untrained_module
-from garmentgnn.harness.records import failure, section
-from garmentgnn.harness.sequences import BenchSequence
-from garmentgnn.harness.tables import table
-from garmentgnn.harness.timing import side_by_side
+from garmentgnn.bench.model_inputs import BenchChunks, untrained_module
+from garmentgnn.bench.records import failure, section
+from garmentgnn.bench.sequences import BenchSequence
+from garmentgnn.bench.tables import table
+from garmentgnn.bench.timing import side_by_side
 from garmentgnn.training import PHASE_TERMS
 
 #: the method name of leave-out records
@@ -63,7 +63,7 @@ SHOULD_SKIP: Dict[str, Tuple[str, ...]] = {
 
 
 def scene_item(base: Dict[str, Any], scene: str) -> Dict[str, Any]:
-    """``base`` (a :class:`~garmentgnn.harness.model_inputs.BenchChunks` item of the full
+    """``base`` (a :class:`~garmentgnn.bench.model_inputs.BenchChunks` item of the full
     scene) turned into leave-out ``scene`` (a shallow copy: tensors are shared; a part the
     scene does not have is removed)."""
     if scene not in SCENES:

@@ -12,7 +12,7 @@ lines of the report's section.
 Methods that are not GarTrans checkpoints (the DA/HOOD/NCS-style baselines) appear when
 their prediction of that sequence is saved as ``OUT/media/predictions/<method>.npy``
 (``[T, V, 3]``, our vertex order; the bench's learned runner saves them for the first
-training seed, :meth:`~garmentgnn.harness.learned.LearnedRunner.save_prediction`) or passed
+training seed, :meth:`~garmentgnn.bench.learned.LearnedRunner.save_prediction`) or passed
 in ``predictions``.
 
 A rerun with the same checkpoints, predictions and options reuses the files (the options
@@ -51,7 +51,7 @@ def _checkpoints(records: Sequence[Dict[str, Any]], max_models: int):
     of the lowest seed whose GarTrans records are ok and whose checkpoints exist, or
     ``None``.  The first scored sequence (the id of the records' first ``per_sequence``
     entry, ``None`` without one) is the one the saved predictions of
-    :meth:`garmentgnn.harness.learned.LearnedRunner.save_prediction` show."""
+    :meth:`garmentgnn.bench.learned.LearnedRunner.save_prediction` show."""
     rs = [r for r in records if r.get("kind") == "learned" and r.get("status") == "ok"
           and r.get("checkpoint") and Path(r["checkpoint"]).is_file()
           and (r.get("dataset") or {}).get("root")]
@@ -88,7 +88,7 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
     checkpoint or ``$GARMENTGNN_BENCH_MEDIA`` is ``0``).
 
     Args:
-        records: the run's records (:func:`garmentgnn.harness.report.check_record`ed).
+        records: the run's records (:func:`garmentgnn.bench.report.check_record`ed).
         out: the bench folder (``report.md`` lives there; links are relative to it).
         split, index: which sequence of the learned methods' dataset: an index into
             ``split`` (``None``: every split) or a sequence id; default: the first
