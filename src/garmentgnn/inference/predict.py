@@ -75,9 +75,10 @@ class ResolutionWarning(UserWarning):
 RESOLUTION_FACTOR = 2.0
 #: what was measured (docs/results/resolution/): models trained on ~400-vertex garments,
 #: on the same held-out garments made at other resolutions
-RESOLUTION_TREND = ("measured on learn's held-out garments (docs/results/resolution), "
-                    "models trained at ~400 vertices kept their error relative to LBS "
-                    "within {spread} from 400 to 4,000 vertices")
+RESOLUTION_TREND = ("measured on learn's held-out garments made at 400 and 4,000 vertices "
+                    "(docs/results/resolution), E_dist against LBS's stayed 1.07x for "
+                    "GarTrans and 0.92x for DA-style, and went from 0.99x to 1.08x for the "
+                    "MGN-style simulator (its stretch error from 10% to 15%)")
 
 
 def check_resolution(num_vertices: int, module: Any, name: str) -> None:
