@@ -95,7 +95,8 @@ class StageClock:
 
 
 def _stages(method: str, module: Any, clock: StageClock) -> None:
-    """Wrap the methods that make each stage of ``method``'s step."""
+    """Wrap the methods that make each stage of ``method``'s step (DA-style's attention
+    stack holds its encoder and decoder MLPs too)."""
     m = module.model
     if method == "gartrans":
         clock.wrap(m, "encode_static", "static")
@@ -105,10 +106,11 @@ def _stages(method: str, module: Any, clock: StageClock) -> None:
         clock.wrap(m, "post_steps", "post")
         clock.wrap(module, "compute_loss", "loss")
     elif method == "da":
+        # (its layers are not wrapped: a compiled layer would compile the wrapper)
         clock.wrap(module, "compute_loss", "loss")
-        clock.wrap(m, "forward", "graph")
-        for layer in m.layers:
-            clock.wrap(layer, "forward", "attention")
+        clock.wrap(m, "forward", "attention")
+        clock.wrap(m, "skin_batch", "graph")
+        clock.wrap(m, "features", "graph")
     else:
         clock.wrap(module, "window_loss", "loss")
         clock.wrap(m, "scene_motion", "graph")

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch_geometric.nn import Linear as PyGLinear
 from torch.nn.parameter import UninitializedParameter
+from torch.utils._python_dispatch import _get_current_dispatch_mode
 
 from garmentgnn.nn import TensorCache, make_layer
 
@@ -60,10 +61,12 @@ _COMPILE_FAILED: Dict[str, str] = {}
 def compiled_forward(module: nn.Module, *args: Any) -> Any:
     """``module(*args)`` through ``torch.compile(module.forward, dynamic=True)`` (inductor;
     built once per module, dynamic shapes so that other garments and batch sizes reuse
-    it) while autograd records, eager otherwise (evaluation runs the eager module).
-    Where compiling fails (no C++ compiler, an unsupported operator) it warns once and
-    every later call runs eager."""
-    if not torch.is_grad_enabled() or _COMPILE_FAILED:
+    it) while autograd records, eager otherwise (evaluation runs the eager module), and
+    eager under a ``TorchDispatchMode`` (FLOP and operator counters see the eager
+    operators, and the compiled code is not specialised to the mode).  Where compiling
+    fails (no C++ compiler, an unsupported operator) it warns once and every later call
+    runs eager."""
+    if not torch.is_grad_enabled() or _COMPILE_FAILED or _get_current_dispatch_mode():
         return module(*args)
     fn = _COMPILED.get(module)
     if fn is None:
