@@ -269,6 +269,11 @@ class Worker:
             best = min(best, time.perf_counter() - t0)
         return 2 * 51680 * 128 * 128 / best / 1e9
 
+    def ready(self) -> Dict[str, Any]:
+        """Answered once the dataset is there (workers start one after another: the
+        dataset's generation lock admits one process at a time)."""
+        return {}
+
     def serve(self) -> None:
         for line in sys.stdin:
             req = json.loads(line)
@@ -290,6 +295,7 @@ class Tree:
         env = dict(os.environ, PYTHONPATH=str(tree / "src"), PYTHONWARNINGS="ignore")
         self.proc = subprocess.Popen([sys.executable, __file__, "--worker"], env=env,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.ask(cmd="ready")
 
     def ask(self, **req: Any) -> Dict[str, Any]:
         assert self.proc.stdin is not None and self.proc.stdout is not None
