@@ -126,6 +126,16 @@ class Worker:
         self.root = dataset("small", benchmark_cache())
         self.chunks = warm(self.root)
         self.setups: Dict[Tuple[str, int], Dict[str, Any]] = {}
+        self.threads = 0
+
+    def set_threads(self, threads: int) -> None:
+        """``torch.set_num_threads``; on a change, compiled code is dropped (inductor's CPU
+        kernels are built for the thread count of their compile and dynamo does not
+        guard on it: they would run on the old count)."""
+        if threads != self.threads:
+            torch.set_num_threads(threads)
+            torch._dynamo.reset()
+            self.threads = threads
 
     def setup(self, method: str, batch: int) -> Dict[str, Any]:
         key = (method, batch)
@@ -183,7 +193,7 @@ class Worker:
 
     def time(self, method: str, batch: int, threads: int, steps: int,
              warmup: int) -> Dict[str, Any]:
-        torch.set_num_threads(threads)
+        self.set_threads(threads)
         s = self.setup(method, batch)
         for _ in range(warmup):
             self.step(s)
@@ -205,7 +215,7 @@ class Worker:
 
     def profile(self, method: str, batch: int, threads: int) -> Dict[str, Any]:
         """FLOPs, ATen calls and the matmul rate of one step's own matmul shapes."""
-        torch.set_num_threads(threads)
+        self.set_threads(threads)
         s = self.setup(method, batch)
         self.step(s)
         mm_ops = {torch.ops.aten.mm.default, torch.ops.aten.addmm.default,
@@ -325,7 +335,8 @@ def _revision(tree: Path) -> str:
 
 def run(a: argparse.Namespace) -> Dict[str, Any]:
     trees = [Tree(HERE.parent)] + [Tree(Path(t).resolve()) for t in a.against]
-    configs = [(m, th, b) for m in a.methods for th in a.threads for b in a.batches]
+    # thread count outermost: each change recompiles (see Worker.set_threads)
+    configs = [(m, th, b) for th in a.threads for m in a.methods for b in a.batches]
     rows: Dict[Tuple[str, str, int, int], Dict[str, Any]] = {}
     try:
         for m, th, b in configs:
