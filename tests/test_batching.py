@@ -147,12 +147,13 @@ def test_da_style_batch_is_each_chunk_alone(root, chunks):
 
 @pytest.mark.parametrize("several", [False, True])
 def test_da_style_compiled_training_matches_eager(root, chunks, several):
-    """DA-style's configured ``compile`` (its GAT layers through torch.compile while
-    training) gives eager's loss and gradients, on a batch of one chunk (one graph) and
-    of three: relative 1e-4 on the loss, 1e-4 of each gradient's largest entry."""
+    """DA-style's ``compile`` (its GAT layers through torch.compile while training) gives
+    eager's loss and gradients, on a batch of one chunk (one graph) and of three:
+    relative 1e-4 on the loss, 1e-4 of each gradient's largest entry."""
     dims = data(root).dims
     L.seed_everything(0)
-    compiled = instantiate(module_spec("baselines/da"), dims)
+    compiled = instantiate(merge(module_spec("baselines/da"), {"init_args": {"model": {
+        "init_args": {"compile": True}}}}), dims)
     assert compiled.model.compile
     eager = instantiate(merge(module_spec("baselines/da"), {"init_args": {"model": {
         "init_args": {"compile": False}}}}), dims)

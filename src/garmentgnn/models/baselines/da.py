@@ -41,9 +41,10 @@ class DAStyle(Configurable, nn.Module):
         num_layers: GAT layers.
         compile: run each GAT layer through ``torch.compile`` (inductor, dynamic shapes)
             while training (:func:`~garmentgnn.models.blocks.compiled_forward`): the
-            same loss and gradients up to float round-off, about 2x the training
-            vertex-frames per second on the CPU (docs/results/step_profile); evaluation
-            runs eager.  Falls back to eager, with a warning, where compiling fails.
+            same loss and gradients up to float round-off; on the CPU 1.1-2.2x eager's
+            training vertex-frames per second with one thread, 0.5-1.3x with two
+            (docs/results/step_profile).  Evaluation runs eager.  Falls back to eager,
+            with a warning, where compiling fails.
     """
 
     def __init__(self, num_joints: int, hidden: int = 64, heads: int = 2,
