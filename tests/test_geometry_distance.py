@@ -378,3 +378,34 @@ def test_compiled_search_falls_back_to_eager_with_a_warning(monkeypatch):
     ref = G.signed_distance(pts, body, faces, candidates=8)
     torch.testing.assert_close(out.distance, ref.distance, rtol=0, atol=0)
     assert dist_mod._COMPILED.get("failed")
+
+
+def test_body_topology_is_kept_by_faces_content():
+    """The body topology comes back for faces of the same values in a new tensor (the
+    faces of every batch), equals a fresh ``unique_edges`` and vertex-face table, and is
+    built anew for other faces; one built in inference mode serves a differentiable
+    distance afterwards, the same as without the cache."""
+    m = MESHES["capsule"]()
+    faces = torch.tensor(m.faces)
+    nv = len(m.vertices)
+    with torch.inference_mode():
+        topo, table = dist_mod.body_topology(faces.clone(), nv)
+    fresh = G.unique_edges(faces, nv)
+    torch.testing.assert_close(topo.edges, fresh.edges)
+    torch.testing.assert_close(topo.face_edges, fresh.face_edges)
+    torch.testing.assert_close(table, dist_mod._vertex_face_table(faces, nv))
+    again = dist_mod.body_topology(faces.clone(), nv)
+    assert again[0] is topo and again[1] is table
+    flipped = faces[:, [0, 2, 1]]
+    other = dist_mod.body_topology(flipped, nv)
+    assert other[0] is not topo
+    torch.testing.assert_close(other[0].face_edges, G.unique_edges(flipped, nv).face_edges)
+    body = torch.tensor(m.vertices, dtype=D)
+    pts = torch.tensor(_points_around(m, 50, seed=3, spread=1.2), dtype=D).requires_grad_()
+    sd = G.signed_distance(pts, body, faces, candidates=8)
+    ref = G.signed_distance(pts, body, faces, candidates=8,
+                            body_edges=G.unique_edges(faces, nv))
+    torch.testing.assert_close(sd.distance, ref.distance, rtol=0, atol=0)
+    g, = torch.autograd.grad(sd.distance.sum(), pts)
+    g_ref, = torch.autograd.grad(ref.distance.sum(), pts)
+    torch.testing.assert_close(g, g_ref, rtol=0, atol=0)

@@ -7,7 +7,7 @@ The signed distance ``s(p)`` is the one of GarTrans Eq. 10 (collision loss
 from __future__ import annotations
 
 import warnings
-from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -123,6 +123,29 @@ def _vertex_face_table(faces: Tensor, num_vertices: int) -> Tensor:
     return table
 
 
+#: body topologies (unique edges, vertex-face table) by faces content, newest last
+_TOPOLOGY: List[Tuple[Tensor, int, EdgeTopology, Tensor]] = []
+
+
+@torch.inference_mode(False)  # a topology built in inference mode serves autograd later
+def body_topology(faces: Tensor, num_vertices: int) -> Tuple[EdgeTopology, Tensor]:
+    """``(unique_edges(faces), vertex-face table)`` of a body mesh, kept for the last few
+    meshes by content (a body's faces arrive as a fresh tensor with every batch, with the
+    same values): one comparison of the faces instead of a sort and ``unique`` per call."""
+    for i, (f, n, topo, table) in enumerate(_TOPOLOGY):
+        if n == num_vertices and f.shape == faces.shape and f.device == faces.device \
+                and torch.equal(f, faces):
+            if i != len(_TOPOLOGY) - 1:
+                _TOPOLOGY.append(_TOPOLOGY.pop(i))
+            return topo, table
+    f = faces.clone()
+    topo = unique_edges(f, num_vertices)
+    table = _vertex_face_table(f, num_vertices)
+    _TOPOLOGY.append((f, num_vertices, topo, table))
+    del _TOPOLOGY[:-4]
+    return topo, table
+
+
 @torch.no_grad()
 def _nearest_faces_bruteforce(points: Tensor, body: Tensor, faces: Tensor,
                               chunk_size: int) -> Tensor:
@@ -186,7 +209,7 @@ def _nearest_faces_candidates(points: Tensor, body: Tensor, faces: Tensor, k: in
     (``compiled``: see :func:`_closest_candidate_fn`)."""
     closest = _closest_candidate_fn(compiled)
     B, V, _ = points.shape
-    table = _vertex_face_table(faces, body.size(1))  # [Vb, D]
+    table = body_topology(faces, body.size(1))[1]  # [Vb, D]
     k = min(k, body.size(1))
     out = torch.empty(B, V, dtype=torch.long, device=points.device)
     for s in range(0, V, chunk_size):
@@ -284,7 +307,7 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
     # angle-weighted pseudo-normals of the body
     cf = face_cross(X, f)
     nf = cf / safe_norm(cf, keepdim=True)  # [B, F, 3]
-    topo = unique_edges(f, Vb) if body_edges is None else body_edges
+    topo = body_topology(f, Vb)[0] if body_edges is None else body_edges
     if topo.face_edges.shape != f.shape:
         raise ValueError("`body_edges`: does not match `body_faces`; pass "
                          "unique_edges(body_faces)")

@@ -78,16 +78,25 @@ def project_edge_lengths(pos: Tensor, edges: Tensor, rest_lengths: Tensor,
     deg = torch.zeros(V, dtype=pos.dtype, device=pos.device)
     deg.index_add_(0, e.flatten(), torch.ones(e.numel(), dtype=pos.dtype, device=pos.device))
     deg = deg.clamp_min(1.0).unsqueeze(-1)
-    l0 = rest_lengths.to(pos.dtype)
+    if iterations == 0:
+        return pos
+    # vertex-major working layout [V, ..., 3]: each edge gathers and adds whole rows
+    # (all frames of a vertex at once) instead of 3-float rows per frame
+    lead = (1,) * (pos.dim() - 2)
+    x = pos.movedim(-2, 0).contiguous()
+    l0 = rest_lengths.to(pos.dtype).movedim(-1, 0)
+    l0 = l0.reshape(l0.shape[:1] + (1,) * (x.dim() - l0.dim() - 1) + l0.shape[1:] + (1,))
+    deg = deg.view(V, *lead, 1)
+    src, dst = e[:, 0], e[:, 1]
     for _ in range(iterations):
-        d = pos[..., e[:, 1], :] - pos[..., e[:, 0], :]
+        d = x.index_select(0, dst) - x.index_select(0, src)
         length = safe_norm(d, keepdim=True)
-        c = 0.5 * (1.0 - l0.unsqueeze(-1) / length.clamp_min(1e-12)) * d
+        c = 0.5 * (1.0 - l0 / length.clamp_min(1e-12)) * d
         if stretch_only:
-            c = c * (length > l0.unsqueeze(-1))
-        move = torch.zeros_like(pos).index_add(-2, e[:, 0], c).index_add(-2, e[:, 1], -c)
-        pos = pos + move / deg
-    return pos
+            c = c * (length > l0)
+        move = torch.zeros_like(x).index_add(0, src, c).index_add(0, dst, -c)
+        x = x + move / deg
+    return x.movedim(0, -2)
 
 
 def dihedral_angles(pos: Tensor, faces: Tensor, adjacency: Optional[FaceAdjacency] = None,

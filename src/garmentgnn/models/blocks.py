@@ -6,6 +6,8 @@ rebuilt from its checkpoint."""
 from __future__ import annotations
 
 import inspect
+import warnings
+import weakref
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -13,11 +15,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch_geometric.nn import Linear as PyGLinear
 from torch.nn.parameter import UninitializedParameter
+from torch.utils._python_dispatch import _get_current_dispatch_mode
 
 from garmentgnn.nn import TensorCache, make_layer
 
 __all__ = ["AttentionStack", "Configurable", "RunningNormalizer", "batch_edges",
-           "cached_batch_edges", "check_arguments", "geometric_init_", "mlp"]
+           "cached_batch_edges", "check_arguments", "compiled_forward", "geometric_init_",
+           "mlp"]
 
 
 class Configurable:
@@ -45,6 +49,36 @@ class Configurable:
         cls = type(self)
         return {"class_path": f"{cls.__module__}.{cls.__qualname__}",
                 "init_args": dict(self.init_args)}
+
+
+#: ``torch.compile`` of each module's forward (kept outside the module: its state dict,
+#: copies and pickles stay those of the eager module)
+_COMPILED: "weakref.WeakKeyDictionary[nn.Module, Any]" = weakref.WeakKeyDictionary()
+#: set when compiling failed once: every module runs eager from then on
+_COMPILE_FAILED: Dict[str, str] = {}
+
+
+def compiled_forward(module: nn.Module, *args: Any) -> Any:
+    """``module(*args)`` through ``torch.compile(module.forward, dynamic=True)`` (inductor;
+    built once per module, dynamic shapes so that other garments and batch sizes reuse
+    it) while autograd records, eager otherwise (evaluation runs the eager module), and
+    eager under a ``TorchDispatchMode`` (FLOP and operator counters see the eager
+    operators, and the compiled code is not specialised to the mode).  Where compiling
+    fails (no C++ compiler, an unsupported operator) it warns once and every later call
+    runs eager."""
+    if not torch.is_grad_enabled() or _COMPILE_FAILED or _get_current_dispatch_mode():
+        return module(*args)
+    fn = _COMPILED.get(module)
+    if fn is None:
+        fn = _COMPILED[module] = torch.compile(module.forward, dynamic=True)
+    try:
+        return fn(*args)
+    except Exception as err:  # noqa: BLE001 -- any compiler failure: run eager
+        _COMPILE_FAILED["error"] = f"{type(err).__name__}: {err}"
+        warnings.warn(f"torch.compile of {type(module).__name__} unavailable "
+                      f"({_COMPILE_FAILED['error']}); running eager", RuntimeWarning,
+                      stacklevel=2)
+        return module(*args)
 
 
 def mlp(sizes: Sequence[int], act: nn.Module, last_act: bool = True) -> nn.Sequential:

@@ -291,7 +291,7 @@ class GarmentModule(L.LightningModule):
 
     #: model arguments that change how it runs, not what it computes: a checkpoint
     #: restores into a model that differs from it only in these
-    RUNTIME_ARGS: ClassVar[Tuple[str, ...]] = ("compile_search",)
+    RUNTIME_ARGS: ClassVar[Tuple[str, ...]] = ("compile_search", "compile")
     #: model arguments set by the data (``garmentgnn train`` links them from
     #: :attr:`GarmentDataModule.dims`)
     DATA_SIZES: ClassVar[Tuple[str, ...]] = ("num_joints", "num_body_vertices",
