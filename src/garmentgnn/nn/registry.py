@@ -9,19 +9,23 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from pathlib import Path
 from typing import Dict, Optional
 
 from torch import nn
 
 
+#: the package whose ``*_conv.py`` modules hold the named layers
+PACKAGE = "garmentgnn.nn"
+
+
 def _package_layers() -> Dict[str, type]:
     """``{layer_name: class}`` of the layers of this package's ``*_conv.py`` modules."""
     found: Dict[str, type] = {}
-    for info in sorted(pkgutil.iter_modules([str(Path(__file__).parent)]), key=lambda i: i.name):
+    path = importlib.import_module(PACKAGE).__path__  # (set before its __init__ runs)
+    for info in sorted(pkgutil.iter_modules(path), key=lambda i: i.name):
         if not info.name.endswith("_conv"):
             continue
-        module = importlib.import_module(f"{__package__}.{info.name}")
+        module = importlib.import_module(f"{PACKAGE}.{info.name}")
         for obj in vars(module).values():
             name = getattr(obj, "layer_name", None)
             if isinstance(obj, type) and obj.__module__ == module.__name__ and name:
