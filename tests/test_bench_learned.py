@@ -108,7 +108,9 @@ def test_every_method_produces_a_finite_record(flow, data):
     by = {r["method"]: r for r in recs}
     for name in methods.GARTRANS:
         assert by[name]["phase"] == 1  # 1 epoch: the window (1) never elapses
-        assert by[name]["config"]["model"] == methods.variant_settings(name)[0]
+        # the variant's module, handed the bench's schedule (recorded beside it)
+        assert by[name]["config"]["model"] == methods.with_schedule(
+            methods.variant_settings(name)[0], by[name]["config"]["schedule"])
         assert (out / "models" / f"{tables.slug(name)}--s0" / "last.ckpt").exists()
     assert by["GarTrans w/o unsupervised loss"]["config"]["schedule"]["max_phase"] == 1
     assert by[methods.NCS]["models"] == 1  # one per test garment
