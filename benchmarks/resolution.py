@@ -28,24 +28,23 @@ import time
 from pathlib import Path
 from typing import Any, Dict
 
-import torch
-
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args,
                                   command_line, existing_file, output_path)
 from garmentgnn._plotting import pyplot
-from garmentgnn.data import SequenceChunks, Spec, generate, preset, read_manifest
+from garmentgnn.data import Spec, generate, preset, read_manifest
 from garmentgnn.data.keys import body_key, garment_key, motion_key
 from garmentgnn.bench.scoring import aggregate, score, wilcoxon
 from garmentgnn.training import SimulatorModule
 from garmentgnn.viz.compare import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT / "benchmarks") not in sys.path:  # the scoring of benchmarks/mgn_learn.py
+    sys.path.append(str(ROOT / "benchmarks"))
+from mgn_learn import Scored  # noqa: E402  (its first GIVEN frames are not scored)
+
 RESULTS = ROOT / "docs" / "results" / "resolution" / "resolution.json"
 #: the garment resolutions (target vertex counts of the templates)
 RESOLUTIONS = (400, 1500, 4000)
-#: frames given to the learned simulator, not scored for any method
-GIVEN = 2
-METRICS = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
 
 
 def spec(resolution: int) -> Spec:
@@ -63,15 +62,6 @@ def spec(resolution: int) -> Spec:
 
 def dataset(cache: Path, resolution: int) -> Path:
     return cache / f"learn_res{resolution}-blender"
-
-
-class Scored(SequenceChunks):
-    """Whole sequences whose first :data:`GIVEN` frames are not scored."""
-
-    def valid(self, idx: int) -> torch.Tensor:
-        v = super().valid(idx).clone()
-        v[:GIVEN] = False
-        return v
 
 
 def methods(args: argparse.Namespace) -> Dict[str, Any]:
