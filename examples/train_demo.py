@@ -54,7 +54,7 @@ def main() -> None:
                         enable_checkpointing=False, enable_model_summary=False,
                         default_root_dir=str(out))
     trainer.fit(module, dm)
-    sched = next(c for c in trainer.callbacks if isinstance(c, ProgressiveSchedule))
+    sched = ProgressiveSchedule.of(trainer)
     ckpt = out / "gartrans_demo.ckpt"
     trainer.save_checkpoint(ckpt)
     print(f"[2/4] trained {args.epochs} epochs in {time.time() - t1:.0f} s; phases began at "

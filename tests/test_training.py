@@ -46,7 +46,9 @@ FAST = {"window": 1, "threshold": 10.0, "window2": None, "threshold2": None,
 
 def schedule_of(tr):
     """The module's own schedule in trainer ``tr`` (``GarTransModule.configure_callbacks``)."""
-    return next(c for c in tr.callbacks if isinstance(c, ProgressiveSchedule))
+    sched = ProgressiveSchedule.of(tr)
+    assert sched is not None
+    return sched
 
 
 def trainer(max_epochs, callbacks=(), **kw):

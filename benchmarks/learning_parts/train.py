@@ -368,9 +368,8 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
                 status = f"{type(err).__name__}: {err}"
             runs.append({"seed": seed, "curve": probe.rows, "status": status,
                          "seconds": probe.seconds(),
-                         **({"transitions": next((
-                             c.transitions for c in trainer.callbacks
-                             if isinstance(c, ProgressiveSchedule)), {})} if sched else {})})
+                         **({"transitions": getattr(ProgressiveSchedule.of(trainer),
+                                                    "transitions", {})} if sched else {})})
             last = probe.rows[-1] if probe.rows else {}
             print(f"curves {name}, seed {seed}: " + ", ".join(
                 f"{k} {last.get(k, math.nan) / lbs[k]:.3f}" for k in sets)

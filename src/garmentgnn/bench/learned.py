@@ -390,7 +390,7 @@ class LearnedRunner:
         module = self._module(hp, dm.dims)
         info = self.fit(module, dm, folder, self.budget.epochs, (), minutes,
                         predict=lambda m, item: m(item)["final"])
-        sched = next(c for c in module.trainer.callbacks if isinstance(c, ProgressiveSchedule))
+        sched = ProgressiveSchedule.of(module.trainer)
 
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
             it = item.cycled(b)

@@ -82,6 +82,12 @@ class ProgressiveSchedule(L.Callback):
         self.transitions: Dict[int, int] = {}  # phase -> epoch at whose end it began
         self._sum, self._n = 0.0, 0
 
+    @classmethod
+    def of(cls, trainer: Any) -> Optional["ProgressiveSchedule"]:
+        """The schedule among ``trainer``'s callbacks (a module's own, from
+        ``configure_callbacks``, once a fit has begun); ``None`` without one."""
+        return next((c for c in trainer.callbacks if isinstance(c, cls)), None)
+
     # -- state ------------------------------------------------------------------------
     def state_dict(self) -> Dict[str, Any]:
         return {"phase": self.phase, "history": list(self.history),
