@@ -49,7 +49,7 @@ class Preset:
             float32 / bfloat16 / float16 on the first accuracy case.
         long_item: the case of :func:`garmentgnn.bench.precision.run_long`.
         model_inputs: ``history``, ``nystrom_dim``, ``num_landmarks`` of the GarTrans
-            inputs (the data module's settings in ``garmentgnn/configs/gartrans.yaml``).
+            inputs (the data module's settings in ``garmentgnn/recipes/gartrans.yaml``).
         dataset: the :func:`garmentgnn.data.generate.preset` the learned methods train
             and are tested on (generated under ``OUT/data`` unless ``run(data=...)``).
         learned: what :mod:`garmentgnn.bench.learned` trains (methods, seeds, epochs,

@@ -75,7 +75,7 @@ def run_record(item: Dict[str, Any], seed: int = 0, warmup: int = 2, repeats: in
         seed: motion seed and model initialisation seed.
         warmup, repeats: :func:`side_by_side` settings.
         history, nystrom_dim, num_landmarks: data-module settings
-            (``garmentgnn/configs/gartrans.yaml``).
+            (``garmentgnn/recipes/gartrans.yaml``).
         module_kwargs: further :class:`GarTransModule` arguments.
     """
     rec: Dict[str, Any] = {"kind": "scaling", "method": METHOD, "case": item.get("name"),

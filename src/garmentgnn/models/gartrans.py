@@ -7,7 +7,7 @@ per garment) -> :meth:`~GarTrans.coarse` (GRU motion code, skinning weights ``W^
 coarse mesh ``M^{t,c}``, Eqs. 1-2) -> :meth:`~GarTrans.deform` (the SAT stack's ``a``) ->
 :meth:`~GarTrans.post_steps` (strain limit, collision projection: not in the paper).
 The project's defaults differ from the paper where measured better (docs/model.md);
-:meth:`GarTrans.paper` (``configs/ablations/paper.yaml``) is the paper's form.  Choices
+:meth:`GarTrans.paper` (``recipes/ablations/paper.yaml``) is the paper's form.  Choices
 where the paper is vague: per-vertex Nyström features (``V x k`` through FC layers);
 ``Θ^[1]`` = the GRU's last hidden state -> linear -> ``S``; ``a`` added to the coarse mesh
 (frame-parallel);

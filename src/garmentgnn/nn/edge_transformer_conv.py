@@ -74,7 +74,7 @@ class EdgeTransformerConv(AttentionConv):
           ``return_edge_attr=True`` also the new edge features :math:`(|E|, D')`.
     """
 
-    #: the name :func:`~garmentgnn.nn.make_layer` and the configs know it by
+    #: the name :func:`~garmentgnn.nn.make_layer` and the recipes know it by
     layer_name = "gt_edge"
 
     requires_edge_attr = True

@@ -66,7 +66,7 @@ class GraphTransformerConv(AttentionConv):
           ``return_edge_attr=True`` also ``edge_attr`` as given.
     """
 
-    #: the name :func:`~garmentgnn.nn.make_layer` and the configs know it by
+    #: the name :func:`~garmentgnn.nn.make_layer` and the recipes know it by
     layer_name = "gt"
 
     def __init__(

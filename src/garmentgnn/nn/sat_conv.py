@@ -96,7 +96,7 @@ class SATConv(AttentionConv):
           ``return_attention_weights`` (:math:`(|E|, H)`).
     """
 
-    #: the name :func:`~garmentgnn.nn.make_layer` and the configs know it by
+    #: the name :func:`~garmentgnn.nn.make_layer` and the recipes know it by
     layer_name = "sat"
 
     requires_edge_attr = True

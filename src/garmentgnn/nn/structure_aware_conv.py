@@ -93,7 +93,7 @@ class StructureAwareTransformerConv(AttentionConv):
           ``return_edge_attr=True`` also ``edge_attr`` as given.
     """
 
-    #: the name :func:`~garmentgnn.nn.make_layer` and the configs know it by
+    #: the name :func:`~garmentgnn.nn.make_layer` and the recipes know it by
     layer_name = "structure_aware"
 
     def __init__(

@@ -1,6 +1,6 @@
 """Lightning training: the data module, the GarTrans, baseline and learned-simulator
 LightningModules (each a :class:`GarmentModule`), the progressive schedule callback (paper §4.1), a
-wall-clock training budget and the packaged configurations."""
+wall-clock training budget, and the recipes' loader (:func:`load_recipe`)."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
            GarmentDataModule,
@@ -11,6 +11,7 @@ from garmentgnn.training.budget import TimeBudget
 from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
 from garmentgnn.training.simulator import SimulatorModule
+from garmentgnn.training.lightning_cli import Recipe, load_recipe
 
 __all__ = [
            "PHASE_TERMS",
@@ -21,7 +22,9 @@ __all__ = [
            "GarmentModule",
            "GarmentDataModule",
            "ProgressiveSchedule",
+           "Recipe",
            "SimulatorModule",
            "TimeBudget",
+           "load_recipe",
            "loss_inputs",
 ]

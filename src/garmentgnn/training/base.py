@@ -28,7 +28,7 @@ from garmentgnn.losses.gartrans_loss import NonFiniteLossError
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.models.blocks import Configurable
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.configs import import_class
+from garmentgnn.training.recipes import import_class
 from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
                                            stamp_checkpoint, verify_checkpoint)
 
@@ -98,6 +98,12 @@ def destroy_gloo_group_at_exit() -> None:
         atexit.register(_destroy_process_group)
         _exit_hook_registered = True
 
+
+#: the modules' ``compile_search`` default: ``torch.compile`` the nearest-body-face
+#: search of the collision projection and loss while a module trains -- the same result
+#: (docs/model.md: 1.25x a GarTrans step, the largest single saving), a one-off compile
+#: of 10-20 s per process
+COMPILE_SEARCH = True
 
 class GarmentModule(L.LightningModule):
     """Base of the garment methods trained by ``garmentgnn train`` (a batch of chunks

@@ -3,8 +3,8 @@ Lightning ``Trainer``, data module (:class:`GarmentDataModule`: ``batch_size`` c
 step, the epoch order of :class:`EpochShuffleSampler`) and checkpointing as GarTrans; a
 batch's loss is the mean of its chunks' (DA-style predicts a batch in one pass, HOOD- and
 NCS-style, whose models take one garment at a time, chunk by chunk).  A method is a model
-plus its losses plus a configuration (``garmentgnn/configs/baselines/*.yaml``,
-:func:`garmentgnn.training.configs.load_config`):
+plus its losses plus a recipe (``garmentgnn/recipes/baselines/*.yaml``,
+:func:`garmentgnn.training.load_recipe`):
 
 * ``da`` (:class:`~garmentgnn.models.baselines.DAStyle`): supervised, the supervised
   terms of :class:`GarTransLoss` against the simulated garment; predicts each frame
@@ -34,7 +34,7 @@ from torch import Tensor
 from garmentgnn.losses.gartrans_loss import GarTransLoss
 from garmentgnn.models.baselines import CoarseLevel, DAStyle, HOODStyle, NCSStyle
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.base import GarmentModule
+from garmentgnn.training.base import COMPILE_SEARCH, GarmentModule
 from garmentgnn.training.module import chunk_mean_loss, loss_inputs
 
 __all__ = ["BASELINE_METHODS", "BaselineModule"]
@@ -69,7 +69,7 @@ class BaselineModule(GarmentModule):
     """A baseline trained by Lightning: the module is handed its model (Lightning's system
     style), whose class is the method -- :class:`DAStyle` (``da``), :class:`HOODStyle`
     (``hood``) or :class:`NCSStyle` (``ncs``) -- and holds the training settings.  In YAML
-    (``garmentgnn/configs/baselines/*.yaml``): ``model: init_args: model: class_path:
+    (the recipes ``garmentgnn/recipes/baselines/*.yaml``): ``model: init_args: model: class_path:
     garmentgnn.models.baselines.DAStyle``, its sizes linked from the data module.
 
     Args:
@@ -99,6 +99,9 @@ class BaselineModule(GarmentModule):
         warmup: the learning rate grows linearly over the first ``warmup`` optimizer
             steps (HOOD: 100), on top of any schedule.  Gradient clipping (HOOD: 1.0)
             is the Trainer's ``gradient_clip_val``.
+        compile_search: ``torch.compile`` the collision loss's nearest-face search, unless
+            ``loss`` sets its own ``compile_search``
+            (:data:`~garmentgnn.training.base.COMPILE_SEARCH`).
     """
 
     #: the method of each model class
@@ -108,7 +111,8 @@ class BaselineModule(GarmentModule):
                  loss: Optional[Dict[str, Any]] = None, coarse: Optional[Dict[str, Any]] = None,
                  fps: float = 30.0, start_state: str = "lbs",
                  max_start_drift: float = 0.25, rollout: Optional[int] = None,
-                 rollout_ramp: int = 0, rollout_noise: float = 0.0, warmup: int = 0) -> None:
+                 rollout_ramp: int = 0, rollout_noise: float = 0.0, warmup: int = 0,
+                 compile_search: bool = COMPILE_SEARCH) -> None:
         super().__init__()
         if type(model) not in self.METHODS:
             raise TypeError(f"`model`: expected a DAStyle, HOODStyle or NCSStyle, got "
@@ -139,6 +143,7 @@ class BaselineModule(GarmentModule):
         self.save_hyperparameters(ignore=["model"])
         self.hand_model(model)
         lk = dict(loss or {})
+        lk.setdefault("compile_search", bool(compile_search))
         self.loss_fn = GarTransLoss(lk.pop("weights", None), **lk)
         self._coarse: Dict[str, CoarseLevel] = {}  # HOOD's coarse level per sequence
         # start_state "own": sequence id -> frame -> the state of the latest rollout (CPU)

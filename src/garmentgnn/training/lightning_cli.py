@@ -1,19 +1,24 @@
 """``garmentgnn train``: Lightning's own CLI over every trained method -- any
 :class:`~garmentgnn.training.base.GarmentModule` (``subclass_mode_model``: GarTrans and
 its Table 1 variants, :class:`GarTransModule`; the DA-, HOOD- and NCS-style baselines,
-:class:`BaselineModule`) -- and :class:`GarmentDataModule`, configured by the YAML files
-packaged in ``garmentgnn/configs/`` (named without folder or suffix, or given as paths).
-Each config names its module (``model: class_path: ...``, ``init_args: ...``).
+:class:`BaselineModule`; the MGN-style simulator, :class:`SimulatorModule`) -- and
+:class:`GarmentDataModule`, configured by a recipe (:mod:`garmentgnn.training.recipes`:
+a packaged one named without folder or suffix, or a YAML file's path).  Each recipe names
+its module (``model: class_path: ...``, ``init_args: ...``).
 
 The model sizes that depend on the data (number of joints, body vertices, Nyström
-width, the garment's vertex count) are linked from the data module, so a config only
+width, the garment's vertex count) are linked from the data module, so a recipe only
 says *what* to train::
 
     garmentgnn train fit --config gartrans --data.root data/small
-    garmentgnn train fit --config gartrans --config ablations/wo_gating ...
+    garmentgnn train fit --config ablations/wo_gating --data.root data/small
     garmentgnn train fit --config baselines/da --data.root data/small
     garmentgnn train fit --config gartrans --ckpt_path last   # resume
     garmentgnn train test --config baselines/da --ckpt_path X.ckpt
+
+:func:`load_recipe` reads recipes with the same parser from Python and builds their
+module, data module and callbacks; :meth:`Recipe.trainer` is the one ``Trainer`` built
+outside the command.
 
 ``test`` prints the paper's metrics of the checkpoint's method and of "LBS only" on the
 same frames side by side (:func:`metrics_table`); ``predict`` writes the predicted
@@ -24,15 +29,15 @@ Every option of the module, the data module, the trainer and its callbacks is a 
 (``garmentgnn train fit --help``, ``--model.help GarTransModule``); ``--print_config``
 shows the merged configuration.  At the end of ``fit`` the loss terms and validation
 metrics per epoch are drawn into ``<log dir>/training_curves.png``
-(:class:`~garmentgnn.training.plots.TrainingPlots`).  Beside the configured
-``CSVLogger`` every run also logs to TensorBoard (when the ``tensorboard`` package is
-installed): the same values go to ``<log dir>/tensorboard/events.out.tfevents.*``.
+(:class:`~garmentgnn.training.plots.TrainingPlots`).  Beside the CSV logger every run
+also logs to TensorBoard (when the ``tensorboard`` package is installed): the same
+values go to ``<log dir>/tensorboard/events.out.tfevents.*``.
 
 Where it all goes: the loggers' ``save_dir`` is linked to ``--trainer.default_root_dir``
 (a ``save_dir`` of their own is overridden), so ``--trainer.default_root_dir DIR`` puts
 the log folder ``DIR/logs/version_<n>`` -- metrics, checkpoints, TensorBoard events,
 curve plots, ``config.yaml`` -- under DIR; ``--trainer.logger false`` keeps only the
-checkpoints, in ``DIR/checkpoints``.  The packaged configs set ``runs/<name>``.
+checkpoints, in ``DIR/checkpoints``.  The packaged recipes set ``runs/<name>``.
 """
 from __future__ import annotations
 
@@ -52,8 +57,9 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 from garmentgnn.training.base import LBS_PREFIX, GarmentModule
-from garmentgnn.training.configs import (configs_of_model, import_class, named_module,
-                                         resolve_config_args)
+from garmentgnn.training.recipes import available as available_recipes
+from garmentgnn.training.recipes import (import_class, named_module, recipe_path,
+                                         recipes_of_model, resolve_config_args)
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.evaluate import markdown_table
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
@@ -61,7 +67,7 @@ from garmentgnn.training.plots import TrainingPlots
 
 #: TensorBoard's event files go into this sub-folder of the CSV logger's run folder
 TENSORBOARD_SUBDIR = "tensorboard"
-#: the module a config without ``model: class_path`` trains, and the model it is handed
+#: the module a recipe without ``model: class_path`` trains, and the model it is handed
 DEFAULT_MODEL = "garmentgnn.training.GarTransModule"
 DEFAULT_MODEL_MODEL = "garmentgnn.models.GarTrans"
 #: Lightning's special ``--ckpt_path`` values (not files)
@@ -86,6 +92,23 @@ LINKS = {"instantiate": ("num_joints", "num_body_vertices", "num_vertices"),
          "parse": ("nystrom_dim",)}
 #: where they go
 LINK_TARGET = "model.init_args.model.init_args"
+#: the trainer settings of every recipe that does not set its own: one GPU when present,
+#: else the CPU; 30 epochs; the checkpoint of the best validation E_dist and the latest
+#: one with ``last.ckpt`` (Lightning writes ``last.ckpt`` only along with a top-k
+#: checkpoint, so with the monitored one alone it stays at the best epoch); a CSV log
+#: under ``default_root_dir`` (no ``save_dir`` of its own: ``--trainer.default_root_dir
+#: DIR`` moves the log, checkpoints, TensorBoard events and curve plots together)
+TRAINER_DEFAULTS: Dict[str, Any] = {
+    "accelerator": "auto", "devices": 1, "max_epochs": 30, "log_every_n_steps": 10,
+    "callbacks": [
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+         "init_args": {"save_top_k": 1, "monitor": "val/E_dist", "mode": "min",
+                       "filename": "best-{epoch}"}},
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+         "init_args": {"save_top_k": 1, "save_last": True, "filename": "latest-{epoch}"}}],
+    "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger",
+               "init_args": {"name": "logs"}},
+}
 #: every argument linked from the data module
 LINKED = LINKS["instantiate"] + LINKS["parse"]
 
@@ -273,7 +296,7 @@ class GarmentCLI(LightningCLI):
                 or (saved_model and given_model and saved_model.rsplit(".", 1)[-1]
                     != given_model.rsplit(".", 1)[-1]):
             what = saved_model.rsplit(".", 1)[-1] if saved_model else saved_cls
-            fits = configs_of_model(saved_model) if saved_model else []
+            fits = recipes_of_model(saved_model) if saved_model else []
             mine = (given_model or cls_path).rsplit(".", 1)[-1]
             hint = (f"give --config {fits[0]}" if fits else
                     "give the --config of the method it was trained with")
@@ -283,7 +306,8 @@ class GarmentCLI(LightningCLI):
         stored = module_cls.saved_hparams(ckpt, str(ckpt_path)) \
             if issubclass(module_cls, GarmentModule) else raw
         bad = {f"--model.{k}": c for k, c in hparam_conflicts(
-            {k: v for k, v in given.items() if k != "model"}, _defaults(module_cls),
+            {k: v for k, v in given.items()
+             if k != "model" and k not in GarmentModule.RUNTIME_ARGS}, _defaults(module_cls),
             stored).items()}
         given_spec = _plain(given.get("model"))
         if isinstance(spec, dict) and "class_path" in spec:
@@ -319,6 +343,7 @@ class GarmentCLI(LightningCLI):
         nested = {"model": {"class_path": DEFAULT_MODEL_MODEL}} \
             if self.default_model == DEFAULT_MODEL else {}
         parser.set_defaults({"model": {"class_path": self.default_model, "init_args": nested}})
+        parser.set_defaults({f"trainer.{k}": v for k, v in TRAINER_DEFAULTS.items()})
         for name in LINKS["parse"]:
             parser.link_arguments(f"data.{name}", f"{LINK_TARGET}.{name}")
         # every logger writes under the trainer's root folder (the current folder when it
@@ -368,10 +393,104 @@ class GarmentCLI(LightningCLI):
                   f"means:\n{table}")
 
 
+class _RecipeCLI(GarmentCLI):
+    """:class:`GarmentCLI` that parses on construction and builds (seeds, instantiates
+    the module and the data module) only when :meth:`build` is called, and its trainer
+    only when :meth:`Recipe.trainer` is."""
+
+    _building = False
+
+    def _set_seed(self) -> None:
+        if self._building:
+            super()._set_seed()
+
+    def instantiate_classes(self) -> None:
+        if not self._building:
+            return
+        self.config_init = self.parser.instantiate_classes(self.config)
+        self.datamodule = self._get(self.config_init, "data")
+        self.model = self._get(self.config_init, "model")
+        self._add_configure_optimizers_method_to_model(self.subcommand)
+
+    def build(self) -> None:
+        self._building = True
+        self._set_seed()
+        self.instantiate_classes()
+
+
+class Recipe:
+    """What :func:`load_recipe` read and built.
+
+    Attributes:
+        module: the :class:`GarmentModule` (its model handed to it, the data's sizes
+            linked in).
+        datamodule: the :class:`GarmentDataModule`.
+        callbacks: the recipe's trainer callbacks (its checkpoints; the module's own,
+            such as GarTrans's schedule, come from its ``configure_callbacks``).
+        config: the parsed configuration as a plain dict (what ``--print_config``
+            shows), with the values ``set`` changed.
+    """
+
+    def __init__(self, cli: _RecipeCLI) -> None:
+        self._cli = cli
+        self.module: GarmentModule = cli.model
+        self.datamodule: GarmentDataModule = cli.datamodule
+        self.callbacks: List[Any] = list(cli.config_init.trainer.get("callbacks") or [])
+        self.config: Dict[str, Any] = _plain(cli.config)
+
+    def trainer(self, **overrides: Any) -> Trainer:
+        """The recipe's ``Trainer`` (its ``trainer:`` settings over
+        :data:`TRAINER_DEFAULTS`) with ``overrides`` (``Trainer`` arguments; a
+        ``callbacks`` list replaces the recipe's).  Build one per loaded recipe: its
+        callbacks hold the state of one fit."""
+        return self._cli.instantiate_trainer(**overrides)
+
+    def __repr__(self) -> str:
+        return (f"Recipe(module={type(self.module).__name__}, "
+                f"model={type(getattr(self.module, 'model', None)).__name__}, "
+                f"root={self.datamodule.root})")
+
+
+def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
+                set: Optional[Dict[str, Any]] = None) -> Recipe:
+    """Read ``recipes`` (packaged names or YAML paths, later ones over earlier ones, as
+    repeated ``--config``) and ``args`` (``garmentgnn train`` flags, e.g.
+    ``["--data.root", "data/small", "--seed_everything", "1"]``) with the CLI's parser,
+    change the parsed values ``set`` names (dotted keys such as
+    ``"model.init_args.lr"``; a callable value is applied to the recipe's value), seed,
+    and build the module, the data module and the callbacks.  A flag or a value the
+    parser rejects is a ``ValueError`` with its message; sizes linked from the data
+    (``nystrom_dim``) follow ``--data.*`` flags, not ``set``."""
+    if not recipes:
+        raise ValueError("`recipes`: give at least one recipe (e.g. 'gartrans'); "
+                         f"the packaged ones: {', '.join(available_recipes())}")
+    if isinstance(args, str):
+        raise TypeError("`args`: expected a list of flags, got a string; "
+                        "e.g. ['--data.root', 'data/small']")
+    argv: List[str] = []
+    for r in recipes:
+        argv += ["--config", str(recipe_path(r))]
+    argv += [str(a) for a in args]
+    try:
+        cli = _RecipeCLI(GarmentModule, GarmentDataModule, args=argv,
+                         default_model=named_module(argv), run=False,
+                         seed_everything_default=0, save_config_callback=None)
+    except SystemExit as err:  # jsonargparse reports a bad flag by exiting
+        raise ValueError(f"`args`: the recipe {list(map(str, recipes))} with {list(args)} "
+                         f"does not parse (its message above)") from err
+    for key, value in (set or {}).items():
+        if key not in cli.config:
+            raise ValueError(f"`set`: {key!r} is no setting of the recipe; give a dotted "
+                             f"key of its configuration (e.g. 'model.init_args.lr')")
+        cli.config[key] = value(cli.config[key]) if callable(value) else value
+    cli.build()
+    return Recipe(cli)
+
+
 def main(args: Optional[Sequence[str]] = None, run: bool = True,
          prog: Optional[str] = None) -> GarmentCLI:
     """Run the CLI (``args`` default: ``sys.argv[1:]``; ``--config NAME`` may name a
-    packaged configuration, :func:`~garmentgnn.training.configs.resolve_config_args`;
+    packaged recipe, :func:`~garmentgnn.training.recipes.resolve_config_args`;
     ``prog``: the program name its usage lines show); returns the CLI object.  Every
     run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder),
     :class:`PredictionWriter` and a TensorBoard log (:func:`add_tensorboard`)."""

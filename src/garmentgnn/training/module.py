@@ -16,7 +16,7 @@ import torch
 from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs, vertex_loss
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.base import GarmentModule
+from garmentgnn.training.base import COMPILE_SEARCH, GarmentModule
 from garmentgnn.training.schedule import ProgressiveSchedule
 
 
@@ -73,7 +73,7 @@ class GarTransModule(GarmentModule):
     """GarTrans trained by Lightning: the module is handed its model (Lightning's system
     style) and holds the training settings.  ``GarTransModule(GarTrans(**dm.dims))`` is
     the project's form; ``GarTransModule(GarTrans.paper(**dm.dims))`` the paper's.  In
-    YAML (``garmentgnn/configs/gartrans.yaml``) the model is ``model: init_args: model:
+    YAML (``garmentgnn/recipes/gartrans.yaml``) the model is ``model: init_args: model:
     class_path: garmentgnn.models.GarTrans``, its sizes linked from the data module.
 
     A training step takes one chunk or a ``Batch`` of chunks
@@ -82,8 +82,7 @@ class GarTransModule(GarmentModule):
     one chunk is that chunk's step.
 
     Args:
-        model: the :class:`GarTrans` to train (its ``fps`` sets the loss's ``dt``; its
-            ``compile_search`` also compiles the collision loss's face search).
+        model: the :class:`GarTrans` to train (its ``fps`` sets the loss's ``dt``).
         lr: learning rate; ``t_max``: CosineAnnealingLR period in epochs (default: the
             trainer's ``max_epochs``); ``eta_min``; ``optimizer``: ``"adamax"`` (the
             paper), ``"adam"`` or ``"adamw"``.
@@ -94,6 +93,9 @@ class GarTransModule(GarmentModule):
         schedule: the :class:`ProgressiveSchedule` the module trains with
             (:meth:`configure_callbacks`): ``True`` its defaults, a dict of its
             arguments, ``False`` none (phase 1's terms throughout).
+        compile_search: ``torch.compile`` the nearest-face search of the model's
+            collision projection and of the collision loss (sets the model's
+            ``compile_search``; :data:`~garmentgnn.training.base.COMPILE_SEARCH`).
 
     ``GarTransModule(GarTrans(**datamodule.dims))`` is the headline model: the packaged
     ``gartrans`` configuration states nothing these defaults do not.
@@ -104,7 +106,8 @@ class GarTransModule(GarmentModule):
                  loss_weights: Optional[Dict[str, float]] = None,
                  edge_reduction: str = "sum", collision_margin: float = 2e-3,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 schedule: Union[bool, Dict[str, Any]] = True) -> None:
+                 schedule: Union[bool, Dict[str, Any]] = True,
+                 compile_search: bool = COMPILE_SEARCH) -> None:
         super().__init__()
         if not isinstance(model, GarTrans):
             raise TypeError(f"`model`: expected a GarTrans, got {type(model).__name__}; "
@@ -120,11 +123,12 @@ class GarTransModule(GarmentModule):
         if isinstance(schedule, dict):
             ProgressiveSchedule(**schedule)  # its arguments checked now, not at fit
         self.hand_model(model)
+        model.compile_search = bool(compile_search)
         self.loss_fn = GarTransLoss(dict(LOSS_WEIGHTS, **(loss_weights or {})), enabled=enabled,
                                     supervised_scale=supervised_scale,
                                     collision_margin=collision_margin,
                                     edge_reduction=edge_reduction,
-                                    compile_search=model.compile_search)
+                                    compile_search=bool(compile_search))
 
     def configure_callbacks(self) -> List[ProgressiveSchedule]:
         """The module's :class:`ProgressiveSchedule` (its ``schedule`` argument), so the

@@ -53,7 +53,7 @@ def _positive_int(name: str, v: Any, low: int = 1) -> None:
 
 class SimulatorModule(GarmentModule):
     """An :class:`~garmentgnn.models.MGNStyle` trained by MeshGraphNets' recipe (module
-    doc); in YAML (``configs/mgn.yaml``): ``model: init_args: model: class_path:
+    doc); in YAML (``recipes/mgn.yaml``): ``model: init_args: model: class_path:
     garmentgnn.models.MGNStyle``.
 
     Args:
