@@ -11,8 +11,8 @@ from garmentgnn.models import PAPER_FORM, blocks
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (EpochShuffleSampler, GarmentDataModule)
-from garmentgnn.training.configs import instantiate, merge, module_spec
 from garmentgnn.sim.stand_in import skinned_wobble
+from recipe_helpers import module as recipe_module
 
 
 NY = 8
@@ -34,10 +34,12 @@ def root(tmp_path_factory):
     return out
 
 
+DATA = {"chunk": 4, "history": 2, "nystrom_dim": NY, "num_landmarks": 16, "seed": 0,
+        "val_split": None, "train_split": "train"}
+
+
 def data(root, **kw):
-    kw = {"chunk": 4, "history": 2, "nystrom_dim": NY, "num_landmarks": 16, "seed": 0,
-          "val_split": None, "train_split": "train", **kw}
-    return GarmentDataModule(root, **kw)
+    return GarmentDataModule(root, **dict(DATA, **kw))
 
 
 @pytest.fixture(scope="module")
@@ -45,11 +47,8 @@ def chunks(root):
     return SequenceChunks(root, "train", chunk=4, history=2, nystrom_dim=NY, num_landmarks=16)
 
 
-def gartrans(dims, **kw):
-    L.seed_everything(0)
-    spec = merge(module_spec("gartrans"), {"init_args": {"model": {"init_args": dict(
-        compile_search=False, **kw)}}})
-    return instantiate(spec, dims)
+def gartrans(root, **kw):
+    return recipe_module("gartrans", root, DATA, **{f"model.model.{k}": v for k, v in kw.items()})
 
 
 def pick(chunks):
@@ -98,7 +97,7 @@ def test_batch_loss_and_gradients_are_the_mean_of_each_chunk_alone(root, chunks,
     """The oracle: each chunk's loss on its own, averaged; the batch's gradient is the
     mean of the chunks' gradients."""
     kw = {} if form == "project" else dict(PAPER_FORM)
-    module = gartrans(data(root).dims, **kw).eval()  # eval: the normalisers stay fixed
+    module = gartrans(root, **kw).eval()  # eval: the normalisers stay fixed
     module.loss_fn.set_enabled(["vert", "edge", "norm", "collision", "gravity", "stretch",
                                 "shear", "curv"])
     idx = pick(chunks)
@@ -128,9 +127,7 @@ def test_batch_loss_and_gradients_are_the_mean_of_each_chunk_alone(root, chunks,
 def test_da_style_batch_is_each_chunk_alone(root, chunks):
     """DA-style predicts a batch in one pass over the union graph: the same positions as
     each chunk alone, and the mean of their losses."""
-    dims = data(root).dims
-    L.seed_everything(0)
-    module = instantiate(module_spec("baselines/da"), dims).eval()
+    module = recipe_module("baselines/da", root, DATA).eval()
     idx = pick(chunks)
     batch = chunks[idx]
     with torch.no_grad():
@@ -150,13 +147,9 @@ def test_da_style_compiled_training_matches_eager(root, chunks, several):
     """DA-style's ``compile`` (its GAT layers through torch.compile while training) gives
     eager's loss and gradients, on a batch of one chunk (one graph) and of three:
     relative 1e-4 on the loss, 1e-4 of each gradient's largest entry."""
-    dims = data(root).dims
-    L.seed_everything(0)
-    compiled = instantiate(merge(module_spec("baselines/da"), {"init_args": {"model": {
-        "init_args": {"compile": True}}}}), dims)
+    compiled = recipe_module("baselines/da", root, DATA, **{"model.model.compile": True})
     assert compiled.model.compile
-    eager = instantiate(merge(module_spec("baselines/da"), {"init_args": {"model": {
-        "init_args": {"compile": False}}}}), dims)
+    eager = recipe_module("baselines/da", root, DATA, **{"model.model.compile": False})
     eager.load_state_dict(compiled.state_dict())
     idx = pick(chunks) if several else pick(chunks)[:1]
     batch = chunks[idx]
@@ -174,10 +167,9 @@ def test_da_style_compiled_training_matches_eager(root, chunks, several):
 def test_batch_of_one_chunk_trains_as_the_chunk_itself(root, chunks):
     """Same chunk order, one chunk per step: the plain chunk and a ``Batch`` holding it
     give the same loss trajectory (Adamax, 6 steps, training-mode normalisers)."""
-    dims = data(root).dims
     losses = {}
     for mode in ("plain", "batch"):
-        module = gartrans(dims).train()
+        module = gartrans(root).train()
         opt = module.configure_optimizers()["optimizer"]
         out = []
         for step in range(6):
@@ -225,13 +217,8 @@ def test_batch_size_larger_than_the_split_is_refused(root, chunks):
 @pytest.mark.slow
 def test_every_method_fits_batched_through_the_trainer(root):
     """GarTrans and the three baselines take the same batched steps through Lightning."""
-    dm = data(root, batch_size=4)
-    dims = dm.dims
-    modules = [gartrans(dims)]
-    for method in ("da", "hood"):
-        spec = merge(module_spec(f"baselines/{method}"),
-                     {"init_args": {"loss": {"compile_search": False}}})
-        modules.append(instantiate(spec, dims))
+    modules = [gartrans(root)] + [recipe_module(f"baselines/{method}", root, DATA)
+                                  for method in ("da", "hood")]
     for module in modules:
         before = {n: p.detach().clone() for n, p in module.named_parameters()
                   if p.requires_grad}
@@ -253,12 +240,7 @@ def test_bf16_autocast_keeps_positions_and_loss_in_float32(root, chunks, method,
     prediction is float32 and within 1 mm of the float32 run's, the loss within 1e-3 of it
     (bfloat16 positions are ~4 mm off at 1 m: GarTrans's and HOOD-style's steps raised on
     the mixed dtypes, DA-style's loss moved by up to 3x its value)."""
-    dims = data(root).dims
-    if method == "gartrans":
-        module = gartrans(dims).eval()
-    else:
-        L.seed_everything(0)
-        module = instantiate(module_spec(method), dims).eval()
+    module = recipe_module(method, root, DATA).eval()
     idx = pick(chunks)
     batch = chunks[idx] if several else chunks[idx[0]]
 

@@ -283,7 +283,7 @@ def test_report_command_is_the_command_line(line):
     assert build_parser().parse_args(shlex.split(_command(args))[1:]) == args
 
 
-def test_minutes_and_methods_override_the_preset(tmp_path):
+def test_minutes_and_methods_override_the_preset(tmp_path, capsys):
     """``--minutes``/``--methods``: the learned budget and methods replaced, the seed
     plan's fixed methods kept where chosen; refused without learned runs."""
     conv = presets.preset("converge")
@@ -304,8 +304,12 @@ def test_minutes_and_methods_override_the_preset(tmp_path):
     assert cli_main(["bench", "--out", out, "--no-learned", "--minutes", "1"]) == 2
     assert cli_main(["bench", "--out", out, "--no-learned", "--batch-size", "4"]) == 2
     assert cli_main(["bench", "--out", out, "--batch-size", "0"]) == 2
-    with pytest.raises(SystemExit):  # argparse: not a method name
-        cli_main(["bench", "--out", out, "--methods", "no-such-method"])
+    # neither a method nor a recipe: one error line naming both kinds of choice
+    capsys.readouterr()
+    assert cli_main(["bench", "--out", out, "--methods", "no-such-method"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: `methods`: unknown ['no-such-method']") and "recipe" in err
+    assert err.count("\n") == 1
     assert not (tmp_path / "o").exists()
 
 

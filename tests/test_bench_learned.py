@@ -10,7 +10,6 @@ for the resumed one; a copy of the dataset with altered test positions for NCS."
 import dataclasses
 import gc
 import importlib
-import inspect
 import json
 import math
 import multiprocessing
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from garmentgnn.bench import runner, learned, methods, presets, report, scoring, stability, tables
@@ -28,11 +28,11 @@ from garmentgnn.cli import main as cli_main
 from garmentgnn.data import store
 from garmentgnn.models import gartrans
 from garmentgnn.models.baselines import DAStyle
-from garmentgnn.training import (BaselineModule, GarTransModule, GarmentDataModule,
-                                 ProgressiveSchedule)
+from garmentgnn.training import (BaselineModule, GarTransModule)
 from garmentgnn.training.evaluate import evaluate_split
+from garmentgnn.training import load_recipe
 from garmentgnn.training.lightning_cli import main as train_main
-from garmentgnn.training.configs import import_class, instantiate
+from garmentgnn.training.recipes import recipe_path
 from garmentgnn.sim.stand_in import skinned_wobble
 
 from conftest import ZERO_AREA_M2, numbers, skirt_dataset
@@ -108,11 +108,14 @@ def test_every_method_produces_a_finite_record(flow, data):
     by = {r["method"]: r for r in recs}
     for name in methods.GARTRANS:
         assert by[name]["phase"] == 1  # 1 epoch: the window (1) never elapses
-        # the variant's module, handed the bench's schedule (recorded beside it)
-        assert by[name]["config"]["model"] == methods.with_schedule(
-            methods.variant_settings(name)[0], by[name]["config"]["schedule"])
+        # the variant's recipe, its schedule's windows the bench's (recorded)
+        config = by[name]["config"]
+        assert config["recipe"] == methods.GARTRANS[name]
+        sched = config["model"]["init_args"]["schedule"]
+        assert sched["window"] == sched["window2"] == p.learned.window
         assert (out / "models" / f"{tables.slug(name)}--s0" / "last.ckpt").exists()
-    assert by["GarTrans w/o unsupervised loss"]["config"]["schedule"]["max_phase"] == 1
+    unsup = by["GarTrans w/o unsupervised loss"]["config"]["model"]["init_args"]["schedule"]
+    assert unsup["max_phase"] == 1
     assert by[methods.NCS]["models"] == 1  # one per test garment
     for m in (methods.DA, methods.HOOD, methods.NCS):  # the report animation's panels
         P = np.load(out / "media" / "predictions" / f"{tables.slug(m)}.npy")
@@ -318,38 +321,38 @@ def test_default_dataset_is_generated_under_out(tmp_path, monkeypatch):
     assert rec["case"].startswith("tiny-") and rec["test_frames"] == 32
 
 
-@pytest.mark.parametrize("name", list(methods.GARTRANS))
+@pytest.mark.parametrize("name", [m for m in methods.RECIPES if m != methods.NCS])
 def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
-    """The bench's settings of each GarTrans variant are the ones LightningCLI builds from
-    the same packaged files (``garmentgnn train --config gartrans --config ablations/X``):
-    jsonargparse's own merge is the oracle for :func:`methods.variant_settings`."""
-    v = methods.GARTRANS[name]
-    args = ["--config", "gartrans"] + (["--config", f"ablations/{v.config}"] if v.config else [])
-    cli = train_main(args + ["--data.root", str(data), "--trainer.logger", "false",
-                             "--trainer.default_root_dir", str(tmp_path)], run=False)
-    spec, sched = methods.variant_settings(name)
-    hp = dict(cli.model.hparams)
-    assert hp["_class_path"] == spec["class_path"]
-    given = spec["init_args"]
-    assert {k: hp[k] for k in given if k != "model"} == \
-        {k: v for k, v in given.items() if k != "model"}
-    model = hp["model"]["init_args"]  # the model: the configured settings, as built
-    assert {k: model[k] for k in given["model"]["init_args"]} == given["model"]["init_args"]
-    built = instantiate(spec, cli.datamodule.dims)
-    assert built.model.init_args == cli.model.model.init_args
-    (cb,) = cli.model.configure_callbacks()  # the module's own schedule
-    assert vars(cb) == vars(ProgressiveSchedule(**sched, window=cb.window, window2=cb.window2))
-    assert methods.DATA == {k: x for k, x in dict(cli.config["data"]).items()
-                            if k in methods.DATA}
+    """The module, data module and schedule the bench loads for each method are the ones
+    ``garmentgnn train --config <its recipe>`` builds, the bench's settings (no
+    validation split, its seed) given to both; the oracle is the command's own parser."""
+    runner = learned.LearnedRunner(learned.prepare_dataset(data), methods.LearnedBudget(),
+                                   tmp_path, (1,), 0, 1)
+    # MGN-style's windows of 5 frames do not fit the 4-frame sequences (the bench fits them)
+    extra = ["--data.chunk", "3", "--data.batch_size", "1"] if name == methods.MGN else []
+    recipe, config = runner.load(name, 3, extra)
+    cli = train_main(["--config", methods.RECIPES[name], *extra, "--data.root", str(data),
+                      "--data.val_split", "null", "--data.seed", "3", "--data.num_workers",
+                      "0", "--seed_everything", "3", "--trainer.logger", "false",
+                      "--trainer.default_root_dir", str(tmp_path)], run=False)
+    assert config["recipe"] == methods.RECIPES[name]
+    assert dict(recipe.module.hparams) == dict(cli.model.hparams)
+    assert recipe.module.model.init_args == cli.model.model.init_args
+    assert dict(recipe.datamodule.hparams) == dict(cli.datamodule.hparams)
+    torch.testing.assert_close(dict(recipe.module.state_dict()),  # seeded alike
+                               dict(cli.model.state_dict()))
+    schedules = [[vars(cb) for cb in m.configure_callbacks()] for m in (recipe.module, cli.model)]
+    assert schedules[0] == schedules[1]
 
 
-def test_baseline_configs_build_their_modules(data):
-    dm = GarmentDataModule(data, val_split=None, **methods.DATA)
-    for name, spec in methods.BASELINES.items():
-        module = instantiate(spec, dict(dm.dims, num_vertices=5))
-        cfg = spec["init_args"]
+def test_baseline_recipes_build_their_modules(data):
+    for name, recipe in methods.BASELINES.items():
+        args = ["--data.root", str(data)] + (
+            ["--data.train_split", "test"] if name == methods.NCS else [])  # one garment
+        module = load_recipe(recipe, args=args).module
+        cfg = yaml.safe_load(recipe_path(recipe).read_text())["model"]["init_args"]
         assert isinstance(module, BaselineModule) and module.hparams.lr == cfg["lr"]
-        assert module.method == methods.BASELINE_CONFIGS[name].split("/")[1]
+        assert module.method == recipe.split("/")[1]
         assert set(module.loss_fn.enabled) == set(cfg["loss"]["enabled"])
 
 
@@ -397,13 +400,10 @@ def test_batched_runs_take_fewer_steps_at_the_scaled_learning_rate(data, tmp_pat
             steps[r["method"], b] = r["steps"]
             run = json.loads((out / "models" / f"{tables.slug(r['method'])}--s0"
                               / "run.json").read_text())
-            # batch 1 stays out of the configuration: earlier folders resume as they were
-            assert run["config"].get("batch_size", 1) == b and run["config"]["lr_factor"] == 2.0
+            assert run["config"]["data"]["batch_size"] == b and run["config"]["lr_factor"] == 2.0
             ckpt = torch.load(r["checkpoint"], map_location="cpu", weights_only=False)
-            spec = (methods.variant_settings(full)[0] if r["method"] == full
-                    else methods.BASELINES[methods.DA])
-            lr = spec["init_args"].get("lr", inspect.signature(  # the recipe's, or the default
-                import_class(spec["class_path"]).__init__).parameters["lr"].default)
+            recipe = load_recipe(methods.RECIPES[r["method"]], args=["--data.root", str(data)])
+            lr = recipe.module.hparams.lr  # the recipe's (or its module's default)
             assert ckpt["hyper_parameters"]["lr"] == pytest.approx(2 * lr)
     assert steps == {(full, 1): 4, (methods.DA, 1): 4, (full, 2): 2, (methods.DA, 2): 2}
 
@@ -414,8 +414,10 @@ def test_epoch_chunks_count_chunks_and_curves_read_a_subset(data, tmp_path):
     info = learned.prepare_dataset(data)
     r = learned.LearnedRunner(info, methods.LearnedBudget(epoch_chunks=5, batch_size=2),
                               tmp_path, (1,), 0, 1)
-    assert r._epoch_batches(r._datamodule(0)) == 3
-    assert r._epoch_batches(r._datamodule(0, "test")) == 5  # NCS-style: one chunk a step
+    full = r.load(methods.FULL, 0, ["--data.batch_size", "2"])[0]
+    ncs = r.load(methods.NCS, 0, set={"data.train_split": "test"})[0]
+    assert r._epoch_batches(full.datamodule) == 3
+    assert r._epoch_batches(ncs.datamodule) == 5  # NCS-style: one chunk a step
     whole = r._whole("train", None)
     one = r._whole("train", 1)
     assert len(whole) == 2 and [it.seq_id for it in one] == \

@@ -48,9 +48,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="every learned method's learning rate multiplied by F (e.g. the square "
                         "root of --batch-size; use a new --out; default: the preset's)")
     b.add_argument("--methods", nargs="+", default=None, metavar="NAME", action=Accumulate,
-                   choices=METHOD_NAMES,
-                   help="run only these learned methods (quote names with spaces; "
-                        f"choose from {', '.join(METHOD_NAMES)}; default: the preset's)")
+                   help="run only these learned methods (quote names with spaces): "
+                        f"{', '.join(METHOD_NAMES)}, or any recipe, packaged (e.g. "
+                        "ablations/paper) or a YAML file (a new layer's ablation); "
+                        "default: the preset's")
     b.add_argument("--shard", default=None, metavar="I/N",
                    help="run only part I (0-based) of N interleaved parts of the tasks, with "
                         "the preset's threads divided by N: start N processes with the same "

@@ -10,9 +10,10 @@ One bench run (:func:`garmentgnn.bench.runner.run`) with a preset that has a
 2. trains each method of the budget for each training seed for the budget's epochs or
    wall-clock minutes (:class:`TimeBudget`): :class:`GarTransModule` (GarTrans, Table 1
    variants), :class:`BaselineModule` (DA-, HOOD-, NCS-style) or :class:`SimulatorModule`
-   (MGN-style) with the packaged YAML
-   settings (:mod:`~garmentgnn.bench.methods`), on a :class:`GarmentDataModule`, by one
-   Lightning ``Trainer`` set-up (:meth:`LearnedRunner.fit`) that resumes from
+   (MGN-style), each built from its recipe by :func:`~garmentgnn.training.load_recipe`
+   (:mod:`~garmentgnn.bench.methods`; any recipe is a method too), on its
+   :class:`GarmentDataModule`, by one Lightning ``Trainer`` set-up (the recipe's trainer
+   with the bench's limits, :meth:`LearnedRunner.fit`) that resumes from
    ``OUT/models/<method>--s<seed>/``; NCS-style trains one model per (garment, body) of
    the scored test sequences on their poses (never their simulated positions);
 3. scores it on the ``test`` split (all of it, or the budget's stratified subset:
@@ -41,9 +42,8 @@ from garmentgnn.bench import stability as stab
 from garmentgnn.bench import scoring
 from garmentgnn.bench.curves import LearningCurve, TrainClock, quiet_lightning
 from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
-from garmentgnn.bench.methods import (BASELINE_CONFIGS, BASELINES, DATA, FULL, GARTRANS,
-                                        HOOD, LONG, METHOD_NAMES, MGN, MGN_DATA, MGN_MODULE,
-                                        NCS, LearnedBudget, variant_settings, with_schedule)
+from garmentgnn.bench.methods import (DATA, LONG, LearnedBudget, is_method, kind,
+                                        recipe_of)
 from garmentgnn.bench.model_inputs import (BenchChunks, Predictor, baseline_batches,
                                              lbs_predictor)
 from garmentgnn.bench.page import MEDIA
@@ -54,9 +54,8 @@ from garmentgnn.data import SequenceChunks, store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.geometry import push_outside
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training import (BaselineModule, GarmentDataModule, ProgressiveSchedule,
-                                 TimeBudget)
-from garmentgnn.training.configs import instantiate
+from garmentgnn.training import ProgressiveSchedule, Recipe, TimeBudget, load_recipe
+from garmentgnn.training.recipes import model_of
 
 KIND = "learned"
 #: the record kind of :meth:`LearnedRunner.stability_record`
@@ -71,7 +70,6 @@ STABILITY_CHUNK = 50
 SIMULATOR_SKIPS: Tuple[str, ...] = ("long_1000",)
 
 
-# --------------------------------------------------------------------------- helpers
 # --------------------------------------------------------------------------- runner
 class LearnedRunner:
     """Trains and scores the learned methods on one dataset (see the module doc).
@@ -139,9 +137,8 @@ class LearnedRunner:
     def record(self, method: str, seed: int) -> Dict[str, Any]:
         """Train (or resume) ``method`` with ``seed``, evaluate and time it; exceptions
         (e.g. :class:`NonFiniteLossError`) give a failed record with their message."""
-        if method not in METHOD_NAMES + (LONG,):
-            raise ValueError(f"`method`: unknown {method!r}; choose from "
-                             f"{METHOD_NAMES + (LONG,)}")
+        if method != LONG and not is_method(method):
+            recipe_of(method)  # the ValueError naming the choices
         rec: Dict[str, Any] = {"kind": KIND, "method": method, "case": self.data.case,
                                "seed": seed, "dataset": self.data.to_json()}
         t0 = time.perf_counter()
@@ -151,7 +148,7 @@ class LearnedRunner:
             rec.update(self.evaluate(pred))
             if self.budget.equal_steps is not None and pred.module is not None:
                 rec["equal_steps"] = self.at_snapshot(pred)
-            if method in BASELINES and seed == 0:
+            if kind(method) in ("baseline", "ncs") and seed == 0:
                 self.save_prediction(method, pred)
             rec["timing"] = self.timing(pred)
             rec.update(status="ok", message="ok")
@@ -178,17 +175,10 @@ class LearnedRunner:
         key = (method, seed)
         if key not in self._trained:
             self._trained.clear()
-            L.seed_everything(seed, workers=True, verbose=False)
-            if method in GARTRANS or method == LONG:
-                self._trained[key] = self._gartrans(method, seed)
-            elif method == NCS:
-                self._trained[key] = self._ncs(seed)
-            elif method in BASELINES:
-                self._trained[key] = self._baseline(method, seed)
-            elif method == MGN:
-                self._trained[key] = self._mgn(seed)
-            else:
-                self._trained[key] = lbs_predictor()
+            how = "gartrans" if method == LONG else kind(method)
+            train = {"gartrans": self._gartrans, "ncs": self._ncs, "baseline": self._baseline,
+                     "simulator": self._mgn}.get(how)
+            self._trained[key] = lbs_predictor() if train is None else train(method, seed)
         return self._trained[key]
 
     def stability_record(self, method: str, seed: int, case: str) -> Dict[str, Any]:
@@ -199,9 +189,9 @@ class LearnedRunner:
         case as the data module would present it (:class:`BenchChunks`); no learned
         method takes the material as input, so ``stiff_x1000`` changes only how its
         output is scored."""
-        if method not in METHOD_NAMES + (SIMULATOR,):
-            raise ValueError(f"`method`: unknown {method!r}; choose from "
-                             f"{METHOD_NAMES + (SIMULATOR,)}")
+        if method != SIMULATOR and not is_method(method):
+            raise ValueError(f"`method`: unknown {method!r}; give a method, a recipe or "
+                             f"{SIMULATOR!r}")
         base = self.test.records[0]
         item = {k: v for k, v in base.items() if k in ("garment", "body", "motion", "material",
                                                         "settings")}
@@ -210,7 +200,7 @@ class LearnedRunner:
         else:
             def predict(seq) -> Tensor:
                 pred, _ = self.trained(method, seed)
-                ds = BenchChunks(seq, chunk=None if method in (HOOD, MGN) else STABILITY_CHUNK,
+                ds = BenchChunks(seq, chunk=None if autoregressive(method) else STABILITY_CHUNK,
                                  history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
                                  num_landmarks=DATA["num_landmarks"])
                 with torch.no_grad():
@@ -292,17 +282,44 @@ class LearnedRunner:
             store.atomic_write_json(path, desc)
         return folder
 
-    def fit(self, module: L.LightningModule, dm: GarmentDataModule, folder: Path, epochs: int,
+    def load(self, method: str, seed: int, args: Sequence[str] = (),
+             set: Optional[Dict[str, Any]] = None) -> Tuple[Recipe, Dict[str, Any]]:
+        """``method``'s recipe (:func:`~garmentgnn.bench.methods.recipe_of`) built on
+        this dataset by
+        :func:`~garmentgnn.training.load_recipe`, seeded with ``seed``: no validation
+        split (the curves score their own sequences), the budget's ``lr_factor`` on its
+        learning rate, ``args`` and ``set`` on top.  Returns it and the description of
+        the run that its ``run.json`` records (:meth:`_folder`): the recipe, its parsed
+        module and data settings, the budget's limits."""
+        recipe = recipe_of(method)
+        lr = self.budget.lr_factor
+        r = load_recipe(recipe, args=["--data.root", str(self.data.root), "--data.val_split",
+                                      "null", "--data.seed", str(seed), "--data.num_workers",
+                                      "0", "--seed_everything", str(seed), *args],
+                        set=dict({"model.init_args.lr": lambda v: v * lr} if lr != 1 else {},
+                                 **(set or {})))
+        data = {k: v for k, v in r.config["data"].items()
+                if k not in ("root", "num_workers", "cache_size", "predict_split")}
+        minutes = self.budget.long_minutes if method == LONG else self.budget.minutes
+        b = self.budget
+        config = {"recipe": recipe, "model": r.config["model"], "data": data,
+                  "epochs": b.epochs, "minutes": minutes, "epoch_chunks": b.epoch_chunks,
+                  **({"lr_factor": b.lr_factor} if b.lr_factor != 1 else {})}
+        return r, json.loads(json.dumps(config, default=str))
+
+    def fit(self, recipe: Recipe, folder: Path, epochs: int,
             callbacks: Sequence[L.Callback] = (), minutes: Optional[float] = None,
             predict: Optional[Callable[[L.LightningModule, GarmentInputs], Tensor]] = None
             ) -> Dict[str, Any]:
-        """Fit ``module`` on ``dm`` for ``epochs`` (at most, with a ``minutes`` budget:
-        :class:`TimeBudget`) with one Lightning ``Trainer`` set-up (every method, on the
+        """Fit ``recipe``'s module on its data module for ``epochs`` (at most, with a
+        ``minutes`` budget: :class:`TimeBudget`) with one Lightning ``Trainer`` set-up
+        (the recipe's trainer with the bench's limits, callbacks and checkpoint, on the
         accelerator Lightning picks), resuming from ``folder/last.ckpt``; with
         ``predict(module, item)`` and the budget's ``curve_every``, its learning curve
         (:class:`LearningCurve`) and ``equal_steps`` snapshot (``folder/equal_steps.pt``).
         Returns the epochs and steps done, the training wall time (validation excluded),
-        the epoch it resumed from, the device and the curve; ``module`` ends on the CPU."""
+        the epoch it resumed from, the device and the curve; the module ends on the CPU."""
+        module, dm = recipe.module, recipe.datamodule
         clock = TrainClock()
         budget = [TimeBudget(60.0 * minutes)] if minutes is not None else []
         curve = None
@@ -324,13 +341,13 @@ class LearnedRunner:
             except Exception:
                 last.replace(folder / "last.ckpt.unreadable")
         with quiet_lightning():
-            trainer = L.Trainer(max_epochs=epochs, accelerator="auto", devices=1, logger=False,
-                                enable_checkpointing=True, enable_progress_bar=False,
-                                enable_model_summary=False,
-                                callbacks=[*callbacks, *budget, *([curve] if curve else []),
-                                           clock, ckpt], limit_val_batches=0,
-                                limit_train_batches=self._epoch_batches(dm),
-                                num_sanity_val_steps=0, default_root_dir=folder)
+            trainer = recipe.trainer(
+                max_epochs=epochs, max_steps=-1, accelerator="auto", devices=1, logger=False,
+                enable_checkpointing=True, enable_progress_bar=False,
+                enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
+                val_check_interval=1.0, check_val_every_n_epoch=1,
+                callbacks=[*callbacks, *budget, *([curve] if curve else []), clock, ckpt],
+                limit_train_batches=self._epoch_batches(dm), default_root_dir=folder)
             trainer.fit(module, dm, ckpt_path=str(last) if last.exists() else None)
         device = str(trainer.strategy.root_device)
         module.cpu().eval()
@@ -349,46 +366,27 @@ class LearnedRunner:
                         train_seconds=clock.seconds - curve.eval_seconds)
         return info
 
-    def _datamodule(self, seed: int, split: str = "train",
-                    ids: Optional[Sequence[str]] = None) -> GarmentDataModule:
-        return GarmentDataModule(self.data.root, val_split=None, seed=seed, train_split=split,
-                                 train_ids=ids, cache_size=64, **DATA,
-                                 batch_size=self.budget.batch_size if split == "train" else 1)
-
-    def _epoch_batches(self, dm: GarmentDataModule) -> Optional[int]:
+    def _epoch_batches(self, dm) -> Optional[int]:
         """Lightning's ``limit_train_batches``: the budget's ``epoch_chunks`` in ``dm``'s
         batches."""
         n = self.budget.epoch_chunks
         return None if n is None else -(-n // dm.hparams.batch_size)
 
-    def _module(self, spec: Dict[str, Any], dims: Dict[str, Any]) -> L.LightningModule:
-        """The module of ``spec`` with the budget's ``lr_factor`` applied."""
-        module = instantiate(spec, dims)
-        module.hparams.lr = module.hparams.lr * self.budget.lr_factor
-        return module
-
     # -- GarTrans ---------------------------------------------------------------------
-    def _limits(self, minutes: Optional[float]) -> Dict[str, Any]:
-        """The training limits of a run, recorded in its ``run.json``."""
-        b = self.budget
-        return {"epochs": b.epochs, "minutes": minutes, "epoch_chunks": b.epoch_chunks,
-                **({"batch_size": b.batch_size} if b.batch_size != 1 else {}),
-                **({"lr_factor": b.lr_factor} if b.lr_factor != 1 else {})}
-
     def _gartrans(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        long = method == LONG
-        variant = FULL if long else method
-        hp, sched_kw = variant_settings(variant)
-        sched_kw = dict(sched_kw, window=self.budget.window, window2=self.budget.window)
-        hp = with_schedule(hp, sched_kw)
-        minutes = self.budget.long_minutes if long else self.budget.minutes
-        v = GARTRANS[variant]
-        config = {"model": hp, "schedule": sched_kw, "data": DATA, **self._limits(minutes),
-                  "config": f"ablations/{v.config}" if v.config else "gartrans"}
+        """A GarTrans recipe, on the budget's batches, with its schedule's windows set
+        to the budget's."""
+        w = self.budget.window
+
+        def windows(schedule: Any) -> Dict[str, Any]:
+            return dict(schedule if isinstance(schedule, dict) else {}, window=w, window2=w)
+
+        recipe, config = self.load(method, seed, ["--data.batch_size",
+                                                  str(self.budget.batch_size)],
+                                   {"model.init_args.schedule": windows})
         folder = self._folder(method, seed, config)
-        dm = self._datamodule(seed)
-        module = self._module(hp, dm.dims)
-        info = self.fit(module, dm, folder, self.budget.epochs, (), minutes,
+        module = recipe.module
+        info = self.fit(recipe, folder, self.budget.epochs, (), config["minutes"],
                         predict=lambda m, item: m(item)["final"])
         sched = ProgressiveSchedule.of(module.trainer)
 
@@ -406,44 +404,43 @@ class LearnedRunner:
                           module, folder / "equal_steps.pt"), info
 
     # -- baselines --------------------------------------------------------------------
-    def _baseline_module(self, method: str, dm: GarmentDataModule,
-                         num_vertices: Optional[int] = None) -> BaselineModule:
-        return self._module(BASELINES[method], dict(dm.dims, num_vertices=num_vertices))
-
     def _baseline(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        config = {"module": BASELINES[method], **self._limits(self.budget.minutes),
-                  "config": BASELINE_CONFIGS[method]}
+        recipe, config = self.load(method, seed, ["--data.batch_size",
+                                                  str(self.budget.batch_size)])
         folder = self._folder(method, seed, config)
-        dm = self._datamodule(seed)
-        module = self._baseline_module(method, dm)
-        info = self.fit(module, dm, folder, self.budget.epochs, minutes=self.budget.minutes,
+        module = recipe.module
+        info = self.fit(recipe, folder, self.budget.epochs, minutes=self.budget.minutes,
                         predict=lambda m, item: m(item))
         note = ("one autoregressive step of `batch` independent sequences per call"
-                if method == HOOD else "one call predicting `batch` frames")
+                if autoregressive(method) else "one call predicting `batch` frames")
         return Predictor(lambda ds, i, item: module(item), baseline_batches(module), note,
                           module, folder / "equal_steps.pt"), dict(info, config=config)
 
     # -- the MGN-style learned simulator ---------------------------------------------------
-    def _mgn(self, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        """Trained on windows of frames (``configs/mgn.yaml``'s; on shorter training
-        sequences the longest pushforward they hold, recorded in the config); predicts by a
-        rollout from the LBS garment of the first two frames (never the ground truth)."""
-        module = self._module(MGN_MODULE, {})
+    def _mgn(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
+        """Trained on its recipe's windows of frames (on shorter training sequences the
+        longest pushforward they hold: the rollout and window in the recorded config);
+        predicts by a rollout from the LBS garment of the first two frames (never the
+        ground truth)."""
         shortest = min(int(r["num_frames"]) for r in store.read_manifest(self.data.root)[
             "items"] if r["split"] == "train" and r["status"] == "ok")
-        rollout = max(1, min(module.hparams.rollout, shortest - 2))
-        module.hparams.rollout = rollout
-        data = dict(MGN_DATA, chunk=2 + rollout)
-        config = {"module": MGN_MODULE, **self._limits(self.budget.minutes), "config": "mgn",
-                  "data": data, **({"rollout": rollout} if data != MGN_DATA else {})}
-        folder = self._folder(MGN, seed, config)
-        dm = GarmentDataModule(self.data.root, val_split=None, seed=seed, **data,
-                               batch_size=self.budget.batch_size)
+        fitted: Dict[str, int] = {}
+
+        def rollout_fits(n: int) -> int:  # a window of 2 + rollout frames must fit
+            fitted["rollout"] = max(1, min(n, shortest - 2))
+            return fitted["rollout"]
+
+        recipe, config = self.load(method, seed, ["--data.batch_size",
+                                                  str(self.budget.batch_size)],
+                                   {"model.init_args.rollout": rollout_fits,
+                                    "data.chunk": lambda c: min(c, 2 + fitted["rollout"])})
+        folder = self._folder(method, seed, config)
+        module = recipe.module
 
         def rollout(m: L.LightningModule, item: GarmentInputs) -> Tensor:
             return m.rollout(item, start="lbs")
 
-        info = self.fit(module, dm, folder, self.budget.epochs, minutes=self.budget.minutes,
+        info = self.fit(recipe, folder, self.budget.epochs, minutes=self.budget.minutes,
                         predict=rollout)
 
         def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
@@ -455,25 +452,23 @@ class LearnedRunner:
                           "one autoregressive step of `batch` independent garments per call",
                           module, folder / "equal_steps.pt"), dict(info, config=config)
 
-    def _ncs(self, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
+    def _ncs(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
+        """One model per (garment, body) of the scored test sequences, trained on their
+        poses (never their simulated positions), the budget shared evenly."""
         groups: Dict[Tuple[str, str], List[str]] = {}  # (garment, body) -> sequence ids
         for r in self.test.records:
             groups.setdefault((garment_key(r["garment"]), body_key(r["body"])), []).append(r["id"])
-        # the budget is NCS-style's in all: shared evenly by its per-garment models
         each = None if self.budget.minutes is None else self.budget.minutes / len(groups)
-        config = {"module": BASELINES[NCS], **self._limits(self.budget.minutes),
-                  "epochs": self.budget.ncs_epochs, "config": "baselines/ncs",
-                  "data": "the poses of the garment's own test sequences (no positions)"}
-        folder = self._folder(NCS, seed, config)
-        modules: Dict[Tuple[str, str], BaselineModule] = {}
+        folder, config = None, {}
+        modules: Dict[Tuple[str, str], L.LightningModule] = {}
         total: Dict[str, Any] = {"epochs": 0, "train_seconds": 0.0, "resumed_from_epoch": 0}
         for g, (key, ids) in enumerate(sorted(groups.items())):
-            dm = self._datamodule(seed * 1000 + g, "test", ids)
-            dm.setup()
-            V = dm.train_set.static(0).num_vertices
-            torch.manual_seed(seed * 1000 + g)
-            module = self._baseline_module(NCS, dm, V)
-            info = self.fit(module, dm, folder / f"garment{g}", self.budget.ncs_epochs,
+            recipe, config = self.load(method, seed * 1000 + g,
+                                       set={"data.train_split": "test", "data.train_ids": ids})
+            config = dict(config, epochs=self.budget.ncs_epochs, data="the poses of the "
+                          "garment's own test sequences (no positions)")
+            folder = folder or self._folder(method, seed, config)
+            info = self.fit(recipe, folder / f"garment{g}", self.budget.ncs_epochs,
                             minutes=each)
             total["epochs"], total["device"] = info["epochs"], info["device"]
             total["train_seconds"] += info["train_seconds"]
@@ -482,9 +477,9 @@ class LearnedRunner:
                     total[k] = total.get(k, 0) + info[k]
             total["resumed_from_epoch"] = max(total["resumed_from_epoch"],
                                               info["resumed_from_epoch"])
-            modules[key] = module
+            modules[key] = recipe.module
 
-        def module_of(ds: SequenceChunks, i: int) -> BaselineModule:
+        def module_of(ds: SequenceChunks, i: int) -> L.LightningModule:
             r = ds.records[ds.index[i][0]]
             return modules[(garment_key(r["garment"]), body_key(r["body"]))]
 
@@ -494,6 +489,15 @@ class LearnedRunner:
         return Predictor(lambda ds, i, item: module_of(ds, i)(item), make_batch,
                           "one call predicting `batch` frames (the first test garment's "
                           "model)"), dict(total, config=config, models=len(groups))
+
+
+def autoregressive(method: str) -> bool:
+    """Whether ``method`` predicts a sequence by rolling out one frame a step (a learned
+    simulator, or a HOOD-style model) rather than frame-parallel."""
+    if kind(method) in ("lbs", "gartrans"):
+        return False
+    return kind(method) == "simulator" or \
+        str(model_of(recipe_of(method))["model"]).endswith("HOODStyle")
 
 
 __all__ = ["KIND", "SIMULATOR", "STABILITY_KIND", "DatasetInfo", "LearnedRunner",

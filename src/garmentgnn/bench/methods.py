@@ -1,103 +1,104 @@
-"""The learned methods of ``garmentgnn bench`` and their settings, read from the packaged
-YAML configurations (:mod:`garmentgnn.training.configs`) that ``garmentgnn train`` uses:
-nothing here restates a hyper-parameter.
+"""The learned methods of ``garmentgnn bench``: each is a recipe
+(:mod:`garmentgnn.training.recipes`), the file ``garmentgnn train`` trains, read by the
+same loader (:func:`~garmentgnn.training.load_recipe`); nothing here restates a
+hyper-parameter.
 
-* GarTrans and the Table 1 variants (:data:`GARTRANS`): ``configs/gartrans.yaml`` and
-  one ``configs/ablations/<name>.yaml`` each (its ``model:`` overrides and, where it
-  lists callbacks, its :class:`ProgressiveSchedule` arguments);
-* the DA-, HOOD- and NCS-style baselines (:data:`BASELINES`):
-  ``configs/baselines/<name>.yaml``, trained by
-  :class:`~garmentgnn.training.BaselineModule`;
-* the MGN-style learned simulator (:data:`MGN`): ``configs/mgn.yaml``, trained by
-  :class:`~garmentgnn.training.SimulatorModule` on that file's data settings (windows of
-  frames, :data:`MGN_DATA`);
+* the packaged methods, by their table names: GarTrans and the Table 1 variants
+  (:data:`GARTRANS`), the DA-, HOOD- and NCS-style baselines (:data:`BASELINES`) and the
+  MGN-style learned simulator (:data:`MGN`), each its packaged recipe (:data:`RECIPES`);
+* any other recipe, named by its packaged name or its file's path (a new layer's
+  ablation, say): it trains the way its module does (:func:`kind`);
 * ``LBS only``: the rest garment skinned with the stored skinning weights, no learning.
 """
 from __future__ import annotations
 
 import inspect
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 from garmentgnn.bench import stability as stab
-from garmentgnn.training.configs import load_config, module_spec
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.training.datamodule import GarmentDataModule
-from garmentgnn.training.schedule import ProgressiveSchedule
+from garmentgnn.training.recipes import model_of, recipe_path
 
-__all__ = ["BASELINES", "BASELINE_CONFIGS", "DATA", "GARTRANS", "GARTRANS_MODULE", "LBS",
-           "LONG", "METHOD_NAMES", "MGN", "MGN_DATA", "MGN_MODULE", "NCS", "HOOD", "DA",
-           "SEED_FREE", "LearnedBudget", "Variant", "seed_plan", "variant_settings"]
+__all__ = ["BASELINES", "DATA", "GARTRANS", "KINDS", "LBS", "LONG", "METHOD_NAMES", "MGN",
+           "NCS", "HOOD", "DA", "RECIPES", "SEED_FREE", "LearnedBudget", "is_method", "kind",
+           "recipe_of", "seed_plan"]
 
-_BASE = load_config("gartrans")
-#: ``configs/gartrans.yaml``'s module (its ``model:`` entry: ``class_path`` and
-#: ``init_args``, the GarTrans it trains nested in them)
-GARTRANS_MODULE: Dict[str, Any] = module_spec("gartrans")
-#: the data settings GarTrans trains on: the data module's (its defaults, under
-#: ``configs/gartrans.yaml``'s ``data:`` section) chunk length, history and Nyström sizes
-DATA: Dict[str, Any] = {k: v for k, v in dict(
-    {k: p.default for k, p in inspect.signature(GarmentDataModule.__init__).parameters.items()},
-    **_BASE["data"]).items() if k in ("chunk", "history", "nystrom_dim", "num_landmarks")}
-#: the schedule arguments that the bench budget sets (the module's belong to its epochs)
-_WINDOWS = ("window", "window2")
-_SCHEDULE_DEFAULTS = {k: p.default for k, p in
-                      inspect.signature(ProgressiveSchedule.__init__).parameters.items()
-                      if k != "self"}
+#: the data settings the frame-parallel methods train and every method is scored on:
+#: the data module's defaults (its chunk length; the pose history and Nyström sizes of
+#: :mod:`garmentgnn.models.inputs`), which the packaged recipes keep
+DATA: Dict[str, int] = {
+    "chunk": inspect.signature(GarmentDataModule.__init__).parameters["chunk"].default,
+    "history": HISTORY, "nystrom_dim": NYSTROM_DIM, "num_landmarks": NUM_LANDMARKS}
 
-
-@dataclass(frozen=True)
-class Variant:
-    """A GarTrans row: ``config`` names the ``configs/ablations/<config>.yaml`` it is
-    (``None``: ``configs/gartrans.yaml`` itself)."""
-
-    config: Optional[str]
-
-
-GARTRANS: Dict[str, Variant] = {
-    "GarTrans (SAT)": Variant(None),
-    "GarTrans w/o edge processing": Variant("wo_edge"),
-    "GarTrans w/o edge gating": Variant("wo_gating"),
-    "GarTrans structure-aware transformer": Variant("structure_aware"),
-    "GarTrans GAT": Variant("gat"),
-    "GarTrans w/o unsupervised loss": Variant("wo_unsup"),
-}
-#: full GarTrans, the variant every comparison is made against
-FULL = next(iter(GARTRANS))
 NCS, HOOD, DA, MGN, LBS = "NCS-style", "HOOD-style", "DA-style", "MGN-style", "LBS only"
-METHOD_NAMES: Tuple[str, ...] = tuple(GARTRANS) + (NCS, HOOD, DA, MGN, LBS)
+#: the GarTrans rows (full GarTrans first, the variant every comparison is made
+#: against) and their packaged recipes
+GARTRANS: Dict[str, str] = {
+    "GarTrans (SAT)": "gartrans",
+    "GarTrans w/o edge processing": "ablations/wo_edge",
+    "GarTrans w/o edge gating": "ablations/wo_gating",
+    "GarTrans structure-aware transformer": "ablations/structure_aware",
+    "GarTrans GAT": "ablations/gat",
+    "GarTrans w/o unsupervised loss": "ablations/wo_unsup",
+}
+#: full GarTrans
+FULL = next(iter(GARTRANS))
+#: the baselines' packaged recipes
+BASELINES: Dict[str, str] = {NCS: "baselines/ncs", HOOD: "baselines/hood",
+                             DA: "baselines/da"}
+#: every packaged method's recipe
+RECIPES: Dict[str, str] = {**GARTRANS, **BASELINES, MGN: "mgn"}
+METHOD_NAMES: Tuple[str, ...] = tuple(RECIPES) + (LBS,)
 #: methods without training or randomness: run for the first seed only
 SEED_FREE: Tuple[str, ...] = (LBS,)
-#: each baseline's packaged configuration
-BASELINE_CONFIGS: Dict[str, str] = {DA: "baselines/da", HOOD: "baselines/hood",
-                                    NCS: "baselines/ncs"}
-#: each baseline's module (its configuration's ``model:`` entry: a
-#: :class:`~garmentgnn.training.BaselineModule` handed the model it names)
-BASELINES: Dict[str, Dict[str, Any]] = {name: module_spec(cfg)
-                                        for name, cfg in BASELINE_CONFIGS.items()}
-#: the MGN-style simulator's module (``configs/mgn.yaml``'s ``model:`` entry) and data
-#: settings (its ``data:`` section without ``root``, ``num_workers`` and ``batch_size``,
-#: which the bench sets)
-MGN_MODULE: Dict[str, Any] = module_spec("mgn")
-MGN_DATA: Dict[str, Any] = {k: v for k, v in load_config("mgn")["data"].items()
-                            if k not in ("root", "num_workers", "batch_size")}
+#: how a recipe's method trains and predicts, by its module (and for a baseline, its
+#: model): frame-parallel GarTrans on chunks with its schedule; a frame-parallel or
+#: autoregressive baseline on chunks; NCS-style, one model per test garment on its
+#: poses; a learned simulator on windows of frames, rolled out
+KINDS = {"GarTransModule": "gartrans", "BaselineModule": "baseline",
+         "NCSStyle": "ncs", "SimulatorModule": "simulator"}
 
 
-def variant_settings(method: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
-    """``(module spec, ProgressiveSchedule arguments without the windows)`` of GarTrans
-    variant ``method``: ``gartrans.yaml`` merged with its ablation file the way
-    LightningCLI merges two ``--config`` files (a list, like ``callbacks``, replaces);
-    :func:`~garmentgnn.training.configs.instantiate` builds the module.  The schedule is
-    the module's own (its ``schedule`` argument; :func:`with_schedule` sets it)."""
-    v = GARTRANS[method]
-    model = module_spec("gartrans", *([f"ablations/{v.config}"] if v.config else []))
-    sched = (model.get("init_args") or {}).get("schedule", True)
-    full = dict(_SCHEDULE_DEFAULTS, **(sched if isinstance(sched, dict) else {}))
-    return model, {k: val for k, val in full.items() if k not in _WINDOWS}
+def recipe_of(method: str) -> str:
+    """The recipe that trains ``method``: a packaged method's (:data:`RECIPES`; full
+    GarTrans's for :data:`LONG`), or
+    ``method`` itself, a recipe's packaged name or file path; ``ValueError`` naming the
+    choices when it is neither (or ``LBS only``, which trains nothing)."""
+    if method in RECIPES or method == LONG:
+        return RECIPES[FULL if method == LONG else method]
+    try:
+        recipe_path(method)
+    except (ValueError, TypeError):
+        raise ValueError(f"`methods`: {method!r} is neither a method ({', '.join(METHOD_NAMES)}) "
+                         f"nor a recipe (a packaged name or a YAML file)") from None
+    return str(method)
 
 
-def with_schedule(spec: Dict[str, Any], schedule: Dict[str, Any]) -> Dict[str, Any]:
-    """A GarTrans module ``spec`` that trains with the :class:`ProgressiveSchedule` of
-    arguments ``schedule``."""
-    return dict(spec, init_args=dict(spec.get("init_args") or {}, schedule=dict(schedule)))
+def kind(method: str) -> str:
+    """``"gartrans"``, ``"baseline"``, ``"ncs"``, ``"simulator"`` (:data:`KINDS`) or
+    ``"lbs"``: how ``method`` trains and predicts."""
+    if method == LBS:
+        return "lbs"
+    names = {k: str(v or "").rsplit(".", 1)[-1] for k, v in model_of(recipe_of(method)).items()}
+    found = KINDS.get(names["model"]) if names["module"] == "BaselineModule" else None
+    found = found or KINDS.get(names["module"])
+    if found is None:
+        raise ValueError(f"`methods`: the recipe {method!r} trains {names['module'] or 'no'} "
+                         f"module; the bench trains {', '.join(k for k in KINDS if 'Module' in k)}")
+    return found
+
+
+def is_method(method: str) -> bool:
+    """Whether the bench can run ``method``: a packaged method or a recipe."""
+    if method in METHOD_NAMES:
+        return True
+    try:
+        kind(method)
+    except (ValueError, TypeError):
+        return False
+    return True
 
 
 #: the long run of full GarTrans (:attr:`LearnedBudget.long_minutes`)
@@ -114,7 +115,8 @@ class LearnedBudget:
             ``minutes``, the most epochs a run may take.
         window: :class:`ProgressiveSchedule` window in epochs.
         ncs_epochs: passes of each NCS model over its own garment's test poses.
-        methods: the names of :data:`METHOD_NAMES` to run.
+        methods: the methods to run: names of :data:`METHOD_NAMES`, or recipes (a
+            packaged name such as ``ablations/paper``, or a YAML file's path).
         stability_cases: :data:`garmentgnn.bench.stability.CASES` run by each method
             (first seed's model) and the simulator on the first test sequence.
         minutes: the wall-clock training budget of every (method, seed) run
@@ -192,9 +194,11 @@ class LearnedBudget:
         if self.equal_steps is not None and self.curve_every is None:
             raise ValueError("`equal_steps`: the snapshot is taken by the learning curve; "
                              "set `curve_every` too")
-        unknown = [m for m in self.methods if m not in METHOD_NAMES]
+        unknown = [m for m in self.methods if not is_method(m)]
         if unknown or not self.methods:
-            raise ValueError(f"`methods`: unknown {unknown} or empty; choose from {METHOD_NAMES}")
+            raise ValueError(f"`methods`: unknown {unknown} or empty; choose from "
+                             f"{METHOD_NAMES} or give a recipe (a packaged name or a YAML "
+                             f"file, e.g. ablations/gat)")
         unknown = [m for m in (self.seed_methods or ()) if m not in self.methods]
         if unknown:
             raise ValueError(f"`seed_methods`: {unknown} are not in `methods`")
@@ -213,8 +217,9 @@ def seed_plan(budget: LearnedBudget, seed0: Dict[str, float]) -> Dict[str, int]:
     if budget.seed_methods is None:
         return {m: (1 if m in SEED_FREE else n) for m in budget.methods}
     full = set(budget.seed_methods)
-    for pool in ([m for m in budget.methods if m in GARTRANS and m != FULL],
-                 [m for m in budget.methods if m in BASELINES or m == MGN]):
+    kinds = {m: kind(m) for m in budget.methods}
+    for pool in ([m for m in budget.methods if kinds[m] == "gartrans" and m != FULL],
+                 [m for m in budget.methods if kinds[m] in ("baseline", "ncs", "simulator")]):
         if pool:
             full.add(min(pool, key=lambda m: seed0.get(m, float("inf"))))
     return {m: (n if m in full and m not in SEED_FREE else 1) for m in budget.methods}

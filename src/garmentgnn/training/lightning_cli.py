@@ -45,6 +45,7 @@ import importlib.util
 import inspect
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Union
 
@@ -437,6 +438,10 @@ class Recipe:
         self.datamodule: GarmentDataModule = cli.datamodule
         self.callbacks: List[Any] = list(cli.config_init.trainer.get("callbacks") or [])
         self.config: Dict[str, Any] = _plain(cli.config)
+        # the parser's instantiators outlive the call (jsonargparse keeps the latest
+        # parser): the CLI keeps only the trainer's settings, not the module and data
+        cli.model = cli.datamodule = None
+        cli.config_init.model = cli.config_init.data = None
 
     def trainer(self, **overrides: Any) -> Trainer:
         """The recipe's ``Trainer`` (its ``trainer:`` settings over
@@ -472,9 +477,11 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
         argv += ["--config", str(recipe_path(r))]
     argv += [str(a) for a in args]
     try:
-        cli = _RecipeCLI(GarmentModule, GarmentDataModule, args=argv,
-                         default_model=named_module(argv), run=False,
-                         seed_everything_default=0, save_config_callback=None)
+        with warnings.catch_warnings():  # (that the process has command-line arguments too)
+            warnings.filterwarnings("ignore", "LightningCLI's args parameter")
+            cli = _RecipeCLI(GarmentModule, GarmentDataModule, args=argv,
+                             default_model=named_module(argv), run=False,
+                             seed_everything_default=0, save_config_callback=None)
     except SystemExit as err:  # jsonargparse reports a bad flag by exiting
         raise ValueError(f"`args`: the recipe {list(map(str, recipes))} with {list(args)} "
                          f"does not parse (its message above)") from err
