@@ -1,4 +1,5 @@
 """HOOD-style training aids: the running input normaliser and the own start state."""
+import inspect
 import runpy
 from pathlib import Path
 
@@ -7,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from garmentgnn.bench.methods import BASELINES, HOOD
 from garmentgnn.models.baselines import CoarseLevel, HOODStyle
 from garmentgnn.models.blocks import RunningNormalizer
 from garmentgnn.training.baselines import ramped_length
@@ -15,9 +15,9 @@ from garmentgnn.data import SequenceChunks
 from garmentgnn.training import (BaselineModule, GarmentDataModule)
 from garmentgnn.training.module import loss_inputs
 from garmentgnn.models.baselines import DAStyle
-from garmentgnn.training.configs import instantiate, merge
 
 from conftest import skirt_dataset
+from recipe_helpers import module as recipe_module
 
 
 
@@ -59,17 +59,22 @@ def data(tmp_path_factory):
     return skirt_dataset(tmp_path_factory.mktemp("data"), ["walk", "run"], 8, name="hood")
 
 
-def _module(dims, **kw) -> BaselineModule:
+def _module(root, **kw) -> BaselineModule:
+    """The HOOD-style recipe's module on ``root`` with module settings ``kw`` and a
+    small model (``model``: its settings; the recipe's are replaced)."""
     model = kw.pop("model", {"hidden": 16, "fine_blocks": 1, "coarse_blocks": 1})
-    spec = merge(BASELINES[HOOD], {"init_args": dict(kw, loss={"compile_search": False})})
-    spec["init_args"]["model"]["init_args"] = model
-    return instantiate(spec, dims)
+    defaults = inspect.signature(HOODStyle.__init__).parameters
+    model = dict({k: defaults[k].default for k in ("hidden", "fine_blocks", "coarse_blocks",
+                                                   "normalize")}, **model)
+    return recipe_module("baselines/hood", root, **{f"model.model.{k}": v
+                                                    for k, v in model.items()},
+                         **{f"model.{k}": v for k, v in kw.items()})
 
 
 def test_hood_normalised_inputs(data):
     chunks = SequenceChunks(data, "train", chunk=4)
     item = chunks[0]
-    module = _module(GarmentDataModule(data, chunk=4).dims, model={"hidden": 16, "normalize": True})
+    module = _module(data, model={"hidden": 16, "normalize": True})
     model = module.model
     coarse = CoarseLevel.build(item.rest_pos, item.faces)
     x = item.skinned()
@@ -127,7 +132,7 @@ def test_hood_training_rollout_keeps_the_states_of_its_steps(data):
     second = chunks[1]
     assert int(second.frames[0]) == 4
     torch.manual_seed(0)
-    module = _module(GarmentDataModule(data, chunk=4, val_split=None).dims, start_state="own",
+    module = _module(data, start_state="own",
                      model={"hidden": 16, "fine_blocks": 1, "coarse_blocks": 1})
     module.compute_loss(second)
     whole = SequenceChunks(data, "train", chunk=8)[0]  # frames 0-7 of the same sequence
@@ -146,12 +151,11 @@ def test_hood_training_rollout_keeps_the_states_of_its_steps(data):
 
 
 def test_own_start_state_chains_the_rollouts(data, tmp_path):
-    dm = GarmentDataModule(data, chunk=4, val_split=None)
     chunks = SequenceChunks(data, "train", chunk=4)
     first, second = chunks[0], chunks[1]
     assert first.seq_id == second.seq_id and int(second.frames[0]) == 4
     torch.manual_seed(0)
-    module = _module(dm.dims, start_state="own")
+    module = _module(data, start_state="own")
     lbs = first.skinned()
     prev, curr = module._start(second)  # nothing kept yet: the LBS garment of frames 2, 3
     torch.testing.assert_close(prev, lbs[2])
@@ -174,17 +178,17 @@ def test_own_start_state_chains_the_rollouts(data, tmp_path):
     assert torch.equal(prev, kept[2]) and torch.equal(curr, kept[3])
     assert not torch.equal(curr, lbs[3])
 
-    strict = _module(dm.dims, start_state="own", max_start_drift=1e-12)
+    strict = _module(data, start_state="own", max_start_drift=1e-12)
     strict._states = module._states  # farther from LBS than allowed: the LBS garment
     torch.testing.assert_close(strict._start(second)[1], lbs[3])
-    plain = _module(dm.dims, start_state="lbs")
+    plain = _module(data, start_state="lbs")
     plain.compute_loss(first)
     assert plain._states == {}  # "lbs" keeps nothing
 
     ckpt = {}
     module.on_save_checkpoint(ckpt)
     torch.save(ckpt, tmp_path / "c.pt")
-    back = _module(dm.dims, start_state="own")
+    back = _module(data, start_state="own")
     back.on_load_checkpoint(torch.load(tmp_path / "c.pt", weights_only=True))
     assert torch.equal(back._start(second)[1], kept[3])
 
@@ -192,7 +196,7 @@ def test_own_start_state_chains_the_rollouts(data, tmp_path):
 def test_own_start_state_through_the_trainer(data):
     dm = GarmentDataModule(data, chunk=4, val_split=None)
     L.seed_everything(0, verbose=False)
-    module = _module(dm.dims, start_state="own")
+    module = _module(data, start_state="own")
     L.Trainer(max_epochs=2, accelerator="cpu", logger=False, enable_checkpointing=False,
               enable_progress_bar=False, enable_model_summary=False,
               limit_val_batches=0).fit(module, dm)
@@ -204,11 +208,11 @@ def test_own_start_state_through_the_trainer(data):
 def test_start_state_arguments(data):
     dims = GarmentDataModule(data, chunk=4).dims
     with pytest.raises(ValueError, match="`start_state`"):
-        _module(dims, start_state="simulated")
+        _module(data, start_state="simulated")
     with pytest.raises(ValueError, match="`start_state`"):
         BaselineModule(DAStyle(dims["num_joints"]), start_state="own")
     with pytest.raises(ValueError, match="`max_start_drift`"):
-        _module(dims, max_start_drift=0.0)
+        _module(data, max_start_drift=0.0)
 
 
 def test_own_objective_is_the_mean_of_the_per_frame_training_losses(data):
@@ -217,7 +221,7 @@ def test_own_objective_is_the_mean_of_the_per_frame_training_losses(data):
     bench = runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" /
                                "learning.py"), run_name="own_objective_check")
     item = SequenceChunks(data, "train", chunk=10 ** 9)[0]
-    module = _module(GarmentDataModule(data, chunk=4).dims)
+    module = _module(data)
     g = torch.Generator().manual_seed(0)
     traj = item.skinned() + 0.01 * torch.randn(item.skinned().shape, generator=g)
     got = bench["own_objective"](module, item, traj)
@@ -258,7 +262,7 @@ def test_hood_rollouts_restart_from_the_lbs_garment(data, rollout):
     assert int(item.frames[0]) == 4
     path = SequenceChunks(data, "train", chunk=10 ** 9)[0].skinned()
     torch.manual_seed(0)
-    module = _module(GarmentDataModule(data, chunk=4).dims, rollout=rollout)
+    module = _module(data, rollout=rollout)
     calls, _ = _recorded_rollout(module, item)
     assert len(calls) == 4
     for b, (p, c, _) in enumerate(calls):
@@ -268,7 +272,7 @@ def test_hood_rollouts_restart_from_the_lbs_garment(data, rollout):
         else:
             assert torch.equal(c, calls[b - 1][2])
             assert torch.equal(p, calls[b - 1][1])
-    whole = _module(GarmentDataModule(data, chunk=4).dims)  # None: one rollout per chunk
+    whole = _module(data)  # None: one rollout per chunk
     calls, _ = _recorded_rollout(whole, item)
     assert all(torch.equal(calls[b][1], calls[b - 1][2]) for b in range(1, 4))
 
@@ -280,7 +284,7 @@ def test_hood_noise_on_the_current_and_previous_positions(data):
     item = SequenceChunks(data, "train", chunk=4)[1]
     path = SequenceChunks(data, "train", chunk=10 ** 9)[0].skinned()
     torch.manual_seed(0)
-    module = _module(GarmentDataModule(data, chunk=4).dims, rollout=1, rollout_noise=0.003)
+    module = _module(data, rollout=1, rollout_noise=0.003)
     calls, li = _recorded_rollout(module, item)
     dp = torch.stack([p - path[2 + b] for b, (p, _, _) in enumerate(calls)])
     dc = torch.stack([c - path[3 + b] for b, (_, c, _) in enumerate(calls)])
@@ -305,7 +309,7 @@ def test_hood_warmup_scales_the_learning_rate_of_each_step(data):
     well above its ``eps`` by exactly the rate."""
     dm = GarmentDataModule(data, chunk=4, val_split=None)
     L.seed_everything(0, verbose=False)
-    module = _module(dm.dims, warmup=4, lr=1e-3)
+    module = _module(data, warmup=4, lr=1e-3)
     before = {k: v.detach().clone() for k, v in module.model.named_parameters()}
     rates, grads = [], {}
 
@@ -329,7 +333,7 @@ def test_hood_warmup_scales_the_learning_rate_of_each_step(data):
     assert trainer.optimizers[0].param_groups[0]["lr"] == 1e-3  # put back after the step
     L.Trainer(max_steps=4, accelerator="cpu", logger=False, enable_checkpointing=False,
               enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-              callbacks=[Record()]).fit(_module(dm.dims, warmup=4, lr=1e-3), dm)
+              callbacks=[Record()]).fit(_module(data, warmup=4, lr=1e-3), dm)
     assert rates == pytest.approx([0.25e-3, 0.25e-3, 0.5e-3, 0.75e-3, 1e-3])
 
 
@@ -339,6 +343,6 @@ def test_hood_recipe_arguments(data):
                      ({"rollout_ramp": -1}, "rollout_ramp"), ({"warmup": -1}, "warmup"),
                      ({"warmup": 2.5}, "warmup")):
         with pytest.raises(ValueError, match=f"`{name}`"):
-            _module(dims, **kw)
+            _module(data, **kw)
     with pytest.raises(ValueError, match="`rollout`"):
         BaselineModule(DAStyle(dims["num_joints"]), rollout=5)

@@ -10,37 +10,40 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+import yaml
 from scipy.stats import wilcoxon
 from torch_geometric.nn import Linear as PyGLinear
 
-from garmentgnn.bench.methods import BASELINES, DA, GARTRANS, HOOD, NCS, variant_settings
+from garmentgnn.bench.methods import DA, GARTRANS, HOOD, NCS, RECIPES
 from garmentgnn.data import store
 from garmentgnn.models import GarTrans, PAPER_FORM
 from garmentgnn.models.blocks import AttentionStack
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.physics.energies import GRAVITY
 from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
-from garmentgnn.training.configs import instantiate, merge, module_spec
+from garmentgnn.training.recipes import recipe_path
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 from garmentgnn.training.base import DATASET_KEY, dataset_stamp
 from garmentgnn.training.integrity import CheckpointError, stamp_checkpoint
-from garmentgnn.models.baselines import DAStyle
+from garmentgnn.models.baselines import DAStyle, HOODStyle
 
+from recipe_helpers import module as recipe_module
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
+
+
+DATA = {"chunk": 4, "history": 3, "nystrom_dim": NY, "num_landmarks": 16, "seed": 0}
 
 
 @pytest.fixture(scope="module")
 def dm(root):  # noqa: F811
-    d = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16, seed=0)
+    d = GarmentDataModule(root, **DATA)
     d.setup("fit")
     return d
 
 
 def gartrans(dm, method="GarTrans (SAT)", **kw):
-    spec, _ = variant_settings(method)
-    spec = merge(spec, {"init_args": {"model": {"init_args": dict(compile_search=False, **kw)}}})
-    L.seed_everything(0)
-    return instantiate(spec, dm.dims)
+    return recipe_module(RECIPES[method], dm.root, DATA, **{f"model.model.{k}": v
+                                                              for k, v in kw.items()})
 
 
 @pytest.mark.parametrize("method", list(GARTRANS) + [DA, HOOD, NCS])
@@ -48,9 +51,9 @@ def test_every_branch_gets_a_gradient_at_step_0(dm, method):
     item = dm.train_set[1]
     if method in GARTRANS:
         module = gartrans(dm, method)
-    else:
-        spec = merge(BASELINES[method], {"init_args": {"loss": {"compile_search": False}}})
-        module = instantiate(spec, dict(dm.dims, num_vertices=item.num_vertices))
+    else:  # NCS-style: the garment of the item's sequence alone
+        data = dict(DATA, train_ids=[item.seq_id]) if method == NCS else DATA
+        module = recipe_module(RECIPES[method], dm.root, data)
     rep = branch_gradients(module, item)
     assert rep and dead_branches(rep) == []
     assert all(r["with_grad"] == r["trainable"] for r in rep.values()), rep
@@ -72,15 +75,17 @@ SWITCHES = ("skin_prior", "lbs_start", "gate_init", "collision_projection", "ble
 
 def test_the_paper_form_is_the_model_and_its_config():
     """The model's defaults are the project's form; the paper's form (PAPER_FORM,
-    GarTrans.paper, configs/ablations/paper.yaml) flips each switch, and the packaged
-    config leaves every switch at the model's default (written once)."""
+    GarTrans.paper, recipes/ablations/paper.yaml) flips each switch, and the packaged
+    recipe leaves every switch at the model's default (written once)."""
     model = {k: p.default for k, p in inspect.signature(GarTrans.__init__).parameters.items()
              if p.default is not inspect.Parameter.empty}
-    config = module_spec("gartrans")["init_args"]["model"]["init_args"]
+    config = yaml.safe_load(recipe_path("gartrans").read_text())["model"]["init_args"]
+    config = config["model"].get("init_args") or {}
     assert not set(SWITCHES) & set(config)
     assert set(PAPER_FORM) == set(SWITCHES)
     assert all(PAPER_FORM[k] != model[k] for k in SWITCHES if k != "gate_init")
-    paper = module_spec("gartrans", "ablations/paper")["init_args"]["model"]["init_args"]
+    paper = yaml.safe_load(recipe_path("ablations/paper").read_text())["model"]["init_args"]
+    paper = paper["model"]["init_args"]
     assert {k: paper.get(k, model[k]) for k in SWITCHES} == PAPER_FORM
     assert GarTrans.paper(3, 10).init_args == dict(GarTrans(3, 10).init_args, **PAPER_FORM)
 
@@ -322,10 +327,14 @@ def learning():
 
 
 def _hood(dm, loss):
-    spec = merge(BASELINES[HOOD], {})
-    spec["init_args"]["model"]["init_args"] = {"hidden": 8}
-    spec["init_args"]["loss"] = dict(spec["init_args"]["loss"], compile_search=False, **loss)
-    return instantiate(spec, dm.dims)
+    """The HOOD-style recipe's module with a small model of the class's defaults and
+    ``loss`` over the recipe's loss settings."""
+    recipe = yaml.safe_load(recipe_path("baselines/hood").read_text())["model"]["init_args"]
+    defaults = inspect.signature(HOODStyle.__init__).parameters
+    model = {k: defaults[k].default for k in ("fine_blocks", "coarse_blocks", "normalize")}
+    return recipe_module("baselines/hood", dm.root, DATA, **{"model.loss": dict(
+        recipe["loss"], **loss), "model.model.hidden": 8}, **{f"model.model.{k}": v
+                                                              for k, v in model.items()})
 
 
 def test_objective_rollout_is_free_fall_under_gravity_and_inertia(dm, learning):
