@@ -54,8 +54,8 @@ MARGIN_S = 20.0
 #: (set from the first H200 window's stage times, docs/results/gpu_window_h200)
 WEIGHTS = {"throughput_gartrans": 0.17, "throughput_da": 0.10, "inference": 0.11,
            "train_gartrans": 0.37, "train_da": 0.25}
-CONFIGS = {"train_gartrans": "gartrans", "train_da": "baselines/da"}
-#: frames per chunk of the packaged configs (``data.chunk``): a training batch holds at
+RECIPES = {"train_gartrans": "gartrans", "train_da": "baselines/da"}  # each stage's --config
+#: frames per chunk of the packaged recipes (``data.chunk``): a training batch holds at
 #: most the training split's chunks
 CHUNK = 8
 
@@ -304,7 +304,7 @@ class Window:
         times = split_training(seconds, self.a.startup_s)
         batch = max(1, min(self.a.train_batch, data.get("train_chunks") or 1))
         accel = "cuda" if self.a.device == "cuda" else "cpu"
-        common = ["--config", CONFIGS[name], "--data.root", data["root"],
+        common = ["--config", RECIPES[name], "--data.root", data["root"],
                   "--trainer.accelerator", accel, "--trainer.enable_progress_bar", "false"]
         fit = self.py("-m", "garmentgnn.cli", "train", "fit", *common,
                       "--data.batch_size", str(batch), "--data.val_split", val,
@@ -373,7 +373,7 @@ class Window:
         res.setdefault("status", "timed out" if res.get("timed_out") else
                        "ok" if res.get("rc") == 0 else "failed")
         res.update(name=name, planned_s=seconds, stage_wall_s=time.perf_counter() - t)
-        extra = self.checkpoints(folder) if name in CONFIGS else []
+        extra = self.checkpoints(folder) if name in RECIPES else []
         res["bundle"] = bundle(folder, self.out / f"{name}.tar.gz", extra)
         self.summary["stages"].append(res)
         self.write()
@@ -419,7 +419,7 @@ def markdown(s: Dict[str, Any]) -> str:
     for r in s["stages"]:
         if r.get("table"):
             lines += ["", "Inference:", ""] + r["table"]
-        if r["name"] in CONFIGS and r["status"] != "skipped":
+        if r["name"] in RECIPES and r["status"] != "skipped":
             lines += ["", f"{r['name']}: {r.get('epochs', 0)} epochs, {r.get('steps', 0)} "
                       f"steps of {r.get('batch')} chunks on `{r.get('dataset')}` (val split "
                       f"{r.get('val_split')}, test split {r.get('test_split')}); "

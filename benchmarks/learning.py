@@ -1,9 +1,9 @@
 """Do the learned methods learn?  Step-0 gradients, one-chunk overfit, equal-step curves.
 
 Its parts, each on a generated dataset (``--data``, e.g. ``garmentgnn generate --preset
-small --engine blender``), every method built from its packaged configuration the way
-``garmentgnn bench`` builds it (:mod:`garmentgnn.bench.methods`) and trained through the
-same Lightning ``Trainer``:
+small --engine blender``), every method built from its packaged recipe
+(:func:`garmentgnn.training.load_recipe`) the way ``garmentgnn bench`` builds it
+(:mod:`garmentgnn.bench.methods`) and trained through the recipe's Lightning ``Trainer``:
 
 * ``grad``: one backward pass of each method's phase-1 training loss on the first
   training chunk; per branch the trainable parameter tensors, how many got a non-zero
@@ -24,7 +24,7 @@ same Lightning ``Trainer``:
   test predictions against the same objective on the LBS garment, beside E_dist.
 * ``oracle``: what those methods could reach at best: the trajectory that minimises a
   physics objective exactly, frame by frame (the objectives of the HOOD-style
-  ``--variants``, default its configuration's, which NCS-style's shares, and the silk
+  ``--variants``, default its recipe's, which NCS-style's shares, and the silk
   energies), on the test sequences, against LBS.
 
 Each writes ``<part>.json`` and ``<part>.md`` (curves also ``<part>.png``) into
@@ -96,7 +96,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                     help="GarTrans settings compared by `curves` (default: all), added to "
                          "`grad` and `overfit` (default: none), kept by `merge` (default: "
                          "all); the HOOD-style objectives of `oracle` (default: its "
-                         "configuration's and the silk energies)")
+                         "recipe's and the silk energies)")
     ap.add_argument("--methods", nargs="+", default=None, action=Accumulate,
                     help="the methods `grad` and `overfit` run (default: every learned "
                          "method of the bench)")

@@ -22,9 +22,11 @@ Per configuration (tree x method x threads x batch size) it reports:
 Dataset: the ``throughput-small`` stand-in of ``benchmarks/train_throughput.py`` (4
 garment kinds at ~400 vertices x 3 Anny bodies x 4 motions of 32 frames; skinned garment
 plus a wobble, not a simulation: what a step costs does not depend on where the cloth
-is), generated once into the benchmark cache.  GarTrans and DA-style train on chunks of
-8 frames (history 3), MGN-style on its windows of 5 frames (stride 1, one trained step a
-window: a vertex-frame is one vertex of one trained step)::
+is), generated once into the benchmark cache.  Each method is its packaged recipe
+(``garmentgnn/recipes/``, read by :func:`~garmentgnn.training.load_recipe`): GarTrans
+and DA-style train on chunks of 8 frames (history 3), MGN-style on its windows of 5
+frames (stride 1, one trained step a window: a vertex-frame is one vertex of one trained
+step)::
 
     python benchmarks/step_profile.py --commit
     python benchmarks/step_profile.py --against /path/to/old/checkout --methods gartrans da
@@ -46,7 +48,6 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any, Dict, List, Tuple
 
-import lightning as L
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
@@ -55,8 +56,7 @@ from garmentgnn._argparse import (HelpFormatter, add_output_args, benchmark_cach
                                   command_line, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.data import store
-from garmentgnn.training import GarmentDataModule
-from garmentgnn.training.configs import instantiate, module_spec
+from garmentgnn.training import load_recipe
 from train_throughput import dataset, warm
 
 HERE = Path(__file__).resolve().parent
@@ -141,20 +141,21 @@ class Worker:
         key = (method, batch)
         if key in self.setups:
             return self.setups[key]
-        L.seed_everything(0, verbose=False)
-        if method == "mgn":
-            dm = GarmentDataModule(self.root, chunk=5, history=1, stride=1, drop_last=True,
-                                   val_split=None, seed=0, batch_size=batch, cache_size=64)
-            spec = module_spec("mgn")
-            spec["init_args"]["stats_steps"] = 0  # every step trains
+        data = ["--data.root", str(self.root), "--data.val_split", "null", "--data.seed", "0",
+                "--data.batch_size", str(batch), "--data.cache_size", "64",
+                "--seed_everything", "0"]
+        if method == "mgn":  # every step trains (no statistics steps)
+            recipe = load_recipe("mgn", args=data + [
+                "--data.chunk", "5", "--data.history", "1", "--data.stride", "1",
+                "--data.drop_last", "true", "--data.eval_chunk", "null"],
+                set={"model.init_args.stats_steps": 0})
         else:
-            dm = GarmentDataModule(self.root, chunk=8, history=3, val_split=None, seed=0,
-                                   batch_size=batch, cache_size=64)
-            spec = module_spec("gartrans" if method == "gartrans" else "baselines/da")
+            recipe = load_recipe("gartrans" if method == "gartrans" else "baselines/da",
+                                 args=data + ["--data.chunk", "8", "--data.history", "3"])
+        dm, module = recipe.datamodule, recipe.module
         dm.setup("fit")
         if method != "mgn":
             dm.train_set = self.chunks  # static inputs built once (warm)
-        module = instantiate(spec, dm.dims)
         module.log = lambda *a, **k: None  # no Trainer attached
         opt = module.configure_optimizers()
         opt = opt["optimizer"] if isinstance(opt, dict) else opt

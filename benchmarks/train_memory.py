@@ -1,13 +1,14 @@
 """Resident memory of a training process against steps.
 
-Trains a learned method of the bench (``--method``, built from its packaged
-configuration as ``garmentgnn bench`` builds it) on a generated dataset's training
-split through the Lightning ``Trainer`` and prints the process's resident set size
-(``VmRSS`` of ``/proc/self/status``, Linux) every ``--every`` steps.  A process whose
-live tensors do not grow should not grow either; on the `medium` dataset a reference
-cycle among the attention layers' sparse patterns once made a GarTrans fit grow by
-about 23 MB a step (docs/bench.md, "Memory").  Writes ``train_memory.json`` into
-``--out`` (``--commit``: the committed ``docs/results/benchmarks/``)::
+Trains a learned method of the bench (``--method``, built from its packaged recipe by
+:func:`~garmentgnn.training.load_recipe`, with the bench's data settings) on a generated
+dataset's training split through the recipe's Lightning ``Trainer`` and prints the
+process's resident set size (``VmRSS`` of ``/proc/self/status``, Linux) every
+``--every`` steps.  A process whose live tensors do not grow should not grow either; on
+the `medium` dataset a reference cycle among the attention layers' sparse patterns once
+made a GarTrans fit grow by about 23 MB a step (docs/bench.md, "Memory").  Writes
+``train_memory.json`` into ``--out`` (``--commit``: the committed
+``docs/results/benchmarks/``)::
 
     python benchmarks/train_memory.py --data ~/.cache/garmentgnn/datasets/medium-blender
 """
@@ -23,11 +24,10 @@ import torch
 
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, command_line,
                                   dataset_dir, int_at_least, output_path)
-from garmentgnn.bench.methods import DATA, FULL, GARTRANS, variant_settings
+from garmentgnn.bench.methods import FULL, GARTRANS
 from garmentgnn.bench.timing import status_kb
 from garmentgnn.data.store import code_version
-from garmentgnn.training import GarmentDataModule
-from garmentgnn.training.configs import instantiate
+from garmentgnn.training import load_recipe
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks"
 
@@ -72,15 +72,15 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     out = output_path(args, RESULTS)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
-    L.seed_everything(0, verbose=False)
-    dm = GarmentDataModule(args.data, val_split=None, seed=0, cache_size=64, **DATA)
-    hp, _ = variant_settings(args.method)
-    module = instantiate(hp, dm.dims)
+    config = GARTRANS[args.method].config
+    recipe = load_recipe(f"ablations/{config}" if config else "gartrans",
+                         args=["--data.root", str(args.data), "--data.val_split", "null",
+                               "--data.cache_size", "64", "--seed_everything", "0"])
     probe = RSSProbe(args.every)
-    L.Trainer(max_steps=args.steps, accelerator="cpu", devices=1, logger=False,
-              enable_checkpointing=False, enable_progress_bar=False,
-              enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
-              callbacks=[probe]).fit(module, dm)
+    recipe.trainer(max_steps=args.steps, max_epochs=-1, accelerator="cpu", devices=1,
+                   logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                   enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
+                   callbacks=[probe]).fit(recipe.module, recipe.datamodule)
     result: Dict[str, Any] = {
         "command": command_line("benchmarks/train_memory.py", argv),
         "method": args.method, "threads": args.threads, "torch": torch.__version__,

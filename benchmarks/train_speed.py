@@ -3,9 +3,11 @@
 Each *variant* is a git revision of garmentgnn (``--before``, default the last commit
 before the training speed-ups; ``HEAD``'s working tree for ``after``) with data-module
 overrides.  Every variant runs in its own child process (``PYTHONPATH`` pointing at that
-revision's ``src``), trains GarTrans with the revision's own ``configs/gartrans.yaml``
-(model and data sections) through Lightning's ``Trainer`` on the same dataset, seed and
-chunk order, and reports:
+revision's ``src``), trains GarTrans with the revision's own recipe
+(``garmentgnn/recipes/gartrans.yaml``, read by :func:`~garmentgnn.training.load_recipe`,
+and the recipe's Lightning ``Trainer``; a revision from before the recipes: its
+``configs/gartrans.yaml``'s model and data sections and Lightning's ``Trainer``) on the
+same dataset, seed and chunk order, and reports:
 
 * frames/s of the training steps after ``--warmup`` steps (compile and cache warm-up
   excluded; their time is reported apart), wall clock from Lightning's
@@ -35,13 +37,33 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Tuple
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 #: the last commit before the training speed-ups
 BEFORE = "098489e"
 RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "train_speed"
+
+
+def _before_recipes(args: argparse.Namespace) -> Tuple[Any, Any]:
+    """(module, data module) of a revision from before the recipes, from its own
+    ``configs/gartrans.yaml`` and loader (``garmentgnn.training.configs``), at seed 0."""
+    import lightning as L  # noqa: PLC0415
+
+    from garmentgnn.training import GarmentDataModule, GarTransModule  # noqa: PLC0415
+    from garmentgnn.training.configs import load_config  # noqa: PLC0415
+
+    cfg = load_config("gartrans")
+    data = {k: v for k, v in cfg["data"].items() if k != "root"}
+    data.update(json.loads(args.data_overrides))
+    L.seed_everything(0, verbose=False)
+    dm = GarmentDataModule(args.data, val_split=None, seed=0, **data)
+    init = cfg["model"].get("init_args", cfg["model"])
+    if isinstance(init.get("model"), dict):  # a revision whose module is handed its model
+        from garmentgnn.training.configs import instantiate  # noqa: PLC0415
+        return instantiate(cfg["model"], dm.dims), dm
+    return GarTransModule(**dm.dims, **init), dm
 
 
 def child(args: argparse.Namespace) -> None:
@@ -51,21 +73,21 @@ def child(args: argparse.Namespace) -> None:
     import lightning as L  # noqa: PLC0415
     import torch  # noqa: PLC0415
 
-    from garmentgnn.training import GarmentDataModule, GarTransModule  # noqa: PLC0415
-    from garmentgnn.training.configs import load_config  # noqa: PLC0415
-
     torch.set_num_threads(args.threads)
-    cfg = load_config("gartrans")
-    data = {k: v for k, v in cfg["data"].items() if k != "root"}
-    data.update(json.loads(args.data_overrides))
-    L.seed_everything(0, verbose=False)
-    dm = GarmentDataModule(args.data, val_split=None, seed=0, **data)
-    init = cfg["model"].get("init_args", cfg["model"])
-    if isinstance(init.get("model"), dict):  # a revision whose module is handed its model
-        from garmentgnn.training.configs import instantiate  # noqa: PLC0415
-        module = instantiate(cfg["model"], dm.dims)
+    try:
+        from garmentgnn.training import load_recipe  # noqa: PLC0415
+    except ImportError:  # a revision from before the recipes
+        load_recipe = None
+    recipe = None
+    if load_recipe is not None:
+        flags = ["--data.root", args.data, "--data.val_split", "null", "--data.seed", "0",
+                 "--seed_everything", "0"]
+        for k, v in json.loads(args.data_overrides).items():
+            flags += [f"--data.{k}", v if isinstance(v, str) else json.dumps(v)]
+        recipe = load_recipe("gartrans", args=flags)
+        module, dm = recipe.module, recipe.datamodule
     else:
-        module = GarTransModule(**dm.dims, **init)
+        module, dm = _before_recipes(args)
 
     class Clock(L.Callback):
         def __init__(self) -> None:
@@ -82,11 +104,13 @@ def child(args: argparse.Namespace) -> None:
             self.loss.append(float(outputs["loss"]))
 
     clock = Clock()
-    trainer = L.Trainer(max_steps=args.warmup + args.steps, accelerator="cpu", devices=1,
-                        logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, limit_val_batches=0,
-                        num_sanity_val_steps=0, callbacks=[clock],
-                        default_root_dir=tempfile.mkdtemp(prefix="train_speed_"))
+    settings = dict(max_steps=args.warmup + args.steps, max_epochs=-1, accelerator="cpu",
+                    devices=1, logger=False, enable_checkpointing=False,
+                    enable_progress_bar=False, enable_model_summary=False,
+                    limit_val_batches=0, num_sanity_val_steps=0, callbacks=[clock],
+                    default_root_dir=tempfile.mkdtemp(prefix="train_speed_"))
+    # the recipe's Trainer; a revision from before the recipes has none: Lightning's
+    trainer = recipe.trainer(**settings) if recipe is not None else L.Trainer(**settings)
     trainer.fit(module, dm)
     w = args.warmup
     # step k spans t[2k] (start) .. t[2k+1] (end); the timed span includes data loading

@@ -8,8 +8,10 @@ the body plus a smooth wobble (:func:`garmentgnn.sim.stand_in.skinned_wobble`), 
 cloth simulation: what a step costs does not depend
 on where the cloth is, and a Blender dataset of this size would take hours here.
 
-Every configuration (method x threads x batch size) trains through Lightning's
-``Trainer`` on the data module's batches (loading included), ``--warmup`` steps untimed,
+Every configuration (method x threads x batch size) trains its packaged recipe
+(``garmentgnn/recipes/gartrans.yaml``, ``baselines/da.yaml``, read by
+:func:`~garmentgnn.training.load_recipe`) through the recipe's Lightning ``Trainer`` on
+the data module's batches (loading included), ``--warmup`` steps untimed,
 then enough steps for about ``--chunks`` chunks; vertex-frames/s = the vertices x frames
 of the timed steps over their wall time.  Configurations alternate over ``--repeats``
 rounds (a busy machine slows each alike); the median per configuration and its ratio to
@@ -37,13 +39,14 @@ from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args
 from garmentgnn.data import Spec, generate, store
 from garmentgnn.data import SequenceChunks
 from garmentgnn.sim.stand_in import skinned_wobble
-from garmentgnn.training import (GarmentDataModule)
-from garmentgnn.training.configs import instantiate, module_spec
+from garmentgnn.training import Recipe, load_recipe
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent / "docs" / "results" / "train_throughput"
 SIZES = {"small": 400, "medium": 1500}
 METHODS = ("gartrans", "da")
+#: each method's packaged recipe
+RECIPES = {"gartrans": "gartrans", "da": "baselines/da"}
 
 
 def dataset(size: str, cache: Path) -> Path:
@@ -60,11 +63,18 @@ def dataset(size: str, cache: Path) -> Path:
     return out
 
 
-def module_for(method: str, dims: Dict[str, Any]) -> L.LightningModule:
-    L.seed_everything(0, verbose=False)
-    if method == "gartrans":
-        return instantiate(module_spec("gartrans"), dims)
-    return instantiate(module_spec("baselines/da"), dims)
+def recipe_for(method: str, chunks: SequenceChunks, batch: int, workers: int = 0) -> Recipe:
+    """``method``'s recipe on ``chunks``' dataset (chunks of 8 frames, history 3, ``batch``
+    chunks a step, ``workers`` loader processes, no validation), built at seed 0, its
+    data module reading ``chunks`` (every sequence's static inputs built once:
+    :func:`warm`)."""
+    recipe = load_recipe(RECIPES[method], args=[
+        "--data.root", str(chunks.root), "--data.chunk", "8", "--data.history", "3",
+        "--data.val_split", "null", "--data.seed", "0", "--data.batch_size", str(batch),
+        "--data.cache_size", "64", "--data.num_workers", str(workers),
+        "--seed_everything", "0"])
+    recipe.datamodule.train_set = chunks
+    return recipe
 
 
 class Clock(L.Callback):
@@ -91,18 +101,15 @@ class Clock(L.Callback):
 def measure(chunks: SequenceChunks, method: str, batch: int, threads: int,
             a: argparse.Namespace, precision: str = "32-true") -> Dict[str, Any]:
     torch.set_num_threads(threads)
-    dm = GarmentDataModule(chunks.root, chunk=8, history=3, val_split=None, seed=0,
-                           batch_size=batch, cache_size=64, num_workers=a.workers)
-    dm.train_set = chunks  # every sequence's static inputs built once (warm)
-    module = module_for(method, dm.dims)
+    recipe = recipe_for(method, chunks, batch, a.workers)
     steps = a.warmup + max(3, -(-a.chunks // batch))
     clock = Clock()
-    tr = L.Trainer(max_steps=steps, accelerator=a.device, devices=1, logger=False,
-                   enable_checkpointing=False, enable_progress_bar=False,
-                   enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
-                   callbacks=[clock], precision=precision,
-                   default_root_dir=tempfile.mkdtemp(prefix="throughput_"))
-    tr.fit(module, dm)
+    tr = recipe.trainer(max_steps=steps, max_epochs=-1, accelerator=a.device, devices=1,
+                        logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, limit_val_batches=0,
+                        num_sanity_val_steps=0, callbacks=[clock], precision=precision,
+                        default_root_dir=tempfile.mkdtemp(prefix="throughput_"))
+    tr.fit(recipe.module, recipe.datamodule)
     w = a.warmup
     seconds = clock.t[-1] - clock.t[2 * w]
     work = sum(clock.work[w:])

@@ -3,8 +3,9 @@
 1. ``garmentgnn generate --preset tiny`` (the reference simulator; 8 sequences of a
    skirt and a T-shirt on two capsule bodies, ~1 min on 2 cores, resumable: a rerun
    reuses what is on disk);
-2. trains GarTrans (full model, progressive schedule with short windows) on the
-   training split with Lightning, on the CPU;
+2. trains GarTrans (its packaged recipe, ``garmentgnn/recipes/gartrans.yaml``: the full
+   model, progressive schedule with short windows) on the training split with the
+   recipe's Lightning ``Trainer``, on the CPU;
 3. predicts the held-out motion (arm swing) frame-parallel and autoregressively,
    scores both and the LBS-only coarse garment against the simulation;
 4. renders simulated | GarTrans | LBS only side by side over one held-out sequence,
@@ -20,11 +21,8 @@ import argparse
 import time
 from pathlib import Path
 
-import lightning as L
-
 from garmentgnn.data import generate, preset
-from garmentgnn.models import GarTrans
-from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
+from garmentgnn.training import GarTransModule, ProgressiveSchedule, load_recipe
 from garmentgnn.training.evaluate import evaluate_split, markdown_table
 from garmentgnn.viz.animate import renderer_unavailable
 from garmentgnn.viz.strip import render_strip
@@ -46,14 +44,14 @@ def main() -> None:
     print(f"[1/4] dataset ({time.time() - t0:.0f} s): {summary}")
 
     t1 = time.time()
-    L.seed_everything(0, workers=True)
-    dm = GarmentDataModule(data, val_split=None)  # tiny holds out a test motion only
-    # the headline model: its loss weights and progressive schedule are the module's own
-    module = GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))
-    trainer = L.Trainer(max_epochs=args.epochs, accelerator="cpu", devices=1, logger=False,
-                        enable_checkpointing=False, enable_model_summary=False,
-                        default_root_dir=str(out))
-    trainer.fit(module, dm)
+    # the headline model: its loss weights and progressive schedule are the module's own;
+    # tiny holds out a test motion only (no validation split)
+    recipe = load_recipe("gartrans", args=["--data.root", str(data), "--data.val_split", "null",
+                                           "--seed_everything", "0"])
+    trainer = recipe.trainer(max_epochs=args.epochs, accelerator="cpu", devices=1,
+                             logger=False, enable_checkpointing=False, callbacks=[],
+                             enable_model_summary=False, default_root_dir=str(out))
+    trainer.fit(recipe.module, recipe.datamodule)
     sched = ProgressiveSchedule.of(trainer)
     ckpt = out / "gartrans_demo.ckpt"
     trainer.save_checkpoint(ckpt)

@@ -18,7 +18,7 @@ from garmentgnn.metrics.garment_metrics import vertex_distance
 from garmentgnn.training import BaselineModule
 from garmentgnn.training.module import loss_inputs
 
-from .train import baseline, datamodule, evenly, predict, whole_sequences
+from .train import baseline, evenly, predict, whole_sequences
 from .variants import VARIANTS
 
 
@@ -134,7 +134,7 @@ def objective_rollout(module: BaselineModule, item: Any, max_iter: int = 200) ->
 def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[int],
                 max_iter: int = 200) -> Dict[str, Any]:
     """For each physics-trained variant (its objective: the loss terms and weights of
-    its configuration), :func:`objective_rollout` on the test sequences against the
+    its recipe), :func:`objective_rollout` on the test sequences against the
     LBS garment: E_dist (the valid frames, as the bench scores it),
     its objective and how far it is from LBS at the last frame."""
     wrong = [name for name in variants if VARIANTS[name].get("baseline") != HOOD]
@@ -143,13 +143,13 @@ def part_oracle(root: Path, variants: Sequence[str], test_sequences: Optional[in
                          f"HOOD-style variants")
     test = whole_sequences(root, "test")
     picked = evenly(list(range(len(test))), test_sequences or len(test))
-    dims = datamodule(root).dims
     res: Dict[str, Any] = {"max_iter": max_iter, "variants": {}}
     out = []
     for name in variants:
         v = VARIANTS[name]
-        module = baseline(v["baseline"], dims, overrides=v.get("module")).eval()
-        module.loss_fn.compile_search = False  # the same search, not compiled per shape
+        # the same face search, not compiled per shape
+        module = baseline(v["baseline"], root, dict(v.get("module") or {},
+                                                    compile_search=False)).module.eval()
         rows = []
         for i in picked:
             item, t = test[i], time.perf_counter()

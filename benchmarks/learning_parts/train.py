@@ -1,6 +1,7 @@
-"""The learned methods as ``garmentgnn bench`` builds them, trained through the same
-Lightning ``Trainer`` and measured on whole sequences while they train (:class:`Probe`),
-and the parts that train them: ``grad``, ``overfit`` and ``curves``."""
+"""The learned methods as ``garmentgnn bench`` builds them, from their packaged recipes
+(:func:`~garmentgnn.training.load_recipe`), trained through the recipe's Lightning
+``Trainer`` and measured on whole sequences while they train (:class:`Probe`), and the
+parts that train them: ``grad``, ``overfit`` and ``curves``."""
 from __future__ import annotations
 
 import hashlib
@@ -18,68 +19,103 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from garmentgnn.data import SequenceChunks
 from garmentgnn.data.store import read_manifest
 from garmentgnn.bench import scoring
-from garmentgnn.bench.methods import (BASELINES, DA, DATA, FULL, GARTRANS, HOOD, NCS,
-                                        variant_settings)
+from garmentgnn.bench.methods import BASELINE_CONFIGS, DA, DATA, FULL, GARTRANS, HOOD, NCS
 from garmentgnn.bench.tables import slug, table
 from garmentgnn.models import GarTrans
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
-from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 ProgressiveSchedule)
-from garmentgnn.training.configs import instantiate, merge
+from garmentgnn.training import ProgressiveSchedule, Recipe, load_recipe
 from garmentgnn.training.diagnostics import branch_gradients, dead_branches
 
 from .curves import SURFACE, curves_markdown
 from .variants import VARIANTS
 
+#: the settings of :class:`ProgressiveSchedule` that the bench gives full GarTrans
+#: (its defaults; the windows are each run's)
+SCHEDULE: Dict[str, Any] = {k: p.default for k, p in inspect.signature(
+    ProgressiveSchedule.__init__).parameters.items() if k not in ("self", "window", "window2")}
+
 
 # ------------------------------------------------------------------ building methods
-def datamodule(root: Path, seed: int = 0, split: str = "train",
-               data: Optional[Dict[str, Any]] = None) -> GarmentDataModule:
-    """The bench's data settings, with ``data``'s overrides (e.g. ``history``)."""
-    return GarmentDataModule(root, val_split=None, seed=seed, train_split=split, cache_size=64,
-                             **dict(DATA, **(data or {})))
+def recipe_of(method: str) -> str:
+    """The packaged recipe of the bench's learned ``method`` (a GarTrans variant or a
+    baseline)."""
+    if method in GARTRANS:
+        config = GARTRANS[method].config
+        return f"ablations/{config}" if config else "gartrans"
+    return BASELINE_CONFIGS[method]
 
 
-def gartrans(dims: Dict[str, int], method: str = "GarTrans (SAT)",
-             overrides: Optional[Dict[str, Any]] = None,
-             schedule: Union[bool, Dict[str, Any]] = False) -> GarTransModule:
-    """GarTrans variant ``method`` as the bench builds it, with ``overrides`` (settings of
-    the model or of the module, by name) and the module's ``schedule`` (default: none,
-    phase 1's losses throughout; a dict: :class:`ProgressiveSchedule` arguments)."""
-    spec, _ = variant_settings(method)
-    ov, model_args = overrides or {}, inspect.signature(GarTrans.__init__).parameters
-    spec = merge(spec, {"init_args": {"schedule": schedule,
-                                      **{k: v for k, v in ov.items() if k not in model_args},
-                                      "model": {"init_args": {k: v for k, v in ov.items()
-                                                              if k in model_args}}}})
-    return instantiate(spec, dims)
+def flags(section: str, values: Dict[str, Any]) -> List[str]:
+    """``values`` as ``garmentgnn train`` flags of ``section`` (``--data.history 10``;
+    a value that is not a string as JSON)."""
+    out: List[str] = []
+    for k, v in values.items():
+        out += [f"--{section}.{k}", v if isinstance(v, str) else json.dumps(v)]
+    return out
 
 
-def baseline(method: str, dims: Dict[str, int], num_vertices: Optional[int] = None,
-             overrides: Optional[Dict[str, Any]] = None) -> BaselineModule:
-    """Baseline ``method`` as the bench builds it; ``overrides``' sections (``model``:
-    the model's arguments, ``loss``) are merged, other values replace."""
-    ov = dict(overrides or {})
-    ov["model"] = {"init_args": ov.get("model", {})}
-    spec = merge(BASELINES[method], {"init_args": ov})
-    return instantiate(spec, dict(dims, num_vertices=num_vertices))
+def data_args(root: Path, seed: int = 0, split: str = "train",
+              data: Optional[Dict[str, Any]] = None) -> List[str]:
+    """The bench's data settings (``root``'s ``split``, no validation split) with
+    ``data``'s (e.g. ``history``), and seed ``seed``, as ``garmentgnn train`` flags."""
+    return ["--data.root", str(root), "--seed_everything", str(seed)] + flags(
+        "data", dict(val_split=None, seed=seed, train_split=split, cache_size=64,
+                     **(data or {})))
 
 
-def methods(dims: Dict[str, int], num_vertices: int, only: Optional[Sequence[str]] = None,
-            variants: Sequence[str] = ()) -> Dict[str, Callable[[], L.LightningModule]]:
+def gartrans(root: Path, method: str = FULL, overrides: Optional[Dict[str, Any]] = None,
+             schedule: Union[bool, Dict[str, Any]] = False, seed: int = 0,
+             data: Optional[Dict[str, Any]] = None) -> Recipe:
+    """GarTrans variant ``method``'s recipe on ``root`` (:func:`data_args`) with
+    ``overrides`` (settings of the model or of the module, by name) and the module's
+    ``schedule`` (default: none, phase 1's losses throughout; a dict:
+    :class:`ProgressiveSchedule` arguments)."""
+    model_args = inspect.signature(GarTrans.__init__).parameters
+    settings: Dict[str, Any] = {"model.init_args.schedule": schedule}
+    for k, v in (overrides or {}).items():
+        at = "model.init_args.model.init_args" if k in model_args else "model.init_args"
+        settings[f"{at}.{k}"] = v
+    return load_recipe(recipe_of(method), args=data_args(root, seed, data=data), set=settings)
+
+
+def _onto(value: Any) -> Any:
+    """A ``load_recipe`` setting: a mapping's keys replace the recipe's (the rest of the
+    recipe's mapping kept), any other value replaces it."""
+    return (lambda old: dict(old or {}, **value)) if isinstance(value, dict) else value
+
+
+def baseline(method: str, root: Path, overrides: Optional[Dict[str, Any]] = None,
+             seed: int = 0, data: Optional[Dict[str, Any]] = None) -> Recipe:
+    """Baseline ``method``'s recipe on ``root`` (:func:`data_args`); ``overrides``:
+    module settings by name, ``model`` the model's; a mapping (``loss``) goes onto the
+    recipe's key by key."""
+    settings: Dict[str, Any] = {}
+    for k, v in (overrides or {}).items():
+        if k == "model":
+            settings.update({f"model.init_args.model.init_args.{mk}": mv
+                             for mk, mv in v.items()})
+        else:
+            settings[f"model.init_args.{k}"] = _onto(v)
+    return load_recipe(recipe_of(method), args=data_args(root, seed, data=data),
+                       set=settings)
+
+
+def methods(root: Path, item: Any, only: Optional[Sequence[str]] = None,
+            variants: Sequence[str] = ()) -> Dict[str, Callable[[], Recipe]]:
     """Every learned method of the bench (or those named in ``only``), freshly built
-    (phase-1 losses for GarTrans), and GarTrans with each of ``variants``' settings."""
-    out: Dict[str, Callable[[], L.LightningModule]] = {
-        m: (lambda m=m: gartrans(dims, m)) for m in GARTRANS}
-    for m in (DA, HOOD, NCS):
-        out[m] = lambda m=m: baseline(m, dims, num_vertices)
+    (phase-1 losses for GarTrans), and GarTrans with each of ``variants``' settings.
+    NCS-style, a model of one garment, is built for ``item``'s (its sequence the data)."""
+    out: Dict[str, Callable[[], Recipe]] = {m: (lambda m=m: gartrans(root, m)) for m in GARTRANS}
+    for m in (DA, HOOD):
+        out[m] = lambda m=m: baseline(m, root)
+    out[NCS] = lambda: baseline(NCS, root, data={"train_ids": [item.seq_id]})
     out = {k: v for k, v in out.items() if only is None or k in only}
     for v in variants:
         if "baseline" in VARIANTS[v]:  # a baseline's own settings: see `only`
-            out[v] = lambda v=v: baseline(VARIANTS[v]["baseline"], dims, num_vertices,
+            out[v] = lambda v=v: baseline(VARIANTS[v]["baseline"], root,
                                           VARIANTS[v].get("module"))
         else:
-            out[f"GarTrans, {v}"] = lambda v=v: gartrans(dims, overrides=VARIANTS[v].get("model"))
+            out[f"GarTrans, {v}"] = lambda v=v: gartrans(root, overrides=VARIANTS[v].get("model"))
     return out
 
 
@@ -105,18 +141,25 @@ class _Fixed(torch.utils.data.Dataset):
         return self.item
 
 
-def _trainer(steps: int, callbacks=(), folder: Optional[Path] = None, every: int = 0,
-             **kw) -> L.Trainer:
-    """A CPU Trainer for ``steps`` optimizer steps; with ``folder``, ``last.ckpt`` there
-    every ``every`` steps (what :func:`part_curves` resumes from)."""
+def _trainer(recipe: Recipe, steps: int, callbacks=(), folder: Optional[Path] = None,
+             every: int = 0, **kw) -> L.Trainer:
+    """``recipe``'s Trainer on the CPU for ``steps`` optimizer steps (no epoch limit, no
+    log, no validation); with ``folder``, ``last.ckpt`` there every ``every`` steps (what
+    :func:`part_curves` resumes from) instead of the recipe's checkpoints."""
     callbacks = list(callbacks)
     if folder is not None:
         callbacks.append(ModelCheckpoint(dirpath=folder, save_last=True, save_top_k=0,
                                          every_n_train_steps=every))
-    return L.Trainer(max_steps=steps, accelerator="cpu", devices=1, logger=False,
-                     enable_checkpointing=folder is not None, enable_progress_bar=False,
-                     enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
-                     callbacks=callbacks, **kw)
+    return recipe.trainer(max_steps=steps, max_epochs=-1, accelerator="cpu", devices=1,
+                          logger=False, enable_checkpointing=folder is not None,
+                          enable_progress_bar=False, enable_model_summary=False,
+                          limit_val_batches=0, num_sanity_val_steps=0, callbacks=callbacks,
+                          **kw)
+
+
+def first_chunk(root: Path) -> Any:
+    """The first training chunk of ``root`` with the bench's data settings."""
+    return gartrans(root).datamodule.train_set[0]
 
 
 def predict(module: L.LightningModule, item) -> torch.Tensor:
@@ -225,13 +268,10 @@ def sequence_facts(items: Sequence[Any], lbs_errors: Sequence[torch.Tensor],
 # ------------------------------------------------------------------------- the parts
 def part_grad(root: Path, only: Optional[Sequence[str]] = None,
               variants: Sequence[str] = ()) -> Dict[str, Any]:
-    dm = datamodule(root)
-    dims = dm.dims
-    item = dm.train_set[0]
+    item = first_chunk(root)
     res: Dict[str, Any] = {}
-    for name, make in methods(dims, item.num_vertices, only, variants).items():
-        torch.manual_seed(0)
-        rep = branch_gradients(make(), item)
+    for name, make in methods(root, item, only, variants).items():
+        rep = branch_gradients(make().module, item)  # built at seed 0
         res[name] = {"branches": rep, "dead": dead_branches(rep)}
     rows = []
     for name, r in res.items():
@@ -248,21 +288,18 @@ def part_grad(root: Path, only: Optional[Sequence[str]] = None,
 def part_overfit(root: Path, steps: int, every: int,
                  only: Optional[Sequence[str]] = None,
                  variants: Sequence[str] = ()) -> Dict[str, Any]:
-    dm = datamodule(root)
-    dims = dm.dims
-    item = dm.train_set[0]
+    item = first_chunk(root)
     lbs = lbs_error([item])
     res: Dict[str, Any] = {"chunk": {"seq_id": item.seq_id, "frames": item.num_frames,
                                      "vertices": item.num_vertices}, "lbs": lbs, "methods": {}}
-    for name, make in methods(dims, item.num_vertices, only, variants).items():
-        torch.manual_seed(0)
-        module = make()
+    for name, make in methods(root, item, only, variants).items():
+        recipe = make()  # built at seed 0
         probe = Probe({"chunk": [item]}, every, name)
         loader = torch.utils.data.DataLoader(_Fixed(item, steps), batch_size=None,
                                              collate_fn=lambda x: x)
         t = time.perf_counter()
         try:
-            _trainer(steps, [probe]).fit(module, loader)
+            _trainer(recipe, steps, [probe]).fit(recipe.module, loader)
             status = "ok"
         except Exception as err:  # a method that fails is reported, not hidden
             status = f"{type(err).__name__}: {err}"
@@ -303,7 +340,6 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
     seed) run, beside a folder of each run's checkpoint (``runs/``, every ``every``
     steps, its curve in it), so that the part run again with the same settings after an
     interruption keeps the finished runs and resumes the one it was in."""
-    dims = datamodule(root, seeds[0]).dims
     records = {r["id"]: r for r in read_manifest(root)["items"]}
     test_ids = None
     if test_sequences:
@@ -346,21 +382,22 @@ def part_curves(root: Path, steps: int, every: int, variants: Sequence[str],
             if old:  # finished before an interruption
                 runs.append(old[0])
                 continue
-            L.seed_everything(seed, verbose=False)
             # the bench's schedule of full GarTrans, with v's settings (none without them)
-            sched = ({**variant_settings(FULL)[1], "window2": v["schedule"].get("window"),
-                      **v["schedule"]} if "schedule" in v else False)
-            module = (baseline(v["baseline"], dims, overrides=v.get("module")) if "baseline" in v
-                      else gartrans(dims, overrides=v.get("model"), schedule=sched))
+            sched = ({**SCHEDULE, "window2": v["schedule"].get("window"), **v["schedule"]}
+                     if "schedule" in v else False)
+            model = dict(v.get("model") or {})
             if v.get("anneal"):  # the cosine's period: the run's epochs
-                module.hparams.t_max = math.ceil(steps / v["trainer"]["limit_train_batches"])
+                model["t_max"] = math.ceil(steps / v["trainer"]["limit_train_batches"])
+            recipe = (baseline(v["baseline"], root, v.get("module"), seed, data)
+                      if "baseline" in v else
+                      gartrans(root, overrides=model, schedule=sched, seed=seed, data=data))
             probe = Probe(sequences(data.get("history")) if data else sets, every, name, surface)
             folder = None if runs_dir is None else runs_dir / f"{slug(name)}-{tag}--s{seed}"
             last_ckpt = None if folder is None else folder / "last.ckpt"
-            trainer = _trainer(steps, [probe], folder, every, **v.get("trainer", {}))
+            trainer = _trainer(recipe, steps, [probe], folder, every, **v.get("trainer", {}))
             try:
                 trainer.fit(
-                    module, datamodule(root, seed, data=data),
+                    recipe.module, recipe.datamodule,
                     ckpt_path=last_ckpt if last_ckpt is not None and last_ckpt.is_file()
                     else None)
                 status = "ok"

@@ -1,7 +1,8 @@
-"""The settings ``benchmarks/learning.py`` compares: GarTrans variants (model overrides of
-the packaged config, Trainer arguments, data-module settings, the bench's schedule) and
-the baselines' recipes (``baseline``: the method, ``module``: overrides of its packaged
-configuration)."""
+"""The settings ``benchmarks/learning.py`` compares: GarTrans variants (model and module
+settings over the packaged recipe ``garmentgnn/recipes/gartrans.yaml``, Trainer
+arguments, data-module settings, the bench's schedule) and the baselines (``baseline``:
+the method, ``module``: settings over its packaged recipe,
+``garmentgnn/recipes/baselines/<name>.yaml``)."""
 from __future__ import annotations
 
 from typing import Any, Dict
@@ -15,10 +16,11 @@ _S = MATERIALS["silk"]
 #: loss weights that make the physics terms the silk preset's energies (SI units)
 _SILK: Dict[str, float] = {"stretch": _S.stretch, "shear": _S.shear, "bending": _S.bending,
                            "gravity": 1.0, "inertia": 1.0}
-#: GarTrans settings compared by ``curves``: model overrides of the packaged config,
-#: Trainer arguments and data-module settings.  Every variant but ``config`` starts from
-#: the former config's world-frame dynamic stack on raw inputs (:data:`_FORMER_INPUTS`,
-#: merged in below), as they were measured, unless it names the switches itself
+#: GarTrans settings compared by ``curves``: model and module settings over the packaged
+#: recipe, Trainer arguments and data-module settings.  Every variant but ``config``
+#: starts from the former recipe's world-frame dynamic stack on raw inputs
+#: (:data:`_FORMER_INPUTS`, merged in below), as they were measured, unless it names the
+#: switches itself
 VARIANTS: Dict[str, Dict[str, Any]] = {
     "config": {},
     "former config (world frame, raw inputs)": {},
@@ -61,8 +63,8 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "pose history 2": {"data": {"history": 2}},
     "pose history 10": {"data": {"history": 10}},
     "pose history 30": {"data": {"history": 30}},
-    # the baselines on the same curves (``baseline``: the method, ``module``: overrides of
-    # its packaged configuration)
+    # the baselines on the same curves (``baseline``: the method, ``module``: settings over
+    # its packaged recipe)
     "DA-style": {"baseline": DA},
     "HOOD-style": {"baseline": HOOD},
     "HOOD-style, lr 1e-4": {"baseline": HOOD, "module": {"lr": 1e-4}},
@@ -89,7 +91,7 @@ VARIANTS: Dict[str, Dict[str, Any]] = {
     "HOOD-style, former recipe, accelerations x10": {"baseline": HOOD, "module": dict(
         _HOOD_FORMER, model={"normalize": False, "accel_scale": 10.0})},
 }
-#: the config's dynamic-stack switches before ``local_frame`` and ``input_norm`` became
+#: the recipe's dynamic-stack switches before ``local_frame`` and ``input_norm`` became
 #: its defaults (docs/model.md)
 _FORMER_INPUTS: Dict[str, Any] = {"local_frame": False, "input_norm": False}
 for _name, _v in VARIANTS.items():
@@ -103,7 +105,7 @@ for _name, _v in VARIANTS.items():
 #: and 500)
 _LEARN: Dict[str, Any] = {"model": {"lr": 0.012}, "data": {"batch_size": 16},
                           "trainer": {"limit_train_batches": 25}, "anneal": True}
-#: which model can hold the garment's state (docs/experiments.md), today's config at the
+#: which model can hold the garment's state (docs/experiments.md), today's recipe at the
 #: ``learn`` settings: frame-parallel.  The motion code in the dynamic stack, the
 #: autoregressive offsets and the recurrent vertex latent, measured beside it, left the
 #: model (their runs name the commit they ran at)

@@ -1,6 +1,8 @@
 """The runs of ``benchmarks/mgn_learn.py``: the sweeps' table (``sweep``), a run branched
 from one of its checkpoints with pushforward (``branch``) and the cost of a training step
-against size, batch and threads (``steptime``)."""
+against size, batch and threads (``steptime``); the data, the modules and the trainer are
+the packaged recipe's (``garmentgnn/recipes/mgn.yaml``, read by
+:func:`~garmentgnn.training.load_recipe`)."""
 from __future__ import annotations
 
 import argparse
@@ -13,15 +15,11 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List
 
-import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
-from lightning.pytorch.loggers import CSVLogger
 
-from garmentgnn.data import SequenceChunks
-from garmentgnn.models import MGNStyle
-from garmentgnn.training import GarmentDataModule, SimulatorModule
+from garmentgnn.training import GarmentDataModule, SimulatorModule, load_recipe
 from garmentgnn.training.integrity import load_checkpoint_file
 
 __all__ = ["STEP_SIZES", "run_branch", "run_steptime", "run_sweep"]
@@ -72,19 +70,24 @@ def run_branch(args: argparse.Namespace) -> None:
     module = SimulatorModule.load_from_checkpoint(
         args.source, map_location="cpu", rollout=args.rollout, rollout_start=0, lr=lr,
         stats_steps=0)
+    # the run's data settings (another shuffle), windows of 2 + rollout frames, with the
+    # recipe's trainer (its log under --out, validation every --every steps)
     params = inspect.signature(GarmentDataModule.__init__).parameters
     dm_hp = {k: v for k, v in (src.get("datamodule_hyper_parameters") or {}).items()
              if k in params}
-    dm = GarmentDataModule(**dict(dm_hp, root=args.data, chunk=2 + args.rollout,
-                                  seed=int(dm_hp.get("seed", 0)) + 1))
-    trainer = L.Trainer(max_steps=args.steps, accelerator="cpu", devices=1,
-                        default_root_dir=args.out, val_check_interval=args.every,
-                        check_val_every_n_epoch=None, limit_val_batches=args.val_batches,
-                        log_every_n_steps=25, enable_progress_bar=False,
-                        logger=CSVLogger(args.out, name="logs"),
-                        callbacks=[ModelCheckpoint(every_n_train_steps=args.every,
-                                                   save_top_k=-1, filename="branch-{step}")])
-    trainer.fit(module, dm)
+    data = dict(dm_hp, root=args.data, chunk=2 + args.rollout,
+                seed=int(dm_hp.get("seed", 0)) + 1)
+    flags = ["--trainer.default_root_dir", str(args.out)]
+    for k, v in data.items():
+        flags += [f"--data.{k}", v if isinstance(v, str) else json.dumps(v)]
+    recipe = load_recipe("mgn", args=flags)
+    trainer = recipe.trainer(max_steps=args.steps, max_epochs=-1, accelerator="cpu",
+                             devices=1, val_check_interval=args.every,
+                             limit_val_batches=args.val_batches, enable_progress_bar=False,
+                             callbacks=[ModelCheckpoint(every_n_train_steps=args.every,
+                                                        save_top_k=-1,
+                                                        filename="branch-{step}")])
+    trainer.fit(module, recipe.datamodule)
     print(f"branched from step {step0} at lr {lr:.3g}: {args.steps} steps with rollout "
           f"{args.rollout}; checkpoints under {args.out}")
 
@@ -98,17 +101,20 @@ STEP_SIZES = ((64, 8, 1), (64, 10, 1), (128, 15, 1), (32, 8, 16), (64, 4, 16), (
 def run_steptime(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    ds = SequenceChunks(args.data, "train", chunk=3, stride=1, drop_last=True, history=1,
-                        nystrom_dim=16, num_landmarks=64, cache_size=512, static_cache=512)
+    # the recipe's training windows, of 3 frames (one trained step each); each size is
+    # the recipe's module with that width and depth
+    data = ["--data.root", str(args.data), "--data.chunk", "3", "--seed_everything", "0"]
+    ds = load_recipe("mgn", args=data).datamodule.train_set
     g = torch.Generator().manual_seed(0)
     results: Dict[str, Any] = {"data": args.data, "sizes": {}, "torch": torch.__version__}
     for threads in args.threads:
         torch.set_num_threads(threads)
         steps = {}
         for hidden, layers, n in STEP_SIZES:
-            torch.manual_seed(0)
-            module = SimulatorModule(MGNStyle(hidden=hidden, layers=layers), stats_steps=0,
-                                     rollout=1)
+            module = load_recipe("mgn", args=data, set={  # at seed 0
+                "model.init_args.model.init_args.hidden": hidden,
+                "model.init_args.model.init_args.layers": layers,
+                "model.init_args.stats_steps": 0, "model.init_args.rollout": 1}).module
             module.train()
             opt = torch.optim.Adam(module.parameters(), 1e-4)
             batches = [ds[torch.randperm(len(ds), generator=g)[:n].tolist()] if n > 1 else
