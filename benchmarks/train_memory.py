@@ -72,8 +72,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     out = output_path(args, RESULTS)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
-    config = GARTRANS[args.method].config
-    recipe = load_recipe(f"ablations/{config}" if config else "gartrans",
+    recipe = load_recipe(GARTRANS[args.method],
                          args=["--data.root", str(args.data), "--data.val_split", "null",
                                "--data.cache_size", "64", "--seed_everything", "0"])
     probe = RSSProbe(args.every)

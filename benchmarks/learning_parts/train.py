@@ -19,7 +19,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from garmentgnn.data import SequenceChunks
 from garmentgnn.data.store import read_manifest
 from garmentgnn.bench import scoring
-from garmentgnn.bench.methods import BASELINE_CONFIGS, DA, DATA, FULL, GARTRANS, HOOD, NCS
+from garmentgnn.bench.methods import DA, DATA, FULL, GARTRANS, HOOD, NCS, recipe_of
 from garmentgnn.bench.tables import slug, table
 from garmentgnn.models import GarTrans
 from garmentgnn.metrics.garment_metrics import evaluate_inputs, vertex_distance
@@ -36,15 +36,6 @@ SCHEDULE: Dict[str, Any] = {k: p.default for k, p in inspect.signature(
 
 
 # ------------------------------------------------------------------ building methods
-def recipe_of(method: str) -> str:
-    """The packaged recipe of the bench's learned ``method`` (a GarTrans variant or a
-    baseline)."""
-    if method in GARTRANS:
-        config = GARTRANS[method].config
-        return f"ablations/{config}" if config else "gartrans"
-    return BASELINE_CONFIGS[method]
-
-
 def flags(section: str, values: Dict[str, Any]) -> List[str]:
     """``values`` as ``garmentgnn train`` flags of ``section`` (``--data.history 10``;
     a value that is not a string as JSON)."""

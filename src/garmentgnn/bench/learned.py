@@ -284,13 +284,11 @@ class LearnedRunner:
 
     def load(self, method: str, seed: int, args: Sequence[str] = (),
              set: Optional[Dict[str, Any]] = None) -> Tuple[Recipe, Dict[str, Any]]:
-        """``method``'s recipe (:func:`~garmentgnn.bench.methods.recipe_of`) built on
-        this dataset by
-        :func:`~garmentgnn.training.load_recipe`, seeded with ``seed``: no validation
-        split (the curves score their own sequences), the budget's ``lr_factor`` on its
-        learning rate, ``args`` and ``set`` on top.  Returns it and the description of
-        the run that its ``run.json`` records (:meth:`_folder`): the recipe, its parsed
-        module and data settings, the budget's limits."""
+        """``method``'s recipe (:func:`~garmentgnn.bench.methods.recipe_of`) on this
+        dataset (:func:`~garmentgnn.training.load_recipe`), seeded with ``seed``, no
+        validation split, the budget's ``lr_factor``, ``args`` and ``set`` on top; and the
+        run's description for ``run.json`` (:meth:`_folder`): recipe, module and data
+        settings, limits."""
         recipe = recipe_of(method)
         lr = self.budget.lr_factor
         r = load_recipe(recipe, args=["--data.root", str(self.data.root), "--data.val_split",

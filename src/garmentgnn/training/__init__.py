@@ -11,7 +11,7 @@ from garmentgnn.training.budget import TimeBudget
 from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
 from garmentgnn.training.simulator import SimulatorModule
-from garmentgnn.training.lightning_cli import Recipe, load_recipe
+from garmentgnn.training.loader import Recipe, load_recipe
 
 __all__ = [
            "PHASE_TERMS",

@@ -16,9 +16,10 @@ says *what* to train::
     garmentgnn train fit --config gartrans --ckpt_path last   # resume
     garmentgnn train test --config baselines/da --ckpt_path X.ckpt
 
-:func:`load_recipe` reads recipes with the same parser from Python and builds their
-module, data module and callbacks; :meth:`Recipe.trainer` is the one ``Trainer`` built
-outside the command.
+:func:`~garmentgnn.training.loader.load_recipe` reads recipes with the same parser from
+Python and builds their module, data module and callbacks;
+:meth:`~garmentgnn.training.loader.Recipe.trainer` is the one ``Trainer`` built outside
+the command.
 
 ``test`` prints the paper's metrics of the checkpoint's method and of "LBS only" on the
 same frames side by side (:func:`metrics_table`); ``predict`` writes the predicted
@@ -45,7 +46,6 @@ import importlib.util
 import inspect
 import os
 import sys
-import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Union
 
@@ -58,8 +58,7 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 from garmentgnn.training.base import LBS_PREFIX, GarmentModule
-from garmentgnn.training.recipes import available as available_recipes
-from garmentgnn.training.recipes import (import_class, named_module, recipe_path,
+from garmentgnn.training.recipes import (import_class, named_module,
                                          recipes_of_model, resolve_config_args)
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.evaluate import markdown_table
@@ -392,106 +391,6 @@ class GarmentCLI(LightningCLI):
             table = metrics_table(self.trainer.callback_metrics, method_name(self.model))
             print(f"\ntest split {self.datamodule.hparams.test_split!r}, frame-weighted "
                   f"means:\n{table}")
-
-
-class _RecipeCLI(GarmentCLI):
-    """:class:`GarmentCLI` that parses on construction and builds (seeds, instantiates
-    the module and the data module) only when :meth:`build` is called, and its trainer
-    only when :meth:`Recipe.trainer` is."""
-
-    _building = False
-
-    def _set_seed(self) -> None:
-        if self._building:
-            super()._set_seed()
-
-    def instantiate_classes(self) -> None:
-        if not self._building:
-            return
-        self.config_init = self.parser.instantiate_classes(self.config)
-        self.datamodule = self._get(self.config_init, "data")
-        self.model = self._get(self.config_init, "model")
-        self._add_configure_optimizers_method_to_model(self.subcommand)
-
-    def build(self) -> None:
-        self._building = True
-        self._set_seed()
-        self.instantiate_classes()
-
-
-class Recipe:
-    """What :func:`load_recipe` read and built.
-
-    Attributes:
-        module: the :class:`GarmentModule` (its model handed to it, the data's sizes
-            linked in).
-        datamodule: the :class:`GarmentDataModule`.
-        callbacks: the recipe's trainer callbacks (its checkpoints; the module's own,
-            such as GarTrans's schedule, come from its ``configure_callbacks``).
-        config: the parsed configuration as a plain dict (what ``--print_config``
-            shows), with the values ``set`` changed.
-    """
-
-    def __init__(self, cli: _RecipeCLI) -> None:
-        self._cli = cli
-        self.module: GarmentModule = cli.model
-        self.datamodule: GarmentDataModule = cli.datamodule
-        self.callbacks: List[Any] = list(cli.config_init.trainer.get("callbacks") or [])
-        self.config: Dict[str, Any] = _plain(cli.config)
-        # the parser's instantiators outlive the call (jsonargparse keeps the latest
-        # parser): the CLI keeps only the trainer's settings, not the module and data
-        cli.model = cli.datamodule = None
-        cli.config_init.model = cli.config_init.data = None
-
-    def trainer(self, **overrides: Any) -> Trainer:
-        """The recipe's ``Trainer`` (its ``trainer:`` settings over
-        :data:`TRAINER_DEFAULTS`) with ``overrides`` (``Trainer`` arguments; a
-        ``callbacks`` list replaces the recipe's).  Build one per loaded recipe: its
-        callbacks hold the state of one fit."""
-        return self._cli.instantiate_trainer(**overrides)
-
-    def __repr__(self) -> str:
-        return (f"Recipe(module={type(self.module).__name__}, "
-                f"model={type(getattr(self.module, 'model', None)).__name__}, "
-                f"root={self.datamodule.root})")
-
-
-def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
-                set: Optional[Dict[str, Any]] = None) -> Recipe:
-    """Read ``recipes`` (packaged names or YAML paths, later ones over earlier ones, as
-    repeated ``--config``) and ``args`` (``garmentgnn train`` flags, e.g.
-    ``["--data.root", "data/small", "--seed_everything", "1"]``) with the CLI's parser,
-    change the parsed values ``set`` names (dotted keys such as
-    ``"model.init_args.lr"``; a callable value is applied to the recipe's value), seed,
-    and build the module, the data module and the callbacks.  A flag or a value the
-    parser rejects is a ``ValueError`` with its message; sizes linked from the data
-    (``nystrom_dim``) follow ``--data.*`` flags, not ``set``."""
-    if not recipes:
-        raise ValueError("`recipes`: give at least one recipe (e.g. 'gartrans'); "
-                         f"the packaged ones: {', '.join(available_recipes())}")
-    if isinstance(args, str):
-        raise TypeError("`args`: expected a list of flags, got a string; "
-                        "e.g. ['--data.root', 'data/small']")
-    argv: List[str] = []
-    for r in recipes:
-        argv += ["--config", str(recipe_path(r))]
-    argv += [str(a) for a in args]
-    try:
-        with warnings.catch_warnings():  # (that the process has command-line arguments too)
-            warnings.filterwarnings("ignore", "LightningCLI's args parameter")
-            cli = _RecipeCLI(GarmentModule, GarmentDataModule, args=argv,
-                             default_model=named_module(argv), run=False,
-                             seed_everything_default=0, save_config_callback=None)
-    except SystemExit as err:  # jsonargparse reports a bad flag by exiting
-        raise ValueError(f"`args`: the recipe {list(map(str, recipes))} with {list(args)} "
-                         f"does not parse (its message above)") from err
-    for key, value in (set or {}).items():
-        if key not in cli.config:
-            raise ValueError(f"`set`: {key!r} is no setting of the recipe; give a dotted "
-                             f"key of its configuration (e.g. 'model.init_args.lr')")
-        cli.config[key] = value(cli.config[key]) if callable(value) else value
-    cli.build()
-    return Recipe(cli)
 
 
 def main(args: Optional[Sequence[str]] = None, run: bool = True,
