@@ -42,7 +42,7 @@ from test_data import fake_simulate
 from test_training import NY, root  # noqa: F401  (module-scoped toy dataset)
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = str(ROOT / "src" / "garmentgnn" / "configs" / "gartrans.yaml")
+CONFIG = str(ROOT / "src" / "garmentgnn" / "recipes" / "gartrans.yaml")
 
 
 def env():
@@ -327,7 +327,7 @@ def test_train_test_prints_lbs_beside_the_method_and_predict_writes(root, tmp_pa
             "16", "--data.test_split", "val", "--trainer.limit_test_batches", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir",
             str(tmp_path), "--trainer.logger.init_args.save_dir", str(tmp_path),
-            "--model.model.compile_search", "false"]
+            "--model.compile_search", "false"]
     assert cli_main(["train", "fit"] + args + ["--trainer.max_epochs", "1",
                                                "--trainer.limit_train_batches", "1",
                                                "--trainer.limit_val_batches", "1"]) == 0

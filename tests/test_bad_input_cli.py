@@ -17,7 +17,7 @@ from garmentgnn.viz.compare import comparison
 from test_data import fake_simulate, files_of
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = str(ROOT / "src" / "garmentgnn" / "configs" / "gartrans.yaml")
+CONFIG = str(ROOT / "src" / "garmentgnn" / "recipes" / "gartrans.yaml")
 GEN = ["--engine", "torch", "--no-estimate", "--no-progress",
        "--simulate-fn", "test_data:fake_simulate"]
 

@@ -15,9 +15,10 @@ from garmentgnn.cli import main as cli_main
 from garmentgnn.data import read_manifest, store
 from garmentgnn.data import SequenceChunks
 from garmentgnn.models.baselines import NCSStyle
-from garmentgnn.training import BaselineModule, GarmentDataModule
-from garmentgnn.training.configs import config_path, resolve_config_args
+from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
+from garmentgnn.training.recipes import resolve_config_args
 from garmentgnn.training.lightning_cli import count_first
+from garmentgnn.training.lightning_cli import main as train_main
 
 from test_bad_input_cli import edit_sequence, one_error
 from test_training import NY, root  # noqa: F401  (module-scoped toy dataset: train + val)
@@ -107,19 +108,22 @@ def test_predict_with_a_misspelt_split_names_the_flag(root, tmp_path, capsys,  #
     one_error(capsys, rc, "--data.predict_split", "'tset'", "train, val")
 
 
-# ------------------------------------------------------------------ configs
-@pytest.mark.parametrize("configs", [["ablations/gat"], ["baselines/da", "ablations/gat"]])
-def test_ablation_config_without_gartrans_is_refused(root, tmp_path, capsys,  # noqa: F811
-                                                     configs):
-    """An ablation alone trained with no schedule, no checkpoints and no loss weights."""
-    argv = [a for c in configs for a in ("--config", c)]
-    rc = cli_main(["train", "fit"] + argv + data_args(root, tmp_path)
-                  + ["--model.init_args.compile_search", "false"])
-    one_error(capsys, rc, "--config ablations/gat", "--config gartrans --config ablations/gat")
-    assert not list(tmp_path.rglob("*.ckpt"))
-    stacked = resolve_config_args(["--config", str(config_path("gartrans")),
-                                   "--config=ablations/gat"])
-    assert stacked[-1].endswith("ablations/gat.yaml")  # on its base: resolved, no error
+# ------------------------------------------------------------------ recipes
+def test_an_ablation_recipe_alone_trains_the_headline_but_its_layer(root, tmp_path):  # noqa: F811
+    """An ablation recipe is complete: alone it builds GarTrans's module with the full
+    model's loss weights, schedule and checkpoints (before, alone it trained without
+    them), its one difference the layer."""
+    args = data_args(root, tmp_path)
+    gat = train_main(["--config", "ablations/gat"] + args, run=False)
+    full = train_main(["--config", "gartrans"] + args, run=False)
+    assert isinstance(gat.model, GarTransModule)
+    one, other = dict(gat.model.hparams), dict(full.model.hparams)
+    assert one.pop("model")["init_args"] == dict(other.pop("model")["init_args"],
+                                                 dynamic_layer="gat")
+    assert one == other
+    assert [type(c) for c in gat.trainer.callbacks] == [type(c) for c in full.trainer.callbacks]
+    with pytest.raises(ValueError, match="no packaged recipe of that name"):
+        resolve_config_args(["--config=ablations/nope"])
 
 
 # ------------------------------------------------------------------ Nyström sizes
@@ -227,10 +231,10 @@ def test_ncs_history_is_checked_at_set_up(root):  # noqa: F811
 
 
 # ------------------------------------------------------------------ config names
-def test_unknown_config_name_lists_the_packaged_ones(root, tmp_path, capsys):  # noqa: F811
+def test_unknown_recipe_name_lists_the_packaged_ones(root, tmp_path, capsys):  # noqa: F811
     """`--config nosuch` printed the whole usage and "File does not exist"."""
     rc = cli_main(["train", "fit", "--config", "nosuch"] + data_args(root, tmp_path))
-    last = one_error(capsys, rc, "--config nosuch", "no packaged configuration",
+    last = one_error(capsys, rc, "--config nosuch", "no packaged recipe",
                      "gartrans", "baselines/da", "ablations/gat")
     assert "usage" not in capsys.readouterr().err
     assert last.count("error:") == 1

@@ -113,7 +113,7 @@ def parse_train(args):
     """LightningCLI's parse of ``garmentgnn train`` ``args`` (the packaged configuration
     names resolved), without checking files or building anything."""
     from lightning.pytorch.cli import LightningCLI  # noqa: PLC0415
-    from garmentgnn.training.configs import named_module, resolve_config_args  # noqa: PLC0415
+    from garmentgnn.training.recipes import named_module, resolve_config_args  # noqa: PLC0415
     from garmentgnn.training.lightning_cli import GarmentCLI  # noqa: PLC0415
 
     class ParseOnly(GarmentCLI):

@@ -29,7 +29,7 @@ def test_the_learn_checkpoint_scores_its_recorded_error(tmp_path, monkeypatch):
     assert int(item.valid.sum()) == record["frames"]  # the frames the record scored
     cli = train_main(["test", "--config", "gartrans", "--data.root", str(root),
                       "--data.train_split", "test", "--ckpt_path", str(CKPT),
-                      "--model.model.init_args.compile_search", "false",
+                      "--model.init_args.compile_search", "false",
                       "--trainer.enable_progress_bar", "false",
                       "--trainer.default_root_dir", str(tmp_path),
                       "--trainer.logger.init_args.save_dir", str(tmp_path)])

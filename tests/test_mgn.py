@@ -19,7 +19,7 @@ from garmentgnn.models.baselines import DAStyle
 from garmentgnn.nn import LAYERS
 from garmentgnn.physics import MATERIALS, material_features
 from garmentgnn.training import BaselineModule, GarmentDataModule, SimulatorModule
-from garmentgnn.training.configs import configs_of_model
+from garmentgnn.training.recipes import recipes_of_model
 from garmentgnn.training.integrity import CheckpointError
 
 from conftest import skirt_dataset
@@ -343,10 +343,10 @@ def test_pushforward_trains_from_its_own_state(root):
 
 
 def test_the_packaged_configs_name_the_model_they_train():
-    assert configs_of_model("garmentgnn.models.MGNStyle") == ["mgn"]
-    assert configs_of_model("x.GarTrans") == ["gartrans"]
-    assert configs_of_model("DAStyle") == ["baselines/da"]
-    assert configs_of_model("Nothing") == []
+    assert recipes_of_model("garmentgnn.models.MGNStyle") == ["mgn"]
+    assert recipes_of_model("x.GarTrans") == ["gartrans"]
+    assert recipes_of_model("DAStyle") == ["baselines/da"]
+    assert recipes_of_model("Nothing") == []
 
 
 def _cli_args(root, tmp_path):

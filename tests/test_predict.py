@@ -27,7 +27,7 @@ from test_own_garment import files, one_error, write_spec  # noqa: F401 (a fixtu
 ROOT = Path(__file__).resolve().parents[1]
 GARTRANS = ROOT / "tests" / "data" / "gartrans_learn.ckpt"
 MGN = ROOT / "tests" / "data" / "mgn_learn.ckpt"
-CONFIG = str(ROOT / "src" / "garmentgnn" / "configs" / "gartrans.yaml")
+CONFIG = str(ROOT / "src" / "garmentgnn" / "recipes" / "gartrans.yaml")
 
 
 def read_pc2(path: Path) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""``garmentgnn train`` for every method: each packaged config builds the module it names
-with the config's own arguments (the YAML file is the oracle), ``fit`` then ``test`` of a
+"""``garmentgnn train`` for every method: each packaged recipe builds the module it names
+with the recipe's own arguments (the YAML file is the oracle), ``fit`` then ``test`` of a
 baseline and an ablation through the command line, the test metrics against an
 independent whole-sequence evaluation, and checkpoints in the layout written before
 the CLI covered every method."""
@@ -16,14 +16,14 @@ from garmentgnn.cli import main as cli_main
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
                                  SimulatorModule)
-from garmentgnn.training.configs import available, config_path, module_spec, named_module
+from garmentgnn.training.recipes import available, named_module, recipe_path
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
 from garmentgnn.training.lightning_cli import main as train_main
 from garmentgnn.models import GarTrans
 from garmentgnn.models.baselines import NCSStyle
 from garmentgnn.training.integrity import stamp_checkpoint
-from garmentgnn.training.configs import instantiate
+from recipe_helpers import module as recipe_module
 from test_training import NY, root  # noqa: F401  (the module-scoped toy dataset fixture)
 from test_training_cli import fast_args
 
@@ -34,11 +34,9 @@ CLASSES = {"garmentgnn.training.GarTransModule": GarTransModule,
 
 
 def _config_args(name):
-    """The ``--config`` flags of packaged config ``name`` (an ablation on top of GarTrans;
-    the simulator's windows and batch sized for the toy dataset)."""
-    base = ["--config", "gartrans"] if name.startswith("ablations/") else []
-    toy = ["--data.batch_size", "2"] if name == "mgn" else []
-    return base + ["--config", name] + toy
+    """The ``--config`` flags of packaged recipe ``name`` (the simulator's windows and
+    batch sized for the toy dataset)."""
+    return ["--config", name] + (["--data.batch_size", "2"] if name == "mgn" else [])
 
 
 def _test_args(data_root, tmp_path):
@@ -47,20 +45,18 @@ def _test_args(data_root, tmp_path):
                                              "--data.history", "3"]
 
 
-def test_every_method_has_a_packaged_config():
+def test_every_method_has_a_packaged_recipe():
     assert [n for n in available() if not n.startswith("ablations/")] == [
         "baselines/da", "baselines/hood", "baselines/ncs", "gartrans", "mgn"]
 
 
 @pytest.mark.parametrize("name", available())
-def test_each_packaged_config_builds_its_module(root, tmp_path, name):  # noqa: F811
+def test_each_packaged_recipe_builds_its_module(root, tmp_path, name):  # noqa: F811
     cli = train_main(_config_args(name) + _test_args(root, tmp_path), run=False)
-    cfg = yaml.safe_load(config_path("gartrans" if name.startswith("ablations/")
-                                     else name).read_text())
+    cfg = yaml.safe_load(recipe_path(name).read_text())
     assert isinstance(cli.model, CLASSES[cfg["model"]["class_path"]])
     assert isinstance(cli.datamodule, GarmentDataModule)
-    names = ["gartrans", name] if name.startswith("ablations/") else [name]
-    expected = module_spec(*names)["init_args"]
+    expected = cfg["model"]["init_args"]
     hp = dict(cli.model.hparams)
     for k, v in expected.items():
         if k == "model":  # the model it is handed: its configured settings, as built
@@ -126,9 +122,8 @@ def test_fit_then_test_any_method_through_the_command_line(root, tmp_path, capsy
 
 
 def _bench_style_checkpoint(module, dm, path):
-    """A checkpoint as the bench and the code before the every-method CLI wrote it: the
-    module built outside LightningCLI (no ``_class_path``), no data module
-    hyper-parameters."""
+    """A checkpoint of a module built in Python (``BaselineModule(DAStyle(...))``: no
+    ``_class_path``) and trained without a data module's hyper-parameters."""
     trainer = L.Trainer(max_epochs=1, limit_train_batches=1, limit_val_batches=0,
                         accelerator="cpu", logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False)
@@ -136,15 +131,16 @@ def _bench_style_checkpoint(module, dm, path):
     trainer.save_checkpoint(path)
     ck = torch.load(path, weights_only=False)
     ck.pop("datamodule_hyper_parameters", None)
-    assert "_class_path" not in ck["hyper_parameters"]
+    ck["hyper_parameters"].pop("_class_path", None)  # as a module built in Python has none
+    stamp_checkpoint(ck)
     torch.save(ck, path)
 
 
 def test_checkpoints_in_the_earlier_layout_load_and_other_methods_are_refused(
         root, tmp_path, capsys):  # noqa: F811
-    dm = GarmentDataModule(root, chunk=4, history=3, nystrom_dim=NY, num_landmarks=16)
-    L.seed_everything(0)
-    da = instantiate(module_spec("baselines/da"), dm.dims)
+    data = {"chunk": 4, "history": 3, "nystrom_dim": NY, "num_landmarks": 16}
+    dm = GarmentDataModule(root, **data)
+    da = recipe_module("baselines/da", root, data)
     _bench_style_checkpoint(da, dm, tmp_path / "da.ckpt")
     args = _test_args(root, tmp_path / "run") + ["--trainer.limit_test_batches", "1"]
     cli = train_main(["test", "--config", "baselines/da", "--ckpt_path",
@@ -245,7 +241,7 @@ def test_a_module_named_by_the_user_gets_its_own_defaults(root, tmp_path, how): 
 
 
 def test_named_module_reads_flags_and_configs_in_order():
-    hood, gartrans = str(config_path("baselines/hood")), str(config_path("gartrans"))
+    hood, gartrans = str(recipe_path("baselines/hood")), str(recipe_path("gartrans"))
     assert named_module(["--data.root", "x"]) is None
     assert named_module(["--config", hood]) == "garmentgnn.training.BaselineModule"
     assert named_module(["--config", hood, "--config", gartrans]) == \

@@ -13,7 +13,7 @@ from garmentgnn.training.plots import (TrainingPlots, plot_training_curves,
                                        read_metrics_csv)
 
 from test_training import root  # noqa: F401  (the module-scoped toy dataset fixture)
-from test_training_cli import CONFIGS, fast_args
+from test_training_cli import RECIPES, fast_args
 
 
 def _tensorboard_scalars(folder):
@@ -27,7 +27,7 @@ def _tensorboard_scalars(folder):
 
 def test_train_writes_curves_matching_the_csv_logger(root, tmp_path):  # noqa: F811
     pytest.importorskip("tensorboard", reason="make install installs tensorboard")
-    args = ["fit", "--config", str(CONFIGS / "gartrans.yaml")] + fast_args(root, tmp_path)
+    args = ["fit", "--config", str(RECIPES / "gartrans.yaml")] + fast_args(root, tmp_path)
     args[args.index("--trainer.max_epochs") + 1] = "2"
     cli = train_main(args)
     plots = [c for c in cli.trainer.callbacks if isinstance(c, TrainingPlots)]

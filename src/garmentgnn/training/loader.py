@@ -119,5 +119,9 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
             raise ValueError(f"`set`: {key!r} is no setting of the recipe; give a dotted "
                              f"key of its configuration (e.g. 'model.init_args.lr')")
         cli.config[key] = value(cli.config[key]) if callable(value) else value
+    try:
+        cli.parser.validate(cli.config)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"`set`: {str(err).strip()}") from None
     cli.build()
     return Recipe(cli)
