@@ -13,11 +13,11 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Union
 
-from lightning.pytorch import Trainer
+from lightning.pytorch import Trainer, seed_everything
 
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.datamodule import GarmentDataModule
-from garmentgnn.training.lightning_cli import GarmentCLI, _plain
+from garmentgnn.training.lightning_cli import GarmentCLI
 from garmentgnn.training.recipes import available, named_module, recipe_path
 
 __all__ = ["Recipe", "load_recipe"]
@@ -30,21 +30,17 @@ class _RecipeCLI(GarmentCLI):
 
     _building = False
 
-    def _set_seed(self) -> None:
-        if self._building:
-            super()._set_seed()
-
     def instantiate_classes(self) -> None:
         if not self._building:
             return
         self.config_init = self.parser.instantiate_classes(self.config)
-        self.datamodule = self._get(self.config_init, "data")
-        self.model = self._get(self.config_init, "model")
-        self._add_configure_optimizers_method_to_model(self.subcommand)
+        self.datamodule, self.model = self.config_init["data"], self.config_init["model"]
 
     def build(self) -> None:
         self._building = True
-        self._set_seed()
+        seed = self.config.get("seed_everything")  # an int once parsed (True drew one)
+        if seed is not None and not isinstance(seed, bool):
+            seed_everything(seed, workers=True, verbose=False)
         self.instantiate_classes()
 
 
@@ -66,7 +62,7 @@ class Recipe:
         self.module: GarmentModule = cli.model
         self.datamodule: GarmentDataModule = cli.datamodule
         self.callbacks: List[Any] = list(cli.config_init.trainer.get("callbacks") or [])
-        self.config: Dict[str, Any] = _plain(cli.config)
+        self.config: Dict[str, Any] = cli.config.as_dict()
         # the parser's instantiators outlive the call (jsonargparse keeps the latest
         # parser): the CLI keeps only the trainer's settings, not the module and data
         cli.model = cli.datamodule = None
@@ -74,7 +70,7 @@ class Recipe:
 
     def trainer(self, **overrides: Any) -> Trainer:
         """The recipe's ``Trainer`` (its ``trainer:`` settings over
-        :data:`TRAINER_DEFAULTS`) with ``overrides`` (``Trainer`` arguments; a
+        :data:`~garmentgnn.training.lightning_cli.TRAINER_DEFAULTS`) with ``overrides`` (``Trainer`` arguments; a
         ``callbacks`` list replaces the recipe's).  Build one per loaded recipe: its
         callbacks hold the state of one fit."""
         return self._cli.instantiate_trainer(**overrides)
@@ -110,7 +106,8 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
             warnings.filterwarnings("ignore", "LightningCLI's args parameter")
             cli = _RecipeCLI(GarmentModule, GarmentDataModule, args=argv,
                              default_model=named_module(argv), run=False,
-                             seed_everything_default=0, save_config_callback=None)
+                             seed_everything_default=0, save_config_callback=None,
+                             auto_configure_optimizers=False)
     except SystemExit as err:  # jsonargparse reports a bad flag by exiting
         raise ValueError(f"`args`: the recipe {list(map(str, recipes))} with {list(args)} "
                          f"does not parse (its message above)") from err
