@@ -53,9 +53,7 @@ def data(tmp_path_factory):
 def learned_only(**budget) -> presets.Preset:
     """The tiny preset with its simulator parts removed (only the learned tasks run; the
     learned stability suite only when ``stability_cases`` is given)."""
-    p = presets.preset("tiny")
-    p = dataclasses.replace(p, cases=(), budgets=(), stability_cases=(), scaling_item=None,
-                            leaveout=False, precision_methods=(), long_item=None)
+    p = presets.preset("tiny").learned_only()
     budget.setdefault("stability_cases", ())
     return dataclasses.replace(p, learned=dataclasses.replace(p.learned, **budget))
 

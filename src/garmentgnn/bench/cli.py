@@ -1,5 +1,6 @@
-"""``garmentgnn bench --preset NAME --out DIR [--seeds N] [--data DATASET] [--no-learned]
-[--minutes M] [--batch-size N] [--lr-factor F] [--methods NAME ...] [--shard I/N]``.
+"""``garmentgnn bench --preset NAME --out DIR [--seeds N] [--data DATASET] [--no-learned |
+--learned-only] [--minutes M] [--batch-size N] [--lr-factor F] [--methods NAME ...]
+[--shard I/N]``.
 
 :mod:`garmentgnn.cli` adds it with ``add_parser(subparsers)`` and calls ``main(args)``
 for ``args.command == "bench"``.
@@ -37,6 +38,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "(default: generate the preset's dataset under OUT/data)")
     b.add_argument("--no-learned", action="store_true",
                    help="do not train/evaluate the learned methods (no dataset needed)")
+    b.add_argument("--learned-only", action="store_true",
+                   help="run only the learned methods (and their stability suite), not the "
+                        "simulator's cases: e.g. a new recipe beside GarTrans")
     b.add_argument("--minutes", type=float, default=None,
                    help="training minutes of every learned run, instead of the preset's "
                         "(e.g. an hours-long budget on a GPU; use a new --out: finished "
@@ -73,7 +77,8 @@ def _command(args: argparse.Namespace) -> str:
             parts += [flag, str(value)]
     if args.methods:
         parts += ["--methods"] + [shlex.quote(m) for m in args.methods]
-    for flag, on in (("--no-learned", args.no_learned), ("--retry-failed", args.retry_failed),
+    for flag, on in (("--no-learned", args.no_learned), ("--learned-only", args.learned_only),
+                     ("--retry-failed", args.retry_failed),
                      ("--no-progress", args.no_progress)):
         if on:
             parts.append(flag)
@@ -113,6 +118,9 @@ def main(args: argparse.Namespace) -> int:
     if args.data is not None and args.no_learned:
         print("error: --data and --no-learned exclude each other", file=sys.stderr)
         return 2
+    if args.learned_only and args.no_learned:
+        print("error: --learned-only and --no-learned exclude each other", file=sys.stderr)
+        return 2
     shard = None
     if args.shard is not None:
         try:
@@ -131,6 +139,10 @@ def main(args: argparse.Namespace) -> int:
                              "runs; --no-learned runs none")
         p = _learned_overrides(preset(args.preset), args.minutes, args.methods,
                                args.batch_size, args.lr_factor)
+        if args.learned_only:
+            if p.learned is None:
+                raise ValueError(f"--learned-only: preset {p.name!r} has no learned methods")
+            p = p.learned_only()
         summary = run(p, args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,
                       data=args.data, learned=not args.no_learned,

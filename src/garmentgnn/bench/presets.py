@@ -81,7 +81,7 @@ class Preset:
     precision_methods: Tuple[str, ...] = ()
     long_item: Optional[Dict[str, Any]] = None
     model_inputs: Dict[str, int] = field(default_factory=lambda: {
-        "history": 3, "nystrom_dim": 16, "num_landmarks": 64})
+        k: methods.DATA[k] for k in ("history", "nystrom_dim", "num_landmarks")})
     dataset: Optional[str] = None
     learned: Optional[methods.LearnedBudget] = None
     data_workers: int = 1
@@ -91,6 +91,12 @@ class Preset:
 
     def method_names(self) -> List[str]:
         return [self.reference.name] + [b.name for b in self.budgets] + list(self.methods)
+
+    def learned_only(self) -> "Preset":
+        """This preset with its simulator parts left out: only the learned methods (and
+        their stability suite, where the budget has one) run."""
+        return replace(self, cases=(), budgets=(), stability_cases=(), scaling_item=None,
+                       leaveout=False, precision_methods=(), long_item=None, engines=False)
 
 
 def preset(name: str) -> Preset:

@@ -69,10 +69,10 @@ class Recipe:
         cli.config_init.model = cli.config_init.data = None
 
     def trainer(self, **overrides: Any) -> Trainer:
-        """The recipe's ``Trainer`` (its ``trainer:`` settings over
-        :data:`~garmentgnn.training.lightning_cli.TRAINER_DEFAULTS`) with ``overrides`` (``Trainer`` arguments; a
-        ``callbacks`` list replaces the recipe's).  Build one per loaded recipe: its
-        callbacks hold the state of one fit."""
+        """The recipe's ``Trainer``: its ``trainer:`` settings over
+        :data:`~garmentgnn.training.lightning_cli.TRAINER_DEFAULTS`, with ``overrides``
+        (``Trainer`` arguments; a ``callbacks`` list replaces the recipe's).  Build one
+        per loaded recipe: its callbacks hold the state of one fit."""
         return self._cli.instantiate_trainer(**overrides)
 
     def __repr__(self) -> str:
