@@ -44,6 +44,7 @@ from garmentgnn._plotting import pyplot
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.model_inputs import BenchChunks
 from garmentgnn.bench.scoring import GROUPS, aggregate, score, stratified, wilcoxon
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.training import SimulatorModule
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.viz.compare import load_checkpoint
@@ -73,11 +74,17 @@ def sequences(module: GarmentModule, data: str, split: str,
               ids: Optional[Sequence[str]] = None) -> Scored:
     """``split``'s whole sequences as ``module`` reads them (its pose history and Nyström
     width)."""
-    init = getattr(module.model, "init_args", {})
-    history = 1 if isinstance(module, SimulatorModule) else 3
-    ny = init.get("nystrom_dim") or 16
-    return Scored(data, split, chunk=10 ** 6, history=history, nystrom_dim=ny,
-                  num_landmarks=64, cache_size=2, static_cache=2, ids=ids)
+    return Scored(data, split, chunk=10 ** 6, cache_size=2, static_cache=2, ids=ids,
+                  **read_settings(module))
+
+
+def read_settings(module: GarmentModule) -> Dict[str, int]:
+    """The pose history and Nyström sizes ``module`` was trained to read: its
+    checkpoint's data settings (the data module's defaults where it has none)."""
+    trained = getattr(module, "trained_data", None) or {}
+    return {"history": trained.get("history", HISTORY),
+            "nystrom_dim": trained.get("nystrom_dim", NYSTROM_DIM),
+            "num_landmarks": trained.get("num_landmarks", NUM_LANDMARKS)}
 
 
 def per_frame(pred: torch.Tensor, item) -> List[Optional[float]]:
@@ -340,13 +347,12 @@ def run_stability(args: argparse.Namespace) -> None:
     mgn = load_checkpoint(args.mgn)
     if not isinstance(mgn, SimulatorModule):
         sys.exit(f"error: --mgn: {args.mgn} is not an MGN-style checkpoint")
-    test = SequenceChunks(args.data, "test", chunk=10 ** 6, history=1, nystrom_dim=16,
-                          num_landmarks=64)
+    test = SequenceChunks(args.data, "test", chunk=10 ** 6, **read_settings(mgn))
     base = test.records[0]
     item = {k: base[k] for k in ("garment", "body", "motion", "material", "settings")}
 
     def inputs(seq):
-        ds = BenchChunks(seq, history=1)
+        ds = BenchChunks(seq, **read_settings(mgn))
         return ds[0]
 
     predictors = {"MGN-style (from LBS)": lambda seq: mgn.rollout(inputs(seq), start="lbs"),

@@ -34,13 +34,12 @@ from garmentgnn._plotting import pyplot
 from garmentgnn.data import Spec, generate, preset, read_manifest
 from garmentgnn.data.keys import body_key, garment_key, motion_key
 from garmentgnn.bench.scoring import aggregate, score, wilcoxon
-from garmentgnn.training import SimulatorModule
 from garmentgnn.viz.compare import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT / "benchmarks") not in sys.path:  # the scoring of benchmarks/mgn_learn.py
     sys.path.append(str(ROOT / "benchmarks"))
-from mgn_learn import Scored  # noqa: E402  (its first GIVEN frames are not scored)
+from mgn_learn import Scored, read_settings  # noqa: E402  (first GIVEN frames unscored)
 
 RESULTS = ROOT / "docs" / "results" / "resolution" / "resolution.json"
 #: the garment resolutions (target vertex counts of the templates)
@@ -91,10 +90,9 @@ def run_score(args: argparse.Namespace) -> None:
                            "datasets": {}, "rows": {}}
     per_seq: Dict[str, Dict[int, Dict[str, float]]] = {}
     for name, (module, predict) in methods(args).items():
-        history = 1 if isinstance(module, SimulatorModule) else 3
         for r, root in roots.items():
-            test = Scored(root, "test", chunk=10 ** 6, history=history, nystrom_dim=16,
-                          num_landmarks=64, cache_size=2, static_cache=2)
+            test = Scored(root, "test", chunk=10 ** 6, cache_size=2, static_cache=2,
+                          **read_settings(module))
             t0 = time.perf_counter()
             seqs = score(lambda i, item: predict(item), test)
             res["rows"].setdefault(name, {})[str(r)] = dict(

@@ -37,6 +37,7 @@ import torch
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, benchmark_cache,
                                   command_line, output_path)
 from garmentgnn.data import Spec, generate, store
+from garmentgnn.bench.methods import DATA
 from garmentgnn.data import SequenceChunks
 from garmentgnn.sim.stand_in import skinned_wobble
 from garmentgnn.training import Recipe, load_recipe
@@ -121,8 +122,8 @@ def measure(chunks: SequenceChunks, method: str, batch: int, threads: int,
 def warm(root: Path) -> SequenceChunks:
     """The training chunks with every sequence's file and static inputs (Nyström
     features, rest state) loaded once: a cost of the first epoch, not of a step."""
-    chunks = SequenceChunks(root, "train", chunk=8, history=3, cache_size=64,
-                            static_cache=64)
+    chunks = SequenceChunks(root, "train", chunk=DATA["chunk"], history=DATA["history"],
+                            cache_size=64, static_cache=64)
     for i in range(len(chunks.records)):
         chunks.static(i)
         chunks.sequence(i)

@@ -59,6 +59,7 @@ def main() -> None:
           f"epochs {sched.transitions}; checkpoint {ckpt}")
 
     module = GarTransModule.load_from_checkpoint(ckpt).eval()
+    hp = recipe.datamodule.hparams  # the data settings it was trained on
     res = evaluate_split(module, data, "test")
     # the numbers hold for this content hash; another CPU's floating point gives another
     # dataset (docs/dataset.md: the ground truth's noise floor)
@@ -81,8 +82,8 @@ def main() -> None:
               + ", ".join(f"{k} {v:.2f} cm" for k, v in a.mean_error.items()))
         print(f"animation: {a.mp4}")
     else:
-        png, seq = render_strip(module, data, "test", out / "gartrans_demo.png", history=3,
-                                num_landmarks=64)
+        png, seq = render_strip(module, data, "test", out / "gartrans_demo.png",
+                                history=hp.history, num_landmarks=hp.num_landmarks)
         print(f"[4/4] no animation ({reason}); wrote the still strip {png} ({seq})")
     print(f"total {time.time() - t0:.0f} s")
 

@@ -110,7 +110,7 @@ class Parsed(Exception):
 
 
 def parse_train(args):
-    """LightningCLI's parse of ``garmentgnn train`` ``args`` (the packaged configuration
+    """LightningCLI's parse of ``garmentgnn train`` ``args`` (the packaged recipe
     names resolved), without checking files or building anything."""
     from lightning.pytorch.cli import LightningCLI  # noqa: PLC0415
     from garmentgnn.training.recipes import named_module, resolve_config_args  # noqa: PLC0415

@@ -18,8 +18,8 @@ def quick_start() -> str:
 def test_quick_start_runs(tmp_path, capsys):
     code = quick_start()
     edits = {'"data/tiny"': repr(str(tmp_path / "tiny")), "workers=2": "workers=0",
-             "max_epochs=20": "max_steps=2, enable_progress_bar=False, "
-                              "enable_checkpointing=False"}
+             "max_epochs=20": f"max_steps=2, enable_progress_bar=False, "
+                              f"default_root_dir={str(tmp_path / 'run')!r}"}
     for old, new in edits.items():
         assert code.count(old) >= 1, old  # the README still reads as the test expects
         code = code.replace(old, new)
@@ -28,3 +28,4 @@ def test_quick_start_runs(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "E_dist" in out
     assert scope["pred"].shape == scope["chunk"].gt.shape
+    assert list((tmp_path / "run").rglob("last.ckpt"))  # the recipe's checkpoints

@@ -107,7 +107,7 @@ def _files(folder: Path) -> List[str]:
 
 @pytest.mark.parametrize("logger", [None, "false"])
 def test_cli_fit_writes_only_under_default_root_dir(root, tmp_path, monkeypatch, logger):  # noqa: F811
-    """The packaged config's logger has no save_dir of its own: with
+    """The default logger has no save_dir of its own: with
     ``--trainer.default_root_dir DIR`` (and no logger flag, or ``--trainer.logger false``)
     logs, checkpoints, TensorBoard events and curve plots all land under DIR, and nothing
     is written in the current folder."""

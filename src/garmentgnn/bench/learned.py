@@ -125,7 +125,7 @@ class LearnedRunner:
         return SequenceChunks(self.data.root, split, ids=ids, **kw)
 
     def _warm_up_compiled_search(self) -> None:
-        """Compile the nearest-face search (``compile_search`` of the configs) once,
+        """Compile the nearest-face search (``compile_search`` of the modules) once,
         for one frame and for several, before any training: its one-off cost (10-20 s)
         would otherwise come out of the budget of whichever run happens to be first."""
         item = self.test[0]
@@ -372,16 +372,12 @@ class LearnedRunner:
 
     # -- GarTrans ---------------------------------------------------------------------
     def _gartrans(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        """A GarTrans recipe, on the budget's batches, with its schedule's windows set
-        to the budget's."""
+        """A GarTrans recipe, on the budget's batches and schedule windows."""
         w = self.budget.window
-
-        def windows(schedule: Any) -> Dict[str, Any]:
-            return dict(schedule if isinstance(schedule, dict) else {}, window=w, window2=w)
-
         recipe, config = self.load(method, seed, ["--data.batch_size",
                                                   str(self.budget.batch_size)],
-                                   {"model.init_args.schedule": windows})
+                                   {"model.init_args.schedule": lambda s: dict(
+                                       s if isinstance(s, dict) else {}, window=w, window2=w)})
         folder = self._folder(method, seed, config)
         module = recipe.module
         info = self.fit(recipe, folder, self.budget.epochs, (), config["minutes"],

@@ -67,8 +67,8 @@ def sequence_material(meta: Dict[str, Any]) -> Optional[torch.Tensor]:
     return material_features(MATERIALS[name]) if name in MATERIALS else None
 
 
-def static_inputs(seq: Dict[str, Any], meta: Dict[str, Any], nystrom_dim: int = 16,
-                  num_landmarks: int = 64, nystrom: Optional[Callable] = None
+def static_inputs(seq: Dict[str, Any], meta: Dict[str, Any], nystrom_dim: int = NYSTROM_DIM,
+                  num_landmarks: int = NUM_LANDMARKS, nystrom: Optional[Callable] = None
                   ) -> Tuple[GarmentInputs, Any]:
     """``(static inputs, rest body)`` of a sequence's arrays (a sequence file's, or
     :func:`garmentgnn.data.worker.input_arrays` of a garment, body and motion) and its
