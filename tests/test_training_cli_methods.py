@@ -8,6 +8,7 @@ from pathlib import Path
 import inspect
 
 import lightning as L
+from lightning.pytorch.callbacks import ModelCheckpoint
 import pytest
 import torch
 import yaml
@@ -15,7 +16,7 @@ import yaml
 from garmentgnn.cli import main as cli_main
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 SimulatorModule)
+                                 SimulatorModule, load_recipe)
 from garmentgnn.training.recipes import available, named_module, recipe_path
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
@@ -75,6 +76,27 @@ def test_each_packaged_recipe_builds_its_module(root, tmp_path, name):  # noqa: 
     assert ("num_vertices" in model) == (name == "baselines/ncs")
     if name == "baselines/ncs":  # one garment on one body: the garment-specific size
         assert model["num_vertices"] == cli.datamodule.train_set.static(0).num_vertices
+
+
+@pytest.mark.parametrize("name", available())
+def test_each_recipe_builds_alike_from_python_and_the_command(root, tmp_path, name):  # noqa: F811
+    """``load_recipe`` (what the bench, the scripts and the examples build) and
+    ``garmentgnn train --config`` give equal hyper-parameters, data settings, weights
+    (seeded alike), checkpoints and limits for every packaged recipe."""
+    args = _config_args(name)[2:] + _test_args(root, tmp_path)
+    recipe = load_recipe(name, args=args)
+    cli = train_main(_config_args(name) + _test_args(root, tmp_path), run=False)
+    assert dict(recipe.module.hparams) == dict(cli.model.hparams)
+    assert dict(recipe.datamodule.hparams) == dict(cli.datamodule.hparams)
+    torch.testing.assert_close(recipe.module.state_dict(), cli.model.state_dict())
+    trainer = recipe.trainer()
+
+    def checkpoints(tr):
+        return [(c.monitor, c.save_last, c.filename, c._every_n_train_steps)
+                for c in tr.callbacks if isinstance(c, ModelCheckpoint)]
+    assert checkpoints(trainer) == checkpoints(cli.trainer) != []
+    assert (trainer.max_epochs, trainer.max_steps) == (cli.trainer.max_epochs,
+                                                       cli.trainer.max_steps)
 
 
 def _oracle(module, root, split):  # noqa: F811
