@@ -10,6 +10,7 @@ for the resumed one; a copy of the dataset with altered test positions for NCS."
 import dataclasses
 import gc
 import importlib
+import inspect
 import json
 import math
 import multiprocessing
@@ -349,7 +350,8 @@ def test_baseline_recipes_build_their_modules(data):
             ["--data.train_split", "test"] if name == methods.NCS else [])  # one garment
         module = load_recipe(recipe, args=args).module
         cfg = yaml.safe_load(recipe_path(recipe).read_text())["model"]["init_args"]
-        assert isinstance(module, BaselineModule) and module.hparams.lr == cfg["lr"]
+        lr = cfg.get("lr", inspect.signature(BaselineModule).parameters["lr"].default)
+        assert isinstance(module, BaselineModule) and module.hparams.lr == lr
         assert module.method == recipe.split("/")[1]
         assert set(module.loss_fn.enabled) == set(cfg["loss"]["enabled"])
 
