@@ -137,8 +137,7 @@ class LearnedRunner:
     def record(self, method: str, seed: int) -> Dict[str, Any]:
         """Train (or resume) ``method`` with ``seed``, evaluate and time it; exceptions
         (e.g. :class:`NonFiniteLossError`) give a failed record with their message."""
-        if method != LONG and not is_method(method):
-            recipe_of(method)  # the ValueError naming the choices
+        kind(method)  # a ValueError naming the choices where it is no method
         rec: Dict[str, Any] = {"kind": KIND, "method": method, "case": self.data.case,
                                "seed": seed, "dataset": self.data.to_json()}
         t0 = time.perf_counter()
@@ -286,20 +285,18 @@ class LearnedRunner:
              set: Optional[Dict[str, Any]] = None) -> Tuple[Recipe, Dict[str, Any]]:
         """``method``'s recipe (:func:`~garmentgnn.bench.methods.recipe_of`) on this
         dataset (:func:`~garmentgnn.training.load_recipe`), seeded with ``seed``, no
-        validation split, the budget's ``lr_factor``, ``args`` and ``set`` on top; and the
-        run's description for ``run.json`` (:meth:`_folder`): recipe, module and data
-        settings, limits."""
-        recipe = recipe_of(method)
-        lr = self.budget.lr_factor
+        validation split, 64 sequences cached at least, the budget's ``lr_factor``, ``args``
+        and ``set`` on top; and the run's description for ``run.json`` (:meth:`_folder`):
+        recipe, module and data settings, limits."""
+        recipe, lr, b = recipe_of(method), self.budget.lr_factor, self.budget
         r = load_recipe(recipe, args=["--data.root", str(self.data.root), "--data.val_split",
                                       "null", "--data.seed", str(seed), "--data.num_workers",
                                       "0", "--seed_everything", str(seed), *args],
                         set=dict({"model.init_args.lr": lambda v: v * lr} if lr != 1 else {},
-                                 **(set or {})))
+                                 **{"data.cache_size": lambda c: max(c, 64)}, **(set or {})))
         data = {k: v for k, v in r.config["data"].items()
                 if k not in ("root", "num_workers", "cache_size", "predict_split")}
-        minutes = self.budget.long_minutes if method == LONG else self.budget.minutes
-        b = self.budget
+        minutes = b.long_minutes if method == LONG else b.minutes
         config = {"recipe": recipe, "model": r.config["model"], "data": data,
                   "epochs": b.epochs, "minutes": minutes, "epoch_chunks": b.epoch_chunks,
                   **({"lr_factor": b.lr_factor} if b.lr_factor != 1 else {})}
