@@ -313,7 +313,7 @@ class GarmentModule(L.LightningModule):
         name = type(self.model).__name__
         if spec.get("class_path", "").rsplit(".", 1)[-1] != name:
             raise CheckpointError(f"a checkpoint of {spec.get('class_path')}, not of {name}; "
-                                  f"give the configuration it was trained with")
+                                  f"give the recipe (--config) it was trained with")
         saved, mine = spec.get("init_args") or {}, self.model.init_args
         bad = {k: (saved[k], mine[k]) for k in saved
                if k in mine and k not in self.RUNTIME_ARGS and saved[k] != mine[k]}

@@ -337,9 +337,9 @@ class GarmentCLI(LightningCLI):
             if getattr(action, "_typehint", None) is not None:
                 action._typehint = count_first(action._typehint)
         # the parser starts from the module the arguments name: jsonargparse keeps the
-        # values of same-named arguments when a config switches the class, so starting
+        # values of same-named arguments when a recipe switches the class, so starting
         # from GarTransModule would hand a BaselineModule GarTransModule's defaults
-        # (its learning rate, its rollout settings) where the config leaves them out
+        # (its learning rate, its rollout settings) where the recipe leaves them out
         nested = {"model": {"class_path": DEFAULT_MODEL_MODEL}} \
             if self.default_model == DEFAULT_MODEL else {}
         parser.set_defaults({"model": {"class_path": self.default_model, "init_args": nested}})
