@@ -80,11 +80,9 @@ def child(args: argparse.Namespace) -> None:
         load_recipe = None
     recipe = None
     if load_recipe is not None:
-        flags = ["--data.root", args.data, "--data.val_split", "null", "--data.seed", "0",
-                 "--seed_everything", "0"]
-        for k, v in json.loads(args.data_overrides).items():
-            flags += [f"--data.{k}", v if isinstance(v, str) else json.dumps(v)]
-        recipe = load_recipe("gartrans", args=flags)
+        recipe = load_recipe("gartrans", args=["--seed_everything", "0"],
+                             data=dict(root=args.data, val_split=None, seed=0,
+                                       **json.loads(args.data_overrides)))
         module, dm = recipe.module, recipe.datamodule
     else:
         module, dm = _before_recipes(args)

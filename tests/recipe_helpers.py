@@ -1,13 +1,7 @@
 """Building a recipe's module on a test dataset through the loader every caller uses
 (:func:`garmentgnn.training.load_recipe`), data settings given as the flags
 ``garmentgnn train`` takes (so sizes linked from the data follow them)."""
-import json
-
 from garmentgnn.training import Recipe, load_recipe
-
-
-def flag(key, value):
-    return f"--{key}={value if isinstance(value, str) else json.dumps(value)}"
 
 
 def recipe(name, root, data=None, seed=0, compile_search=False, **settings) -> Recipe:
@@ -16,8 +10,6 @@ def recipe(name, root, data=None, seed=0, compile_search=False, **settings) -> R
     ``model.init_args``: ``{"model.init_args.dynamic_layer": "gat"}`` is given as
     ``**{"model.dynamic_layer": "gat"}``), seeded with ``seed``; the face search not
     compiled unless ``compile_search``."""
-    args = [flag("data.root", str(root)), flag("seed_everything", seed)]
-    args += [flag(f"data.{k}", v) for k, v in (data or {}).items()]
     set_ = {"model.init_args.compile_search": compile_search}
     for k, v in settings.items():
         if k.startswith("model."):
@@ -25,7 +17,8 @@ def recipe(name, root, data=None, seed=0, compile_search=False, **settings) -> R
             k = "model.init_args." + ".init_args.".join(path) if path[0] == "model" else \
                 "model.init_args." + ".".join(path)
         set_[k] = v
-    return load_recipe(name, args=args, set=set_)
+    return load_recipe(name, args=["--seed_everything", str(seed)],
+                       data=dict(root=str(root), **(data or {})), set=set_)
 
 
 def module(name, root, data=None, **kw):

@@ -36,28 +36,18 @@ SCHEDULE: Dict[str, Any] = {k: p.default for k, p in inspect.signature(
 
 
 # ------------------------------------------------------------------ building methods
-def flags(section: str, values: Dict[str, Any]) -> List[str]:
-    """``values`` as ``garmentgnn train`` flags of ``section`` (``--data.history 10``;
-    a value that is not a string as JSON)."""
-    out: List[str] = []
-    for k, v in values.items():
-        out += [f"--{section}.{k}", v if isinstance(v, str) else json.dumps(v)]
-    return out
-
-
-def data_args(root: Path, seed: int = 0, split: str = "train",
-              data: Optional[Dict[str, Any]] = None) -> List[str]:
-    """The bench's data settings (``root``'s ``split``, no validation split) with
-    ``data``'s (e.g. ``history``), and seed ``seed``, as ``garmentgnn train`` flags."""
-    return ["--data.root", str(root), "--seed_everything", str(seed)] + flags(
-        "data", dict(val_split=None, seed=seed, train_split=split, cache_size=64,
-                     **(data or {})))
+def data_settings(root: Path, seed: int = 0, split: str = "train",
+                  data: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
+    """The bench's data settings (``root``'s ``split``, no validation split, seed
+    ``seed``) with ``data``'s (e.g. ``history``): :func:`load_recipe`'s ``data``."""
+    return dict(root=root, val_split=None, seed=seed, train_split=split, cache_size=64,
+                **(data or {}))
 
 
 def gartrans(root: Path, method: str = FULL, overrides: Optional[Dict[str, Any]] = None,
              schedule: Union[bool, Dict[str, Any]] = False, seed: int = 0,
              data: Optional[Dict[str, Any]] = None) -> Recipe:
-    """GarTrans variant ``method``'s recipe on ``root`` (:func:`data_args`) with
+    """GarTrans variant ``method``'s recipe on ``root`` (:func:`data_settings`) with
     ``overrides`` (settings of the model or of the module, by name) and the module's
     ``schedule`` (default: none, phase 1's losses throughout; a dict:
     :class:`ProgressiveSchedule` arguments)."""
@@ -66,7 +56,8 @@ def gartrans(root: Path, method: str = FULL, overrides: Optional[Dict[str, Any]]
     for k, v in (overrides or {}).items():
         at = "model.init_args.model.init_args" if k in model_args else "model.init_args"
         settings[f"{at}.{k}"] = v
-    return load_recipe(recipe_of(method), args=data_args(root, seed, data=data), set=settings)
+    return load_recipe(recipe_of(method), args=["--seed_everything", str(seed)],
+                       data=data_settings(root, seed, data=data), set=settings)
 
 
 def _onto(value: Any) -> Any:
@@ -77,7 +68,7 @@ def _onto(value: Any) -> Any:
 
 def baseline(method: str, root: Path, overrides: Optional[Dict[str, Any]] = None,
              seed: int = 0, data: Optional[Dict[str, Any]] = None) -> Recipe:
-    """Baseline ``method``'s recipe on ``root`` (:func:`data_args`); ``overrides``:
+    """Baseline ``method``'s recipe on ``root`` (:func:`data_settings`); ``overrides``:
     module settings by name, ``model`` the model's; a mapping (``loss``) goes onto the
     recipe's key by key."""
     settings: Dict[str, Any] = {}
@@ -87,8 +78,8 @@ def baseline(method: str, root: Path, overrides: Optional[Dict[str, Any]] = None
                              for mk, mv in v.items()})
         else:
             settings[f"model.init_args.{k}"] = _onto(v)
-    return load_recipe(recipe_of(method), args=data_args(root, seed, data=data),
-                       set=settings)
+    return load_recipe(recipe_of(method), args=["--seed_everything", str(seed)],
+                       data=data_settings(root, seed, data=data), set=settings)
 
 
 def methods(root: Path, item: Any, only: Optional[Sequence[str]] = None,

@@ -77,10 +77,8 @@ def run_branch(args: argparse.Namespace) -> None:
              if k in params}
     data = dict(dm_hp, root=args.data, chunk=2 + args.rollout,
                 seed=int(dm_hp.get("seed", 0)) + 1)
-    flags = ["--trainer.default_root_dir", str(args.out)]
-    for k, v in data.items():
-        flags += [f"--data.{k}", v if isinstance(v, str) else json.dumps(v)]
-    recipe = load_recipe("mgn", args=flags)
+    recipe = load_recipe("mgn", args=["--trainer.default_root_dir", str(args.out)],
+                         data=data)
     trainer = recipe.trainer(max_steps=args.steps, max_epochs=-1, accelerator="cpu",
                              devices=1, val_check_interval=args.every,
                              limit_val_batches=args.val_batches, enable_progress_bar=False,

@@ -289,9 +289,9 @@ class LearnedRunner:
         and ``set`` on top; and the run's description for ``run.json`` (:meth:`_folder`):
         recipe, module and data settings, limits."""
         recipe, lr, b = recipe_of(method), self.budget.lr_factor, self.budget
-        r = load_recipe(recipe, args=["--data.root", str(self.data.root), "--data.val_split",
-                                      "null", "--data.seed", str(seed), "--data.num_workers",
-                                      "0", "--seed_everything", str(seed), *args],
+        r = load_recipe(recipe, args=["--seed_everything", str(seed), *args],
+                        data={"root": self.data.root, "val_split": None, "seed": seed,
+                              "num_workers": 0},
                         set=dict({"model.init_args.lr": lambda v: v * lr} if lr != 1 else {},
                                  **{"data.cache_size": lambda c: max(c, 64)}, **(set or {})))
         data = {k: v for k, v in r.config["data"].items()

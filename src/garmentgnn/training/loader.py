@@ -9,6 +9,7 @@ examples train, with the same defaults, links and checks as the command::
 """
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Union
@@ -82,15 +83,18 @@ class Recipe:
 
 
 def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
+                data: Optional[Dict[str, Any]] = None,
                 set: Optional[Dict[str, Any]] = None) -> Recipe:
     """Read ``recipes`` (packaged names or YAML paths, later ones over earlier ones, as
-    repeated ``--config``) and ``args`` (``garmentgnn train`` flags, e.g.
-    ``["--data.root", "data/small", "--seed_everything", "1"]``) with the CLI's parser,
-    change the parsed values ``set`` names (dotted keys such as
-    ``"model.init_args.lr"``; a callable value is applied to the recipe's value), seed,
-    and build the module, the data module and the callbacks.  A flag or a value the
-    parser rejects is a ``ValueError`` with its message; sizes linked from the data
-    (``nystrom_dim``) follow ``--data.*`` flags, not ``set``."""
+    repeated ``--config``), ``args`` (``garmentgnn train`` flags, e.g.
+    ``["--data.root", "data/small", "--seed_everything", "1"]``) and ``data`` (data
+    module settings as values, ``{"root": path, "val_split": None, "history": 2}``,
+    given as the ``--data.*`` flags after ``args``) with the CLI's parser, change the
+    parsed values ``set`` names (dotted keys such as ``"model.init_args.lr"``; a
+    callable value is applied to the recipe's value), seed, and build the module, the
+    data module and the callbacks.  A flag or a value the parser rejects is a
+    ``ValueError`` with its message; sizes linked from the data (``nystrom_dim``) follow
+    ``args`` and ``data``, not ``set``."""
     if not recipes:
         raise ValueError("`recipes`: give at least one recipe (e.g. 'gartrans'); "
                          f"the packaged ones: {', '.join(available())}")
@@ -101,6 +105,9 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
     for r in recipes:
         argv += ["--config", str(recipe_path(r))]
     argv += [str(a) for a in args]
+    for key, value in (data or {}).items():  # a string as it is, anything else as JSON
+        argv += [f"--data.{key}", value if isinstance(value, str) else
+                 str(value) if isinstance(value, Path) else json.dumps(value)]
     try:
         with warnings.catch_warnings():  # (that the process has command-line arguments too)
             warnings.filterwarnings("ignore", "LightningCLI's args parameter")
