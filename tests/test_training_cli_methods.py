@@ -91,10 +91,11 @@ def test_each_recipe_builds_alike_from_python_and_the_command(root, tmp_path, na
     torch.testing.assert_close(recipe.module.state_dict(), cli.model.state_dict())
     trainer = recipe.trainer()
 
-    def checkpoints(tr):
+    def checkpoints(callbacks):
         return [(c.monitor, c.save_last, c.filename, c._every_n_train_steps)
-                for c in tr.callbacks if isinstance(c, ModelCheckpoint)]
-    assert checkpoints(trainer) == checkpoints(cli.trainer) != []
+                for c in callbacks if isinstance(c, ModelCheckpoint)]
+    assert checkpoints(trainer.callbacks) == checkpoints(cli.trainer.callbacks) != []
+    assert checkpoints(recipe.callbacks) == checkpoints(cli.trainer.callbacks)
     assert (trainer.max_epochs, trainer.max_steps) == (cli.trainer.max_epochs,
                                                        cli.trainer.max_steps)
 
