@@ -145,6 +145,28 @@ def test_chunking_candidates_and_batching_agree():
     torch.testing.assert_close(out.distance[0], ref.distance)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+def test_nearest_body_vertices_match_a_dense_search(dtype):
+    """The k-d tree's k nearest body vertices are the dense float64 search's, nearest
+    first (random points around a moving capsule body, several frames, k from 1 to all
+    vertices)."""
+    m = MESHES["capsule"]()
+    g = torch.Generator().manual_seed(3)
+    body = torch.tensor(m.vertices).unsqueeze(0) + 0.1 * torch.randn(3, 1, 3, generator=g,
+                                                                     dtype=D)
+    pts = body[:, torch.randint(0, body.shape[1], (40,), generator=g)] \
+        + 0.05 * torch.randn(3, 40, 3, generator=g, dtype=D)
+    pts, body = pts.to(dtype), body.to(dtype)
+    for k in (1, 8, body.shape[1]):
+        got = dist_mod._nearest_vertices(pts, body, k)
+        assert got.shape == (3, 40, k) and got.dtype == torch.long
+        d = torch.cdist(pts.double(), body.double())
+        ref = d.topk(k, dim=-1, largest=False)
+        # same distances in the same order (ties between equidistant vertices may swap)
+        torch.testing.assert_close(d.gather(-1, got), ref.values, rtol=0, atol=1e-12)
+        assert (got.sort(-1).values == ref.indices.sort(-1).values).float().mean() > 0.99
+
+
 def test_candidate_search_is_an_approximation_for_large_triangles():
     """Documented failure mode: a point above the middle of a huge triangle."""
     big = torch.tensor([[-10.0, -10, 0], [10, -10, 0], [0, 10, 0], [5, 5, 0.5], [6, 5, 0.5],
