@@ -164,6 +164,24 @@ def test_da_style_compiled_training_matches_eager(root, chunks, several):
         torch.testing.assert_close(g, ref, rtol=0, atol=1e-4 * float(ref.abs().max()) + 1e-12)
 
 
+def test_da_style_compiles_by_default_on_one_cpu_thread_only(root, chunks):
+    """``compile=None`` (the recipe's default): eager with two torch threads, compiled
+    with one (where it was measured faster), decided at every training call."""
+    module = recipe_module("baselines/da", root, DATA)
+    assert module.model.compile is None
+    batch = chunks[pick(chunks)[:1]]
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        module.compute_loss(batch)
+        assert all(layer not in blocks._COMPILED for layer in module.model.layers)
+        torch.set_num_threads(1)
+        module.compute_loss(batch)
+        assert all(layer in blocks._COMPILED for layer in module.model.layers)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_batch_of_one_chunk_trains_as_the_chunk_itself(root, chunks):
     """Same chunk order, one chunk per step: the plain chunk and a ``Batch`` holding it
     give the same loss trajectory (Adamax, 6 steps, training-mode normalisers)."""

@@ -43,12 +43,15 @@ class DAStyle(Configurable, nn.Module):
             while training (:func:`~garmentgnn.models.blocks.compiled_forward`): the
             same loss and gradients up to float round-off; on the CPU 1.1-2.2x eager's
             training vertex-frames per second with one thread, 0.5-1.3x with two
-            (docs/results/step_profile).  Evaluation runs eager.  Falls back to eager,
-            with a warning, where compiling fails.
+            (docs/results/step_profile).  ``None`` (the default): compiled where that
+            was measured faster, on the CPU with one torch thread (as each process of a
+            DDP run on the CPU's cores has: docs/results/train_scaling), eager
+            otherwise, decided at every training call.  Evaluation runs eager.  Falls
+            back to eager, with a warning, where compiling fails.
     """
 
     def __init__(self, num_joints: int, hidden: int = 64, heads: int = 2,
-                 num_layers: int = 3, compile: bool = False) -> None:
+                 num_layers: int = 3, compile: Optional[bool] = None) -> None:
         super().__init__()
         if num_joints < 1:
             raise ValueError(f"`num_joints`: must be positive, got {num_joints}")
@@ -56,7 +59,8 @@ class DAStyle(Configurable, nn.Module):
             raise ValueError(f"`heads`: must divide `hidden` ({hidden}), got {heads}")
         if num_layers < 1:
             raise ValueError(f"`num_layers`: must be positive, got {num_layers}")
-        self.num_joints, self.compile = num_joints, bool(compile)
+        self.num_joints = num_joints
+        self.compile = None if compile is None else bool(compile)
         self.encoder = mlp([9 + num_joints, hidden, hidden], nn.ELU(), last_act=False)
         self.layers = nn.ModuleList(
             GATBaselineConv(hidden, hidden // heads, edge_dim=4, heads=heads, concat=True)
@@ -112,8 +116,10 @@ class DAStyle(Configurable, nn.Module):
         x = self.encoder(self.features(scene, skinned, joints).to(dtype)).reshape(B * V, -1)
         ei = batch_edges(scene.edge_index, B, V)
         ea = edge_features(scene.rest_pos.to(dtype), scene.edge_index).repeat(B, 1)
+        compiled = self.compile if self.compile is not None else (
+            x.device.type == "cpu" and torch.get_num_threads() == 1)
         for layer in self.layers:
-            x = self.act(compiled_forward(layer, x, ei, ea) if self.compile
+            x = self.act(compiled_forward(layer, x, ei, ea) if compiled
                          else layer(x, ei, ea))
         offset = self.decoder(x).reshape(B, V, 3)
         return skinned + offset.to(skinned.dtype)

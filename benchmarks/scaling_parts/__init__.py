@@ -1,0 +1,1 @@
+"""Parts of ``train_scaling.py`` that the timed runs load by class path."""
