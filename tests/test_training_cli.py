@@ -105,12 +105,15 @@ def _files(folder: Path) -> List[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
 
 
-@pytest.mark.parametrize("logger", [None, "false"])
-def test_cli_fit_writes_only_under_default_root_dir(root, tmp_path, monkeypatch, logger):  # noqa: F811
+@pytest.mark.parametrize("logger,checkpointing", [(None, None), ("false", None),
+                                                  ("false", "false")])
+def test_cli_fit_writes_only_under_default_root_dir(root, tmp_path, monkeypatch, logger,  # noqa: F811
+                                                    checkpointing):
     """The default logger has no save_dir of its own: with
     ``--trainer.default_root_dir DIR`` (and no logger flag, or ``--trainer.logger false``)
     logs, checkpoints, TensorBoard events and curve plots all land under DIR, and nothing
-    is written in the current folder."""
+    is written in the current folder.  ``--trainer.enable_checkpointing false`` trains
+    without the default checkpoints (no error, no checkpoint file)."""
     cwd, out = tmp_path / "cwd", tmp_path / "out"
     cwd.mkdir()
     monkeypatch.chdir(cwd)
@@ -118,10 +121,12 @@ def test_cli_fit_writes_only_under_default_root_dir(root, tmp_path, monkeypatch,
     args = args[:args.index("--trainer.logger.init_args.save_dir")]
     if logger:
         args += ["--trainer.logger", logger]
+    if checkpointing:
+        args += ["--trainer.enable_checkpointing", checkpointing]
     assert cli_main(["train", "fit", "--config", "gartrans"] + args) == 0
     assert _files(cwd) == []
     written = _files(out)
-    assert any(f.endswith("last.ckpt") for f in written)
+    assert any(f.endswith("last.ckpt") for f in written) is (checkpointing is None)
     if logger is None:
         log = out / "logs" / "version_0"
         assert (log / "metrics.csv").is_file() and (log / "training_curves.png").is_file()

@@ -52,7 +52,7 @@ from typing import Any, Dict, List, Optional, Sequence, Union
 import numpy as np
 import torch
 from lightning.pytorch import LightningModule, Trainer
-from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.callbacks import BasePredictionWriter, ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
@@ -327,7 +327,15 @@ class GarmentCLI(LightningCLI):
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """Lightning's trainer, with a TensorBoard logger beside the CSV one
-        (:func:`add_tensorboard`)."""
+        (:func:`add_tensorboard`).  ``enable_checkpointing`` false (a flag or an
+        argument) leaves out the checkpoint callbacks of the defaults and the recipe,
+        which Lightning would otherwise refuse beside it."""
+        cfg = self.config_init[self.subcommand] if self.subcommand else self.config_init
+        trainer_cfg = cfg.get("trainer") or {}
+        if kwargs.get("enable_checkpointing", trainer_cfg.get("enable_checkpointing")) is False \
+                and "callbacks" not in kwargs:
+            kwargs["callbacks"] = [c for c in trainer_cfg.get("callbacks") or []
+                                   if not isinstance(c, ModelCheckpoint)]
         trainer = super().instantiate_trainer(**kwargs)
         add_tensorboard(trainer)
         return trainer
@@ -363,7 +371,6 @@ class GarmentCLI(LightningCLI):
         ckpt_path = self.config[sub].get("ckpt_path")
         if ckpt_path not in ("last", "best"):
             return
-        from lightning.pytorch.callbacks import ModelCheckpoint  # noqa: PLC0415
         found = set()
         for cb in self.trainer.checkpoint_callbacks:
             if isinstance(cb, ModelCheckpoint):
