@@ -30,6 +30,7 @@ threads): measure on an otherwise idle machine.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -39,28 +40,35 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args,
-                                  benchmark_cache, command_line, output_path)
+from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
+                                  benchmark_cache, check_unique, command_line, existing_dir,
+                                  int_at_least, output_path)
 from garmentgnn.data import store
-from step_profile import _revision
-from train_throughput import RECIPES, dataset
 
 HERE = Path(__file__).resolve().parent
+#: the folder of this script (its sibling scripts, ``scaling_parts``): on ``sys.path``
+#: when it is run, not when it is loaded with ``runpy`` (the tests)
+if str(HERE) not in sys.path:
+    sys.path.append(str(HERE))
+from step_profile import _revision  # noqa: E402
+from train_throughput import RECIPES, dataset  # noqa: E402
+
 RESULTS = HERE.parent / "docs" / "results" / "train_scaling"
 
 
 def layout(text: str) -> Tuple[int, int]:
-    """``"PxT"``: ``P`` processes of ``T`` torch threads."""
+    """An argparse type: ``"PxT"``, ``P >= 1`` processes of ``T >= 1`` torch threads."""
     try:
         p, t = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"expected PROCESSESxTHREADS such as 2x1, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected PROCESSESxTHREADS such as 2x1, got "
+                                         f"{text!r}") from None
     if p < 1 or t < 1:
-        raise ValueError(f"expected PROCESSESxTHREADS >= 1, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected PROCESSESxTHREADS >= 1, got {text!r}")
     return p, t
 
 
@@ -182,23 +190,36 @@ def write(info: Dict[str, Any], out: Path) -> None:
     print("\n".join(lines))
 
 
-def main() -> None:
+def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     ap = ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
-    ap.add_argument("--methods", nargs="+", choices=sorted(RECIPES), default=["gartrans", "da"])
-    ap.add_argument("--layouts", nargs="+", type=layout, default=[(1, 2), (2, 1)],
-                    metavar="PxT", help="processes x torch threads each")
-    ap.add_argument("--batches", nargs="+", type=int, default=[2, 4, 8],
-                    help="chunks per optimizer step (all replicas)")
-    ap.add_argument("--steps", type=int, default=30, help="training steps per run")
-    ap.add_argument("--warmup", type=int, default=6, help="untimed first steps")
-    ap.add_argument("--repeats", type=int, default=2, help="rounds over the configurations")
-    ap.add_argument("--timeout", type=float, default=900, help="seconds per run")
-    ap.add_argument("--against", nargs="*", default=[], metavar="DIR",
+    ap.add_argument("--methods", nargs="+", action=Accumulate, choices=sorted(RECIPES),
+                    default=["gartrans", "da"])
+    ap.add_argument("--layouts", nargs="+", action=Accumulate, type=layout,
+                    default=[(1, 1), (1, 2), (2, 1)], metavar="PxT",
+                    help="processes x torch threads each")
+    ap.add_argument("--batches", nargs="+", action=Accumulate, type=int_at_least(1),
+                    default=[4, 8], help="chunks per optimizer step (all replicas)")
+    ap.add_argument("--steps", type=int_at_least(2), default=48, help="training steps per run")
+    ap.add_argument("--warmup", type=int_at_least(1), default=8, help="untimed first steps")
+    ap.add_argument("--repeats", type=int_at_least(1), default=3,
+                    help="rounds over the configurations")
+    ap.add_argument("--timeout", type=int_at_least(1), default=900, help="seconds per run")
+    ap.add_argument("--against", nargs="*", action=Accumulate, type=existing_dir, default=[],
+                    metavar="DIR",
                     help="other source trees of garmentgnn, run alternately with this one")
     add_output_args(ap, RESULTS, "the tables")
-    a = ap.parse_args()
-    if any(b < 1 for b in a.batches) or a.warmup < 1 or a.steps <= a.warmup or a.repeats < 1:
-        ap.error("--batches, --warmup, --repeats: expected >= 1; --steps: more than --warmup")
+    a = ap.parse_args(argv)
+    for flag in ("methods", "layouts", "batches"):
+        check_unique(ap, getattr(a, flag), f"--{flag}")
+    if a.steps <= a.warmup:
+        ap.error(f"--steps {a.steps}: not more than --warmup {a.warmup}; nothing is timed")
+    if not any(b % p == 0 for b in a.batches for p, _ in a.layouts):
+        ap.error("--batches: none divides among the --layouts' processes")
+    return a
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    a = parse_args(argv)
     out = output_path(a, RESULTS)
     write(run(a), out)
 

@@ -214,3 +214,17 @@ def test_inference_on_a_missing_gpu_is_refused(capsys, tmp_path):
     refused(capsys, script("inference")["main"], ["--device", "cuda", "--out",
                                                   str(tmp_path / "o")],
             "--device cuda: torch sees no CUDA device")
+
+
+# ------------------------------------------------------------------ train_scaling.py
+@pytest.mark.parametrize("argv, words", [
+    (["--layouts", "2"], ["argument --layouts", "PROCESSESxTHREADS such as 2x1"]),
+    (["--layouts", "0x1"], ["argument --layouts", "PROCESSESxTHREADS >= 1"]),
+    (["--batches", "0"], ["argument --batches: expected an integer >= 1, got 0"]),
+    (["--batches", "4", "4"], ["--batches: 4 given more than once"]),
+    (["--steps", "8", "--warmup", "8"], ["--steps 8: not more than --warmup 8"]),
+    (["--layouts", "2x1", "--batches", "3"], ["--batches: none divides"]),
+    (["--against", "/nonexistent/tree"], ["argument --against", "/nonexistent/tree"]),
+])
+def test_train_scaling_bad_arguments_are_refused(capsys, argv, words):
+    refused(capsys, script("train_scaling")["parse_args"], argv, *words)
