@@ -193,7 +193,7 @@ def write(info: Dict[str, Any], out: Path) -> None:
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     ap = ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--methods", nargs="+", action=Accumulate, choices=sorted(RECIPES),
-                    default=["gartrans", "da"])
+                    default=["gartrans", "da"], help="methods (their packaged recipes)")
     ap.add_argument("--layouts", nargs="+", action=Accumulate, type=layout,
                     default=[(1, 1), (1, 2), (2, 1)], metavar="PxT",
                     help="processes x torch threads each")
