@@ -20,7 +20,8 @@ it.  A callback (``scaling_parts.step_timer.StepTimer``) records every step's en
 ``--warmup`` steps (start-up, ``torch.compile``) are not timed.  vertex-frames/s = the
 vertex-frames of all replicas' timed steps over the longest replica's timed wall time.
 Trees and configurations alternate within each of ``--repeats`` rounds (a busy machine
-slows them alike); the table has each configuration's median::
+slows them alike); the table has each configuration's median.  Each run is kept as it
+ends: the same command after an interruption starts where it stopped::
 
     python benchmarks/train_scaling.py --commit
     python benchmarks/train_scaling.py --against /path/to/old/checkout --methods gartrans
@@ -58,6 +59,8 @@ from step_profile import _revision  # noqa: E402
 from train_throughput import RECIPES, dataset  # noqa: E402
 
 RESULTS = HERE.parent / "docs" / "results" / "train_scaling"
+#: the runs so far, kept until the tables are written
+PARTIAL = "train_scaling.partial.json"
 
 
 def layout(text: str) -> Tuple[int, int]:
@@ -92,8 +95,11 @@ def fit_once(tree: Path, method: str, root: Path, procs: int, threads: int, batc
                    OMP_NUM_THREADS=str(threads),
                    GARMENTGNN_STEP_TIMES=str(times), PYTHONWARNINGS="ignore")
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, env=env, cwd=tmp, capture_output=True, text=True,
-                              timeout=timeout)
+        try:
+            proc = subprocess.run(cmd, env=env, cwd=tmp, capture_output=True, text=True,
+                                  timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"error": f"no end within --timeout {timeout} s"}
         wall = time.perf_counter() - t0
         recs = [json.loads(p.read_text()) for p in sorted(times.glob("rank*.json"))]
         if proc.returncode or len(recs) != procs:
@@ -109,17 +115,29 @@ def fit_once(tree: Path, method: str, root: Path, procs: int, threads: int, batc
             "threads": [r["threads"] for r in recs]}
 
 
-def run(a: Any) -> Dict[str, Any]:
+def run(a: Any, out: Path) -> Dict[str, Any]:
+    """Every run of ``a``'s configurations; each is kept in ``out/PARTIAL`` as it ends, so
+    that an interrupted run of the same trees and settings starts where it stopped."""
     root = dataset("small", benchmark_cache())
     trees = [HERE.parent] + [Path(t).resolve() for t in a.against]
     labels = [_revision(t) for t in trees]
     configs = [(m, p, t, b) for m in a.methods for (p, t) in a.layouts for b in a.batches
                if b % p == 0]
+    partial, key = out / PARTIAL, {"trees": labels, "steps": a.steps, "warmup": a.warmup}
+    done = json.loads(partial.read_text()) if partial.is_file() else {}
+    if done.get("key") != key:
+        done = {"key": key, "runs": []}
+    kept = {tuple(r[:6]): r[6] for r in done["runs"]}
+    out.mkdir(parents=True, exist_ok=True)
     runs: Dict[Tuple[str, str, int, int, int], List[Dict[str, Any]]] = {}
-    for _ in range(a.repeats):
+    for i in range(a.repeats):
         for m, p, t, b in configs:
             for tree, label in zip(trees, labels):
-                r = fit_once(tree, m, root, p, t, b, a.steps, a.warmup, a.timeout)
+                r = kept.get((i, label, m, p, t, b))
+                if r is None:
+                    r = fit_once(tree, m, root, p, t, b, a.steps, a.warmup, a.timeout)
+                    done["runs"].append([i, label, m, p, t, b, r])
+                    partial.write_text(json.dumps(done))
                 runs.setdefault((label, m, p, t, b), []).append(r)
                 print(label, m, f"{p}x{t}", b, r.get("error") or
                       f"{r['vertex_frames_per_s']:.0f} vf/s", flush=True)
@@ -221,7 +239,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
 def main(argv: Optional[Sequence[str]] = None) -> None:
     a = parse_args(argv)
     out = output_path(a, RESULTS)
-    write(run(a), out)
+    write(run(a, out), out)
+    (out / PARTIAL).unlink(missing_ok=True)
 
 
 if __name__ == "__main__":

@@ -228,3 +228,32 @@ def test_inference_on_a_missing_gpu_is_refused(capsys, tmp_path):
 ])
 def test_train_scaling_bad_arguments_are_refused(capsys, argv, words):
     refused(capsys, script("train_scaling")["parse_args"], argv, *words)
+
+
+def test_train_scaling_resumes_an_interrupted_run(tmp_path, monkeypatch, data):
+    """Each run is kept as it ends: after an interruption the same command reruns only
+    what had not ended, and the tables hold both."""
+    ns = script("train_scaling")
+    calls, stop = [], [True]
+
+    def fit_once(tree, method, root, procs, threads, batch, *rest):
+        calls.append((method, procs, threads, batch))
+        if stop[0] and len(calls) == 2:
+            raise KeyboardInterrupt
+        return {"vertex_frames_per_s": 100.0 * batch}
+
+    module = ns["run"].__globals__  # the script's own globals (``ns`` is a copy)
+    monkeypatch.setitem(module, "fit_once", fit_once)
+    monkeypatch.setitem(module, "dataset", lambda *args: Path(data))
+    monkeypatch.setitem(module, "_revision", lambda tree: "rev")
+    a = ns["parse_args"](["--methods", "da", "--layouts", "1x1", "--batches", "4", "8",
+                          "--repeats", "1"])
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        ns["run"](a, out)
+    assert calls == [("da", 1, 1, 4), ("da", 1, 1, 8)]
+    calls.clear()
+    stop[0] = False
+    info = ns["run"](a, out)
+    assert calls == [("da", 1, 1, 8)]
+    assert sorted(r["vertex_frames_per_s"] for r in info["rows"]) == [400.0, 800.0]
