@@ -485,10 +485,9 @@ class LearnedRunner:
 def autoregressive(method: str) -> bool:
     """Whether ``method`` predicts a sequence by rolling out one frame a step (a learned
     simulator, or a HOOD-style model) rather than frame-parallel."""
-    if kind(method) in ("lbs", "gartrans"):
-        return False
-    return kind(method) == "simulator" or \
-        str(model_of(recipe_of(method))["model"]).endswith("HOODStyle")
+    how = kind(method)
+    return how == "simulator" or (how in ("baseline", "ncs") and str(
+        model_of(recipe_of(method))["model"]).endswith("HOODStyle"))
 
 
 __all__ = ["KIND", "SIMULATOR", "STABILITY_KIND", "DatasetInfo", "LearnedRunner",
