@@ -330,7 +330,6 @@ def test_bench_trains_what_garmentgnn_train_builds(name, data, tmp_path):
     # MGN-style's windows of 5 frames do not fit the 4-frame sequences (the bench fits them)
     extra = ["--data.chunk", "3", "--data.batch_size", "1"] if name == methods.MGN else []
     recipe, config = runner.load(name, 3, extra)
-    extra += ["--data.cache_size", str(recipe.datamodule.hparams.cache_size)]  # the bench's
     cli = train_main(["--config", methods.RECIPES[name], *extra, "--data.root", str(data),
                       "--data.val_split", "null", "--data.seed", "3", "--data.num_workers",
                       "0", "--seed_everything", "3", "--trainer.logger", "false",

@@ -383,6 +383,15 @@ def test_sequence_chunks_items_and_lazy_loading(clean_run):
     ds[8]  # next sequence evicts the first (cache_size=1)
     ds[0]
     assert ds.num_file_loads == 3
+    # the default bounds keep both; a byte bound below one sequence keeps only the newest
+    roomy = SequenceChunks(clean_run, split="train", chunk=1, history=2)
+    tight = SequenceChunks(clean_run, split="train", chunk=1, history=2, cache_bytes=1)
+    for d in (roomy, tight):
+        for i in (0, 8, 0, 8):
+            d[i]
+    assert roomy.num_file_loads == 2 and tight.num_file_loads == 4
+    with pytest.raises(ValueError, match="`cache_bytes`"):
+        SequenceChunks(clean_run, split="train", cache_bytes=-1)
     assert len(SequenceChunks(clean_run, split="test", chunk=1)) == 4 * 8
     with pytest.raises(ValueError, match="no 'val' split; name one that its manifest lists"):
         SequenceChunks(clean_run, split="val")  # tiny holds out no val split
@@ -450,6 +459,23 @@ def test_cli_generate_tiny_real_simulator(tmp_path):
     # rerun: nothing simulated again
     r2 = _real_tiny(tmp_path, "--limit", "0", "--no-estimate")
     assert "0 simulated, 2 skipped" in r2.stdout, r2.stdout + r2.stderr[-2000:]
+
+
+def test_lru_cache_bounds_the_bytes_of_its_arrays():
+    """With ``max_bytes`` the cache evicts the least recently used entries until its
+    arrays (numpy and torch, in nested dicts) fit, and always keeps the newest one."""
+    c = LRUCache(100, max_bytes=1000)
+    item = lambda n: {"a": np.zeros(n, np.float32), "b": [torch.zeros(n, dtype=torch.float64)]}
+    for k in "abc":  # 12 * 25 = 300 bytes each
+        c.get_or_build(k, lambda: item(25))
+    assert list(c) == ["a", "b", "c"] and c.bytes == 900
+    c.get_or_build("a", lambda: item(0))  # a hit: "a" becomes the most recent
+    c.get_or_build("d", lambda: item(25))  # 1,200 bytes: the least recent ("b") goes
+    assert list(c) == ["c", "a", "d"] and c.bytes == 900
+    c.get_or_build("e", lambda: item(200))  # 2,400 bytes alone: kept, everything else goes
+    assert list(c) == ["e"] and c.bytes == 2400
+    c2 = pickle.loads(pickle.dumps(c))
+    assert c2.max_bytes == 1000 and len(c2) == 0 and c2.bytes == 0
 
 
 def test_lru_cache_bound_and_pickles_empty():

@@ -113,7 +113,7 @@ class LearnedRunner:
         groups (:func:`~garmentgnn.bench.scoring.stratified`), or evenly spaced in id
         order for ``train``, which holds nothing out."""
         kw = dict(chunk=10 ** 9, history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
-                  num_landmarks=DATA["num_landmarks"], cache_size=64)
+                  num_landmarks=DATA["num_landmarks"])
         seqs = SequenceChunks(self.data.root, split, **kw)
         if n is None:
             return seqs
@@ -285,17 +285,17 @@ class LearnedRunner:
              set: Optional[Dict[str, Any]] = None) -> Tuple[Recipe, Dict[str, Any]]:
         """``method``'s recipe (:func:`~garmentgnn.bench.methods.recipe_of`) on this
         dataset (:func:`~garmentgnn.training.load_recipe`), seeded with ``seed``, no
-        validation split, 64 sequences cached at least, the budget's ``lr_factor``, ``args``
-        and ``set`` on top; and the run's description for ``run.json`` (:meth:`_folder`):
+        validation split, the budget's ``lr_factor``, ``args`` and ``set`` on top; and the run's description for ``run.json`` (:meth:`_folder`):
         recipe, module and data settings, limits."""
         recipe, lr, b = recipe_of(method), self.budget.lr_factor, self.budget
         r = load_recipe(recipe, args=["--seed_everything", str(seed), *args],
                         data={"root": self.data.root, "val_split": None, "seed": seed,
                               "num_workers": 0},
                         set=dict({"model.init_args.lr": lambda v: v * lr} if lr != 1 else {},
-                                 **{"data.cache_size": lambda c: max(c, 64)}, **(set or {})))
+                                 **(set or {})))
         data = {k: v for k, v in r.config["data"].items()
-                if k not in ("root", "num_workers", "cache_size", "predict_split")}
+                if k not in ("root", "num_workers", "cache_size", "cache_bytes",
+                             "predict_split")}
         minutes = b.long_minutes if method == LONG else b.minutes
         config = {"recipe": recipe, "model": r.config["model"], "data": data,
                   "epochs": b.epochs, "minutes": minutes, "epoch_chunks": b.epoch_chunks,

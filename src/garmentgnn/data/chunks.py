@@ -15,7 +15,9 @@ transfer recomputed.
 
 The static inputs (edge index, Nyström features, ClothRest, masses, rest body) are
 computed once per sequence and cached (``static_cache`` entries, LRU); positions and
-motion are cached per sequence file (``cache_size`` files, LRU).  The Nyström features,
+motion are cached per sequence file (LRU: at most ``cache_size`` files and
+``cache_bytes`` bytes of their arrays; the defaults hold a few hundred ``learn``-sized
+sequences, so shuffled training rarely reads one again).  The Nyström features,
 most of a static build's time, are also kept on disk beside the dataset, as PyG keeps a
 dataset's ``processed`` folder: ``ROOT/processed/nystrom-k<nystrom_dim>-z<num_landmarks>/
 <sequence sha256>.npy``, written once by whichever run first needs them (atomically; a
@@ -55,6 +57,9 @@ DEFAULT_DENSITY = 0.15
 
 #: the folder beside a dataset's sequences that keeps their preprocessing (PyG's name)
 PROCESSED = "processed"
+#: default bound of the sequence cache: files, and bytes of their loaded arrays (a
+#: ``learn`` sequence is ~0.4 MB; a reload costs ~2 ms: read, SHA-256, checks)
+CACHE_SIZE, CACHE_BYTES = 4096, 512 * 2 ** 20
 
 
 def sequence_material(meta: Dict[str, Any]) -> Optional[torch.Tensor]:
@@ -111,6 +116,8 @@ class SequenceChunks(Dataset):
         nystrom_dim, num_landmarks: Nyström features (``k`` must equal the model's
             ``nystrom_dim``).
         cache_size, static_cache: sequence files / static inputs kept (LRU).
+        cache_bytes: at most this many bytes of loaded sequence files kept (LRU, with
+            ``cache_size``; the arrays as loaded, :func:`~garmentgnn.data.store.nbytes`).
         ids: keep only these sequence ids (e.g. one garment's sequences).
 
     ``chunks[i]`` is one chunk; ``chunks[[i, j, ...]]`` those chunks as one batch.
@@ -119,7 +126,8 @@ class SequenceChunks(Dataset):
     def __init__(self, root, split: Optional[str] = "train", chunk: int = 8,
                  history: int = HISTORY, nystrom_dim: int = NYSTROM_DIM,
                  num_landmarks: int = NUM_LANDMARKS, drop_last: bool = False,
-                 cache_size: int = 4, static_cache: int = 64,
+                 cache_size: int = CACHE_SIZE, static_cache: int = 64,
+                 cache_bytes: int = CACHE_BYTES,
                  ids: Optional[Sequence[str]] = None, stride: Optional[int] = None) -> None:
         if chunk < 1:
             raise ValueError(f"`chunk`: expected >= 1, got {chunk}")
@@ -138,7 +146,10 @@ class SequenceChunks(Dataset):
         self.root = Path(root)
         self.split, self.chunk, self.history, self.stride = split, chunk, history, stride
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
+        if not isinstance(cache_bytes, int) or isinstance(cache_bytes, bool) or cache_bytes < 0:
+            raise ValueError(f"`cache_bytes`: expected bytes >= 0, got {cache_bytes!r}")
         self.cache_size, self.static_cache = max(1, cache_size), max(1, static_cache)
+        self.cache_bytes = cache_bytes
         manifest = store.read_manifest(self.root)
         items = manifest["items"]
         if split is not None:
@@ -173,7 +184,7 @@ class SequenceChunks(Dataset):
                     self.index.append((i, t0, n))
                 if t0 + chunk >= T:  # this window reached the end
                     break
-        self._seqs = store.LRUCache(self.cache_size)
+        self._seqs = store.LRUCache(self.cache_size, self.cache_bytes)
         self._static = store.LRUCache(self.static_cache)
         self.num_file_loads = 0
         self.num_static_builds = 0

@@ -51,26 +51,49 @@ def sequence_path(root: PathLike, record: Dict[str, Any]) -> Path:
     return Path(root) / (record.get("file") or f"{SEQUENCES}/{record['id']}.npz")
 
 
-class LRUCache(OrderedDict):
-    """At most ``capacity`` entries; :meth:`get_or_build` evicts the least recently used."""
+def nbytes(value: Any) -> int:
+    """Bytes held by the arrays and tensors of ``value`` (a dict, list or tuple of them,
+    nested): what an in-memory copy of a loaded sequence costs."""
+    if isinstance(value, dict):
+        return sum(nbytes(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return sum(nbytes(v) for v in value)
+    if isinstance(value, np.ndarray):
+        return int(value.nbytes)
+    numel, size = getattr(value, "numel", None), getattr(value, "element_size", None)
+    return int(numel() * size()) if callable(numel) and callable(size) else 0
 
-    def __init__(self, capacity: int) -> None:
+
+class LRUCache(OrderedDict):
+    """At most ``capacity`` entries and, with ``max_bytes``, at most that many bytes of
+    arrays (:func:`nbytes`; the newest entry is kept whatever its size):
+    :meth:`get_or_build` evicts the least recently used."""
+
+    def __init__(self, capacity: int, max_bytes: Optional[int] = None) -> None:
         super().__init__()
         self.capacity = max(1, capacity)
+        self.max_bytes = max_bytes
+        self.bytes = 0
+        self._sizes: Dict[Any, int] = {}
 
     def get_or_build(self, key, build: Callable[[], Any]) -> Any:
         if key in self:
             self.move_to_end(key)
             return self[key]
         value = self[key] = build()
-        while len(self) > self.capacity:
-            self.popitem(last=False)
+        if self.max_bytes is not None:
+            self._sizes[key] = nbytes(value)
+            self.bytes += self._sizes[key]
+        while len(self) > 1 and (len(self) > self.capacity or (
+                self.max_bytes is not None and self.bytes > self.max_bytes)):
+            old, _ = self.popitem(last=False)
+            self.bytes -= self._sizes.pop(old, 0)
         return value
 
     def __reduce__(self):
         # pickled empty: a cache need not travel to DataLoader / DDP worker processes
         # (and OrderedDict's own reduce would call __init__ without `capacity`)
-        return (type(self), (self.capacity,))
+        return (type(self), (self.capacity, self.max_bytes))
 
 
 def _tmp_name(path: Path) -> Path:

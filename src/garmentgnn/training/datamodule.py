@@ -17,7 +17,7 @@ from torch.utils.data.distributed import DistributedSampler
 
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.data import store
-from garmentgnn.data.chunks import SequenceChunks
+from garmentgnn.data.chunks import CACHE_BYTES, CACHE_SIZE, SequenceChunks
 from garmentgnn.data.keys import body_key, garment_key
 
 
@@ -114,6 +114,10 @@ class GarmentDataModule(L.LightningDataModule):
     and predict chunk (default ``chunk``; the sequence length: whole sequences, which an
     autoregressive method rolls out; ``drop_last`` does not apply to them).
 
+    ``cache_size`` and ``cache_bytes`` bound each split's cache of loaded sequence files
+    (files, bytes of their arrays; :class:`~garmentgnn.data.SequenceChunks`), one cache
+    per process and per loader worker.
+
     Resuming: the epoch to continue with is kept in the checkpoint
     (:meth:`state_dict`) and the training sampler starts there, because Lightning
     (2.6) builds a resumed fit's first data iterator *before* it calls the
@@ -126,9 +130,9 @@ class GarmentDataModule(L.LightningDataModule):
                  train_split: str = "train", val_split: Optional[str] = "val",
                  shuffle: bool = True, seed: int = 0, drop_last: bool = False,
                  test_split: str = "test", train_ids: Optional[Sequence[str]] = None,
-                 cache_size: int = 4, predict_split: Optional[str] = None,
+                 cache_size: int = CACHE_SIZE, predict_split: Optional[str] = None,
                  batch_size: int = 1, stride: Optional[int] = None,
-                 eval_chunk: Optional[int] = None) -> None:
+                 eval_chunk: Optional[int] = None, cache_bytes: int = CACHE_BYTES) -> None:
         super().__init__()
         if eval_chunk is not None and (not isinstance(eval_chunk, int)
                                        or isinstance(eval_chunk, bool) or eval_chunk < 1):
@@ -173,7 +177,8 @@ class GarmentDataModule(L.LightningDataModule):
         try:
             return SequenceChunks(self.root, split, chunk, hp.history, hp.nystrom_dim,
                                   hp.num_landmarks, drop_last=hp.drop_last and not whole,
-                                  cache_size=hp.cache_size, ids=ids,
+                                  cache_size=hp.cache_size,
+                                  cache_bytes=hp.get("cache_bytes", CACHE_BYTES), ids=ids,
                                   stride=hp.get("stride") if train else None)
         except ValueError as exc:
             msg = str(exc)
