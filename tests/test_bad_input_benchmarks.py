@@ -257,3 +257,13 @@ def test_train_scaling_resumes_an_interrupted_run(tmp_path, monkeypatch, data):
     info = ns["run"](a, out)
     assert calls == [("da", 1, 1, 8)]
     assert sorted(r["vertex_frames_per_s"] for r in info["rows"]) == [400.0, 800.0]
+
+
+# ------------------------------------------------------------------ data_loading.py
+@pytest.mark.parametrize("argv, words", [
+    (["--cache-sizes", "0"], ["argument --cache-sizes: expected an integer >= 1, got 0"]),
+    (["--cache-sizes", "4", "4"], ["--cache-sizes: 4 given more than once"]),
+    (["--epochs", "0"], ["argument --epochs: expected an integer >= 1, got 0"]),
+])
+def test_data_loading_bad_arguments_are_refused(capsys, argv, words):
+    refused(capsys, script("data_loading")["parse_args"], argv, *words)

@@ -127,33 +127,32 @@ class AttentionConv(LayerContract):
     # ------------------------------------------------------------------ projections
     def project(self, x: Tensor, lins: Sequence[Linear], scale_first: bool = False
                 ) -> Tuple[Tensor, ...]:
-        """Apply several linear maps to the same ``x`` in one matmul.
+        """Apply several linear maps to the same ``x``.
 
-        Returns one ``[N, H, C]`` view per map; with ``scale_first`` the first
-        (the queries) is scaled by ``1/sqrt(C)``, which folds the attention
-        temperature into an N-sized tensor instead of an E-sized one.  Lazy
-        maps (``in_channels=-1``) are initialised from ``x`` first.
+        Returns one contiguous ``[N, H, C]`` per map (the sparse kernels' node-major
+        operands as they are: one matmul per map, not one stacked matmul whose
+        outputs would be strided views); with ``scale_first`` the first (the queries)
+        is scaled by ``1/sqrt(C)``, which folds the attention temperature into an
+        N-sized tensor instead of an E-sized one.  Lazy maps (``in_channels=-1``) are
+        initialised from ``x`` first.
         """
         H, C = self.heads, self.out_channels
-        for lin in lins:
+        out = []
+        for i, lin in enumerate(lins):
             if isinstance(lin.weight, UninitializedParameter):
                 lin.initialize_parameters(lin, (x,))
-        weight = torch.cat([lin.weight for lin in lins], 0)
-        bias = torch.cat([lin.bias for lin in lins], 0) if lins[0].bias is not None else None
-        if scale_first:
-            s = torch.ones(weight.size(0), 1, dtype=weight.dtype, device=weight.device)
-            s[: H * C] = 1.0 / math.sqrt(C)
-            weight = weight * s
-            bias = bias * s.squeeze(1) if bias is not None else None
-        out = F.linear(x, weight, bias).view(x.size(0), len(lins), H, C)
-        return out.unbind(1)
+            weight, bias = lin.weight, lin.bias
+            if scale_first and i == 0:
+                s = 1.0 / math.sqrt(C)
+                weight, bias = weight * s, (bias * s if bias is not None else None)
+            out.append(F.linear(x, weight, bias).view(x.size(0), H, C))
+        return tuple(out)
 
     def project_qkv(self, x: Union[Tensor, PairTensor]) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """Queries (scaled by ``1/sqrt(C)``) from the targets, keys and values from the sources.
 
-        Returns ``(q, k, v, x_dst)``: for a single tensor all three in one
-        fused matmul, for a bipartite pair ``(x_src, x_dst)`` one for ``q`` and
-        one for ``k, v``.
+        Returns ``(q, k, v, x_dst)`` (:meth:`project`; ``q`` from ``x_dst``, ``k, v``
+        from ``x_src`` for a bipartite pair ``(x_src, x_dst)``).
         """
         if isinstance(x, Tensor):
             q, k, v = self.project(x, (self.lin_query, self.lin_key, self.lin_value), True)

@@ -7,9 +7,10 @@ attention maps onto two sparse kernels:
 * SDDMM: the scores ``s_ij = q_i . k_j`` sampled on the graph's pattern;
 * SpMM:  the aggregation ``out_i = sum_j alpha_ij v_j``.
 
-All heads run in one call on a block-diagonal ``[H*N_dst, H*N_src]`` pattern,
-so no ``[E, H, C]`` tensor is materialised in the forward *or* the backward
-pass.  PyTorch's own autograd for sparse CSR inputs is very slow on CPU (it
+All heads run in one call on a ``[N_dst*H, N_src*H]`` pattern (row ``i*H + h``,
+column ``j*H + h``: node-major, so a layer's ``[N, H, C]`` rows are the dense operands
+without a transpose), so no ``[E, H, C]`` tensor is materialised in the forward *or*
+the backward pass.  PyTorch's own autograd for sparse CSR inputs is very slow on CPU (it
 densifies or re-sorts), so both kernels are :class:`torch.autograd.Function`
 whose gradients are again SDDMM/SpMM on the pattern or its transpose:
 
@@ -88,6 +89,10 @@ class Pattern:
         # collection frees (RSS grew by about 20 MB a training step on `medium`)
         self._parent: Optional["weakref.ReferenceType[Pattern]"] = None
         self.rows: Optional[Tensor] = None  # row of every entry (head patterns set it)
+        #: head patterns: gathers between per-edge ``[E, H]`` values in the caller's
+        #: order (flattened) and the values' order (``None``: the same order)
+        self.from_caller: Optional[Tensor] = None
+        self.to_caller: Optional[Tensor] = None
 
     def matrix(self, values: Tensor) -> Tensor:
         with _quiet():
@@ -138,62 +143,76 @@ class Pattern:
             return torch.sparse.sampled_addmm(pattern, a, b.t(), beta=0.0).values()
 
 
+def _working_order(plan: CSRPlan, heads: int) -> Tuple[Tensor, Tensor, Tensor]:
+    """Where each (CSR edge ``k``, head ``h``) lives in the node-major working layout:
+    ``w [E, H]``, with the block pointer ``ptr [H*N_dst + 1]`` of rows ``(i, h)`` and
+    the degree ``deg [N_dst]``.  Row ``i*H + h`` holds target ``i``'s incoming edges (CSR
+    order) for head ``h``: ``w[k, h] = H*ptr[i] + h*deg(i) + (k - ptr[i])``."""
+    H, dev = heads, plan.src.device
+    deg = plan.ptr.diff()
+    h = torch.arange(H, device=dev)
+    start = plan.ptr[:-1].unsqueeze(1) * H + h.unsqueeze(0) * deg.unsqueeze(1)  # [N, H]
+    ptr = torch.cat([start.reshape(-1), plan.ptr.new_full((1,), H * plan.num_edges)])
+    k_in_row = torch.arange(plan.num_edges, device=dev) - plan.ptr[plan.dst]
+    w = start[plan.dst] + k_in_row.unsqueeze(1)  # [E, H]
+    return w, ptr, deg
+
+
+def _scatter_to(w: Tensor, values: Tensor) -> Tensor:
+    """``out[w] = values`` for ``w``, ``values`` of one shape (a permutation)."""
+    out = torch.empty(w.numel(), dtype=values.dtype, device=values.device)
+    out[w.reshape(-1)] = values.reshape(-1)
+    return out
+
+
 @torch.inference_mode(False)  # cached patterns serve autograd calls too
 def head_pattern(plan: CSRPlan, heads: int) -> Pattern:
-    """Block-diagonal ``[H*N_dst, H*N_src]``: the graph's pattern once per head.
+    """Block ``[N_dst*H, N_src*H]``: the graph's pattern once per head, node-major.
 
-    Values are head-major: entry ``h*E + k`` is head ``h`` of the ``k``-th edge
-    in CSR order.  The transpose reuses one ``argsort`` of the base graph.
-    """
+    Row ``i*H + h`` holds target ``i``'s incoming edges for head ``h`` at columns
+    ``j*H + h``, so node rows ``[N, H, C]`` (contiguous) are the kernels' dense operands
+    as they are (``.view(N*H, C)``), with no transpose.  Values are in the working
+    order of :func:`_working_order`; ``from_caller`` / ``to_caller`` gather ``[E, H]``
+    per-edge values (caller's edge order, flattened) into that order and back."""
     key = ("head", heads)
     if key not in plan.patterns:
-        E, ns, nd = plan.num_edges, plan.num_src, plan.num_dst
-        dev = plan.src.device
-        off = torch.arange(heads, device=dev).unsqueeze(1)
-        ptr = torch.cat([(plan.ptr[:-1].unsqueeze(0) + off * E).reshape(-1),
-                         plan.ptr.new_full((1,), heads * E)])
-        col = (plan.src.unsqueeze(0) + off * ns).reshape(-1)
-        src, dst = plan.src, plan.dst  # not ``plan``: the plan holds the pattern, which
-        # holds this closure, and that cycle would keep every plan's index tensors alive
-        # until a full garbage collection
-
-        def transpose() -> Tuple[Tensor, Tensor, Tensor]:
-            perm = torch.argsort(src * nd + dst, stable=True)
-            ptr_b = index2ptr(src[perm], ns)
-            ptr_t = torch.cat([(ptr_b[:-1].unsqueeze(0) + off * E).reshape(-1),
-                               ptr_b.new_full((1,), heads * E)])
-            col_t = (dst[perm].unsqueeze(0) + off * nd).reshape(-1)
-            return ptr_t, col_t, (perm.unsqueeze(0) + off * E).reshape(-1)
-
-        pat = Pattern(ptr, col, (heads * nd, heads * ns))
-        pat._build_transpose = transpose  # type: ignore[method-assign]
-        pat.rows = (plan.dst.unsqueeze(0) + off * nd).reshape(-1)  # row of every entry
+        H = heads
+        w, ptr, _ = _working_order(plan, H)
+        h = torch.arange(H, device=w.device).unsqueeze(0)
+        pat = Pattern(ptr, _scatter_to(w, plan.src.unsqueeze(1) * H + h),
+                      (H * plan.num_dst, H * plan.num_src))
+        pat.rows = _scatter_to(w, plan.dst.unsqueeze(1) * H + h)  # row of every entry
+        if plan.perm is None and H == 1:
+            pat.from_caller = pat.to_caller = None  # the working order is the caller's
+        else:
+            pat.from_caller = _scatter_to(w, plan.caller_ids.unsqueeze(1) * H + h)
+            pat.to_caller = torch.empty_like(pat.from_caller)
+            pat.to_caller[pat.from_caller] = torch.arange(pat.from_caller.numel(),
+                                                          device=w.device)
         plan.patterns[key] = pat
     return plan.patterns[key]
 
 
 @torch.inference_mode(False)
 def incidence_pattern(plan: CSRPlan, heads: int) -> Pattern:
-    """Per-head target-by-edge incidence ``[H*N_dst, E]``; row ``(h, i)`` holds the
-    incoming edges of ``i`` as columns in the *caller's* edge order, so
-    ``A @ Y`` sums the caller's edge rows ``Y [E, D]`` into targets without
-    permuting ``Y``.  Values are head-major in CSR order, like :func:`head_pattern`."""
+    """Per-head target-by-edge incidence ``[N_dst*H, E]``; row ``i*H + h`` holds the
+    incoming edges of ``i`` as columns in the *caller's* edge order, so ``A @ Y`` sums
+    the caller's edge rows ``Y [E, D]`` into ``[N_dst, H, D]`` without permuting ``Y``.
+    Values in the working order of :func:`head_pattern` (the same entries, row by row)."""
     key = ("incidence", heads)
     if key not in plan.patterns:
-        E, nd = plan.num_edges, plan.num_dst
-        dev = plan.src.device
-        off = torch.arange(heads, device=dev)
-        ptr = torch.cat([(plan.ptr[:-1].unsqueeze(0) + off.unsqueeze(1) * E).reshape(-1),
-                         plan.ptr.new_full((1,), heads * E)])
-        ids = plan.caller_ids
-        col = ids.repeat(heads)
-        # transpose [E, H*N_dst]: caller edge e holds its H entries (h, dst[e])
-        pos = torch.arange(E, device=dev) if plan.inv is None else plan.inv
-        dst_caller = plan.to_caller(plan.dst)
-        ptr_t = torch.arange(0, heads * E + 1, heads, device=dev)
-        col_t = (dst_caller.unsqueeze(1) + off.unsqueeze(0) * nd).reshape(-1)
-        to_t = (pos.unsqueeze(1) + off.unsqueeze(0) * E).reshape(-1)
-        plan.patterns[key] = Pattern(ptr, col, (heads * nd, E), (ptr_t, col_t, to_t))
+        H, E, nd = heads, plan.num_edges, plan.num_dst
+        head = head_pattern(plan, H)
+        w, ptr, _ = _working_order(plan, H)
+        dev = w.device
+        h = torch.arange(H, device=dev)
+        col = _scatter_to(w, plan.caller_ids.unsqueeze(1).expand(E, H))
+        # transpose [E, N_dst*H]: caller edge e holds its H entries (dst[e]*H + h)
+        ptr_t = torch.arange(0, H * E + 1, H, device=dev)
+        col_t = (plan.to_caller(plan.dst).unsqueeze(1) * H + h.unsqueeze(0)).reshape(-1)
+        to_t = (head.to_caller if head.to_caller is not None
+                else torch.arange(H * E, device=dev))
+        plan.patterns[key] = Pattern(ptr, col, (H * nd, E), (ptr_t, col_t, to_t))
     return plan.patterns[key]
 
 

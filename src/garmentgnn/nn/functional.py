@@ -21,8 +21,9 @@ Two routes compute the same numbers:
 
 * the **fused** route (``route.fused``; eager mode, float32/float64, nothing observing
   the messages) runs on the sparse CSR kernels of :mod:`garmentgnn.nn._sparse`, all
-  heads in one block-diagonal pattern, on the graph's cached :class:`CSRPlan` (edges
-  sorted by target once per ``edge_index`` tensor, whatever the caller's order);
+  heads in one node-major pattern (row ``i*H + h``), on the graph's cached
+  :class:`CSRPlan` (edges sorted by target once per ``edge_index`` tensor, whatever the
+  caller's order);
 * the **message** route gathers per edge in the caller's order, and the layer sums
   with :meth:`~torch_geometric.nn.conv.MessagePassing.propagate` and its ``message``,
   so explainers' edge masks and message hooks see every message as in PyG's convs.
@@ -30,8 +31,8 @@ Two routes compute the same numbers:
   and on graphs without edges.
 
 Per-edge, per-head tensors come in the route's working layout: ``[E, H]`` in the
-caller's edge order on the message route, a flat head-major ``[H*E]`` vector in CSR
-order on the fused route; :meth:`Route.edges_in` and :meth:`Route.edges_out` convert
+caller's edge order on the message route, a flat ``[E*H]`` vector in the kernels' order
+on the fused route (target by target, then head, then the target's edges in CSR order); :meth:`Route.edges_in` and :meth:`Route.edges_out` convert
 from and to ``[E, H]`` in the caller's order.  ``csr_kernels(False)`` forces the
 message route (tests, benchmarks).
 """
@@ -55,9 +56,9 @@ __all__ = ["Graph", "CSRPlan", "prepare_graph", "build_plan", "Route", "attentio
 class Route(NamedTuple):
     """How one call runs: on the CSR kernels (``plan`` set) or by message passing.
 
-    ``index`` is the segment (target, or (head, target) row) of every working
+    ``index`` is the segment (target, or (target, head) row) of every working
     entry, ``ptr`` the CSR offsets of those segments when they are sorted,
-    ``num_segments`` their number, ``pattern`` the kernels' block-diagonal
+    ``num_segments`` their number, ``pattern`` the kernels' node-major head
     pattern (fused route only).
     """
 
@@ -75,17 +76,18 @@ class Route(NamedTuple):
 
     def edges_in(self, t: Tensor) -> Tensor:
         """``[E, H]`` in the caller's order -> working layout."""
-        if self.plan is None:
+        if self.pattern is None:
             return t
-        t = t.t()
-        return (t if self.plan.perm is None else t.index_select(1, self.plan.perm)).reshape(-1)
+        t = t.reshape(-1)
+        idx = self.pattern.from_caller
+        return t if idx is None else t.index_select(0, idx)
 
     def edges_out(self, t: Tensor) -> Tensor:
         """Working layout -> ``[E, H]`` in the caller's order."""
-        if self.plan is None:
+        if self.pattern is None:
             return t
-        t = t.view(self.heads, -1)
-        return (t if self.plan.inv is None else t.index_select(1, self.plan.inv)).t()
+        idx = self.pattern.to_caller
+        return (t if idx is None else t.index_select(0, idx)).view(-1, self.heads)
 
 
 def attention_route(g: Graph, heads: int, *operands: Tensor, observed: bool = False) -> Route:
@@ -108,10 +110,8 @@ def edge_dot(q: Tensor, k: Tensor, g: Graph, r: Route) -> Tensor:
     """``q_i . k_j`` per edge ``j -> i`` and head (``q [N_dst, H, C]``, ``k [N_src, H, C]``),
     in the working layout: one SDDMM over all heads on the fused route."""
     if r.pattern is not None:
-        H, C = q.size(1), q.size(2)
-        qs = q.transpose(0, 1).reshape(H * g.num_dst, C)
-        ks = k.transpose(0, 1).reshape(H * g.num_src, C)
-        return sddmm(qs, ks, r.pattern)
+        C = q.size(2)
+        return sddmm(q.reshape(-1, C), k.reshape(-1, C), r.pattern)
     # contiguous first: gathering rows of a strided [N, H, C] view is several times slower
     q_i = q.contiguous().index_select(0, g.edge_index[1])
     return (q_i * k.contiguous().index_select(0, g.edge_index[0])).sum(-1)
@@ -164,9 +164,8 @@ def attention_spmm(alpha: Tensor, v: Tensor, g: Graph, r: Route) -> Tensor:
     if r.pattern is None:
         raise ValueError("`r`: attention_spmm runs on the fused route; on the message "
                          "route sum the messages with propagate()")
-    H, C = v.size(1), v.size(2)
-    out = spmm(alpha, v.transpose(0, 1).reshape(H * g.num_src, C), r.pattern)
-    return out.view(H, g.num_dst, C).transpose(0, 1)
+    out = spmm(alpha, v.reshape(-1, v.size(2)), r.pattern)
+    return out.view(g.num_dst, v.size(1), -1)
 
 
 def edge_rows_spmm(alpha: Tensor, y: Tensor, g: Graph, r: Route) -> Tensor:
@@ -175,4 +174,4 @@ def edge_rows_spmm(alpha: Tensor, y: Tensor, g: Graph, r: Route) -> Tensor:
     if r.plan is None:
         raise ValueError("`r`: edge_rows_spmm runs on the fused route only")
     out = spmm(alpha, y, incidence_pattern(r.plan, r.heads))
-    return out.view(r.heads, g.num_dst, -1).transpose(0, 1)
+    return out.view(g.num_dst, r.heads, -1)

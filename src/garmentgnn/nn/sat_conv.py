@@ -211,16 +211,18 @@ class SATConv(AttentionConv):
         values; the ones column gives the attention mass that the bias needs (exact
         also when dropout makes the weights not sum to 1)."""
         H, C, D = self.heads, self.out_channels, self.edge_dim
-        out = attention_spmm(alpha, v, g, r)  # sum_j alpha_ij v_j, head-major storage
+        out = attention_spmm(alpha, v, g, r)  # sum_j alpha_ij v_j: [N, H, C]
         b_q = self.lin_edge_value.bias
         rows = e if b_q is None else F.pad(e, (0, 1), value=1.0)
         agg_e = edge_rows_spmm(alpha, rows, g, r)  # sum_j alpha_ij [e_ij | 1]: [N, H, D(+1)]
         w = self.lin_edge_value.weight.view(H, C, D)
         if b_q is not None:
             w = torch.cat([w, b_q.view(H, C, 1)], 2)
-        # one batched matmul over the heads, in the kernels' head-major layout
-        return torch.baddbmm(out.transpose(0, 1), agg_e.transpose(0, 1),
-                             w.transpose(1, 2)).transpose(0, 1)
+        # all heads in one matmul against the block-diagonal [H(D+1), HC] map, added
+        # into the node-major sums: [N, H(D+1)] @ blockdiag(W_q'^h^T | b_q'^h)
+        N = out.size(0)
+        return torch.addmm(out.view(N, H * C), agg_e.reshape(N, -1),
+                           torch.block_diag(*w.transpose(1, 2))).view(N, H, C)
 
     def update_edges(self, h: Tensor, e: Tensor) -> Tensor:
         """``W_e h_ij + skip(e_ij)`` for scores ``h [E, H]`` in the caller's order."""
