@@ -465,7 +465,9 @@ def test_lru_cache_bounds_the_bytes_of_its_arrays():
     """With ``max_bytes`` the cache evicts the least recently used entries until its
     arrays (numpy and torch, in nested dicts) fit, and always keeps the newest one."""
     c = LRUCache(100, max_bytes=1000)
-    item = lambda n: {"a": np.zeros(n, np.float32), "b": [torch.zeros(n, dtype=torch.float64)]}
+    def item(n):
+        return {"a": np.zeros(n, np.float32), "b": [torch.zeros(n, dtype=torch.float64)]}
+
     for k in "abc":  # 12 * 25 = 300 bytes each
         c.get_or_build(k, lambda: item(25))
     assert list(c) == ["a", "b", "c"] and c.bytes == 900

@@ -285,8 +285,9 @@ class LearnedRunner:
              set: Optional[Dict[str, Any]] = None) -> Tuple[Recipe, Dict[str, Any]]:
         """``method``'s recipe (:func:`~garmentgnn.bench.methods.recipe_of`) on this
         dataset (:func:`~garmentgnn.training.load_recipe`), seeded with ``seed``, no
-        validation split, the budget's ``lr_factor``, ``args`` and ``set`` on top; and the run's description for ``run.json`` (:meth:`_folder`):
-        recipe, module and data settings, limits."""
+        validation split, the budget's ``lr_factor``, ``args`` and ``set`` on top; and the
+        run's description for ``run.json`` (:meth:`_folder`): recipe, module and data
+        settings, limits."""
         recipe, lr, b = recipe_of(method), self.budget.lr_factor, self.budget
         r = load_recipe(recipe, args=["--seed_everything", str(seed), *args],
                         data={"root": self.data.root, "val_split": None, "seed": seed,

@@ -32,8 +32,9 @@ Two routes compute the same numbers:
 
 Per-edge, per-head tensors come in the route's working layout: ``[E, H]`` in the
 caller's edge order on the message route, a flat ``[E*H]`` vector in the kernels' order
-on the fused route (target by target, then head, then the target's edges in CSR order); :meth:`Route.edges_in` and :meth:`Route.edges_out` convert
-from and to ``[E, H]`` in the caller's order.  ``csr_kernels(False)`` forces the
+on the fused route (target by target, then head, then the target's edges in CSR
+order); :meth:`Route.edges_in` and :meth:`Route.edges_out` convert from and to
+``[E, H]`` in the caller's order.  ``csr_kernels(False)`` forces the
 message route (tests, benchmarks).
 """
 from __future__ import annotations
