@@ -5,8 +5,8 @@ window").  ``benchmarks/gpu_window_prepare.py`` makes its carried folder here;
 unpacks the datasets, then runs each stage as its own process with a share of the time
 left (a stage that fails or runs out of time loses only its own results):
 
-1. ``throughput_gartrans``, ``throughput_da``: ``benchmarks/train_throughput.py`` at
-   batch 1/4/16/64 (and bf16 on a GPU) on the packed ``throughput-small``;
+1. ``throughput_{gartrans,static,da}``: ``benchmarks/train_throughput.py`` at batch 1/4/16/64 on
+   ``throughput-small`` (bf16 on a GPU; ``static``: GarTrans's stack compiled, CUDA graphs);
 2. ``inference``: ``benchmarks/inference.py`` at 1K/4K/10K vertices, batch 1 and batched;
 3. ``train_gartrans``, ``train_da``: ``garmentgnn train fit`` for the stage's time
    (``--trainer.max_time``), then ``train test`` of its best checkpoint.
@@ -52,8 +52,8 @@ FILE_LIMIT = 16 * 2 ** 20 - 2 ** 16
 MARGIN_S = 20.0
 #: each stage's share of the time left when it starts (unused time goes to the later ones)
 #: (set from the first H200 window's stage times, docs/results/gpu_window_h200)
-WEIGHTS = {"throughput_gartrans": 0.17, "throughput_da": 0.10, "inference": 0.11,
-           "train_gartrans": 0.37, "train_da": 0.25}
+WEIGHTS = {"throughput_gartrans": 0.17, "throughput_static": 0.10, "throughput_da": 0.10,
+           "inference": 0.11, "train_gartrans": 0.30, "train_da": 0.22}
 RECIPES = {"train_gartrans": "gartrans", "train_da": "baselines/da"}  # each stage's --config
 #: frames per chunk of the packaged recipes (``data.chunk``): a training batch holds at
 #: most the training split's chunks
@@ -271,14 +271,14 @@ class Window:
     def throughput(self, name: str, seconds: float, folder: Path) -> Dict[str, Any]:
         if self.dataset("throughput") is None:
             return {"status": "skipped", "note": f"no {THROUGHPUT_PACK} carried"}
-        method = name.split("_", 1)[1]
+        method = {"static": "gartrans"}.get(name.split("_", 1)[1], name.split("_", 1)[1])
         cmd = self.py("benchmarks/train_throughput.py", "--sizes", "small", "--methods",
                       method, "--threads", str(self.threads), "--device", self.a.device,
                       "--batches", *map(str, self.a.batches), "--chunks", str(self.a.chunks),
                       "--repeats", "1", "--warmup", "2", "--workers", str(self.a.loader_workers),
                       "--out", str(folder))
-        if self.a.device == "cuda":
-            cmd.append("--bf16")
+        cmd += (["--compile-stack", "reduce-overhead"] if name == "throughput_static"
+                else ["--bf16"] if self.a.device == "cuda" else [])
         r = run_command(cmd, seconds, folder / "log.txt", self.env)
         return dict(r, rows=throughput_rows(folder, folder / "log.txt", self.a.device))
 

@@ -29,7 +29,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Optional
 
 import lightning as L
 import torch
@@ -40,6 +40,7 @@ from garmentgnn.data import Spec, generate, store
 from garmentgnn.bench.methods import DATA
 from garmentgnn.data import SequenceChunks
 from garmentgnn.sim.stand_in import skinned_wobble
+from garmentgnn.models.blocks import COMPILE_MODES
 from garmentgnn.training import Recipe, load_recipe
 
 HERE = Path(__file__).resolve().parent
@@ -64,16 +65,19 @@ def dataset(size: str, cache: Path) -> Path:
     return out
 
 
-def recipe_for(method: str, chunks: SequenceChunks, batch: int, workers: int = 0) -> Recipe:
+def recipe_for(method: str, chunks: SequenceChunks, batch: int, workers: int = 0,
+               compile_stack: Optional[str] = None) -> Recipe:
     """``method``'s recipe on ``chunks``' dataset (chunks of 8 frames, history 3, ``batch``
     chunks a step, ``workers`` loader processes, no validation), built at seed 0, its
     data module reading ``chunks`` (every sequence's static inputs built once:
-    :func:`warm`)."""
+    :func:`warm`); GarTrans with ``compile_stack`` (its dynamic stack compiled on a
+    padded graph: ``GarTrans(compile_stack=...)``)."""
     recipe = load_recipe(RECIPES[method], args=[
         "--data.root", str(chunks.root), "--data.chunk", "8", "--data.history", "3",
         "--data.val_split", "null", "--data.seed", "0", "--data.batch_size", str(batch),
-        "--data.cache_size", "64", "--data.num_workers", str(workers),
-        "--seed_everything", "0"])
+        "--data.num_workers", str(workers), "--seed_everything", "0"],
+        set={"model.init_args.model.init_args.compile_stack": compile_stack}
+        if method == "gartrans" and compile_stack else None)
     recipe.datamodule.train_set = chunks
     return recipe
 
@@ -102,7 +106,7 @@ class Clock(L.Callback):
 def measure(chunks: SequenceChunks, method: str, batch: int, threads: int,
             a: argparse.Namespace, precision: str = "32-true") -> Dict[str, Any]:
     torch.set_num_threads(threads)
-    recipe = recipe_for(method, chunks, batch, a.workers)
+    recipe = recipe_for(method, chunks, batch, a.workers, a.compile_stack)
     steps = a.warmup + max(3, -(-a.chunks // batch))
     clock = Clock()
     tr = recipe.trainer(max_steps=steps, max_epochs=-1, accelerator=a.device, devices=1,
@@ -123,7 +127,7 @@ def warm(root: Path) -> SequenceChunks:
     """The training chunks with every sequence's file and static inputs (Nyström
     features, rest state) loaded once: a cost of the first epoch, not of a step."""
     chunks = SequenceChunks(root, "train", chunk=DATA["chunk"], history=DATA["history"],
-                            cache_size=64, static_cache=64)
+                            static_cache=64)
     for i in range(len(chunks.records)):
         chunks.static(i)
         chunks.sequence(i)
@@ -149,6 +153,10 @@ def main() -> None:
                          "their first step's loss from float32's")
     ap.add_argument("--workers", type=int, default=0,
                     help="data loader worker processes (0: loading in the training process)")
+    ap.add_argument("--compile-stack", choices=[m for m in COMPILE_MODES if m], default=None,
+                    help="GarTrans's dynamic stack compiled in this torch.compile mode on its "
+                         "graph padded to bucket sizes (reduce-overhead: CUDA graphs on a "
+                         "GPU); default eager")
     add_output_args(ap, RESULTS, "the throughput tables")
     a = ap.parse_args()
     for flag in ("batches", "threads"):
@@ -194,7 +202,7 @@ def main() -> None:
         first = [statistics.median(x["first_loss"] for x in q["runs"]) for q in (r, fp32)]
         r["loss_rel_diff"] = abs(first[0] - first[1]) / max(abs(first[1]), 1e-12)
     info = {"command": command_line("benchmarks/train_throughput.py"), "device": a.device,
-            "loader_workers": a.workers,
+            "loader_workers": a.workers, "compile_stack": a.compile_stack,
             "device_name": torch.cuda.get_device_name() if a.device == "cuda"
             else platform.processor() or platform.machine(),
             "torch": torch.__version__, "datasets": {
@@ -209,7 +217,8 @@ def main() -> None:
              "Vertex-frames per second of training steps (median of the rounds); x batch 1:"
              " against the same method, threads and size at batch 1, measured in the same"
              f" run; loss vs fp32: the relative difference of the first step's loss from"
-             f" float32's (same weights and batch).  Loader workers: {a.workers}.", "",
+             f" float32's (same weights and batch).  Loader workers: {a.workers}.  GarTrans's"
+             f" dynamic stack: {a.compile_stack or 'eager'}.", "",
              "| size | method | threads | precision | batch | vertex-frames/s | x batch 1 |"
              " loss vs fp32 |",
              "|---|---|---:|---|---:|---:|---:|---:|"]

@@ -5,10 +5,10 @@ the batch.  Torch functions are differentiable in the positions; the geodesic /
 Nystroem functions are numpy/scipy pre-processing on a single rest mesh.
 """
 from garmentgnn.geometry.distance import (SignedDistance, WindingNumber,
-                                          closest_point_on_triangle, is_closed_mesh,
-                                          penetration_depth, push_outside,
+                                          closest_point_on_triangle, push_outside,
                                           signed_distance,
                                           vertex_joint_distances)
+from garmentgnn.geometry.penetration import is_closed_mesh, penetration_depth
 from garmentgnn.geometry.face_cache import FaceCacheStats, NearestFaceCache
 from garmentgnn.geometry.geodesic import (HeatGeodesicSolver, NystromFeatures,
                                           cotan_laplacian, farthest_point_sampling,

@@ -6,6 +6,7 @@ rebuilt from its checkpoint."""
 from __future__ import annotations
 
 import inspect
+import math
 import warnings
 import weakref
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -13,15 +14,17 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch_geometric.data import Data
 from torch_geometric.nn import Linear as PyGLinear
+from torch_geometric.transforms import Pad
 from torch.nn.parameter import UninitializedParameter
 from torch.utils._python_dispatch import _get_current_dispatch_mode
 
 from garmentgnn.nn import TensorCache, make_layer
 
-__all__ = ["AttentionStack", "Configurable", "RunningNormalizer", "batch_edges",
+__all__ = ["AttentionStack", "Configurable", "RunningNormalizer", "batch_edges", "bucket",
            "cached_batch_edges", "check_arguments", "compiled_forward", "geometric_init_",
-           "mlp"]
+           "mlp", "pad_graph"]
 
 
 class Configurable:
@@ -53,24 +56,27 @@ class Configurable:
 
 #: ``torch.compile`` of each module's forward (kept outside the module: its state dict,
 #: copies and pickles stay those of the eager module)
-_COMPILED: "weakref.WeakKeyDictionary[nn.Module, Any]" = weakref.WeakKeyDictionary()
+_COMPILED: "weakref.WeakKeyDictionary[nn.Module, Dict[Any, Any]]" = \
+    weakref.WeakKeyDictionary()
 #: set when compiling failed once: every module runs eager from then on
 _COMPILE_FAILED: Dict[str, str] = {}
 
 
-def compiled_forward(module: nn.Module, *args: Any) -> Any:
-    """``module(*args)`` through ``torch.compile(module.forward, dynamic=True)`` (inductor;
-    built once per module, dynamic shapes so that other garments and batch sizes reuse
-    it) while autograd records, eager otherwise (evaluation runs the eager module), and
-    eager under a ``TorchDispatchMode`` (FLOP and operator counters see the eager
-    operators, and the compiled code is not specialised to the mode).  Where compiling
-    fails (no C++ compiler, an unsupported operator) it warns once and every later call
-    runs eager."""
+def compiled_forward(module: nn.Module, *args: Any, mode: Optional[str] = None,
+                     dynamic: bool = True) -> Any:
+    """``module(*args)`` through ``torch.compile(module.forward, mode=mode,
+    dynamic=dynamic)`` (inductor; built once per module and options; dynamic shapes by
+    default, so that other garments and batch sizes reuse it) while autograd records,
+    eager otherwise (evaluation runs the eager module), and eager under a
+    ``TorchDispatchMode`` (FLOP and operator counters see the eager operators, and the
+    compiled code is not specialised to the mode).  Where compiling fails (no C++
+    compiler, an unsupported operator) it warns once and every later call runs eager."""
     if not torch.is_grad_enabled() or _COMPILE_FAILED or _get_current_dispatch_mode():
         return module(*args)
-    fn = _COMPILED.get(module)
+    fns = _COMPILED.setdefault(module, {})
+    fn = fns.get((mode, dynamic))
     if fn is None:
-        fn = _COMPILED[module] = torch.compile(module.forward, dynamic=True)
+        fn = fns[(mode, dynamic)] = torch.compile(module.forward, mode=mode, dynamic=dynamic)
     try:
         return fn(*args)
     except Exception as err:  # noqa: BLE001 -- any compiler failure: run eager
@@ -79,6 +85,35 @@ def compiled_forward(module: nn.Module, *args: Any) -> Any:
                       f"({_COMPILE_FAILED['error']}); running eager", RuntimeWarning,
                       stacklevel=2)
         return module(*args)
+
+
+def bucket(n: int, base: int = 256, growth: float = 2 ** 0.25) -> int:
+    """The smallest size ``> n`` of the series ``base * growth^k`` (``k >= 0``, each
+    rounded up to a multiple of 64): padded to it, the shapes of any batch fall on a few
+    sizes (4 a doubling at the default growth, at most 19% padding) and a compiled graph
+    (a CUDA graph) of each serves every batch of its bucket.  Always at least one more
+    than ``n``: a padded graph has a padding node for its padding edges to point at."""
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise ValueError(f"`n`: expected a size >= 0, got {n!r}")
+    k = 0
+    while True:
+        size = -(-int(math.ceil(base * growth ** k)) // 64) * 64
+        if size > n:
+            return size
+        k += 1
+
+
+def pad_graph(x: Tensor, edge_index: Tensor, edge_attr: Tensor
+              ) -> Tuple[Tensor, Tensor, Tensor]:
+    """``x [N, F]``, ``edge_index [2, E]`` and ``edge_attr [E, D]`` padded to
+    :func:`bucket` sizes of nodes and edges with PyG's
+    :class:`~torch_geometric.transforms.Pad`: zero rows for the padding nodes and edges,
+    every padding edge a loop on the first padding node (``N``).  No real node receives a
+    padding edge, so the first ``N`` rows of a message-passing stack's output are those of
+    the unpadded graph, and so are their gradients (``out[:N]``)."""
+    data = Data(x=x, edge_index=edge_index, edge_attr=edge_attr)
+    out = Pad(max_num_nodes=bucket(x.size(0)), max_num_edges=bucket(edge_index.size(1)))(data)
+    return out.x, out.edge_index, out.edge_attr
 
 
 def mlp(sizes: Sequence[int], act: nn.Module, last_act: bool = True) -> nn.Sequential:
@@ -243,9 +278,15 @@ class AttentionStack(nn.Module):
         return x
 
 
+#: ``compile_stack``'s choices (:class:`~garmentgnn.models.GarTrans`): eager (``None``) or
+#: a ``torch.compile`` mode
+COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")
+
+
 def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
                     accel_unit: Optional[float], strain_limit: int,
-                    collision_projection: Optional[float]) -> None:
+                    collision_projection: Optional[float],
+                    compile_stack: Optional[str] = None) -> None:
     """A ``ValueError`` naming the first bad argument of
     :class:`~garmentgnn.models.GarTrans` (its docstring says what each means)."""
     if lbs_start and not skin_prior:
@@ -262,3 +303,6 @@ def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
     if collision_projection is not None and not collision_projection >= 0:
         raise ValueError(f"`collision_projection`: expected a margin >= 0 in metres or "
                          f"None, got {collision_projection}")
+    if compile_stack not in COMPILE_MODES:
+        raise ValueError(f"`compile_stack`: expected one of {COMPILE_MODES}, got "
+                         f"{compile_stack!r}")

@@ -25,8 +25,8 @@ from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import (edge_features, edge_lengths, unique_edges, vertex_normals,
                                  full_precision)
 from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNormalizer,
-                                      cached_batch_edges, check_arguments, geometric_init_,
-                                      mlp)
+                                      cached_batch_edges, check_arguments, compiled_forward,
+                                      geometric_init_, mlp, pad_graph)
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
                                         StaticFeatures)
@@ -77,6 +77,15 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             vertices closer than ``eps`` to the body (or inside it) to ``eps`` outside
             (:func:`~garmentgnn.geometry.push_outside`); ``None`` (the paper): none.
         compile_search: ``torch.compile`` the projection's nearest-face search (faster).
+        compile_stack: ``None`` (the default): the dynamic stack runs eager (on the CPU
+            the fastest: eager takes the sparse kernels, a compiled layer message
+            passing, docs/inference.md).  A ``torch.compile`` mode (``"default"``,
+            ``"reduce-overhead"``: CUDA graphs on a GPU, ``"max-autotune"``): while
+            training, the dynamic stack runs compiled with static shapes on its graph
+            padded to :func:`~garmentgnn.models.blocks.bucket` sizes
+            (:func:`~garmentgnn.models.blocks.pad_graph`: the real vertices' outputs and
+            gradients are the unpadded ones), so a few compiled graphs serve every batch
+            and a GPU replays each step's stack as one CUDA graph.
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = NYSTROM_DIM,
@@ -86,11 +95,11 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
                  blend_shape: bool = False, accel_unit: Optional[float] = 0.01,
                  input_norm: bool = True, local_frame: bool = True, strain_limit: int = 10,
                  collision_projection: Optional[float] = 0.002,
-                 compile_search: bool = False) -> None:
+                 compile_search: bool = False, compile_stack: Optional[str] = None) -> None:
         super().__init__()
         check_arguments(lbs_start=lbs_start, skin_prior=skin_prior, gate_init=gate_init,
                         accel_unit=accel_unit, strain_limit=strain_limit,
-                        collision_projection=collision_projection)
+                        collision_projection=collision_projection, compile_stack=compile_stack)
         S = num_joints
         self.num_joints, self.num_body_vertices, self.fps, self.edge_dim = \
             S, num_body_vertices, fps, edge_dim
@@ -98,7 +107,7 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         self.gate_init, self.accel_unit = float(gate_init), accel_unit
         self.input_norm, self.local_frame = bool(input_norm), bool(local_frame)
         self.strain_limit, self.collision_projection = strain_limit, collision_projection
-        self.compile_search = bool(compile_search)
+        self.compile_search, self.compile_stack = bool(compile_search), compile_stack
         self.rest_fc = mlp([6 + S, 128, 128, 128], nn.Tanh())
         self.rest_attn = AttentionStack(rest_layer, 128, [64, 64, 128], heads, edge_dim, "tanh",
                                         last_act=True)
@@ -244,10 +253,19 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         x = self.dynamic_norm(torch.cat(feats, -1).reshape(B * V, -1))
         ei = cached_batch_edges(inputs.edge_index, B, V)
         e = self.dynamic_edge_norm(edge_features(cur.reshape(B * V, 3), ei))
-        a = self.dynamic(x, ei, e).view(B, V, -1)
+        a = self.dynamic_stack(x, ei, e).view(B, V, -1)
         if self.local_frame:  # back to the world: R_v a
             a = torch.cat([torch.einsum("bvij,bvj->bvi", R, a[..., :3]), a[..., 3:]], -1)
         return a
+
+    def dynamic_stack(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
+        """The dynamic stack on the batched graph: eager, or (``compile_stack``, while
+        training) compiled with static shapes on the graph padded to bucket sizes."""
+        if self.compile_stack is None or not torch.is_grad_enabled():
+            return self.dynamic(x, edge_index, edge_attr)
+        out = compiled_forward(self.dynamic, *pad_graph(x, edge_index, edge_attr),
+                               mode=self.compile_stack, dynamic=False)
+        return out[:x.size(0)]
 
     @property
     def unit(self) -> float:
