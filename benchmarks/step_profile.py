@@ -449,7 +449,7 @@ def plot(rows: List[Dict[str, Any]], path: Path) -> None:
         ax.set_xticklabels(labels, fontsize=7)
         ax.set_title(f"{th} thread(s)")
         ax.set_ylabel("seconds per 10^5 vertex-frames")
-    axes[0][-1].legend(fontsize=7, loc="upper right")
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # off the bars
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -40,7 +40,6 @@ from garmentgnn.data import Spec, generate, store
 from garmentgnn.bench.methods import DATA
 from garmentgnn.data import SequenceChunks
 from garmentgnn.sim.stand_in import skinned_wobble
-from garmentgnn.models.blocks import COMPILE_MODES
 from garmentgnn.training import Recipe, load_recipe
 
 HERE = Path(__file__).resolve().parent
@@ -135,6 +134,8 @@ def warm(root: Path) -> SequenceChunks:
 
 
 def main() -> None:
+    # here, not at the top: step_profile's workers import this file beside older trees
+    from garmentgnn.models.blocks import COMPILE_MODES  # noqa: PLC0415
     ap = ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--sizes", nargs="+", choices=sorted(SIZES), default=["small", "medium"],
                     help="garment sizes")

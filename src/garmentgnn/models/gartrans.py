@@ -85,7 +85,8 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             padded to :func:`~garmentgnn.models.blocks.bucket` sizes
             (:func:`~garmentgnn.models.blocks.pad_graph`: the real vertices' outputs and
             gradients are the unpadded ones), so a few compiled graphs serve every batch
-            and a GPU replays each step's stack as one CUDA graph.
+            and a GPU replays each step's stack as one CUDA graph (dynamo keeps up to its
+            ``recompile_limit``, 8, bucket pairs; further ones run eager, with its warning).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = NYSTROM_DIM,
