@@ -143,19 +143,17 @@ class Pattern:
             return torch.sparse.sampled_addmm(pattern, a, b.t(), beta=0.0).values()
 
 
-def _working_order(plan: CSRPlan, heads: int) -> Tuple[Tensor, Tensor, Tensor]:
+def _working_order(plan: CSRPlan, heads: int) -> Tuple[Tensor, Tensor]:
     """Where each (CSR edge ``k``, head ``h``) lives in the node-major working layout:
-    ``w [E, H]``, with the block pointer ``ptr [H*N_dst + 1]`` of rows ``(i, h)`` and
-    the degree ``deg [N_dst]``.  Row ``i*H + h`` holds target ``i``'s incoming edges (CSR
-    order) for head ``h``: ``w[k, h] = H*ptr[i] + h*deg(i) + (k - ptr[i])``."""
+    ``w [E, H]``, with the block pointer ``ptr [H*N_dst + 1]`` of rows ``(i, h)``.  Row
+    ``i*H + h`` holds target ``i``'s incoming edges (CSR order) for head ``h``:
+    ``w[k, h] = H*ptr[i] + h*deg(i) + (k - ptr[i])``."""
     H, dev = heads, plan.src.device
-    deg = plan.ptr.diff()
     h = torch.arange(H, device=dev)
-    start = plan.ptr[:-1].unsqueeze(1) * H + h.unsqueeze(0) * deg.unsqueeze(1)  # [N, H]
+    start = plan.ptr[:-1].unsqueeze(1) * H + h.unsqueeze(0) * plan.ptr.diff().unsqueeze(1)
     ptr = torch.cat([start.reshape(-1), plan.ptr.new_full((1,), H * plan.num_edges)])
     k_in_row = torch.arange(plan.num_edges, device=dev) - plan.ptr[plan.dst]
-    w = start[plan.dst] + k_in_row.unsqueeze(1)  # [E, H]
-    return w, ptr, deg
+    return start[plan.dst] + k_in_row.unsqueeze(1), ptr  # w [E, H], ptr
 
 
 def _scatter_to(w: Tensor, values: Tensor) -> Tensor:
@@ -177,7 +175,7 @@ def head_pattern(plan: CSRPlan, heads: int) -> Pattern:
     key = ("head", heads)
     if key not in plan.patterns:
         H = heads
-        w, ptr, _ = _working_order(plan, H)
+        w, ptr = _working_order(plan, H)
         h = torch.arange(H, device=w.device).unsqueeze(0)
         pat = Pattern(ptr, _scatter_to(w, plan.src.unsqueeze(1) * H + h),
                       (H * plan.num_dst, H * plan.num_src))
@@ -202,17 +200,16 @@ def incidence_pattern(plan: CSRPlan, heads: int) -> Pattern:
     key = ("incidence", heads)
     if key not in plan.patterns:
         H, E, nd = heads, plan.num_edges, plan.num_dst
-        head = head_pattern(plan, H)
-        w, ptr, _ = _working_order(plan, H)
-        dev = w.device
-        h = torch.arange(H, device=dev)
-        col = _scatter_to(w, plan.caller_ids.unsqueeze(1).expand(E, H))
+        head = head_pattern(plan, H)  # the same entries; its gathers give the columns
+        dev = head.col.device
+        ids = torch.arange(H * E, device=dev)
+        col = (ids if head.from_caller is None else head.from_caller) // H  # caller's edge
         # transpose [E, N_dst*H]: caller edge e holds its H entries (dst[e]*H + h)
         ptr_t = torch.arange(0, H * E + 1, H, device=dev)
-        col_t = (plan.to_caller(plan.dst).unsqueeze(1) * H + h.unsqueeze(0)).reshape(-1)
-        to_t = (head.to_caller if head.to_caller is not None
-                else torch.arange(H * E, device=dev))
-        plan.patterns[key] = Pattern(ptr, col, (H * nd, E), (ptr_t, col_t, to_t))
+        col_t = (plan.to_caller(plan.dst).unsqueeze(1) * H
+                 + torch.arange(H, device=dev).unsqueeze(0)).reshape(-1)
+        to_t = ids if head.to_caller is None else head.to_caller
+        plan.patterns[key] = Pattern(head.ptr, col, (H * nd, E), (ptr_t, col_t, to_t))
     return plan.patterns[key]
 
 
