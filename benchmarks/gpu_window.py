@@ -271,7 +271,7 @@ class Window:
     def throughput(self, name: str, seconds: float, folder: Path) -> Dict[str, Any]:
         if self.dataset("throughput") is None:
             return {"status": "skipped", "note": f"no {THROUGHPUT_PACK} carried"}
-        method = {"static": "gartrans"}.get(name.split("_", 1)[1], name.split("_", 1)[1])
+        method = "gartrans" if name == "throughput_static" else name.split("_", 1)[1]
         cmd = self.py("benchmarks/train_throughput.py", "--sizes", "small", "--methods",
                       method, "--threads", str(self.threads), "--device", self.a.device,
                       "--batches", *map(str, self.a.batches), "--chunks", str(self.a.chunks),
