@@ -242,6 +242,9 @@ class Worker:
         with flops:
             self.step(s)
         total = flops.get_total_flops()
+        # compiled code run under the two dispatch modes is not run compiled again
+        # afterwards (the collision search then ran eager, 3-4x slower): recompile
+        torch._dynamo.reset()
         mm_flops, mm_seconds = self.matmul_rate(count.mm)
         return {"flops": total, "flops_per_vertex_frame": total / vf, "aten_calls": count.calls,
                 "mm_calls": len(count.mm), "mm_gflops_per_s": mm_flops / mm_seconds / 1e9,

@@ -8,6 +8,7 @@ import torch
 import trimesh
 
 from garmentgnn import geometry as G
+from garmentgnn.geometry._index import gather_rows, scatter_rows
 
 D = torch.float64
 
@@ -464,3 +465,24 @@ def test_full_precision_lifts_low_precision_only_under_autocast():
             assert up(lo).dtype == torch.float32 and up(wide).dtype == torch.float64
             torch.testing.assert_close(up(lo), lo.float(), rtol=0, atol=0)
         assert (x @ x).dtype == torch.bfloat16  # and back on after
+
+
+@pytest.mark.parametrize("shape", [(7, 3), (2, 7, 3), (2, 4, 7, 5)])
+@pytest.mark.parametrize("index_shape", [(5,), (4, 3)])
+def test_vertex_major_row_gather_and_scatter_equal_indexing(shape, index_shape):
+    """``gather_rows`` is ``x[..., index, :]`` and ``scatter_rows`` is ``index_add`` along
+    the vertex axis (repeated indices summed), values and gradients, unbatched and
+    batched, for flat and ``[F, 3]``-shaped indices."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(shape, dtype=D, generator=g, requires_grad=True)
+    index = torch.randint(0, 7, index_shape, generator=g)
+    index.view(-1)[:2] = 3  # a repeated row
+    got = gather_rows(x, index)
+    assert torch.equal(got, x[..., index, :])
+    assert torch.autograd.gradcheck(lambda x: gather_rows(x, index), (x,))
+    src = torch.randn(*shape[:-2], *index_shape, shape[-1], dtype=D, generator=g,
+                      requires_grad=True)
+    ref = torch.zeros(*shape[:-2], 7, shape[-1], dtype=D).index_add(
+        len(shape) - 2, index.reshape(-1), src.reshape(*shape[:-2], -1, shape[-1]))
+    torch.testing.assert_close(scatter_rows(src, index, 7), ref, rtol=0, atol=1e-14)
+    assert torch.autograd.gradcheck(lambda s: scatter_rows(s, index, 7), (src,))

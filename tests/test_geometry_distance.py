@@ -145,6 +145,70 @@ def test_chunking_candidates_and_batching_agree():
     torch.testing.assert_close(out.distance[0], ref.distance)
 
 
+@pytest.mark.parametrize("candidates", [None, 8])
+def test_pairs_in_one_call_equal_one_call_per_pair(candidates):
+    """Three garment-body pairs in one call (``point_ptr`` / ``body_ptr`` over a union
+    body: a capsule, a torus, an icosphere, each moved over two frames) give each
+    pair's own call: values, faces and gradients in points and bodies (brute force and the
+    candidate search)."""
+    meshes = [MESHES[n]() for n in ("capsule", "torus", "icosphere")]
+    bodies = [torch.tensor(np.stack([m.vertices, m.vertices * 1.05 + 0.03])) for m in meshes]
+    pts = [torch.tensor(np.stack([_points_around(m, n, seed=s, spread=1.3) for s in (1, 2)]))
+           for m, n in zip(meshes, (30, 0, 25))]  # the torus has no points
+    pts[1] = pts[1].reshape(2, 0, 3)
+    body_ptr = [0] + np.cumsum([b.shape[1] for b in bodies]).tolist()
+    point_ptr = [0] + np.cumsum([p.shape[1] for p in pts]).tolist()
+    faces = torch.cat([torch.tensor(m.faces) + o for m, o in zip(meshes, body_ptr)])
+    P = torch.cat(pts, 1).requires_grad_(True)
+    X = torch.cat(bodies, 1).requires_grad_(True)
+    out = G.signed_distance(P, X, faces, candidates=candidates, point_ptr=point_ptr,
+                            body_ptr=body_ptr)
+    (out.distance.sum() + out.closest.sum()).backward()
+    fo = np.cumsum([0] + [len(m.faces) for m in meshes])
+    for n in (0, 2):
+        p = pts[n].clone().requires_grad_(True)
+        x = bodies[n].clone().requires_grad_(True)
+        one = G.signed_distance(p, x, torch.tensor(meshes[n].faces), candidates=candidates)
+        (one.distance.sum() + one.closest.sum()).backward()
+        rows = slice(point_ptr[n], point_ptr[n + 1])
+        torch.testing.assert_close(out.distance[:, rows], one.distance, rtol=0, atol=1e-12)
+        torch.testing.assert_close(out.normal[:, rows], one.normal, rtol=0, atol=1e-12)
+        assert torch.equal(out.face[:, rows], one.face + int(fo[n]))
+        torch.testing.assert_close(P.grad[:, rows], p.grad, rtol=0, atol=1e-12)
+        torch.testing.assert_close(X.grad[:, body_ptr[n]:body_ptr[n + 1]], x.grad, rtol=0,
+                                   atol=1e-12)
+    pushed = G.push_outside(P.detach(), X.detach(), faces, 0.01, candidates=candidates,
+                            point_ptr=point_ptr, body_ptr=body_ptr)
+    one = G.push_outside(pts[2], bodies[2], torch.tensor(meshes[2].faces), 0.01,
+                         candidates=candidates)
+    torch.testing.assert_close(pushed[:, point_ptr[2]:], one, rtol=0, atol=1e-12)
+
+
+def test_pairs_in_one_call_refuse_bad_pointers():
+    m = MESHES["icosphere"]()
+    body = torch.tensor(np.concatenate([m.vertices, m.vertices + 1]))
+    V = len(m.vertices)
+    faces = torch.cat([torch.tensor(m.faces), torch.tensor(m.faces) + V])
+    pts = torch.tensor(_points_around(m, 10, seed=3, spread=1.2))
+    with pytest.raises(ValueError, match="`point_ptr`"):
+        G.signed_distance(pts, body, faces, point_ptr=[0, 4], body_ptr=[0, V, 2 * V])
+    with pytest.raises(ValueError, match="`body_ptr`"):
+        G.signed_distance(pts, body, faces, point_ptr=[0, 4, 10], body_ptr=[0, V + 1, V])
+    with pytest.raises(ValueError, match="one range per mesh"):
+        G.signed_distance(pts, body, faces, point_ptr=[0, 4, 10], body_ptr=[0, 2 * V])
+    crossing = faces.clone()
+    crossing[0, 0] = V
+    with pytest.raises(ValueError, match="joins vertices of two meshes"):
+        G.signed_distance(pts, body, crossing, point_ptr=[0, 4, 10], body_ptr=[0, V, 2 * V])
+    with pytest.raises(ValueError, match="has points but no faces"):
+        G.signed_distance(pts, body, faces[:len(m.faces)], point_ptr=[0, 4, 10],
+                          body_ptr=[0, V, 2 * V])
+    cache = G.NearestFaceCache()
+    with pytest.raises(ValueError, match="`cache`"):
+        G.signed_distance(pts, body, faces, cache=cache, point_ptr=[0, 4, 10],
+                          body_ptr=[0, V, 2 * V])
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
 def test_nearest_body_vertices_match_a_dense_search(dtype):
     """The k-d tree's k nearest body vertices are the dense float64 search's, nearest

@@ -14,6 +14,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from ._index import scatter_rows
 from ._validate import check_faces, check_points, safe_norm
 from .mesh import EdgeTopology, unique_edges
 from .normals import face_angles_unchecked, face_cross, scatter_faces_to_vertices
@@ -189,11 +190,30 @@ def _nearest_faces_bruteforce(points: Tensor, body: Tensor, faces: Tensor,
     return out
 
 
+def _nearest_faces_grouped(points: Tensor, body: Tensor, faces: Tensor,
+                           chunk_size: Optional[int],
+                           groups: Optional[List[Tuple[int, int, int, int]]]) -> Tensor:
+    """:func:`_nearest_faces_bruteforce` over each group's own faces (``groups``:
+    :func:`_check_groups`), ``[B, V]`` indices into ``faces``."""
+    if groups is None:
+        cs = chunk_size or max(1, (1 << 18) // max(faces.size(0), 1))
+        return _nearest_faces_bruteforce(points, body, faces, cs)
+    out = torch.empty(points.shape[:2], dtype=torch.long, device=points.device)
+    for p0, p1, b0, b1 in groups:
+        if p1 > p0:
+            own = ((faces[:, 0] >= b0) & (faces[:, 0] < b1)).nonzero().squeeze(1)
+            cs = chunk_size or max(1, (1 << 18) // max(own.numel(), 1))
+            out[:, p0:p1] = own[_nearest_faces_bruteforce(points[:, p0:p1], body, faces[own],
+                                                          cs)]
+    return out
+
+
 def _face_corners(body: Tensor, faces: Tensor) -> Tensor:
     """The corners of every face of ``body [B, Vb, 3]``, ``[9, B, F]``: rows ``a_x, a_y,
     a_z, b_x, ..., c_z`` (one row a coordinate, for :func:`_closest_candidate`)."""
-    B, F = body.shape[0], faces.shape[0]
-    return body[:, faces.reshape(-1)].reshape(B, F, 9).permute(2, 0, 1).contiguous()
+    B, Vb = body.shape[:2]
+    rows = body.transpose(0, 1).reshape(Vb, B * 3).index_select(0, faces.reshape(-1))
+    return rows.view(-1, 3, B, 3).permute(1, 3, 2, 0).reshape(9, B, -1)  # [F*3, B*3] -> [9, B, F]
 
 
 def _closest_candidate(p: Tensor, corners: Tensor, nn: Tensor, table: Tensor) -> Tensor:
@@ -244,47 +264,100 @@ def _closest_candidate_fn(compiled: bool) -> Callable[[Tensor, Tensor, Tensor, T
 
 
 @torch.no_grad()
-def _nearest_vertices(points: Tensor, body: Tensor, k: int) -> Tensor:
-    """Indices ``[B, V, k]`` of the ``k <= Vb`` body vertices nearest to each point of
-    ``points [B, V, 3]`` on ``body [B, Vb, 3]`` (the same frame), nearest first.
+def _nearest_vertices(points: Tensor, body: Tensor, k: int,
+                      groups: Optional[List[Tuple[int, int, int, int]]] = None) -> Tensor:
+    """Indices ``[B, V, k]`` of the ``k`` body vertices nearest to each point of
+    ``points [B, V, 3]`` on ``body [B, Vb, 3]`` (the same frame), nearest first;
+    ``groups`` (:func:`_check_groups`): point rows ``p0:p1`` search body vertices
+    ``b0:b1`` only (``k`` at most the smallest such range).
 
-    On the CPU: a k-d tree per frame (:class:`scipy.spatial.cKDTree`, built on the body
-    and queried with every point), 2.7x faster than ``cdist`` + ``topk`` over the whole
-    body at 8 frames x 416 points x 1,229 body vertices (7 against 19 ms, one thread).
-    Elsewhere: ``torch.cdist`` + ``torch.topk``.  The two can order two vertices at
-    equal distance (to rounding) differently."""
+    On the CPU: a k-d tree per frame (and group) (:class:`scipy.spatial.cKDTree`, built
+    on the body and queried with every point), 2.7x faster than ``cdist`` + ``topk``
+    over the whole body at 8 frames x 416 points x 1,229 body vertices (7 against 19
+    ms, one thread).  Elsewhere: ``torch.cdist`` + ``torch.topk``.  The two can order
+    two vertices at equal distance (to rounding) differently."""
+    if groups is None:
+        groups = [(0, points.shape[1], 0, body.shape[1])]
     if points.device.type != "cpu":
-        return torch.cdist(points, body).topk(k, dim=-1, largest=False).indices
+        out = torch.empty(points.shape[0], points.shape[1], k, dtype=torch.long,
+                          device=points.device)
+        for p0, p1, b0, b1 in groups:
+            out[:, p0:p1] = b0 + torch.cdist(points[:, p0:p1], body[:, b0:b1]).topk(
+                k, dim=-1, largest=False).indices
+        return out
     wide = (torch.float32, torch.float64)
     pn = points.detach().to(points.dtype if points.dtype in wide else torch.float32).numpy()
     bn = body.detach().to(body.dtype if body.dtype in wide else torch.float32).numpy()
     out = np.empty((points.shape[0], points.shape[1], k), dtype=np.int64)
     for b in range(points.shape[0]):
-        out[b] = cKDTree(bn[b]).query(pn[b], k=k)[1].reshape(-1, k)
+        for p0, p1, b0, b1 in groups:
+            if p1 > p0:
+                out[b, p0:p1] = b0 + cKDTree(bn[b, b0:b1]).query(pn[b, p0:p1],
+                                                                 k=k)[1].reshape(-1, k)
     return torch.from_numpy(out)
+
+
+def _check_groups(point_ptr: Any, body_ptr: Any, num_points: int, num_body: int,
+                  faces: Tensor) -> Optional[List[Tuple[int, int, int, int]]]:
+    """``point_ptr`` / ``body_ptr`` (:func:`signed_distance`) as ``(p0, p1, b0, b1)`` per
+    mesh, validated (``None``: one mesh for all points)."""
+    if point_ptr is None and body_ptr is None:
+        return None
+    ptrs = []
+    for name, ptr, end in (("point_ptr", point_ptr, num_points),
+                           ("body_ptr", body_ptr, num_body)):
+        if isinstance(ptr, Tensor):
+            ptr = ptr.tolist() if ptr.dim() == 1 and not ptr.is_floating_point() else None
+        ok = isinstance(ptr, (list, tuple)) and len(ptr) >= 2 and all(
+            isinstance(i, int) and not isinstance(i, bool) for i in ptr)
+        if not ok or ptr[0] != 0 or ptr[-1] != end or any(
+                b < a for a, b in zip(ptr, ptr[1:])):
+            raise ValueError(f"`{name}`: expected non-decreasing ints from 0 to {end} (the "
+                             f"rows of each mesh, like PyG's `ptr`), got {ptr!r}")
+        ptrs.append(list(ptr))
+    pp, bp = ptrs
+    if len(pp) != len(bp):
+        raise ValueError(f"`point_ptr` and `body_ptr`: one range per mesh in both, got "
+                         f"{len(pp) - 1} and {len(bp) - 1}")
+    mesh = torch.bucketize(faces, torch.tensor(bp[1:], device=faces.device), right=True)
+    if not bool((mesh == mesh[:, :1]).all()):
+        raise ValueError("`body_faces`: a face joins vertices of two meshes of `body_ptr`; "
+                         "each mesh's faces must index only its own vertex range")
+    groups = [(pp[n], pp[n + 1], bp[n], bp[n + 1]) for n in range(len(pp) - 1)]
+    has_faces = torch.bincount(mesh[:, 0], minlength=len(groups)).tolist()
+    empty = [n for n, (p0, p1, _, _) in enumerate(groups) if p1 > p0 and not has_faces[n]]
+    if empty:
+        raise ValueError(f"`body_faces`: body mesh {empty[0]} of `body_ptr` has points but "
+                         f"no faces")
+    return groups
 
 
 @torch.no_grad()
 def _nearest_faces_candidates(points: Tensor, body: Tensor, faces: Tensor, k: int,
-                              chunk_size: int, compiled: bool = False) -> Tensor:
-    """Argmin over the faces incident to the ``k`` nearest body vertices, ``[B, V]``
-    (``compiled``: see :func:`_closest_candidate_fn`)."""
+                              chunk_size: int, compiled: bool = False,
+                              groups: Optional[List[Tuple[int, int, int, int]]] = None
+                              ) -> Tensor:
+    """Argmin over the faces incident to the ``k`` nearest body vertices (of the point's
+    own mesh with ``groups``), ``[B, V]`` (``compiled``: see :func:`_closest_candidate_fn`)."""
     closest = _closest_candidate_fn(compiled)
     B, V, _ = points.shape
     table = body_topology(faces, body.size(1))[1]  # [Vb, D]
-    nn = _nearest_vertices(points, body, min(k, body.size(1)))  # [B, V, k]
+    smallest = body.size(1) if groups is None else min(b1 - b0 for _, _, b0, b1 in groups)
+    nn = _nearest_vertices(points, body, min(k, smallest), groups)  # [B, V, k]
     corners = _face_corners(body, faces)
     out = torch.empty(B, V, dtype=torch.long, device=points.device)
-    for s in range(0, V, chunk_size):
-        out[:, s:s + chunk_size] = closest(points[:, s:s + chunk_size], corners,
-                                           nn[:, s:s + chunk_size], table)
+    for s in range(0, V, chunk_size):  # contiguous slices: one compiled graph for all
+        out[:, s:s + chunk_size] = closest(points[:, s:s + chunk_size].contiguous(), corners,
+                                           nn[:, s:s + chunk_size].contiguous(), table)
     return out
 
 
 def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
                     chunk_size: Optional[int] = None, candidates: Optional[int] = None,
                     body_edges: Optional[EdgeTopology] = None,
-                    compiled: bool = False, cache: Optional[Any] = None) -> SignedDistance:
+                    compiled: bool = False, cache: Optional[Any] = None,
+                    point_ptr: Optional[Sequence[int]] = None,
+                    body_ptr: Optional[Sequence[int]] = None) -> SignedDistance:
     """Signed distance from garment vertices to a body triangle mesh (the ``s(p)`` of Eq. 10).
 
     ``s(p) = sign((p - q) . n(q)) * |p - q|`` with ``q`` the exact closest point on
@@ -328,6 +401,12 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
             of ``candidates=None``, from candidates cached by earlier calls and proven
             by a bound; ``candidates`` and ``chunk_size`` are then unused, ``compiled``
             compiles its candidate evaluation).  The differentiable part is the same.
+        point_ptr, body_ptr: several garment-body pairs in one call (the layout of a
+            PyG ``Batch``'s ``ptr``): points ``point_ptr[n]:point_ptr[n + 1]`` (along
+            ``V``) are measured to body mesh ``n``, vertices ``body_ptr[n]:body_ptr[n +
+            1]`` (along ``Vb``), whose faces index only that range; equal to one call per
+            pair (the body-side work and the search run once for all; not with
+            ``cache``, which serves one pair).
     """
     points = check_points(points, "points")
     body_pos = check_points(body_pos, "body_pos")
@@ -346,6 +425,10 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
     if candidates is not None and (not isinstance(candidates, int) or candidates < 1):
         raise ValueError(f"`candidates`: expected a positive int or None, got {candidates!r}")
     V, Vb, F = points.size(-2), body_pos.size(-2), body_faces.size(0)
+    groups = _check_groups(point_ptr, body_ptr, V, Vb, body_faces)
+    if groups is not None and cache is not None:
+        raise ValueError("`cache`: a NearestFaceCache serves one garment-body pair; pass "
+                         "it without `point_ptr` / `body_ptr`")
     B = 1
     for s in batch:
         B *= s
@@ -356,11 +439,11 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
     if cache is not None:
         fid = cache.nearest(P, X, f, compiled=compiled or None)
     elif candidates is None:
-        cs = chunk_size or max(1, (1 << 18) // max(F, 1))
-        fid = _nearest_faces_bruteforce(P.detach(), X.detach(), f, cs)
+        fid = _nearest_faces_grouped(P.detach(), X.detach(), f, chunk_size, groups)
     else:
         cs = chunk_size or max(1, (1 << 18) // max(candidates * 8, 1))
-        fid = _nearest_faces_candidates(P.detach(), X.detach(), f, candidates, cs, compiled)
+        fid = _nearest_faces_candidates(P.detach(), X.detach(), f, candidates, cs, compiled,
+                                        groups)
 
     tri = _tri_gather(X, f, fid)  # [B, V, 3, 3], differentiable in X
     q, _, region = closest_point_on_triangle(P, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
@@ -372,8 +455,7 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
     if topo.face_edges.shape != f.shape:
         raise ValueError("`body_edges`: does not match `body_faces`; pass "
                          "unique_edges(body_faces)")
-    ne = X.new_zeros(B, topo.edges.size(0), 3).index_add(
-        1, topo.face_edges.reshape(-1), nf.unsqueeze(-2).expand(B, F, 3, 3).reshape(B, 3 * F, 3))
+    ne = scatter_rows(nf.unsqueeze(-2).expand(B, F, 3, 3), topo.face_edges, topo.edges.size(0))
     ne = ne / safe_norm(ne, keepdim=True)
     nv = scatter_faces_to_vertices(nf.unsqueeze(-2) * face_angles_unchecked(X, f).unsqueeze(-1),
                                    f, Vb)
@@ -399,7 +481,8 @@ def signed_distance(points: Tensor, body_pos: Tensor, body_faces: Tensor,
 
 def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: float,
                  candidates: Optional[int] = 8, compiled: bool = False,
-                 cache: Optional[Any] = None) -> Tensor:
+                 cache: Optional[Any] = None, point_ptr: Optional[Sequence[int]] = None,
+                 body_ptr: Optional[Sequence[int]] = None) -> Tensor:
     """Move every point closer than ``margin`` to the body (or inside it) to distance
     ``margin`` outside: ``p' = p + max(margin - s(p), 0) grad s(p)`` with ``s`` of
     :func:`signed_distance` and ``grad s = sign (p - q) / |p - q|`` (``q`` the closest
@@ -409,9 +492,10 @@ def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: f
     This is the one-step collision projection used as post-processing by learned
     garment models (e.g. TailorNet); it lands exactly at ``margin`` when the
     closest point keeps its face, i.e. for depths below the body's local feature size.
-    Differentiable in ``points`` and ``body_pos``.  ``candidates``, ``compiled`` and
-    ``cache``: see :func:`signed_distance` (``candidates=None``: exact brute force; a
-    ``cache`` makes the search exact as well, from cached candidates).
+    Differentiable in ``points`` and ``body_pos``.  ``candidates``, ``compiled``,
+    ``cache``, ``point_ptr`` and ``body_ptr``: see :func:`signed_distance`
+    (``candidates=None``: exact brute force; a ``cache`` makes the search exact as well,
+    from cached candidates; the pointers: several garment-body pairs in one call).
 
     Garment fitting does not use it: ``garmentgnn.garments._distance.BodyDistance.push_out``
     solves a different problem (the same move ``q + margin n``, but repeated until no
@@ -423,7 +507,8 @@ def push_outside(points: Tensor, body_pos: Tensor, body_faces: Tensor, margin: f
     if not margin >= 0:
         raise ValueError(f"`margin` must be >= 0 (metres), got {margin}")
     sd = signed_distance(points, body_pos, body_faces, candidates=candidates,
-                         compiled=compiled, cache=cache)
+                         compiled=compiled, cache=cache, point_ptr=point_ptr,
+                         body_ptr=body_ptr)
     diff = points - sd.closest
     dist = safe_norm(diff, keepdim=True)
     tiny = 1e3 * torch.finfo(dist.dtype).eps

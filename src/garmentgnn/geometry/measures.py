@@ -12,6 +12,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from ._index import gather_rows
 from ._validate import check_mesh, check_points, safe_norm
 from .mesh import FaceAdjacency, boundary_vertex_mask, face_adjacency
 from .normals import (face_angles_unchecked, face_cross, face_vertices,
@@ -36,8 +37,8 @@ def edge_lengths(pos: Tensor, edges: Tensor) -> Tensor:
     if edges.numel() and (int(edges.min()) < 0 or int(edges.max()) >= pos.size(-2)):
         raise ValueError(f"`edges`: indices must lie in [0, {pos.size(-2)}), got "
                          f"[{int(edges.min())}, {int(edges.max())}]")
-    e = edges.long()
-    return safe_norm(pos[..., e[:, 1], :] - pos[..., e[:, 0], :])
+    p0, p1 = gather_rows(pos, edges.long()).unbind(-2)
+    return safe_norm(p1 - p0)
 
 
 def project_edge_lengths(pos: Tensor, edges: Tensor, rest_lengths: Tensor,
@@ -125,13 +126,13 @@ def dihedral_angles(pos: Tensor, faces: Tensor, adjacency: Optional[FaceAdjacenc
     adj = face_adjacency(faces, pos.size(-2)) if adjacency is None else adjacency
     c = face_cross(pos, faces)
     n = c / safe_norm(c, keepdim=True)
-    n1, n2 = n[..., adj.faces[:, 0], :], n[..., adj.faces[:, 1], :]
+    n1, n2 = gather_rows(n, adj.faces).unbind(-2)
     cr = torch.linalg.cross(n1, n2, dim=-1)
     cos = (n1 * n2).sum(-1)
     if not signed:
         return torch.atan2(safe_norm(cr), cos)
-    e = pos[..., adj.edges[:, 1], :] - pos[..., adj.edges[:, 0], :]
-    e = e / safe_norm(e, keepdim=True)
+    e0, e1 = gather_rows(pos, adj.edges).unbind(-2)
+    e = (e1 - e0) / safe_norm(e1 - e0, keepdim=True)
     return torch.atan2((cr * e).sum(-1), cos)
 
 

@@ -12,6 +12,7 @@ from typing import Tuple
 import torch
 from torch import Tensor
 
+from ._index import gather_rows, scatter_rows
 from ._validate import check_mesh, safe_norm
 
 __all__ = ["face_vertices", "face_cross", "face_normals", "face_areas", "face_angles",
@@ -20,8 +21,9 @@ __all__ = ["face_vertices", "face_cross", "face_normals", "face_areas", "face_an
 
 
 def face_vertices(pos: Tensor, faces: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-    """Corner positions ``(p0, p1, p2)``, each ``[..., F, 3]`` (no validation)."""
-    return pos[..., faces[:, 0], :], pos[..., faces[:, 1], :], pos[..., faces[:, 2], :]
+    """Corner positions ``(p0, p1, p2)``, each ``[..., F, 3]`` (no validation; batched:
+    strided views of one vertex-major gather, :func:`~garmentgnn.geometry._index.gather_rows`)."""
+    return gather_rows(pos, faces).unbind(-2)
 
 
 def face_cross(pos: Tensor, faces: Tensor) -> Tensor:
@@ -89,10 +91,7 @@ def scatter_faces_to_vertices(values: Tensor, faces: Tensor, num_vertices: int) 
     if values.dim() < 3 or values.shape[-3:-1] != (faces.size(0), 3):
         raise ValueError(f"`values`: expected shape [..., {faces.size(0)}, 3, C] (one "
                          f"entry per face corner), got {tuple(values.shape)}")
-    batch = values.shape[:-3]
-    flat = values.reshape(*batch, -1, values.size(-1))  # [..., 3F, C] in (f, k) order
-    out = values.new_zeros(*batch, num_vertices, values.size(-1))
-    return out.index_add(len(batch), faces.reshape(-1), flat)
+    return scatter_rows(values, faces, num_vertices)
 
 
 def vertex_normals(pos: Tensor, faces: Tensor, weighting: str = "area") -> Tensor:

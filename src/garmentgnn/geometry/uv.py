@@ -17,6 +17,7 @@ from typing import NamedTuple, Optional
 import torch
 from torch import Tensor
 
+from ._index import gather_rows
 from ._validate import check_faces, check_mesh, check_points
 
 __all__ = ["flat_triangles", "UVFrame", "DeformationGradient", "uv_rest_frame",
@@ -66,7 +67,7 @@ def uv_rest_frame(uv: Tensor, faces: Tensor, eps: float = 1e-10) -> UVFrame:
     """
     uv = check_points(uv, "uv", dim=2)
     faces = check_faces(faces, uv.size(-2), "faces")
-    u0, u1, u2 = uv[..., faces[:, 0], :], uv[..., faces[:, 1], :], uv[..., faces[:, 2], :]
+    u0, u1, u2 = gather_rows(uv, faces).unbind(-2)
     d1, d2 = u1 - u0, u2 - u0  # [..., F, 2] = (du, dv) of each edge
     a, b, c, d = d1[..., 0], d2[..., 0], d1[..., 1], d2[..., 1]  # Dm = [[a, b], [c, d]]
     det = a * d - b * c
@@ -93,7 +94,7 @@ def deformation_gradient(pos: Tensor, faces: Tensor, inverse: Tensor) -> Tensor:
     if inverse.shape[-3:] != (faces.size(0), 2, 2):
         raise ValueError(f"`inverse`: expected shape [..., {faces.size(0)}, 2, 2] (from "
                          f"uv_rest_frame), got {tuple(inverse.shape)}")
-    p0, p1, p2 = pos[..., faces[:, 0], :], pos[..., faces[:, 1], :], pos[..., faces[:, 2], :]
+    p0, p1, p2 = gather_rows(pos, faces).unbind(-2)
     ds = torch.stack([p1 - p0, p2 - p0], -1)  # [..., F, 3, 2]
     return ds @ inverse.to(ds.dtype)
 

@@ -135,30 +135,22 @@ class ChunkLayout:
             pos = (M[..., :3, :3] @ up(template).unsqueeze(-1)).squeeze(-1) + M[..., :3, 3]
         return pos, M
 
-    def bodies(self, inputs: GarmentInputs) -> List[Tuple[Tuple[int, int], Tuple[int, int],
-                                                          Tensor]]:
-        """Per chunk: its vertex range in the union graph, its body's vertex range in
-        ``body_pos`` and its body faces (indices into that range)."""
+    def push_outside(self, x: Tensor, inputs: GarmentInputs, margin: float,
+                     compiled: bool = False) -> Tensor:
+        """``x`` ``[B, V, 3]`` with each chunk's vertices closer than ``margin`` to its own
+        body (or inside it) moved to ``margin`` outside
+        (:func:`~garmentgnn.geometry.push_outside`, all chunks in one call: the union
+        body's normals, the face search and the projection once for the batch)."""
         faces = inputs.get("body_faces")
         if faces is None:
             raise ValueError("`inputs.body_faces`: needed with `body_pos` for the collision "
                              "projection")
         if self.N == 1:
-            return [((0, self.V), (0, inputs.body_pos.shape[1]), faces)]
-        Vb, Fb = inputs.body_pos.shape[1] // self.N, faces.shape[0] // self.N
-        starts = [0] + torch.tensor(self.counts).cumsum(0).tolist()
-        return [((starts[n], starts[n + 1]), (n * Vb, (n + 1) * Vb),
-                 faces[n * Fb:(n + 1) * Fb] - n * Vb) for n in range(self.N)]
-
-    def push_outside(self, x: Tensor, inputs: GarmentInputs, margin: float,
-                     compiled: bool = False) -> Tensor:
-        """``x`` ``[B, V, 3]`` with each chunk's vertices closer than ``margin`` to its own
-        body (or inside it) moved to ``margin`` outside
-        (:func:`~garmentgnn.geometry.push_outside`)."""
-        parts = [push_outside(x[:, v0:v1], inputs.body_pos[:, b0:b1], faces, margin,
-                              compiled=compiled)
-                 for (v0, v1), (b0, b1), faces in self.bodies(inputs)]
-        return parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+            return push_outside(x, inputs.body_pos, faces, margin, compiled=compiled)
+        Vb = inputs.body_pos.shape[1] // self.N
+        point_ptr = [0] + torch.tensor(self.counts).cumsum(0).tolist()
+        return push_outside(x, inputs.body_pos, faces, margin, compiled=compiled,
+                            point_ptr=point_ptr, body_ptr=list(range(0, (self.N + 1) * Vb, Vb)))
 
 
 class PostSteps:
