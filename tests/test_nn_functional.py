@@ -165,3 +165,26 @@ def test_pattern_transpose_against_dense_and_without_its_parent():
     again = t.T  # the parent is gone: built from the transpose
     assert torch.equal(again.ptr, ptr) and torch.equal(again.col, col)
     assert torch.equal(again.matrix(t_values[t.to_t]).to_dense(), m)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pattern_product_ignores_what_its_output_held(dtype):
+    """``Pattern.mm`` (``addmm`` with ``beta=0`` into an uninitialised output, int32
+    indices) equals the dense product, also written into a NaN-filled output, with an
+    empty row and a row holding every column."""
+    g = torch.Generator().manual_seed(1)
+    dense = (torch.rand(6, 9, generator=g) < 0.4).to(dtype)
+    dense[2] = 0.0
+    dense[4] = 1.0
+    csr = dense.to_sparse_csr()
+    pat = Pattern(csr.crow_indices(), csr.col_indices(), (6, 9))
+    values = torch.randn(int(dense.sum()), generator=g, dtype=dtype)
+    m = torch.zeros(6, 9, dtype=dtype)
+    m[dense.bool()] = values  # row-major order = CSR order
+    b = torch.randn(9, 5, generator=g, dtype=dtype)
+    torch.testing.assert_close(pat.mm(values, b), m @ b)
+    out = torch.full((6, 5), float("nan"), dtype=dtype)
+    got = pat.mm(values, b, out=out)
+    assert got.data_ptr() == out.data_ptr()
+    torch.testing.assert_close(got, m @ b)
+    assert all(i.dtype == torch.int32 for i in pat.kernel_indices())

@@ -93,11 +93,32 @@ class Pattern:
         #: order (flattened) and the values' order (``None``: the same order)
         self.from_caller: Optional[Tensor] = None
         self.to_caller: Optional[Tensor] = None
+        self._indices32: Optional[Tuple[Tensor, Tensor]] = None
 
     def matrix(self, values: Tensor) -> Tensor:
+        ptr, col = self.kernel_indices()
         with _quiet():
-            return torch.sparse_csr_tensor(self.ptr, self.col, values, self.shape,
-                                           check_invariants=False)
+            return torch.sparse_csr_tensor(ptr, col, values, self.shape, check_invariants=False)
+
+    def kernel_indices(self) -> Tuple[Tensor, Tensor]:
+        """``(ptr, col)`` as int32 where the entries fit (kept): MKL's CSR kernels take
+        int32 indices and convert int64 ones on every call."""
+        if self._indices32 is None:
+            fits = self.col.numel() < 2 ** 31 and max(self.shape) < 2 ** 31
+            self._indices32 = ((self.ptr.int(), self.col.int()) if fits
+                               else (self.ptr, self.col))
+        return self._indices32
+
+    def mm(self, values: Tensor, dense: Tensor, out: Optional[Tensor] = None) -> Tensor:
+        """``pattern(values) @ dense``, ``[R, C]``, written into ``out`` (a fresh tensor by
+        default; its contents are ignored).  ``addmm`` with ``beta=0`` into an
+        uninitialised output: ``torch.sparse.mm`` zero-fills its output, computes into
+        another and copies it over (0.54 against 0.91-1.02 ms at 52,224 rows x 298,112
+        entries x 16 channels, one thread)."""
+        if out is None:
+            out = dense.new_empty(self.shape[0], dense.size(1))
+        with _quiet():
+            return torch.addmm(out, self.matrix(values), dense, beta=0.0, out=out)
 
     def _build_transpose(self) -> Tuple[Tensor, Tensor, Tensor]:
         rows = torch.repeat_interleave(torch.arange(self.shape[0], device=self.col.device),
@@ -235,8 +256,7 @@ class _SpMM(torch.autograd.Function):
     def forward(ctx, values: Tensor, dense: Tensor, pat: Pattern) -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(values, dense)
         ctx.pat = pat
-        with _quiet():
-            return torch.sparse.mm(pat.matrix(values), dense)
+        return pat.mm(values, dense)
 
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
