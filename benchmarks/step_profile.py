@@ -7,9 +7,10 @@ Per configuration (tree x method x threads x batch size) it reports:
 
 * vertex-frames per second of the step (median over ``--repeats`` rounds of ``--steps``
   steps each, on batches loaded before the clock starts: loading is not timed);
-* FLOPs per vertex-frame (:class:`torch.utils.flop_counter.FlopCounterMode` over one
-  step: the dense matmuls of forward and backward; the sparse kernels and element-wise
-  work count zero) and the achieved GFLOP/s;
+* FLOPs per vertex-frame (the dense matmuls of forward and backward, recorded over one
+  step by a ``TorchDispatchMode`` and each counted by
+  :class:`torch.utils.flop_counter.FlopCounterMode`; the sparse kernels, an ``addmm`` of
+  a sparse matrix among them, and element-wise work count zero) and the achieved GFLOP/s;
 * the matmul rate of the step's own matmul shapes: every dense matmul the step ran,
   timed alone in the same process at the same thread count (FLOP-weighted), and the
   step's share of it (achieved / matmul rate);
@@ -229,7 +230,9 @@ class Worker:
 
             def __torch_dispatch__(self, func, types, args=(), kwargs=None):
                 self.calls += 1
-                if func in mm_ops:
+                tensors = [a for a in args if isinstance(a, torch.Tensor)]
+                # dense matmuls only: an addmm of a sparse CSR matrix is an SpMM
+                if func in mm_ops and all(t.layout == torch.strided for t in tensors):
                     self.mm.append((func, [tuple(a.shape) if isinstance(a, torch.Tensor)
                                            else a for a in args]))
                 return func(*args, **(kwargs or {}))
@@ -238,16 +241,12 @@ class Worker:
         with count:
             _, vf = self.step(s)
         s["mm"] = count.mm
-        flops = FlopCounterMode(display=False)
-        with flops:
-            self.step(s)
-        total = flops.get_total_flops()
-        # compiled code run under the two dispatch modes is not run compiled again
-        # afterwards (the collision search then ran eager, 3-4x slower): recompile
+        # compiled code run under a dispatch mode is not run compiled again afterwards
+        # (the collision search then ran eager, 3-4x slower): recompile
         torch._dynamo.reset()
-        mm_flops, mm_seconds = self.matmul_rate(count.mm)
+        total, mm_seconds = self.matmul_rate(count.mm)
         return {"flops": total, "flops_per_vertex_frame": total / vf, "aten_calls": count.calls,
-                "mm_calls": len(count.mm), "mm_gflops_per_s": mm_flops / mm_seconds / 1e9,
+                "mm_calls": len(count.mm), "mm_gflops_per_s": total / mm_seconds / 1e9,
                 "reference_mm_gflops_per_s": self.reference_rate()}
 
     def matmul_rate(self, calls: List[Tuple[Any, List[Any]]]) -> Tuple[float, float]:
