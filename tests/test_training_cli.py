@@ -14,7 +14,8 @@ from lightning.pytorch.strategies import DDPStrategy
 from garmentgnn.data import read_manifest
 from garmentgnn.models import PAPER_FORM
 from garmentgnn.cli import main as cli_main
-from garmentgnn.training import GarmentDataModule, GarTransModule, ProgressiveSchedule
+from garmentgnn.training import (GarmentDataModule, GarTransModule, KeepFreedMemory,
+                                 ProgressiveSchedule)
 from garmentgnn.training.lightning_cli import main as train_main
 from garmentgnn.models import GarTrans
 
@@ -59,6 +60,7 @@ def test_recipe_builds_the_variant(root, tmp_path, variant):  # noqa: F811
     if variant == "paper.yaml":
         assert {k: model[k] for k in PAPER_FORM} == PAPER_FORM
     assert not [c for c in cli.trainer.callbacks if isinstance(c, ProgressiveSchedule)]
+    assert [c for c in cli.trainer.callbacks if isinstance(c, KeepFreedMemory)]
     (sched,) = m.configure_callbacks()  # the module's own schedule
     assert isinstance(sched, ProgressiveSchedule)
     assert sched.max_phase == (1 if variant == "wo_unsup.yaml" else 3)

@@ -1,6 +1,7 @@
 """Lightning training: the data module, the GarTrans, baseline and learned-simulator
 LightningModules (each a :class:`GarmentModule`), the progressive schedule callback (paper §4.1), a
-wall-clock training budget, and the recipes' loader (:func:`load_recipe`)."""
+wall-clock training budget, freed memory kept for the next step (:class:`KeepFreedMemory`)
+and the recipes' loader (:func:`load_recipe`)."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
            GarmentDataModule,
@@ -8,6 +9,7 @@ from garmentgnn.training.datamodule import (
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.baselines import BaselineModule
 from garmentgnn.training.budget import TimeBudget
+from garmentgnn.training.heap import KeepFreedMemory, keep_freed_memory
 from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
 from garmentgnn.training.simulator import SimulatorModule
@@ -21,10 +23,12 @@ __all__ = [
            "GarTransModule",
            "GarmentModule",
            "GarmentDataModule",
+           "KeepFreedMemory",
            "ProgressiveSchedule",
            "Recipe",
            "SimulatorModule",
            "TimeBudget",
+           "keep_freed_memory",
            "load_recipe",
            "loss_inputs",
 ]

@@ -62,6 +62,7 @@ from garmentgnn.training.recipes import (import_class, named_module,
                                          recipes_of_model, resolve_config_args)
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.evaluate import markdown_table
+from garmentgnn.training.heap import KeepFreedMemory
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
 from garmentgnn.training.plots import TrainingPlots
 
@@ -406,14 +407,17 @@ def main(args: Optional[Sequence[str]] = None, run: bool = True,
     packaged recipe, :func:`~garmentgnn.training.recipes.resolve_config_args`;
     ``prog``: the program name its usage lines show); returns the CLI object.  Every
     run also gets :class:`TrainingPlots` (``training_curves.png`` in the log folder),
-    :class:`PredictionWriter` and a TensorBoard log (:func:`add_tensorboard`)."""
+    :class:`PredictionWriter`, :class:`~garmentgnn.training.KeepFreedMemory` (glibc
+    keeps a step's freed blocks for the next) and a TensorBoard log
+    (:func:`add_tensorboard`)."""
     args = resolve_config_args(sys.argv[1:] if args is None else args)
     return GarmentCLI(GarmentModule, GarmentDataModule, args=args,
                       default_model=named_module(args),
                       run=run, seed_everything_default=0,
                       parser_kwargs={"prog": prog} if prog else None,
                       save_config_kwargs={"overwrite": True},
-                      trainer_defaults={"callbacks": [TrainingPlots(), PredictionWriter()]})
+                      trainer_defaults={"callbacks": [TrainingPlots(), PredictionWriter(),
+                                                      KeepFreedMemory()]})
 
 
 if __name__ == "__main__":  # pragma: no cover
