@@ -226,3 +226,24 @@ def test_cpu_autocast_low_precision(name, dtype, mesh_graph):
     assert torch.isfinite(out).all()
     tol = 0.05 if dtype == torch.bfloat16 else 0.01
     assert (out.float() - ref).abs().max() <= tol * (1 + ref.abs().max())
+
+
+@pytest.mark.parametrize("bias", [False, True])
+def test_narrow_linear_traced_equals_the_matmul(bias):
+    """``NarrowLinear`` traced by ``torch.compile`` (sums of broadcast products) gives
+    ``F.linear``'s values and gradients (input and weight); eager it is ``F.linear``."""
+    from garmentgnn.nn._linear import NarrowLinear
+    torch.manual_seed(0)
+    lin = NarrowLinear(4, 12, bias=bias).double()
+    x = torch.randn(50, 4, dtype=torch.float64, requires_grad=True)
+
+    def loss(f):
+        out = f(x)
+        return out, torch.autograd.grad((out * torch.arange(12.0).double()).sum(),
+                                        [x] + list(lin.parameters()))
+    ref, ref_g = loss(lambda v: torch.nn.functional.linear(v, lin.weight, lin.bias))
+    got, got_g = loss(torch.compile(lin, backend="aot_eager"))
+    torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
+    for g, r in zip(got_g, ref_g):
+        torch.testing.assert_close(g, r, rtol=1e-12, atol=1e-12)
+    assert torch.equal(lin(x), torch.nn.functional.linear(x, lin.weight, lin.bias))

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Optional, Tuple, Union
 
+import torch
 from torch import Tensor
 from torch_geometric.nn.conv import GATv2Conv
 from torch_geometric.nn.dense.linear import Linear
@@ -10,6 +11,7 @@ from torch_geometric.typing import Adj, OptTensor, PairTensor
 
 from garmentgnn.nn._base import LayerContract, LayerOutput
 from garmentgnn.nn._graph import check_layer_args
+from garmentgnn.nn._linear import NarrowLinear
 
 
 class GATBaselineConv(LayerContract):
@@ -114,6 +116,10 @@ class GATBaselineConv(LayerContract):
         self.gat = GATv2Conv(in_channels, out_channels, heads=heads, concat=concat,
                              dropout=dropout, edge_dim=edge_dim, bias=bias,
                              add_self_loops=add_self_loops, **kwargs)
+        if edge_dim is not None:  # W_e e_ij fused into the scores under torch.compile
+            with torch.random.fork_rng(devices=[]):  # reset_parameters below draws it
+                self.gat.lin_edge = NarrowLinear(edge_dim, heads * out_channels, bias=False,
+                                                 weight_initializer="glorot")
         self.lin_skip = None if in_dst == out_width else Linear(in_dst, out_width, bias=bias)
         self.reset_parameters()
 
