@@ -25,7 +25,7 @@ from garmentgnn.data.store import LRUCache
 from garmentgnn.garments import FLARES, SLEEVES, TEMPLATES
 from garmentgnn.garments.templates import SKIRT_LENGTHS
 from garmentgnn.garments.skinning import transfer_skinning_weights
-from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.models.inputs import GarmentInputs, with_frames
 from garmentgnn.data import SequenceChunks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -380,6 +380,13 @@ def test_sequence_chunks_items_and_lazy_loading(clean_run):
     body = build_body(seq["meta"]["body"])
     bv, _ = body.pose(R[3:4], torch.from_numpy(seq["motion_translation"][3:4]))
     torch.testing.assert_close(d3.body_pos, bv.float())
+    # kept by chunk: a second visit returns the same posed body, not a recomputation
+    first = ds[3].body_pos
+    assert ds[3].body_pos.data_ptr() == first.data_ptr()
+    torch.testing.assert_close(first, bv.float())
+    with pytest.raises(ValueError, match="`body_pos`"):
+        with_frames(ds.static(0), body, R, torch.from_numpy(seq["motion_translation"]),
+                    torch.arange(3, 5), 2, body_pos=d3.body_pos)
     ds[8]  # next sequence evicts the first (cache_size=1)
     ds[0]
     assert ds.num_file_loads == 3

@@ -8,6 +8,7 @@ from torch_geometric import EdgeIndex
 from torch_geometric.data import Batch, Data
 
 from garmentgnn.nn import LAYERS, make_layer
+from garmentgnn.nn._linear import NarrowLinear
 
 NAMES = sorted(LAYERS)
 EDGE_DIM = 4
@@ -232,7 +233,6 @@ def test_cpu_autocast_low_precision(name, dtype, mesh_graph):
 def test_narrow_linear_traced_equals_the_matmul(bias):
     """``NarrowLinear`` traced by ``torch.compile`` (sums of broadcast products) gives
     ``F.linear``'s values and gradients (input and weight); eager it is ``F.linear``."""
-    from garmentgnn.nn._linear import NarrowLinear
     torch.manual_seed(0)
     lin = NarrowLinear(4, 12, bias=bias).double()
     x = torch.randn(50, 4, dtype=torch.float64, requires_grad=True)

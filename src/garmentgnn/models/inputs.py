@@ -385,9 +385,19 @@ def build_static(rest_pos: Tensor, faces: Tensor, body: Body, skin_weights: Tens
     return out
 
 
+def posed_body(body: Body, rotations: Tensor, translation: Tensor, frames: Tensor) -> Tensor:
+    """The body's vertices ``[B, Vb, 3]`` (float32) posed at ``frames`` of a motion
+    (``rotations [T, S, 3]``, ``translation [T, 3]``), without autograd."""
+    with torch.no_grad():
+        dt = body.vertices.dtype
+        bpos, _ = body.pose(rotations[frames].to(dt), translation[frames].to(dt))
+    return bpos.float()
+
+
 def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translation: Tensor,
                 frames: Tensor, history: int, gt: Optional[Tensor] = None,
-                seq_id: Optional[str] = None) -> GarmentInputs:
+                seq_id: Optional[str] = None,
+                body_pos: Optional[Tensor] = None) -> GarmentInputs:
     """``static`` plus frames ``frames`` of a motion.
 
     Args:
@@ -396,6 +406,8 @@ def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translatio
         frames: ``[B]`` frame indices.
         history: previous poses per frame (``H = history + 1 >= 2``).
         gt: ``[B, V, 3]`` the simulated garment of those frames, or ``None``.
+        body_pos: ``[B, Vb, 3]``, :func:`posed_body` of these frames kept by the caller
+            (``None``: posed here).
     """
     check_history(history)
     rotations, translation = torch.as_tensor(rotations).float(), \
@@ -413,12 +425,14 @@ def with_frames(static: GarmentInputs, body: Body, rotations: Tensor, translatio
         raise ValueError(f"`frames`: indices must lie in [0, {T}), got "
                          f"[{int(frames.min())}, {int(frames.max())}]")
     hist = history_frames(frames, history)  # [B, H]
-    with torch.no_grad():
-        dt = body.vertices.dtype
-        bpos, _ = body.pose(rotations[frames].to(dt), translation[frames].to(dt))
+    if body_pos is None:
+        body_pos = posed_body(body, rotations, translation, frames)
+    elif body_pos.shape != (frames.shape[0], body.vertices.shape[0], 3):
+        raise ValueError(f"`body_pos`: expected [{frames.shape[0]}, {body.vertices.shape[0]}, "
+                         f"3] (the body posed at `frames`), got {tuple(body_pos.shape)}")
     out = copy.copy(static)
     out.rotations, out.translation = rotations[hist], translation[hist]
-    out.body_pos, out.frames = bpos.float(), frames
+    out.body_pos, out.frames = body_pos.float(), frames
     if gt is not None:
         gt = torch.as_tensor(gt).float()
         if gt.shape != (frames.shape[0], static.num_vertices, 3):
