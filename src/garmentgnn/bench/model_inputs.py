@@ -22,7 +22,6 @@ from torch import Tensor
 
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.bench.sequences import BenchSequence
-from garmentgnn.data import store
 from garmentgnn.models.inputs import GarmentInputs, check_history
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training import GarTransModule
@@ -72,12 +71,11 @@ class BenchChunks(SequenceChunks):
         self.root, self.split, self.chunk, self.history = None, None, chunk, history
         self.nystrom_dim, self.num_landmarks = nystrom_dim, num_landmarks
         self.cache_size = self.static_cache = 1
+        self.cache_bytes = None  # one sequence, one static entry, one posed body
         self.records = [{"id": seq.name, "num_frames": T, "status": "ok",
                          "garment": seq.item["garment"], "body": seq.item["body"]}]
         self.index = [(0, t0, min(chunk, T - t0)) for t0 in range(0, T, chunk)]
-        self._seqs = store.LRUCache(1)
-        self._static = store.LRUCache(1)
-        self.num_file_loads = self.num_static_builds = self.num_nystrom_builds = 0
+        self._init_caches()
         g, m = seq.garment, seq.motion
         positions = (gt.detach().float().numpy() if gt is not None
                      else np.zeros((T, 0, 3), np.float32))

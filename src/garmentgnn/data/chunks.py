@@ -187,6 +187,11 @@ class SequenceChunks(Dataset):
                     self.index.append((i, t0, n))
                 if t0 + chunk >= T:  # this window reached the end
                     break
+        self._init_caches()
+
+    def _init_caches(self) -> None:
+        """Empty caches (sequence files, static inputs, each chunk's posed body) bounded by
+        ``cache_size``, ``static_cache`` and ``cache_bytes``, and zeroed counters."""
         self._seqs = store.LRUCache(self.cache_size, self.cache_bytes)
         self._static = store.LRUCache(self.static_cache)
         self._bodies = store.LRUCache(self.cache_size, self.cache_bytes)  # posed, by chunk
