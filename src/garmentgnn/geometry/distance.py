@@ -153,9 +153,9 @@ def _closest_candidate_fn(compiled: bool) -> Callable[[Tensor, Tensor, Tensor, T
     """:func:`_closest_candidate`, or its ``torch.compile`` (dynamic shapes, built once
     per process) with ``compiled``.  Inductor fuses the table lookup, the corners'
     gather and Ericson's element-wise cascade into one loop along the candidates, which
-    the per-coordinate arithmetic (:func:`squared_distances_per_coordinate`) lets it vectorise: 3.8x
-    the compiled ``[..., 3]`` form it replaced, 16x eager (8 frames x 416 points x 80
-    candidates, one thread: 5.3, 20 and 85 ms).  Where compiling fails (e.g. no C++
+    the per-coordinate arithmetic (``triangle.squared_distances_per_coordinate``) lets
+    it vectorise: 3.8x the compiled ``[..., 3]`` form it replaced, 16x eager (8 frames x
+    416 points x 80 candidates, one thread: 5.3, 20 and 85 ms).  Where compiling fails (e.g. no C++
     compiler) it warns once and falls back to eager; the result is the same face up to
     ties in distance."""
     if not compiled or _COMPILED.get("failed"):
@@ -254,7 +254,8 @@ def _nearest_faces_candidates(points: Tensor, body: Tensor, faces: Tensor, k: in
     closest = _closest_candidate_fn(compiled)
     B, V, _ = points.shape
     table = body_topology(faces, body.size(1))[1]  # [Vb, D]
-    smallest = body.size(1) if groups is None else min(b1 - b0 for _, _, b0, b1 in groups)
+    smallest = min([b1 - b0 for p0, p1, b0, b1 in groups if p1 > p0] or [body.size(1)]) \
+        if groups is not None else body.size(1)  # meshes with points have faces
     nn = _nearest_vertices(points, body, min(k, smallest), groups)  # [B, V, k]
     corners = _face_corners(body, faces)
     out = torch.empty(B, V, dtype=torch.long, device=points.device)
