@@ -241,9 +241,6 @@ class Worker:
         with count:
             _, vf = self.step(s)
         s["mm"] = count.mm
-        # compiled code run under a dispatch mode is not run compiled again afterwards
-        # (the collision search then ran eager, 3-4x slower): recompile
-        torch._dynamo.reset()
         total, mm_seconds = self.matmul_rate(count.mm)
         return {"flops": total, "flops_per_vertex_frame": total / vf, "aten_calls": count.calls,
                 "mm_calls": len(count.mm), "mm_gflops_per_s": total / mm_seconds / 1e9,

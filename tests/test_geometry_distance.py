@@ -5,11 +5,14 @@ brute force over all faces: ``trimesh.proximity`` needs rtree, which is not inst
 a generalised winding number written here in numpy for inside/outside, and analytic
 distances of a box and a sphere.
 """
+import warnings
+
 import numpy as np
 import pytest
 import scipy.spatial.distance
 import torch
 import trimesh
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from garmentgnn import geometry as G
 from garmentgnn.geometry import distance as dist_mod
@@ -491,6 +494,32 @@ def test_compiled_search_falls_back_to_eager_with_a_warning(monkeypatch):
     ref = G.signed_distance(pts, body, faces, candidates=8)
     torch.testing.assert_close(out.distance, ref.distance, rtol=0, atol=0)
     assert dist_mod._COMPILED.get("failed")
+
+
+def test_compiled_search_runs_eager_under_a_dispatch_mode(monkeypatch):
+    """Under a ``TorchDispatchMode`` (a FLOP or operator counter) the compiled search is
+    not entered: the eager search answers, with no warning, and the compiled one stays in
+    use afterwards (entering it under the mode had left it eager for the process)."""
+    def never(*args):
+        raise AssertionError("the compiled search ran under a dispatch mode")
+
+    class Count(TorchDispatchMode):  # an operator counter, as a profiler runs
+        calls = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Count.calls += 1
+            return func(*args, **(kwargs or {}))
+    monkeypatch.setattr(dist_mod, "_COMPILED", {"fn": never})
+    m = MESHES["capsule"]()
+    body, faces = torch.tensor(m.vertices), torch.tensor(m.faces)
+    pts = torch.tensor(_points_around(m, 40, seed=3, spread=1.3))
+    ref = G.signed_distance(pts, body, faces, candidates=8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with Count():
+            out = G.signed_distance(pts, body, faces, candidates=8, compiled=True)
+    torch.testing.assert_close(out.distance, ref.distance, rtol=0, atol=0)
+    assert Count.calls > 0 and not dist_mod._COMPILED.get("failed")
 
 
 def test_body_topology_is_kept_by_faces_content():

@@ -6,7 +6,6 @@ The signed distance ``s(p)`` is the one of GarTrans Eq. 10 (collision loss
 """
 from __future__ import annotations
 
-import warnings
 from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
@@ -14,7 +13,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from ._index import scatter_rows
+from ._compile import compiled_or_eager
+from ._index import gather_rows, scatter_rows
 from ._validate import check_faces, check_points, safe_norm
 from .mesh import EdgeTopology, unique_edges
 from .normals import face_angles_unchecked, face_cross, scatter_faces_to_vertices
@@ -123,9 +123,8 @@ def _nearest_faces_grouped(points: Tensor, body: Tensor, faces: Tensor,
 def _face_corners(body: Tensor, faces: Tensor) -> Tensor:
     """The corners of every face of ``body [B, Vb, 3]``, ``[9, B, F]``: rows ``a_x, a_y,
     a_z, b_x, ..., c_z`` (one row a coordinate, for :func:`_closest_candidate`)."""
-    B, Vb = body.shape[:2]
-    rows = body.transpose(0, 1).reshape(Vb, B * 3).index_select(0, faces.reshape(-1))
-    return rows.view(-1, 3, B, 3).permute(1, 3, 2, 0).reshape(9, B, -1)  # [F*3, B*3] -> [9, B, F]
+    B, F = body.shape[0], faces.shape[0]
+    return gather_rows(body, faces).permute(2, 3, 0, 1).reshape(9, B, F)  # [B, F, 3, 3]
 
 
 def _closest_candidate(p: Tensor, corners: Tensor, nn: Tensor, table: Tensor) -> Tensor:
@@ -150,29 +149,17 @@ _COMPILED: Dict[str, Any] = {}
 
 
 def _closest_candidate_fn(compiled: bool) -> Callable[[Tensor, Tensor, Tensor, Tensor], Tensor]:
-    """:func:`_closest_candidate`, or its ``torch.compile`` (dynamic shapes, built once
-    per process) with ``compiled``.  Inductor fuses the table lookup, the corners'
-    gather and Ericson's element-wise cascade into one loop along the candidates, which
-    the per-coordinate arithmetic (``triangle.squared_distances_per_coordinate``) lets
-    it vectorise: 3.8x the compiled ``[..., 3]`` form it replaced, 16x eager (8 frames x
-    416 points x 80 candidates, one thread: 5.3, 20 and 85 ms).  Where compiling fails (e.g. no C++
-    compiler) it warns once and falls back to eager; the result is the same face up to
-    ties in distance."""
-    if not compiled or _COMPILED.get("failed"):
+    """:func:`_closest_candidate`, or with ``compiled`` its ``torch.compile``
+    (:func:`~garmentgnn.geometry._compile.compiled_or_eager`: dynamic shapes, built once
+    per process, eager under a dispatch mode or after a failed compile).  Inductor fuses
+    the table lookup, the corners' gather and Ericson's element-wise cascade into one loop
+    along the candidates, which the per-coordinate arithmetic
+    (``triangle.squared_distances_per_coordinate``) lets it vectorise: 3.8x the compiled
+    ``[..., 3]`` form it replaced, 16x eager (8 frames x 416 points x 80 candidates, one
+    thread: 5.3, 20 and 85 ms).  The result is the same face up to ties in distance."""
+    if not compiled:
         return _closest_candidate
-    fn = _COMPILED.get("fn")
-    if fn is None:
-        fn = _COMPILED["fn"] = torch.compile(_closest_candidate, dynamic=True)
-
-    def guarded(p: Tensor, corners: Tensor, nn: Tensor, table: Tensor) -> Tensor:
-        try:
-            return fn(p, corners, nn, table)
-        except Exception as err:  # noqa: BLE001 -- any compiler failure: use eager
-            warnings.warn(f"compiled distance search unavailable ({type(err).__name__}: "
-                          f"{err}); using eager", RuntimeWarning, stacklevel=3)
-            _COMPILED["failed"] = True
-            return _closest_candidate(p, corners, nn, table)
-    return guarded
+    return compiled_or_eager(_closest_candidate, _COMPILED, "distance search", stacklevel=3)
 
 
 @torch.no_grad()

@@ -49,14 +49,14 @@ On CPU there is no device to wait for.
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
 
-from .distance import closest_point_on_triangle
+from ._compile import compiled_or_eager
+from .triangle import closest_point_on_triangle
 
 __all__ = ["NearestFaceCache", "FaceCacheStats"]
 
@@ -134,23 +134,13 @@ _COMPILED: Dict[str, Any] = {}
 
 
 def _certify_fn(compiled: bool) -> Callable[..., Tuple[Tensor, Tensor, Tensor, Tensor]]:
-    """:func:`_certify`, or its ``torch.compile`` (dynamic shapes, built once per
-    process); where compiling fails it warns once and stays eager."""
-    if not compiled or _COMPILED.get("failed"):
+    """:func:`_certify`, or with ``compiled`` its ``torch.compile``
+    (:func:`~garmentgnn.geometry._compile.compiled_or_eager`: dynamic shapes, built once
+    per process, eager under a dispatch mode; where compiling fails it warns once and
+    stays eager)."""
+    if not compiled:
         return _certify
-    fn = _COMPILED.get("fn")
-    if fn is None:
-        fn = _COMPILED["fn"] = torch.compile(_certify, dynamic=True)
-
-    def guarded(*args: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-        try:
-            return fn(*args)
-        except Exception as err:  # noqa: BLE001 -- any compiler failure: use eager
-            warnings.warn(f"compiled face-cache search unavailable ({type(err).__name__}: "
-                          f"{err}); using eager", RuntimeWarning, stacklevel=4)
-            _COMPILED["failed"] = True
-            return _certify(*args)
-    return guarded
+    return compiled_or_eager(_certify, _COMPILED, "face-cache search", stacklevel=4)
 
 
 def _examine(p: Tensor, lb: Tensor, tri: Tensor, k: int, m: int, tol: float

@@ -4,6 +4,7 @@ branch's output (:class:`StaticFeatures`), the layout of a batch of chunks
 prediction of a whole motion (:meth:`SequencePrediction.predict_sequence`)."""
 from __future__ import annotations
 
+import itertools
 import weakref
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -145,12 +146,11 @@ class ChunkLayout:
         if faces is None:
             raise ValueError("`inputs.body_faces`: needed with `body_pos` for the collision "
                              "projection")
-        if self.N == 1:
-            return push_outside(x, inputs.body_pos, faces, margin, compiled=compiled)
         Vb = inputs.body_pos.shape[1] // self.N
-        point_ptr = [0] + torch.tensor(self.counts).cumsum(0).tolist()
-        return push_outside(x, inputs.body_pos, faces, margin, compiled=compiled,
-                            point_ptr=point_ptr, body_ptr=list(range(0, (self.N + 1) * Vb, Vb)))
+        pairs = {} if self.N == 1 else {  # chunk n's vertices against body n
+            "point_ptr": list(itertools.accumulate(self.counts, initial=0)),
+            "body_ptr": list(range(0, (self.N + 1) * Vb, Vb))}
+        return push_outside(x, inputs.body_pos, faces, margin, compiled=compiled, **pairs)
 
 
 class PostSteps:
