@@ -63,20 +63,24 @@ _COMPILE_FAILED: Dict[str, str] = {}
 
 
 def compiled_forward(module: nn.Module, *args: Any, mode: Optional[str] = None,
-                     dynamic: bool = True) -> Any:
+                     dynamic: bool = True, method: str = "forward") -> Any:
     """``module(*args)`` through ``torch.compile(module.forward, mode=mode,
     dynamic=dynamic)`` (inductor; built once per module and options; dynamic shapes by
     default, so that other garments and batch sizes reuse it) while autograd records,
     eager otherwise (evaluation runs the eager module), and eager under a
     ``TorchDispatchMode`` (FLOP and operator counters see the eager operators, and the
     compiled code is not specialised to the mode).  Where compiling fails (no C++
-    compiler, an unsupported operator) it warns once and every later call runs eager."""
+    compiler, an unsupported operator) it warns once and every later call runs eager.
+    ``method`` names another method of ``module`` to run so (``module.<method>(*args)``,
+    compiled on its own)."""
+    eager = module if method == "forward" else getattr(module, method)
     if not torch.is_grad_enabled() or _COMPILE_FAILED or _get_current_dispatch_mode():
-        return module(*args)
+        return eager(*args)
     fns = _COMPILED.setdefault(module, {})
-    fn = fns.get((mode, dynamic))
+    fn = fns.get((method, mode, dynamic))
     if fn is None:
-        fn = fns[(mode, dynamic)] = torch.compile(module.forward, mode=mode, dynamic=dynamic)
+        fn = fns[(method, mode, dynamic)] = torch.compile(getattr(module, method), mode=mode,
+                                                          dynamic=dynamic)
     try:
         return fn(*args)
     except Exception as err:  # noqa: BLE001 -- any compiler failure: run eager
@@ -84,7 +88,7 @@ def compiled_forward(module: nn.Module, *args: Any, mode: Optional[str] = None,
         warnings.warn(f"torch.compile of {type(module).__name__} unavailable "
                       f"({_COMPILE_FAILED['error']}); running eager", RuntimeWarning,
                       stacklevel=2)
-        return module(*args)
+        return eager(*args)
 
 
 def bucket(n: int, base: int = 256, growth: float = 2 ** 0.25) -> int:

@@ -39,8 +39,9 @@ class DAStyle(Configurable, nn.Module):
         hidden: node width (heads are concatenated to it).
         heads: attention heads per layer (must divide ``hidden``).
         num_layers: GAT layers.
-        compile: run each GAT layer through ``torch.compile`` (inductor, dynamic shapes)
-            while training (:func:`~garmentgnn.models.blocks.compiled_forward`): the
+        compile: run :meth:`network` (encoder, GAT layers, decoder) through
+            ``torch.compile`` as one region (inductor, dynamic shapes) while training
+            (:func:`~garmentgnn.models.blocks.compiled_forward`): the
             same loss and gradients up to float round-off; on the CPU 1.1-2.2x eager's
             training vertex-frames per second with one thread, 0.5-1.3x with two
             (docs/results/step_profile).  ``None`` (the default): compiled where that
@@ -113,13 +114,20 @@ class DAStyle(Configurable, nn.Module):
             skinned, joints = skin(scene, rotations, translation)
         dtype = self.encoder[0].weight.dtype
         B, V = skinned.shape[:2]
-        x = self.encoder(self.features(scene, skinned, joints).to(dtype)).reshape(B * V, -1)
+        x = self.features(scene, skinned, joints).to(dtype).reshape(B * V, -1)
         ei = batch_edges(scene.edge_index, B, V)
         ea = edge_features(scene.rest_pos.to(dtype), scene.edge_index).repeat(B, 1)
         compiled = self.compile if self.compile is not None else (
             x.device.type == "cpu" and torch.get_num_threads() == 1)
-        for layer in self.layers:
-            x = self.act(compiled_forward(layer, x, ei, ea) if compiled
-                         else layer(x, ei, ea))
-        offset = self.decoder(x).reshape(B, V, 3)
+        offset = (compiled_forward(self, x, ei, ea, method="network") if compiled
+                  else self.network(x, ei, ea)).reshape(B, V, 3)
         return skinned + offset.to(skinned.dtype)
+
+    def network(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
+        """Per-vertex attributes ``[N, 9 + S]`` of the batched frames -> offsets ``[N, 3]``:
+        the encoder, the GAT layers (each followed by ELU) and the decoder (one region
+        under ``compile``)."""
+        x = self.encoder(x)
+        for layer in self.layers:
+            x = self.act(layer(x, edge_index, edge_attr))
+        return self.decoder(x)
