@@ -333,6 +333,19 @@ def _revision(tree: Path) -> str:
         return tree.name
 
 
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``, else the architecture) and the vector
+    instructions PyTorch's CPU kernels use here (``torch.backends.cpu``)."""
+    name = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            name = next((ln.split(":", 1)[1].strip() for ln in f
+                         if ln.startswith("model name")), name)
+    except OSError:
+        pass
+    return f"{name} ({torch.backends.cpu.get_cpu_capability()})"
+
+
 def run(a: argparse.Namespace) -> Dict[str, Any]:
     trees = [Tree(HERE.parent)] + [Tree(Path(t).resolve()) for t in a.against]
     # thread count outermost: each change recompiles (see Worker.set_threads)
@@ -486,8 +499,7 @@ def main() -> None:
     root = dataset("small", benchmark_cache())
     info = run(a)
     info.update(command=command_line("benchmarks/step_profile.py"), torch=torch.__version__,
-                cpu=platform.processor() or platform.machine(),
-                dataset={"root": str(root).replace(str(Path.home()), "~"),
+                cpu=cpu_name(), dataset={"root": str(root).replace(str(Path.home()), "~"),
                          "content_sha256": store.read_manifest(root).get("content_sha256")})
     write(info, out)
 

@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -55,7 +54,7 @@ HERE = Path(__file__).resolve().parent
 #: when it is run, not when it is loaded with ``runpy`` (the tests)
 if str(HERE) not in sys.path:
     sys.path.append(str(HERE))
-from step_profile import _revision  # noqa: E402
+from step_profile import _revision, cpu_name  # noqa: E402
 from train_throughput import RECIPES, dataset  # noqa: E402
 
 RESULTS = HERE.parent / "docs" / "results" / "train_scaling"
@@ -156,7 +155,7 @@ def run(a: Any, out: Path) -> Dict[str, Any]:
                             if ref and ref["vertex_frames_per_s"] and
                             row["vertex_frames_per_s"] else None)
     return {"command": command_line("benchmarks/train_scaling.py"),
-            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "cpu": cpu_name(), "cores": os.cpu_count(),
             "torch": torch.__version__, "trees": [{"label": lb, "path": str(t)} for lb, t in
                                                    zip(labels, trees)],
             "against": base, "steps": a.steps, "warmup": a.warmup,
