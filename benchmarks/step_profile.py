@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -58,6 +57,7 @@ from garmentgnn._argparse import (HelpFormatter, add_output_args, benchmark_cach
 from garmentgnn._plotting import pyplot
 from garmentgnn.data import store
 from garmentgnn.training import load_recipe
+from scaling_parts.machine import cpu_name
 from train_throughput import dataset, warm
 
 HERE = Path(__file__).resolve().parent
@@ -331,19 +331,6 @@ def _revision(tree: Path) -> str:
         return rev + ("+" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return tree.name
-
-
-def cpu_name() -> str:
-    """The CPU's model name (``/proc/cpuinfo``, else the architecture) and the vector
-    instructions PyTorch's CPU kernels use here (``torch.backends.cpu``)."""
-    name = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            name = next((ln.split(":", 1)[1].strip() for ln in f
-                         if ln.startswith("model name")), name)
-    except OSError:
-        pass
-    return f"{name} ({torch.backends.cpu.get_cpu_capability()})"
 
 
 def run(a: argparse.Namespace) -> Dict[str, Any]:

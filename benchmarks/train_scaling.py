@@ -54,7 +54,8 @@ HERE = Path(__file__).resolve().parent
 #: when it is run, not when it is loaded with ``runpy`` (the tests)
 if str(HERE) not in sys.path:
     sys.path.append(str(HERE))
-from step_profile import _revision, cpu_name  # noqa: E402
+from scaling_parts.machine import cpu_name  # noqa: E402
+from step_profile import _revision  # noqa: E402
 from train_throughput import RECIPES, dataset  # noqa: E402
 
 RESULTS = HERE.parent / "docs" / "results" / "train_scaling"

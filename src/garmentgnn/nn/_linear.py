@@ -31,7 +31,7 @@ class NarrowLinear(Linear):
             return super().forward(x)
         # W^T as its own [in, out] buffer: a matmul is an extern kernel, so inductor
         # writes it once; a transposed view (or its clone) would be inlined into the
-        # fused loop as stride-in scalar loads, a vector assembled per element
+        # fused loop as scalar loads `in` floats apart, each vector assembled from them
         w = torch.mm(torch.eye(self.in_channels, dtype=self.weight.dtype,
                                device=self.weight.device), self.weight.t())
         out = x[..., 0:1] * w[0]
