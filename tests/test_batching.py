@@ -165,6 +165,36 @@ def test_da_style_compiled_training_matches_eager(root, chunks, several):
         torch.testing.assert_close(g, ref, rtol=0, atol=1e-4 * float(ref.abs().max()) + 1e-12)
 
 
+def test_compiled_forward_lets_the_module_go():
+    """``compiled_forward`` keeps its compiled function per module in a weak-keyed table;
+    the function must not hold the module (a bound method would), or every model ever
+    compiled stays in memory with its compiled code."""
+    import gc
+    import weakref
+
+    class Net(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.lin = torch.nn.Linear(4, 4)
+
+        def forward(self, x):
+            return self.lin(x).relu()
+
+        def twice(self, x):
+            return 2 * self.forward(x)
+
+    for method in ("forward", "twice"):
+        net = Net()
+        x = torch.randn(3, 4, requires_grad=True)
+        y = blocks.compiled_forward(net, x, method=method)
+        assert not blocks._COMPILE_FAILED and net in blocks._COMPILED
+        torch.testing.assert_close(y, getattr(net, method)(x))
+        alive = weakref.ref(net)
+        del net, y
+        gc.collect()
+        assert alive() is None
+
+
 def test_da_style_compiles_by_default_on_one_cpu_thread_only(root, chunks):
     """``compile=None`` (the recipe's default): eager with two torch threads, compiled
     with one (where it was measured faster), decided at every training call."""

@@ -64,8 +64,9 @@ _COMPILE_FAILED: Dict[str, str] = {}
 
 def compiled_forward(module: nn.Module, *args: Any, mode: Optional[str] = None,
                      dynamic: bool = True, method: str = "forward") -> Any:
-    """``module(*args)`` through ``torch.compile(module.forward, mode=mode,
-    dynamic=dynamic)`` (inductor; built once per module and options; dynamic shapes by
+    """``module(*args)`` through ``torch.compile(type(module).forward, mode=mode,
+    dynamic=dynamic)`` (inductor; built once per module and options, kept while the
+    module lives, and not keeping it alive; dynamic shapes by
     default, so that other garments and batch sizes reuse it) while autograd records,
     eager otherwise (evaluation runs the eager module), and eager under a
     ``TorchDispatchMode`` (FLOP and operator counters see the eager operators, and the
@@ -78,11 +79,11 @@ def compiled_forward(module: nn.Module, *args: Any, mode: Optional[str] = None,
         return eager(*args)
     fns = _COMPILED.setdefault(module, {})
     fn = fns.get((method, mode, dynamic))
-    if fn is None:
-        fn = fns[(method, mode, dynamic)] = torch.compile(getattr(module, method), mode=mode,
-                                                          dynamic=dynamic)
+    if fn is None:  # of the class's function: a bound method would keep the module alive
+        fn = fns[(method, mode, dynamic)] = torch.compile(getattr(type(module), method),
+                                                          mode=mode, dynamic=dynamic)
     try:
-        return fn(*args)
+        return fn(module, *args)
     except Exception as err:  # noqa: BLE001 -- any compiler failure: run eager
         _COMPILE_FAILED["error"] = f"{type(err).__name__}: {err}"
         warnings.warn(f"torch.compile of {type(module).__name__} unavailable "
