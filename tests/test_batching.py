@@ -2,6 +2,9 @@
 one PyG ``Batch``; the batch's loss and gradients against each chunk on its own, a batch of
 one chunk against the plain chunk step by step, the data module's batches and its
 ``--data.batch_size`` checks."""
+import gc
+import weakref
+
 import lightning as L
 import pytest
 import torch
@@ -169,9 +172,6 @@ def test_compiled_forward_lets_the_module_go():
     """``compiled_forward`` keeps its compiled function per module in a weak-keyed table;
     the function must not hold the module (a bound method would), or every model ever
     compiled stays in memory with its compiled code."""
-    import gc
-    import weakref
-
     class Net(torch.nn.Module):
         def __init__(self) -> None:
             super().__init__()
