@@ -241,8 +241,9 @@ def _nearest_faces_candidates(points: Tensor, body: Tensor, faces: Tensor, k: in
     closest = _closest_candidate_fn(compiled)
     B, V, _ = points.shape
     table = body_topology(faces, body.size(1))[1]  # [Vb, D]
-    smallest = min([b1 - b0 for p0, p1, b0, b1 in groups if p1 > p0] or [body.size(1)]) \
-        if groups is not None else body.size(1)  # meshes with points have faces
+    # the smallest body among the meshes that have points (those have faces)
+    smallest = min((b1 - b0 for p0, p1, b0, b1 in groups or () if p1 > p0),
+                   default=body.size(1))
     nn = _nearest_vertices(points, body, min(k, smallest), groups)  # [B, V, k]
     corners = _face_corners(body, faces)
     out = torch.empty(B, V, dtype=torch.long, device=points.device)
