@@ -3,7 +3,7 @@ loss, backward, optimizer) on the CPU, per batch size and thread count, side by 
 one run, optionally against other source trees of garmentgnn (``--against DIR``, e.g. a
 checkout of an earlier commit) timed alternately with this one.
 
-Per configuration (tree x method x threads x batch size) it reports:
+Per configuration (tree x method x threads x batch size x precision) it reports:
 
 * vertex-frames per second of the step (median over ``--repeats`` rounds of ``--steps``
   steps each, on batches loaded before the clock starts: loading is not timed);
@@ -31,9 +31,12 @@ step)::
 
     python benchmarks/step_profile.py --commit
     python benchmarks/step_profile.py --against /path/to/old/checkout --methods gartrans da
+    python benchmarks/step_profile.py --methods gartrans --precisions 32 bf16-mixed
 
-Each tree runs in its own worker process (``PYTHONPATH=<tree>/src``); the configurations
-and trees alternate within every round, so a busy machine slows them alike.
+``bf16-mixed`` runs the forward and loss under ``torch.autocast("cpu", torch.bfloat16)``,
+as Lightning does.  Each tree runs in its own worker process (``PYTHONPATH=<tree>/src``);
+the configurations and trees alternate within every round, so a busy machine slows them
+alike.
 """
 from __future__ import annotations
 
@@ -44,7 +47,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any, Dict, List, Tuple
 
@@ -63,6 +66,7 @@ from train_throughput import dataset, warm
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent / "docs" / "results" / "step_profile"
 METHODS = ("gartrans", "da", "mgn")
+PRECISIONS = ("32", "bf16-mixed")  # Lightning's names
 STAGES = ("static", "graph", "attention", "post", "loss", "other", "backward", "optimizer")
 STAGE_NAMES = {"static": "static branch", "graph": "dynamic graph + features",
                "attention": "attention stack", "post": "post-steps", "loss": "loss",
@@ -166,7 +170,7 @@ class Worker:
         clock = StageClock()
         _stages(method, module, clock)
         s = self.setups[key] = {"module": module, "opt": opt, "batches": batches,
-                                "clock": clock, "method": method, "i": 0}
+                                "clock": clock, "method": method, "i": 0, "precision": "32"}
         return s
 
     def vertex_frames(self, method: str, b: Any) -> int:
@@ -180,7 +184,8 @@ class Worker:
         s["i"] += 1
         clock, module, opt = s["clock"], s["module"], s["opt"]
         t0 = time.perf_counter()
-        out = module.training_step(b, 0)
+        with torch.autocast("cpu", torch.bfloat16, enabled=s["precision"] == "bf16-mixed"):
+            out = module.training_step(b, 0)
         loss = out["loss"] if isinstance(out, dict) else out
         t1 = time.perf_counter()
         loss.backward()
@@ -193,10 +198,11 @@ class Worker:
         clock.seconds["optimizer"] += t3 - t2
         return t3 - t0, self.vertex_frames(s["method"], b)
 
-    def time(self, method: str, batch: int, threads: int, steps: int,
-             warmup: int) -> Dict[str, Any]:
+    def time(self, method: str, batch: int, threads: int, steps: int, warmup: int,
+             precision: str = "32") -> Dict[str, Any]:
         self.set_threads(threads)
         s = self.setup(method, batch)
+        s["precision"] = precision
         for _ in range(warmup):
             self.step(s)
         s["clock"].seconds.clear()
@@ -210,15 +216,17 @@ class Worker:
         out = {"vertex_frames_per_s": work / seconds, "step_s": seconds / steps,
                "vertex_frames": work / steps,
                "stage_s": {k: sec.get(k, 0.0) / steps for k in STAGES}}
-        if s.get("mm"):  # the step's matmul shapes timed alone, beside this round's steps
-            mm_flops, mm_seconds = self.matmul_rate(s["mm"])
+        if s.get(("mm", precision)):  # the step's matmuls timed alone, beside its steps
+            mm_flops, mm_seconds = self.matmul_rate(s[("mm", precision)])
             out["mm_gflops_per_s"] = mm_flops / mm_seconds / 1e9
         return out
 
-    def profile(self, method: str, batch: int, threads: int) -> Dict[str, Any]:
+    def profile(self, method: str, batch: int, threads: int,
+                precision: str = "32") -> Dict[str, Any]:
         """FLOPs, ATen calls and the matmul rate of one step's own matmul shapes."""
         self.set_threads(threads)
         s = self.setup(method, batch)
+        s["precision"] = precision
         self.step(s)
         mm_ops = {torch.ops.aten.mm.default, torch.ops.aten.addmm.default,
                   torch.ops.aten.bmm.default, torch.ops.aten.baddbmm.default}
@@ -233,14 +241,14 @@ class Worker:
                 tensors = [a for a in args if isinstance(a, torch.Tensor)]
                 # dense matmuls only: an addmm of a sparse CSR matrix is an SpMM
                 if func in mm_ops and all(t.layout == torch.strided for t in tensors):
-                    self.mm.append((func, [tuple(a.shape) if isinstance(a, torch.Tensor)
-                                           else a for a in args]))
+                    self.mm.append((func, [(tuple(a.shape), str(a.dtype)[6:])
+                                           if isinstance(a, torch.Tensor) else a for a in args]))
                 return func(*args, **(kwargs or {}))
 
         count = Count()
         with count:
             _, vf = self.step(s)
-        s["mm"] = count.mm
+        s[("mm", precision)] = count.mm
         total, mm_seconds = self.matmul_rate(count.mm)
         return {"flops": total, "flops_per_vertex_frame": total / vf, "aten_calls": count.calls,
                 "mm_calls": len(count.mm), "mm_gflops_per_s": total / mm_seconds / 1e9,
@@ -248,36 +256,23 @@ class Worker:
 
     def matmul_rate(self, calls: List[Tuple[Any, List[Any]]]) -> Tuple[float, float]:
         """(FLOPs, seconds) of the recorded matmuls, each shape timed alone (best of 3)."""
-        per_shape: Dict[str, Tuple[Any, List[Any], int]] = {}
-        for func, shapes in calls:
-            key = repr((func, shapes))
-            f, sh, n = per_shape.get(key, (func, shapes, 0))
-            per_shape[key] = (f, sh, n + 1)
+        counts = Counter(repr(c) for c in calls)
         total_flops, total_s = 0.0, 0.0
-        for func, shapes, n in per_shape.values():
-            args = [torch.randn(a) if isinstance(a, tuple) else a for a in shapes]
-            fc = FlopCounterMode(display=False)
-            with fc:
+        for func, shapes in {repr(c): c for c in calls}.values():
+            n = counts[repr((func, shapes))]
+            args = [torch.randn(a[0], dtype=getattr(torch, a[1])) if isinstance(a, tuple)
+                    else a for a in shapes]
+            with FlopCounterMode(display=False) as fc:
                 func(*args)
-            best = float("inf")
-            for _ in range(3):
-                t0 = time.perf_counter()
-                func(*args)
-                best = min(best, time.perf_counter() - t0)
             total_flops += n * fc.get_total_flops()
-            total_s += n * best
+            total_s += n * min(_seconds(func, args) for _ in range(3))
         return total_flops, total_s
 
     def reference_rate(self) -> float:
         """GFLOP/s of a [51680 x 128] @ [128 x 128] matmul (best of 5)."""
         a, b = torch.randn(51680, 128), torch.randn(128, 128)
         a @ b
-        best = float("inf")
-        for _ in range(5):
-            t0 = time.perf_counter()
-            a @ b
-            best = min(best, time.perf_counter() - t0)
-        return 2 * 51680 * 128 * 128 / best / 1e9
+        return 2 * 51680 * 128 * 128 / min(_seconds(torch.mm, (a, b)) for _ in range(5)) / 1e9
 
     def ready(self) -> Dict[str, Any]:
         """Answered once the dataset is there (workers start one after another: the
@@ -293,6 +288,12 @@ class Worker:
             except Exception as err:  # noqa: BLE001 -- reported to the driver
                 out = {"error": f"{type(err).__name__}: {err}"}
             print("RESULT " + json.dumps(out), flush=True)
+
+
+def _seconds(func: Any, args: Any) -> float:
+    t0 = time.perf_counter()
+    func(*args)
+    return time.perf_counter() - t0
 
 
 # ----------------------------------------------------------------------------- driver
@@ -336,25 +337,24 @@ def _revision(tree: Path) -> str:
 def run(a: argparse.Namespace) -> Dict[str, Any]:
     trees = [Tree(HERE.parent)] + [Tree(Path(t).resolve()) for t in a.against]
     # thread count outermost: each change recompiles (see Worker.set_threads)
-    configs = [(m, th, b) for th in a.threads for m in a.methods for b in a.batches]
-    rows: Dict[Tuple[str, str, int, int], Dict[str, Any]] = {}
+    configs = [dict(method=m, threads=th, batch=b, precision=pr) for th in a.threads
+               for m in a.methods for b in a.batches for pr in a.precisions]
+    rows: Dict[Tuple[Any, ...], Dict[str, Any]] = {}
     try:
-        for m, th, b in configs:
+        for c in configs:
             for t in trees:
-                p = t.ask(cmd="profile", method=m, batch=b, threads=th)
-                rows[(t.label, m, th, b)] = {"tree": t.label, "method": m, "threads": th,
-                                             "batch": b, "profile": p, "runs": []}
-                print(t.label, m, th, b, p, flush=True)
+                p = t.ask(cmd="profile", **c)
+                rows[(t.label, *c.values())] = dict(tree=t.label, **c, profile=p, runs=[])
+                print(t.label, *c.values(), p, flush=True)
         for _ in range(a.repeats):
-            for m, th, b in configs:
+            for c in configs:
                 for t in trees:
-                    row = rows[(t.label, m, th, b)]
+                    row = rows[(t.label, *c.values())]
                     if "error" in row["profile"]:
                         continue
-                    r = t.ask(cmd="time", method=m, batch=b, threads=th, steps=a.steps,
-                              warmup=a.warmup)
+                    r = t.ask(cmd="time", steps=a.steps, warmup=a.warmup, **c)
                     row["runs"].append(r)
-                    print(t.label, m, th, b, f"{r.get('vertex_frames_per_s', 0):.0f}",
+                    print(t.label, *c.values(), f"{r.get('vertex_frames_per_s', 0):.0f}",
                           flush=True)
     finally:
         for t in trees:
@@ -379,7 +379,7 @@ def run(a: argparse.Namespace) -> Dict[str, Any]:
     base = trees[-1].label
     for row in out:
         ref = next((x for x in out if x["tree"] == base and all(
-            x[k] == row[k] for k in ("method", "threads", "batch"))), None)
+            x[k] == row[k] for k in ("method", "threads", "batch", "precision"))), None)
         row["x_against"] = row["vertex_frames_per_s"] / ref["vertex_frames_per_s"] \
             if ref else None
     return {"trees": [{"label": t.label, "path": str(t.tree)} for t in trees],
@@ -391,6 +391,7 @@ def write(info: Dict[str, Any], out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "step_profile.json").write_text(json.dumps(info, indent=1))
     rows = sorted(info["rows"], key=lambda r: (r["method"], r["threads"], r["batch"],
+                                               r["precision"] != "32",
                                                r["tree"] != info["trees"][0]["label"]))
     against = info["against"]
     lines = [f"# Training-step profile (CPU: {info['cpu']}, torch {info['torch']})", "",
@@ -403,16 +404,16 @@ def write(info: Dict[str, Any], out: Path) -> None:
              "vertex-frame; mm rate: the step's own matmul shapes timed alone at the same "
              "thread count, in every round beside its steps (median); share: achieved GFLOP/s "
              "over that rate.", "",
-             "| tree | method | threads | batch | vertex-frames/s | x " + against
+             "| tree | method | threads | batch | precision | vertex-frames/s | x " + against
              + " | MFLOP/vf | GFLOP/s | mm rate | share | ATen calls | "
              + " | ".join(STAGE_NAMES[k] + " (ms)" for k in STAGES) + " |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"
              + "---:|" * len(STAGES)]
     for r in rows:
         p = r["profile"]
         x = f"{r['x_against']:.2f}" if r["x_against"] is not None else "-"
         lines.append(
-            f"| {r['tree']} | {r['method']} | {r['threads']} | {r['batch']} | "
+            f"| {r['tree']} | {r['method']} | {r['threads']} | {r['batch']} | {r['precision']} | "
             f"{r['vertex_frames_per_s']:,.0f} | {x} | {p['flops_per_vertex_frame'] / 1e6:.3f} | "
             f"{r['gflops_per_s']:.1f} | {r['mm_gflops_per_s']:.1f} | {r['mm_share']:.0%} | "
             f"{p['aten_calls']:,} | "
@@ -435,7 +436,8 @@ def plot(rows: List[Dict[str, Any]], path: Path) -> None:
     colors = plt.get_cmap("tab10").colors
     for ax, th in zip(axes[0], threads):
         sel = [r for r in rows if r["threads"] == th]
-        labels = [f"{r['method']}\nb{r['batch']}\n{r['tree']}" for r in sel]
+        labels = [f"{r['method']}\nb{r['batch']}\n{r['tree']}"
+                  + ("" if r["precision"] == "32" else "\nbf16") for r in sel]
         bottom = [0.0] * len(sel)
         for i, k in enumerate(STAGES):
             h = [r["stage_s"][k] / r["vertex_frames"] * 1e5 if "vertex_frames" in r
@@ -464,6 +466,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=3, help="timed steps a round")
     ap.add_argument("--warmup", type=int, default=1, help="untimed steps before each round")
     ap.add_argument("--repeats", type=int, default=3, help="rounds over the configurations")
+    ap.add_argument("--precisions", nargs="+", choices=PRECISIONS, default=["32"],
+                    help="Lightning precisions (bf16-mixed: forward and loss under autocast)")
     ap.add_argument("--against", nargs="*", default=[], metavar="DIR",
                     help="other garmentgnn source trees (a checkout's root) to time "
                          "alternately with this one; ratios are against the last")
