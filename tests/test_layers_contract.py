@@ -217,7 +217,7 @@ def test_widths_and_reset(name, concat):
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
 def test_cpu_autocast_low_precision(name, dtype, mesh_graph):
     """CPU autocast works (the CSR kernels have no CPU half kernels, so low-precision
-    operands take the gather/scatter path) and stays near float32."""
+    operands run on them in float32) and stays near float32."""
     pos, _, ei, e = mesh_graph
     x = torch.cat([pos, pos.flip(-1)], -1)
     layer = build(name).eval()

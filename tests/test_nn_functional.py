@@ -188,3 +188,33 @@ def test_pattern_product_ignores_what_its_output_held(dtype):
     assert got.data_ptr() == out.data_ptr()
     torch.testing.assert_close(got, m @ b)
     assert all(i.dtype == torch.int32 for i in pat.kernel_indices())
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_half_precision_runs_on_the_kernels_in_float32_under_autocast(dtype):
+    """Under autocast, half-precision operands take the fused route and the kernels run
+    them in float32; outside it they take the message route (a model cast to half
+    precision would meet float32 results).  Oracle: gathers, PyG's ``softmax`` and
+    ``scatter`` sums in float64 of the same rounded values, and their gradients."""
+    g, q, k, v, y = graph_and_features(False)
+    half = [t.to(dtype).requires_grad_() for t in (q, k, v, y)]
+    assert not attention_route(g, H, half[0]).fused
+    with torch.autocast("cpu", dtype=dtype):
+        r = attention_route(g, H, half[0])
+        assert r.fused
+        alpha = edge_softmax(edge_dot(half[0], half[1], g, r), r)
+        got = [attention_spmm(alpha, half[2], g, r), edge_rows_spmm(alpha, half[3], g, r)]
+    assert all(t.dtype == torch.float32 for t in got)
+    src, dst = g.edge_index
+    exact = [t.detach().double().requires_grad_() for t in half]
+    a = softmax((exact[0][dst] * exact[1][src]).sum(-1), dst, num_nodes=N)
+    want = [scatter(a.unsqueeze(-1) * exact[2][src], dst, 0, dim_size=N, reduce="sum"),
+            scatter(a.unsqueeze(-1) * exact[3][:, None, :], dst, 0, dim_size=N, reduce="sum")]
+    for o, w in zip(got, want):
+        torch.testing.assert_close(o.double(), w, rtol=1e-5, atol=1e-5)
+    w = torch.randn(N, H, C + D, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    grads = torch.autograd.grad((torch.cat(got, -1) * w).sum(), half)
+    want_g = torch.autograd.grad((torch.cat(want, -1) * w).sum(), exact)
+    for gh, gw in zip(grads, want_g):  # each rounded once to the operand's dtype
+        assert gh.dtype == dtype
+        torch.testing.assert_close(gh.double(), gw, rtol=1e-2, atol=1e-2 * gw.abs().max())

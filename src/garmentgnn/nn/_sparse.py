@@ -40,7 +40,8 @@ from garmentgnn.nn._graph import CSRPlan
 
 _ENABLED = True
 
-#: dtypes PyTorch's sparse CSR kernels support on every device (no CPU half kernels)
+#: dtypes PyTorch's sparse CSR kernels support on every device (no CPU half kernels);
+#: :func:`sddmm` and :func:`spmm` run other operands in float32
 CSR_DTYPES = (torch.float32, torch.float64)
 
 
@@ -268,11 +269,18 @@ class _SpMM(torch.autograd.Function):
         return gv, gd, None
 
 
+def _operand(t: Tensor) -> Tensor:
+    """``t`` contiguous, in float32 if its dtype has no CSR kernel (half precision)."""
+    return (t if t.dtype in CSR_DTYPES else t.float()).contiguous()
+
+
 def sddmm(a: Tensor, b: Tensor, pat: Pattern) -> Tensor:
-    """``(a @ b^T)`` sampled on ``pat``: a value vector in pattern order (differentiable)."""
-    return _SDDMM.apply(a.contiguous(), b.contiguous(), pat)
+    """``(a @ b^T)`` sampled on ``pat``: a value vector in pattern order (differentiable;
+    half-precision operands run in float32 and give float32)."""
+    return _SDDMM.apply(_operand(a), _operand(b), pat)
 
 
 def spmm(values: Tensor, dense: Tensor, pat: Pattern) -> Tensor:
-    """``pat(values) @ dense`` (differentiable in both, to any order)."""
-    return _SpMM.apply(values.contiguous(), dense.contiguous(), pat)
+    """``pat(values) @ dense`` (differentiable in both, to any order; half-precision
+    operands run in float32 and give float32)."""
+    return _SpMM.apply(_operand(values), _operand(dense), pat)

@@ -19,16 +19,17 @@ function                   computes, per edge ``j -> i`` and head             fu
 
 Two routes compute the same numbers:
 
-* the **fused** route (``route.fused``; eager mode, float32/float64, nothing observing
-  the messages) runs on the sparse CSR kernels of :mod:`garmentgnn.nn._sparse`, all
+* the **fused** route (``route.fused``; eager mode, float32/float64 or any dtype under
+  autocast, nothing observing the messages) runs on the sparse CSR kernels of
+  :mod:`garmentgnn.nn._sparse` (in float32 for half-precision operands), all
   heads in one node-major pattern (row ``i*H + h``), on the graph's cached
   :class:`CSRPlan` (edges sorted by target once per ``edge_index`` tensor, whatever the
   caller's order);
 * the **message** route gathers per edge in the caller's order, and the layer sums
   with :meth:`~torch_geometric.nn.conv.MessagePassing.propagate` and its ``message``,
   so explainers' edge masks and message hooks see every message as in PyG's convs.
-  It runs under ``torch.compile``, in half precision, when messages are observed,
-  and on graphs without edges.
+  It runs under ``torch.compile``, in half precision outside autocast, when messages
+  are observed, and on graphs without edges.
 
 Per-edge, per-head tensors come in the route's working layout: ``[E, H]`` in the
 caller's edge order on the message route, a flat ``[E*H]`` vector in the kernels' order
@@ -94,13 +95,17 @@ class Route(NamedTuple):
 def attention_route(g: Graph, heads: int, *operands: Tensor, observed: bool = False) -> Route:
     """The route of one call on ``g`` with ``heads`` heads: fused unless the kernels are
     off, the graph has no plan (``torch.compile``) or no edges, ``observed`` (an
-    explainer or hook needs the messages), or an operand's dtype has no CSR kernel."""
+    explainer or hook needs the messages), or an operand's dtype has no CSR kernel
+    outside autocast.  Under autocast, half-precision operands run on the kernels in
+    float32 (:func:`~garmentgnn.nn._sparse.spmm`): the ops that follow pick their own
+    dtypes, where a model cast to half precision would meet float32 results."""
     plan = g.plan
     # more edges than (source, target) pairs: multi-edges that torch's sparse CSR
     # sampling cannot hold (it needs nnz <= rows * cols); the message route can
     if (plan is None or not kernels_enabled() or plan.num_edges == 0 or observed
             or plan.num_edges > plan.num_src * plan.num_dst
-            or any(t.dtype not in CSR_DTYPES for t in operands)):
+            or any(t.dtype not in CSR_DTYPES and not torch.is_autocast_enabled(t.device.type)
+                   for t in operands)):
         return Route(None, heads, g.edge_index[1], None, g.num_dst, None)
     pat = head_pattern(plan, heads)
     assert pat.rows is not None

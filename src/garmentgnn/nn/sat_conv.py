@@ -55,7 +55,8 @@ class SATConv(AttentionConv):
     pattern), and the scores are a sparse SDDMM over all heads.  Edges in any
     order get this route: the layer sorts them once per graph (cached).  When
     something observes the messages (an explainer's edge mask, a message
-    hook), under ``torch.compile`` and in half precision the layer runs
+    hook), under ``torch.compile`` and in half precision outside autocast
+    (under autocast the kernels run in float32) the layer runs
     :meth:`propagate` with the full messages
     :math:`\alpha_{ij}(\mathbf{v}_j + \mathbf{q}^e_{ij})` instead; both
     routes compute the same numbers.
