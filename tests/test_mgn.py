@@ -165,6 +165,46 @@ def test_a_step_integrates_the_acceleration_and_pins_to_lbs(root):
     assert torch.isfinite(roll).all()
 
 
+def test_bf16_autocast_keeps_inputs_and_integration_in_float32(root):
+    """Under ``torch.autocast(bfloat16)`` (``--trainer.precision bf16-mixed``) the
+    kinematics and the inputs the encoders read are float32's bit for bit (bfloat16
+    positions are ~4 mm off at 1 m, the size of the features), and the step, the loss and
+    its gradient stay within the bfloat16 networks' round-off.  Oracle: the same model
+    and batch in float32."""
+    batch = windows(root)[5]
+    model = trained_stats(MGNStyle(hidden=16, layers=2, heads=2), batch)
+    seen = {}
+    hooks = [getattr(model, n).register_forward_pre_hook(
+        lambda mod, args, n=n: seen.setdefault(n, []).append(args[0]))
+        for n in ("node_norm", "edge_norm", "body_norm")]
+    module = SimulatorModule(model, stats_steps=0, rollout=1)
+
+    def run():
+        with torch.no_grad():
+            m = model.scene_motion(batch)
+            nxt = model.step(batch, m, 2, batch.gt[0], batch.gt[1])
+        torch.manual_seed(0)  # the same input noise
+        loss, _ = module.window_loss(batch)
+        grad = torch.autograd.grad(loss, model.decoder[-1].weight)[0]
+        return m, nxt, loss, grad
+
+    m32, ref, loss32, grad32 = run()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        m16, got, loss16, grad16 = run()
+    for h in hooks:
+        h.remove()
+    for name, runs in seen.items():  # the step's call and the loss's, in each precision
+        assert len(runs) == 4 and all(r.dtype == torch.float32 for r in runs), name
+        assert torch.equal(runs[0], runs[2]) and torch.equal(runs[1], runs[3]), name
+    assert torch.equal(m16.lbs, m32.lbs) and torch.equal(m16.frame, m32.frame)
+    accel = ref - (2 * batch.gt[1] - batch.gt[0])
+    assert got.dtype == torch.float32
+    assert (got - ref).abs().max() <= 0.05 * accel.abs().max()
+    assert loss16.dtype == torch.float32
+    assert abs(loss16.item() - loss32.item()) <= 0.02 * loss32.item()
+    assert (grad16.float() - grad32).norm() <= 0.05 * grad32.norm()
+
+
 @pytest.mark.parametrize("layer", sorted(LAYERS))
 def test_every_parameter_learns_with_every_layer(root, layer):
     torch.manual_seed(0)

@@ -26,7 +26,11 @@ per frame squared, so the model is tied to the frame rate it learned at, ``fps``
 * **decode**: an MLP to the normalised local-frame acceleration; :meth:`acceleration`
   undoes the normalisation (running statistics of the training targets) and the frame.
 
-Pinned vertices follow the LBS garment.  The model never sees the ground truth: the
+Pinned vertices follow the LBS garment.  Under ``torch.autocast`` (``--trainer.precision
+bf16-mixed``) the kinematics, the inputs, their statistics, the acceleration and the
+integration stay float32 (:func:`~garmentgnn.geometry.full_precision`: bfloat16 rounds a
+position at 1 m to ~4 mm, the size of a mesh edge's change in a frame) and the encoders,
+processor and decoder run in the low precision.  The model never sees the ground truth: the
 training module (:class:`~garmentgnn.training.SimulatorModule`) gives it states and
 compares its output with the normalised target.
 """
@@ -39,6 +43,7 @@ import torch
 from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
+from garmentgnn.geometry import full_precision
 from garmentgnn.models.blocks import Configurable, RunningNormalizer, mlp
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import ChunkLayout
@@ -183,9 +188,10 @@ class MGNStyle(Configurable, nn.Module):
         N, T = layout.N, layout.B
         rot = layout.rotations[:, :, -1]  # [N, T, S, 3]
         tr = layout.translation[:, :, -1]  # [N, T, 3]
-        A, _ = forward_kinematics(rot.reshape(N * T, *rot.shape[2:]),
-                                  layout.rest_joints.repeat_interleave(T, 0), layout.parents,
-                                  tr.reshape(N * T, 3))
+        with full_precision(scene.rest_pos) as up:  # float32 under autocast
+            A, _ = forward_kinematics(up(rot.reshape(N * T, *rot.shape[2:])),
+                                      up(layout.rest_joints.repeat_interleave(T, 0)),
+                                      layout.parents, up(tr.reshape(N * T, 3)))
         A = A.view(N, T, *A.shape[1:])
         W = scene.skin_weights.unsqueeze(0).expand(T, -1, -1)
         lbs, _ = layout.skin(W, A, scene.rest_pos)
@@ -228,43 +234,57 @@ class MGNStyle(Configurable, nn.Module):
         for name, s in (("x_prev", x_prev), ("x_curr", x_curr)):
             if s.shape != (V, 3):
                 raise ValueError(f"`{name}`: expected [{V}, 3], got {tuple(s.shape)}")
+        with full_precision(x_curr) as up:  # the inputs in float32 under autocast
+            node, edge, bedge, bs = self.inputs(scene, motion, t, up(x_prev), up(x_curr))
+            node, edge, bedge = self.node_norm(node), self.edge_norm(edge), self.body_norm(bedge)
+        h = self.node_enc(node)
+        h = h.index_add(0, bs, self.body_enc(bedge).to(h.dtype))
+        e = self.edge_enc(edge)
+        return self.decoder(self.process(h, scene.edge_index, e))
+
+    def inputs(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
+               x_curr: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The unnormalised inputs of frame ``t``: node ``[V, NODE_IN]``, mesh-edge ``[E,
+        EDGE_IN]`` and body-edge ``[Eb, BODY_IN]`` features, and each body edge's garment
+        vertex ``[Eb]`` (module doc)."""
         R = motion.frame[t - 1]  # [V, 3, 3]
         lbs_prev, lbs_next = motion.lbs[t - 1], motion.lbs[t]
         # node inputs (local frame): velocity, the LBS garment's motion and the offset from it
         node = torch.cat([_local(R, x_curr - x_prev), _local(R, lbs_next - lbs_prev),
                           _local(R, x_curr - lbs_prev),
-                          motion.pinned.to(x_curr.dtype).unsqueeze(1), motion.material], 1)
+                          motion.pinned.to(x_curr.dtype).unsqueeze(1),
+                          motion.material.to(x_curr.dtype)], 1)
         # mesh edges: current (local frame) and rest relative positions and lengths
         src, dst = scene.edge_index
         xl = _local(R, x_curr)
         d = xl[src] - xl[dst]
-        d0 = scene.rest_pos[src] - scene.rest_pos[dst]
+        rest = scene.rest_pos.to(x_curr.dtype)
+        d0 = rest[src] - rest[dst]
         edge = torch.cat([d, d.norm(dim=1, keepdim=True), d0, d0.norm(dim=1, keepdim=True)], 1)
         # body edges: offset to the body at t, its length, the body's motion
         bs, bd = self.body_edges(motion, x_curr, t)
-        body_t = motion.body[t].reshape(-1, 3)
-        body_prev = motion.body[t - 1].reshape(-1, 3)
+        body_t = motion.body[t].reshape(-1, 3).to(x_curr.dtype)
+        body_prev = motion.body[t - 1].reshape(-1, 3).to(x_curr.dtype)
         Rb = R[bs]
         off = _local(Rb, body_t[bd] - x_curr[bs])
         bedge = torch.cat([off, off.norm(dim=1, keepdim=True),
                            _local(Rb, body_t[bd] - body_prev[bd])], 1)
-
-        h = self.node_enc(self.node_norm(node))
-        h = h.index_add(0, bs, self.body_enc(self.body_norm(bedge)))
-        e = self.edge_enc(self.edge_norm(edge))
-        return self.decoder(self.process(h, scene.edge_index, e))
+        return node, edge, bedge, bs
 
     def acceleration(self, out: Tensor, motion: SceneMotion, t: int) -> Tensor:
         """The network's output ``out [V, 3]`` for frame ``t`` in metres per frame
         squared, world frame."""
-        mean, std = self.target_norm.mean_std()
-        a_local = out * std.to(out.dtype) + mean.to(out.dtype)
-        return (motion.frame[t - 1] @ a_local.unsqueeze(-1)).squeeze(-1)
+        with full_precision(out) as up:  # float32 under autocast
+            out = up(out)
+            mean, std = self.target_norm.mean_std()
+            a_local = out * std.to(out.dtype) + mean.to(out.dtype)
+            return (motion.frame[t - 1] @ a_local.unsqueeze(-1)).squeeze(-1)
 
     def normalized_target(self, a: Tensor, motion: SceneMotion, t: int) -> Tensor:
         """A world-frame acceleration ``a [V, 3]`` of frame ``t`` as the network's output
         would give it (the target statistics are updated in training mode)."""
-        return self.target_norm(_local(motion.frame[t - 1], a))
+        with full_precision(a) as up:  # float32 under autocast
+            return self.target_norm(_local(motion.frame[t - 1], up(a)))
 
     def step(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
              x_curr: Tensor) -> Tensor:
