@@ -238,7 +238,7 @@ class MGNStyle(Configurable, nn.Module):
             node, edge, bedge, bs = self.inputs(scene, motion, t, up(x_prev), up(x_curr))
             node, edge, bedge = self.node_norm(node), self.edge_norm(edge), self.body_norm(bedge)
         h = self.node_enc(node)
-        h = h.index_add(0, bs, self.body_enc(bedge).to(h.dtype))
+        h = h.index_add(0, bs, self.body_enc(bedge))
         e = self.edge_enc(edge)
         return self.decoder(self.process(h, scene.edge_index, e))
 
@@ -252,19 +252,17 @@ class MGNStyle(Configurable, nn.Module):
         # node inputs (local frame): velocity, the LBS garment's motion and the offset from it
         node = torch.cat([_local(R, x_curr - x_prev), _local(R, lbs_next - lbs_prev),
                           _local(R, x_curr - lbs_prev),
-                          motion.pinned.to(x_curr.dtype).unsqueeze(1),
-                          motion.material.to(x_curr.dtype)], 1)
+                          motion.pinned.to(x_curr.dtype).unsqueeze(1), motion.material], 1)
         # mesh edges: current (local frame) and rest relative positions and lengths
         src, dst = scene.edge_index
         xl = _local(R, x_curr)
         d = xl[src] - xl[dst]
-        rest = scene.rest_pos.to(x_curr.dtype)
-        d0 = rest[src] - rest[dst]
+        d0 = scene.rest_pos[src] - scene.rest_pos[dst]
         edge = torch.cat([d, d.norm(dim=1, keepdim=True), d0, d0.norm(dim=1, keepdim=True)], 1)
         # body edges: offset to the body at t, its length, the body's motion
         bs, bd = self.body_edges(motion, x_curr, t)
-        body_t = motion.body[t].reshape(-1, 3).to(x_curr.dtype)
-        body_prev = motion.body[t - 1].reshape(-1, 3).to(x_curr.dtype)
+        body_t = motion.body[t].reshape(-1, 3)
+        body_prev = motion.body[t - 1].reshape(-1, 3)
         Rb = R[bs]
         off = _local(Rb, body_t[bd] - x_curr[bs])
         bedge = torch.cat([off, off.norm(dim=1, keepdim=True),
