@@ -170,7 +170,7 @@ class Worker:
         clock = StageClock()
         _stages(method, module, clock)
         s = self.setups[key] = {"module": module, "opt": opt, "batches": batches,
-                                "clock": clock, "method": method, "i": 0, "precision": "32"}
+                                "clock": clock, "method": method, "i": 0}
         return s
 
     def vertex_frames(self, method: str, b: Any) -> int:
@@ -178,13 +178,13 @@ class Worker:
             return int(b.gt.shape[1])  # one trained step a window
         return int(b.gt.shape[0] * b.gt.shape[1])
 
-    def step(self, s: Dict[str, Any]) -> Tuple[float, int]:
-        """One training step on the next batch: (seconds, vertex-frames)."""
+    def step(self, s: Dict[str, Any], precision: str) -> Tuple[float, int]:
+        """One training step on the next batch in ``precision``: (seconds, vertex-frames)."""
         b = s["batches"][s["i"] % len(s["batches"])]
         s["i"] += 1
         clock, module, opt = s["clock"], s["module"], s["opt"]
         t0 = time.perf_counter()
-        with torch.autocast("cpu", torch.bfloat16, enabled=s["precision"] == "bf16-mixed"):
+        with torch.autocast("cpu", torch.bfloat16, enabled=precision == "bf16-mixed"):
             out = module.training_step(b, 0)
         loss = out["loss"] if isinstance(out, dict) else out
         t1 = time.perf_counter()
@@ -202,13 +202,12 @@ class Worker:
              precision: str = "32") -> Dict[str, Any]:
         self.set_threads(threads)
         s = self.setup(method, batch)
-        s["precision"] = precision
         for _ in range(warmup):
-            self.step(s)
+            self.step(s, precision)
         s["clock"].seconds.clear()
         seconds, work = 0.0, 0
         for _ in range(steps):
-            dt, vf = self.step(s)
+            dt, vf = self.step(s, precision)
             seconds, work = seconds + dt, work + vf
         sec = dict(s["clock"].seconds)
         named = sum(sec.get(k, 0.0) for k in ("static", "graph", "attention", "post", "loss"))
@@ -226,8 +225,7 @@ class Worker:
         """FLOPs, ATen calls and the matmul rate of one step's own matmul shapes."""
         self.set_threads(threads)
         s = self.setup(method, batch)
-        s["precision"] = precision
-        self.step(s)
+        self.step(s, precision)
         mm_ops = {torch.ops.aten.mm.default, torch.ops.aten.addmm.default,
                   torch.ops.aten.bmm.default, torch.ops.aten.baddbmm.default}
 
@@ -247,7 +245,7 @@ class Worker:
 
         count = Count()
         with count:
-            _, vf = self.step(s)
+            _, vf = self.step(s, precision)
         s[("mm", precision)] = count.mm
         total, mm_seconds = self.matmul_rate(count.mm)
         return {"flops": total, "flops_per_vertex_frame": total / vf, "aten_calls": count.calls,
@@ -256,10 +254,11 @@ class Worker:
 
     def matmul_rate(self, calls: List[Tuple[Any, List[Any]]]) -> Tuple[float, float]:
         """(FLOPs, seconds) of the recorded matmuls, each shape timed alone (best of 3)."""
-        counts = Counter(repr(c) for c in calls)
+        keys = [repr(c) for c in calls]
+        counts = Counter(keys)
         total_flops, total_s = 0.0, 0.0
-        for func, shapes in {repr(c): c for c in calls}.values():
-            n = counts[repr((func, shapes))]
+        for key, (func, shapes) in dict(zip(keys, calls)).items():
+            n = counts[key]
             args = [torch.randn(a[0], dtype=getattr(torch, a[1])) if isinstance(a, tuple)
                     else a for a in shapes]
             with FlopCounterMode(display=False) as fc:
