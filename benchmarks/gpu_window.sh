@@ -15,6 +15,8 @@
 #                        /tmp/gpu_window_out)
 #   PYTHON               the interpreter (default python3, the image's torch)
 #   GPU_WINDOW_DIR       the carried folder (default build/gpu_window)
+#   GPU_WINDOW_SCRIPT    the script handed the time left (default benchmarks/gpu_window.py;
+#                        benchmarks/mgn_levers.py takes the same options)
 # Further arguments go to benchmarks/gpu_window.py (e.g. --stages inference).
 set -u
 start=$(date +%s)
@@ -50,5 +52,5 @@ print('garmentgnn', garmentgnn.__version__, 'torch', torch.__version__, \
 } > "$log" 2>&1
 cat "$log"
 left=$(( budget - ($(date +%s) - start) ))
-exec $py benchmarks/gpu_window.py --dir "$dir" --out "$out" --work "$work" \
+exec $py "${GPU_WINDOW_SCRIPT:-benchmarks/gpu_window.py}" --dir "$dir" --out "$out" --work "$work" \
     --device "${DEVICE:-cuda}" --budget-s "$left" --setup-log "$log" "$@"

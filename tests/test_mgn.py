@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import SequenceChunks
 from garmentgnn.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from garmentgnn.models import MGNStyle
+from garmentgnn.models import EncodeProcessDecode, MGNStyle
 from garmentgnn.models.baselines import DAStyle
 from garmentgnn.nn import LAYERS
 from garmentgnn.physics import MATERIALS, material_features
@@ -185,7 +185,7 @@ def test_bf16_autocast_keeps_inputs_and_integration_in_float32(root):
             nxt = model.step(batch, m, 2, batch.gt[0], batch.gt[1])
         torch.manual_seed(0)  # the same input noise
         loss, _ = module.window_loss(batch)
-        grad = torch.autograd.grad(loss, model.decoder[-1].weight)[0]
+        grad = torch.autograd.grad(loss, model.network.decoder[-1].weight)[0]
         return m, nxt, loss, grad
 
     m32, ref, loss32, grad32 = run()
@@ -205,21 +205,44 @@ def test_bf16_autocast_keeps_inputs_and_integration_in_float32(root):
     assert (grad16.float() - grad32).norm() <= 0.05 * grad32.norm()
 
 
-@pytest.mark.parametrize("layer", sorted(LAYERS))
-def test_every_parameter_learns_with_every_layer(root, layer):
+@pytest.mark.parametrize("layer,body_blocks", [(name, False) for name in sorted(LAYERS)]
+                         + [("sat", True)])
+def test_every_parameter_learns_with_every_layer(root, layer, body_blocks):
     torch.manual_seed(0)
     batch = windows(root)[[0, 6]]
-    model = MGNStyle(hidden=16, layers=2, heads=2, layer=layer, body_radius=0.2)
+    model = MGNStyle(hidden=16, layers=2, heads=2, layer=layer, body_radius=0.2,
+                     body_blocks=body_blocks)
     module = SimulatorModule(model, stats_steps=0, noise=1e-3, rollout=1)
     loss, _ = module.window_loss(batch)
     loss.backward()
     dead = [n for n, p in model.named_parameters()
             if p.requires_grad and (p.grad is None or not p.grad.abs().sum() > 0)]
     frozen = [n for n, p in model.named_parameters() if not p.requires_grad]
-    assert all(n.startswith("convs.1.") for n in frozen)  # the last block's edge output
+    assert all(n.startswith("network.convs.1.") for n in frozen)  # the last edge output
     if layer in ("gat", "gt"):  # layers that do not read the edges: the edge encoder is idle
-        dead = [n for n in dead if not n.startswith("edge_enc")]
+        dead = [n for n in dead if not n.startswith("network.edge_enc")]
     assert not dead
+    assert any(n.startswith("network.contact_updates.") for n, _ in model.named_parameters()) \
+        == body_blocks
+
+
+@pytest.mark.parametrize("layer", sorted(LAYERS))
+def test_the_frozen_edge_output_is_what_gets_no_gradient(layer):
+    """The parameters a layer declares as its edge output's (frozen in the network's last
+    block, with no backward pass at construction) are exactly those that autograd leaves
+    without a gradient when every parameter is trainable."""
+    torch.manual_seed(0)
+    net = EncodeProcessDecode(5, 4, 3, hidden=8, layers=2, heads=2, layer=layer)
+    frozen = {n for n, p in net.named_parameters() if not p.requires_grad}
+    for p in net.parameters():
+        p.requires_grad_(True)
+    ei = torch.tensor([[0, 1, 2, 1, 3], [1, 2, 0, 0, 2]])
+    net(torch.randn(4, 5), ei, torch.randn(5, 4)).square().sum().backward()
+    no_grad = {n for n, p in net.named_parameters() if p.grad is None
+               and not (layer in ("gat", "gt") and n.startswith("edge_enc"))}  # edges unread
+    assert frozen == no_grad
+    if layer in ("sat", "gt_edge"):
+        assert frozen
 
 
 def test_the_target_keeps_its_share_of_the_noise(root):
@@ -310,7 +333,7 @@ def test_bad_arguments_and_inputs(root):
     del bare.material
     with pytest.raises(ValueError, match="`scene.material`"):
         model.scene_motion(bare)
-    with pytest.raises(ValueError, match=r"2 \+ rollout = 3 frames, got 4"):
+    with pytest.raises(ValueError, match=r"2 \+ the longest rollout = 3 frames, got 4"):
         SimulatorModule(model, rollout=1).window_loss(windows(root, chunk=4)[0])
 
 
@@ -340,7 +363,7 @@ def test_fit_checkpoint_and_rollout_scores(root, tmp_path):
     dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
                            history=1, nystrom_dim=NY, num_landmarks=16, batch_size=4)
     module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=1, rollout=1)
-    trainer = _trainer(tmp_path, 3)
+    trainer = _trainer(tmp_path, 2)  # optimizer steps: the statistics batch is not one
     trainer.fit(module, dm)
     path = tmp_path / "m.ckpt"
     trainer.save_checkpoint(path)
@@ -428,4 +451,85 @@ def test_the_command_line_refuses_what_the_model_cannot_run(root, tmp_path, caps
     line = _one_error_line(capsys, ["train", "fit", "--config", "mgn", "--data.drop_last",
                                     "false"] + _cli_args(short, tmp_path / "c")
                            + ["--data.batch_size", "1", "--data.val_split", "null"])
-    assert "2 + rollout = 5 frames, got 2" in line and "--data.chunk 5" in line
+    assert "2 + the longest rollout = 5 frames, got 2" in line and "--data.chunk 5" in line
+
+
+def test_the_anchor_bounds_the_offset_and_the_target_inverts_it(root):
+    """``integrate`` against its analytic form (the free update, its offset from LBS
+    decayed and clipped; pinned vertices on LBS), and ``target_acceleration`` as its
+    inverse."""
+    torch.manual_seed(0)
+    batch = windows(root)[[0, 6]]
+    x0, x1 = batch.gt[0], batch.gt[1]
+    for decay, clip in ((0.0, None), (0.2, None), (0.2, 0.01)):
+        model = MGNStyle(hidden=8, layers=1, heads=1, anchor_decay=decay, anchor_clip=clip)
+        m = model.scene_motion(batch)
+        a = 1e-2 * torch.randn_like(x1)
+        x = model.integrate(m, 2, x0, x1, a)
+        lbs, free = m.lbs[2], ~m.pinned
+        want = lbs + (1 - decay) * (2 * x1 - x0 + a - lbs)
+        if clip is not None:
+            off = want - lbs
+            want = lbs + off * (clip / off.norm(dim=1, keepdim=True)).clamp(max=1.0)
+            assert float((x - lbs).norm(dim=1).max()) <= clip * (1 + 1e-5)
+        torch.testing.assert_close(x[free], want[free])
+        torch.testing.assert_close(x[~free], lbs[~free])
+        assert bool(free.any()) and bool((~free).any())
+        if clip is None:
+            back = model.target_acceleration(m, 2, x0, x1, x)
+            torch.testing.assert_close(back[free], a[free], rtol=0, atol=1e-6)
+
+
+def test_the_rollout_schedule_and_its_modes():
+    model = MGNStyle(hidden=8, layers=1, heads=1)
+    m = SimulatorModule(model, rollout_schedule=[[0, 1], [10, 2], [20, 5]])
+    assert m.window == 7
+    assert [m.rollout_at(s) for s in (0, 9, 10, 19, 20, 10 ** 6)] == [1, 1, 2, 2, 5, 5]
+    assert m.frames_to_train(25) == (4, 1)  # pushforward: four free frames, one trained
+    assert SimulatorModule(model, rollout=3, rollout_start=7).schedule == [(0, 1), (7, 3)]
+    r = SimulatorModule(model, rollout_schedule=[[0, 4]], rollout_mode="random")
+    torch.manual_seed(0)
+    drawn = [r.frames_to_train(0) for _ in range(60)]
+    assert {f for f, _ in drawn} == {0, 1, 2, 3} and all(n == 1 for _, n in drawn)
+    torch.manual_seed(0)
+    assert [r.frames_to_train(0) for _ in range(60)] == drawn  # the run's seed
+    per = SimulatorModule(model, rollout_schedule=[[0, 4]], rollout_mode="per_frame")
+    assert per.frames_to_train(0) == (0, 4)
+
+
+class _Steps(L.Callback):
+    """Counts training batches and records each optimizer step's gradient norm."""
+
+    def __init__(self):
+        self.batches, self.norms = 0, []
+
+    def on_train_batch_end(self, *args):
+        self.batches += 1
+
+    def on_before_optimizer_step(self, trainer, module, optimizer):
+        grads = [p.grad for p in module.parameters() if p.grad is not None]
+        self.norms.append(float(torch.linalg.vector_norm(torch.stack(
+            [torch.linalg.vector_norm(g) for g in grads]))))
+
+
+@pytest.mark.parametrize("mode,frames,steps", [("per_frame", 3, 6), ("pushforward", 3, 2),
+                                               ("random", 3, 2)])
+def test_each_rollout_mode_steps_the_optimizer_as_documented(root, mode, frames, steps):
+    """One statistics batch, then two batches: ``per_frame`` takes an optimizer step after
+    each of the rollout's frames, the others one a batch; every step's gradient is
+    clipped to ``clip``."""
+    torch.manual_seed(0)
+    model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
+    module = SimulatorModule(model, stats_steps=1, noise=1e-3, clip=1e-3, rollout_mode=mode,
+                             rollout_schedule=[[0, frames]])
+    dm = GarmentDataModule(root, chunk=2 + frames, stride=1, drop_last=True, history=1,
+                           batch_size=2, nystrom_dim=NY, num_landmarks=16)
+    count = _Steps()
+    trainer = L.Trainer(max_steps=steps, limit_val_batches=0, logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, callbacks=[count])
+    trainer.fit(module, dm)
+    assert trainer.global_step == steps and count.batches == 3
+    assert len(count.norms) == steps
+    # the norm seen before the step is the clipped one
+    assert max(count.norms) <= 1e-3 * (1 + 1e-4)

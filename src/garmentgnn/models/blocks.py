@@ -23,7 +23,8 @@ from torch.utils._python_dispatch import _get_current_dispatch_mode
 from garmentgnn.nn import TensorCache, make_layer
 
 __all__ = ["AttentionStack", "Configurable", "RunningNormalizer", "batch_edges", "bucket",
-           "cached_batch_edges", "check_arguments", "compiled_forward", "geometric_init_",
+           "cached_batch_edges", "check_arguments", "compiled_forward", "freeze_edge_output",
+           "geometric_init_",
            "mlp", "pad_graph"]
 
 
@@ -225,6 +226,16 @@ def cached_batch_edges(edge_index: Tensor, copies: int, num_nodes: int) -> Tenso
     return out
 
 
+def freeze_edge_output(layer: nn.Module) -> None:
+    """Mark the parameters that only ``layer``'s output edge features read
+    ``requires_grad=False`` (its ``edge_output_parameters``, :mod:`garmentgnn.nn`'s layer
+    contract), for the last layer of a stack that returns node features only: they never
+    get a gradient, and DDP insists that every trainable parameter does (without
+    ``find_unused_parameters``).  A layer outside the contract is left as it is."""
+    for p in getattr(layer, "edge_output_parameters", tuple)():
+        p.requires_grad_(False)
+
+
 class AttentionStack(nn.Module):
     """Registry layers in series; hidden layers concatenate heads, the last averages."""
 
@@ -245,22 +256,7 @@ class AttentionStack(nn.Module):
         #: and a pass over the node features per layer)
         self.act_ = {"elu": F.elu_, "tanh": torch.tanh_}[act]
         self.last_act = last_act
-        self._freeze_dead_edge_output(in_channels, edge_dim)
-
-    def _freeze_dead_edge_output(self, in_channels: int, edge_dim: int) -> None:
-        """The stack returns node features only, so the last layer's edge-output weights
-        (``lin_edge_out`` etc. of edge-updating layers) never get a gradient; mark them
-        ``requires_grad=False`` -- found by one backward pass on a 3-node graph, so it
-        holds for any registry layer -- so that DDP (which insists that every trainable
-        parameter receives a gradient) works without ``find_unused_parameters``."""
-        x = torch.randn(3, in_channels)
-        ei = torch.tensor([[0, 1, 2, 1], [1, 2, 0, 0]])
-        with torch.enable_grad():  # also when the model is built under torch.no_grad()
-            self.forward(x, ei, torch.randn(4, edge_dim)).sum().backward()
-        for p in self.layers[-1].parameters():
-            if p.grad is None:
-                p.requires_grad_(False)
-        self.zero_grad(set_to_none=True)
+        freeze_edge_output(self.layers[-1])
 
     def reset_parameters(self) -> None:
         """§4.1: Kaiming initialisation (uniform, ``a = sqrt(5)``: bound

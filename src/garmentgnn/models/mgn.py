@@ -15,16 +15,22 @@ per frame squared, so the model is tied to the frame rate it learned at, ``fps``
   **body edges**: each garment vertex to its ``body_k`` nearest body vertices within
   ``body_radius`` (MeshGraphNets' world edges, HOOD's body edges), with the offset to the
   body at ``t`` in the local frame, its length and the body's motion ``b_t - b_{t-1}``.
-  Body edges are encoded once and summed into their garment vertex (HOOD and
-  MeshGraphNets update them in every block: a cost per block this model leaves out).
+  Body edges are encoded and summed into their garment vertex, once (the default) or
+  updated in every block as HOOD and MeshGraphNets do (``body_blocks``).
   All inputs are normalised by running statistics (:class:`RunningNormalizer`);
-* **process**: a residual stack of ``layers`` blocks, each a :mod:`garmentgnn.nn` layer
-  (``layer``: SATConv by default, any name of :data:`garmentgnn.nn.LAYERS` or a layer's
-  class path) over the mesh
-  graph with its edge features carried block to block (Eqs. 5-6 for SATConv), followed
-  by a LayerNorm'd MLP (MeshGraphNets' node update), each with a residual connection;
-* **decode**: an MLP to the normalised local-frame acceleration; :meth:`acceleration`
-  undoes the normalisation (running statistics of the training targets) and the frame.
+* **process** and **decode**: MeshGraphNets' network,
+  :class:`~garmentgnn.models.EncodeProcessDecode` (``network``), with ``layers`` blocks of
+  a :mod:`garmentgnn.nn` layer (``layer``: SATConv by default; Eqs. 5-6) to the
+  normalised local-frame acceleration; :meth:`acceleration` undoes the normalisation
+  (running statistics of the training targets) and the frame.
+
+**The anchor.**  The garment's state is read as its offset from the LBS garment (an
+input), and :meth:`integrate` can bound how far a rollout drifts from it: the offset
+decays by ``anchor_decay`` a frame (``x_t = l_t + (1 - anchor_decay) (x~_t - l_t)``, with
+``x~_t`` the free update) and its length is clipped to ``anchor_clip`` metres.  The loss
+asks the network for the acceleration that lands on the target through the same
+integration (:meth:`target_acceleration`, its exact inverse), so the decay changes what
+the model learns to predict, not what it can reach.
 
 Pinned vertices follow the LBS garment.  Under ``torch.autocast`` (``--trainer.precision
 bf16-mixed``) the kinematics, the inputs, their statistics, the acceleration and the
@@ -44,10 +50,10 @@ from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import full_precision
-from garmentgnn.models.blocks import Configurable, RunningNormalizer, mlp
+from garmentgnn.models.blocks import Configurable, RunningNormalizer
+from garmentgnn.models.encode_process_decode import EncodeProcessDecode
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.sequence import ChunkLayout
-from garmentgnn.nn import layer_class, make_layer
 from garmentgnn.physics import MATERIAL_FEATURES
 
 __all__ = ["MGNStyle", "SceneMotion"]
@@ -84,11 +90,6 @@ class SceneMotion:
         return int(self.lbs.shape[0])
 
 
-def _mlp_ln(sizes) -> nn.Sequential:
-    """A ReLU MLP ending in ``LayerNorm`` (MeshGraphNets' encoder and update MLPs)."""
-    return mlp(sizes, nn.ReLU(), last_act=False).append(nn.LayerNorm(sizes[-1]))
-
-
 def _local(frame: Tensor, v: Tensor) -> Tensor:
     """``R^T v`` per row: ``frame [..., 3, 3]``, ``v [..., 3]``."""
     return (v.unsqueeze(-2) @ frame).squeeze(-2)
@@ -108,6 +109,12 @@ class MGNStyle(Configurable, nn.Module):
         fps: the frame rate the accelerations are learned at (frames per second).
         norm_updates: training calls that update the input and target statistics
             (MeshGraphNets: the first 1,000 steps).
+        body_blocks: update the body edges in every processor block (HOOD,
+            MeshGraphNets); else they are encoded once.
+        anchor_decay: the share of the offset from the LBS garment that a step takes
+            away (0: none; module doc, "The anchor").
+        anchor_clip: the longest offset from the LBS garment a step leaves (m; ``None``:
+            no clip).
     """
 
     NODE_IN = 10 + len(MATERIAL_FEATURES)
@@ -116,65 +123,34 @@ class MGNStyle(Configurable, nn.Module):
 
     def __init__(self, hidden: int = 64, layers: int = 8, layer: str = "sat", heads: int = 4,
                  body_radius: float = 0.05, body_k: int = 4, fps: float = 30.0,
-                 norm_updates: int = 1000) -> None:
+                 norm_updates: int = 1000, body_blocks: bool = False,
+                 anchor_decay: float = 0.0, anchor_clip: Optional[float] = None) -> None:
         super().__init__()
-        for name, v in (("hidden", hidden), ("layers", layers), ("heads", heads),
-                        ("body_k", body_k)):
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"`{name}`: expected a positive int, got {v!r}")
-        try:
-            layer_class(layer)
-        except ValueError as err:
-            raise ValueError(f"`layer`: {str(err).split(': ', 1)[1]}") from None
-        if hidden % heads:
-            raise ValueError(f"`heads`: {heads} heads do not divide hidden={hidden}; give a "
-                             f"divisor of it")
+        if not isinstance(body_k, int) or isinstance(body_k, bool) or body_k < 1:
+            raise ValueError(f"`body_k`: expected a positive int, got {body_k!r}")
         if not body_radius > 0:
             raise ValueError(f"`body_radius`: expected metres > 0, got {body_radius!r}")
         if not fps > 0:
             raise ValueError(f"`fps`: expected frames per second > 0, got {fps!r}")
+        if not (isinstance(anchor_decay, (int, float)) and 0 <= anchor_decay < 1):
+            raise ValueError(f"`anchor_decay`: expected a share in [0, 1), got "
+                             f"{anchor_decay!r}")
+        if anchor_clip is not None and not (isinstance(anchor_clip, (int, float))
+                                            and anchor_clip > 0):
+            raise ValueError(f"`anchor_clip`: expected metres > 0 or None, got "
+                             f"{anchor_clip!r}")
         self.hidden, self.fps = hidden, float(fps)
         self.body_radius, self.body_k = float(body_radius), body_k
+        self.anchor_decay = float(anchor_decay)
+        self.anchor_clip = None if anchor_clip is None else float(anchor_clip)
         self.node_norm = RunningNormalizer(self.NODE_IN, norm_updates)
         self.edge_norm = RunningNormalizer(self.EDGE_IN, norm_updates)
         self.body_norm = RunningNormalizer(self.BODY_IN, norm_updates)
         #: statistics of the training targets (local-frame accelerations)
         self.target_norm = RunningNormalizer(3, norm_updates)
-        self.node_enc = _mlp_ln([self.NODE_IN, hidden, hidden])
-        self.edge_enc = _mlp_ln([self.EDGE_IN, hidden, hidden])
-        self.body_enc = _mlp_ln([self.BODY_IN, hidden, hidden])
-        self.convs = nn.ModuleList(
-            make_layer(layer, hidden, hidden // heads, edge_dim=hidden, heads=heads,
-                       concat=True, validate=False, check_finite=False)
-            for _ in range(layers))
-        self.conv_norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(layers))
-        self.updates = nn.ModuleList(_mlp_ln([hidden, 2 * hidden, hidden])
-                                     for _ in range(layers))
-        self.decoder = mlp([hidden, hidden, 3], nn.ReLU(), last_act=False)
-        self._freeze_dead_edge_output()
-
-    def _freeze_dead_edge_output(self) -> None:
-        """The last block's edge output (``lin_edge_out`` of an edge-updating layer) is
-        never read: mark what gets no gradient in a probe through the processor
-        ``requires_grad=False``, so that DDP finds a gradient for every trainable
-        parameter."""
-        ei = torch.tensor([[0, 1, 2, 1], [1, 2, 0, 0]])
-        with torch.enable_grad():
-            self.process(torch.randn(3, self.hidden), ei,
-                         torch.randn(4, self.hidden)).sum().backward()
-        for p in self.convs[-1].parameters():
-            if p.grad is None:
-                p.requires_grad_(False)
-        self.zero_grad(set_to_none=True)
-
-    def process(self, h: Tensor, edge_index: Tensor, e: Tensor) -> Tensor:
-        """The processor: ``layers`` residual blocks over the mesh graph, each a layer
-        (its edge features carried to the next block) and a LayerNorm'd MLP."""
-        for conv, norm, update in zip(self.convs, self.conv_norms, self.updates):
-            h2, e = conv(h, edge_index, e, return_edge_attr=True)
-            h = norm(h2)
-            h = h + update(h)
-        return h
+        self.network = EncodeProcessDecode(self.NODE_IN, self.EDGE_IN, 3, hidden=hidden,
+                                           layers=layers, layer=layer, heads=heads,
+                                           contact_in=self.BODY_IN, contact_blocks=body_blocks)
 
     # -- what a step reads ---------------------------------------------------------------
     def scene_motion(self, scene: GarmentInputs) -> SceneMotion:
@@ -237,10 +213,7 @@ class MGNStyle(Configurable, nn.Module):
         with full_precision(x_curr) as up:  # the inputs in float32 under autocast
             node, edge, bedge, bs = self.inputs(scene, motion, t, up(x_prev), up(x_curr))
             node, edge, bedge = self.node_norm(node), self.edge_norm(edge), self.body_norm(bedge)
-        h = self.node_enc(node)
-        h = h.index_add(0, bs, self.body_enc(bedge))
-        e = self.edge_enc(edge)
-        return self.decoder(self.process(h, scene.edge_index, e))
+        return self.network(node, scene.edge_index, edge, bedge, bs)
 
     def inputs(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
                x_curr: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -284,12 +257,53 @@ class MGNStyle(Configurable, nn.Module):
         with full_precision(a) as up:  # float32 under autocast
             return self.target_norm(_local(motion.frame[t - 1], up(a)))
 
+    # -- the update equation and its inverse ----------------------------------------------
+    def integrate(self, motion: SceneMotion, t: int, x_prev: Tensor, x_curr: Tensor,
+                  a: Tensor) -> Tensor:
+        """Frame ``t`` ``[V, 3]`` from ``x_{t-2}, x_{t-1}`` and the acceleration ``a``
+        (metres per frame squared): ``x~_t = 2 x_{t-1} - x_{t-2} + a``, its offset from
+        the LBS garment ``l_t`` decayed by ``anchor_decay`` and clipped to
+        ``anchor_clip``; pinned vertices on ``l_t``."""
+        lbs = motion.lbs[t]
+        x = 2 * x_curr - x_prev + a
+        if self.anchor_decay or self.anchor_clip is not None:
+            off = (1.0 - self.anchor_decay) * (x - lbs)
+            if self.anchor_clip is not None:
+                n = off.norm(dim=1, keepdim=True)
+                off = off * (self.anchor_clip / n.clamp_min(self.anchor_clip))
+            x = lbs + off
+        return torch.where(motion.pinned.unsqueeze(1), lbs, x)
+
+    def target_acceleration(self, motion: SceneMotion, t: int, x_prev: Tensor,
+                            x_curr: Tensor, x_next: Tensor) -> Tensor:
+        """The acceleration that :meth:`integrate` takes to ``x_next`` (its inverse; the
+        clip is not inverted: a target beyond it asks for the unclipped step)."""
+        lbs = motion.lbs[t]
+        return lbs + (x_next - lbs) / (1.0 - self.anchor_decay) - (2 * x_curr - x_prev)
+
     def step(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
              x_curr: Tensor) -> Tensor:
-        """Frame ``t`` ``[V, 3]``: ``2 x_{t-1} - x_{t-2} + a``; pinned vertices on LBS."""
+        """Frame ``t`` ``[V, 3]`` (:meth:`integrate` of the network's acceleration)."""
         a = self.acceleration(self(scene, motion, t, x_prev, x_curr), motion, t)
-        x_next = 2 * x_curr - x_prev + a
-        return torch.where(motion.pinned.unsqueeze(1), motion.lbs[t], x_next)
+        return self.integrate(motion, t, x_prev, x_curr, a)
+
+    def loss(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
+             x_curr: Tensor, x_next: Tensor, weight: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """MeshGraphNets' loss of one step: the squared error of the normalised
+        local-frame acceleration against the one that lands on ``x_next``, averaged over
+        the vertices with their ``weight [V]``.  Returns ``(loss, the predicted frame t
+        (detached), its mean distance to x_next in metres)``."""
+        out = self(scene, motion, t, x_prev, x_curr)
+        want = self.normalized_target(
+            self.target_acceleration(motion, t, x_prev, x_curr, x_next), motion, t)
+        w = weight.to(out.dtype)
+        total = w.sum().clamp_min(1.0)
+        loss = (((out - want) ** 2).sum(1) * w).sum() / total
+        with torch.no_grad():
+            x = self.integrate(motion, t, x_prev, x_curr,
+                               self.acceleration(out.detach(), motion, t))
+            err = ((x - x_next).norm(dim=1) * w).sum() / total
+        return loss, x, err
 
     def rollout(self, scene: GarmentInputs, x0: Tensor, x1: Tensor,
                 motion: Optional[SceneMotion] = None) -> Tensor:

@@ -58,6 +58,18 @@ class LayerContract(MessagePassing):
     check_finite: bool
     requires_edge_attr: bool = False
     updates_edges: bool = False
+    #: submodules that only the output edge features read: a stack that never reads the
+    #: last layer's edge output leaves their parameters without a gradient
+    #: (:meth:`edge_output_parameters`)
+    edge_output_modules: Tuple[str, ...] = ()
+
+    def edge_output_parameters(self):
+        """The parameters that only the output edge features read (the layer's
+        ``edge_output_modules``); none for a layer that does not update edges."""
+        for name in self.edge_output_modules:
+            module = getattr(self, name, None)
+            if module is not None:
+                yield from module.parameters()
 
     def prepare(self, x: Union[Tensor, PairTensor], edge_index: Adj,
                 edge_attr: OptTensor) -> Graph:

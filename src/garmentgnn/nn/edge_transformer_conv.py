@@ -79,6 +79,7 @@ class EdgeTransformerConv(AttentionConv):
 
     requires_edge_attr = True
     updates_edges = True
+    edge_output_modules = ("lin_edge_out", "lin_edge_skip")
 
     def __init__(
         self,

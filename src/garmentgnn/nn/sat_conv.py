@@ -102,6 +102,7 @@ class SATConv(AttentionConv):
 
     requires_edge_attr = True
     updates_edges = True
+    edge_output_modules = ("lin_edge_out", "lin_edge_skip")
 
     def __init__(
         self,

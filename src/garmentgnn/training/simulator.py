@@ -1,21 +1,29 @@
 """The MGN-style learned simulator as a LightningModule, trained by MeshGraphNets' recipe.
 
-One training step is a batch of ``N`` windows of ``2 + rollout`` consecutive frames of
-``N`` sequences (:class:`~garmentgnn.training.GarmentDataModule` with ``chunk=2 +
-rollout``, ``stride=1``, ``drop_last=True``: every window of every training sequence),
-collated as one PyG ``Batch``:
+One training step is a batch of ``N`` windows of ``2 + R`` consecutive frames of ``N``
+sequences (:class:`~garmentgnn.training.GarmentDataModule` with ``chunk=2 + R``,
+``stride=1``, ``drop_last=True``: every window of every training sequence; ``R`` the
+longest rollout of the schedule), collated as one PyG ``Batch``:
 
-* the model starts from the simulated garment of the window's first two frames;
-* with ``rollout > 1`` it first rolls forward ``rollout - 1`` frames on its own
-  predictions without a gradient (the *pushforward* trick: it is trained on the states
-  its own rollouts reach, and asked to bring them back to the simulation); before
-  optimizer step ``rollout_start`` it trains one step (the window's last three frames);
-* the last step's current positions get Gaussian noise of ``noise`` metres, and its
+* **the rollout length** ``r`` of a step follows the schedule: ``rollout_schedule``, a
+  list of ``[from_step, frames]`` (HOOD: ``1 + step // 5000``; e.g. ``[[0, 1], [2000, 2],
+  [4000, 5]]``), or by default one frame before optimizer step ``rollout_start`` and
+  ``rollout`` frames from it on; the step reads the window's last ``2 + r`` frames and
+  starts from the simulated garment at their first two;
+* **how it rolls** (``rollout_mode``): ``"pushforward"`` rolls ``r - 1`` frames on its own
+  predictions without a gradient and trains the last (Brandstetter et al.'s pushforward
+  trick: trained on the states its rollouts reach, and asked to bring them back to the
+  simulation); ``"random"`` rolls a random ``N`` in ``0 .. r - 1`` frames (the rest of
+  the window unused); ``"per_frame"`` trains every one of the ``r`` frames with an
+  optimizer step after each and the state detached between them (HOOD, ContourCraft);
+* each trained frame's current positions get Gaussian noise of ``noise`` metres, and its
   target is corrected by ``(1 - noise_gamma)`` of that noise (MeshGraphNets: 3 mm,
   gamma 0.1), so the model learns to undo perturbations;
-* the loss is the mean squared error of the normalised local-frame acceleration
-  (:meth:`MGNStyle.normalized_target`) over the free vertices of windows whose frames are
-  all valid ground truth.
+* the loss is :meth:`MGNStyle.loss <garmentgnn.models.MGNStyle.loss>` over the free
+  vertices of windows whose frames are all valid ground truth; gradients are clipped to
+  the norm ``clip`` before every optimizer step (the module optimises by hand:
+  ``per_frame`` takes several optimizer steps a batch, and ``--trainer.max_steps``
+  counts optimizer steps).
 
 The first ``stats_steps`` batches only accumulate the input and target statistics (no
 optimizer step; MeshGraphNets: the first 1,000 steps).  Adam, with the learning rate
@@ -25,12 +33,14 @@ less than ``lr_min``.
 Validation, test and predict roll a whole sequence out (``eval_chunk`` of the data module:
 the sequence length) from ``start``: ``"gt"`` the first two simulated frames, ``"drape"``
 the first simulated frame held still (a settled drape: what a user has), ``"lbs"`` the
-LBS garment of the first two frames.  Frames given to the model are not scored.
+LBS garment of the first two frames.  Frames given to the model are not scored.  An
+exponential moving average of the weights (Lightning's ``EMAWeightAveraging`` callback,
+in ``recipes/mgn.yaml``) is what validation, test and the checkpoints see.
 """
 from __future__ import annotations
 
 import copy
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -38,17 +48,35 @@ from torch import Tensor
 from garmentgnn.data.store import read_manifest
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.mgn import MGNStyle, SceneMotion
-from garmentgnn.training.base import GarmentModule
+from garmentgnn.training.base import GarmentModule, NonFiniteLossError
 
-__all__ = ["SimulatorModule", "START_STATES"]
+__all__ = ["ROLLOUT_MODES", "SimulatorModule", "START_STATES"]
 
 #: where an evaluation rollout starts (``start``)
 START_STATES = ("gt", "drape", "lbs")
+#: how a training step rolls out (``rollout_mode``, module doc)
+ROLLOUT_MODES = ("pushforward", "random", "per_frame")
 
 
 def _positive_int(name: str, v: Any, low: int = 1) -> None:
     if not isinstance(v, int) or isinstance(v, bool) or v < low:
         raise ValueError(f"`{name}`: expected an int >= {low}, got {v!r}")
+
+
+def check_schedule(schedule: Sequence[Sequence[int]]) -> List[Tuple[int, int]]:
+    """``rollout_schedule`` as ``[(from_step, frames), ...]``, or a ``ValueError``."""
+    fix = "give [[from_step, frames], ...] with ascending steps from 0, e.g. [[0, 1], [2000, 5]]"
+    try:
+        pairs = [(s, r) for s, r in schedule]
+    except (TypeError, ValueError):
+        raise ValueError(f"`rollout_schedule`: expected pairs, got {schedule!r}; {fix}") from None
+    ok = (pairs and pairs[0][0] == 0
+          and all(isinstance(v, int) and not isinstance(v, bool) for p in pairs for v in p)
+          and all(r >= 1 for _, r in pairs)
+          and all(a[0] < b[0] for a, b in zip(pairs, pairs[1:])))
+    if not ok:
+        raise ValueError(f"`rollout_schedule`: got {schedule!r}; {fix}")
+    return pairs
 
 
 class SimulatorModule(GarmentModule):
@@ -73,6 +101,12 @@ class SimulatorModule(GarmentModule):
             training throughout (MeshGraphNets' own recipe).
         stats_steps: batches at the start that only accumulate the normalisation
             statistics.
+        rollout_schedule: ``[[from_step, frames], ...]`` with ascending steps, the first
+            0: the rollout length from each optimizer step on (replaces ``rollout`` and
+            ``rollout_start``).
+        rollout_mode: ``"pushforward"``, ``"random"`` or ``"per_frame"`` (module doc).
+        clip: the largest gradient norm before an optimizer step (``None``: no clip;
+            HOOD: 1).
         start: where validation, test and predict rollouts start (module doc).
     """
 
@@ -82,7 +116,9 @@ class SimulatorModule(GarmentModule):
     def __init__(self, model: MGNStyle, lr: float = 1e-3, decay: float = 0.1,
                  decay_steps: int = 6250, lr_min: float = 1e-6, noise: float = 0.01,
                  noise_gamma: float = 0.1, rollout: int = 3, rollout_start: int = 3500,
-                 stats_steps: int = 100, start: str = "gt") -> None:
+                 stats_steps: int = 100, start: str = "gt",
+                 rollout_schedule: Optional[List[Tuple[int, int]]] = None,
+                 rollout_mode: str = "pushforward", clip: Optional[float] = None) -> None:
         super().__init__()
         if not isinstance(model, MGNStyle):
             raise TypeError(f"`model`: expected an MGNStyle, got {type(model).__name__}; "
@@ -98,6 +134,13 @@ class SimulatorModule(GarmentModule):
             raise ValueError(f"`noise`: expected metres >= 0, got {noise!r}")
         if not (isinstance(noise_gamma, (int, float)) and 0 <= noise_gamma <= 1):
             raise ValueError(f"`noise_gamma`: expected a value in [0, 1], got {noise_gamma!r}")
+        if rollout_schedule is not None:
+            rollout_schedule = check_schedule(rollout_schedule)
+        if rollout_mode not in ROLLOUT_MODES:
+            raise ValueError(f"`rollout_mode`: expected one of {ROLLOUT_MODES}, got "
+                             f"{rollout_mode!r}")
+        if clip is not None and not (isinstance(clip, (int, float)) and clip > 0):
+            raise ValueError(f"`clip`: expected a gradient norm > 0 or None, got {clip!r}")
         if start not in START_STATES:
             raise ValueError(f"`start`: expected one of {START_STATES}, got {start!r}")
         if stats_steps > model.target_norm.max_updates:
@@ -107,6 +150,28 @@ class SimulatorModule(GarmentModule):
                              f"most that")
         self.save_hyperparameters(ignore=["model"])
         self.hand_model(model)
+        self.automatic_optimization = False  # per_frame steps several times a batch
+        # the random rollout lengths follow the run's seed (torch's global generator)
+
+    # -- the schedule -----------------------------------------------------------------
+    @property
+    def schedule(self) -> List[Tuple[int, int]]:
+        """``[(from_step, frames), ...]``: the rollout length from each optimizer step on."""
+        hp = self.hparams
+        if hp.rollout_schedule is not None:
+            return [tuple(p) for p in hp.rollout_schedule]
+        if hp.rollout == 1 or hp.rollout_start == 0:
+            return [(0, hp.rollout)]
+        return [(0, 1), (hp.rollout_start, hp.rollout)]
+
+    @property
+    def window(self) -> int:
+        """Frames of a training window: 2 + the schedule's longest rollout."""
+        return 2 + max(r for _, r in self.schedule)
+
+    def rollout_at(self, step: int) -> int:
+        """The rollout length at optimizer step ``step``."""
+        return [r for s, r in self.schedule if s <= step][-1]
 
     # -- set-up checks ----------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -119,11 +184,11 @@ class SimulatorModule(GarmentModule):
             return
         hp = dm.hparams
         if stage == "fit":
-            need = 2 + self.hparams.rollout
+            need = self.window
             if hp.chunk != need:
                 raise ValueError(f"--data.chunk: the MGN-style model trains on windows of "
-                                 f"2 + rollout = {need} frames, got {hp.chunk}; give "
-                                 f"--data.chunk {need} (with --data.stride 1 "
+                                 f"2 + its longest rollout = {need} frames, got {hp.chunk}; "
+                                 f"give --data.chunk {need} (with --data.stride 1 "
                                  f"--data.drop_last true)")
         rates = {float((r.get("settings") or {}).get("fps", 0)) or None
                  for r in read_manifest(dm.root)["items"]}
@@ -136,59 +201,100 @@ class SimulatorModule(GarmentModule):
                              f"model at {other[0]:g} fps (--model.model.fps)")
 
     # -- training -----------------------------------------------------------------------
-    def window_loss(self, batch: GarmentInputs) -> Tuple[Tensor, Dict[str, Tensor]]:
-        """The loss of a batch of training windows (module doc) and its parts."""
-        hp = self.hparams
+    def _window(self, batch: GarmentInputs) -> GarmentInputs:
         gt = batch.get("gt")
         if gt is None:
             raise ValueError("`batch`: the MGN-style model trains on simulated frames "
                              "(`gt`), the batch has none")
-        T = gt.shape[0]
-        if T != 2 + hp.rollout:
-            raise ValueError(f"`batch`: expected windows of 2 + rollout = {2 + hp.rollout} "
-                             f"frames, got {T} (--data.chunk {2 + hp.rollout})")
-        if self.global_step < hp.rollout_start:  # one step: the last three frames
-            batch = batch.select(torch.arange(T - 3, T))
-            gt, T = batch.gt, 3
+        if gt.shape[0] != self.window:
+            raise ValueError(f"`batch`: expected windows of 2 + the longest rollout = "
+                             f"{self.window} frames, got {gt.shape[0]} (--data.chunk "
+                             f"{self.window})")
+        return batch
+
+    def frames_to_train(self, step: int) -> Tuple[int, int]:
+        """``(frames rolled without a gradient, frames trained)`` at optimizer step
+        ``step`` (module doc, ``rollout_mode``)."""
+        r = self.rollout_at(step)
+        mode = self.hparams.rollout_mode
+        if mode == "per_frame":
+            return 0, r
+        if mode == "random":
+            return int(torch.randint(r, ())), 1
+        return r - 1, 1
+
+    def window_loss(self, batch: GarmentInputs, free_frames: Optional[int] = None,
+                    trained: int = 1, on_frame=None) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """The loss of a batch of training windows (module doc): ``free_frames`` frames
+        rolled without a gradient (default: the schedule's at this step), then
+        ``trained`` frames, each scored; ``on_frame(loss)`` is called after each trained
+        frame (an optimizer step), else the frames' mean loss is returned."""
+        hp = self.hparams
+        batch = self._window(batch)
+        if free_frames is None:
+            free_frames, trained = self.frames_to_train(self.global_step)
+        T = batch.gt.shape[0]
+        n_use = 2 + free_frames + trained
+        if n_use < T:  # the window's last frames
+            batch = batch.select(torch.arange(T - n_use, T))
+        gt, T = batch.gt, n_use
         model = self.model
         motion = model.scene_motion(batch)
         x_prev, x_curr = gt[0], gt[1]
         with torch.no_grad():  # pushforward: the states its own rollout reaches
-            for t in range(2, T - 1):
+            for t in range(2, 2 + free_frames):
                 x_prev, x_curr = x_curr, model.step(batch, motion, t, x_prev, x_curr)
-        t = T - 1
         free = ~motion.pinned
-        n = hp.noise * torch.randn_like(x_curr) * free.unsqueeze(1) if hp.noise else 0.0
-        x_noisy = x_curr + n
-        target = gt[t] + (1.0 - hp.noise_gamma) * n
-        out = model(batch, motion, t, x_prev, x_noisy)
-        want = model.normalized_target(target - 2 * x_noisy + x_prev, motion, t)
+        weight = free
         valid = batch.get("valid")
-        keep = free
         if valid is not None:  # windows whose every frame is valid ground truth
             ok = valid.reshape(batch.num_chunks, T).all(1)
-            keep = keep & ok[motion.vertex_chunk]
-        err = ((out - want) ** 2).sum(1)
-        w = keep.to(err.dtype)
-        loss = (err * w).sum() / w.sum().clamp_min(1.0)
-        with torch.no_grad():
-            a = model.acceleration(out.detach(), motion, t)
-            pos_err = ((2 * x_noisy + a - x_prev - target).norm(dim=1) * w).sum() \
-                / w.sum().clamp_min(1.0)
-        return loss, {"one_step_m": pos_err}
+            weight = weight & ok[motion.vertex_chunk]
+        losses, errs = [], []
+        for t in range(2 + free_frames, T):
+            n = hp.noise * torch.randn_like(x_curr) * free.unsqueeze(1) if hp.noise else 0.0
+            target = gt[t] + (1.0 - hp.noise_gamma) * n
+            loss, x_next, err = model.loss(batch, motion, t, x_prev, x_curr + n, target,
+                                           weight)
+            if on_frame is not None:
+                on_frame(loss)
+                loss = loss.detach()
+            losses.append(loss)
+            errs.append(err)
+            x_prev, x_curr = x_curr, x_next.detach()
+        return torch.stack(losses).mean(), {"one_step_m": torch.stack(errs).mean(),
+                                            "rollout": torch.tensor(float(trained
+                                                                          + free_frames))}
 
     def collecting_statistics(self) -> bool:
         """Whether this batch only accumulates the normalisation statistics."""
         return self.training and int(self.model.target_norm.updates) < self.hparams.stats_steps
 
+    def _optimizer_step(self, loss: Tensor) -> None:
+        if not torch.isfinite(loss):
+            raise NonFiniteLossError(f"loss 'total' is {float(loss)}")
+        opt = self.optimizers()
+        opt.zero_grad(set_to_none=True)
+        self.manual_backward(loss)
+        if self.hparams.clip is not None:
+            self.clip_gradients(opt, gradient_clip_val=self.hparams.clip,
+                                gradient_clip_algorithm="norm")
+        opt.step()
+        self.lr_schedulers().step()
+
     def training_step(self, batch: GarmentInputs, batch_idx: int) -> Optional[Tensor]:
         if self.collecting_statistics():
             with torch.no_grad():
-                self.window_loss(batch)
-            return None  # no optimizer step (Lightning skips it)
-        loss, extra = self.window_loss(batch)
-        self.log_training_step(loss, {}, batch.num_chunks, extra)
-        return loss
+                self.window_loss(batch, 0, 1)
+            return None  # no optimizer step
+        free_frames, trained = self.frames_to_train(self.global_step)
+        if trained > 1:  # an optimizer step after every frame
+            loss, extra = self.window_loss(batch, free_frames, trained, self._optimizer_step)
+        else:
+            loss, extra = self.window_loss(batch, free_frames, trained)
+            self._optimizer_step(loss)
+        self.log_training_step(loss.detach(), {}, batch.num_chunks, extra)
+        return loss.detach()
 
     def configure_optimizers(self):
         hp = self.hparams
