@@ -204,6 +204,21 @@ def check_method(module, item: GarmentInputs, where: str) -> None:
         module.check_data(dims, where)
 
 
+def check_rate(module, fps: float, where: str) -> None:
+    """Refuse ``fps`` other than the one a model learned at: the MGN-style simulator
+    predicts accelerations in metres per frame squared (its model's ``fps``), so at
+    another rate it would roll out a garment of another physics without a word
+    (``garmentgnn train test`` refuses the same on a dataset)."""
+    learned = getattr(getattr(module, "model", None), "fps", None)
+    if not isinstance(module, SimulatorModule) or learned is None:
+        return
+    if abs(fps - float(learned)) > 1e-6 * float(learned):
+        raise ValueError(f"`fps`: {fps:g}, but {where} (MGN-style) learned its accelerations "
+                         f"at {float(learned):g} fps; give fps {float(learned):g} (a BVH is "
+                         f"resampled to it), or train a model at {fps:g} fps "
+                         f"(--model.model.fps)")
+
+
 @torch.no_grad()
 def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
                      device: Union[str, torch.device] = "cpu",
@@ -293,7 +308,10 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
         raise ValueError(f"`fps`: expected frames per second, e.g. 30, got {fps!r}")
     if frames is not None and (not isinstance(frames, int) or frames < 1):
         raise ValueError(f"`frames`: expected 1 or more frames, got {frames!r}")
+    if not isinstance(start, int) or isinstance(start, bool) or start < 0:
+        raise ValueError(f"`start`: expected a first frame >= 0 of the take, got {start!r}")
     module, name = load_method(ckpt, method)
+    check_rate(module, float(fps), str(ckpt))
     spec = body_entry(body)
     try:
         b = build_body(spec)
@@ -311,7 +329,7 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
     return Prediction(pos, np.asarray(seq["garment_faces"]), float(m.fps), name, seq, secs, ar)
 
 
-__all__ = ["LBS", "Prediction", "ResolutionWarning", "body_entry", "check_resolution",
-           "check_method", "load_method",
+__all__ = ["LBS", "Prediction", "ResolutionWarning", "body_entry", "check_rate",
+           "check_resolution", "check_method", "load_method",
            "predict_garment_motion", "predict_sequence", "resolve_garment", "resolve_motion",
            "sequence_of"]
