@@ -19,7 +19,8 @@ from lightning.pytorch import Trainer, seed_everything
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.lightning_cli import GarmentCLI
-from garmentgnn.training.recipes import available, named_module, recipe_path
+from garmentgnn.training.recipes import (available, check_one_recipe, named_module,
+                                         recipe_path)
 
 __all__ = ["Recipe", "load_recipe"]
 
@@ -104,6 +105,7 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
     argv: List[str] = []
     for r in recipes:
         argv += ["--config", str(recipe_path(r))]
+    check_one_recipe([(str(r), recipe_path(r)) for r in recipes], "recipe")
     argv += [str(a) for a in args]
     for key, value in (data or {}).items():  # a string as it is, anything else as JSON
         argv += [f"--data.{key}", value if isinstance(value, str) else
