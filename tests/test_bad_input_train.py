@@ -283,3 +283,38 @@ def test_two_complete_recipes_are_refused_naming_both(root, tmp_path, capsys):  
     recipe = load_recipe("gartrans", changes, data=dict(
         root=str(root), chunk=4, history=3, nystrom_dim=NY, num_landmarks=16))
     assert recipe.module.hparams.lr == pytest.approx(0.002)
+
+
+def test_testing_ignores_a_training_batch_size_larger_than_the_split(
+        root, da_checkpoint, tmp_path, capsys):  # noqa: F811
+    """`train test --data.batch_size 999` was refused for the training split's size,
+    though a test run trains nothing (the training chunks give the model's sizes only);
+    `fit` still refuses it."""
+    rc = cli_main(["train", "test", "--config", "baselines/da", "--data.test_split", "val",
+                   "--ckpt_path", str(da_checkpoint)] + data_args(root, tmp_path)
+                  + ["--data.batch_size", "999", "--trainer.limit_test_batches", "1"])
+    assert rc == 0, capsys.readouterr().err[-800:]
+    assert "LBS only" in capsys.readouterr().out
+    rc = cli_main(["train", "fit", "--config", "baselines/da"] + data_args(root, tmp_path)
+                  + ["--data.batch_size", "999"])
+    one_error(capsys, rc, "--data.batch_size: 999 is more than", "give at most")
+
+
+# ------------------------------------------------------------------ load_recipe
+def test_load_recipe_names_a_missing_module_class_and_the_bad_set_key(root, tmp_path):  # noqa: F811
+    """A recipe naming a class that does not exist ended in an `AttributeError` (or
+    blamed the empty `args`); a bad value in `set` gave `Parser key "model":` above a
+    dump of the whole configuration."""
+    recipe = tmp_path / "mine.yaml"
+    recipe.write_text("model:\n  class_path: garmentgnn.training.NoSuchModule\n")
+    with pytest.raises(ValueError, match=r"^`recipes`: .*mine.yaml names the module `model: "
+                                         r"class_path: garmentgnn.training.NoSuchModule`, "
+                                         r"and there is no such class"):
+        load_recipe(recipe, data={"root": str(root)})
+    with pytest.raises(ValueError) as err:
+        load_recipe("gartrans", data={"root": str(root)}, set={"model.init_args.lr": "fast",
+                                                                "model.init_args.t_max": 3})
+    msg = str(err.value)
+    assert msg.startswith("`set`: 'model.init_args.lr' = 'fast': Parser key \"lr\": "
+                          "Expected a <class 'float'>. Got value: fast"), msg
+    assert "\n" not in msg and "Namespace(" not in msg

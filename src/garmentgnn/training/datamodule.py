@@ -214,15 +214,18 @@ class GarmentDataModule(L.LightningDataModule):
                                 "without validation)"}.get(name, "")
             raise ValueError(f"`{name}`{msg[len('`split`'):]}{fix}") from None
 
-    def _train(self) -> SequenceChunks:
+    def _train(self, batches: bool = False) -> SequenceChunks:
+        """The training chunks; ``batches``: checked against ``batch_size`` (what a fit
+        draws; a test or predict run reads them only for the model's sizes)."""
         if self.train_set is None:
-            train = self._make("train_split", self.hparams.train_split, self.hparams.train_ids)
-            if self.hparams.batch_size > len(train):
-                raise ValueError(f"--data.batch_size: {self.hparams.batch_size} is more than "
-                                 f"the {len(train)} chunks of the {self.hparams.train_split!r} "
-                                 f"split; give at most {len(train)}")
-            self.train_set = train
-        return self.train_set
+            self.train_set = self._make("train_split", self.hparams.train_split,
+                                        self.hparams.train_ids)
+        train = self.train_set
+        if batches and self.hparams.batch_size > len(train):
+            raise ValueError(f"--data.batch_size: {self.hparams.batch_size} is more than "
+                             f"the {len(train)} chunks of the {self.hparams.train_split!r} "
+                             f"split; give at most {len(train)}")
+        return train
 
     def setup(self, stage: Optional[str] = None) -> None:
         """Build the chunks ``stage`` reads (``"fit"``, ``"validate"``, ``"test"``,
@@ -232,7 +235,7 @@ class GarmentDataModule(L.LightningDataModule):
             raise ValueError(f"`stage`: expected fit, validate, test, predict or None, "
                              f"got {stage!r}")
         if stage in (None, "fit"):
-            self._train()
+            self._train(batches=True)
         if stage in (None, "fit", "validate") and self.val_set is None \
                 and hp.val_split is not None:
             self.val_set = self._make("val_split", hp.val_split)
@@ -279,7 +282,7 @@ class GarmentDataModule(L.LightningDataModule):
         # strategy that does not shard the data)
         shard = trainer.distributed_sampler_kwargs if trainer is not None else None
         world, rank = (shard["num_replicas"], shard["rank"]) if shard else (1, 0)
-        dl = self._loader(self._train(), self.hparams.shuffle, world, rank,
+        dl = self._loader(self._train(batches=True), self.hparams.shuffle, world, rank,
                           self.hparams.batch_size)
         dl.sampler.set_epoch(self.start_epoch)
         return dl
