@@ -66,7 +66,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--compile", choices=("auto", "on", "off"), default="auto",
                    help="GarTrans: compile the collision projection's nearest-face search "
                         "(auto: where the take is long enough to pay the compilation back, "
-                        "frames x vertices >= 100,000 on the CPU; always on a GPU)")
+                        "frames x vertices >= 350,000 on the CPU; always on a GPU)")
     p.add_argument("--no-body", action="store_true", help="glTF: the garment only")
     p.add_argument("--show", action="store_true",
                    help="also render <out>.mp4/.gif/.png of the garment on the body")

@@ -43,9 +43,10 @@ LBS = "lbs"
 #: frames per frame-parallel chunk when a checkpoint does not say (the data module's)
 DEFAULT_CHUNK = 8
 #: garment vertex-frames (frames x vertices) from which compiling GarTrans's nearest-face
-#: search pays back on the CPU: the compile costs 5-16 s once, and saves about 0.05-0.15
-#: ms per vertex-frame (docs/results/predict_compile: a 288-vertex skirt)
-COMPILE_WORK = 100_000
+#: search pays back on the CPU: on 2 idle cores the compile costs 3.9-5.2 s once and
+#: saves 0.010-0.015 ms per vertex-frame (288 and 2,040 vertices), even at about
+#: 330,000-375,000 (docs/results/predict_compile)
+COMPILE_WORK = 350_000
 
 
 @dataclass
