@@ -92,3 +92,11 @@ def test_a_start_beyond_the_take_names_start(files, tmp_path, capsys):  # noqa: 
               "walk.bvh", "--start 9 is beyond the take", "7 frames at 30 fps",
               "below 7")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("mapping", [["Hips", "pelvis"], {"Hips": 3}, "Hips=pelvis"])
+def test_a_mapping_of_the_wrong_type_names_mapping(files, mapping):  # noqa: F811
+    """A list, a non-text joint or a string as `mapping` failed inside `dict()`."""
+    with pytest.raises(TypeError, match=r"^`mapping`: expected a mapping of file joint"):
+        predict_garment_motion(files / "skirt.obj", "regular", files / "walk.bvh",
+                               method="lbs", scale=0.01, mapping=mapping)

@@ -374,6 +374,10 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
         raise ValueError(f"`frames`: expected 1 or more frames, got {frames!r}")
     if not isinstance(start, int) or isinstance(start, bool) or start < 0:
         raise ValueError(f"`start`: expected a first frame >= 0 of the take, got {start!r}")
+    if mapping is not None and (not isinstance(mapping, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in mapping.items())):
+        raise TypeError(f"`mapping`: expected a mapping of file joint -> body joint or role, "
+                        f"e.g. {{'hip_root': 'pelvis'}}, got {mapping!r}")
     module, name = load_method(ckpt, method)
     check_rate(module, float(fps), str(ckpt))
     spec = body_entry(body)
