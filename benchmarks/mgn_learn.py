@@ -39,7 +39,8 @@ import torch
 
 from garmentgnn.data import SequenceChunks
 from garmentgnn.data.store import read_json, read_manifest
-from garmentgnn._argparse import ArgumentParser, HelpFormatter, add_output_args, output_path
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
+                                  int_at_least, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.model_inputs import BenchChunks
@@ -47,6 +48,7 @@ from garmentgnn.bench.scoring import GROUPS, aggregate, score, stratified, wilco
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.training import SimulatorModule
 from garmentgnn.training.base import GarmentModule
+from garmentgnn.training.lightning_cli import method_name
 from garmentgnn.viz.compare import load_checkpoint
 
 #: the folder of this script and its parts (``mgn_parts``): on ``sys.path`` when it is
@@ -110,22 +112,64 @@ def read_score(path: str) -> Dict[str, Any]:
     return doc
 
 
-def run_score(args: argparse.Namespace) -> None:
-    earlier = {path: read_score(path) for path in args.merge}  # checked before any work
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+#: what a flag's checkpoint must hold: the method's name, and the test of its module
+KINDS = {"mgn": ("MGN-style", lambda m: isinstance(m, SimulatorModule)),
+         "gartrans": ("GarTrans", lambda m: type(m).__name__ == "GarTransModule"),
+         "da": ("DA-style", lambda m: getattr(m, "method", None) == "da"),
+         "frame-parallel": ("a frame-parallel method (GarTrans, DA-, HOOD-, NCS-style)",
+                            lambda m: not isinstance(m, SimulatorModule))}
+
+
+def checkpoint_of(path: str, flag: str, kind: Optional[str] = None) -> GarmentModule:
+    """The trained method of checkpoint ``path`` (given as ``flag``); one ``error:``
+    line naming the flag (exit status 2) where the file cannot be read or holds
+    another method than ``kind`` (:data:`KINDS`), before any output is made."""
+    try:
+        m = load_checkpoint(path)
+    except (OSError, ValueError, TypeError) as e:
+        print(f"error: {flag} {path}: {e}", file=sys.stderr)
+        sys.exit(2)
+    if kind is not None and not KINDS[kind][1](m):
+        print(f"error: {flag} {path}: a checkpoint of {method_name(m)}, not of "
+              f"{KINDS[kind][0]}; give {flag} a checkpoint of that method", file=sys.stderr)
+        sys.exit(2)
+    return m
+
+
+def score_methods(args: argparse.Namespace):
+    """``(methods, modules)`` that ``score`` rolls out, every checkpoint read and
+    checked (:func:`checkpoint_of`); kept on ``args`` (the command reads them before it
+    chooses its output folder)."""
+    if getattr(args, "scored", None) is not None:
+        return args.scored
+    if not args.mgn and not args.other:
+        print("error: --mgn: score needs a model to roll out: give --mgn CKPT (and/or "
+              "--other NAME=CKPT)", file=sys.stderr)
+        sys.exit(2)
     methods: Dict[str, Callable[[Any], torch.Tensor]] = {}
     modules: Dict[str, GarmentModule] = {}
-    mgn = load_checkpoint(args.mgn) if args.mgn else None
+    mgn = checkpoint_of(args.mgn, "--mgn", "mgn") if args.mgn else None
     for start in args.starts if mgn is not None else ():
         name = f"MGN-style ({start})"
         modules[name] = mgn
         methods[name] = (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
     for spec in args.other:
-        name, _, path = spec.partition("=")
-        m = load_checkpoint(path)
+        name, eq, path = spec.partition("=")
+        if not eq or not name or not path:
+            print(f"error: --other {spec}: expected NAME=CKPT", file=sys.stderr)
+            sys.exit(2)
+        m = checkpoint_of(path, "--other", "frame-parallel")
         modules[name] = m
         methods[name] = m.predict_garment
+    args.scored = methods, modules
+    return args.scored
+
+
+def run_score(args: argparse.Namespace) -> None:
+    earlier = {path: read_score(path) for path in args.merge}  # checked before any work
+    methods, modules = score_methods(args)
+    out = Path(args.out)  # made once every checkpoint has been read
+    out.mkdir(parents=True, exist_ok=True)
     manifest = read_manifest(args.data)
     ids = None
     if args.sequences:
@@ -342,11 +386,9 @@ def plot_curves(curves: Dict[str, Any], path: Path) -> None:
 
 # -- stability ----------------------------------------------------------------------------------
 def run_stability(args: argparse.Namespace) -> None:
+    mgn = getattr(args, "mgn_module", None) or checkpoint_of(args.mgn, "--mgn", "mgn")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    mgn = load_checkpoint(args.mgn)
-    if not isinstance(mgn, SimulatorModule):
-        sys.exit(f"error: --mgn: {args.mgn} is not an MGN-style checkpoint")
     test = SequenceChunks(args.data, "test", chunk=10 ** 6, **read_settings(mgn))
     base = test.records[0]
     item = {k: base[k] for k in ("garment", "body", "motion", "material", "settings")}
@@ -406,7 +448,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         "continued from a checkpoint with pushforward; steptime: ms per "
                         "training step against size and threads; stability: the stability "
                         "suite, rolled out from LBS")
-    p.add_argument("--data", default=None, help="generated dataset folder")
+    p.add_argument("--data", type=dataset_dir, default=None,
+                   help="generated dataset folder")
     add_output_args(p, RESULTS, "folder for <command>.json, .md and .png")
     p.add_argument("--mgn", default=None, help="the MGN-style checkpoint (score, stability)")
     p.add_argument("--split", default="test", help="score: the split rolled out")
@@ -427,7 +470,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    help="sweep: the runs")
     p.add_argument("--from", dest="source", default=None, metavar="CKPT",
                    help="branch: the checkpoint it continues from")
-    p.add_argument("--rollout", type=int, default=3, help="branch: frames a window rolls")
+    p.add_argument("--rollout", type=int_at_least(1), default=3,
+                   help="branch: frames a window rolls")
     p.add_argument("--steps", type=int, default=None, help="branch: optimizer steps")
     p.add_argument("--every", type=int, default=500,
                    help="branch: steps between validations and checkpoints")
@@ -447,6 +491,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         p.error(f"{args.command}: give {flag}")
     if args.command == "curves" and args.sequences is None:
         args.sequences = 8
+    # the checkpoints read and checked before the output folder is chosen
+    if args.command == "score":
+        for path in args.merge:
+            read_score(path)
+        score_methods(args)
+    elif args.command == "stability":
+        args.mgn_module = checkpoint_of(args.mgn, "--mgn", "mgn")
     args.out = output_path(args, RESULTS)
     if args.command != "steptime":
         torch.set_num_threads(1)

@@ -34,12 +34,12 @@ from garmentgnn._plotting import pyplot
 from garmentgnn.data import Spec, generate, preset, read_manifest
 from garmentgnn.data.keys import body_key, garment_key, motion_key
 from garmentgnn.bench.scoring import aggregate, score, wilcoxon
-from garmentgnn.viz.compare import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT / "benchmarks") not in sys.path:  # the scoring of benchmarks/mgn_learn.py
     sys.path.append(str(ROOT / "benchmarks"))
-from mgn_learn import Scored, read_settings  # noqa: E402  (first GIVEN frames unscored)
+from mgn_learn import (Scored, checkpoint_of,  # noqa: E402  (first GIVEN frames unscored)
+                       read_settings)
 
 RESULTS = ROOT / "docs" / "results" / "resolution" / "resolution.json"
 #: the garment resolutions (target vertex counts of the templates)
@@ -66,12 +66,12 @@ def dataset(cache: Path, resolution: int) -> Path:
 def methods(args: argparse.Namespace) -> Dict[str, Any]:
     """``{name: (module or None, predict(item) -> [T, V, 3])}``."""
     out: Dict[str, Any] = {}
-    gartrans = load_checkpoint(args.gartrans)
+    gartrans = checkpoint_of(args.gartrans, "--gartrans", "gartrans")
     out["GarTrans (SAT)"] = (gartrans, gartrans.predict_garment)
     if args.da:
-        da = load_checkpoint(args.da)
+        da = checkpoint_of(args.da, "--da", "da")
         out["DA-style"] = (da, da.predict_garment)
-    mgn = load_checkpoint(args.mgn)
+    mgn = checkpoint_of(args.mgn, "--mgn", "mgn")
     out["MGN-style (LBS start)"] = (mgn, lambda item: mgn.rollout(item, start="lbs"))
     out["LBS only"] = (None, lambda item: item.skinned())
     return out
@@ -80,16 +80,25 @@ def methods(args: argparse.Namespace) -> Dict[str, Any]:
 def run_score(args: argparse.Namespace) -> None:
     cache = Path(args.cache).expanduser()
     roots = {r: dataset(cache, r) for r in RESOLUTIONS}
+    make = f"python benchmarks/resolution.py generate --cache {args.cache}"
     for r, root in roots.items():  # every dataset finished before any scoring
-        man = read_manifest(root)
+        try:
+            man = read_manifest(root)
+        except (OSError, ValueError):
+            print(f"error: --cache {args.cache}: no dataset {root.name} in it (of "
+                  f"{', '.join(dataset(cache, x).name for x in RESOLUTIONS)}); make them "
+                  f"with `{make}`", file=sys.stderr)
+            sys.exit(2)
         if man["counts"] != {"ok": 8}:
-            sys.exit(f"error: {root}: {man['counts']}, not 8 ok sequences; run "
-                     f"`python benchmarks/resolution.py generate` first")
+            print(f"error: --cache {args.cache}: {root}: {man['counts']}, not 8 ok "
+                  f"sequences; finish them with `{make}`", file=sys.stderr)
+            sys.exit(2)
+    models = methods(args)  # every checkpoint read before the output is chosen
     out_json = output_path(args, RESULTS)
     res: Dict[str, Any] = {"command": command_line("benchmarks/resolution.py"),
                            "datasets": {}, "rows": {}}
     per_seq: Dict[str, Dict[int, Dict[str, float]]] = {}
-    for name, (module, predict) in methods(args).items():
+    for name, (module, predict) in models.items():
         for r, root in roots.items():
             test = Scored(root, "test", chunk=10 ** 6, cache_size=2, static_cache=2,
                           **read_settings(module))

@@ -453,3 +453,14 @@ def test_duplicate_manifest_ids_are_refused_not_trained_on(root, tmp_path):  # n
     with pytest.raises(ValueError, match=rf"1 id\(s\) listed more than once \('"
                                          rf"{doc['items'][0]['id']}' x2\)"):
         SequenceChunks(out, None, chunk=4, history=2, nystrom_dim=NY)
+
+
+def test_rebuild_manifest_of_a_folder_without_sequences_writes_nothing(tmp_path):
+    """`rebuild_manifest` on a folder without `sequences/` wrote an empty manifest.json
+    there and returned: an empty dataset, read as one by every later reader."""
+    (tmp_path / "notes.txt").write_text("not a dataset")
+    with pytest.raises(ValueError, match=r"^`out`: .* holds no dataset \(no sequences/"):
+        store.rebuild_manifest(tmp_path)
+    with pytest.raises(ValueError, match=r"^`out`: .*: no such folder"):
+        store.rebuild_manifest(tmp_path / "nosuch")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]

@@ -267,3 +267,53 @@ def test_train_scaling_resumes_an_interrupted_run(tmp_path, monkeypatch, data):
 ])
 def test_data_loading_bad_arguments_are_refused(capsys, argv, words):
     refused(capsys, script("data_loading")["parse_args"], argv, *words)
+
+
+# ------------------------------------------------------------------ the MGN-style scripts
+GARTRANS_CKPT = Path(__file__).resolve().parent / "data" / "gartrans_learn.ckpt"
+MGN_CKPT = Path(__file__).resolve().parent / "data" / "mgn_learn.ckpt"
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["score", "--data", "{data}", "--mgn", str(GARTRANS_CKPT)],
+     ["--mgn", "a checkpoint of GarTrans", "not of MGN-style"]),
+    (["stability", "--data", "{data}", "--mgn", str(GARTRANS_CKPT)],
+     ["--mgn", "not of MGN-style"]),
+    (["score", "--data", "{data}", "--other", f"m={MGN_CKPT}"],
+     ["--other", "a checkpoint of MGN-style", "frame-parallel"]),
+    (["score", "--data", "{data}", "--mgn", "{tmp}/none.ckpt"], ["--mgn", "none.ckpt"]),
+    (["score", "--data", "{data}"], ["--mgn", "give --mgn CKPT"]),
+    (["score", "--data", "{tmp}", "--mgn", str(MGN_CKPT)], ["argument --data", "manifest"]),
+    (["branch", "--data", "{data}", "--from", str(MGN_CKPT), "--steps", "5", "--rollout",
+      "0"], ["argument --rollout", "expected an integer >= 1, got 0"]),
+])
+def test_mgn_learn_refuses_in_one_line_before_its_output(capsys, tmp_path, argv, words):
+    """A checkpoint of another method, a missing --mgn or --other, a folder that is not
+    a dataset, --rollout 0: tracebacks, after `--out` was made."""
+    data = tmp_path / "d"
+    data.mkdir()
+    (data / "manifest.json").write_text('{"items": []}')
+    argv = [a.format(data=data, tmp=tmp_path) for a in argv] + ["--out", str(tmp_path / "o")]
+    refused(capsys, script("mgn_learn")["main"], argv, *words)
+    assert not (tmp_path / "o").exists()
+
+
+def test_resolution_names_an_empty_cache_and_the_command_that_fills_it(capsys, tmp_path):
+    """An empty --cache ended in a traceback suggesting `garmentgnn generate --preset`."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    last = refused(capsys, script("resolution")["main"],
+                   ["score", "--cache", str(cache), "--out", str(tmp_path / "o" / "r.json")],
+                   f"--cache {cache}", "no dataset learn_res400-blender",
+                   "python benchmarks/resolution.py generate --cache")
+    assert "--preset" not in last and not (tmp_path / "o").exists()
+
+
+def test_resolution_refuses_a_checkpoint_of_another_method(capsys, tmp_path, monkeypatch):
+    resolution = script("resolution")
+    args = argparse.Namespace(gartrans=str(MGN_CKPT), da=None, mgn=str(MGN_CKPT))
+    with pytest.raises(SystemExit) as e:
+        resolution["methods"](args)
+    assert e.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("error: --gartrans") and "not of GarTrans" in last, last

@@ -266,8 +266,12 @@ def test_show_html_with_a_broken_viewer_bundle_fails_before_rendering(dataset, t
     monkeypatch.setenv("GARMENTGNN_VIEWER_BUNDLE", str(bundle))
     rc = cli_main(["show", "--data", str(dataset), "--out", str(tmp_path / "s" / "cmp"),
                    "--html", "--max-frames", "2", "--height", "720"])
-    one_error(capsys, rc, f"the viewer bundle {bundle}", "make install")
+    last = one_error(capsys, rc, f"the viewer bundle {bundle}", "make install")
     assert not (tmp_path / "s").exists()  # nothing rendered
+    # the variable that chose the file is named, and the file (anyone's) never offered
+    # for deletion
+    assert "set by GARMENTGNN_VIEWER_BUNDLE" in last and "delete" not in last
+    assert "point GARMENTGNN_VIEWER_BUNDLE at the viewer's bundle, or unset it" in last
 
 
 # ------------------------------------------------------------------ found by fuzzing

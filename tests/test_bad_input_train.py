@@ -15,7 +15,7 @@ from garmentgnn.cli import main as cli_main
 from garmentgnn.data import read_manifest, store
 from garmentgnn.data import SequenceChunks
 from garmentgnn.models.baselines import NCSStyle
-from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule
+from garmentgnn.training import BaselineModule, GarmentDataModule, GarTransModule, load_recipe
 from garmentgnn.training.recipes import resolve_config_args
 from garmentgnn.training.lightning_cli import count_first
 from garmentgnn.training.lightning_cli import main as train_main
@@ -238,3 +238,83 @@ def test_unknown_recipe_name_lists_the_packaged_ones(root, tmp_path, capsys):  #
                      "gartrans", "baselines/da", "ablations/gat")
     assert "usage" not in capsys.readouterr().err
     assert last.count("error:") == 1
+
+
+# ------------------------------------------------------------------ data of the checkpoint
+@pytest.mark.parametrize("sub", ["predict", "test"])
+def test_scoring_with_other_model_inputs_than_the_checkpoints_is_refused(
+        root, da_checkpoint, tmp_path, capsys, sub):  # noqa: F811
+    """`train predict --data.history 1` on a checkpoint trained with history 3 wrote
+    predictions from inputs the model never learned from (`show` refused the same)."""
+    rc = cli_main(["train", sub, "--config", "baselines/da", "--data.test_split", "val",
+                   "--ckpt_path", str(da_checkpoint)] + data_args(root, tmp_path)
+                  + ["--data.history", "1"])
+    one_error(capsys, rc, str(da_checkpoint), "--data.history 1 (checkpoint: 3)",
+              "learned from inputs", "give the checkpoint's values")
+    assert not list(tmp_path.rglob("predictions"))
+
+
+def test_resuming_with_other_data_settings_names_each_flag(root, da_checkpoint, tmp_path,  # noqa: F811
+                                                           capsys):
+    """`train fit --ckpt_path X --data.chunk 2 --data.num_landmarks 8` compared only the
+    `--model.*` flags with X, and resumed another run."""
+    rc = cli_main(["train", "fit", "--config", "baselines/da", "--ckpt_path",
+                   str(da_checkpoint)] + data_args(root, tmp_path)
+                  + ["--data.chunk", "2", "--data.num_landmarks", "8"])
+    one_error(capsys, rc, "--data.chunk 2 (checkpoint: 4)",
+              "--data.num_landmarks 8 (checkpoint: 16)", "start a new run without --ckpt_path")
+    assert not list(tmp_path.rglob("*.ckpt"))
+
+
+# ------------------------------------------------------------------ two recipes
+def test_two_complete_recipes_are_refused_naming_both(root, tmp_path, capsys):  # noqa: F811
+    """`--config baselines/da --config ablations/gat` trained the ablation alone, the
+    DA-style recipe dropped without a word (each recipe is complete)."""
+    rc = cli_main(["train", "fit", "--config", "baselines/da", "--config", "ablations/gat"]
+                  + data_args(root, tmp_path))
+    one_error(capsys, rc, "--config baselines/da and --config ablations/gat",
+              "complete recipe", "give one recipe")
+    assert not list(tmp_path.rglob("*.ckpt"))
+    with pytest.raises(ValueError, match="recipe gartrans and recipe baselines/hood"):
+        load_recipe("gartrans", "baselines/hood", data={"root": str(root)})
+    # a file of changes that names no module still goes on top of one
+    changes = tmp_path / "changes.yaml"
+    changes.write_text("model:\n  init_args:\n    lr: 0.002\n")
+    recipe = load_recipe("gartrans", changes, data=dict(
+        root=str(root), chunk=4, history=3, nystrom_dim=NY, num_landmarks=16))
+    assert recipe.module.hparams.lr == pytest.approx(0.002)
+
+
+def test_testing_ignores_a_training_batch_size_larger_than_the_split(
+        root, da_checkpoint, tmp_path, capsys):  # noqa: F811
+    """`train test --data.batch_size 999` was refused for the training split's size,
+    though a test run trains nothing (the training chunks give the model's sizes only);
+    `fit` still refuses it."""
+    rc = cli_main(["train", "test", "--config", "baselines/da", "--data.test_split", "val",
+                   "--ckpt_path", str(da_checkpoint)] + data_args(root, tmp_path)
+                  + ["--data.batch_size", "999", "--trainer.limit_test_batches", "1"])
+    assert rc == 0, capsys.readouterr().err[-800:]
+    assert "LBS only" in capsys.readouterr().out
+    rc = cli_main(["train", "fit", "--config", "baselines/da"] + data_args(root, tmp_path)
+                  + ["--data.batch_size", "999"])
+    one_error(capsys, rc, "--data.batch_size: 999 is more than", "give at most")
+
+
+# ------------------------------------------------------------------ load_recipe
+def test_load_recipe_names_a_missing_module_class_and_the_bad_set_key(root, tmp_path):  # noqa: F811
+    """A recipe naming a class that does not exist ended in an `AttributeError` (or
+    blamed the empty `args`); a bad value in `set` gave `Parser key "model":` above a
+    dump of the whole configuration."""
+    recipe = tmp_path / "mine.yaml"
+    recipe.write_text("model:\n  class_path: garmentgnn.training.NoSuchModule\n")
+    with pytest.raises(ValueError, match=r"^`recipes`: .*mine.yaml names the module `model: "
+                                         r"class_path: garmentgnn.training.NoSuchModule`, "
+                                         r"and there is no such class"):
+        load_recipe(recipe, data={"root": str(root)})
+    with pytest.raises(ValueError) as err:
+        load_recipe("gartrans", data={"root": str(root)}, set={"model.init_args.lr": "fast",
+                                                                "model.init_args.t_max": 3})
+    msg = str(err.value)
+    assert msg.startswith("`set`: 'model.init_args.lr' = 'fast': Parser key \"lr\": "
+                          "Expected a <class 'float'>. Got value: fast"), msg
+    assert "\n" not in msg and "Namespace(" not in msg

@@ -222,3 +222,39 @@ def test_more_parallel_edges_than_node_pairs_match_the_message_route(name):
     with csr_kernels(False):
         ref = layer(x, ei, e)
     torch.testing.assert_close(out, ref)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("layout, words", [
+    ("3 sparse", ["3 sparse, 0 dense", "(5, 5, 3)"]),
+    ("2 sparse + 2 dense", ["2 sparse, 2 dense", "(5, 5, 3, 2)"]),
+    ("batched CSR", ["2 sparse, 0 dense and 1 batch", "(2, 5, 5)"]),
+])
+def test_a_sparse_adjacency_of_another_layout_is_named(name, layout, words):
+    """A sparse adj_t of three sparse dimensions was read as a 3-row index: SATConv and
+    both GT layers indexed uninitialised memory (a different IndexError each run, or a
+    wrong answer), the other two raised PyG's words about `edge_index`."""
+    idx = torch.tensor([[0, 1, 3, 4, 2], [1, 2, 4, 0, 2]])
+    adj = {"3 sparse": lambda: torch.sparse_coo_tensor(
+               torch.cat([idx, torch.tensor([[0, 1, 2, 0, 1]])]), torch.randn(5), (5, 5, 3)),
+           "2 sparse + 2 dense": lambda: torch.sparse_coo_tensor(idx, torch.randn(5, 3, 2),
+                                                                 (5, 5, 3, 2)),
+           "batched CSR": lambda: torch.ones(2, 5, 5).to_sparse_csr()}[layout]()
+    layer = LAYERS[name](8, 4, heads=2, edge_dim=3)
+    with pytest.raises(ValueError) as err:
+        layer(torch.randn(5, 8), adj, torch.randn(5, 3))
+    msg = str(err.value)
+    assert msg.startswith("`edge_index`: a sparse adj_t needs 2 sparse dimensions"), msg
+    assert all(w in msg for w in words), msg
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_hybrid_sparse_adjacency_still_carries_the_edge_features(name):
+    idx = torch.tensor([[0, 1, 3, 4, 2], [1, 2, 4, 0, 2]])
+    feats = torch.randn(5, 3)
+    layer = LAYERS[name](8, 4, heads=2, edge_dim=3).eval()
+    x = torch.randn(5, 8)
+    hybrid = layer(x, torch.sparse_coo_tensor(idx, feats, (5, 5, 3)))
+    plain = layer(x, idx.flip(0), feats)
+    hybrid, plain = (o[0] if isinstance(o, tuple) else o for o in (hybrid, plain))
+    torch.testing.assert_close(hybrid, plain)

@@ -57,7 +57,9 @@ def test_predict_is_train_predict_on_the_same_inputs(files, tmp_path, capsys):  
                      str(files / "twirl.bvh"), "--scale", "0.01", "--frames", "5",
                      "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert printed.count("ms\n") == 5 and "gartrans (frame-parallel): 5 frames" in printed
+    assert "frames 0-4: " in printed and "set-up and any compilation included" in printed
+    assert "gartrans (frame-parallel): 5 frames" in printed and "one call" in printed
+    assert "nearest-face search eager" in printed  # 5 x 192 vertex-frames: not worth it
     got = read_pc2(out.with_suffix(".pc2"))
     assert got.shape == trained.shape == (5, 192, 3)
     assert np.abs(got - trained).max() <= 1e-6
@@ -173,3 +175,32 @@ def test_the_committed_checkpoints_say_what_they_were_trained_on():
     for name in ("gartrans_learn.ckpt", "mgn_learn.ckpt"):
         module = load_checkpoint(Path(__file__).parent / "data" / name)
         assert module.trained_on["num_vertices"] == [296, 512]
+
+
+def test_a_padded_last_chunk_predicts_what_the_unpadded_eager_one_does(files, monkeypatch):  # noqa: F811
+    """With the search compiled, the last, shorter chunk is padded to the chunk's frames
+    (its last frame repeated, those outputs dropped) so that it needs no second
+    compilation (it cost as long as the first: 0.6 s a frame).  ``torch.compile`` is
+    the identity here, so only the padding differs from the eager run."""
+    import garmentgnn.training.module as gm  # noqa: PLC0415
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: fn)
+    sizes = []
+    call = gm.GarTransModule.predict_garment
+    monkeypatch.setattr(gm.GarTransModule, "predict_garment",
+                        lambda self, b: sizes.append(b["body_pos"].shape[0]) or call(self, b))
+    kw = dict(frames=12, scale=0.01, ckpt=GARTRANS)  # chunks of 8: 8 + 4 frames
+    eager = predict_garment_motion(files / "skirt.obj", "regular", "walk", compile=False, **kw)
+    assert sizes == [8, 4] and not eager.compiled
+    sizes.clear()
+    padded = predict_garment_motion(files / "skirt.obj", "regular", "walk", compile=True, **kw)
+    assert sizes == [8, 8] and padded.compiled  # the last chunk padded to the first's shape
+    assert padded.positions.shape == eager.positions.shape == (12, 192, 3)
+    np.testing.assert_allclose(padded.positions, eager.positions, rtol=0, atol=1e-5)
+    assert padded.chunks == eager.chunks == [(0, 8), (8, 4)]
+    assert padded.setup_seconds is not None and padded.steady_frame_seconds > 0
+    # the rule: short takes eager on the CPU, long ones compiled
+    from garmentgnn.inference.predict import COMPILE_WORK, compile_pays  # noqa: PLC0415
+    module = type("M", (), {"model": type("G", (), {"compile_search": True})})
+    assert not compile_pays(module, 60, 288) and compile_pays(module, COMPILE_WORK // 288 + 1, 288)
+    assert compile_pays(module, 60, 288, "cuda")
+    assert not compile_pays(None, 10 ** 6, 288)

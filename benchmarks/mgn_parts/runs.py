@@ -75,8 +75,11 @@ def run_branch(args: argparse.Namespace) -> None:
     params = inspect.signature(GarmentDataModule.__init__).parameters
     dm_hp = {k: v for k, v in (src.get("datamodule_hyper_parameters") or {}).items()
              if k in params}
-    data = dict(dm_hp, root=args.data, chunk=2 + args.rollout,
-                seed=int(dm_hp.get("seed", 0)) + 1)
+    # the run's order: its data.seed, else the run's seed its data module kept
+    order = dm_hp.get("seed")
+    if order is None:
+        order = (src.get(GarmentDataModule.__qualname__) or {}).get("order_seed", 0)
+    data = dict(dm_hp, root=args.data, chunk=2 + args.rollout, seed=int(order) + 1)
     recipe = load_recipe("mgn", args=["--trainer.default_root_dir", str(args.out)],
                          data=data)
     trainer = recipe.trainer(max_steps=args.steps, max_epochs=-1, accelerator="cpu",

@@ -194,7 +194,14 @@ def motion_from_entry(entry: Dict[str, Any], body: Body, fps: float,
     except ValueError as exc:
         raise ValueError(f"{path}: {str(exc).replace('`name_map`', '`mapping`')}") from None
     moved = moved.resample(float(fps)) if abs(moved.fps - fps) > 1e-9 else moved
-    start = int(entry.get("start", 0))
+    start = entry.get("start", 0)
+    if not isinstance(start, int) or isinstance(start, bool) or start < 0:
+        raise ValueError(f"`start`: expected a first frame >= 0 of {path}, got {start!r}")
+    if start >= moved.num_frames:
+        raise ValueError(f"`start` {start} is beyond the take {path}: it has "
+                         f"{moved.num_frames} frames at {fps:g} fps (from "
+                         f"{motion.num_frames} at {motion.fps:g} fps); give a `start` "
+                         f"below {moved.num_frames}")
     have = moved.num_frames - start
     n = num_frames or entry.get("num_frames") or max(have, 1)  # none given: every frame
     if have < n:

@@ -155,6 +155,11 @@ class SequenceChunks(Dataset):
         self.cache_bytes = cache_bytes
         manifest = store.read_manifest(self.root)
         items = manifest["items"]
+        if not items:
+            raise ValueError(f"`root`: {root}/{store.MANIFEST} lists no sequences; simulate "
+                             f"the dataset with `garmentgnn generate --out {root}` (or "
+                             f"rebuild the manifest from its files: `garmentgnn manifest "
+                             f"--out {root}`)")
         if split is not None:
             splits = sorted({str(r.get("split")) for r in items})
             if split not in splits:

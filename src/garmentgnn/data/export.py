@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import struct
 from pathlib import Path
 from typing import List
@@ -41,7 +42,10 @@ def write_pc2(path: PathLike, positions: np.ndarray, start_frame: float = 0.0,
 
 def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarray,
                        stem: str = "frame") -> List[Path]:
-    """One OBJ per frame, ``folder/<stem>_<t:04d>.obj``, same vertex order in every file."""
+    """One OBJ per frame, ``folder/<stem>_<t:04d>.obj``, same vertex order in every file.
+    Frame files of an earlier, longer write into ``folder`` (``<stem>_<digits>.obj``
+    beyond these frames) are removed: a rerun with fewer frames would otherwise leave
+    them beside the new ones as if they were its own."""
     X = np.asarray(positions, dtype=np.float64)
     if X.ndim != 3 or X.shape[2] != 3 or not np.isfinite(X).all():
         raise ValueError(f"`positions`: expected finite [T, V, 3], got shape {X.shape}")
@@ -62,6 +66,11 @@ def write_obj_sequence(folder: PathLike, positions: np.ndarray, faces: np.ndarra
         p = folder / f"{stem}_{t:04d}.obj"
         atomic_write_bytes(p, (f"# garmentgnn frame {t}\n" + vlines + flines).encode())
         paths.append(p)
+    mine = re.compile(rf"{re.escape(stem)}_\d{{4,}}\.obj")
+    written = {p.name for p in paths}
+    for old in folder.iterdir():
+        if mine.fullmatch(old.name) and old.name not in written and old.is_file():
+            old.unlink()
     return paths
 
 

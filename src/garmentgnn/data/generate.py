@@ -31,6 +31,22 @@ from garmentgnn.sim.blender import require_blender
 
 
 # --------------------------------------------------------------------------- estimate
+
+def _changed_files(old_items: List[Dict[str, Any]], new_items: List[Dict[str, Any]]
+                   ) -> List[Tuple[str, str, str]]:
+    """``(path, old sha256, new sha256)`` of every garment or motion file that both item
+    lists name with other content: why a spec read again names another dataset."""
+    def files(items):
+        out: Dict[str, str] = {}
+        for it in items:
+            for part in ("garment", "motion"):
+                e = it.get(part) if isinstance(it, dict) else None
+                if isinstance(e, dict) and e.get("path") and e.get("sha256"):
+                    out[str(e["path"])] = str(e["sha256"])
+        return out
+    a, b = files(old_items), files(new_items)
+    return [(p, a[p], b[p]) for p in sorted(a.keys() & b.keys()) if a[p] != b[p]]
+
 def estimate_seconds(items: Sequence[Dict[str, Any]], workers: int,
                      simulate_fn: Optional[Callable] = None, frames: int = 3
                      ) -> Tuple[float, float]:
@@ -116,9 +132,13 @@ def _load_existing(out: Path, spec_json: Dict[str, Any], force: bool = False
     if spec_path.exists():
         old = store.read_json(spec_path, "--force to overwrite it")
         if [it.get("id") for it in old.get("items", [])] != ids:
+            changed = _changed_files(old.get("items", []), spec_json["items"])
+            why = "".join(f"; {p} changed since it was made (SHA-256 {new[:12]}, the "
+                          f"dataset's {was[:12]}), and a changed file is another dataset"
+                          for p, was, new in changed[:3])
             raise SpecMismatch(
                 f"{out} holds a different dataset (spec {old.get('name')!r}, seed "
-                f"{old.get('seed')}); use another --out, or --force to overwrite it")
+                f"{old.get('seed')}){why}; use another --out, or --force to overwrite it")
         # another dataset's files kept by an earlier --force (a manifest of this spec's)
         accepted = store.listed_ok(out, spec_json["items"])
     if not force:  # sequence files of another dataset, whatever spec or manifest is there

@@ -57,6 +57,23 @@ def _portable(desc: Dict[str, Any]) -> Dict[str, Any]:
                 if isinstance(v, dict) and "file" in v else v) for k, v in desc.items()}
 
 
+def _repeated(spec: "Spec") -> str:
+    """The entries of ``spec``'s grid that are listed more than once, by part and
+    position (``garments[0] and garments[2] (skirt.obj)``)."""
+    out = []
+    for part, entries, key in (("garments", spec.garments, garment_key),
+                               ("bodies", spec.bodies, body_key),
+                               ("motions", spec.motions, motion_key),
+                               ("materials", spec.materials, str)):
+        seen: Dict[str, List[int]] = {}
+        for i, e in enumerate(entries):
+            seen.setdefault(key(e), []).append(i)
+        for k, where in seen.items():
+            if len(where) > 1:
+                out.append(" and ".join(f"{part}[{i}]" for i in where) + f" ({k})")
+    return "; ".join(out) or "the same item twice"
+
+
 @dataclass
 class Spec:
     """The full description of a dataset (see the module doc for the split rule).
@@ -115,7 +132,8 @@ class Spec:
             out = [out[i] for i in keep]
         ids = [it["id"] for it in out]
         if len(set(ids)) != len(ids):
-            raise ValueError(f"spec {self.name!r}: duplicate items (repeated grid entries)")
+            raise ValueError(f"spec {self.name!r}: duplicate items (repeated grid entries): "
+                             f"{_repeated(self)}; give each entry once")
         return out
 
     def to_json(self) -> Dict[str, Any]:

@@ -32,6 +32,7 @@ motions on every body model; refusals are ``ValueError`` naming the file and the
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -56,6 +57,34 @@ TORCH_SETTINGS = {"substeps": 4, "preroll_frames": 6}
 
 def _fail(path: Path, msg: str) -> ValueError:
     return ValueError(f"{path}: {msg}")
+
+
+def _number(path: Path, where: str, value: Any, integer: bool = False,
+            low: Optional[float] = None, positive: bool = False) -> Any:
+    """``value`` of the spec's ``where`` checked as a number (``integer``: an int) of at
+    least ``low`` (``positive``: above 0): a ``ValueError`` naming the file and the key,
+    instead of Python's "could not convert string to float" or a value that passes
+    and fails each item later."""
+    kind = "an integer" if integer else "a number"
+    ok = isinstance(value, int) if integer else isinstance(value, (int, float))
+    if isinstance(value, bool) or not ok or (isinstance(value, float)
+                                             and not math.isfinite(value)):
+        raise _fail(path, f"`{where}`: expected {kind}, got {value!r}")
+    if (low is not None and value < low) or (positive and not value > 0):
+        bound = "above 0" if positive else f">= {low:g}"
+        raise _fail(path, f"`{where}`: expected {kind} {bound}, got {value!r}")
+    return value
+
+
+def _mapping(path: Path, where: str, value: Any) -> Dict[str, str]:
+    """A ``mapping`` of file joint -> body joint or role (names as text)."""
+    if value is None:
+        return {}
+    if not isinstance(value, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in value.items()):
+        raise _fail(path, f"`{where}`: expected a mapping of file joint -> body joint or "
+                          f"role, e.g. {{hip_root: pelvis}}, got {value!r}")
+    return dict(value)
 
 
 def _list(path: Path, doc: Dict[str, Any], key: str) -> List[Any]:
@@ -96,8 +125,13 @@ def _garment(path: Path, e: Dict[str, Any], i: int) -> Dict[str, Any]:
         raise _fail(path, f"`garments[{i}]`: give either `file` (a mesh) or `template` (a "
                           f"garment kind)")
     if "template" in e:
-        return {"kind": e["template"], "params": dict(e.get("params") or {}),
-                "resolution": e.get("resolution", 300)}
+        params = e.get("params") or {}
+        if not isinstance(params, dict):
+            raise _fail(path, f"`garments[{i}].params`: expected a mapping of the "
+                              f"template's parameters, got {params!r}")
+        return {"kind": e["template"], "params": dict(params),
+                "resolution": _number(path, f"garments[{i}].resolution",
+                                      e.get("resolution", 300), integer=True, low=1)}
     if set(e) - {"file", "held_out"}:
         raise _fail(path, f"`garments[{i}]`: a mesh file takes no "
                           f"{sorted(set(e) - {'file', 'held_out'})}")
@@ -115,16 +149,25 @@ def _motion(path: Path, e: Dict[str, Any], i: int, frames: int) -> Dict[str, Any
         if extra:
             raise _fail(path, f"`motions[{i}]`: a generator takes no {extra}")
         return {"name": e["generator"], "num_frames": frames,
-                "speed": float(e.get("speed", 1.0)), "amplitude": float(e.get("amplitude", 1.0))}
+                "speed": float(_number(path, f"motions[{i}].speed", e.get("speed", 1.0),
+                                       positive=True)),
+                "amplitude": float(_number(path, f"motions[{i}].amplitude",
+                                           e.get("amplitude", 1.0), low=0))}
     extra = sorted(set(e) & {"speed", "amplitude"})
     if extra:
         raise _fail(path, f"`motions[{i}]`: a BVH file takes no {extra}")
+    up = str(e.get("up", "Y")).upper()
+    if up not in ("Y", "Z"):
+        raise _fail(path, f"`motions[{i}].up`: expected Y or Z (the file's up axis), got "
+                          f"{e.get('up')!r}")
+    scale = _number(path, f"motions[{i}].scale", e.get("scale", 1.0), positive=True)
+    start = _number(path, f"motions[{i}].start", e.get("start", 0), integer=True, low=0)
+    mapping = _mapping(path, f"motions[{i}].mapping", e.get("mapping"))
     m = _file(path, e, "motions", i)
     m.update(name=file_name(m), num_frames=frames, speed=1.0, amplitude=1.0,
-             scale=float(e.get("scale", 1.0)), up=str(e.get("up", "Y")).upper(),
-             start=int(e.get("start", 0)), mapping=dict(e.get("mapping") or {}))
+             scale=float(scale), up=up, start=int(start), mapping=mapping)
     if e.get("fps") is not None:
-        m["fps"] = float(e["fps"])
+        m["fps"] = float(_number(path, f"motions[{i}].fps", e["fps"], positive=True))
     return m
 
 
@@ -134,6 +177,8 @@ def _settings(path: Path, doc: Dict[str, Any], engine: str) -> Tuple[Dict[str, A
     if not isinstance(given, dict):
         raise _fail(path, f"`settings`: expected a mapping, got {given!r}")
     fps = doc.get("fps", given.get("fps", 30.0))
+    if "fps" in given:
+        _number(path, "settings.fps", given["fps"], positive=True)
     if "fps" in given and float(given["fps"]) != float(fps):
         raise _fail(path, f"`fps` {fps} and `settings.fps` {given['fps']} disagree; give the "
                           f"dataset's frame rate once, as `fps`")
@@ -142,6 +187,16 @@ def _settings(path: Path, doc: Dict[str, Any], engine: str) -> Tuple[Dict[str, A
     settings.update(given)
     settings["fps"] = float(fps)
     return settings, float(fps)
+
+
+def yaml_problem(exc: Exception) -> str:
+    """A YAML error in one line that keeps where it is: ``line L, column C: problem``
+    (the first line of PyYAML's message names neither)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    context = getattr(exc, "context", None)
+    what = f"{problem} ({context})" if context else str(problem)
+    return f"line {mark.line + 1}, column {mark.column + 1}: {what}" if mark else what
 
 
 def load_spec(path, engine: Optional[str] = None, seed: Optional[int] = None) -> Spec:
@@ -154,8 +209,10 @@ def load_spec(path, engine: Optional[str] = None, seed: Optional[int] = None) ->
                          f"(docs/own_garment.md)")
     try:
         doc = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise _fail(path, f"not readable YAML ({str(exc).splitlines()[0]})") from None
+    except UnicodeDecodeError as exc:
+        raise _fail(path, f"not UTF-8 text (byte {exc.start}); save it as UTF-8") from None
+    except yaml.YAMLError as exc:
+        raise _fail(path, f"not readable YAML ({yaml_problem(exc)})") from None
     if not isinstance(doc, dict):
         raise _fail(path, "expected a mapping of name, garments, bodies, motions, ...")
     unknown = sorted(set(doc) - TOP)
@@ -206,7 +263,8 @@ def load_spec(path, engine: Optional[str] = None, seed: Optional[int] = None) ->
     if not isinstance(materials, list) or not materials:
         raise _fail(path, f"`materials`: expected a non-empty list, got {materials!r}")
     name = str(doc.get("name") or path.stem)
-    seed = int(doc.get("seed", 0)) if seed is None else int(seed)
+    seed = int(_number(path, "seed", doc.get("seed", 0), integer=True)) if seed is None \
+        else int(seed)
     try:
         spec = Spec(name=name, garments=garments, bodies=bodies, motions=motions,
                     materials=[str(x) for x in materials], settings=settings,

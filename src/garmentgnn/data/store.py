@@ -415,9 +415,19 @@ def rebuild_manifest(out: PathLike, write: bool = True, force: bool = False) -> 
     Unreadable sequence files are skipped (and listed under ``invalid``).  Files of
     another dataset than ``spec.json`` describes (:func:`foreign_sequence_files`; those
     the manifest lists as ok were accepted before) are a ``ValueError`` unless ``force``;
-    files outside the spec are listed after its items."""
+    files outside the spec are listed after its items.  A folder without
+    ``sequences/`` holds no dataset (as ``garmentgnn manifest`` says): a ``ValueError``
+    naming it, and nothing written (an empty manifest there read as an empty
+    dataset)."""
     out = Path(out)
     spec_path = out / SPEC
+    if not out.is_dir():
+        raise ValueError(f"`out`: {out}: no such folder; give a dataset folder (made by "
+                         f"garmentgnn generate)")
+    if not (out / SEQUENCES).is_dir():
+        raise ValueError(f"`out`: {out} holds no dataset (no {SEQUENCES}/ folder in it); "
+                         f"nothing was written; give the folder garmentgnn generate "
+                         f"wrote into")
     spec = None
     if spec_path.exists():
         spec = read_json(spec_path, "delete it (items without a file are then not listed)")

@@ -58,6 +58,17 @@ def check_placement(vertices: Tensor, body_vertices: Optional[Tensor] = None,
     blo, bhi = body_vertices.detach().amin(0).double(), body_vertices.detach().amax(0).double()
     gap = torch.maximum(blo - hi, lo - bhi).clamp_min(0).norm()
     if float(gap) > MAX_GAP:
+        # modelled Y-up (garmentgnn is Z-up)? Turned +90 degrees about X, (x, y, z) ->
+        # (x, -z, y), a garment modelled around the Y-up body lies where it belongs
+        v = vertices.detach().double()
+        turned = torch.stack([v[:, 0], -v[:, 2], v[:, 1]], 1)
+        tlo, thi = turned.amin(0), turned.amax(0)
+        if float(torch.maximum(blo - thi, tlo - bhi).clamp_min(0).norm()) <= MAX_GAP:
+            raise ValueError(
+                f"`{name}`: the garment lies {float(gap):.3g} m away from the body, and "
+                f"turned +90 degrees about X it lies on it: it looks modelled Y-up, and "
+                f"garmentgnn is Z-up; rotate it +90 degrees about X ((x, y, z) -> "
+                f"(x, -z, y); Blender's OBJ export: Forward -Y, Up Z)")
         shift = ((blo + bhi) / 2 - (lo + hi) / 2).tolist()
         raise ValueError(f"`{name}`: the garment lies {float(gap):.3g} m away from the body "
                          f"(bounding boxes); it must be modelled around the body in its rest "

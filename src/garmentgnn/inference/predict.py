@@ -16,7 +16,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Mapping, Optional, Union
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -42,6 +42,11 @@ PathLike = Union[str, Path]
 LBS = "lbs"
 #: frames per frame-parallel chunk when a checkpoint does not say (the data module's)
 DEFAULT_CHUNK = 8
+#: garment vertex-frames (frames x vertices) from which compiling GarTrans's nearest-face
+#: search pays back on the CPU: on 2 idle cores the compile costs 3.9-5.2 s once and
+#: saves 0.010-0.015 ms per vertex-frame (288 and 2,040 vertices), even at about
+#: 330,000-375,000 (docs/results/predict_compile)
+COMPILE_WORK = 350_000
 
 
 @dataclass
@@ -60,10 +65,31 @@ class Prediction:
     seq: Dict[str, Any]
     frame_seconds: List[float] = field(default_factory=list)
     autoregressive: bool = False
+    #: ``(first frame, frames)`` of every call of the method, in order
+    chunks: List[Tuple[int, int]] = field(default_factory=list)
+    #: whether the method ran its compiled nearest-face search (:func:`compile_pays`)
+    compiled: bool = False
 
     @property
     def total_seconds(self) -> float:
         return float(sum(self.frame_seconds))
+
+    @property
+    def steady_frame_seconds(self) -> Optional[float]:
+        """The median time of a frame after the first call (``None`` with one call):
+        what a longer take costs per frame, set-up and compilation left out."""
+        later = [self.frame_seconds[t] for t0, n in self.chunks[1:] for t in range(t0, t0 + n)]
+        return float(np.median(later)) if later else None
+
+    @property
+    def setup_seconds(self) -> Optional[float]:
+        """What the first call took beyond its frames at :attr:`steady_frame_seconds`:
+        the set-up (the first allocations, caches) and any compilation."""
+        steady = self.steady_frame_seconds
+        if steady is None or not self.chunks:
+            return None
+        t0, n = self.chunks[0]
+        return max(0.0, float(sum(self.frame_seconds[t0:t0 + n])) - n * steady)
 
 
 class ResolutionWarning(UserWarning):
@@ -204,14 +230,47 @@ def check_method(module, item: GarmentInputs, where: str) -> None:
         module.check_data(dims, where)
 
 
+def check_rate(module, fps: float, where: str) -> None:
+    """Refuse ``fps`` other than the one a model learned at: the MGN-style simulator
+    predicts accelerations in metres per frame squared (its model's ``fps``), so at
+    another rate it would roll out a garment of another physics without a word
+    (``garmentgnn train test`` refuses the same on a dataset)."""
+    learned = getattr(getattr(module, "model", None), "fps", None)
+    if not isinstance(module, SimulatorModule) or learned is None:
+        return
+    if abs(fps - float(learned)) > 1e-6 * float(learned):
+        raise ValueError(f"`fps`: {fps:g}, but {where} (MGN-style) learned its accelerations "
+                         f"at {float(learned):g} fps; give fps {float(learned):g} (a BVH is "
+                         f"resampled to it), or train a model at {fps:g} fps "
+                         f"(--model.model.fps)")
+
+
+def compile_pays(module, frames: int, vertices: int,
+                 device: Union[str, torch.device] = "cpu") -> bool:
+    """Whether ``module``'s compiled nearest-face search (GarTrans's ``compile_search``)
+    pays back on ``frames`` frames of ``vertices`` garment vertices: on the CPU from
+    :data:`COMPILE_WORK` vertex-frames on (below, the one-off compile costs more than
+    eager loses on the take), on a GPU always; ``False`` for a module without one."""
+    if not getattr(getattr(module, "model", None), "compile_search", False):
+        return False
+    return torch.device(device).type != "cpu" or frames * vertices >= COMPILE_WORK
+
+
 @torch.no_grad()
 def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
                      device: Union[str, torch.device] = "cpu",
-                     on_frames: Optional[Callable[[int, int, float], None]] = None):
+                     on_frames: Optional[Callable[[int, int, float], None]] = None,
+                     compile: Optional[bool] = None, info: Optional[Dict[str, Any]] = None):
     """``(positions [T, V, 3] float32, frame_seconds [T], autoregressive)`` of ``module``
     (``None``: LBS) on a sequence's arrays (:func:`sequence_of`, or a sequence file
     loaded with :func:`garmentgnn.data.store.load_sequence`).  ``on_frames(first, count,
-    seconds)`` is called after every chunk."""
+    seconds)`` is called after every chunk.
+
+    ``compile``: run a GarTrans checkpoint's nearest-face search compiled (``None``: where
+    it pays back, :func:`compile_pays`); compiled, the last, shorter chunk is padded to
+    the chunk's frames (its last frame repeated, those outputs dropped: the frames are
+    predicted independently), so its shape needs no second compilation.  ``info``, when
+    given, receives ``chunks`` (``(first frame, frames)`` per call) and ``compiled``."""
     history, landmarks, ny, chunk = _settings(module, where)
     static, body = static_inputs(seq, seq["meta"], ny, landmarks)
     rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
@@ -223,35 +282,54 @@ def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
                          f"frames and needs 3 or more")
     step = T if autoregressive else max(1, chunk)
     device = torch.device(device)
+    model = getattr(module, "model", None)
+    searches = hasattr(model, "compile_search")
+    before = model.compile_search if searches else None
+    if compile is None:
+        compile = compile_pays(module, T, len(seq["garment_vertices"]), device)
+    compile = bool(compile) and bool(before)
     if module is not None:
         module.to(device)
-    out, seconds = [], []
-    for t0 in range(0, T, step):
-        n = min(step, T - t0)
-        item = with_frames(static, body, rot, tr, torch.arange(t0, t0 + n), history,
-                           seq_id=str(seq["meta"].get("id", "sequence")))
-        if module is not None and t0 == 0:
-            check_method(module, item, where)
-        item = item.to(device)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t = time.perf_counter()
-        if module is None:
-            pred = item.skinned()
-        elif autoregressive:
-            pred = module.rollout(item, start="lbs")
-        else:
-            pred = module.predict_garment(item)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        dt = time.perf_counter() - t
-        pred = pred.detach().float().cpu()
-        if not torch.isfinite(pred).all():
-            raise ValueError(f"`ckpt`: {where} predicted NaN/inf on frames {t0}..{t0 + n - 1}")
-        out.append(pred)
-        seconds += [dt / n] * n
-        if on_frames is not None:
-            on_frames(t0, n, dt)
+    out, seconds, chunks = [], [], []
+    try:
+        if searches:
+            model.compile_search = compile
+        for t0 in range(0, T, step):
+            n = min(step, T - t0)
+            frames = torch.arange(t0, t0 + n)
+            if compile and n < step and t0 > 0:  # the compiled shape: no recompilation
+                frames = torch.cat([frames, frames[-1:].expand(step - n)])
+            item = with_frames(static, body, rot, tr, frames, history,
+                               seq_id=str(seq["meta"].get("id", "sequence")))
+            if module is not None and t0 == 0:
+                check_method(module, item, where)
+            item = item.to(device)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            t = time.perf_counter()
+            if module is None:
+                pred = item.skinned()
+            elif autoregressive:
+                pred = module.rollout(item, start="lbs")
+            else:
+                pred = module.predict_garment(item)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            dt = time.perf_counter() - t
+            pred = pred.detach().float().cpu()[:n]
+            if not torch.isfinite(pred).all():
+                raise ValueError(f"`ckpt`: {where} predicted NaN/inf on frames "
+                                 f"{t0}..{t0 + n - 1}")
+            out.append(pred)
+            seconds += [dt / n] * n
+            chunks.append((t0, n))
+            if on_frames is not None:
+                on_frames(t0, n, dt)
+    finally:
+        if searches:
+            model.compile_search = before
+    if info is not None:
+        info.update(chunks=chunks, compiled=compile)
     return torch.cat(out).numpy(), seconds, autoregressive
 
 
@@ -283,17 +361,25 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
                            scale: float = 1.0, up: str = "Y",
                            mapping: Optional[Mapping[str, str]] = None, start: int = 0,
                            resolution: int = 300, seed: int = 0,
-                           on_frames: Optional[Callable[[int, int, float], None]] = None
-                           ) -> Prediction:
+                           on_frames: Optional[Callable[[int, int, float], None]] = None,
+                           compile: Optional[bool] = None) -> Prediction:
     """The garment of a trained method (``ckpt``, or ``method="lbs"``) on ``garment``
     (a mesh file or a template name), ``body`` (:func:`body_entry`) and ``motion`` (a BVH
     file, with ``scale``, ``up``, ``mapping``, ``start`` as in a dataset spec, or a
-    generator name), ``frames`` frames at ``fps``."""
+    generator name), ``frames`` frames at ``fps``; ``compile``: see
+    :func:`predict_sequence` (default: where it pays back)."""
     if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not 0 < fps <= 1000:
         raise ValueError(f"`fps`: expected frames per second, e.g. 30, got {fps!r}")
     if frames is not None and (not isinstance(frames, int) or frames < 1):
         raise ValueError(f"`frames`: expected 1 or more frames, got {frames!r}")
+    if not isinstance(start, int) or isinstance(start, bool) or start < 0:
+        raise ValueError(f"`start`: expected a first frame >= 0 of the take, got {start!r}")
+    if mapping is not None and (not isinstance(mapping, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in mapping.items())):
+        raise TypeError(f"`mapping`: expected a mapping of file joint -> body joint or role, "
+                        f"e.g. {{'hip_root': 'pelvis'}}, got {mapping!r}")
     module, name = load_method(ckpt, method)
+    check_rate(module, float(fps), str(ckpt))
     spec = body_entry(body)
     try:
         b = build_body(spec)
@@ -306,12 +392,15 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
     if isinstance(garment, (str, Path)) and _is_path(garment):
         seq["meta"]["garment"] = {"kind": file_name({"file": str(garment)})}
     where = str(ckpt) if ckpt is not None else LBS
-    pos, secs, ar = predict_sequence(module, seq, where, device, on_frames)
+    info: Dict[str, Any] = {}
+    pos, secs, ar = predict_sequence(module, seq, where, device, on_frames, compile, info)
     seq["positions"] = pos
-    return Prediction(pos, np.asarray(seq["garment_faces"]), float(m.fps), name, seq, secs, ar)
+    return Prediction(pos, np.asarray(seq["garment_faces"]), float(m.fps), name, seq, secs, ar,
+                      info["chunks"], info["compiled"])
 
 
-__all__ = ["LBS", "Prediction", "ResolutionWarning", "body_entry", "check_resolution",
-           "check_method", "load_method",
+__all__ = ["COMPILE_WORK", "LBS", "Prediction", "ResolutionWarning", "body_entry", "check_rate",
+           "compile_pays",
+           "check_resolution", "check_method", "load_method",
            "predict_garment_motion", "predict_sequence", "resolve_garment", "resolve_motion",
            "sequence_of"]

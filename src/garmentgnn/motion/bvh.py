@@ -127,16 +127,30 @@ def _statements(lines: List[str]):
             j = k
 
 
+def _decode(data: bytes, where: str) -> str:
+    """``data`` as UTF-8 text; a byte that is not is a ``ValueError`` naming ``where``,
+    the byte's offset and its line: read through a replacement character, a joint name
+    would match no joint of the body and leave that joint silently at rest."""
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise ValueError(f"{where}: byte 0x{data[exc.start]:02X} at offset {exc.start} (BVH "
+                         f"line {line}) is not UTF-8 text; a joint name read through it "
+                         f"would match no joint; save the file as UTF-8 (or give the "
+                         f"joint an ASCII name)") from None
+
+
 def _read_source(source) -> str:
     if isinstance(source, os.PathLike) or (isinstance(source, str) and "\n" not in source
                                            and "HIERARCHY" not in source):
         path = os.fspath(source)
         if not os.path.isfile(path):
             raise ValueError(f"`source`: no such BVH file {path!r} (pass a path or the BVH text)")
-        with open(path, "r", encoding="utf-8", errors="replace") as f:
-            return f.read()
+        with open(path, "rb") as f:
+            return _decode(f.read(), path)
     if isinstance(source, bytes):
-        return source.decode("utf-8", errors="replace")
+        return _decode(source, "`source`")
     if not isinstance(source, str):
         raise ValueError(f"`source`: expected a path or the BVH text, got {type(source).__name__}")
     return source
@@ -196,6 +210,11 @@ def parse_bvh(text: str) -> Tuple[List[str], List[int], np.ndarray, List[List[st
             if stack and stack[-1][0] == "end":
                 raise _err(lineno, "a joint inside an End Site")
             name = " ".join(args)
+            if "\ufffd" in name:
+                raise _err(lineno, f"joint name {name!r} holds a character that stands for "
+                                   f"a byte that was not UTF-8 text (U+FFFD); it would match "
+                                   f"no joint; save the file as UTF-8 (or give the joint an "
+                                   f"ASCII name)")
             if name in names:
                 raise _err(lineno, f"duplicate joint name {name!r}")
             names.append(name)

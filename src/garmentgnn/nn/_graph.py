@@ -323,6 +323,19 @@ def prepare_graph(
     plan: Optional[CSRPlan] = None
     if isinstance(edge_index, SparseTensor) or (isinstance(edge_index, Tensor)
                                                 and is_sparse(edge_index)):
+        if isinstance(edge_index, Tensor):
+            # [num_dst, num_src] sparse, at most the edge features dense: a third sparse
+            # dimension would be read as rows of the index (and the kernels index memory
+            # unchecked with them), a batch dimension as a pointer row
+            sparse, dense = edge_index.sparse_dim(), edge_index.dense_dim()
+            batch = edge_index.dim() - sparse - dense
+            if sparse != 2 or dense > 1 or batch:
+                _fail("edge_index", f"a sparse adj_t needs 2 sparse dimensions [num_dst, "
+                                    f"num_src] and at most 1 dense one (edge features: "
+                                    f"[num_dst, num_src, edge_dim]); got {sparse} sparse, "
+                                    f"{dense} dense{f' and {batch} batch' if batch else ''} "
+                                    f"of shape {tuple(edge_index.shape)}; give one graph's "
+                                    f"adjacency (a batch as one block-diagonal graph)")
         if tuple(edge_index.size()[:2]) != (num_dst, num_src):
             _fail("edge_index", f"sparse adj_t has shape {tuple(edge_index.size()[:2])}, expected "
                                 f"[num_dst, num_src] = [{num_dst}, {num_src}]")

@@ -6,6 +6,7 @@ test and predict one chunk per step."""
 from __future__ import annotations
 
 import inspect
+import os
 
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence, Union
@@ -118,7 +119,13 @@ class GarmentDataModule(L.LightningDataModule):
     (files, bytes of their arrays; :class:`~garmentgnn.data.SequenceChunks`), one cache
     per process and per loader worker.
 
-    Resuming: the epoch to continue with is kept in the checkpoint
+    ``seed`` seeds the training chunks' order; ``None`` (the default) takes the run's
+    seed, the one ``--seed_everything`` (or Lightning's ``seed_everything``) set, so one
+    seed seeds the initialisation, the noise and the data order alike (0 where nothing
+    was seeded).  An explicit ``seed`` keeps one order whatever the run's seed
+    (:meth:`order_seed`).
+
+    Resuming: the epoch to continue with and the order's seed are kept in the checkpoint
     (:meth:`state_dict`) and the training sampler starts there, because Lightning
     (2.6) builds a resumed fit's first data iterator *before* it calls the
     sampler's ``set_epoch``, which would replay epoch 0's chunk order.
@@ -128,7 +135,7 @@ class GarmentDataModule(L.LightningDataModule):
                  num_workers: int = 0, nystrom_dim: int = NYSTROM_DIM,
                  num_landmarks: int = NUM_LANDMARKS,
                  train_split: str = "train", val_split: Optional[str] = "val",
-                 shuffle: bool = True, seed: int = 0, drop_last: bool = False,
+                 shuffle: bool = True, seed: Optional[int] = None, drop_last: bool = False,
                  test_split: str = "test", train_ids: Optional[Sequence[str]] = None,
                  cache_size: int = CACHE_SIZE, predict_split: Optional[str] = None,
                  batch_size: int = 1, stride: Optional[int] = None,
@@ -138,6 +145,9 @@ class GarmentDataModule(L.LightningDataModule):
                                        or isinstance(eval_chunk, bool) or eval_chunk < 1):
             raise ValueError(f"--data.eval_chunk: expected frames >= 1 or null (--data.chunk), "
                              f"got {eval_chunk!r}")
+        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool)):
+            raise ValueError(f"--data.seed: expected an integer, or null for the run's seed "
+                             f"(--seed_everything), got {seed!r}")
         if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size < 1:
             raise ValueError(f"--data.batch_size: expected a number of chunks >= 1, got "
                              f"{batch_size!r}")
@@ -154,6 +164,17 @@ class GarmentDataModule(L.LightningDataModule):
         self.test_set: Optional[SequenceChunks] = None
         self.predict_set: Optional[SequenceChunks] = None
         self.start_epoch = 0  # the epoch a resumed fit continues with
+        self._resumed_seed: Optional[int] = None  # the order's seed of a resumed fit
+
+    def order_seed(self) -> int:
+        """The seed of the training chunks' order: ``seed`` when given; else the one a
+        resumed fit's checkpoint kept; else the run's seed (``PL_GLOBAL_SEED``, which
+        Lightning's ``seed_everything`` sets), 0 when nothing was seeded."""
+        if self.hparams.get("seed") is not None:
+            return int(self.hparams.seed)
+        if self._resumed_seed is not None:
+            return self._resumed_seed
+        return int(os.environ.get("PL_GLOBAL_SEED", 0))
 
     def state_dict(self) -> Dict[str, int]:
         trainer = getattr(self, "trainer", None)
@@ -161,10 +182,15 @@ class GarmentDataModule(L.LightningDataModule):
             return {}
         # epochs whose training part ran to its end (a checkpoint written in
         # on_train_epoch_end or after fit); a resumed fit starts with the next one
-        return {"next_epoch": int(trainer.fit_loop.epoch_progress.current.processed)}
+        return {"next_epoch": int(trainer.fit_loop.epoch_progress.current.processed),
+                "order_seed": self.order_seed()}
 
     def load_state_dict(self, state: Dict[str, int]) -> None:
         self.start_epoch = int(state.get("next_epoch", 0))
+        # a resumed fit goes on in the order it started with (a checkpoint written
+        # before the seed was kept: the run's seed, as then)
+        if "order_seed" in state:
+            self._resumed_seed = int(state["order_seed"])
 
     def _make(self, name: str, split: Optional[str], ids: Optional[Sequence[str]] = None
               ) -> SequenceChunks:
@@ -188,15 +214,18 @@ class GarmentDataModule(L.LightningDataModule):
                                 "without validation)"}.get(name, "")
             raise ValueError(f"`{name}`{msg[len('`split`'):]}{fix}") from None
 
-    def _train(self) -> SequenceChunks:
+    def _train(self, batches: bool = False) -> SequenceChunks:
+        """The training chunks; ``batches``: checked against ``batch_size`` (what a fit
+        draws; a test or predict run reads them only for the model's sizes)."""
         if self.train_set is None:
-            train = self._make("train_split", self.hparams.train_split, self.hparams.train_ids)
-            if self.hparams.batch_size > len(train):
-                raise ValueError(f"--data.batch_size: {self.hparams.batch_size} is more than "
-                                 f"the {len(train)} chunks of the {self.hparams.train_split!r} "
-                                 f"split; give at most {len(train)}")
-            self.train_set = train
-        return self.train_set
+            self.train_set = self._make("train_split", self.hparams.train_split,
+                                        self.hparams.train_ids)
+        train = self.train_set
+        if batches and self.hparams.batch_size > len(train):
+            raise ValueError(f"--data.batch_size: {self.hparams.batch_size} is more than "
+                             f"the {len(train)} chunks of the {self.hparams.train_split!r} "
+                             f"split; give at most {len(train)}")
+        return train
 
     def setup(self, stage: Optional[str] = None) -> None:
         """Build the chunks ``stage`` reads (``"fit"``, ``"validate"``, ``"test"``,
@@ -206,7 +235,7 @@ class GarmentDataModule(L.LightningDataModule):
             raise ValueError(f"`stage`: expected fit, validate, test, predict or None, "
                              f"got {stage!r}")
         if stage in (None, "fit"):
-            self._train()
+            self._train(batches=True)
         if stage in (None, "fit", "validate") and self.val_set is None \
                 and hp.val_split is not None:
             self.val_set = self._make("val_split", hp.val_split)
@@ -241,7 +270,7 @@ class GarmentDataModule(L.LightningDataModule):
     def _loader(self, ds: SequenceChunks, shuffle: bool, num_replicas: int = 1,
                 rank: int = 0, batch_size: int = 1) -> DataLoader:
         hp = self.hparams
-        sampler = EpochShuffleSampler(len(ds), hp.seed, shuffle, num_replicas, rank,
+        sampler = EpochShuffleSampler(len(ds), self.order_seed(), shuffle, num_replicas, rank,
                                       batch_size, ds.frame_counts())
         return DataLoader(ds, batch_size=None, sampler=sampler,
                           num_workers=hp.num_workers, collate_fn=_identity,
@@ -253,7 +282,7 @@ class GarmentDataModule(L.LightningDataModule):
         # strategy that does not shard the data)
         shard = trainer.distributed_sampler_kwargs if trainer is not None else None
         world, rank = (shard["num_replicas"], shard["rank"]) if shard else (1, 0)
-        dl = self._loader(self._train(), self.hparams.shuffle, world, rank,
+        dl = self._loader(self._train(batches=True), self.hparams.shuffle, world, rank,
                           self.hparams.batch_size)
         dl.sampler.set_epoch(self.start_epoch)
         return dl

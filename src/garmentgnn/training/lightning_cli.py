@@ -112,6 +112,13 @@ TRAINER_DEFAULTS: Dict[str, Any] = {
 }
 #: every argument linked from the data module
 LINKED = LINKS["instantiate"] + LINKS["parse"]
+#: the data settings a checkpoint's model learned from (the inputs it reads): with
+#: ``--ckpt_path`` any other value (a flag, a recipe's or a default) would hand it other
+#: inputs without a word, so each is compared with the checkpoint's data module
+MODEL_INPUTS = ("history", "num_landmarks", "nystrom_dim")
+#: ``fit --ckpt_path`` resumes a run exactly: the training windows and batches too
+RESUMED_ORDER = ("chunk", "stride", "batch_size", "drop_last", "shuffle", "train_split",
+                 "train_ids")
 
 
 def _plain(ns: Any) -> Dict[str, Any]:
@@ -324,7 +331,37 @@ class GarmentCLI(LightningCLI):
             raise CheckpointError(f"{ckpt_path}: {what}; the model is rebuilt from the "
                                   f"checkpoint's hyper-parameters, so drop the flag(s), or "
                                   f"start a new run without --ckpt_path")
+        self.check_checkpoint_data(sub, ckpt_path, ckpt)
         return cls_path
+
+    def check_checkpoint_data(self, sub: str, ckpt_path: str, ckpt: Dict[str, Any]) -> None:
+        """The data module is configured by the recipe and the flags, not rebuilt from
+        the checkpoint: a value of :data:`MODEL_INPUTS` other than the checkpoint's data
+        module's (``train predict --data.history 1`` on a model trained with 3) would give
+        the model other inputs than it learned from, and for ``fit`` one of
+        :data:`RESUMED_ORDER` another run than the one resumed; a
+        :class:`CheckpointError` naming each ``--data.*`` flag and both values."""
+        stored = ckpt.get("datamodule_hyper_parameters") or {}
+        data = _plain(self.config[sub].get("data"))
+        keys = MODEL_INPUTS + (RESUMED_ORDER if sub == "fit" else ())
+        defaults = _defaults(GarmentDataModule)
+        bad = {}
+        for k in keys:
+            if k not in stored:
+                continue
+            mine, theirs = data.get(k, defaults.get(k)), stored[k]
+            if isinstance(mine, (list, tuple)) and isinstance(theirs, (list, tuple)):
+                mine, theirs = list(mine), list(theirs)
+            if mine != theirs:
+                bad[f"--data.{k}"] = (mine, theirs)
+        if not bad:
+            return
+        what = ", ".join(f"{k} {v!r} (checkpoint: {c!r})" for k, (v, c) in sorted(bad.items()))
+        why = ("the model learned from inputs of the checkpoint's values" if sub != "fit"
+               else "a resumed run goes on with the checkpoint's data settings")
+        fix = ("give the checkpoint's values" if sub != "fit" else
+               "give the checkpoint's values, or start a new run without --ckpt_path")
+        raise CheckpointError(f"{ckpt_path}: {what}; {why}; {fix}")
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """Lightning's trainer, with a TensorBoard logger beside the CSV one

@@ -19,7 +19,8 @@ from lightning.pytorch import Trainer, seed_everything
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.datamodule import GarmentDataModule
 from garmentgnn.training.lightning_cli import GarmentCLI
-from garmentgnn.training.recipes import available, named_module, recipe_path
+from garmentgnn.training.recipes import (available, check_one_recipe, import_class,
+                                         model_of, named_module, recipe_path)
 
 __all__ = ["Recipe", "load_recipe"]
 
@@ -82,6 +83,20 @@ class Recipe:
                 f"root={self.datamodule.root})")
 
 
+def parser_problem(text: str) -> "tuple[Optional[str], str]":
+    """``(key, problem)`` of the parser's message: the innermost ``Parser key "K":`` and
+    the line after it (its first line names only the outermost key, ``"model"``, above
+    a dump of the whole configuration)."""
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    at = [i for i, ln in enumerate(lines) if ln.startswith("Parser key")]
+    if not at:
+        return None, lines[0] if lines else text
+    i = at[-1]
+    key = lines[i].split('"')[1] if lines[i].count('"') >= 2 else None
+    return key, (f"{lines[i].rstrip(':')}: {lines[i + 1]}" if i + 1 < len(lines)
+                 else lines[i])
+
+
 def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
                 data: Optional[Dict[str, Any]] = None,
                 set: Optional[Dict[str, Any]] = None) -> Recipe:
@@ -98,12 +113,24 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
     if not recipes:
         raise ValueError("`recipes`: give at least one recipe (e.g. 'gartrans'); "
                          f"the packaged ones: {', '.join(available())}")
+    for r in recipes:  # a module that does not import: named, not blamed on `args`
+        cls = model_of(r)["module"]
+        if cls:
+            try:
+                import_class(cls if "." in cls else f"garmentgnn.training.{cls}")
+            except ValueError:
+                where = str(r) if str(recipe_path(r)) == str(r) else f"{r} ({recipe_path(r)})"
+                raise ValueError(f"`recipes`: {where} names the module "
+                                 f"`model: class_path: {cls}`, and there is no such class; "
+                                 f"name a GarmentModule, e.g. garmentgnn.training."
+                                 f"GarTransModule") from None
     if isinstance(args, str):
         raise TypeError("`args`: expected a list of flags, got a string; "
                         "e.g. ['--data.root', 'data/small']")
     argv: List[str] = []
     for r in recipes:
         argv += ["--config", str(recipe_path(r))]
+    check_one_recipe([(str(r), recipe_path(r)) for r in recipes], "recipe")
     argv += [str(a) for a in args]
     for key, value in (data or {}).items():  # a string as it is, anything else as JSON
         argv += [f"--data.{key}", value if isinstance(value, str) else
@@ -126,6 +153,10 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
     try:
         cli.parser.validate(cli.config)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"`set`: {str(err).strip()}") from None
+        key, problem = parser_problem(str(err))
+        named = [k for k in (set or {}) if key is not None and k.rsplit(".", 1)[-1] == key]
+        which = ", ".join(f"{k!r} = {set[k]!r}" for k in named) if named else \
+            ", ".join(map(repr, set or {}))
+        raise ValueError(f"`set`: {which}: {problem}") from None
     cli.build()
     return Recipe(cli)

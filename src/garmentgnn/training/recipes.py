@@ -28,12 +28,12 @@ from __future__ import annotations
 import importlib
 from importlib import resources
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import yaml
 
-__all__ = ["available", "import_class", "model_of", "named_module", "recipe_path",
-           "recipes_of_model", "resolve_config_args"]
+__all__ = ["available", "check_one_recipe", "import_class", "model_of", "named_module",
+           "recipe_path", "recipes_of_model", "resolve_config_args"]
 
 _ROOT = resources.files("garmentgnn") / "recipes"
 
@@ -131,6 +131,7 @@ def resolve_config_args(args: Sequence[str]) -> List[str]:
     neither (nor an inline YAML/JSON document) is a ``ValueError`` listing the packaged
     names."""
     out = list(args)
+    configs = []
     for i, a in enumerate(out):
         if a == "--config" and i + 1 < len(out):
             j, value, prefix = i + 1, out[i + 1], ""
@@ -145,4 +146,23 @@ def resolve_config_args(args: Sequence[str]) -> List[str]:
                 raise ValueError(f"--config {value}: no such file, and no packaged recipe "
                                  f"of that name; give a YAML file or one of "
                                  f"{', '.join(available())}") from None
+        configs.append((value, out[j][len(prefix):]))
+    check_one_recipe(configs, "--config")
     return out
+
+
+def check_one_recipe(configs: Sequence[Tuple[str, Union[str, Path]]], flag: str) -> None:
+    """Refuse two complete recipes among ``configs`` (``(as given, path)`` pairs): each
+    names its module (``model: class_path``), so the later would replace the earlier
+    whole, its layer, losses and schedule dropped without a word (``--config
+    baselines/da --config ablations/gat`` trained the ablation).  A YAML file of
+    changes that names no module goes on top of one recipe as before."""
+    complete = [shown for shown, path in configs
+                if Path(path).is_file() and isinstance(_read(path).get("model"), dict)
+                and _read(path)["model"].get("class_path")]
+    if len(complete) > 1:
+        given = " and ".join(f"{flag} {c}" for c in complete)
+        raise ValueError(f"{given}: each is a complete recipe (it names its module, "
+                         f"`model: class_path`), so the later would replace the earlier "
+                         f"whole; give one recipe, and its changes as flags or in a YAML "
+                         f"file that names no module")

@@ -46,17 +46,27 @@ def viewer_bundle() -> str:
     naming the file and how to rebuild it.  ``garmentgnn show --html`` calls it before
     it renders anything."""
     bundle = bundle_path()
+    default = _REPO / "build" / "viewer" / "viewer.bundle.js"
+    if os.environ.get("GARMENTGNN_VIEWER_BUNDLE"):
+        # a path the user chose: named with the variable that chose it, and never to be
+        # deleted (it may be any file, a dataset's too)
+        name = f"the viewer bundle {bundle} (set by GARMENTGNN_VIEWER_BUNDLE)"
+        fix = (f"point GARMENTGNN_VIEWER_BUNDLE at the viewer's bundle, or unset it to use "
+               f"{default} ({BUILD_HINT})")
+        missing = fix
+    else:
+        name, fix, missing = f"the viewer bundle {bundle}", f"delete it and {BUILD_HINT}", \
+            BUILD_HINT
     if not bundle.is_file():
-        raise FileNotFoundError(f"the viewer bundle {bundle} is missing: {BUILD_HINT}")
+        raise FileNotFoundError(f"{name} is missing: {missing}")
     try:
         js = bundle.read_bytes().decode("utf-8")
     except UnicodeDecodeError as e:
-        raise ValueError(f"the viewer bundle {bundle} is not UTF-8 text (byte {e.start}): "
-                         f"a damaged file; delete it and {BUILD_HINT}") from None
+        raise ValueError(f"{name} is not UTF-8 text (byte {e.start}): not the viewer's "
+                         f"JavaScript; {fix}") from None
     if "glb" not in js:
         what = "empty" if not js.strip() else "not the viewer's JavaScript"
-        raise ValueError(f"the viewer bundle {bundle} is {what}; delete it and "
-                         f"{BUILD_HINT}")
+        raise ValueError(f"{name} is {what}; {fix}")
     return js
 
 
