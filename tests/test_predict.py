@@ -204,3 +204,23 @@ def test_a_padded_last_chunk_predicts_what_the_unpadded_eager_one_does(files, mo
     assert not compile_pays(module, 60, 288) and compile_pays(module, COMPILE_WORK // 288 + 1, 288)
     assert compile_pays(module, 60, 288, "cuda")
     assert not compile_pays(None, 10 ** 6, 288)
+
+
+def test_train_test_compiles_the_search_only_where_the_split_pays_it_back():
+    """`train test` and `predict` of a GarTrans checkpoint compiled its face search for
+    any split (10-20 s per process); now only from COMPILE_WORK vertex-frames on (CPU),
+    by the records of the split it evaluates, and a fit compiles as configured."""
+    from types import SimpleNamespace  # noqa: PLC0415
+
+    from garmentgnn.training.base import COMPILE_WORK  # noqa: PLC0415
+    from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415
+    module = load_checkpoint(GARTRANS)
+    assert module.hparams.compile_search and module.model.compile_search
+    small = SimpleNamespace(records=[{"num_frames": 60, "num_vertices": 288}] * 9)
+    large = SimpleNamespace(records=[{"num_frames": 60, "num_vertices": 400}] * 40)
+    assert 9 * 60 * 288 < COMPILE_WORK <= 40 * 60 * 400
+    assert not module.evaluation_compile(small) and not module.model.compile_search
+    assert module.evaluation_compile(large) and module.model.compile_search
+    assert module.evaluation_compile(None)  # nothing to count: as configured
+    module.hparams.compile_search = False
+    assert not module.evaluation_compile(large)

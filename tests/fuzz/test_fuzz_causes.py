@@ -188,3 +188,79 @@ def test_values_starting_with_a_minus_reach_their_flag(dataset, tmp_path_factory
     one_error_line(capsys, rc, flag)
     shutil.rmtree(tmp, ignore_errors=True)
     TALLY["minus values", "clear error"] += 1
+
+
+# 8: a spec file's values converted unchecked
+@pytest.fixture(scope="module")
+def own_files(tmp_path_factory):
+    """A skirt file made on anny's regular body and a walk take (test_own_garment's)."""
+    import trimesh  # noqa: PLC0415
+
+    from garmentgnn.body.factory import build_body  # noqa: PLC0415
+    from garmentgnn.garments import make_garment  # noqa: PLC0415
+    from garmentgnn.motion import make_motion  # noqa: PLC0415
+    from garmentgnn.motion.bvh import save_bvh  # noqa: PLC0415
+    d = tmp_path_factory.mktemp("own")
+    body = build_body({"model": "anny", "shape": "regular"})
+    g = make_garment("skirt", body, resolution=200, length="mini")
+    trimesh.Trimesh(g.vertices.numpy(), g.faces.numpy(), process=False).export(d / "skirt.obj")
+    m = make_motion("walk", body.skeleton, num_frames=24, fps=120.0,
+                    rest_joints=body.joints.double())
+    save_bvh(d / "walk.bvh", m, body.skeleton, body.joints, scale=0.01)
+    return d
+
+
+@FUZZ
+@given(key=st.sampled_from(["scale", "start", "fps", "mapping", "up"]),
+       value=st.sampled_from(["cm", "-2", "nan", "[1, 2]", "{a: 1}", "true", "-0.5", "0",
+                              "1e999", "''"]))
+def test_spec_values_name_their_key(own_files, tmp_path_factory, capsys, key, value):
+    """Any value of a BVH entry's key: accepted, or one error line naming the key (never
+    Python's conversion words, never a spec written before the refusal)."""
+    spec = own_files / f"fuzz-{key}.yaml"
+    spec.write_text(f"name: f\nengine: torch\nfps: 30\nframes: 3\nbodies: [regular]\n"
+                    f"garments:\n  - file: skirt.obj\nmotions:\n"
+                    f"  - {{file: walk.bvh, scale: 0.01, {key}: {value}}}\n")
+    out = tmp_path_factory.mktemp("spec") / "out"
+    from garmentgnn.data.spec_file import load_spec  # noqa: PLC0415
+    try:
+        load_spec(spec)
+    except ValueError as exc:
+        msg = str(exc)
+        assert f"`motions[0].{key}`" in msg or "fps" in msg, msg
+        assert "could not convert" not in msg and "invalid literal" not in msg, msg
+        rc = cli_main(["generate", "--spec", str(spec), "--out", str(out), "--no-estimate",
+                       "--no-progress", "--workers", "0"])
+        one_error_line(capsys, rc, spec.name)
+        assert not out.exists()
+        TALLY["spec values", "clear error"] += 1
+        return
+    TALLY["spec values", "result"] += 1
+
+
+# 9: a sparse adjacency of another layout than [num_dst, num_src(, edge_dim)]
+@FUZZ
+@given(sparse=st.integers(1, 4), dense=st.integers(0, 2), batch=st.booleans())
+def test_sparse_adjacency_layouts_are_named(sparse, dense, batch):
+    import torch  # noqa: PLC0415
+
+    from garmentgnn.nn import SATConv  # noqa: PLC0415
+    conv = SATConv(8, 4, heads=2, edge_dim=3).eval()
+    x = torch.randn(5, 8)
+    if batch:
+        adj = torch.ones(2, 5, 5).to_sparse_csr()
+    else:
+        size = (5,) * sparse + (3,) * dense
+        idx = torch.tensor([[0, 1, 3, 4, 2]] * sparse)
+        idx[min(1, sparse - 1)] = torch.tensor([1, 2, 4, 0, 2])
+        adj = torch.sparse_coo_tensor(idx, torch.randn((5,) + (3,) * dense), size)
+    good = not batch and sparse == 2 and dense <= 1
+    try:
+        out = conv(x, adj, None if dense == 1 else torch.randn(5, 3))
+    except ValueError as exc:
+        assert not good, exc
+        assert str(exc).startswith("`edge_index`: "), exc
+        TALLY["sparse adjacency layouts", "clear error"] += 1
+        return
+    assert good and torch.isfinite(out).all()
+    TALLY["sparse adjacency layouts", "result"] += 1

@@ -34,6 +34,8 @@ from garmentgnn.models.inputs import GarmentInputs, with_frames
 from garmentgnn.motion import MOTIONS, make_motion
 from garmentgnn.motion.sequence import Motion
 from garmentgnn.physics.materials import MATERIALS
+from garmentgnn.training.base import COMPILE_WORK
+from garmentgnn.training.base import compile_pays as work_pays
 from garmentgnn.training.simulator import SimulatorModule
 from garmentgnn.viz.compare import data_settings, load_checkpoint
 
@@ -42,11 +44,6 @@ PathLike = Union[str, Path]
 LBS = "lbs"
 #: frames per frame-parallel chunk when a checkpoint does not say (the data module's)
 DEFAULT_CHUNK = 8
-#: garment vertex-frames (frames x vertices) from which compiling GarTrans's nearest-face
-#: search pays back on the CPU: on 2 idle cores the compile costs 3.9-5.2 s once and
-#: saves 0.010-0.015 ms per vertex-frame (288 and 2,040 vertices), even at about
-#: 330,000-375,000 (docs/results/predict_compile)
-COMPILE_WORK = 350_000
 
 
 @dataclass
@@ -253,7 +250,7 @@ def compile_pays(module, frames: int, vertices: int,
     eager loses on the take), on a GPU always; ``False`` for a module without one."""
     if not getattr(getattr(module, "model", None), "compile_search", False):
         return False
-    return torch.device(device).type != "cpu" or frames * vertices >= COMPILE_WORK
+    return work_pays(frames * vertices, device)
 
 
 @torch.no_grad()

@@ -104,6 +104,17 @@ def destroy_gloo_group_at_exit() -> None:
 #: (docs/model.md: 1.25x a GarTrans step, the largest single saving), a one-off compile
 #: of 10-20 s per process
 COMPILE_SEARCH = True
+#: garment vertex-frames (frames x vertices) from which that compile pays back where
+#: nothing trains (``predict``, ``train test``): on 2 idle CPU cores it costs 3.9-5.2 s
+#: once and saves 0.010-0.015 ms per vertex-frame (docs/results/predict_compile)
+COMPILE_WORK = 350_000
+
+
+def compile_pays(work: int, device: Any = "cpu") -> bool:
+    """Whether compiling the nearest-face search pays back on ``work`` garment
+    vertex-frames evaluated on ``device``: on a CPU from :data:`COMPILE_WORK` on, on a
+    GPU always."""
+    return torch.device(device).type != "cpu" or work >= COMPILE_WORK
 
 class GarmentModule(L.LightningModule):
     """Base of the garment methods trained by ``garmentgnn train`` (a batch of chunks

@@ -101,7 +101,8 @@ def load_recipe(*recipes: Union[str, Path], args: Sequence[str] = (),
                 data: Optional[Dict[str, Any]] = None,
                 set: Optional[Dict[str, Any]] = None) -> Recipe:
     """Read ``recipes`` (packaged names or YAML paths, later ones over earlier ones, as
-    repeated ``--config``), ``args`` (``garmentgnn train`` flags, e.g.
+    repeated ``--config``; at most one of them a complete recipe, the others files of
+    changes that name no module), ``args`` (``garmentgnn train`` flags, e.g.
     ``["--data.root", "data/small", "--seed_everything", "1"]``) and ``data`` (data
     module settings as values, ``{"root": path, "val_split": None, "history": 2}``,
     given as the ``--data.*`` flags after ``args``) with the CLI's parser, change the

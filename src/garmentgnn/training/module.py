@@ -16,7 +16,7 @@ import torch
 from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs, vertex_loss
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.base import COMPILE_SEARCH, GarmentModule
+from garmentgnn.training.base import COMPILE_SEARCH, GarmentModule, compile_pays
 from garmentgnn.training.schedule import ProgressiveSchedule
 
 
@@ -158,6 +158,39 @@ class GarTransModule(GarmentModule):
     def encode_static(self, inp: GarmentInputs) -> StaticFeatures:
         """The static branch of ``inp``'s garments (:meth:`GarTrans.encode_static`)."""
         return self.model.encode_static(inp)
+
+    # -- compiling where it pays back ------------------------------------------------
+    def evaluation_compile(self, chunks: Any) -> bool:
+        """Compile the nearest-face search (``compile_search``) for an evaluation that
+        trains nothing only where its work pays the compilation back: the garment
+        vertex-frames of ``chunks``' records (:func:`~garmentgnn.training.base.
+        compile_pays`); the same numbers either way.  Returns what it chose."""
+        records = getattr(chunks, "records", None) or []
+        work = sum(int(r.get("num_frames") or 0) * int(r.get("num_vertices") or 0)
+                   for r in records)
+        on = bool(self.hparams.get("compile_search", COMPILE_SEARCH)) and (
+            not records or compile_pays(work, self.device))
+        self.model.compile_search = on
+        return on
+
+    def _evaluated(self, name: str) -> Any:
+        trainer = getattr(self, "_trainer", None)
+        dm = getattr(trainer, "datamodule", None) if trainer is not None else None
+        return getattr(dm, name, None)
+
+    def on_fit_start(self) -> None:
+        self.model.compile_search = bool(self.hparams.get("compile_search", COMPILE_SEARCH))
+
+    def on_test_start(self) -> None:
+        self.evaluation_compile(self._evaluated("test_set"))
+
+    def on_predict_start(self) -> None:
+        self.evaluation_compile(self._evaluated("predict_set"))
+
+    def on_validation_start(self) -> None:
+        trainer = getattr(self, "_trainer", None)
+        if trainer is not None and trainer.state.fn != "fit":  # `train validate`
+            self.evaluation_compile(self._evaluated("val_set"))
 
     def forward(self, inp: GarmentInputs, static: Optional[StaticFeatures] = None,
                 autoregressive: bool = False) -> Dict[str, torch.Tensor]:
