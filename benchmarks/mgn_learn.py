@@ -34,7 +34,6 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
-import numpy as np
 import torch
 
 from garmentgnn.data import SequenceChunks
@@ -44,9 +43,10 @@ from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.model_inputs import BenchChunks
-from garmentgnn.bench.scoring import GROUPS, aggregate, score, stratified, wilcoxon
+from garmentgnn.bench.scoring import score, stratified
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.training import SimulatorModule
+from garmentgnn.training.simulator import START_STATES
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.lightning_cli import method_name
 from garmentgnn.viz.compare import load_checkpoint
@@ -56,11 +56,9 @@ from garmentgnn.viz.compare import load_checkpoint
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.append(str(HERE))
+from mgn_parts.report import GIVEN, _by_seq, plot_per_frame, score_table  # noqa: E402
 from mgn_parts.runs import run_branch, run_steptime, run_sweep  # noqa: E402
 
-#: the frames a rollout is given (not scored, for any method)
-GIVEN = 2
-METRICS = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
 
 
 class Scored(SequenceChunks):
@@ -153,6 +151,14 @@ def score_methods(args: argparse.Namespace):
         name = f"MGN-style ({start})"
         modules[name] = mgn
         methods[name] = (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
+    if mgn is not None and args.project:  # the same model with the projection after each step
+        sweeps, margin = int(args.project[0]), float(args.project[1])
+        projected = load_checkpoint(args.mgn)
+        projected.model.strain_limit, projected.model.collision_margin = sweeps, margin
+        for start in args.starts:
+            name = f"MGN-style ({start}, projected)"
+            modules[name] = projected
+            methods[name] = (lambda s: (lambda item: projected.rollout(item, start=s)))(start)
     for spec in args.other:
         name, eq, path = spec.partition("=")
         if not eq or not name or not path:
@@ -221,81 +227,6 @@ def run_score(args: argparse.Namespace) -> None:
     print(score_table(results))
 
 
-def _by_seq(records, metric="E_dist") -> Dict[str, float]:
-    return {r["sequence"]: r["metrics"][metric] for r in records}
-
-
-def score_table(results: Dict[str, Any]) -> str:
-    meth = results["methods"]
-    lbs = aggregate(meth["LBS only"])
-    lines = [f"Dataset `{str(results.get('content_sha256'))[:12]}`, split "
-             f"`{results['split']}`, {len(meth['LBS only'])} sequences, valid frames from "
-             f"frame {GIVEN} on.", "",
-             "| method | " + " | ".join(METRICS) + " | x LBS (E_dist) | s/sequence |",
-             "|---|" + "---:|" * (len(METRICS) + 2)]
-    for name, recs in meth.items():
-        a = aggregate(recs)["all"]
-        secs = results["seconds"].get(name)
-        lines.append(f"| {name} | " + " | ".join(f"{a[m]:.4g}" for m in METRICS)
-                     + f" | {a['E_dist'] / lbs['all']['E_dist']:.3f} | "
-                     + (f"{secs / max(1, len(recs)):.2f}" if secs else "—") + " |")
-    lines += ["", "Per held-out group, E_dist as a ratio to LBS's:", "",
-              "| method | " + " | ".join(GROUPS) + " |", "|---|" + "---:|" * len(GROUPS)]
-    lines.append("| LBS only (cm) | " + " | ".join(
-        f"{lbs[g]['E_dist']:.2f}" if g in lbs else "—" for g in GROUPS) + " |")
-    for name, recs in meth.items():
-        if name == "LBS only":
-            continue
-        a = aggregate(recs)
-        lines.append(f"| {name} | " + " | ".join(
-            f"{a[g]['E_dist'] / lbs[g]['E_dist']:.3f}" if g in a and g in lbs else "—"
-            for g in GROUPS) + " |")
-    mgn = [n for n in meth if n.startswith("MGN-style")]
-    lines += ["", "Paired Wilcoxon signed-rank tests over sequences (median difference "
-              "in cm, negative: the first lower; wins: share of sequences where it is "
-              "lower):", "", "| pair | metric | n | median diff | wins | p |",
-              "|---|---|---:|---:|---:|---:|"]
-    for a in mgn:
-        for b in meth:
-            if b.startswith("MGN-style"):
-                continue
-            for metric in ("E_dist", "E_len", "E_curv", "collision_rate"):
-                try:
-                    w = wilcoxon(_by_seq(meth[a], metric), _by_seq(meth[b], metric))
-                except ValueError:
-                    continue
-                lines.append(f"| {a} vs {b} | {metric} | {w['n']} | {w['median_diff']:.4g} | "
-                             f"{w['wins']:.2f} | {w['p']:.2g} |")
-    return "\n".join(lines) + "\n"
-
-
-def plot_per_frame(results: Dict[str, Any], path: Path) -> None:
-    plt = pyplot()
-    valid = results.get("valid") or {}
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, frames in results["per_frame"].items():
-        T = max(len(v) for v in frames.values())
-        sums, counts = np.zeros(T), np.zeros(T)
-        for seq, vals in frames.items():
-            ok = valid.get(seq, [True] * len(vals))
-            for t, (v, k) in enumerate(zip(vals, ok)):
-                if k:
-                    sums[t] += v
-                    counts[t] += 1
-        mean = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
-        ax.plot(np.arange(T), mean, label=name, lw=1.5 if "MGN" in name else 1.0)
-    ax.set_xlabel("frame")
-    ax.set_ylabel("E_dist (cm), mean over sequences")
-    ax.set_title(f"error per frame, {results['split']} "
-                 f"({str(results.get('content_sha256'))[:8]})")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-# -- learning curves -------------------------------------------------------------------------
 def one_step_and_rollout(module: SimulatorModule, test: Scored) -> Dict[str, float]:
     """Mean over ``test``'s sequences of the one-step error (each frame predicted from the
     two simulated frames before it) and the rollout E_dist (from frames 0 and 1), cm, on
@@ -454,7 +385,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--mgn", default=None, help="the MGN-style checkpoint (score, stability)")
     p.add_argument("--split", default="test", help="score: the split rolled out")
     p.add_argument("--starts", nargs="+", default=["gt", "drape"],
-                   choices=["gt", "drape", "lbs"], help="score: where the rollouts start")
+                   choices=list(START_STATES), help="score: where the rollouts start")
+    p.add_argument("--project", nargs=2, default=None, metavar=("SWEEPS", "MARGIN_M"),
+                   help="score: also the MGN-style model with the strain limit (SWEEPS) and "
+                        "the collision projection (MARGIN_M metres) after each step")
     p.add_argument("--other", nargs="*", default=[], metavar="NAME=CKPT",
                    help="score: other checkpoints scored beside it")
     p.add_argument("--merge", nargs="*", default=[], metavar="SCORE.json",

@@ -26,6 +26,7 @@ import csv
 import json
 import os
 import random
+import shlex
 import shutil
 import subprocess
 import sys
@@ -36,7 +37,7 @@ from typing import Any, Dict, List, Optional
 
 import torch
 
-from garmentgnn._argparse import ArgumentParser, HelpFormatter
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, add_output_args, output_path
 from garmentgnn.data import compact
 from garmentgnn.data.store import read_manifest
 from garmentgnn.training.integrity import stamp_checkpoint
@@ -46,8 +47,11 @@ REPO = HERE.parent
 sys.path.insert(0, str(HERE))
 from gpu_window import CARRY_LIMIT  # noqa: E402
 from gpu_window_prepare import download_wheels, folder_bytes, working_tree_bytes  # noqa: E402
+from mgn_parts.runs import run_steptime  # noqa: E402
 
 DIR = REPO / "build" / "mgn_levers"
+#: the committed copy (``--commit``)
+RESULTS = REPO / "docs" / "results" / "mgn_learn" / "levers_gpu"
 PACK = "learn.zip"
 #: each lever: the flags it adds to today's recipe
 LEVERS: Dict[str, List[str]] = {
@@ -136,6 +140,11 @@ def run(a: argparse.Namespace) -> int:
     if not (data / "manifest.json").is_file():
         compact.unpack(Path(a.dir) / PACK, data, cache_dir=work / "cache")
     env = dict(os.environ, GARMENTGNN_CACHE_DIR=str(work / "cache"), OMP_NUM_THREADS="2")
+    if a.steptime:  # ms per training step against size and batch on this device
+        os.environ["GARMENTGNN_CACHE_DIR"] = env["GARMENTGNN_CACHE_DIR"]
+        run_steptime(argparse.Namespace(data=str(data), out=str(out), threads=[4],
+                                        repeats=a.repeats, device=a.device))
+        return 0
     seconds = a.seconds
     procs = {}
     for name in a.levers:
@@ -153,7 +162,7 @@ def run(a: argparse.Namespace) -> int:
                "--trainer.limit_val_batches", str(a.val_batches),
                "--trainer.enable_progress_bar", "false",
                "--trainer.default_root_dir", str(folder),
-               "--trainer.logger.init_args.save_dir", str(folder)] + LEVERS[name]
+               "--trainer.logger.init_args.save_dir", str(folder)] + LEVERS[name] + a.extra
         log = open(folder / "log.txt", "wb")
         log.write((" ".join(cmd) + "\n").encode())
         log.flush()
@@ -196,35 +205,49 @@ def run(a: argparse.Namespace) -> int:
 
 def main(argv: Optional[List[str]] = None) -> int:
     ap = ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
-    sub = ap.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("prepare", help="the carried folder: a sample of DATA and wheels")
-    p.add_argument("--data", required=True, help="the `learn` dataset folder")
-    p.add_argument("--dir", default=str(DIR))
-    p.add_argument("--val", type=int, default=16, help="validation sequences carried")
-    p.add_argument("--seed", type=int, default=0, help="the sample's seed")
-    p.add_argument("--max-mb", type=float, default=30.0)
-    p.add_argument("--no-wheels", dest="wheels", action="store_false")
-    # what gpu_window.sh passes
-    r = sub.add_parser("run", help="every lever at once (the GPU machine)")
-    r.add_argument("--dir", default=str(DIR))
-    r.add_argument("--out", default="/tmp/mgn_levers_out")
-    r.add_argument("--work", default="/tmp/mgn_levers_work")
-    r.add_argument("--device", default="cuda")
-    r.add_argument("--budget-s", type=float, default=550.0)
-    r.add_argument("--setup-log", default=None)
-    r.add_argument("--seconds", type=int, default=330, help="each lever's training time")
-    r.add_argument("--max-steps", type=int, default=6250)
-    r.add_argument("--val-every", type=int, default=1500)
-    r.add_argument("--val-batches", type=float, default=1.0,
-                   help="validation batches (of 16 sequences) a check rolls out")
-    r.add_argument("--workers", type=int, default=1)
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--levers", nargs="+", default=list(LEVERS), choices=list(LEVERS))
-    argv = sys.argv[1:] if argv is None else argv
-    if argv and argv[0].startswith("-"):  # gpu_window.sh's options: a run
-        argv = ["run"] + list(argv)
+    ap.add_argument("command", nargs="?", default="run", choices=["prepare", "run"],
+                    help="prepare: the carried folder (a sample of --data, the wheels); "
+                         "run: every lever at once (the GPU machine; what gpu_window.sh "
+                         "calls)")
+    ap.add_argument("--dir", default=str(DIR), help="the carried folder")
+    ap.add_argument("--data", default=None, help="prepare: the `learn` dataset folder")
+    ap.add_argument("--val", type=int, default=16, help="prepare: validation sequences carried")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="prepare: the sample's seed; run: every lever's --seed_everything")
+    ap.add_argument("--max-mb", type=float, default=30.0,
+                    help="prepare: MB of packed data at most (less where the device's 64 MiB "
+                         "would be exceeded)")
+    ap.add_argument("--no-wheels", dest="wheels", action="store_false",
+                    help="prepare: keep the wheels folder as it is (default: download them)")
+    add_output_args(ap, RESULTS, "run: the folder for summary.json and levers.tar.gz")
+    ap.add_argument("--work", default="/tmp/mgn_levers_work",
+                    help="run: scratch folder (the unpacked data)")
+    ap.add_argument("--device", default="cuda", help="run: cuda, or cpu for a dry run")
+    ap.add_argument("--budget-s", type=float, default=550.0,
+                    help="run: seconds for everything (gpu_window.sh passes the time left)")
+    ap.add_argument("--setup-log", default=None, help="run: gpu_window.sh's set-up log")
+    ap.add_argument("--seconds", type=int, default=330, help="run: each lever's training time")
+    ap.add_argument("--max-steps", type=int, default=6250, help="run: each lever's step cap")
+    ap.add_argument("--val-every", type=int, default=1500,
+                    help="run: training batches between validations")
+    ap.add_argument("--val-batches", type=float, default=1.0,
+                    help="run: share (or number) of the validation sequences a check rolls out")
+    ap.add_argument("--workers", type=int, default=1, help="run: loader processes a lever")
+    ap.add_argument("--levers", nargs="+", default=list(LEVERS), choices=list(LEVERS),
+                    help="run: the levers trained")
+    ap.add_argument("--extra", type=shlex.split, default=[],
+                    help="run: flags added to every lever's run, as one string")
+    ap.add_argument("--steptime", action="store_true",
+                    help="run: instead, ms per training step against size and batch "
+                         "(mgn_learn.py steptime on this device; default: off)")
+    ap.add_argument("--repeats", type=int, default=20, help="run --steptime: timed steps a size")
     a = ap.parse_args(argv)
-    return prepare(a) if a.command == "prepare" else run(a)
+    if a.command == "prepare":
+        if a.data is None:
+            ap.error("--data: prepare packs a sample of a dataset; name its folder")
+        return prepare(a)
+    a.out = str(output_path(a, RESULTS))
+    return run(a)
 
 
 if __name__ == "__main__":

@@ -286,9 +286,12 @@ def test_every_method_fits_batched_through_the_trainer(root):
 def test_bf16_autocast_keeps_positions_and_loss_in_float32(root, chunks, method, several):
     """Under ``torch.autocast(bfloat16)`` the networks run in bfloat16 while the
     kinematics, skinning, post-steps, HOOD's integration and the loss stay float32: the
-    prediction is float32 and within 1 mm of the float32 run's, the loss within 1e-3 of it
-    (bfloat16 positions are ~4 mm off at 1 m: GarTrans's and HOOD-style's steps raised on
-    the mixed dtypes, DA-style's loss moved by up to 3x its value)."""
+    prediction is float32 and within 1 mm of the float32 run's, the loss within 3e-3 of it
+    (relative: under bfloat16's own 2^-8 = 3.9e-3 a rounding; the loss moved by 1.2-1.4e-3
+    with the weights of seed 0 since the layers' construction stopped drawing random
+    numbers). The bug it guards against is orders of magnitude larger: bfloat16 positions
+    are ~4 mm off at 1 m, GarTrans's and HOOD-style's steps raised on the mixed dtypes and
+    DA-style's loss moved by up to 3x its value."""
     module = recipe_module(method, root, DATA).eval()
     idx = pick(chunks)
     batch = chunks[idx] if several else chunks[idx[0]]
@@ -309,7 +312,7 @@ def test_bf16_autocast_keeps_positions_and_loss_in_float32(root, chunks, method,
             pred16, loss16 = run()
     assert pred.dtype == pred16.dtype == loss16.dtype == torch.float32
     assert (pred16 - pred).abs().max() < 1e-3
-    assert abs(float(loss16) / float(loss) - 1) < 1e-3
+    assert abs(float(loss16) / float(loss) - 1) < 3e-3
 
 
 def test_bucket_sizes_are_few_and_above_the_size():

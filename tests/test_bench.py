@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from garmentgnn.bench import runner, precision, presets, report, stability, tables, timing
+from garmentgnn.models.inputs import skin
 from garmentgnn.bench.cli import _command, _learned_overrides
 from garmentgnn.bench.records import NOT_RUN, failure, section
 from garmentgnn.bench.sequences import case_item, make_sequence
@@ -323,3 +324,31 @@ def test_failed_record_fields_and_report_section_start():
     recs, lines = section([{"kind": "a", "i": 0}, {"kind": "b"}, {"kind": "a", "i": 1}], "a", "A")
     assert [r["i"] for r in recs] == [0, 1] and lines == ["## A", ""]
     assert section([{"kind": "b"}], "a", "A") == ([], ["## A", "", NOT_RUN, ""])
+
+
+def test_energy_growth_is_measured_against_the_lbs_garment():
+    """A rollout that starts at rest is not scored against its (zero) start energy: LBS
+    itself grows by 1 at most (it was 8e8 on `learn`), a garment held at rest has no
+    growth, and a tenfold jump in the LBS garment's speed at one frame is measured
+    against the LBS garment's largest energy."""
+    item = presets.preset("tiny").stability_item
+    seq, _ = stability.stability_sequence("baseline", item, 0)
+    T = seq.num_frames
+    m = seq.motion
+    lbs, _ = skin(seq.scene, m.rotations.to(seq.scene.rest_pos.dtype),
+                  m.translation.to(seq.scene.rest_pos.dtype))
+    lbs = lbs.double()
+    out = stability.stability_metrics(seq, lbs)
+    assert out["energy_growth"] <= 1.0 + 1e-9
+    still = stability.stability_metrics(seq, seq.scene.rest_pos.double().expand(T, -1, -1))
+    assert still["energy_growth"] <= 1.0
+    assert stability.verdict(out, True, 0)[0] != "failed"
+    # from frame k >= 2 on, shifted so that frame k's velocity is 10x LBS's there
+    v = (lbs[1:] - lbs[:-1])
+    k = int(v[1:].norm(dim=-1).amax(-1).argmax()) + 2
+    fast = lbs.clone()
+    fast[k:] += 9 * v[k - 1]
+    e = stability.garment_energy(seq, fast)
+    assert float(e.max()) / out["lbs_max_energy_J"] == pytest.approx(
+        stability.stability_metrics(seq, fast)["energy_growth"])
+    assert stability.stability_metrics(seq, fast)["energy_growth"] > 2

@@ -13,6 +13,9 @@ from scipy.spatial import cKDTree
 
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import SequenceChunks
+from garmentgnn.geometry import push_outside
+from garmentgnn.geometry.measures import edge_lengths, project_edge_lengths
+from garmentgnn.geometry.mesh import unique_edges
 from garmentgnn.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from garmentgnn.models import EncodeProcessDecode, MGNStyle
 from garmentgnn.models.baselines import DAStyle
@@ -154,6 +157,14 @@ def test_a_step_integrates_the_acceleration_and_pins_to_lbs(root):
         m = model.scene_motion(batch)
         xp, xc = batch.gt[0], batch.gt[1]
         a = model.acceleration(model(batch, m, 2, xp, xc), m, 2)
+        nxt = model.step(batch, m, 2, xp, xc)
+        free = 2 * xc - xp + a  # the update equation; the step projects it (tested below)
+        free[:20] = m.lbs[2, :20]
+        projected = model.project(batch, m, 2, free)
+    torch.testing.assert_close(nxt, projected)
+    torch.testing.assert_close(nxt[:20], m.lbs[2, :20])
+    model.strain_limit, model.collision_margin = 0, None  # without the projection
+    with torch.no_grad():
         nxt = model.step(batch, m, 2, xp, xc)
     torch.testing.assert_close(nxt[20:], (2 * xc - xp + a)[20:])
     torch.testing.assert_close(nxt[:20], m.lbs[2, :20])
@@ -533,3 +544,62 @@ def test_each_rollout_mode_steps_the_optimizer_as_documented(root, mode, frames,
     assert len(count.norms) == steps
     # the norm seen before the step is the clipped one
     assert max(count.norms) <= 1e-3 * (1 + 1e-4)
+
+
+def test_the_projection_uses_the_strain_limit_and_the_collision_projection(root):
+    """A step's projection is the toolkit's strain limit, then its collision projection
+    against the garment's own body, pinned vertices back on LBS (against those functions
+    called directly: a batch of two garments projects each against its own body)."""
+    torch.manual_seed(0)
+    batch = windows(root)[[0, 6]]
+    model = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=3, collision_margin=0.004)
+    m = model.scene_motion(batch)
+    x = batch.gt[2] + 0.01 * torch.randn_like(batch.gt[2])
+    got = model.project(batch, m, 2, x)
+    plain = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=0, collision_margin=None)
+    assert plain.project(batch, plain.scene_motion(batch), 2, x) is x  # off: unchanged
+    edges = unique_edges(batch.faces, batch.num_vertices).edges
+    want = project_edge_lengths(x, edges, edge_lengths(batch.rest_pos, edges), 3,
+                                stretch_only=True)
+    for n in range(2):  # each garment against its own body
+        rows = m.vertex_chunk == n
+        body = batch.body_pos[2].view(2, -1, 3)[n]
+        faces = items_body_faces(batch, n)
+        want[rows] = push_outside(want[rows], body, faces, 0.004)
+    want = torch.where(m.pinned.unsqueeze(1), m.lbs[2], want)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
+    assert not torch.equal(got, x)
+
+
+def items_body_faces(batch, n):
+    """Garment ``n``'s body faces in its own body's vertex numbering."""
+    faces = batch.body_faces
+    Vb = batch.body_pos.shape[1] // batch.num_chunks
+    per = faces.shape[0] // batch.num_chunks
+    return faces[n * per:(n + 1) * per] - n * Vb
+
+
+def test_the_preroll_start_settles_on_the_first_pose_then_follows_the_motion(root):
+    """``start="preroll"``: the LBS garment of frame 0 held still, ``preroll_frames``
+    steps with the body held at frame 0, then the motion; against the model's steps
+    called by hand (no ground truth read)."""
+    torch.manual_seed(0)
+    item = SequenceChunks(root, "val", chunk=8, history=1, nystrom_dim=NY,
+                          num_landmarks=16)[0]
+    model = trained_stats(MGNStyle(hidden=8, layers=1, heads=1), windows(root)[[0, 6]])
+    module = SimulatorModule(model, preroll_frames=3).eval()
+    bare = item.clone()
+    del bare.gt
+    with torch.no_grad():
+        got = module.rollout(bare, start="preroll")
+        assert got.shape == item.gt.shape
+        held = item.select(torch.zeros(4, dtype=torch.long))
+        m0 = model.scene_motion(held)
+        l0 = m0.lbs[0]
+        a = model.step(held, m0, 2, l0, l0)
+        b = model.step(held, m0, 3, l0, a)
+        torch.testing.assert_close(got[0], b)
+        zero = SimulatorModule(model, preroll_frames=0).eval()
+        m = model.scene_motion(item)
+        torch.testing.assert_close(zero.rollout(bare, start="preroll"),
+                                   model.rollout(item, m.lbs[0], m.lbs[0], m))

@@ -97,6 +97,8 @@ def run_branch(args: argparse.Namespace) -> None:
 #: (width, blocks, garments a step) timed by ``steptime``
 STEP_SIZES = ((64, 8, 1), (64, 10, 1), (128, 15, 1), (32, 8, 16), (64, 4, 16), (64, 8, 16),
               (64, 10, 16), (128, 8, 16))
+#: ``--device cuda``: the recipe's size at growing batches, and MeshGraphNets' own size
+GPU_STEP_SIZES = ((64, 8, 16), (64, 8, 64), (64, 8, 256), (128, 15, 16), (128, 15, 64))
 
 
 def run_steptime(args: argparse.Namespace) -> None:
@@ -107,19 +109,24 @@ def run_steptime(args: argparse.Namespace) -> None:
     data = ["--data.root", str(args.data), "--data.chunk", "3", "--seed_everything", "0"]
     ds = load_recipe("mgn", args=data).datamodule.train_set
     g = torch.Generator().manual_seed(0)
-    results: Dict[str, Any] = {"data": args.data, "sizes": {}, "torch": torch.__version__}
+    device = torch.device(getattr(args, "device", "cpu"))
+    sizes = STEP_SIZES if device.type == "cpu" else GPU_STEP_SIZES
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    results: Dict[str, Any] = {"data": args.data, "sizes": {}, "torch": torch.__version__,
+                               "device": torch.cuda.get_device_name(device)
+                               if device.type == "cuda" else "cpu"}
     for threads in args.threads:
         torch.set_num_threads(threads)
         steps = {}
-        for hidden, layers, n in STEP_SIZES:
+        for hidden, layers, n in sizes:
             module = load_recipe("mgn", args=data, set={  # at seed 0
                 "model.init_args.model.init_args.hidden": hidden,
                 "model.init_args.model.init_args.layers": layers,
                 "model.init_args.stats_steps": 0, "model.init_args.rollout": 1}).module
-            module.train()
+            module.to(device).train()
             opt = torch.optim.Adam(module.parameters(), 1e-4)
-            batches = [ds[torch.randperm(len(ds), generator=g)[:n].tolist()] if n > 1 else
-                       ds[int(torch.randint(len(ds), (1,), generator=g))]
+            batches = [(ds[torch.randperm(len(ds), generator=g)[:n].tolist()] if n > 1 else
+                        ds[int(torch.randint(len(ds), (1,), generator=g))]).to(device)
                        for _ in range(args.repeats + 2)]
             it = iter(range(10 ** 9))
 
@@ -133,8 +140,10 @@ def run_steptime(args: argparse.Namespace) -> None:
         times: Dict[Any, List[float]] = {k: [] for k in steps}
         for r in range(args.repeats + 2):  # interleaved: each size in every round
             for k, fn in steps.items():
+                sync()
                 t0 = time.perf_counter()
                 fn()
+                sync()
                 if r >= 2:
                     times[k].append(time.perf_counter() - t0)
         for (hidden, layers, n), ts in times.items():

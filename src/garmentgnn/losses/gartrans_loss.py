@@ -41,6 +41,7 @@ from garmentgnn.geometry import (NearestFaceCache, angle_defect_difference, edge
                                  full_precision, signed_distance, unique_edges,
                                  vertex_normals)
 from garmentgnn.physics import (
+    COLLISION_MARGIN,
     ClothRest,
     bending_energy,
     collision_energy,
@@ -151,7 +152,7 @@ class GarTransLoss(nn.Module):
 
     def __init__(self, weights: Optional[Dict[str, float]] = None,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
-                 collision_margin: float = 2e-3, edge_reduction: str = "sum",
+                 collision_margin: float = COLLISION_MARGIN, edge_reduction: str = "sum",
                  distance_candidates: Optional[int] = 8, compile_search: bool = False) -> None:
         super().__init__()
         self.weights = dict(PAPER_WEIGHTS)

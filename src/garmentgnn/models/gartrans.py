@@ -28,6 +28,7 @@ from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNorma
                                       cached_batch_edges, check_arguments, compiled_forward,
                                       geometric_init_, mlp, pad_graph)
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.physics import COLLISION_MARGIN
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
                                         StaticFeatures)
 
@@ -95,7 +96,7 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
                  skin_prior: bool = True, lbs_start: bool = True, gate_init: float = 1.0,
                  blend_shape: bool = False, accel_unit: Optional[float] = 0.01,
                  input_norm: bool = True, local_frame: bool = True, strain_limit: int = 10,
-                 collision_projection: Optional[float] = 0.002,
+                 collision_projection: Optional[float] = COLLISION_MARGIN,
                  compile_search: bool = False, compile_stack: Optional[str] = None) -> None:
         super().__init__()
         check_arguments(lbs_start=lbs_start, skin_prior=skin_prior, gate_init=gate_init,

@@ -7,6 +7,10 @@ from typing import Dict, Mapping, Tuple, Union
 
 import torch
 
+#: the body's collision thickness (m): Eq. 10's ``epsilon``, the collision losses' and
+#: the projections' margin (its one home)
+COLLISION_MARGIN = 2e-3
+
 
 @dataclass(frozen=True)
 class Material:
@@ -32,7 +36,7 @@ class Material:
     lame_mu: float
     lame_lambda: float
     friction: float = 0.5
-    collision_margin: float = 2e-3
+    collision_margin: float = COLLISION_MARGIN
 
     def __post_init__(self) -> None:
         for name in ("density", "stretch", "shear", "lame_mu"):

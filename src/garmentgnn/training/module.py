@@ -16,6 +16,7 @@ import torch
 from garmentgnn.losses.gartrans_loss import SUPERVISED, GarTransLoss, LossInputs, vertex_loss
 from garmentgnn.models import GarTrans, StaticFeatures
 from garmentgnn.models.inputs import GarmentInputs
+from garmentgnn.physics import COLLISION_MARGIN
 from garmentgnn.training.base import COMPILE_SEARCH, GarmentModule, compile_pays
 from garmentgnn.training.schedule import ProgressiveSchedule
 
@@ -104,7 +105,7 @@ class GarTransModule(GarmentModule):
     def __init__(self, model: GarTrans, lr: float = 3e-3, t_max: Optional[int] = None,
                  eta_min: float = 0.0, optimizer: str = "adamax",
                  loss_weights: Optional[Dict[str, float]] = None,
-                 edge_reduction: str = "sum", collision_margin: float = 2e-3,
+                 edge_reduction: str = "sum", collision_margin: float = COLLISION_MARGIN,
                  enabled: Iterable[str] = SUPERVISED, supervised_scale: float = 1.0,
                  schedule: Union[bool, Dict[str, Any]] = True,
                  compile_search: bool = COMPILE_SEARCH) -> None:

@@ -33,7 +33,11 @@ less than ``lr_min``.
 Validation, test and predict roll a whole sequence out (``eval_chunk`` of the data module:
 the sequence length) from ``start``: ``"gt"`` the first two simulated frames, ``"drape"``
 the first simulated frame held still (a settled drape: what a user has), ``"lbs"`` the
-LBS garment of the first two frames.  Frames given to the model are not scored.  An
+LBS garment of the first two frames, ``"preroll"`` the LBS garment of the first frame
+held still, then ``preroll_frames`` steps of the model with the body held at its first
+pose before the motion starts (Blender's own pre-roll: the model settles the garment
+and takes up the body's motion; no ground truth).  Frames given to the model are not
+scored (the first two, for every start but ``"lbs"``).  An
 exponential moving average of the weights (Lightning's ``EMAWeightAveraging`` callback,
 in ``recipes/mgn.yaml``) is what validation, test and the checkpoints see.
 """
@@ -53,7 +57,7 @@ from garmentgnn.training.base import GarmentModule, NonFiniteLossError
 __all__ = ["ROLLOUT_MODES", "SimulatorModule", "START_STATES"]
 
 #: where an evaluation rollout starts (``start``)
-START_STATES = ("gt", "drape", "lbs")
+START_STATES = ("gt", "drape", "lbs", "preroll")
 #: how a training step rolls out (``rollout_mode``, module doc)
 ROLLOUT_MODES = ("pushforward", "random", "per_frame")
 
@@ -107,6 +111,7 @@ class SimulatorModule(GarmentModule):
         rollout_mode: ``"pushforward"``, ``"random"`` or ``"per_frame"`` (module doc).
         clip: the largest gradient norm before an optimizer step (``None``: no clip;
             HOOD: 1).
+        preroll_frames: the steps of the ``"preroll"`` start.
         start: where validation, test and predict rollouts start (module doc).
     """
 
@@ -118,7 +123,8 @@ class SimulatorModule(GarmentModule):
                  noise_gamma: float = 0.1, rollout: int = 3, rollout_start: int = 3500,
                  stats_steps: int = 100, start: str = "gt",
                  rollout_schedule: Optional[List[Tuple[int, int]]] = None,
-                 rollout_mode: str = "pushforward", clip: Optional[float] = None) -> None:
+                 rollout_mode: str = "pushforward", clip: Optional[float] = None,
+                 preroll_frames: int = 15) -> None:
         super().__init__()
         if not isinstance(model, MGNStyle):
             raise TypeError(f"`model`: expected an MGNStyle, got {type(model).__name__}; "
@@ -130,6 +136,7 @@ class SimulatorModule(GarmentModule):
         _positive_int("rollout", rollout)
         _positive_int("rollout_start", rollout_start, 0)
         _positive_int("stats_steps", stats_steps, 0)
+        _positive_int("preroll_frames", preroll_frames, 0)
         if not (isinstance(noise, (int, float)) and noise >= 0):
             raise ValueError(f"`noise`: expected metres >= 0, got {noise!r}")
         if not (isinstance(noise_gamma, (int, float)) and 0 <= noise_gamma <= 1):
@@ -314,13 +321,15 @@ class SimulatorModule(GarmentModule):
         from (``start``, default the module's)."""
         start = start or self.hparams.start
         gt = batch.get("gt")
-        if start != "lbs" and gt is None:
+        if start in ("gt", "drape") and gt is None:
             raise ValueError(f"`start`: {start!r} starts from the simulated garment, which "
-                             f"these inputs lack; start from 'lbs'")
+                             f"these inputs lack; start from 'lbs' or 'preroll'")
         if start == "gt":
             return gt[0], gt[1]
         if start == "drape":
             return gt[0], gt[0]
+        if start == "preroll":
+            return motion.lbs[0], motion.lbs[0]
         return motion.lbs[0], motion.lbs[1]
 
     def rollout(self, batch: GarmentInputs, start: Optional[str] = None) -> Tensor:
@@ -328,6 +337,14 @@ class SimulatorModule(GarmentModule):
         if batch.num_frames < 3:
             raise ValueError(f"`batch`: a rollout needs at least 3 frames (two to start "
                              f"from), got {batch.num_frames}")
+        start = start or self.hparams.start
+        if start == "preroll":  # the first frame held for the pre-roll, then the motion
+            k = self.hparams.preroll_frames
+            held = batch.select(torch.cat([torch.zeros(k, dtype=torch.long),
+                                           torch.arange(batch.num_frames)]))
+            motion = self.model.scene_motion(held)
+            x0, x1 = self.start_states(held, motion, start)
+            return self.model.rollout(held, x0, x1, motion)[k:]
         motion = self.model.scene_motion(batch)
         x0, x1 = self.start_states(batch, motion, start)
         return self.model.rollout(batch, x0, x1, motion)

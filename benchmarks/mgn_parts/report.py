@@ -1,0 +1,95 @@
+"""The MGN-style benchmark's report: the score table (per held-out group, paired tests)
+and the error per frame (``benchmarks/mgn_learn.py score``)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict
+
+import numpy as np
+
+from garmentgnn._plotting import pyplot
+from garmentgnn.bench.scoring import GROUPS, aggregate, wilcoxon
+
+#: the frames a rollout is given (not scored, for any method)
+GIVEN = 2
+#: the columns of the score table
+METRICS = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
+
+__all__ = ["GIVEN", "METRICS", "plot_per_frame", "score_table"]
+
+
+def _by_seq(records, metric="E_dist") -> Dict[str, float]:
+    return {r["sequence"]: r["metrics"][metric] for r in records}
+
+
+def score_table(results: Dict[str, Any]) -> str:
+    meth = results["methods"]
+    lbs = aggregate(meth["LBS only"])
+    lines = [f"Dataset `{str(results.get('content_sha256'))[:12]}`, split "
+             f"`{results['split']}`, {len(meth['LBS only'])} sequences, valid frames from "
+             f"frame {GIVEN} on.", "",
+             "| method | " + " | ".join(METRICS) + " | x LBS (E_dist) | s/sequence |",
+             "|---|" + "---:|" * (len(METRICS) + 2)]
+    for name, recs in meth.items():
+        a = aggregate(recs)["all"]
+        secs = results["seconds"].get(name)
+        lines.append(f"| {name} | " + " | ".join(f"{a[m]:.4g}" for m in METRICS)
+                     + f" | {a['E_dist'] / lbs['all']['E_dist']:.3f} | "
+                     + (f"{secs / max(1, len(recs)):.2f}" if secs else "—") + " |")
+    lines += ["", "Per held-out group, E_dist as a ratio to LBS's:", "",
+              "| method | " + " | ".join(GROUPS) + " |", "|---|" + "---:|" * len(GROUPS)]
+    lines.append("| LBS only (cm) | " + " | ".join(
+        f"{lbs[g]['E_dist']:.2f}" if g in lbs else "—" for g in GROUPS) + " |")
+    for name, recs in meth.items():
+        if name == "LBS only":
+            continue
+        a = aggregate(recs)
+        lines.append(f"| {name} | " + " | ".join(
+            f"{a[g]['E_dist'] / lbs[g]['E_dist']:.3f}" if g in a and g in lbs else "—"
+            for g in GROUPS) + " |")
+    mgn = [n for n in meth if n.startswith("MGN-style")]
+    lines += ["", "Paired Wilcoxon signed-rank tests over sequences (median difference "
+              "in cm, negative: the first lower; wins: share of sequences where it is "
+              "lower):", "", "| pair | metric | n | median diff | wins | p |",
+              "|---|---|---:|---:|---:|---:|"]
+    for a in mgn:
+        for b in meth:
+            if b.startswith("MGN-style"):
+                continue
+            for metric in ("E_dist", "E_len", "E_curv", "collision_rate"):
+                try:
+                    w = wilcoxon(_by_seq(meth[a], metric), _by_seq(meth[b], metric))
+                except ValueError:
+                    continue
+                lines.append(f"| {a} vs {b} | {metric} | {w['n']} | {w['median_diff']:.4g} | "
+                             f"{w['wins']:.2f} | {w['p']:.2g} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_per_frame(results: Dict[str, Any], path: Path) -> None:
+    plt = pyplot()
+    valid = results.get("valid") or {}
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, frames in results["per_frame"].items():
+        T = max(len(v) for v in frames.values())
+        sums, counts = np.zeros(T), np.zeros(T)
+        for seq, vals in frames.items():
+            ok = valid.get(seq, [True] * len(vals))
+            for t, (v, k) in enumerate(zip(vals, ok)):
+                if k:
+                    sums[t] += v
+                    counts[t] += 1
+        mean = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+        ax.plot(np.arange(T), mean, label=name, lw=1.5 if "MGN" in name else 1.0)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("E_dist (cm), mean over sequences")
+    ax.set_title(f"error per frame, {results['split']} "
+                 f"({str(results.get('content_sha256'))[:8]})")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# -- learning curves -------------------------------------------------------------------------
