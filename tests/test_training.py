@@ -73,6 +73,25 @@ def test_chunks_shapes_and_static_cache(root):
                                                                    b["rotations"][0, 2]]))
     assert ds.num_static_builds == 1 and ds.num_file_loads == 1  # cached per sequence
     assert b["nystrom"] is a["nystrom"]
+
+
+def test_the_static_cache_holds_every_sequence_of_the_split_by_default(root):
+    """Shuffled windows over all sequences build each sequence's static inputs once with
+    the default cache (the split's size); a cache of one rebuilds them on every switch."""
+    ds = SequenceChunks(root, None, chunk=2, stride=1, history=2, nystrom_dim=NY,
+                        num_landmarks=16)
+    seqs = len(ds.records)
+    assert seqs >= 2 and ds.static_cache == seqs
+    order = torch.randperm(len(ds), generator=torch.Generator().manual_seed(0)).tolist()
+    for i in order + order:
+        ds[i]
+    assert ds.num_static_builds == seqs
+    one = SequenceChunks(root, None, chunk=2, stride=1, history=2, nystrom_dim=NY,
+                         num_landmarks=16, static_cache=1)
+    switches = sum(ds.index[a][0] != ds.index[b][0] for a, b in zip(order, order[1:])) + 1
+    for i in order:
+        one[i]
+    assert one.num_static_builds == switches > seqs
     assert len(SequenceChunks(root, "val", chunk=4, history=2, nystrom_dim=NY)) == 2
 
 
