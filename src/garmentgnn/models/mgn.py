@@ -342,7 +342,8 @@ class MGNStyle(Configurable, nn.Module):
         """MeshGraphNets' loss of one step: the squared error of the normalised
         local-frame acceleration against the one that lands on ``x_next``, averaged over
         the vertices with their ``weight [V]``.  Returns ``(loss, the predicted frame t
-        (detached), its mean distance to x_next in metres)``."""
+        as :meth:`step` gives it (detached, projected), its mean distance to x_next in
+        metres)``."""
         out = self(scene, motion, t, x_prev, x_curr)
         want = self.normalized_target(
             self.target_acceleration(motion, t, x_prev, x_curr, x_next), motion, t)
@@ -350,8 +351,8 @@ class MGNStyle(Configurable, nn.Module):
         total = w.sum().clamp_min(1.0)
         loss = (((out - want) ** 2).sum(1) * w).sum() / total
         with torch.no_grad():
-            x = self.integrate(motion, t, x_prev, x_curr,
-                               self.acceleration(out.detach(), motion, t))
+            x = self.project(scene, motion, t, self.integrate(
+                motion, t, x_prev, x_curr, self.acceleration(out.detach(), motion, t)))
             err = ((x - x_next).norm(dim=1) * w).sum() / total
         return loss, x, err
 
