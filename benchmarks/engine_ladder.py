@@ -20,8 +20,9 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
-                                  int_at_least, output_path)
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, int_at_least,
+                                  output_path)
+from garmentgnn.data.store import dataset_dir
 from garmentgnn.bench.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
                                       default_settings, engine_record, item_engine,
                                       pick_sequences)

@@ -35,9 +35,8 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
-                                  output_path)
-from garmentgnn.data.store import read_manifest
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, add_output_args, output_path
+from garmentgnn.data.store import dataset_dir, read_manifest
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics import vertex_distance
 from garmentgnn.metrics.split import posed, to_rest_frame

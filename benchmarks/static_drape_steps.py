@@ -31,8 +31,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Dict, List
 
-from garmentgnn._argparse import ArgumentParser, HelpFormatter, dataset_dir, float_above
-from garmentgnn.data.store import read_json
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, float_above
+from garmentgnn.data.store import dataset_dir, read_json
 from garmentgnn.bench import runner
 from garmentgnn.bench.methods import DA, LBS
 from garmentgnn.bench.presets import preset

@@ -20,8 +20,8 @@ import numpy as np
 
 from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
                                   check_unique, command_line, existing_dir, output_path)
-from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, load_record_sequence,
-                                   read_manifest)
+from garmentgnn._files import atomic_write_bytes, atomic_write_json
+from garmentgnn.data.store import load_record_sequence, read_manifest
 from garmentgnn.data.validity import VALID_PENETRATION, sequence_valid
 from garmentgnn.bench.tables import table
 

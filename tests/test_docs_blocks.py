@@ -138,12 +138,12 @@ def files_exist(m: pytest.MonkeyPatch) -> None:
     """Within ``m``: every path a parser checks exists (a documented command names the
     outputs of the commands before it, or of runs made elsewhere): the parse judges the
     flags and values, not what is on this disk."""
-    import garmentgnn._argparse as ap  # noqa: PLC0415
+    from garmentgnn.data import store  # noqa: PLC0415
     for name in ("is_file", "is_dir", "exists"):
         m.setattr(Path, name, lambda self: True)
     for name in ("isfile", "isdir", "exists"):
         m.setattr(os.path, name, lambda path: True)
-    m.setattr(ap, "dataset_dir", lambda text: os.path.expanduser(text))
+    m.setattr(store, "dataset_dir", lambda text: os.path.expanduser(text))
 
 
 def parse_script(argv, monkeypatch):

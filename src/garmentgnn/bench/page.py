@@ -28,7 +28,7 @@ import os
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
-from garmentgnn.data.store import atomic_write_json
+from garmentgnn._files import atomic_write_json
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS
 from garmentgnn.viz.animate import renderer_unavailable
 from garmentgnn.viz.compare import show
