@@ -262,8 +262,8 @@ class GarmentDataModule(L.LightningDataModule):
                 "num_vertices": st.num_vertices if len(pairs) == 1 else None}
 
     def model_sizes(self, model_class: type) -> Dict[str, Optional[int]]:
-        """The :attr:`dims` that ``model_class`` takes (``GarTrans(**dm.model_sizes(
-        GarTrans))``), as ``garmentgnn train`` links them."""
+        """The :attr:`dims` that ``model_class`` takes, as ``garmentgnn train`` links them:
+        ``GarTrans(**dm.model_sizes(GarTrans))``."""
         params = inspect.signature(model_class.__init__).parameters
         return {k: v for k, v in self.dims.items() if k in params}
 
