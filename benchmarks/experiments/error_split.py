@@ -25,7 +25,7 @@ Prints a markdown table of frame-weighted E_dist (cm) and the fraction of LBS's 
 each removes, and writes ``error_split.{json,md}`` into a cache folder (``--out`` elsewhere;
 ``--commit``: the committed ``docs/results/benchmarks/``)::
 
-    python benchmarks/error_split.py --data ~/.cache/garmentgnn/datasets/tiny-torch
+    python benchmarks/experiments/error_split.py --data ~/.cache/garmentgnn/datasets/tiny-torch
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ from garmentgnn.metrics import vertex_distance
 from garmentgnn.metrics.split import posed, to_rest_frame
 from garmentgnn.data import SequenceChunks
 
-RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks"
+RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results" / "benchmarks"
 
 
 def main(argv=None) -> None:

@@ -8,7 +8,7 @@ Prints a markdown table (seconds per simulated frame, E_dist in cm, collision ra
 non-converged frames of the torch simulator) and writes ``engine_ladder.{json,md}`` into a
 cache folder (``--out`` elsewhere; ``--commit``: the committed ``docs/results/benchmarks/``)::
 
-    OMP_NUM_THREADS=1 python benchmarks/engine_ladder.py \
+    OMP_NUM_THREADS=1 python benchmarks/experiments/engine_ladder.py \
         --data ~/.cache/garmentgnn/datasets/medium-blender
 """
 from __future__ import annotations
@@ -28,7 +28,7 @@ from garmentgnn.bench.engines import (DEFAULT_FRAMES, EngineSetting, dataset_ite
                                       pick_sequences)
 
 HERE = Path(__file__).resolve().parent
-RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "engine_ladder"
+RESULTS = HERE.parents[1] / "docs" / "results" / "benchmarks" / "engine_ladder"
 
 
 def main(argv=None) -> None:
