@@ -33,7 +33,7 @@ from garmentgnn.data import SequenceChunks
 from garmentgnn.bench import scoring
 from garmentgnn.bench.methods import DATA
 from garmentgnn.bench.tables import save_figure, table
-from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
+from garmentgnn._files import atomic_write_bytes, atomic_write_json
 
 COMMITTED = (Path(__file__).resolve().parents[1] / "docs" / "results" / "batch_size"
              / "batch_size")

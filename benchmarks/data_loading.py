@@ -33,6 +33,7 @@ from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add
                                   benchmark_cache, check_unique, command_line,
                                   int_at_least, output_path)
 from garmentgnn.data import store
+from garmentgnn.models.inputs import CHUNK, HISTORY
 from garmentgnn.training import GarmentDataModule
 
 HERE = Path(__file__).resolve().parent
@@ -45,7 +46,7 @@ RESULTS = HERE.parent / "docs" / "results" / "data_loading"
 
 def load_epochs(root: Path, cache_size: int, batch: int, epochs: int) -> Dict[str, Any]:
     """Milliseconds per training batch over ``epochs`` shuffled epochs, and file loads."""
-    dm = GarmentDataModule(root, chunk=8, history=3, val_split=None, batch_size=batch,
+    dm = GarmentDataModule(root, chunk=CHUNK, history=HISTORY, val_split=None, batch_size=batch,
                            cache_size=cache_size)
     dm.setup("fit")
     train = dm.train_set

@@ -39,7 +39,8 @@ from garmentgnn.bench.tables import save_figure, table
 from garmentgnn.data import preset
 from garmentgnn.data.presets import PRESETS as DATA_PRESETS
 from garmentgnn.data.presets import build_inputs
-from garmentgnn.data.store import atomic_write_bytes, atomic_write_json, code_version
+from garmentgnn._files import atomic_write_bytes, atomic_write_json
+from garmentgnn.data.store import code_version
 from garmentgnn.data.validity import valid_frames
 from garmentgnn.data.worker import default_simulate, item_settings
 

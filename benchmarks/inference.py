@@ -61,6 +61,7 @@ from garmentgnn.bench.timing import device_peak_memory, measure, peak_memory, sy
 from garmentgnn.data.presets import BLENDER_SETTINGS
 from garmentgnn.models import gartrans as gartrans_mod
 from garmentgnn.models.baselines import LBSBaseline
+from garmentgnn.models.inputs import HISTORY
 from garmentgnn.motion import Motion
 from garmentgnn.sim import SimSettings, simulate
 from garmentgnn.sim.blender import BlenderSettings, blender_available, blender_config, run_worker
@@ -68,7 +69,6 @@ from garmentgnn.sim.simulator import trajectories
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "inference"
-HISTORY = 3
 #: the paper's GPU figures (10K vertices)
 PAPER = {"latency_ms": 29.0, "throughput_fps": 280.0}
 

@@ -59,6 +59,7 @@ from garmentgnn._argparse import (HelpFormatter, add_output_args, benchmark_cach
                                   command_line, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.data import store
+from garmentgnn.models.inputs import CHUNK, HISTORY
 from garmentgnn.training import load_recipe
 from scaling_parts.machine import cpu_name
 from train_throughput import dataset, warm
@@ -156,7 +157,8 @@ class Worker:
                 set={"model.init_args.stats_steps": 0})
         else:
             recipe = load_recipe("gartrans" if method == "gartrans" else "baselines/da",
-                                 args=data + ["--data.chunk", "8", "--data.history", "3"])
+                                 args=data + ["--data.chunk", str(CHUNK),
+                                              "--data.history", str(HISTORY)])
         dm, module = recipe.datamodule, recipe.module
         dm.setup("fit")
         if method != "mgn":

@@ -23,10 +23,10 @@ import lightning as L
 import torch
 
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, command_line,
-                                  dataset_dir, int_at_least, output_path)
+                                  int_at_least, output_path)
 from garmentgnn.bench.methods import FULL, GARTRANS
 from garmentgnn.bench.timing import status_kb
-from garmentgnn.data.store import code_version
+from garmentgnn.data.store import code_version, dataset_dir
 from garmentgnn.training import load_recipe
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks"

@@ -48,6 +48,7 @@ from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add
                                   benchmark_cache, check_unique, command_line, existing_dir,
                                   int_at_least, output_path)
 from garmentgnn.data import store
+from garmentgnn.models.inputs import CHUNK, HISTORY
 
 HERE = Path(__file__).resolve().parent
 #: the folder of this script (its sibling scripts, ``scaling_parts``): on ``sys.path``
@@ -82,7 +83,8 @@ def fit_once(tree: Path, method: str, root: Path, procs: int, threads: int, batc
         times = Path(tmp) / "times"
         cmd = [sys.executable, "-m", "garmentgnn.cli", "train", "fit",
                "--config", RECIPES[method], "--data.root", str(root),
-               "--data.chunk", "8", "--data.history", "3", "--data.val_split", "null",
+               "--data.chunk", str(CHUNK), "--data.history", str(HISTORY),
+               "--data.val_split", "null",
                "--data.seed", "0", "--data.batch_size", str(batch // procs),
                "--seed_everything", "0", "--trainer.max_steps", str(steps),
                "--trainer.max_epochs", "-1", "--trainer.logger", "false",

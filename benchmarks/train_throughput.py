@@ -40,6 +40,7 @@ from garmentgnn.data import Spec, generate, store
 from garmentgnn.bench.methods import DATA
 from garmentgnn.data import SequenceChunks
 from garmentgnn.sim.stand_in import skinned_wobble
+from garmentgnn.models.inputs import CHUNK, HISTORY
 from garmentgnn.training import Recipe, load_recipe
 
 HERE = Path(__file__).resolve().parent
@@ -72,7 +73,7 @@ def recipe_for(method: str, chunks: SequenceChunks, batch: int, workers: int = 0
     :func:`warm`); GarTrans with ``compile_stack`` (its dynamic stack compiled on a
     padded graph: ``GarTrans(compile_stack=...)``)."""
     recipe = load_recipe(RECIPES[method], args=[
-        "--data.root", str(chunks.root), "--data.chunk", "8", "--data.history", "3",
+        "--data.root", str(chunks.root), "--data.chunk", str(CHUNK), "--data.history", str(HISTORY),
         "--data.val_split", "null", "--data.seed", "0", "--data.batch_size", str(batch),
         "--data.num_workers", str(workers), "--seed_everything", "0"],
         set={"model.init_args.model.init_args.compile_stack": compile_stack}

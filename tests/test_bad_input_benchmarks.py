@@ -18,10 +18,12 @@ _SCRIPTS = {}
 
 
 def script(name):
-    """The functions of ``benchmarks/<name>.py`` (loaded once)."""
+    """The functions of ``benchmarks/<name>.py`` or ``benchmarks/experiments/<name>.py``
+    (loaded once)."""
     if name not in _SCRIPTS:
-        _SCRIPTS[name] = runpy.run_path(str(BENCHMARKS / f"{name}.py"),
-                                        run_name=f"{name}_args_check")
+        path = BENCHMARKS / f"{name}.py"
+        path = path if path.is_file() else BENCHMARKS / "experiments" / f"{name}.py"
+        _SCRIPTS[name] = runpy.run_path(str(path), run_name=f"{name}_args_check")
     return _SCRIPTS[name]
 
 

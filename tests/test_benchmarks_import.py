@@ -1,6 +1,6 @@
-"""Every script in ``benchmarks/`` imports against the current package (its module level
-runs; ``main`` does not): a renamed or removed function breaks this test, not a user's
-benchmark run weeks later."""
+"""Every script in ``benchmarks/`` and ``benchmarks/experiments/`` imports against the
+current package (its module level runs; ``main`` does not): a renamed or removed function
+breaks this test, not a user's benchmark run weeks later."""
 import json
 import runpy
 import subprocess
@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
+_BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+SCRIPTS = sorted([*_BENCHMARKS.glob("*.py"), *(_BENCHMARKS / "experiments").glob("*.py")])
 
 
 @pytest.mark.parametrize("path", SCRIPTS, ids=[p.name for p in SCRIPTS])
@@ -40,7 +41,7 @@ def test_layer_benchmark_runs_and_matches_a_baseline_of_the_same_source(tmp_path
 def test_resolution_datasets_hold_the_same_sequences_at_each_resolution():
     """``benchmarks/resolution.py``: at every resolution the same 8 (garment, body,
     motion) items, all in the test split, paired across resolutions by their parts."""
-    ns = runpy.run_path(str(SCRIPTS[0].parent / "resolution.py"), run_name="check")
+    ns = runpy.run_path(str(_BENCHMARKS / "resolution.py"), run_name="check")
     parts = {}
     for r in ns["RESOLUTIONS"]:
         items = ns["spec"](r).items()

@@ -1,6 +1,7 @@
-"""``--help`` of ``garmentgnn`` and of every script in ``benchmarks/``: each option has help
-text, and the help shows its default (argparse's own formatter output is the oracle);
-benchmark scripts write into a cache folder unless ``--commit`` or ``--out`` is given."""
+"""``--help`` of ``garmentgnn`` and of every script in ``benchmarks/`` and
+``benchmarks/experiments/``: each option has help text, and the help shows its default
+(argparse's own formatter output is the oracle); benchmark scripts write into a cache
+folder unless ``--commit`` or ``--out`` is given."""
 import argparse
 import runpy
 import shlex
@@ -11,7 +12,8 @@ import pytest
 from garmentgnn._argparse import add_output_args, benchmark_cache, command_line, output_path
 from garmentgnn.cli import build_parser
 
-SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
+_BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+SCRIPTS = sorted([*_BENCHMARKS.glob("*.py"), *(_BENCHMARKS / "experiments").glob("*.py")])
 
 
 def walk(parser: argparse.ArgumentParser, name: str):

@@ -21,6 +21,9 @@
   HTML viewer where its bundle is not built.  The README's quick start
   (``tests/test_readme.py``) and docs/layers.md (``tests/test_nn_docs.py``) have tests of
   their own.
+* Code written inline that builds a model from a data module's sizes
+  (``GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))``), in the docs, a docstring,
+  an error message or a recipe's comment, runs on the ``tiny`` data module.
 """
 import argparse
 import os
@@ -32,6 +35,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md"] + sorted((ROOT / "docs").rglob("*.md"))
@@ -138,12 +142,12 @@ def files_exist(m: pytest.MonkeyPatch) -> None:
     """Within ``m``: every path a parser checks exists (a documented command names the
     outputs of the commands before it, or of runs made elsewhere): the parse judges the
     flags and values, not what is on this disk."""
-    import garmentgnn._argparse as ap  # noqa: PLC0415
+    from garmentgnn.data import store  # noqa: PLC0415
     for name in ("is_file", "is_dir", "exists"):
         m.setattr(Path, name, lambda self: True)
     for name in ("isfile", "isdir", "exists"):
         m.setattr(os.path, name, lambda path: True)
-    m.setattr(ap, "dataset_dir", lambda text: os.path.expanduser(text))
+    m.setattr(store, "dataset_dir", lambda text: os.path.expanduser(text))
 
 
 def parse_script(argv, monkeypatch):
@@ -263,6 +267,79 @@ def test_python_block_runs(doc, i, code, folder, monkeypatch):
             pytest.skip(f"the viewer bundle is not built here ({e})")
     monkeypatch.chdir(folder)
     exec(compile(code, f"{doc} python block {i + 1}", "exec"), {"__name__": "__main__"})
+
+
+# ------------------------------------------------------------------ inline code
+#: a model built from a data module's sizes, written inline (in prose, a docstring, an
+#: error message or a recipe's comment): ``**dm.``, ``**datamodule.`` or ``**data.``
+INLINE = re.compile(r"\*\*(?:dm|datamodule|data)\.")
+#: the files that write such code: of the docs, the package's sources and its recipes
+INLINE_FILES = [p for p in [*DOCS, *sorted((ROOT / "src" / "garmentgnn").rglob("*.py")),
+                            *sorted((ROOT / "src" / "garmentgnn" / "recipes").rglob("*.yaml"))]
+                if INLINE.search(p.read_text())]
+
+
+def inline_builds(text: str):
+    """``(line, expression)`` of each call in ``text`` whose arguments unpack a data
+    module (:data:`INLINE`): from the outermost call's name to its closing parenthesis,
+    on one line; an expression cut by the end of its line comes back unbalanced, for
+    the test to name."""
+    out = []
+    for n, line in enumerate(text.splitlines(), 1):
+        for m in INLINE.finditer(line):
+            head = re.search(r"[A-Za-z_][\w.]*\((?:[A-Za-z_][\w.]*\()*$", line[:m.start()])
+            start = head.start() if head else m.start()
+            depth, end = 0, len(line)
+            for j in range(start, len(line)):
+                depth += {"(": 1, ")": -1}.get(line[j], 0)
+                if line[j] == ")" and depth == 0:
+                    end = j + 1
+                    break
+            out.append((n, line[start:end]))
+    return out
+
+
+def test_inline_builds_are_found_whole():
+    """The finder takes the whole call, and names one cut by a line break."""
+    assert inline_builds("see `GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))`.") == [
+        (1, "GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))")]
+    assert inline_builds("x\n``GarTrans(**datamodule.dims)``, y") == [
+        (2, "GarTrans(**datamodule.dims)")]
+    assert inline_builds("``GarTrans(**dm.model_sizes(\n    GarTrans))``") == [
+        (1, "GarTrans(**dm.model_sizes(")]
+
+
+def _inline_scope(folder):
+    """The names an inline build may use: the package's models and modules, and the
+    ``tiny`` data module as ``dm``, ``datamodule`` and ``data``."""
+    import garmentgnn.models as models  # noqa: PLC0415
+    import garmentgnn.models.baselines as baselines  # noqa: PLC0415
+    import garmentgnn.training as training  # noqa: PLC0415
+    dm = training.GarmentDataModule(folder / "data" / "tiny", val_split=None)
+    return {**{k: getattr(m, k) for m in (models, baselines, training) for k in dir(m)
+               if not k.startswith("_")}, "dm": dm, "datamodule": dm, "data": dm}
+
+
+def test_the_former_inline_build_fails(folder):
+    """The check can fail: the former text raises, naming the size GarTrans does not take."""
+    with pytest.raises(TypeError, match="num_vertices"):
+        eval("GarTransModule(GarTrans(**datamodule.dims))", _inline_scope(folder))  # noqa: S307
+
+
+@pytest.mark.parametrize("path", INLINE_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_inline_model_builds_run(path, folder):
+    """Each inline build in ``path`` runs on the ``tiny`` data module (``dm``,
+    ``datamodule`` and ``data`` name it), with the package's models and modules in
+    scope: ``GarTrans(**datamodule.dims)`` stood in 7 docstrings, messages and docs, and
+    raised a TypeError (``dims`` holds ``num_vertices`` too)."""
+    scope, where = _inline_scope(folder), path.relative_to(ROOT)
+    for line, code in inline_builds(path.read_text()):
+        try:
+            built = eval(code, dict(scope))  # noqa: S307  (the project's own text)
+        except Exception as e:  # noqa: BLE001  (any failure is the finding)
+            raise AssertionError(f"{where}:{line}: {code!r} does not run: "
+                                 f"{type(e).__name__}: {e}") from None
+        assert isinstance(built, torch.nn.Module), f"{where}:{line}: {code!r} -> {built!r}"
 
 
 def test_bash_stubs_see_what_bash_expands(tmp_path):

@@ -405,7 +405,7 @@ def test_show_loads_a_baseline_checkpoint_as_its_method(dm, tmp_path):
     (it was refused as a GarTrans checkpoint with Lightning's "blocked to prevent
     arbitrary code execution") and predicts as ``BaselineModule.predict_garment``."""
     from garmentgnn.training.evaluate import predict  # noqa: PLC0415
-    from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415  (viz: optional extra)
+    from garmentgnn.training import load_checkpoint  # noqa: PLC0415
     scene = dm.train_set[1]
     L.seed_everything(0)
     da = BaselineModule(DAStyle(scene.num_joints)).eval()

@@ -196,7 +196,7 @@ def test_bad_input_raises():
 @pytest.fixture(scope="module")
 def chunk(tmp_path_factory):
     """One whole sequence (skirt on a capsule body, walk, 8 frames; LBS + a wobble as
-    the 'simulation') as a GarmentInputs, read as benchmarks/error_split.py reads it."""
+    the 'simulation') as a GarmentInputs, read as benchmarks/experiments/error_split.py reads it."""
     out = skirt_dataset(tmp_path_factory.mktemp("split"), ["walk"], 8, name="s")
     ds = SequenceChunks(out, split=None, chunk=10 ** 9, history=1, nystrom_dim=4,
                         num_landmarks=8)

@@ -171,7 +171,7 @@ def test_a_garment_far_from_the_training_resolution_is_warned_about():
 
 
 def test_the_committed_checkpoints_say_what_they_were_trained_on():
-    from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415
+    from garmentgnn.training import load_checkpoint  # noqa: PLC0415
     for name in ("gartrans_learn.ckpt", "mgn_learn.ckpt"):
         module = load_checkpoint(Path(__file__).parent / "data" / name)
         assert module.trained_on["num_vertices"] == [296, 512]
@@ -213,7 +213,7 @@ def test_train_test_compiles_the_search_only_where_the_split_pays_it_back():
     from types import SimpleNamespace  # noqa: PLC0415
 
     from garmentgnn.training.base import COMPILE_WORK  # noqa: PLC0415
-    from garmentgnn.viz.compare import load_checkpoint  # noqa: PLC0415
+    from garmentgnn.training import load_checkpoint  # noqa: PLC0415
     module = load_checkpoint(GARTRANS)
     assert module.hparams.compile_search and module.model.compile_search
     small = SimpleNamespace(records=[{"num_frames": 60, "num_vertices": 288}] * 9)

@@ -305,10 +305,11 @@ def test_no_valid_frame_leaves_the_physics_terms():
 
 
 def test_the_valid_frames_table_counts_the_exact_frames(deep, tmp_path):
-    """``benchmarks/valid_frames.py``: per split and in all, the frames of the double's
+    """``benchmarks/experiments/valid_frames.py``: per split and in all, the frames of the double's
     hand-written oracle (per sequence: frame 5 not converged; frames 3, 4, 6 deeper than
     1 cm; 4 frames left out; 3 cm deepest)."""
-    script = runpy.run_path(str(ROOT / "benchmarks" / "valid_frames.py"), run_name="script")
+    script = runpy.run_path(str(ROOT / "benchmarks" / "experiments" / "valid_frames.py"),
+                            run_name="script")
     script["main"](["--data", str(deep), "--out", str(tmp_path / "vf")])
     rows = {r["split"]: r for r in json.loads((tmp_path / "vf.json").read_text())["rows"]}
     splits = [rec["split"] for rec in read_manifest(deep)["items"]]

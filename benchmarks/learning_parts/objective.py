@@ -15,7 +15,7 @@ from garmentgnn.bench import scoring
 from garmentgnn.bench.methods import HOOD, NCS
 from garmentgnn.bench.tables import table
 from garmentgnn.metrics.garment_metrics import vertex_distance
-from garmentgnn.training import BaselineModule
+from garmentgnn.training import BaselineModule, load_checkpoint
 from garmentgnn.training.module import loss_inputs
 
 from .train import baseline, evenly, predict, whole_sequences
@@ -59,7 +59,7 @@ def part_energy(root: Path, bench: Path, seed: int) -> Dict[str, Any]:
             if not ckpt.is_file():
                 continue
             if ckpt not in loaded:
-                loaded[ckpt] = BaselineModule.load_from_checkpoint(ckpt, map_location="cpu")
+                loaded[ckpt] = load_checkpoint(ckpt)
             module, item = loaded[ckpt].eval(), test[i]
             pred, lbs = predict(module, item), item.skinned()
             ok = item.get("valid")  # E_dist as the bench scores it: valid frames

@@ -5,10 +5,13 @@ the method, ``module``: settings over its packaged recipe,
 ``garmentgnn/recipes/baselines/<name>.yaml``)."""
 from __future__ import annotations
 
+import inspect
 from typing import Any, Dict
 
 from garmentgnn.bench.methods import DA, HOOD
+from garmentgnn.bench.presets import preset
 from garmentgnn.physics.materials import MATERIALS
+from garmentgnn.training import BaselineModule, GarTransModule
 
 #: HOOD-style's configuration before it started from its own states with normalised inputs
 _HOOD_FORMER: Dict[str, Any] = {"start_state": "lbs", "model": {"normalize": False}}
@@ -98,13 +101,24 @@ for _name, _v in VARIANTS.items():
     if _name != "config" and "baseline" not in _v:
         _v["model"] = dict(_FORMER_INPUTS, **_v.get("model", {}))
 
+#: the bench's ``learn`` budget (``garmentgnn bench --preset learn``), read from its preset
+_BUDGET = preset("learn").learned
+
+
+def _lr(module: type) -> float:
+    """``module``'s learning rate (its recipes' default) at the ``learn`` budget's factor."""
+    return inspect.signature(module.__init__).parameters["lr"].default * _BUDGET.lr_factor
+
+
 #: the bench's ``learn`` settings: 16 chunks a step, 4x the learning rate, epochs of 25
 #: steps (400 chunks), the learning rate annealed to 0 over the run (``anneal``: a cosine
 #: over ``--steps``, as the bench anneals over its time budget; at a constant 0.012 the
 #: frame-parallel model's training error rose from 0.85x to 1.04x LBS between steps 300
 #: and 500)
-_LEARN: Dict[str, Any] = {"model": {"lr": 0.012}, "data": {"batch_size": 16},
-                          "trainer": {"limit_train_batches": 25}, "anneal": True}
+_LEARN: Dict[str, Any] = {
+    "model": {"lr": _lr(GarTransModule)}, "data": {"batch_size": _BUDGET.batch_size},
+    "trainer": {"limit_train_batches": -(-_BUDGET.epoch_chunks // _BUDGET.batch_size)},
+    "anneal": True}
 #: which model can hold the garment's state (docs/experiments.md), today's recipe at the
 #: ``learn`` settings: frame-parallel.  The motion code in the dynamic stack, the
 #: autoregressive offsets and the recurrent vertex latent, measured beside it, left the
@@ -122,14 +136,16 @@ VARIANTS.update(STATE)
 #: current and previous positions, rollouts from the LBS garment growing 1 -> 5 frames
 #: with detached steps, gradients clipped at 1, 100 warm-up steps; at the bench's
 #: learning rate (the configuration's x 4, ``lr_factor``) and at HOOD's (5e-5 x 4)
+_HOOD_LR = 5e-5
 _HOOD_RECIPE: Dict[str, Any] = {"start_state": "lbs", "rollout": 5, "rollout_ramp": 100,
                                 "rollout_noise": 0.003, "warmup": 100}
 HOOD_LEARN: Dict[str, Dict[str, Any]] = {
-    "HOOD-style, learn settings": {"baseline": HOOD, "module": {"lr": 4e-3}},
-    "HOOD-style, HOOD's recipe": {"baseline": HOOD, "module": dict(_HOOD_RECIPE, lr=4e-3),
+    "HOOD-style, learn settings": {"baseline": HOOD, "module": {"lr": _lr(BaselineModule)}},
+    "HOOD-style, HOOD's recipe": {"baseline": HOOD,
+                                  "module": dict(_HOOD_RECIPE, lr=_lr(BaselineModule)),
                                   "trainer": {"gradient_clip_val": 1.0}},
     "HOOD-style, HOOD's recipe and learning rate": {
-        "baseline": HOOD, "module": dict(_HOOD_RECIPE, lr=2e-4),
+        "baseline": HOOD, "module": dict(_HOOD_RECIPE, lr=_HOOD_LR * _BUDGET.lr_factor),
         "trainer": {"gradient_clip_val": 1.0}},
 }
 for _v in HOOD_LEARN.values():  # _LEARN's batches and epochs (its lr and anneal are GarTrans's)

@@ -23,10 +23,10 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
 import lightning as L
 import torch
 
+from garmentgnn._files import atomic_write_bytes
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench import scoring
 from garmentgnn.bench.tables import fmt, save_figure, table
-from garmentgnn.data import store
 from garmentgnn.training import TimeBudget
 
 __all__ = ["LearningCurve", "TrainClock", "markdown", "plateau", "plot", "quiet_lightning"]
@@ -172,7 +172,7 @@ class LearningCurve(L.Callback):
         if step == self.snapshot_step:
             buf = io.BytesIO()
             torch.save({"step": step, "state_dict": pl_module.state_dict()}, buf)
-            store.atomic_write_bytes(self.snapshot_path, buf.getvalue())
+            atomic_write_bytes(self.snapshot_path, buf.getvalue())
         if step % self.every == 0:
             self._validate(trainer, pl_module)
         self._t0 = _now()

@@ -38,6 +38,7 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from torch import Tensor
 
+from garmentgnn._files import atomic_write_bytes, atomic_write_json
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench import scoring
 from garmentgnn.bench.curves import LearningCurve, TrainClock, quiet_lightning
@@ -165,7 +166,7 @@ class LearnedRunner:
             P = pred.predict(self.test, 0, item).float().numpy()
         buf = io.BytesIO()
         np.save(buf, P)
-        return store.atomic_write_bytes(self.out / MEDIA / "predictions" / f"{slug(method)}.npy",
+        return atomic_write_bytes(self.out / MEDIA / "predictions" / f"{slug(method)}.npy",
                                         buf.getvalue())
 
     def trained(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
@@ -278,7 +279,7 @@ class LearnedRunner:
                 raise ValueError(f"`out`: {folder} holds a training run of another dataset or "
                                  "configuration; delete that folder to train again")
         else:
-            store.atomic_write_json(path, desc)
+            atomic_write_json(path, desc)
         return folder
 
     def load(self, method: str, seed: int, args: Sequence[str] = (),

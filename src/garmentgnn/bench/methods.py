@@ -12,13 +12,11 @@ hyper-parameter.
 """
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 from garmentgnn.bench import stability as stab
-from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
-from garmentgnn.training.datamodule import GarmentDataModule
+from garmentgnn.models.inputs import CHUNK, HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.training.recipes import model_of, recipe_path
 
 __all__ = ["BASELINES", "DATA", "GARTRANS", "KINDS", "LBS", "LONG", "METHOD_NAMES", "MGN",
@@ -26,11 +24,10 @@ __all__ = ["BASELINES", "DATA", "GARTRANS", "KINDS", "LBS", "LONG", "METHOD_NAME
            "recipe_of", "seed_plan"]
 
 #: the data settings the frame-parallel methods train and every method is scored on:
-#: the data module's defaults (its chunk length; the pose history and Nyström sizes of
-#: :mod:`garmentgnn.models.inputs`), which the packaged recipes keep
-DATA: Dict[str, int] = {
-    "chunk": inspect.signature(GarmentDataModule.__init__).parameters["chunk"].default,
-    "history": HISTORY, "nystrom_dim": NYSTROM_DIM, "num_landmarks": NUM_LANDMARKS}
+#: the data module's defaults (the sizes of :mod:`garmentgnn.models.inputs`), which the
+#: packaged recipes keep
+DATA: Dict[str, int] = {"chunk": CHUNK, "history": HISTORY, "nystrom_dim": NYSTROM_DIM,
+                        "num_landmarks": NUM_LANDMARKS}
 
 NCS, HOOD, DA, MGN, LBS = "NCS-style", "HOOD-style", "DA-style", "MGN-style", "LBS only"
 #: the GarTrans rows (full GarTrans first, the variant every comparison is made

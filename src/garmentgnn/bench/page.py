@@ -28,7 +28,8 @@ import os
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
-from garmentgnn.data.store import atomic_write_json
+from garmentgnn._files import atomic_write_json
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS
 from garmentgnn.viz.animate import renderer_unavailable
 from garmentgnn.viz.compare import show
 from garmentgnn.viz.viewer import write_viewer
@@ -119,7 +120,8 @@ def write_media(records: Sequence[Dict[str, Any]], out: PathLike, *,
         return lines + [f"Not rendered here: {why}.", ""]
     options = {"root": str(root), "seed": seed, "models": models, "predictions": preds,
                "split": split, "index": index, "max_frames": max_frames, "height": height,
-               "history": data.get("history", 3), "num_landmarks": data.get("num_landmarks", 64)}
+               "history": data.get("history", HISTORY),
+               "num_landmarks": data.get("num_landmarks", NUM_LANDMARKS)}
     stamp_path = media / f"{STEM}.json"
     stamp = _stamp(list(models.values()) + list(preds.values()), options)
     base = media / STEM

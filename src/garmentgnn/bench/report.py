@@ -35,7 +35,7 @@ from garmentgnn.bench import (curves, learned_report, leaveout, noise_floor, pre
 from garmentgnn.bench.page import write_media
 from garmentgnn.bench.records import NOT_RUN, STATUSES
 from garmentgnn.bench.tables import METRICS, UNITS, fmt, mean_std, plot_summary, table
-from garmentgnn.data.store import atomic_write_bytes, atomic_write_json
+from garmentgnn._files import atomic_write_bytes, atomic_write_json
 
 KINDS = ("accuracy", "stability", "scaling", "leaveout", "precision", "long_sequence",
          "learned", "learned_stability", "engine")

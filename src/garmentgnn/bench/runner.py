@@ -54,8 +54,8 @@ from garmentgnn.bench.report import check_record, write_report
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.timing import batch_sweep, num_threads, peak_memory
-from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, code_version,
-                                   remove_stale_temporaries)
+from garmentgnn._files import atomic_write_bytes, atomic_write_json, remove_stale_temporaries
+from garmentgnn.data.store import code_version
 from garmentgnn.metrics import evaluate
 from garmentgnn.models.baselines import LBSBaseline
 

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
+from garmentgnn.models.inputs import CHUNK, HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.body.factory import build_body
 from garmentgnn.data import store
 from garmentgnn.data.validity import sequence_valid
@@ -134,7 +134,7 @@ class SequenceChunks(Dataset):
     ``chunks[i]`` is one chunk; ``chunks[[i, j, ...]]`` those chunks as one batch.
     """
 
-    def __init__(self, root, split: Optional[str] = "train", chunk: int = 8,
+    def __init__(self, root, split: Optional[str] = "train", chunk: int = CHUNK,
                  history: int = HISTORY, nystrom_dim: int = NYSTROM_DIM,
                  num_landmarks: int = NUM_LANDMARKS, drop_last: bool = False,
                  cache_size: int = CACHE_SIZE, static_cache: Optional[int] = None,

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from garmentgnn.body.factory import build_body
-from garmentgnn.data.store import atomic_write_bytes
+from garmentgnn._files import atomic_write_bytes
 
 PathLike = Union[str, os.PathLike]
 #: quaternion (x, y, z, w) of the root node: -90 degrees about X, our +Z up -> glTF +Y up

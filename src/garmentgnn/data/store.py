@@ -7,13 +7,14 @@ Layout of an output folder ``OUT``::
     OUT/manifest.json          one record per item: status pending/ok/failed, ...
     OUT/sequences/<id>.npz     one simulated sequence per item (ok items only)
 
-Every file is written to a temporary name in the same folder, flushed, fsynced and
-then moved into place with :func:`os.replace`, so a reader (or a resumed run) never
-sees a half-written file.  Sequence files are zip archives of ``.npy`` members written
+Every file is written whole or not at all (:mod:`garmentgnn._files`, whose
+``atomic_write_*`` are handed on here), so a reader (or a resumed run) never sees a
+half-written file.  Sequence files are zip archives of ``.npy`` members written
 with a fixed timestamp, so the same content gives byte-identical files.
 """
 from __future__ import annotations
 
+import argparse
 import hashlib
 import io
 import json
@@ -27,6 +28,8 @@ from typing import Any, Callable, Dict, Iterable, List, Optional, Union
 import numpy as np
 
 import garmentgnn
+from garmentgnn._files import atomic_write_bytes, atomic_write_json
+from garmentgnn._files import remove_stale_temporaries  # noqa: F401  (handed on)
 from garmentgnn.data.sequence_check import SEQUENCE_KEYS, check_sequence
 
 PathLike = Union[str, os.PathLike]
@@ -45,7 +48,6 @@ def data_root() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "garmentgnn" / "datasets"
 
 
-# --------------------------------------------------------------------------- atomic writes
 def sequence_path(root: PathLike, record: Dict[str, Any]) -> Path:
     """Where a manifest record's sequence file lives under ``root``."""
     return Path(root) / (record.get("file") or f"{SEQUENCES}/{record['id']}.npz")
@@ -94,42 +96,6 @@ class LRUCache(OrderedDict):
         # pickled empty: a cache need not travel to DataLoader / DDP worker processes
         # (and OrderedDict's own reduce would call __init__ without `capacity`)
         return (type(self), (self.capacity, self.max_bytes))
-
-
-def _tmp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
-
-
-def atomic_write_bytes(path: PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file + ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_name(path)
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
-def atomic_write_json(path: PathLike, obj: Any) -> Path:
-    return atomic_write_bytes(path, (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode())
-
-
-def remove_stale_temporaries(folder: PathLike) -> int:
-    """Delete leftovers ``.<name>.tmp-<pid>`` of an interrupted run; returns how many."""
-    n = 0
-    folder = Path(folder)
-    if folder.is_dir():
-        for p in folder.glob(".*.tmp-*"):
-            p.unlink(missing_ok=True)
-            n += 1
-    return n
 
 
 # --------------------------------------------------------------------------- sequence files
@@ -318,6 +284,20 @@ def read_manifest(out: PathLike) -> Dict[str, Any]:
                          f"--out {out}`")
     check_manifest_ids(doc["items"], path, out)
     return doc
+
+
+def dataset_dir(text: str) -> str:
+    """An argparse type: a dataset folder made by ``garmentgnn generate`` (its
+    ``manifest.json`` readable, :func:`read_manifest`; ``~`` expanded); otherwise the path
+    and the command that makes or repairs it."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path; name a dataset folder")
+    path = os.path.expanduser(text)
+    try:
+        read_manifest(path)
+    except (OSError, ValueError) as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return path
 
 
 def check_manifest_ids(items: List[Any], path: PathLike, out: PathLike) -> None:

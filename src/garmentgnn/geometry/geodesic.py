@@ -33,9 +33,15 @@ from ._validate import check_indices, numpy_mesh
 
 __all__ = ["mesh_edge_graph", "graph_geodesic_distances", "cotan_laplacian",
            "HeatGeodesicSolver", "heat_geodesic_distances", "farthest_point_sampling",
-           "nystrom_eigenvectors", "NystromFeatures", "geodesic_nystrom_features"]
+           "nystrom_eigenvectors", "NystromFeatures", "geodesic_nystrom_features",
+           "NUM_LANDMARKS", "NYSTROM_DIM"]
 
 ArrayLike = Union[Tensor, np.ndarray]
+
+#: the garment's Nyström features every entry point defaults to, defined here once: the
+#: eigenvectors kept (``k``) and the geodesic landmarks they are computed over
+NYSTROM_DIM = 16
+NUM_LANDMARKS = 64
 
 
 # ---------------------------------------------------------------------------
@@ -332,8 +338,8 @@ class NystromFeatures(NamedTuple):
     sigma: float
 
 
-def geodesic_nystrom_features(pos: ArrayLike, faces: ArrayLike, k: int = 16,
-                              num_landmarks: int = 128, sigma: Optional[float] = None,
+def geodesic_nystrom_features(pos: ArrayLike, faces: ArrayLike, k: int = NYSTROM_DIM,
+                              num_landmarks: int = NUM_LANDMARKS, sigma: Optional[float] = None,
                               seed: int = 0, geodesic: str = "graph",
                               method: str = "one_shot", rcond: float = 1e-3,
                               return_info: bool = False

@@ -30,20 +30,22 @@ from garmentgnn.data.worker import input_arrays
 from garmentgnn.garments import make_garment
 from garmentgnn.garments.garment import Garment
 from garmentgnn.garments.templates import TEMPLATES
-from garmentgnn.models.inputs import GarmentInputs, with_frames
+from garmentgnn.models.inputs import (CHUNK, HISTORY, NUM_LANDMARKS, NYSTROM_DIM, GarmentInputs,
+                                      with_frames)
 from garmentgnn.motion import MOTIONS, make_motion
 from garmentgnn.motion.sequence import Motion
 from garmentgnn.physics.materials import MATERIALS
 from garmentgnn.training.base import COMPILE_WORK
 from garmentgnn.training.base import compile_pays as work_pays
 from garmentgnn.training.simulator import SimulatorModule
-from garmentgnn.viz.compare import data_settings, load_checkpoint
+from garmentgnn.training.checkpoints import load_checkpoint
+from garmentgnn.viz.compare import data_settings
 
 PathLike = Union[str, Path]
 #: the method that needs no checkpoint: the rest garment skinned to the body
 LBS = "lbs"
 #: frames per frame-parallel chunk when a checkpoint does not say (the data module's)
-DEFAULT_CHUNK = 8
+DEFAULT_CHUNK = CHUNK
 
 
 @dataclass
@@ -203,11 +205,11 @@ def _settings(module, where: str):
     """``(history, num_landmarks, nystrom_dim, chunk)`` the module was trained and
     evaluated with."""
     if module is None:
-        return 3, 64, 16, DEFAULT_CHUNK
+        return HISTORY, NUM_LANDMARKS, NYSTROM_DIM, DEFAULT_CHUNK
     history, landmarks = data_settings({"m": module}, {"m": where}, None, None)
     trained = getattr(module, "trained_data", None) or {}
     chunk = trained.get("eval_chunk") or trained.get("chunk") or DEFAULT_CHUNK
-    ny = getattr(module, "nystrom_dim", None) or trained.get("nystrom_dim") or 16
+    ny = getattr(module, "nystrom_dim", None) or trained.get("nystrom_dim") or NYSTROM_DIM
     return int(history), int(landmarks), int(ny), int(chunk)
 
 
@@ -332,7 +334,7 @@ def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
 
 def load_method(ckpt: Optional[PathLike] = None, method: Optional[str] = None):
     """``(module or None, name)``: a checkpoint of any learned method
-    (:func:`garmentgnn.viz.compare.load_checkpoint`), or ``method="lbs"``."""
+    (:func:`garmentgnn.training.checkpoints.load_checkpoint`), or ``method="lbs"``."""
     if (ckpt is None) == (method is None):
         raise ValueError("`ckpt`: give a checkpoint of a learned method, or method='lbs' "
                          "(not both)")

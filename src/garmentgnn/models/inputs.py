@@ -51,16 +51,18 @@ from torch_geometric.data import Batch, Data
 from garmentgnn.body.body import Body
 from garmentgnn.body.lbs import blend_transforms, forward_kinematics, linear_blend_skinning
 from garmentgnn.geometry import faces_to_edge_index, geodesic_nystrom_features, full_precision
+from garmentgnn.geometry.geodesic import NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.physics import ClothRest
 
 #: the data sizes every entry point defaults to, defined here once: previous poses per
-#: frame (``H = HISTORY + 1``), Nyström features of the garment's geodesic distances and
-#: the landmarks they are computed over
+#: frame (``H = HISTORY + 1``) and the frames of a training chunk; the Nyström width and
+#: landmarks of the garment's geodesic features are the geometry's
+#: (:data:`~garmentgnn.geometry.geodesic.NYSTROM_DIM`,
+#: :data:`~garmentgnn.geometry.geodesic.NUM_LANDMARKS`), handed on here
 HISTORY = 3
-NYSTROM_DIM = 16
-NUM_LANDMARKS = 64
+CHUNK = 8
 
-__all__ = ["FRAME_KEYS", "HISTORY", "NUM_LANDMARKS", "NYSTROM_DIM", "GarmentInputs",
+__all__ = ["CHUNK", "FRAME_KEYS", "HISTORY", "NUM_LANDMARKS", "NYSTROM_DIM", "GarmentInputs",
            "build_garment", "build_static", "check_history",
            "check_pose", "history_frames", "nystrom_features", "skin", "with_frames"]
 

@@ -1,7 +1,7 @@
 """Lightning training: the data module, the GarTrans, baseline and learned-simulator
 LightningModules (each a :class:`GarmentModule`), the progressive schedule callback (paper §4.1), a
-wall-clock training budget, freed memory kept for the next step (:class:`KeepFreedMemory`)
-and the recipes' loader (:func:`load_recipe`)."""
+wall-clock training budget, freed memory kept for the next step (:class:`KeepFreedMemory`),
+the recipes' loader (:func:`load_recipe`) and the checkpoints' (:func:`load_checkpoint`)."""
 from garmentgnn.training.datamodule import (
            EpochShuffleSampler,
            GarmentDataModule,
@@ -14,6 +14,7 @@ from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
 from garmentgnn.training.simulator import SimulatorModule
 from garmentgnn.training.loader import Recipe, load_recipe
+from garmentgnn.training.checkpoints import load_checkpoint
 
 __all__ = [
            "PHASE_TERMS",
@@ -29,6 +30,7 @@ __all__ = [
            "SimulatorModule",
            "TimeBudget",
            "keep_freed_memory",
+           "load_checkpoint",
            "load_recipe",
            "loss_inputs",
 ]

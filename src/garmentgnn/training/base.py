@@ -208,7 +208,8 @@ class GarmentModule(L.LightningModule):
         if not isinstance(model, Configurable) or not isinstance(model, nn.Module):
             raise TypeError(f"`model`: expected a garmentgnn model (GarTrans, DAStyle, "
                             f"HOODStyle, NCSStyle), got {type(model).__name__}; build it "
-                            f"first, e.g. {type(self).__name__}(GarTrans(**datamodule.dims))")
+                            f"first, e.g. "
+                            f"GarTransModule(GarTrans(**datamodule.model_sizes(GarTrans)))")
         self.model = model
         # LightningCLI's rebuild recipe (the spec rebuilds the model everywhere), and the
         # sizes it links to every module's arguments, kept by this one's model instead

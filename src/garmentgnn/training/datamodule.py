@@ -16,7 +16,7 @@ import torch
 from torch.utils.data import DataLoader
 from torch.utils.data.distributed import DistributedSampler
 
-from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
+from garmentgnn.models.inputs import CHUNK, HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.data import store
 from garmentgnn.data.chunks import CACHE_BYTES, CACHE_SIZE, SequenceChunks
 from garmentgnn.data.keys import body_key, garment_key
@@ -131,7 +131,7 @@ class GarmentDataModule(L.LightningDataModule):
     sampler's ``set_epoch``, which would replay epoch 0's chunk order.
     """
 
-    def __init__(self, root: Union[str, Path], chunk: int = 8, history: int = HISTORY,
+    def __init__(self, root: Union[str, Path], chunk: int = CHUNK, history: int = HISTORY,
                  num_workers: int = 0, nystrom_dim: int = NYSTROM_DIM,
                  num_landmarks: int = NUM_LANDMARKS,
                  train_split: str = "train", val_split: Optional[str] = "val",
@@ -262,8 +262,8 @@ class GarmentDataModule(L.LightningDataModule):
                 "num_vertices": st.num_vertices if len(pairs) == 1 else None}
 
     def model_sizes(self, model_class: type) -> Dict[str, Optional[int]]:
-        """The :attr:`dims` that ``model_class`` takes (``GarTrans(**dm.model_sizes(
-        GarTrans))``), as ``garmentgnn train`` links them."""
+        """The :attr:`dims` that ``model_class`` takes, as ``garmentgnn train`` links them:
+        ``GarTrans(**dm.model_sizes(GarTrans))``."""
         params = inspect.signature(model_class.__init__).parameters
         return {k: v for k, v in self.dims.items() if k in params}
 

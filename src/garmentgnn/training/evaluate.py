@@ -23,7 +23,7 @@ from typing import Dict, Optional, Sequence
 
 import torch
 
-from garmentgnn.models.inputs import NUM_LANDMARKS
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.metrics import METRIC_UNITS, evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.training.module import GarTransModule
@@ -52,8 +52,8 @@ def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MOD
     for mode in modes:
         if mode not in MODES:
             raise ValueError(f"`modes`: unknown {mode!r}; choose from {MODES}")
-    ds = SequenceChunks(root, split, chunk=10 ** 9, history=history or 3,
-                        nystrom_dim=nystrom_dim or module.nystrom_dim or 16,
+    ds = SequenceChunks(root, split, chunk=10 ** 9, history=history or HISTORY,
+                        nystrom_dim=nystrom_dim or module.nystrom_dim or NYSTROM_DIM,
                         num_landmarks=num_landmarks)
     if not len(ds):
         raise ValueError(f"`split`: no {split!r} sequences under {root}")

@@ -72,8 +72,9 @@ REST_BRANCH = ("rest_fc", "rest_attn", "nystrom_fc", "body_fc")
 
 class GarTransModule(GarmentModule):
     """GarTrans trained by Lightning: the module is handed its model (Lightning's system
-    style) and holds the training settings.  ``GarTransModule(GarTrans(**dm.dims))`` is
-    the project's form; ``GarTransModule(GarTrans.paper(**dm.dims))`` the paper's.  In
+    style) and holds the training settings.  The project's form is
+    ``GarTransModule(GarTrans(**dm.model_sizes(GarTrans)))``, the paper's
+    ``GarTransModule(GarTrans.paper(**dm.model_sizes(GarTrans)))``.  In
     YAML (``garmentgnn/recipes/gartrans.yaml``) the model is ``model: init_args: model:
     class_path: garmentgnn.models.GarTrans``, its sizes linked from the data module.
 
@@ -98,8 +99,8 @@ class GarTransModule(GarmentModule):
             collision projection and of the collision loss (sets the model's
             ``compile_search``; :data:`~garmentgnn.training.base.COMPILE_SEARCH`).
 
-    ``GarTransModule(GarTrans(**datamodule.dims))`` is the headline model: the packaged
-    ``gartrans`` configuration states nothing these defaults do not.
+    ``GarTransModule(GarTrans(**datamodule.model_sizes(GarTrans)))`` is the headline
+    model: the packaged ``gartrans`` configuration states nothing these defaults do not.
     """
 
     def __init__(self, model: GarTrans, lr: float = 3e-3, t_max: Optional[int] = None,
@@ -112,7 +113,7 @@ class GarTransModule(GarmentModule):
         super().__init__()
         if not isinstance(model, GarTrans):
             raise TypeError(f"`model`: expected a GarTrans, got {type(model).__name__}; "
-                            f"GarTransModule(GarTrans(**datamodule.dims))")
+                            f"GarTransModule(GarTrans(**datamodule.model_sizes(GarTrans)))")
         enabled = list(enabled)  # as LightningCLI records it: the hparams of both paths agree
         self.save_hyperparameters(ignore=["model"])
         if optimizer not in OPTIMIZERS:

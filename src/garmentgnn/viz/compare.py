@@ -17,12 +17,10 @@ import torch
 
 from garmentgnn.data import store
 from garmentgnn.data.gltf import GltfMesh, write_gltf
-from garmentgnn.models import MGNStyle
-from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS
-from garmentgnn.training import BaselineModule, GarTransModule, SimulatorModule
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
-from garmentgnn.training.integrity import load_checkpoint_file
+from garmentgnn.training.checkpoints import load_checkpoint
 from garmentgnn.viz.animate import (GT_COLOR, Panel, default_error_limit, render_animation,
                                     vertex_error_cm)
 from garmentgnn.viz.viewer import viewer_bundle, write_viewer
@@ -69,28 +67,6 @@ def unique_names(named: Sequence[Tuple[str, str]]) -> None:
             raise ValueError(f"`ckpt`: two panels named {name!r} ({seen[name]}, {path}); "
                              f"name them: --ckpt A={seen[name]} --ckpt B={path}")
         seen[name] = path
-
-
-def load_checkpoint(path: PathLike):
-    """The trained method of a Lightning checkpoint (a :class:`GarTransModule`, a
-    :class:`BaselineModule` when its model is a baseline's, a :class:`SimulatorModule`
-    when it is the MGN-style simulator), on the CPU, in eval mode."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
-    hp = load_checkpoint_file(path).get("hyper_parameters") or {}
-    model = hp.get("model")
-    model_cls = str(model.get("class_path", "")) if isinstance(model, dict) else ""
-    baseline = hp.get("method") is not None or model_cls.rsplit(".", 1)[-1] in {
-        c.__name__ for c in BaselineModule.METHODS}
-    simulator = model_cls.rsplit(".", 1)[-1] == MGNStyle.__name__
-    cls = SimulatorModule if simulator else BaselineModule if baseline else GarTransModule
-    try:
-        return cls.load_from_checkpoint(str(path), map_location="cpu").eval()
-    except (ValueError, TypeError):
-        raise
-    except Exception:  # a truncated or foreign file: the error naming it and the fix
-        load_checkpoint_file(path)
-        raise
 
 
 def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str] = "test",
@@ -164,7 +140,8 @@ def data_settings(loaded: Mapping[str, object], where: Mapping[str, str],
 
 def _comparison(root, loaded, split, index, mode, lbs, history, num_landmarks, max_frames,
                 predictions, where) -> Comparison:
-    nys = {int(m.nystrom_dim) for m in loaded.values() if m.nystrom_dim is not None} or {16}
+    nys = {int(m.nystrom_dim) for m in loaded.values()
+           if m.nystrom_dim is not None} or {NYSTROM_DIM}
     if len(nys) > 1:
         raise ValueError(f"`models`: checkpoints disagree on nystrom_dim {sorted(nys)}")
     if min(nys) > num_landmarks:

@@ -12,7 +12,7 @@ from typing import Tuple, Union
 
 import torch
 
-from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS
+from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import predict
@@ -28,7 +28,7 @@ def render_strip(module: GarmentModule, root: Union[str, os.PathLike], split: st
     """PNG: rows simulated / GarTrans / LBS only, columns evenly spaced frames of the
     ``index``-th sequence of ``split``; returns ``(path, sequence id)``."""
     ds = SequenceChunks(root, split, chunk=10 ** 9, history=history,
-                        nystrom_dim=module.nystrom_dim or 16, num_landmarks=num_landmarks)
+                        nystrom_dim=module.nystrom_dim or NYSTROM_DIM, num_landmarks=num_landmarks)
     item = ds[index]
     was_training = module.training
     module.eval()

@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import Union
 
-from garmentgnn.data.store import atomic_write_bytes
+from garmentgnn._files import atomic_write_bytes
 
 PathLike = Union[str, os.PathLike]
 

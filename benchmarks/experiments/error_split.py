@@ -25,7 +25,7 @@ Prints a markdown table of frame-weighted E_dist (cm) and the fraction of LBS's 
 each removes, and writes ``error_split.{json,md}`` into a cache folder (``--out`` elsewhere;
 ``--commit``: the committed ``docs/results/benchmarks/``)::
 
-    python benchmarks/error_split.py --data ~/.cache/garmentgnn/datasets/tiny-torch
+    python benchmarks/experiments/error_split.py --data ~/.cache/garmentgnn/datasets/tiny-torch
 """
 from __future__ import annotations
 
@@ -35,15 +35,14 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
-                                  output_path)
-from garmentgnn.data.store import read_manifest
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, add_output_args, output_path
+from garmentgnn.data.store import dataset_dir, read_manifest
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.metrics import vertex_distance
 from garmentgnn.metrics.split import posed, to_rest_frame
 from garmentgnn.data import SequenceChunks
 
-RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks"
+RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results" / "benchmarks"
 
 
 def main(argv=None) -> None:

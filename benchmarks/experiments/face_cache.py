@@ -25,8 +25,8 @@ every time is also given as a ratio to ``candidates=8`` eager on the same garmen
 thread count.  Writes ``face_cache.{json,md}`` in a cache folder (``--out`` elsewhere;
 ``--commit``: the committed ``docs/results/face_cache/face_cache.*``)::
 
-    python benchmarks/face_cache.py --commit
-    python benchmarks/face_cache.py --sizes 400 --repeats 1      # quick look
+    python benchmarks/experiments/face_cache.py --commit
+    python benchmarks/experiments/face_cache.py --sizes 400 --repeats 1      # quick look
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ from garmentgnn.garments import make_garment
 from garmentgnn.motion import make_motion
 from garmentgnn.sim.stand_in import wobbling_frames
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "docs" / "results" / "face_cache" / "face_cache"
 
 
@@ -190,7 +190,7 @@ def main() -> None:
         ap.error("--frames and --repeats must be positive")
     out = output_path(a, RESULTS)
     rows = [r for s in a.sizes for r in run_size(s, a)]
-    meta = {"command": command_line("benchmarks/face_cache.py"), "frames": a.frames,
+    meta = {"command": command_line("benchmarks/experiments/face_cache.py"), "frames": a.frames,
             "repeats": a.repeats, "torch": torch.__version__,
             "machine": f"{platform.machine()}, {platform.processor() or 'cpu'}"}
     out.parent.mkdir(parents=True, exist_ok=True)

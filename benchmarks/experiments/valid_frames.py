@@ -8,7 +8,8 @@ of each sequence file), so the table follows today's line, not the manifest's co
 the day each file was written.  Writes JSON and markdown into a cache folder, ``--commit``
 the committed ``docs/results/benchmarks/valid_frames.{json,md}``::
 
-    python benchmarks/valid_frames.py --data ~/.cache/garmentgnn/datasets/learn-blender \\
+    python benchmarks/experiments/valid_frames.py \\
+        --data ~/.cache/garmentgnn/datasets/learn-blender \\
         ~/.cache/garmentgnn/datasets/small-blender --commit
 """
 from __future__ import annotations
@@ -20,12 +21,12 @@ import numpy as np
 
 from garmentgnn._argparse import (Accumulate, ArgumentParser, HelpFormatter, add_output_args,
                                   check_unique, command_line, existing_dir, output_path)
-from garmentgnn.data.store import (atomic_write_bytes, atomic_write_json, load_record_sequence,
-                                   read_manifest)
+from garmentgnn._files import atomic_write_bytes, atomic_write_json
+from garmentgnn.data.store import load_record_sequence, read_manifest
 from garmentgnn.data.validity import VALID_PENETRATION, sequence_valid
 from garmentgnn.bench.tables import table
 
-COMMITTED = Path(__file__).resolve().parents[1] / "docs" / "results" / "benchmarks" / "valid_frames"
+COMMITTED = Path(__file__).resolve().parents[2] / "docs" / "results" / "benchmarks" / "valid_frames"
 SPLITS = ("train", "val", "test")
 
 
@@ -95,7 +96,7 @@ def main(argv=None) -> None:
     check_unique(ap, [str(d) for d in a.data], "--data")
     out = output_path(a, COMMITTED)
     rows = [r for d in a.data for r in dataset_rows(Path(d))]
-    command = command_line("benchmarks/valid_frames.py", argv)
+    command = command_line("benchmarks/experiments/valid_frames.py", argv)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out.with_suffix(".json"), {"command": command, "rows": rows})
     text = markdown(rows, command)

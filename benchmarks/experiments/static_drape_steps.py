@@ -22,7 +22,8 @@ One training seed, so this is a pointer, not a significance claim. It writes
 ``static_drape_steps.{json,md}`` into ``--out`` (``--commit``: the committed
 ``docs/results/benchmarks/``)::
 
-    python benchmarks/static_drape_steps.py --data ~/.cache/garmentgnn/datasets/medium-blender
+    python benchmarks/experiments/static_drape_steps.py \\
+        --data ~/.cache/garmentgnn/datasets/medium-blender
 """
 from __future__ import annotations
 
@@ -31,15 +32,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Dict, List
 
-from garmentgnn._argparse import ArgumentParser, HelpFormatter, dataset_dir, float_above
-from garmentgnn.data.store import read_json
+from garmentgnn._argparse import ArgumentParser, HelpFormatter, float_above
+from garmentgnn.data.store import dataset_dir, read_json
 from garmentgnn.bench import runner
 from garmentgnn.bench.methods import DA, LBS
 from garmentgnn.bench.presets import preset
 from garmentgnn.bench.tables import table
 
 WO_UNSUP = "GarTrans w/o unsupervised loss"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 REFERENCE = ROOT / "docs" / "results" / "bench_medium" / "results.json"
 RESULTS = ROOT / "docs" / "results" / "benchmarks"
 
@@ -101,7 +102,7 @@ def main(argv=None) -> None:
     p = replace(base, engines=False, learned=replace(
         base.learned, seeds=1, minutes=args.minutes, methods=(WO_UNSUP,),
         seed_methods=None, long_minutes=None))
-    command = ("python benchmarks/static_drape_steps.py --data " + args.data +
+    command = ("python benchmarks/experiments/static_drape_steps.py --data " + args.data +
                f" --minutes {args.minutes:g}")
     summary = runner.run(p, args.out, data=args.data, command=command)
     print(summary)

@@ -8,7 +8,7 @@ Prints a markdown table (seconds per simulated frame, E_dist in cm, collision ra
 non-converged frames of the torch simulator) and writes ``engine_ladder.{json,md}`` into a
 cache folder (``--out`` elsewhere; ``--commit``: the committed ``docs/results/benchmarks/``)::
 
-    OMP_NUM_THREADS=1 python benchmarks/engine_ladder.py \
+    OMP_NUM_THREADS=1 python benchmarks/experiments/engine_ladder.py \
         --data ~/.cache/garmentgnn/datasets/medium-blender
 """
 from __future__ import annotations
@@ -20,14 +20,15 @@ from pathlib import Path
 
 import torch
 
-from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
-                                  int_at_least, output_path)
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, int_at_least,
+                                  output_path)
+from garmentgnn.data.store import dataset_dir
 from garmentgnn.bench.engines import (DEFAULT_FRAMES, EngineSetting, dataset_items,
                                       default_settings, engine_record, item_engine,
                                       pick_sequences)
 
 HERE = Path(__file__).resolve().parent
-RESULTS = HERE.parent / "docs" / "results" / "benchmarks" / "engine_ladder"
+RESULTS = HERE.parents[1] / "docs" / "results" / "benchmarks" / "engine_ladder"
 
 
 def main(argv=None) -> None:
