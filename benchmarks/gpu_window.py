@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from garmentgnn.models.inputs import CHUNK as DATA_CHUNK
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, int_at_least,
                                   output_path)
 HERE = Path(__file__).resolve().parent
@@ -55,9 +56,8 @@ MARGIN_S = 20.0
 WEIGHTS = {"throughput_gartrans": 0.17, "throughput_static": 0.10, "throughput_da": 0.10,
            "inference": 0.11, "train_gartrans": 0.30, "train_da": 0.22}
 RECIPES = {"train_gartrans": "gartrans", "train_da": "baselines/da"}  # each stage's --config
-#: frames per chunk of the packaged recipes (``data.chunk``): a training batch holds at
-#: most the training split's chunks
-CHUNK = 8
+#: frames per chunk of the packaged recipes: a training batch holds at most the split's chunks
+CHUNK = DATA_CHUNK
 
 
 # --------------------------------------------------------------------------- planning

@@ -37,8 +37,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import torch
 
 from garmentgnn.data import SequenceChunks
-from garmentgnn.data.store import read_json, read_manifest
-from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, dataset_dir,
+from garmentgnn.data.store import dataset_dir, read_json, read_manifest
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args,
                                   int_at_least, output_path)
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench import stability as stab
@@ -49,7 +49,7 @@ from garmentgnn.training import SimulatorModule
 from garmentgnn.training.simulator import START_STATES
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.lightning_cli import method_name
-from garmentgnn.viz.compare import load_checkpoint
+from garmentgnn.training.checkpoints import load_checkpoint
 
 #: the folder of this script and its parts (``mgn_parts``): on ``sys.path`` when it is
 #: imported from elsewhere (tests)

@@ -32,7 +32,7 @@ HOMES = {"models/inputs.py": {"HISTORY", "CHUNK"},
          "geometry/geodesic.py": {"NYSTROM_DIM", "NUM_LANDMARKS"}}
 #: restatements present today (``path: what``, as :func:`found` words them, less the
 #: line): to be replaced by an import of the size's home
-KNOWN: set = {"benchmarks/gpu_window.py: CHUNK = 8"}
+KNOWN: set = set()
 
 
 def _int(node: ast.AST):

@@ -113,13 +113,6 @@ def existing_file(text: str) -> str:
     return _existing(text, "file", os.path.isfile, "folder", os.path.isdir)
 
 
-def dataset_dir(text: str) -> str:
-    """:func:`garmentgnn.data.store.dataset_dir`, where it lives now (beside the manifest
-    it reads): kept here while ``benchmarks/mgn_learn.py`` takes it from this module."""
-    from garmentgnn.data.store import dataset_dir as checked  # noqa: PLC0415
-    return checked(text)
-
-
 def existing_dir(text: str) -> str:
     """An argparse type: the path of an existing folder (``~`` expanded)."""
     return _existing(text, "folder", os.path.isdir, "file", os.path.exists)
