@@ -32,13 +32,18 @@ asks the network for the acceleration that lands on the target through the same
 integration (:meth:`target_acceleration`, its exact inverse), so the decay changes what
 the model learns to predict, not what it can reach.
 
+**The projection.**  After each step (:meth:`step`, :meth:`project`) the toolkit's strain
+limit shortens stretched edges (``strain_limit`` sweeps) and its collision projection
+moves vertices inside each garment's own body ``collision_margin`` outside, as GarTrans's
+post-steps do; on by default (the measurement: the class's arguments).
+
 Pinned vertices follow the LBS garment.  Under ``torch.autocast`` (``--trainer.precision
 bf16-mixed``) the kinematics, the inputs, their statistics, the acceleration and the
 integration stay float32 (:func:`~garmentgnn.geometry.full_precision`: bfloat16 rounds a
 position at 1 m to ~4 mm, the size of a mesh edge's change in a frame) and the encoders,
-processor and decoder run in the low precision.  The model never sees the ground truth: the
-training module (:class:`~garmentgnn.training.SimulatorModule`) gives it states and
-compares its output with the normalised target.
+processor and decoder run in the low precision.  The model never reads the ground truth
+itself: the training module (:class:`~garmentgnn.training.SimulatorModule`) hands it the
+states and the target frame of :meth:`loss`.
 """
 from __future__ import annotations
 
