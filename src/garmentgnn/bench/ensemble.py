@@ -1,0 +1,105 @@
+"""Scores against a chaotic ground truth: an ensemble of simulated members.
+
+Cloth simulation is chaotic: re-simulating a sequence with its rest garment moved by
+1e-7 m moves Blender's frames by about 1 cm on `learn` (docs/results/benchmarks/
+gt_noise_learn.md).  With ``K`` such members of one sequence, a deterministic
+prediction is scored as weather forecasts are (WeatherBench 2), per frame, in cm
+(:func:`~garmentgnn.metrics.garment_metrics.vertex_distance`):
+
+* ``E_mean``: its distance to the ensemble mean (a model trained on mean squared error
+  tends toward that mean);
+* ``E_members``: its mean distance to the members;
+* the floor, what no deterministic model gets below: ``floor_mean``, the mean distance
+  of a member to the ensemble mean, and ``spread``, the mean distance between two
+  members;
+* ``skill = (E_LBS - E_mean) / (E_LBS - floor_mean)``, with ``E_LBS`` the LBS garment's
+  distance to the ensemble mean: 0 is LBS, 1 is the floor, below 0 worse than LBS.
+
+:func:`ensemble_scores` gives one sequence's numbers over its scored frames, and the same
+over the first ``early`` of them and over the rest; :func:`pooled_skill` pools skill
+over sequences (sums of errors, so a long or chaotic sequence weighs by its error, not
+by one ratio each).  Generating the members and the bench's report rows are not part of
+this module yet.
+"""
+from __future__ import annotations
+
+from typing import Dict, Iterable, Mapping, Optional
+
+import torch
+from torch import Tensor
+
+from garmentgnn.metrics.garment_metrics import vertex_distance
+
+__all__ = ["ensemble_frames", "ensemble_scores", "pooled_skill"]
+
+
+def _check(pred: Tensor, members: Tensor, lbs: Tensor) -> None:
+    if members.dim() != 4 or members.shape[-1] != 3:
+        raise ValueError(f"`members`: expected [K, T, V, 3], got {tuple(members.shape)}")
+    if members.shape[0] < 2:
+        raise ValueError(f"`members`: an ensemble needs K >= 2 members, got "
+                         f"{members.shape[0]}; simulate more members")
+    for name, x in (("pred", pred), ("lbs", lbs)):
+        if tuple(x.shape) != tuple(members.shape[1:]):
+            raise ValueError(f"`{name}`: expected the members' frames and vertices "
+                             f"{tuple(members.shape[1:])}, got {tuple(x.shape)}")
+
+
+def ensemble_frames(pred: Tensor, members: Tensor, lbs: Tensor) -> Dict[str, Tensor]:
+    """Per frame ``[T]`` (cm): ``E_mean``, ``E_members``, ``E_LBS`` (LBS to the ensemble
+    mean), ``floor_mean`` and ``spread`` (module doc) of a prediction ``pred [T, V, 3]``
+    against members ``[K, T, V, 3]`` (``K >= 2``) with the LBS garment ``lbs [T, V, 3]``."""
+    _check(pred, members, lbs)
+    members = members.double()
+    pred, lbs = pred.double(), lbs.double()
+    K = members.shape[0]
+    mean = members.mean(0)
+    to_member = torch.stack([vertex_distance(pred, m) for m in members])
+    member_mean = torch.stack([vertex_distance(m, mean) for m in members])
+    pairs = [vertex_distance(members[i], members[j]) for i in range(K) for j in range(i + 1, K)]
+    return {"E_mean": vertex_distance(pred, mean), "E_members": to_member.mean(0),
+            "E_LBS": vertex_distance(lbs, mean), "floor_mean": member_mean.mean(0),
+            "spread": torch.stack(pairs).mean(0)}
+
+
+def _summary(frames: Mapping[str, Tensor], keep: Tensor) -> Dict[str, float]:
+    if not bool(keep.any()):
+        return {}
+    out = {k: float(v[keep].mean()) for k, v in frames.items()}
+    gap = out["E_LBS"] - out["floor_mean"]
+    out["skill"] = (out["E_LBS"] - out["E_mean"]) / gap if gap > 0 else float("nan")
+    out["frames"] = int(keep.sum())
+    return out
+
+
+def ensemble_scores(pred: Tensor, members: Tensor, lbs: Tensor,
+                    valid: Optional[Tensor] = None, early: int = 10) -> Dict[str, Dict]:
+    """One sequence's ensemble numbers (module doc), means over its scored frames
+    (``valid [T]``, default all): ``{"all": ..., "early": the first early scored frames,
+    "late": the rest}``, each with ``skill`` and ``frames`` (a part without frames is
+    empty)."""
+    frames = ensemble_frames(pred, members, lbs)
+    T = members.shape[1]
+    keep = torch.ones(T, dtype=torch.bool) if valid is None else valid.bool().cpu()
+    if keep.shape != (T,):
+        raise ValueError(f"`valid`: expected [{T}] flags, got {tuple(keep.shape)}")
+    if not isinstance(early, int) or isinstance(early, bool) or early < 0:
+        raise ValueError(f"`early`: expected frames >= 0, got {early!r}")
+    order = torch.cumsum(keep.long(), 0)  # 1 for the first scored frame
+    first = keep & (order <= early)
+    return {"all": _summary(frames, keep), "early": _summary(frames, first),
+            "late": _summary(frames, keep & ~first)}
+
+
+def pooled_skill(records: Iterable[Mapping[str, float]]) -> float:
+    """Skill pooled over sequences, ``sum(E_LBS - E_mean) / sum(E_LBS - floor_mean)``
+    over the records of :func:`ensemble_scores` (one part of each, e.g. ``"all"``), each
+    weighted by its frames."""
+    num = den = 0.0
+    for r in records:
+        if not r:
+            continue
+        n = r["frames"]
+        num += n * (r["E_LBS"] - r["E_mean"])
+        den += n * (r["E_LBS"] - r["floor_mean"])
+    return num / den if den > 0 else float("nan")

@@ -1,0 +1,64 @@
+"""Scores against an ensemble ground truth (garmentgnn.bench.ensemble) against hand
+computations on points along one axis, where every distance is a difference of
+coordinates."""
+import pytest
+import torch
+
+from garmentgnn.bench.ensemble import ensemble_frames, ensemble_scores, pooled_skill
+
+
+def along_x(xs):
+    """``[T, 1, 3]`` one vertex per frame at ``(x, 0, 0)`` metres."""
+    out = torch.zeros(len(xs), 1, 3, dtype=torch.float64)
+    out[:, 0, 0] = torch.tensor(xs, dtype=torch.float64)
+    return out
+
+
+def test_two_members_against_the_hand_computation():
+    d, a, b = 0.01, 0.02, 0.05  # members at +-d, the prediction at a, LBS at b (m)
+    members = torch.stack([along_x([d] * 3), along_x([-d] * 3)])
+    f = ensemble_frames(along_x([a] * 3), members, along_x([b] * 3))
+    cm = {"E_mean": 2.0, "E_members": (1.0 + 3.0) / 2, "E_LBS": 5.0, "floor_mean": 1.0,
+          "spread": 2.0}
+    for k, v in cm.items():
+        torch.testing.assert_close(f[k], torch.full((3,), v, dtype=torch.float64))
+    s = ensemble_scores(along_x([a] * 3), members, along_x([b] * 3))["all"]
+    assert s["skill"] == pytest.approx((5.0 - 2.0) / (5.0 - 1.0))
+    assert s["frames"] == 3
+
+
+def test_three_members_spread_and_floor():
+    members = torch.stack([along_x([0.0]), along_x([0.01]), along_x([0.03])])
+    f = ensemble_frames(along_x([0.0]), members, along_x([0.0]))
+    mean = 4.0 / 3  # cm
+    assert float(f["spread"][0]) == pytest.approx((1.0 + 3.0 + 2.0) / 3)
+    assert float(f["floor_mean"][0]) == pytest.approx(
+        (mean + abs(1 - mean) + abs(3 - mean)) / 3)
+    assert float(f["E_members"][0]) == pytest.approx((0 + 1 + 3) / 3)
+
+
+def test_early_and_late_frames_and_the_pooled_skill():
+    members = torch.stack([along_x([0.01] * 4), along_x([-0.01] * 4)])
+    pred = along_x([0.09, 0.02, 0.04, 0.03])  # frame 0 is not scored
+    valid = torch.tensor([False, True, True, True])
+    s = ensemble_scores(pred, members, along_x([0.05] * 4), valid, early=1)
+    assert s["early"]["E_mean"] == pytest.approx(2.0) and s["early"]["frames"] == 1
+    assert s["late"]["E_mean"] == pytest.approx(3.5) and s["late"]["frames"] == 2
+    assert s["all"]["E_mean"] == pytest.approx(3.0) and s["all"]["frames"] == 3
+    other = {"E_LBS": 4.0, "E_mean": 4.0, "floor_mean": 2.0, "frames": 1}  # skill 0
+    # pooled: (3 * (5 - 3) + 1 * 0) / (3 * (5 - 1) + 1 * 2)
+    assert pooled_skill([s["all"], other]) == pytest.approx(6.0 / 14.0)
+    assert ensemble_scores(pred, members, pred, valid, early=0)["early"] == {}
+
+
+def test_bad_input_is_named():
+    one = along_x([0.0, 0.0])
+    with pytest.raises(ValueError, match="K >= 2"):
+        ensemble_frames(one, one.unsqueeze(0), one)
+    two = torch.stack([one, one])
+    with pytest.raises(ValueError, match="`pred`"):
+        ensemble_frames(along_x([0.0]), two, one)
+    with pytest.raises(ValueError, match="`valid`"):
+        ensemble_scores(one, two, one, torch.tensor([True]))
+    with pytest.raises(ValueError, match="`early`"):
+        ensemble_scores(one, two, one, early=-1)
