@@ -154,7 +154,7 @@ def score_methods(args: argparse.Namespace):
     if mgn is not None and args.project:  # the same model with the projection after each step
         sweeps, margin = int(args.project[0]), float(args.project[1])
         projected = load_checkpoint(args.mgn)
-        projected.model.strain_limit, projected.model.collision_margin = sweeps, margin
+        projected.model.strain_limit, projected.model.collision_projection = sweeps, margin
         for start in args.starts:
             name = f"MGN-style ({start}, projected)"
             modules[name] = projected

@@ -163,7 +163,7 @@ def test_a_step_integrates_the_acceleration_and_pins_to_lbs(root):
         projected = model.project(batch, m, 2, free)
     torch.testing.assert_close(nxt, projected)
     torch.testing.assert_close(nxt[:20], m.lbs[2, :20])
-    model.strain_limit, model.collision_margin = 0, None  # without the projection
+    model.strain_limit, model.collision_projection = 0, None  # without the projection
     with torch.no_grad():
         nxt = model.step(batch, m, 2, xp, xc)
     torch.testing.assert_close(nxt[20:], (2 * xc - xp + a)[20:])
@@ -552,11 +552,11 @@ def test_the_projection_uses_the_strain_limit_and_the_collision_projection(root)
     called directly: a batch of two garments projects each against its own body)."""
     torch.manual_seed(0)
     batch = windows(root)[[0, 6]]
-    model = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=3, collision_margin=0.004)
+    model = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=3, collision_projection=0.004)
     m = model.scene_motion(batch)
     x = batch.gt[2] + 0.01 * torch.randn_like(batch.gt[2])
     got = model.project(batch, m, 2, x)
-    plain = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=0, collision_margin=None)
+    plain = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=0, collision_projection=None)
     assert plain.project(batch, plain.scene_motion(batch), 2, x) is x  # off: unchanged
     edges = unique_edges(batch.faces, batch.num_vertices).edges
     want = project_edge_lengths(x, edges, edge_lengths(batch.rest_pos, edges), 3,

@@ -34,7 +34,7 @@ the model learns to predict, not what it can reach.
 
 **The projection.**  After each step (:meth:`step`, :meth:`project`) the toolkit's strain
 limit shortens stretched edges (``strain_limit`` sweeps) and its collision projection
-moves vertices inside each garment's own body ``collision_margin`` outside, as GarTrans's
+moves vertices inside each garment's own body ``collision_projection`` outside, as GarTrans's
 post-steps do; on by default (the measurement: the class's arguments).
 
 Pinned vertices follow the LBS garment.  Under ``torch.autocast`` (``--trainer.precision
@@ -56,12 +56,12 @@ from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import full_precision
-from garmentgnn.geometry.measures import edge_lengths, project_edge_lengths
+from garmentgnn.geometry.measures import edge_lengths
 from garmentgnn.geometry.mesh import unique_edges
 from garmentgnn.models.blocks import Configurable, RunningNormalizer
 from garmentgnn.models.encode_process_decode import EncodeProcessDecode
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.models.sequence import ChunkLayout
+from garmentgnn.models.sequence import ChunkLayout, PostSteps
 from garmentgnn.physics import COLLISION_MARGIN, MATERIAL_FEATURES
 
 __all__ = ["MGNStyle", "SceneMotion"]
@@ -107,7 +107,7 @@ def _local(frame: Tensor, v: Tensor) -> Tensor:
     return (v.unsqueeze(-2) @ frame).squeeze(-2)
 
 
-class MGNStyle(Configurable, nn.Module):
+class MGNStyle(Configurable, PostSteps, nn.Module):
     """MGN-style learned simulator (module doc): ``x_t = 2 x_{t-1} - x_{t-2} + a``.
 
     Args:
@@ -129,7 +129,7 @@ class MGNStyle(Configurable, nn.Module):
             no clip).
         strain_limit: sweeps of the strain limit after each step (Provot's,
             :func:`~garmentgnn.geometry.project_edge_lengths` on stretched edges; 0: none).
-        collision_margin: after each step, vertices closer than this to the body (or
+        collision_projection: after each step, vertices closer than this to the body (or
             inside it) are moved this far outside (:func:`~garmentgnn.geometry.push_outside`;
             ``None``: no projection).  Both on by default: on 24 `learn` test sequences
             they took the committed model's rollouts from 0.949x to 0.904x LBS's E_dist
@@ -146,7 +146,7 @@ class MGNStyle(Configurable, nn.Module):
                  norm_updates: int = 1000, body_blocks: bool = False,
                  anchor_decay: float = 0.0, anchor_clip: Optional[float] = None,
                  strain_limit: int = 10,
-                 collision_margin: Optional[float] = COLLISION_MARGIN) -> None:
+                 collision_projection: Optional[float] = COLLISION_MARGIN) -> None:
         super().__init__()
         if not isinstance(body_k, int) or isinstance(body_k, bool) or body_k < 1:
             raise ValueError(f"`body_k`: expected a positive int, got {body_k!r}")
@@ -164,12 +164,14 @@ class MGNStyle(Configurable, nn.Module):
         if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) \
                 or strain_limit < 0:
             raise ValueError(f"`strain_limit`: expected sweeps >= 0, got {strain_limit!r}")
-        if collision_margin is not None and not (isinstance(collision_margin, (int, float))
-                                                 and collision_margin >= 0):
-            raise ValueError(f"`collision_margin`: expected metres >= 0 or None, got "
-                             f"{collision_margin!r}")
+        if collision_projection is not None and not (
+                isinstance(collision_projection, (int, float)) and collision_projection >= 0):
+            raise ValueError(f"`collision_projection`: expected metres >= 0 or None, got "
+                             f"{collision_projection!r}")
         self.strain_limit = strain_limit
-        self.collision_margin = None if collision_margin is None else float(collision_margin)
+        self.collision_projection = (None if collision_projection is None
+                                     else float(collision_projection))
+        self.compile_search = False  # PostSteps: the face search eager (one frame a call)
         self.hidden, self.fps = hidden, float(fps)
         self.body_radius, self.body_k = float(body_radius), body_k
         self.anchor_decay = float(anchor_decay)
@@ -327,20 +329,14 @@ class MGNStyle(Configurable, nn.Module):
     def project(self, scene: GarmentInputs, motion: SceneMotion, t: int, x: Tensor) -> Tensor:
         """Frame ``t`` after the strain limit (``strain_limit`` sweeps over the stretched
         edges) and the collision projection against each garment's own body
-        (``collision_margin``), pinned vertices back on LBS; ``x`` itself without them."""
-        if not self.strain_limit and self.collision_margin is None:
+        (``collision_projection``; :class:`~garmentgnn.models.sequence.PostSteps`, as
+        GarTrans's), pinned vertices back on LBS; ``x`` itself without them."""
+        if not self.strain_limit and self.collision_projection is None:
             return x
-        with full_precision(x) as up:
-            x = up(x)
-            if self.strain_limit:
-                x = project_edge_lengths(x, motion.strain_edges, motion.strain_lengths,
-                                         self.strain_limit, stretch_only=True)
-            if self.collision_margin is not None:
-                frame = copy.copy(scene)
-                frame.body_pos = motion.body[t].reshape(1, -1, 3)
-                x = motion.layout.push_outside(x.unsqueeze(0), frame,
-                                               self.collision_margin)[0]
-            return torch.where(motion.pinned.unsqueeze(1), motion.lbs[t], x)
+        frame = copy.copy(scene)  # GarTrans's post-steps on frame t alone
+        frame.body_pos = motion.body[t].reshape(1, -1, 3)
+        x = self.post_steps(frame, motion, x.unsqueeze(0), motion.layout)[0]
+        return torch.where(motion.pinned.unsqueeze(1), motion.lbs[t], x)
 
     def loss(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
              x_curr: Tensor, x_next: Tensor, weight: Tensor) -> Tuple[Tensor, Tensor, Tensor]:

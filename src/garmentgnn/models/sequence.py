@@ -157,13 +157,16 @@ class PostSteps:
     """GarTrans's last steps after the dynamic stack (not in the paper): the strain limit
     (``strain_limit`` sweeps) and the collision projection (``collision_projection``)."""
 
-    def post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor) -> Tensor:
+    def post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor,
+                   layout: Optional[ChunkLayout] = None) -> Tensor:
         """The strain limit, then the collision projection against each chunk's body (in
-        float32, also under autocast)."""
+        float32, also under autocast); ``layout``: ``inputs``' :class:`ChunkLayout` where
+        the caller has it (else built here)."""
         with full_precision(x) as up:
-            return self._post_steps(inputs, static, up(x))
+            return self._post_steps(inputs, static, up(x), layout)
 
-    def _post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor) -> Tensor:
+    def _post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor,
+                    layout: Optional[ChunkLayout] = None) -> Tensor:
         if self.strain_limit:
             edges, lengths = static.strain_edges, static.strain_lengths
             if edges is None:  # static features made by a model without the strain limit
@@ -173,8 +176,8 @@ class PostSteps:
         body = inputs.get("body_pos")
         if self.collision_projection is None or body is None:
             return x
-        return ChunkLayout(inputs).push_outside(x, inputs, self.collision_projection,
-                                                compiled=self.compile_search)
+        return (layout or ChunkLayout(inputs)).push_outside(
+            x, inputs, self.collision_projection, compiled=self.compile_search)
 
 
 class SequencePrediction:
