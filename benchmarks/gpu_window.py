@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from garmentgnn.models.inputs import CHUNK as DATA_CHUNK
+from garmentgnn.models.inputs import CHUNK  # the recipes' frames per chunk
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args, int_at_least,
                                   output_path)
 HERE = Path(__file__).resolve().parent
@@ -56,9 +56,6 @@ MARGIN_S = 20.0
 WEIGHTS = {"throughput_gartrans": 0.17, "throughput_static": 0.10, "throughput_da": 0.10,
            "inference": 0.11, "train_gartrans": 0.30, "train_da": 0.22}
 RECIPES = {"train_gartrans": "gartrans", "train_da": "baselines/da"}  # each stage's --config
-#: frames per chunk of the packaged recipes: a training batch holds at most the split's chunks
-CHUNK = DATA_CHUNK
-
 
 # --------------------------------------------------------------------------- planning
 def allot(remaining_s: float, names: List[str]) -> float:
@@ -172,14 +169,16 @@ def best_checkpoint(fit_dir: Path) -> Optional[Path]:
     return (best or last or [None])[-1]
 
 
-def weights_only(ckpt: Path, dest: Path) -> Path:
-    """``ckpt`` without its optimizer and scheduler state (what ``train test`` and
-    ``predict`` read), re-stamped with its integrity digest."""
+def weights_only(ckpt: Path, dest: Path, raw: bool = False) -> Path:
+    """``ckpt`` without its optimizer and scheduler state, re-stamped (what ``train test``
+    reads): of a run that averages its weights, the average (``raw``: as trained)."""
     import torch  # noqa: PLC0415 (the driver itself runs without importing torch)
 
     from garmentgnn.training.integrity import stamp_checkpoint  # noqa: PLC0415 (likewise)
     c = torch.load(ckpt, map_location="cpu", weights_only=False)
-    for key in ("optimizer_states", "lr_schedulers"):
+    if raw:  # the weights as trained, where the run kept their average beside them
+        c["state_dict"] = c.get("current_model_state", c["state_dict"])
+    for key in ("optimizer_states", "lr_schedulers", "current_model_state", "averaging_state"):
         c.pop(key, None)
     stamp_checkpoint(c)
     torch.save(c, dest)

@@ -40,12 +40,11 @@ import torch
 from garmentgnn._argparse import ArgumentParser, HelpFormatter, add_output_args, output_path
 from garmentgnn.data import compact
 from garmentgnn.data.store import read_manifest
-from garmentgnn.training.integrity import stamp_checkpoint
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(HERE))
-from gpu_window import CARRY_LIMIT  # noqa: E402
+from gpu_window import CARRY_LIMIT, best_checkpoint, weights_only  # noqa: E402
 from gpu_window_prepare import download_wheels, folder_bytes, working_tree_bytes  # noqa: E402
 from mgn_parts.runs import run_steptime  # noqa: E402
 
@@ -85,8 +84,8 @@ def prepare(a: argparse.Namespace) -> int:
         pool = sorted(r["id"] for r in items if r["split"] == split)
         rng.shuffle(pool)
         ids += pool[:n] if n is not None else pool
-    # the packer keeps the smallest sequences when all do not fit: pack the sample in
-    # its seeded order, as many as fit, by trying the whole and dropping from the end
+    # the packer keeps the smallest sequences when all do not fit: choose the sample in
+    # its seeded order instead, as many as fit by their estimated packed size
     per = {r["id"]: (Path(a.data) / r["file"]).stat().st_size for r in items}
     budget = room * 0.97
     chosen, size = [], 0
@@ -117,18 +116,6 @@ def last_metrics(run: Path) -> Dict[str, Any]:
                     if v not in ("", None):
                         out[k] = float(v)
     return out
-
-
-def weights(ckpt: Path, dest: Path, raw: bool = False) -> None:
-    """``ckpt`` without its optimizer state (the EMA weights, or with ``raw`` the
-    weights as trained), loadable by ``garmentgnn train test``."""
-    ck = torch.load(ckpt, map_location="cpu", weights_only=False)
-    if raw and "current_model_state" in ck:
-        ck["state_dict"] = ck["current_model_state"]
-    for k in ("optimizer_states", "lr_schedulers", "current_model_state", "averaging_state"):
-        ck.pop(k, None)
-    stamp_checkpoint(ck)
-    torch.save(ck, dest)
 
 
 def run(a: argparse.Namespace) -> int:
@@ -179,14 +166,14 @@ def run(a: argparse.Namespace) -> int:
             p.kill()
         folder = out / name
         # the checkpoint the validation rollouts chose, else the latest
-        ckpts = sorted(folder.rglob("best-*.ckpt")) or sorted(folder.rglob("last.ckpt"))
+        ckpt = best_checkpoint(folder)
         rec = {"rc": p.returncode, "wall_s": time.time() - started,
                "metrics": last_metrics(folder)}
-        if ckpts:
-            weights(ckpts[-1], folder / "weights-ema.ckpt")
-            weights(ckpts[-1], folder / "weights-raw.ckpt", raw=True)
-            rec["checkpoint"] = ckpts[-1].name
-            rec["global_step"] = int(torch.load(ckpts[-1], map_location="cpu",
+        if ckpt is not None:
+            weights_only(ckpt, folder / "weights-ema.ckpt")
+            weights_only(ckpt, folder / "weights-raw.ckpt", raw=True)
+            rec["checkpoint"] = ckpt.name
+            rec["global_step"] = int(torch.load(ckpt, map_location="cpu",
                                                 weights_only=False)["global_step"])
         for c in list(folder.rglob("*.ckpt")) + list(folder.rglob("*tfevents*")):
             if c.name not in ("weights-ema.ckpt", "weights-raw.ckpt"):
