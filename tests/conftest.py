@@ -76,3 +76,38 @@ def numbers(obj):
 #: stability case's 1.7e-6 m^2 on the tiny preset (a collapsed face gives 0, or ~1e-20
 #: where a BLAS code path rounds differently)
 ZERO_AREA_M2 = 1e-12
+
+
+def ray_head(cpus: int = 2):
+    """A ``ray start --head --block`` cluster of ``cpus`` CPUs on this host, as a
+    generator for a module fixture: yields its ``HOST:PORT`` once it answers, stops it
+    after.  A cluster per test module: starting one takes seconds here, joining one
+    a fraction of a second."""
+    import socket  # noqa: PLC0415 (only the Ray tests start a cluster)
+    import subprocess  # noqa: PLC0415
+    import time  # noqa: PLC0415
+    from pathlib import Path  # noqa: PLC0415
+    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    exe = Path(sys.executable).with_name("ray")
+    head = subprocess.Popen([str(exe), "start", "--head", f"--port={port}", f"--num-cpus={cpus}",
+                             "--num-gpus=0", "--include-dashboard=false",
+                             "--disable-usage-stats", "--block", "--node-ip-address=127.0.0.1"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(120):  # the head takes a few seconds to come up
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                time.sleep(0.5)
+        yield f"127.0.0.1:{port}"
+    finally:
+        head.terminate()
+        try:
+            head.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            head.kill()

@@ -1,6 +1,7 @@
 """``garmentgnn bench --preset NAME --out DIR [--seeds N] [--data DATASET] [--no-learned |
 --learned-only] [--minutes M] [--batch-size N] [--lr-factor F] [--methods NAME ...]
-[--shard I/N]``.
+[--shard I/N] [--backend ray [--address HOST:PORT | --workers N] [--gpus G]
+[--ship-data]]``.
 
 :mod:`garmentgnn.cli` adds it with ``add_parser(subparsers)`` and calls ``main(args)``
 for ``args.command == "bench"``.
@@ -12,7 +13,10 @@ import shlex
 import sys
 from dataclasses import replace
 
-from garmentgnn._argparse import Accumulate, HelpFormatter, nonempty_path
+from garmentgnn._argparse import (Accumulate, HelpFormatter, finite_float, int_at_least,
+                                  nonempty_path)
+from garmentgnn._ray import check_address, import_ray
+from garmentgnn.bench.ray_backend import RayBackend
 from garmentgnn.bench.runner import run
 from garmentgnn.bench.methods import METHOD_NAMES
 from garmentgnn.bench.presets import PRESET_NAMES, Preset, preset
@@ -62,6 +66,22 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "--out to share the cores; they wait for each other's first-seed "
                         "records before the seed plan, and the last to finish writes the "
                         "report (default: every task in this process)")
+    b.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help="local: every task in this process; ray: each learned (method, seed) "
+                        "run a Ray task, its record and checkpoints sent back here "
+                        "(docs/bench.md, 'On a cluster')")
+    b.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="with --backend ray: the cluster to join (a `ray start --head`); "
+                        "default: a local cluster of --workers CPUs")
+    b.add_argument("--workers", type=int_at_least(1), default=None, metavar="N",
+                   help="with --backend ray and no --address: the local cluster's CPUs "
+                        "(default: all of this machine's)")
+    b.add_argument("--gpus", type=finite_float, default=0.0, metavar="G",
+                   help="with --backend ray: GPUs each learned run asks for (a fraction "
+                        "shares one)")
+    b.add_argument("--ship-data", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --backend ray: send the dataset's files with each run, for "
+                        "nodes without it at the same path (default: with --address)")
     b.add_argument("--retry-failed", action="store_true", help="rerun records marked failed")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     return b
@@ -72,9 +92,14 @@ def _command(args: argparse.Namespace) -> str:
     parts = ["garmentgnn", "bench", "--preset", args.preset, "--out", str(args.out)]
     for flag, value in (("--seeds", args.seeds), ("--data", args.data),
                         ("--minutes", args.minutes), ("--batch-size", args.batch_size),
-                        ("--lr-factor", args.lr_factor), ("--shard", args.shard)):
+                        ("--lr-factor", args.lr_factor), ("--shard", args.shard),
+                        ("--address", args.address), ("--workers", args.workers)):
         if value is not None:
             parts += [flag, str(value)]
+    if args.backend != "local":
+        parts += ["--backend", args.backend] + (["--gpus", str(args.gpus)] if args.gpus else [])
+        if args.ship_data is not None:
+            parts.append("--ship-data" if args.ship_data else "--no-ship-data")
     if args.methods:
         parts += ["--methods"] + [shlex.quote(m) for m in args.methods]
     for flag, on in (("--no-learned", args.no_learned), ("--learned-only", args.learned_only),
@@ -132,7 +157,28 @@ def main(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return 2
         shard = (i, n)
+    ray_only = [f for f, v in (("--address", args.address), ("--workers", args.workers),
+                               ("--gpus", args.gpus or None), ("--ship-data", args.ship_data))
+                if v is not None]
+    if args.backend != "ray" and ray_only:
+        print(f"error: {', '.join(ray_only)} set(s) the Ray cluster; add --backend ray",
+              file=sys.stderr)
+        return 2
+    if args.backend == "ray" and shard is not None:
+        print("error: --shard splits the tasks by hand; --backend ray spreads them over the "
+              "cluster: give one of them", file=sys.stderr)
+        return 2
+    if args.backend == "ray":
+        try:
+            import_ray()
+        except RuntimeError as err:  # the ray extra is not installed
+            print(f"error: {err}", file=sys.stderr)
+            return 2
     try:
+        backend = None if args.backend == "local" else RayBackend(
+            args.workers, args.address, args.gpus, args.ship_data)
+        if args.address:  # before anything is written
+            check_address(args.address)
         if args.no_learned and (args.minutes is not None or args.methods or
                                 args.batch_size is not None or args.lr_factor is not None):
             raise ValueError("--minutes/--methods/--batch-size/--lr-factor set the learned "
@@ -146,7 +192,7 @@ def main(args: argparse.Namespace) -> int:
         summary = run(p, args.out, seeds=args.seeds,
                       progress=not args.no_progress, retry_failed=args.retry_failed,
                       data=args.data, learned=not args.no_learned,
-                      command=_command(args), shard=shard)
+                      command=_command(args), shard=shard, backend=backend)
     except (ValueError, SpecMismatch) as err:  # bad arguments / a dataset folder of another spec
         print(f"error: {err}", file=sys.stderr)
         return 2

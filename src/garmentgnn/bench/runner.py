@@ -155,13 +155,6 @@ def _method(name: str, p: Preset) -> Method:
     return METHODS[name](p)
 
 
-# --------------------------------------------------------------------------- records
-def _save_tensor_dict(path: Path, obj: Dict[str, Any]) -> None:
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    atomic_write_bytes(path, buf.getvalue())
-
-
 # --------------------------------------------------------------------------- runner
 @dataclass
 class RunSummary:
@@ -213,7 +206,9 @@ class _Context:
             except Exception as err:
                 gt = {"ok": False, "message": f"{type(err).__name__}: {err}", "timing": {},
                       "positions": None}
-            _save_tensor_dict(path, gt)
+            buf = io.BytesIO()
+            torch.save(gt, buf)
+            atomic_write_bytes(path, buf.getvalue())
         self.gts[key] = gt
         return gt
 
@@ -331,7 +326,7 @@ def _extra_record(ctx: _Context, kind: str, method: str, item: Dict[str, Any], s
 def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
         retry_failed: bool = False, data=None, learned: bool = True,
         command: Optional[str] = None, shard: Optional[Tuple[int, int]] = None,
-        poll_seconds: float = 30.0) -> RunSummary:
+        poll_seconds: float = 30.0, backend=None) -> RunSummary:
     """Run (or resume) preset ``p`` into ``out`` and write the report.
 
     ``seeds`` overrides both the preset's seeds and its learned methods' training seeds.
@@ -344,7 +339,8 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     ``OUT`` share the preset's cores (every record says its threads).  Before the seed
     plan a shard waits (polling every ``poll_seconds``) for every method's first-seed
     record, whoever runs it; the shard that finds every record written writes the report
-    (the others' summaries have no ``report`` path)."""
+    (the others' summaries have no ``report`` path).  ``backend``: where the learned runs
+    go (:class:`garmentgnn.bench.ray_backend.RayBackend`; ``None``: this process)."""
     if not isinstance(p, Preset):
         raise ValueError(f"`p`: expected a Preset, got {type(p).__name__}")
     if shard is not None and not (isinstance(shard, tuple) and len(shard) == 2
@@ -395,16 +391,33 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
         """This shard's part of ``todo`` (every task without ``shard``)."""
         return list(todo) if shard is None else list(todo)[shard[0]::shard[1]]
 
+    def kept(kind, method, case, seed):
+        """The record on disk that this run keeps (``None``: the task is to run)."""
+        rec = load_record(record_path(out, kind, method, case, seed), kind, method, case, seed)
+        return rec if rec is not None and (rec["status"] == "ok" or not retry_failed) else None
+
+    def save(key, rec, bar) -> None:
+        nonlocal ran
+        records[key] = rec = json_safe(_finalize(rec))
+        atomic_write_json(record_path(out, *key), rec)
+        ran += 1
+        bar.update(1)
+
     def run_all(todo, bar) -> None:
-        nonlocal ran, skipped
+        nonlocal skipped
+        if backend is not None and runner is not None:  # the learned runs, in parallel
+            backend.run(runner, [(m, s) for k, m, it, s in todo if k == learned_mod.KIND
+                                 and kept(k, m, it["name"], s) is None], threads,
+                        lambda r: save((r["kind"], r["method"], r["case"], r["seed"]), r, bar))
         for kind, method, item, seed in todo:
             case = item["name"]
             if (kind, method, case, seed) in records:
                 continue
-            path = record_path(out, kind, method, case, seed)
-            rec = load_record(path, kind, method, case, seed)
-            if rec is not None and (rec["status"] == "ok" or not retry_failed):
+            rec = kept(kind, method, case, seed)
+            if rec is not None:
                 skipped += 1
+                records[(kind, method, case, seed)] = rec
+                bar.update(1)
             else:
                 bar.set_postfix_str(f"{kind} {method} {case} s{seed}", refresh=False)
                 if kind == "accuracy":
@@ -422,11 +435,7 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
                                                 engine_settings[method], p.engine_frames)
                 else:
                     rec = _extra_record(ctx, kind, method, item, seed)
-                rec = json_safe(_finalize(rec))
-                atomic_write_json(path, rec)
-                ran += 1
-            records[(kind, method, case, seed)] = rec
-            bar.update(1)
+                save((kind, method, case, seed), rec, bar)
 
     # the engines on a few of the learned methods' test sequences
     engine_settings = {e.name: e for e in engines.default_settings()} if p.engines else {}

@@ -8,16 +8,15 @@ same files as a local one, and a killed run resumes from the manifest the same w
 
 Without ``address`` a private local cluster of ``workers`` CPUs is started (and stopped
 at the end); with ``address`` (``HOST:PORT`` of a ``ray start --head``) the run joins
-that cluster.  On several machines, ``out`` must be storage that every node sees at the
-same path (docs/dataset.md).  Ray is an optional dependency (``pip install
-garmentgnn[ray]``; ``make install`` installs it).
+that cluster (:func:`garmentgnn._ray.cluster`).  On several machines, ``out`` must be
+storage that every node sees at the same path (docs/dataset.md).  Ray is an optional
+dependency (``pip install garmentgnn[ray]``; ``make install`` installs it).
 """
 from __future__ import annotations
 
-import logging
-import os
 from typing import Any, Callable, Dict, List, Optional
 
+from garmentgnn._ray import cluster
 from garmentgnn.data.worker import init_worker, run_item
 
 _INITIALISED = False
@@ -33,15 +32,6 @@ def _task(item: Dict[str, Any], out: str, simulate_fn: Optional[Callable],
     return run_item(item, out, simulate_fn, settings_fn)
 
 
-def import_ray():
-    try:
-        import ray  # noqa: PLC0415 (optional: the ray extra)
-    except ImportError as e:
-        raise RuntimeError("--backend ray needs Ray: `pip install 'garmentgnn[ray]'` "
-                           "(`make install` installs it)") from e
-    return ray
-
-
 def run_on_ray(todo: List[Dict[str, Any]], out: str, finish: Callable[[Dict[str, Any]], None],
                simulate_fn: Optional[Callable] = None, settings_fn: Optional[Callable] = None,
                workers: int = 1, address: Optional[str] = None, max_retries: int = 3) -> None:
@@ -49,18 +39,7 @@ def run_on_ray(todo: List[Dict[str, Any]], out: str, finish: Callable[[Dict[str,
 
     ``max_retries``: times Ray reruns a task whose worker process died (a simulation
     that fails is not retried: it comes back as a ``failed`` record)."""
-    ray = import_ray()
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    if ray.is_initialized():
-        raise RuntimeError("Ray is already initialised in this process; call ray.shutdown() "
-                           "first, or pass its address as `address`")
-    if address:
-        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
-    else:
-        ray.init(address="local", num_cpus=max(1, workers), include_dashboard=False,
-                 log_to_driver=False, logging_level=logging.WARNING,
-                 object_store_memory=256 << 20, _node_ip_address="127.0.0.1")
-    try:
+    with cluster(workers, address) as ray:
         remote = ray.remote(num_cpus=1, max_retries=max_retries)(_task)
         pending = [remote.remote(it, out, simulate_fn, settings_fn) for it in todo]
         try:
@@ -72,5 +51,3 @@ def run_on_ray(todo: List[Dict[str, Any]], out: str, finish: Callable[[Dict[str,
             for ref in pending:
                 ray.cancel(ref, force=True)
             raise
-    finally:
-        ray.shutdown()
