@@ -78,6 +78,17 @@ def numbers(obj):
 ZERO_AREA_M2 = 1e-12
 
 
+def tiny_stand_in(out):
+    """The ``tiny`` dataset preset generated in ``out`` (returned) with
+    :func:`garmentgnn.sim.stand_in.skinned_wobble` as its simulation: its sequences,
+    splits and held-out groups in seconds."""
+    from garmentgnn.data import generate, preset  # noqa: PLC0415 (see skirt_dataset)
+    from garmentgnn.sim.stand_in import skinned_wobble  # noqa: PLC0415
+    s = generate(preset("tiny"), out, workers=0, simulate_fn=skinned_wobble, progress=False)
+    assert s.failed == 0
+    return out
+
+
 def ray_head(cpus: int = 2):
     """A ``ray start --head --block`` cluster of ``cpus`` CPUs on this host, as a
     generator for a module fixture: yields its ``HOST:PORT`` once it answers, stops it

@@ -21,20 +21,16 @@ from garmentgnn.bench import methods, presets, runner
 from garmentgnn.bench.dataset import prepare_dataset
 from garmentgnn.bench.ray_backend import RayBackend, local_dataset, pack, unpack
 from garmentgnn.cli import main as cli_main
-from garmentgnn.data import generate, preset
-from garmentgnn.sim.stand_in import skinned_wobble
 from garmentgnn.training.recipes import recipe_path
 
-from conftest import ray_head
+from conftest import ray_head, tiny_stand_in
 
 METHODS = (methods.DA, methods.FULL)
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("tiny")
-    generate(preset("tiny"), out, workers=0, simulate_fn=skinned_wobble, progress=False)
-    return out
+    return tiny_stand_in(tmp_path_factory.mktemp("tiny"))
 
 
 @pytest.fixture(scope="module")

@@ -3,11 +3,12 @@
 ``garmentgnn predict ...`` (see :mod:`garmentgnn.inference`),
 ``garmentgnn train ...`` (Lightning's CLI, see
 :mod:`garmentgnn.training.lightning_cli`), ``garmentgnn bench ...`` (see
-:mod:`garmentgnn.bench`) (also ``python -m garmentgnn.cli``).
+:mod:`garmentgnn.bench`), ``garmentgnn sweep ...`` (see :mod:`garmentgnn.bench.sweep`)
+(also ``python -m garmentgnn.cli``).
 
 Each sub-command is a pair ``add_parser(subparsers)`` / ``main(args) -> exit status``
-(:data:`COMMANDS`): the data commands are here, ``bench`` and ``show`` in their
-packages' ``cli`` modules.  Nothing in the package imports this module.
+(:data:`COMMANDS`): the data commands are here, ``bench``, ``sweep`` and ``show`` in
+their packages' ``cli`` modules.  Nothing in the package imports this module.
 
 Every failure of every sub-command ends in one ``error: ...`` line naming the flag (and
 the fix) and a non-zero exit status (:func:`run_command`); ``--debug`` before the
@@ -26,6 +27,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 import garmentgnn
 from garmentgnn._argparse import ArgumentParser, HelpFormatter, finite_float, nonempty_path
 from garmentgnn.bench import cli as bench_cli
+from garmentgnn.bench import sweep_cli
 from garmentgnn.inference import cli as inference_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
@@ -262,6 +264,7 @@ COMMANDS: Dict[str, Tuple[Callable, Callable[[argparse.Namespace], int]]] = {
     "export": (add_export_parser, export_main),
     "manifest": (add_manifest_parser, manifest_main),
     "bench": (bench_cli.add_parser, bench_cli.main),
+    "sweep": (sweep_cli.add_parser, sweep_cli.main),
     "show": (viz_cli.add_parser, viz_cli.main),
     "predict": (inference_cli.add_parser, inference_cli.main),
     "train": (add_train_parser, train_main),

@@ -82,6 +82,9 @@ class LearnedRunner:
         batches, warmup, repeats: the preset's timing settings.
     """
 
+    #: more callbacks of every fit (a sweep's reports to Ray Tune)
+    fit_callbacks: Tuple[L.Callback, ...] = ()
+
     def __init__(self, data: DatasetInfo, budget: LearnedBudget, out, batches: Sequence[int],
                  warmup: int, repeats: int) -> None:
         if not isinstance(data, DatasetInfo):
@@ -343,7 +346,8 @@ class LearnedRunner:
                 enable_checkpointing=True, enable_progress_bar=False,
                 enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
                 val_check_interval=1.0, check_val_every_n_epoch=1,
-                callbacks=[*callbacks, *budget, *([curve] if curve else []), clock, ckpt],
+                callbacks=[*callbacks, *self.fit_callbacks, *budget, *([curve] if curve else []),
+                           clock, ckpt],
                 limit_train_batches=self._epoch_batches(dm), default_root_dir=folder)
             trainer.fit(module, dm, ckpt_path=str(last) if last.exists() else None)
         device = str(trainer.strategy.root_device)
