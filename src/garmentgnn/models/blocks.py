@@ -284,10 +284,28 @@ class AttentionStack(nn.Module):
 COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")
 
 
+def scaled(width: float, *widths: int) -> List[int]:
+    """``widths`` times ``width``, rounded, at least 1."""
+    return [max(1, round(c * width)) for c in widths]
+
+
+def sized(widths: Sequence[int], width: float = 1.0, depth: float = 1.0,
+          keep_last: bool = False) -> List[int]:
+    """A stack's layer ``widths`` resized: its hidden layers (all but the last) ``depth``
+    times as many (rounded, at least one; the new ones spread over the old in order) and
+    every width times ``width`` (rounded, at least 1), the last kept as it is with
+    ``keep_last`` (an output's width).  ``sized(widths)`` is ``widths``."""
+    hidden, last = list(widths[:-1]), widths[-1]
+    n = max(1, round(len(hidden) * depth)) if hidden else 0
+    hidden = [hidden[i * len(hidden) // n] for i in range(n)]
+    return scaled(width, *hidden) + ([last] if keep_last else scaled(width, last))
+
+
 def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
                     accel_unit: Optional[float], strain_limit: int,
                     collision_projection: Optional[float],
-                    compile_stack: Optional[str] = None) -> None:
+                    compile_stack: Optional[str] = None, width: float = 1.0,
+                    depth: float = 1.0) -> None:
     """A ``ValueError`` naming the first bad argument of
     :class:`~garmentgnn.models.GarTrans` (its docstring says what each means)."""
     if lbs_start and not skin_prior:
@@ -307,3 +325,7 @@ def check_arguments(lbs_start: bool, skin_prior: bool, gate_init: float,
     if compile_stack not in COMPILE_MODES:
         raise ValueError(f"`compile_stack`: expected one of {COMPILE_MODES}, got "
                          f"{compile_stack!r}")
+    for name, v in (("width", width), ("depth", depth)):
+        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 100):
+            raise ValueError(f"`{name}`: expected a factor of the default size > 0 "
+                             f"(e.g. 0.5 or 2), got {v!r}")

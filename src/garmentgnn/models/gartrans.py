@@ -26,7 +26,7 @@ from garmentgnn.geometry import (edge_features, edge_lengths, unique_edges, vert
                                  full_precision)
 from garmentgnn.models.blocks import (AttentionStack, Configurable, RunningNormalizer,
                                       cached_batch_edges, check_arguments, compiled_forward,
-                                      geometric_init_, mlp, pad_graph)
+                                      geometric_init_, mlp, pad_graph, scaled, sized)
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.physics import COLLISION_MARGIN
 from garmentgnn.models.sequence import (ChunkLayout, PostSteps, SequencePrediction,
@@ -88,6 +88,8 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
             gradients are the unpadded ones), so a few compiled graphs serve every batch
             and a GPU replays each step's stack as one CUDA graph (dynamo keeps up to its
             ``recompile_limit``, 8, bucket pairs; further ones run eager, with its warning).
+        width, depth: the size, factors of the default (the paper's): hidden widths times
+            ``width``, stacked layers ``depth`` times as many (:func:`~.blocks.sized`).
     """
 
     def __init__(self, num_joints: int, num_body_vertices: int, nystrom_dim: int = NYSTROM_DIM,
@@ -97,10 +99,11 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
                  blend_shape: bool = False, accel_unit: Optional[float] = 0.01,
                  input_norm: bool = True, local_frame: bool = True, strain_limit: int = 10,
                  collision_projection: Optional[float] = COLLISION_MARGIN,
-                 compile_search: bool = False, compile_stack: Optional[str] = None) -> None:
+                 compile_search: bool = False, compile_stack: Optional[str] = None,
+                 width: float = 1.0, depth: float = 1.0) -> None:
         super().__init__()
         check_arguments(lbs_start=lbs_start, skin_prior=skin_prior, gate_init=gate_init,
-                        accel_unit=accel_unit, strain_limit=strain_limit,
+                        accel_unit=accel_unit, strain_limit=strain_limit, width=width, depth=depth,
                         collision_projection=collision_projection, compile_stack=compile_stack)
         S = num_joints
         self.num_joints, self.num_body_vertices, self.fps, self.edge_dim = \
@@ -110,20 +113,21 @@ class GarTrans(Configurable, PostSteps, SequencePrediction, nn.Module):
         self.input_norm, self.local_frame = bool(input_norm), bool(local_frame)
         self.strain_limit, self.collision_projection = strain_limit, collision_projection
         self.compile_search, self.compile_stack = bool(compile_search), compile_stack
-        self.rest_fc = mlp([6 + S, 128, 128, 128], nn.Tanh())
-        self.rest_attn = AttentionStack(rest_layer, 128, [64, 64, 128], heads, edge_dim, "tanh",
-                                        last_act=True)
+        self.rest_fc = mlp([6 + S, *scaled(width, 128, 128, 128)], nn.Tanh())
+        self.rest_attn = AttentionStack(rest_layer, *scaled(width, 128), sized(
+            [64, 64, 128], width, depth), heads, edge_dim, "tanh", last_act=True)
         d = self.rest_attn.out_channels  # the paper's 128: the last rest layer's width
-        self.nystrom_fc = mlp([nystrom_dim, 64, d], nn.Tanh())
-        self.body_fc = mlp([num_body_vertices, 512, 256, d], nn.Tanh())
+        self.nystrom_fc = mlp([nystrom_dim, *scaled(width, 64), d], nn.Tanh())
+        self.body_fc = mlp([num_body_vertices, *scaled(width, 512, 256), d], nn.Tanh())
         self.body_default = nn.Parameter(torch.randn(d, S) / d ** 0.5)
-        self.gru = nn.GRU(3 * S + 3, 128, num_layers=2, batch_first=True)
-        self.gru_out = nn.Linear(128, S)
-        self.blend = AttentionStack(blend_layer, S, [32, 32, 32, 3], heads, edge_dim, "elu",
-                                    last_act=False) if blend_shape else None
+        self.gru = nn.GRU(3 * S + 3, *scaled(width, 128), max(1, round(2 * depth)),
+                          batch_first=True)
+        self.gru_out = nn.Linear(*scaled(width, 128), S)
+        self.blend = AttentionStack(blend_layer, S, sized([32, 32, 32, 3], width, depth, True),
+                                    heads, edge_dim, "elu", False) if blend_shape else None
         dyn_in = 3 + 3 + S + (6 if self.local_frame else 0)  # + rest, gravity: local frame
-        self.dynamic = AttentionStack(dynamic_layer, dyn_in, [32, 64, 64, 64, 32, 3], heads,
-                                      edge_dim, "elu", last_act=False)
+        self.dynamic = AttentionStack(dynamic_layer, dyn_in, sized(
+            [32, 64, 64, 64, 32, 3], width, depth, True), heads, edge_dim, "elu", False)
         #: (g_W, g_B, g_a) of ``lbs_start``; ``None``: no gates (the paper)
         self.gates = nn.Parameter(torch.zeros(3)) if lbs_start else None
         norm = RunningNormalizer if self.input_norm else (lambda size: nn.Identity())
