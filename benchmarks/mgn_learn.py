@@ -111,11 +111,9 @@ def read_score(path: str) -> Dict[str, Any]:
 
 
 #: what a flag's checkpoint must hold: the method's name, and the test of its module
-KINDS = {"mgn": ("MGN-style", lambda m: isinstance(m, SimulatorModule)),
-         "gartrans": ("GarTrans", lambda m: type(m).__name__ == "GarTransModule"),
-         "da": ("DA-style", lambda m: getattr(m, "method", None) == "da"),
-         "frame-parallel": ("a frame-parallel method (GarTrans, DA-, HOOD-, NCS-style)",
-                            lambda m: not isinstance(m, SimulatorModule))}
+KINDS = {"mgn": ("MGN-style", lambda m: m.table_name == "MGN-style"),
+         "gartrans": ("GarTrans", lambda m: m.family == "gartrans"),
+         "da": ("DA-style", lambda m: m.table_name == "DA-style")}
 
 
 def checkpoint_of(path: str, flag: str, kind: Optional[str] = None) -> GarmentModule:
@@ -164,9 +162,9 @@ def score_methods(args: argparse.Namespace):
         if not eq or not name or not path:
             print(f"error: --other {spec}: expected NAME=CKPT", file=sys.stderr)
             sys.exit(2)
-        m = checkpoint_of(path, "--other", "frame-parallel")
+        m = checkpoint_of(path, "--other")
         modules[name] = m
-        methods[name] = m.predict_garment
+        methods[name] = m.predict_sequence  # from what a user has, as the bench scores
     args.scored = methods, modules
     return args.scored
 

@@ -148,13 +148,9 @@ def add_tensorboard(trainer: Trainer) -> Optional[TensorBoardLogger]:
 
 
 def method_name(model: LightningModule) -> str:
-    """The table row name of a trained module: ``"DA-style"``, ``"GarTrans (sat)"``..."""
-    method = getattr(model, "method", None)
-    if method is not None:
-        return {"da": "DA-style", "hood": "HOOD-style", "ncs": "NCS-style",
-                "mgn": "MGN-style"}.get(method, method)
-    layer = getattr(getattr(model, "model", None), "init_args", {}).get("dynamic_layer")
-    return f"GarTrans ({layer})" if layer else type(model).__name__
+    """The table row name of a trained module (its ``table_name``: ``"DA-style"``,
+    ``"GarTrans (sat)"``...)."""
+    return str(getattr(model, "table_name", type(model).__name__))
 
 
 def metrics_table(metrics: Dict[str, Any], name: str, prefix: str = "test") -> str:

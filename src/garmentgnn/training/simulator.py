@@ -44,7 +44,7 @@ in ``recipes/mgn.yaml``) is what validation, test and the checkpoints see.
 from __future__ import annotations
 
 import copy
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -115,8 +115,20 @@ class SimulatorModule(GarmentModule):
         start: where validation, test and predict rollouts start (module doc).
     """
 
-    #: the method's name in tables (``garmentgnn train test``)
+    #: the method's short name (``garmentgnn predict``'s summary)
     method = "mgn"
+    #: the method protocol (:class:`GarmentModule`): a whole sequence rolled out from two
+    #: frames, one model for every garment
+    autoregressive = True
+    min_frames = 3
+    table_name = "MGN-style"
+    timing_note = "one autoregressive step of `batch` independent garments per call"
+
+    @property
+    def learned_fps(self) -> Optional[float]:
+        """The model's ``fps``: it predicts accelerations in metres per frame squared."""
+        fps = getattr(self.model, "fps", None)
+        return None if fps is None else float(fps)
 
     def __init__(self, model: MGNStyle, lr: float = 1e-3, decay: float = 0.1,
                  decay_steps: int = 6250, lr_min: float = 1e-6, noise: float = 0.01,
@@ -273,6 +285,10 @@ class SimulatorModule(GarmentModule):
                                             "rollout": torch.tensor(float(trained
                                                                           + free_frames))}
 
+    def training_loss(self, batch: GarmentInputs) -> Tensor:
+        """The loss of a batch of windows at the schedule's current step."""
+        return self.window_loss(batch)[0]
+
     def collecting_statistics(self) -> bool:
         """Whether this batch only accumulates the normalisation statistics."""
         return self.training and int(self.model.target_norm.updates) < self.hparams.stats_steps
@@ -351,6 +367,31 @@ class SimulatorModule(GarmentModule):
 
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         return self.rollout(batch)
+
+    def predict_sequence(self, batch: GarmentInputs) -> Tensor:
+        """The rollout from the LBS garment of the first two frames (no simulated
+        frame)."""
+        return self.rollout(batch, start="lbs")
+
+    def timed_call(self, item: GarmentInputs, batch: int) -> Callable[[], Any]:
+        """One step of ``batch`` garments (the item's first three frames, as ``batch``
+        independent garments), the scene's motion prepared outside the call."""
+        it = GarmentInputs.collate([item.select(torch.arange(3))] * batch)
+        m = self.model.scene_motion(it)
+        return lambda: self.model.step(it, m, 2, m.lbs[0], m.lbs[1])
+
+    @classmethod
+    def bench_overrides(cls, *, schedule_window: int,
+                        shortest_sequence: int) -> Dict[str, Callable[[Any], Any]]:
+        """The rollout and the window cut to what the shortest training sequence holds
+        (a window of ``2 + rollout`` frames)."""
+        fitted: Dict[str, int] = {}
+
+        def rollout(n: int) -> int:
+            fitted["rollout"] = max(1, min(n, shortest_sequence - 2))
+            return fitted["rollout"]
+        return {"model.init_args.rollout": rollout,
+                "data.chunk": lambda c: min(c, 2 + fitted["rollout"])}
 
     def _scored(self, batch: GarmentInputs) -> GarmentInputs:
         """``batch`` with the frames a rollout is given (from the ground truth) left out
