@@ -45,8 +45,8 @@ from garmentgnn.bench import stability as stab
 from garmentgnn.bench.model_inputs import BenchChunks
 from garmentgnn.bench.scoring import score, stratified
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
-from garmentgnn.training import SimulatorModule
-from garmentgnn.training.simulator import START_STATES
+from garmentgnn.training import RolloutModule
+from garmentgnn.training.rollout import START_STATES
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.lightning_cli import method_name
 from garmentgnn.training.checkpoints import load_checkpoint
@@ -225,7 +225,7 @@ def run_score(args: argparse.Namespace) -> None:
     print(score_table(results))
 
 
-def one_step_and_rollout(module: SimulatorModule, test: Scored) -> Dict[str, float]:
+def one_step_and_rollout(module: RolloutModule, test: Scored) -> Dict[str, float]:
     """Mean over ``test``'s sequences of the one-step error (each frame predicted from the
     two simulated frames before it) and the rollout E_dist (from frames 0 and 1), cm, on
     the scored frames."""

@@ -119,10 +119,10 @@ def test_a_method_in_a_folder_of_its_own_trains_benches_predicts_and_shows(
 
 #: the packaged methods' classes, and the files allowed to name them in a test of a class
 #: (their own, and the model packages that define them)
-METHOD_CLASSES = ("GarTransModule", "BaselineModule", "SimulatorModule", "MGNStyle", "DAStyle",
+METHOD_CLASSES = ("GarTransModule", "BaselineModule", "RolloutModule", "MGNStyle", "DAStyle",
                   "HOODStyle", "NCSStyle")
-OWN = ("training/module.py", "training/baselines.py", "training/simulator.py", "models/")
-#: a decision by class: ``isinstance(x, SimulatorModule)``, ``name == "NCSStyle"``, a
+OWN = ("training/module.py", "training/baselines.py", "training/rollout.py", "models/")
+#: a decision by class: ``isinstance(x, RolloutModule)``, ``name == "NCSStyle"``, a
 #: dict keyed by a class's name
 BY_CLASS = re.compile(r"isinstance\([^)]*\b(%s)\b|==\s*[\"'](%s)[\"']|[\"'](%s)[\"']\s*:"
                       % (("|".join(METHOD_CLASSES),) * 3))
@@ -135,6 +135,6 @@ def test_no_method_is_known_by_its_class_outside_its_own_module():
              for i, line in enumerate(p.read_text().splitlines(), 1) if BY_CLASS.search(line)]
     assert found == []
     # the pattern finds what it is for
-    assert BY_CLASS.search("if isinstance(module, SimulatorModule):")
+    assert BY_CLASS.search("if isinstance(module, RolloutModule):")
     assert BY_CLASS.search('KINDS = {"GarTransModule": "gartrans"}')
     assert BY_CLASS.search("if name == 'NCSStyle':")

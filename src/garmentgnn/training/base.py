@@ -52,11 +52,24 @@ from garmentgnn.training.recipes import import_class
 from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
                                            stamp_checkpoint, verify_checkpoint)
 
-__all__ = ["LBS_PREFIX", "GarmentModule", "build_model"]
+__all__ = ["LBS_PREFIX", "RENAMED_MODULES", "GarmentModule", "build_model", "stored_module"]
 
 #: set while :meth:`GarmentModule.load_from_checkpoint` loads a file it has verified
 _VERIFIED: contextvars.ContextVar[bool] = contextvars.ContextVar("checkpoint_verified",
                                                                 default=False)
+
+#: modules renamed since a checkpoint could name them (its ``_class_path``): the former
+#: class path -> today's, so that a checkpoint written before the rename loads and resumes
+RENAMED_MODULES = {
+    "garmentgnn.training.SimulatorModule": "garmentgnn.training.RolloutModule",
+    "garmentgnn.training.simulator.SimulatorModule": "garmentgnn.training.RolloutModule",
+}
+
+
+def stored_module(class_path: Any) -> str:
+    """A checkpoint's ``_class_path`` under today's name (:data:`RENAMED_MODULES`)."""
+    return RENAMED_MODULES.get(str(class_path), str(class_path))
+
 
 #: checkpoint key of the dataset a method was trained on (:func:`dataset_stamp`)
 DATASET_KEY = "garmentgnn_dataset"
@@ -323,7 +336,7 @@ class GarmentModule(L.LightningModule):
         if isinstance(saved.get("model"), Configurable):  # written in by load_from_checkpoint
             saved["model"] = saved["model"].spec()
         saved.pop("_instantiator", None)
-        other = str(saved.pop("_class_path", "")).rsplit(".", 1)[-1]
+        other = stored_module(saved.pop("_class_path", "")).rsplit(".", 1)[-1]
         if other and other != cls.__name__:
             raise CheckpointError(f"{where}: a checkpoint of {other}, not of {cls.__name__}; "
                                   f"load it with {other}.load_from_checkpoint")

@@ -19,8 +19,8 @@ from typing import Any, Dict, List, Union
 # finds the module of its model among them
 import garmentgnn.training.baselines  # noqa: F401
 import garmentgnn.training.module  # noqa: F401
-import garmentgnn.training.simulator  # noqa: F401
-from garmentgnn.training.base import GarmentModule
+import garmentgnn.training.rollout  # noqa: F401
+from garmentgnn.training.base import GarmentModule, stored_module
 from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
 from garmentgnn.training.recipes import import_class
 
@@ -54,6 +54,7 @@ def module_class(hparams: Dict[str, Any]) -> type:
     far."""
     stored = hparams.get("_class_path")
     if stored:
+        stored = stored_module(stored)
         try:
             cls = import_class(str(stored))
         except ValueError as err:

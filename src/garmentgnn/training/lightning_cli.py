@@ -1,7 +1,7 @@
 """``garmentgnn train``: Lightning's own CLI over every trained method -- any
 :class:`~garmentgnn.training.base.GarmentModule` (``subclass_mode_model``: GarTrans and
 its Table 1 variants, :class:`GarTransModule`; the DA-, HOOD- and NCS-style baselines,
-:class:`BaselineModule`; the MGN-style simulator, :class:`SimulatorModule`) -- and
+:class:`BaselineModule`; the MGN-style simulator, :class:`RolloutModule`) -- and
 :class:`GarmentDataModule`, configured by a recipe (:mod:`garmentgnn.training.recipes`:
 a packaged one named without folder or suffix, or a YAML file's path).  Each recipe names
 its module (``model: class_path: ...``, ``init_args: ...``).
@@ -57,7 +57,7 @@ from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
-from garmentgnn.training.base import LBS_PREFIX, GarmentModule
+from garmentgnn.training.base import LBS_PREFIX, GarmentModule, stored_module
 from garmentgnn.training.recipes import (import_class, named_module,
                                          recipes_of_model, resolve_config_args)
 from garmentgnn.training.datamodule import GarmentDataModule
@@ -292,6 +292,7 @@ class GarmentCLI(LightningCLI):
         model = _plain(self.config[sub].get("model"))
         cls_path = model.get("class_path") or DEFAULT_MODEL
         saved_cls = raw.pop("_class_path", None)
+        saved_cls = stored_module(saved_cls) if saved_cls else None
         module_cls = import_class(cls_path)
         spec, given = raw.get("model"), _plain(model.get("init_args"))
         saved_model = spec.get("class_path") if isinstance(spec, dict) else None

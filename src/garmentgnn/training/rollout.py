@@ -54,7 +54,7 @@ from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.mgn import MGNStyle, SceneMotion
 from garmentgnn.training.base import GarmentModule, NonFiniteLossError
 
-__all__ = ["ROLLOUT_MODES", "SimulatorModule", "START_STATES"]
+__all__ = ["ROLLOUT_MODES", "RolloutModule", "START_STATES"]
 
 #: where an evaluation rollout starts (``start``)
 START_STATES = ("gt", "drape", "lbs", "preroll")
@@ -83,7 +83,7 @@ def check_schedule(schedule: Sequence[Sequence[int]]) -> List[Tuple[int, int]]:
     return pairs
 
 
-class SimulatorModule(GarmentModule):
+class RolloutModule(GarmentModule):
     """An :class:`~garmentgnn.models.MGNStyle` trained by MeshGraphNets' recipe (module
     doc); in YAML (``recipes/mgn.yaml``): ``model: init_args: model: class_path:
     garmentgnn.models.MGNStyle``.
@@ -140,7 +140,7 @@ class SimulatorModule(GarmentModule):
         super().__init__()
         if not isinstance(model, MGNStyle):
             raise TypeError(f"`model`: expected an MGNStyle, got {type(model).__name__}; "
-                            f"SimulatorModule(MGNStyle())")
+                            f"RolloutModule(MGNStyle())")
         if not (lr > 0 and lr_min > 0 and 0 < decay <= 1):
             raise ValueError(f"`lr`, `lr_min`, `decay`: expected lr > 0, lr_min > 0 and "
                              f"0 < decay <= 1, got {lr!r}, {lr_min!r}, {decay!r}")
