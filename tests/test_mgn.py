@@ -322,6 +322,26 @@ def test_the_learning_rate_decays_exponentially(root):
     assert rates[250] == pytest.approx(2e-5)  # the floor
 
 
+def test_the_learning_rate_decays_over_the_runs_steps_unless_told(root):
+    """``decay_steps`` unset: the rate falls by ``decay`` over the trainer's max_steps;
+    without max_steps it stays (a TimeBudget anneals it), with a warning otherwise."""
+    import lightning as L  # noqa: PLC0415
+    from garmentgnn.training import TimeBudget  # noqa: PLC0415
+    for max_steps, callbacks, want in ((400, [], 1e-4), (-1, [TimeBudget(60.0)], 1e-3)):
+        module = RolloutModule(MGNStyle(hidden=8, layers=1, heads=1), lr=1e-3, decay=0.1)
+        module.trainer = L.Trainer(max_steps=max_steps, callbacks=callbacks, logger=False,
+                                   enable_checkpointing=False, enable_progress_bar=False)
+        cfg = module.configure_optimizers()
+        opt, sched = cfg["optimizer"], cfg["lr_scheduler"]["scheduler"]
+        for _ in range(400):
+            opt.step()
+            sched.step()
+        assert opt.param_groups[0]["lr"] == pytest.approx(want)
+    module.trainer = L.Trainer(max_steps=-1, logger=False, enable_checkpointing=False)
+    with pytest.warns(UserWarning, match="no --trainer.max_steps"):
+        module.configure_optimizers()
+
+
 def test_bad_arguments_and_inputs(root):
     for kw, name in (({"hidden": 10, "heads": 4}, "`heads`"), ({"layer": "nope"}, "`layer`"),
                      ({"body_radius": 0.0}, "`body_radius`"), ({"fps": -1.0}, "`fps`")):

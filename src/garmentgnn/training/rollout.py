@@ -47,12 +47,14 @@ import copy
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
+from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from garmentgnn.data.store import read_manifest
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.mgn import MGNStyle, SceneMotion
 from garmentgnn.training.base import GarmentModule, NonFiniteLossError
+from garmentgnn.training.budget import TimeBudget
 
 __all__ = ["ROLLOUT_MODES", "RolloutModule", "START_STATES"]
 
@@ -91,7 +93,10 @@ class RolloutModule(GarmentModule):
     Args:
         model: the learned simulator to train.
         lr: Adam's learning rate at step 0; ``decay``, ``decay_steps``, ``lr_min``: the
-            rate is ``max(lr_min, lr * decay ** (step / decay_steps))``.
+            rate is ``max(lr_min, lr * decay ** (step / decay_steps))``; ``decay_steps``
+            default: the run's ``--trainer.max_steps`` (the rate decays by ``decay`` over
+            the whole run); a run without one keeps ``lr`` (a
+            :class:`~garmentgnn.training.TimeBudget` anneals it instead).
         noise: standard deviation (m) of the noise on the input positions (MeshGraphNets:
             3 mm; 1 cm rolled out best of 1, 3 and 10 mm on `learn`, docs/experiments.md).
         noise_gamma: the share of the noise the target keeps (0: the model undoes all of
@@ -131,7 +136,8 @@ class RolloutModule(GarmentModule):
         return None if fps is None else float(fps)
 
     def __init__(self, model: MGNStyle, lr: float = 1e-3, decay: float = 0.1,
-                 decay_steps: int = 6250, lr_min: float = 1e-6, noise: float = 0.01,
+                 decay_steps: Optional[int] = None, lr_min: float = 1e-6,
+                 noise: float = 0.01,
                  noise_gamma: float = 0.1, rollout: int = 3, rollout_start: int = 3500,
                  stats_steps: int = 100, start: str = "gt",
                  rollout_schedule: Optional[List[Tuple[int, int]]] = None,
@@ -144,7 +150,8 @@ class RolloutModule(GarmentModule):
         if not (lr > 0 and lr_min > 0 and 0 < decay <= 1):
             raise ValueError(f"`lr`, `lr_min`, `decay`: expected lr > 0, lr_min > 0 and "
                              f"0 < decay <= 1, got {lr!r}, {lr_min!r}, {decay!r}")
-        _positive_int("decay_steps", decay_steps)
+        if decay_steps is not None:
+            _positive_int("decay_steps", decay_steps)
         _positive_int("rollout", rollout)
         _positive_int("rollout_start", rollout_start, 0)
         _positive_int("stats_steps", stats_steps, 0)
@@ -319,13 +326,28 @@ class RolloutModule(GarmentModule):
         self.log_training_step(loss.detach(), {}, batch.num_chunks, extra)
         return loss.detach()
 
+    def run_steps(self) -> Optional[int]:
+        """The run's optimizer steps (the trainer's ``max_steps``); ``None`` without one,
+        with a warning unless a :class:`~garmentgnn.training.TimeBudget` sets the rate."""
+        try:
+            trainer = self.trainer
+        except RuntimeError:  # not attached to a Trainer
+            return None
+        if trainer.max_steps and trainer.max_steps > 0:
+            return int(trainer.max_steps)
+        if not any(isinstance(c, TimeBudget) for c in trainer.callbacks):
+            rank_zero_warn("RolloutModule: no --trainer.max_steps and no decay_steps: the "
+                           "learning rate stays at lr; give either to decay it")
+        return None
+
     def configure_optimizers(self):
         hp = self.hparams
         opt = torch.optim.Adam(self.parameters(), lr=hp.lr)
         floor = hp.lr_min / hp.lr
+        steps = hp.decay_steps or self.run_steps()
 
         def factor(step: int) -> float:
-            return max(floor, hp.decay ** (step / hp.decay_steps))
+            return 1.0 if steps is None else max(floor, hp.decay ** (step / steps))
 
         sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
