@@ -62,3 +62,48 @@ def test_bad_input_is_named():
         ensemble_scores(one, two, one, torch.tensor([True]))
     with pytest.raises(ValueError, match="`early`"):
         ensemble_scores(one, two, one, early=-1)
+
+
+# ------------------------------------------------------------------ end to end
+@pytest.mark.slow
+def test_torch_engine_ensemble_scored_by_the_bench(tmp_path):
+    """The tiny preset's test split, 2 sequences x 3 members simulated by the torch engine
+    (about 1.5 min on one core), scored by ``garmentgnn bench`` (LBS only): the report's
+    row against a numpy computation from the member files."""
+    import json
+
+    import numpy as np
+
+    from garmentgnn.bench.methods import LBS
+    from garmentgnn.cli import main as cli_main
+    from garmentgnn.data import SequenceChunks, generate, preset
+    from garmentgnn.data.ensemble import ENSEMBLE, member_id
+    from test_data import fake_simulate
+
+    data = tmp_path / "d"  # the dataset's own sequences: the test double (inputs, LBS)
+    assert generate(preset("tiny"), data, workers=0, simulate_fn=fake_simulate,
+                    progress=False).done == 8
+    assert cli_main(["generate", "--ensemble", "3", "--sequences", "2", "--out", str(data),
+                     "--workers", "0", "--no-estimate", "--no-progress"]) == 0
+    assert cli_main(["bench", "--preset", "tiny", "--learned-only", "--methods", LBS,
+                     "--data", str(data), "--out", str(tmp_path / "b"), "--no-progress"]) == 0
+    rec = next(r for r in json.loads((tmp_path / "b" / "results.json").read_text())["records"]
+               if r["kind"] == "learned")
+    ens = {r["sequence"]: r for r in rec["ensemble"]}
+    assert len(ens) == 2
+    test = SequenceChunks(data, "test", chunk=10 ** 6, ids=sorted(ens))
+    for i in range(len(test)):
+        item = test[i]
+        M = np.stack([np.load(data / ENSEMBLE / "sequences" /
+                              f"{member_id(item.seq_id, k)}.npz")["positions"]
+                      for k in (1, 2, 3)]).astype(np.float64)
+        mean = M.mean(0)
+        d = [np.linalg.norm(m - mean, axis=-1).mean(-1) * 100 for m in M]
+        assert 0 < np.mean(d) < 1  # the members differ, by less than 1 cm in 8 frames
+        lbs = np.linalg.norm(item.skinned().double().numpy() - mean, axis=-1).mean() * 100
+        got = ens[item.seq_id]["all"]
+        assert got["floor_mean"] == pytest.approx(np.mean(d), rel=1e-6)
+        assert got["E_mean"] == pytest.approx(lbs, rel=1e-6) and got["skill"] == 0
+    text = (tmp_path / "b" / "report.md").read_text()
+    assert "### Against the ensemble ground truth" in text
+    assert (tmp_path / "b" / "ensemble.png").is_file()

@@ -152,25 +152,25 @@ def ensemble_spec(data, ensemble: int = MEMBERS, sequences: int = ENSEMBLE_SEQUE
                         ensemble=header, members=members, seed=identity["seed"])
 
 
-def _recorded(folder: Path) -> Optional[Dict[str, Any]]:
+def _recorded(folder: Path, arg: str) -> Optional[Dict[str, Any]]:
     """The ``ensemble`` entry of an ensemble folder's spec (or manifest); ``None``
-    without either."""
+    without either; ``arg``: the argument named in errors."""
     for name in (store.SPEC, store.MANIFEST):
         if (folder / name).is_file():
             doc = store.read_json(folder / name, f"delete {folder} and generate it again")
             if not isinstance(doc.get("ensemble"), dict):
-                raise ValueError(f"`out`: {folder / name} is not an ensemble's (no "
+                raise ValueError(f"{arg}: {folder / name} is not an ensemble's (no "
                                  f"'ensemble' entry); delete {folder} and generate it again")
             return doc["ensemble"]
     return None
 
 
-def _check_identity(data, recorded: Dict[str, Any], folder: Path) -> None:
+def _check_identity(data, recorded: Dict[str, Any], folder: Path, arg: str) -> None:
     mine = dataset_identity(data)
     theirs = recorded.get("dataset") or {}
     if theirs.get("content_sha256") != mine["content_sha256"]:
         raise ValueError(
-            f"`out`: {folder} holds an ensemble of another dataset ({theirs.get('name')!r}, "
+            f"{arg}: {folder} holds an ensemble of another dataset ({theirs.get('name')!r}, "
             f"content SHA-256 {str(theirs.get('content_sha256'))[:12]}; {data} is "
             f"{mine['name']!r}, {str(mine['content_sha256'])[:12]}); delete {folder} and "
             f"run `garmentgnn generate --ensemble K --out {data}` to make this dataset's")
@@ -184,9 +184,9 @@ def generate_ensemble(data, ensemble: int = MEMBERS, sequences: int = ENSEMBLE_S
     ensemble of another dataset already there are a ``ValueError``, nothing written."""
     spec = ensemble_spec(data, ensemble, sequences)
     folder = ensemble_dir(data)
-    recorded = _recorded(folder)
+    recorded = _recorded(folder, "`out`")
     if recorded is not None:
-        _check_identity(data, recorded, folder)
+        _check_identity(data, recorded, folder, "`out`")
         if recorded.get("members") != ensemble or recorded.get("sequences") != \
                 spec.ensemble["sequences"]:
             raise ValueError(
@@ -208,11 +208,12 @@ def load_ensemble(data, sequences: Optional[Sequence[str]] = None
     folder = ensemble_dir(data)
     if not (folder / store.MANIFEST).is_file():
         return None
-    recorded = _recorded(folder)
-    _check_identity(data, recorded, folder)
+    arg = "`data` (--data)"
+    recorded = _recorded(folder, arg)
+    _check_identity(data, recorded, folder, arg)
     K = recorded.get("members")
     if isinstance(K, bool) or not isinstance(K, int) or K < 2:
-        raise ValueError(f"`ensemble`: {folder} has K = {K!r} members per sequence; an "
+        raise ValueError(f"{arg}: {folder} has K = {K!r} members per sequence; an "
                          f"ensemble needs K >= 2: delete it and run `garmentgnn generate "
                          f"--ensemble {MEMBERS} --out {data}`")
     dataset = {r["id"]: r for r in store.read_manifest(data)["items"]}
@@ -235,7 +236,7 @@ def load_ensemble(data, sequences: Optional[Sequence[str]] = None
             P = np.asarray(seq["positions"])
             if P.shape[:2] != want:
                 raise ValueError(
-                    f"`ensemble`: {store.sequence_path(folder, r)} has {P.shape[0]} frames of "
+                    f"{arg}: {store.sequence_path(folder, r)} has {P.shape[0]} frames of "
                     f"{P.shape[1]} vertices, its sequence {sid} {want[0]} of {want[1]}; "
                     f"delete it and rerun `garmentgnn generate --ensemble {K} --out {data}`")
             v = sequence_valid(seq)
