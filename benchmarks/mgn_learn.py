@@ -245,7 +245,9 @@ def run_score(args: argparse.Namespace) -> None:
         by_method = results["ensemble"]["methods"]
         results["ensemble"]["summary"] = ensemble_report.results(by_method)
         png = ensemble_report.plot(by_method, out / "ensemble.png",
-                                   f"{args.data}: {args.split} sequences of the ensemble")
+                                   f"{len(by_method['LBS only'])} {args.split} sequences "
+                                   f"against the ensemble of dataset "
+                                   f"{str(results['content_sha256'])[:8]}")
         text += "\n" + "\n".join(ensemble_report.markdown(
             by_method, png.name if png else None, "##", ensemble["members"])) + "\n"
     (out / "score.json").write_text(json.dumps(results, indent=1))

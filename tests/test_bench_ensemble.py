@@ -107,3 +107,22 @@ def test_torch_engine_ensemble_scored_by_the_bench(tmp_path):
     text = (tmp_path / "b" / "report.md").read_text()
     assert "### Against the ensemble ground truth" in text
     assert (tmp_path / "b" / "ensemble.png").is_file()
+
+
+def test_a_gap_is_chaos_where_its_sign_depends_on_the_member():
+    from garmentgnn.bench.ensemble_report import gap
+
+    def rec(seq, e_mean, each, frames):
+        return {"sequence": seq, "all": {"E_mean": e_mean, "E_each": each, "frames": frames}}
+    a = [rec("s1", 2.0, [1.0, 3.0], 1), rec("s2", 4.0, [4.0, 4.0], 3)]
+    b = [rec("s1", 3.0, [2.0, 2.0], 1), rec("s2", 5.0, [5.5, 4.5], 3),
+         rec("s3", 1.0, [1.0, 1.0], 9)]  # s3: only b scored it
+    g = gap(a, b)
+    assert g["sequences"] == 2 and g["gap"] == pytest.approx((1 * -1 + 3 * -1) / 4)
+    # against member 1: (1 * (1 - 2) + 3 * (4 - 5.5)) / 4, member 2: (1 * 1 + 3 * -0.5) / 4
+    assert g["gap_each"] == pytest.approx([-5.5 / 4, -0.5 / 4])
+    assert not g["chaos"] and g["flipped"] == 1  # s1: a ahead on member 1, b on member 2
+    assert gap(b, a)["gap_each"] == pytest.approx([5.5 / 4, 0.5 / 4])
+    a[1]["all"]["E_each"] = [4.0, 5.0]  # member 2 now puts b ahead overall
+    g = gap(a, b)
+    assert g["chaos"] and g["gap_each"][1] == pytest.approx((1 + 3 * 0.5) / 4)

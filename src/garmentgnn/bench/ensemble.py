@@ -9,11 +9,12 @@ prediction is scored as weather forecasts are (WeatherBench 2), per frame, in cm
 * ``E_mean``: its distance to the ensemble mean (a model trained on mean squared error
   tends toward that mean);
 * ``E_members``: its mean distance to the members;
-* the floor, what no deterministic model gets below: ``floor_mean``, the mean distance
-  of a member to the ensemble mean, and ``spread``, the mean distance between two
-  members;
+* the floor: ``floor_mean``, the mean distance of a member to the ensemble mean (what a
+  perfect simulator, one more member, scores as ``E_mean``; the ``E_members`` of the
+  mean itself), and ``spread``, the mean distance between two members;
 * ``skill = (E_LBS - E_mean) / (E_LBS - floor_mean)``, with ``E_LBS`` the LBS garment's
-  distance to the ensemble mean: 0 is LBS, 1 is the floor, below 0 worse than LBS.
+  distance to the ensemble mean: 0 is LBS, 1 is the floor, below 0 worse than LBS (above
+  1: closer to the mean than a simulation, smoother than the physics).
 
 :func:`ensemble_scores` gives one sequence's numbers over its scored frames, and the same
 over the first ``early`` of them and over the rest; :func:`pooled_skill` pools skill

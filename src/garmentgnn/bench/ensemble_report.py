@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -31,8 +31,10 @@ def gap(a: Sequence[Dict[str, Any]], b: Sequence[Dict[str, Any]]) -> Dict[str, A
     """Method ``a`` against ``b`` over the sequences both scored: ``gap`` (cm, ``a`` minus
     ``b`` of the frame-weighted error to the ensemble mean), ``gap_each`` (the same against
     each member alone), ``chaos`` (the ``gap_each`` differ in sign: the gap is one chaos
-    explains) and the paired Wilcoxon test of the per-sequence errors to the ensemble
-    mean (:func:`garmentgnn.bench.scoring.wilcoxon`; ``None`` under 2 sequences)."""
+    explains), ``flipped`` (the sequences on which the same holds: which method is ahead
+    there depends on the member) and the paired Wilcoxon test of the per-sequence errors
+    to the ensemble mean (:func:`garmentgnn.bench.scoring.wilcoxon`; ``None`` under 2
+    sequences)."""
     ra = {r["sequence"]: r for r in a if r.get("all")}
     rb = {r["sequence"]: r for r in b if r.get("all")}
     common = sorted(set(ra) & set(rb))
@@ -48,9 +50,13 @@ def gap(a: Sequence[Dict[str, Any]], b: Sequence[Dict[str, Any]]) -> Dict[str, A
     test = scoring.wilcoxon({s: ra[s]["all"]["E_mean"] for s in common},
                             {s: rb[s]["all"]["E_mean"] for s in common}) \
         if len(common) >= 2 else None
+    flipped = sum(min(d) < 0 < max(d) for d in (
+        [x - y for x, y in zip(ra[s]["all"]["E_each"], rb[s]["all"]["E_each"])]
+        for s in common))
     return {"sequences": len(common),
             "gap": pooled(lambda s: ra[s]["all"]["E_mean"] - rb[s]["all"]["E_mean"]),
-            "gap_each": each, "chaos": min(each) < 0 < max(each), "wilcoxon": test}
+            "gap_each": each, "chaos": min(each) < 0 < max(each),
+            "flipped": flipped, "wilcoxon": test}
 
 
 def _mean_tree(xs: Sequence[Any]) -> Any:
@@ -103,9 +109,9 @@ def markdown(per_method: Records, png: Optional[str] = None, heading: str = "###
              + "with the rest garment moved by 1e-7 m (`garmentgnn generate --ensemble`), "
              "scored on the frames valid in the dataset's sequence and every member. E_mean: "
              "error to the members' mean; E_members: mean error to a member; floor: a "
-             "member's distance to the mean (no deterministic method gets below it); "
-             "spread: the mean distance between two members; skill = (E_LBS - E_mean) / "
-             "(E_LBS - floor), pooled over sequences (0: LBS, 1: the floor); early: the "
+             "member's distance to the mean (a perfect simulator's E_mean); spread: the "
+             "mean distance between two members; skill = (E_LBS - E_mean) / (E_LBS - "
+             "floor), pooled over sequences (0: LBS, 1: a perfect simulator); early: the "
              f"first {EARLY} scored frames, late: the rest (cm; docs/bench.md).", ""]
     rows = []
     for m, v in res["methods"].items():
@@ -126,13 +132,15 @@ def markdown(per_method: Records, png: Optional[str] = None, heading: str = "###
         w = g["wilcoxon"]
         rows.append([name, f"{g['gap']:+.3g}", f"{min(g['gap_each']):+.3g} .. "
                      f"{max(g['gap_each']):+.3g}", "yes" if g["chaos"] else "no",
-                     str(g["sequences"]), "—" if w is None else f"{w['p']:.2g}"])
+                     f"{g['flipped']} of {g['sequences']}",
+                     "—" if w is None else f"{w['p']:.2g}"])
     if rows:
         lines += ["Gaps (first minus second, E_mean, cm): against each member alone the gap "
-                  "ranges as shown; where its sign flips, chaos explains it. p: paired "
-                  "Wilcoxon over the sequences.", ""]
+                  "ranges as shown; where its sign flips, chaos explains it. Sequences "
+                  "decided by the member: those on which which method is ahead depends on "
+                  "the member. p: paired Wilcoxon over the sequences.", ""]
         lines += table(["methods", "gap", "gap against one member", "chaos explains it",
-                        "sequences", "p"], rows) + [""]
+                        "sequences decided by the member", "p"], rows) + [""]
     if png:
         lines += [f"![Spread and skill per frame]({png})", ""]
     return lines
@@ -171,7 +179,7 @@ def plot(per_method: Records, path, title: str = "") -> Optional[Path]:
                              ("spread", ":", "spread (member to member)")):
         y = _per_frame(any_recs, key)
         ax.plot(np.arange(len(y)), y, color="black", ls=style, lw=1.4, label=name)
-    ax.axvspan(-0.5, _early_end(any_recs), color="grey", alpha=0.12,
+    ax.axvspan(*_early_span(any_recs), color="grey", alpha=0.12,
                label=f"first {EARLY} scored frames")
     ax.set(yscale="log", xlabel="frame", ylabel="cm (log), mean over sequences",
            title="Error to the ensemble mean per frame")
@@ -193,12 +201,14 @@ def plot(per_method: Records, path, title: str = "") -> Optional[Path]:
     return save_figure(fig, path)
 
 
-def _early_end(recs: Sequence[Dict[str, Any]]) -> float:
-    """The last frame of the first :data:`EARLY` scored frames (the earliest over
-    sequences), plus a half."""
-    ends = []
+def _early_span(recs: Sequence[Dict[str, Any]]) -> Tuple[float, float]:
+    """From the first scored frame to the last of the first :data:`EARLY` scored frames
+    (the earliest over sequences), each widened by a half frame."""
+    spans = []
     for r in recs:
         scored = [t for t, y in enumerate(r["per_frame"]["E_mean"]) if y is not None]
         if scored:
-            ends.append(scored[min(EARLY, len(scored)) - 1])
-    return (min(ends) if ends else 0) + 0.5
+            spans.append((scored[0], scored[min(EARLY, len(scored)) - 1]))
+    if not spans:
+        return -0.5, 0.5
+    return min(a for a, _ in spans) - 0.5, min(b for _, b in spans) + 0.5
