@@ -472,6 +472,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         args.sequences = 8
     # the checkpoints read and checked before the output folder is chosen
     if args.command == "score":
+        if args.on_ensemble and args.sequences:
+            p.error("--sequences: --on-ensemble scores the ensemble's sequences; drop one")
         for path in args.merge:
             read_score(path)
         score_methods(args)

@@ -19,6 +19,7 @@ from garmentgnn.bench.scoring import score_ensemble
 from garmentgnn.bench.tables import METRICS
 from garmentgnn.cli import main as cli_main
 from garmentgnn.data import SequenceChunks, generate, preset, store
+from garmentgnn.data.compact import TOLERANCE, pack, unpack
 from garmentgnn.data.ensemble import ENSEMBLE, load_ensemble, member_id, pick_sequences
 from test_bad_input_cli import one_error
 from test_data import fake_simulate
@@ -147,6 +148,20 @@ def test_the_bench_report_shows_the_ensemble_rows(made, tmp_path):
     assert float(rows["ground truth"][1]) == pytest.approx(np.average(e, weights=n), rel=1e-2)
 
 
+def test_a_packed_ensemble_unpacks_beside_its_dataset(made, tmp_path):
+    """The compact packer carries an ensemble: unpacked into a copy of its dataset it
+    reads as the original, positions within the packer's tolerance."""
+    out = copy(made, tmp_path)
+    shutil.rmtree(out / ENSEMBLE)
+    pack(made / ENSEMBLE, tmp_path / "e.zip")
+    unpack(tmp_path / "e.zip", out / ENSEMBLE)
+    a, b = load_ensemble(made), load_ensemble(out)
+    assert a["members"] == b["members"] == 3 and a["sequences"].keys() == b["sequences"].keys()
+    for sid, e in a["sequences"].items():
+        assert np.abs(e["positions"] - b["sequences"][sid]["positions"]).max() <= TOLERANCE
+        assert np.array_equal(e["valid"], b["sequences"][sid]["valid"])
+
+
 # ------------------------------------------------------------------ bad input
 def test_fewer_than_two_members_is_one_line_and_nothing_written(made, tmp_path, capsys):
     out = copy(made, tmp_path)
@@ -207,6 +222,17 @@ def test_sequences_without_ensemble_is_refused(made, tmp_path, capsys):
     out = copy(made, tmp_path)
     rc = cli_main(["generate", "--sequences", "2", "--out", str(out)] + FAKE)
     one_error(capsys, rc, "--sequences", "--ensemble")
+    with pytest.raises(SystemExit):
+        mgn_learn_main(["score", "--mgn", str(MGN_CKPT), "--data", str(out), "--on-ensemble",
+                        "--sequences", "2", "--out", str(tmp_path / "s")])
+    assert "--sequences: --on-ensemble" in capsys.readouterr().err
+    shutil.rmtree(out / ENSEMBLE)  # a dataset without one
+    with pytest.raises(SystemExit) as e:
+        mgn_learn_main(["score", "--mgn", str(MGN_CKPT), "--data", str(out), "--on-ensemble",
+                        "--out", str(tmp_path / "s")])
+    assert str(e.value.code).startswith("error: --on-ensemble") and "--ensemble" in str(
+        e.value.code)
+    assert not (tmp_path / "s").exists()
 
 
 def mgn_learn_main(argv):

@@ -65,7 +65,7 @@ def pick_sequences(records: Sequence[Dict[str, Any]], n: int) -> List[str]:
     turn from each group, each group in turn from each kind, each kind in id order."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"`sequences`: expected a positive number of test sequences, got "
-                         f"{n!r}")
+                         f"{n!r}; give 1 or more")
     test = sorted((r for r in records if r.get("split") == "test" and r.get("status") == "ok"),
                   key=lambda r: r["id"])
     cells: Dict[str, Dict[str, List[str]]] = {}
@@ -118,7 +118,7 @@ class EnsembleSpec:
 
 def _check_count(name: str, value: Any, low: int, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ValueError(f"`{name}`: {what} >= {low}, got {value!r}")
+        raise ValueError(f"`{name}`: {what} >= {low}, got {value!r}; give {low} or more")
     return value
 
 
@@ -140,7 +140,7 @@ def ensemble_spec(data, ensemble: int = MEMBERS, sequences: int = ENSEMBLE_SEQUE
         r = by_id[sid]
         item = {k: r.get(k) for k in ("garment", "body", "motion", "material", "settings",
                                       "seed", "split", "held_out")}
-        item["engine"] = identity["engine"] or store.record_from_meta(r)["engine"]["name"]
+        item["engine"] = identity["engine"] or (r.get("engine") or {}).get("name", "torch")
         for k in range(1, ensemble + 1):
             members.append(dict(item, id=member_id(sid, k), member={
                 "of": sid, "k": k, "garment_m": PERTURB_M,
