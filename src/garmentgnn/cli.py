@@ -29,6 +29,7 @@ from garmentgnn.bench import cli as bench_cli
 from garmentgnn.inference import cli as inference_cli
 from garmentgnn.data import SpecMismatch, generate, preset
 from garmentgnn.data.ensemble import ENSEMBLE_SEQUENCES, generate_ensemble
+from garmentgnn.data.perturb import PERTURB_M
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
 from garmentgnn.data.presets import ENGINES, PRESETS
 from garmentgnn.data.spec_file import load_spec
@@ -98,7 +99,7 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--ensemble", type=int, default=None, metavar="K",
                    help="instead of a dataset: K members of some of the dataset in --out's "
                         "test sequences, each simulated again with its rest garment moved "
-                        "by 1e-7 m, into OUT/ensemble (an ensemble ground truth, "
+                        f"by {PERTURB_M:g} m, into OUT/ensemble (an ensemble ground truth, "
                         "docs/dataset.md; rerun to resume)")
     g.add_argument("--sequences", type=int, default=None, metavar="N",
                    help=f"with --ensemble: how many test sequences (default "

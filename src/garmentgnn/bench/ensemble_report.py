@@ -21,6 +21,7 @@ from garmentgnn._plotting import pyplot
 from garmentgnn.bench import scoring
 from garmentgnn.bench.ensemble import EARLY, summary
 from garmentgnn.bench.tables import save_figure, table
+from garmentgnn.data.perturb import PERTURB_M
 
 __all__ = ["gap", "markdown", "plot", "results", "seed_mean"]
 
@@ -106,7 +107,8 @@ def markdown(per_method: Records, png: Optional[str] = None, heading: str = "###
     lines = [f"{heading} Against the ensemble ground truth", "",
              f"{seqs} test sequences, each simulated again "
              + (f"{members} times " if members else "")
-             + "with the rest garment moved by 1e-7 m (`garmentgnn generate --ensemble`), "
+             + f"with the rest garment moved by {PERTURB_M:g} m (`garmentgnn generate "
+             "--ensemble`), "
              "scored on the frames valid in the dataset's sequence and every member. E_mean: "
              "error to the members' mean; E_members: mean error to a member; floor: a "
              "member's distance to the mean (a perfect simulator's E_mean); spread: the "
