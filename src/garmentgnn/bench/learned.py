@@ -44,7 +44,7 @@ from garmentgnn._files import atomic_write_bytes, atomic_write_json
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench import scoring
 from garmentgnn.bench.curves import LearningCurve, TrainClock, quiet_lightning
-from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
+from garmentgnn.bench.dataset import DatasetInfo, ensemble_sequences, prepare_dataset
 from garmentgnn.bench.methods import (DATA, LBS, LONG, LearnedBudget, is_method,
                                         module_class, per_garment, recipe_of)
 from garmentgnn.bench.model_inputs import BenchChunks, Predictor, lbs_predictor
@@ -97,6 +97,7 @@ class LearnedRunner:
             raise ValueError(f"--batch-size: {budget.batch_size} is more than the {chunks} "
                              f"training chunks of {data.root}; give at most {chunks}")
         self.test = self._whole("test", budget.test_sequences)  # the same for every method
+        self.ensemble, self.ensemble_test = ensemble_sequences(data.root)
         self.val: Optional[SequenceChunks] = None
         self.train_fit: Optional[SequenceChunks] = None  # the curves' training sequences
         if budget.curve_every is not None:
@@ -211,12 +212,17 @@ class LearnedRunner:
 
     def evaluate(self, pred: Predictor) -> Dict[str, Any]:
         """``metrics`` (frame-weighted means over the valid ground-truth frames of every test
-        sequence), ``groups`` (per held-out group), ``per_sequence`` and ``test_frames``
-        (:mod:`garmentgnn.bench.scoring`)."""
+        sequence), ``groups`` (per held-out group), ``per_sequence``, ``test_frames`` and,
+        with an ensemble ground truth, ``ensemble`` (:mod:`garmentgnn.bench.scoring`)."""
         per_seq = scoring.score(lambda i, item: pred.predict(self.test, i, item), self.test)
         agg = scoring.aggregate(per_seq)
-        return {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
-                "test_frames": sum(s["frames"] for s in per_seq)}
+        out = {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
+               "test_frames": sum(s["frames"] for s in per_seq)}
+        if self.ensemble is not None:
+            ens = self.ensemble_test
+            out["ensemble"] = scoring.score_ensemble(
+                lambda i, item: pred.predict(ens, i, item), ens, self.ensemble)
+        return out
 
     def at_snapshot(self, pred: Predictor) -> Dict[str, Any]:
         """:meth:`evaluate` of ``pred``'s weights after the budget's ``equal_steps``
