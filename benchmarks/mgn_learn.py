@@ -7,7 +7,7 @@ against LBS and the frame-parallel methods, error per frame, and the sweeps' tab
     # every test sequence rolled out (from the first two simulated frames and from a
     # settled drape) beside LBS and other checkpoints, paired Wilcoxon tests, per group
     python benchmarks/mgn_learn.py score --mgn CKPT --data DATA --out OUT \\
-        [--other "GarTrans (SAT)=CKPT" ...] [--split test]
+        [--other "GarTrans (SAT)=CKPT" ...] [--split test] [--on-ensemble]
     # the sweep runs' last validation (rollout E_dist) and training one-step error
     python benchmarks/mgn_learn.py sweep --runs NAME=RUN ... --out OUT
     # a branch of a run from one of its checkpoints with pushforward rollouts (the
@@ -23,7 +23,10 @@ against LBS and the frame-parallel methods, error per frame, and the sweeps' tab
 
 Every method is scored on the same frames: the valid ground-truth frames from frame 2 on
 (the rollout is given frames 0 and 1).  Outputs: ``OUT/<command>.json``, ``.md`` and
-``.png``.
+``.png``.  ``score`` on a dataset with an ensemble ground truth (``garmentgnn generate
+--ensemble K``) also scores the ensemble's sequences against it (``score.json``'s
+``ensemble``, a section of ``score.md``, ``ensemble.png``); ``--on-ensemble`` scores only
+those sequences.
 """
 from __future__ import annotations
 
@@ -41,12 +44,14 @@ from garmentgnn.data.store import dataset_dir, read_json, read_manifest
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args,
                                   int_at_least, output_path)
 from garmentgnn._plotting import pyplot
+from garmentgnn.bench import ensemble_report
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench.model_inputs import BenchChunks
-from garmentgnn.bench.scoring import score, stratified
+from garmentgnn.bench.scoring import score, score_ensemble, stratified
+from garmentgnn.data.ensemble import MEMBERS, load_ensemble
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
-from garmentgnn.training import SimulatorModule
-from garmentgnn.training.simulator import START_STATES
+from garmentgnn.training import RolloutModule
+from garmentgnn.training.rollout import START_STATES
 from garmentgnn.training.base import GarmentModule
 from garmentgnn.training.lightning_cli import method_name
 from garmentgnn.training.checkpoints import load_checkpoint
@@ -111,11 +116,9 @@ def read_score(path: str) -> Dict[str, Any]:
 
 
 #: what a flag's checkpoint must hold: the method's name, and the test of its module
-KINDS = {"mgn": ("MGN-style", lambda m: isinstance(m, SimulatorModule)),
-         "gartrans": ("GarTrans", lambda m: type(m).__name__ == "GarTransModule"),
-         "da": ("DA-style", lambda m: getattr(m, "method", None) == "da"),
-         "frame-parallel": ("a frame-parallel method (GarTrans, DA-, HOOD-, NCS-style)",
-                            lambda m: not isinstance(m, SimulatorModule))}
+KINDS = {"mgn": ("MGN-style", lambda m: m.table_name == "MGN-style"),
+         "gartrans": ("GarTrans", lambda m: m.family == "gartrans"),
+         "da": ("DA-style", lambda m: m.table_name == "DA-style")}
 
 
 def checkpoint_of(path: str, flag: str, kind: Optional[str] = None) -> GarmentModule:
@@ -164,9 +167,9 @@ def score_methods(args: argparse.Namespace):
         if not eq or not name or not path:
             print(f"error: --other {spec}: expected NAME=CKPT", file=sys.stderr)
             sys.exit(2)
-        m = checkpoint_of(path, "--other", "frame-parallel")
+        m = checkpoint_of(path, "--other")
         modules[name] = m
-        methods[name] = m.predict_garment
+        methods[name] = m.predict_sequence  # from what a user has, as the bench scores
     args.scored = methods, modules
     return args.scored
 
@@ -177,25 +180,36 @@ def run_score(args: argparse.Namespace) -> None:
     out = Path(args.out)  # made once every checkpoint has been read
     out.mkdir(parents=True, exist_ok=True)
     manifest = read_manifest(args.data)
-    ids = None
-    if args.sequences:
+    ensemble = args.ensemble
+    ids = sorted(ensemble["sequences"]) if args.on_ensemble else None
+    if args.sequences and ids is None:
         ids = stratified([r for r in manifest["items"]
                           if r["split"] == args.split and r["status"] == "ok"], args.sequences)
     results: Dict[str, Any] = {"data": str(args.data),
                                "content_sha256": manifest.get("content_sha256"),
                                "split": args.split, "methods": {}, "per_frame": {},
                                "seconds": {}}
+    if ensemble is not None:
+        results["ensemble"] = {"members": ensemble["members"], "dataset": ensemble["dataset"],
+                               "incomplete": ensemble["incomplete"], "methods": {}}
     lbs_done = False
     for name, predict in methods.items():
         test = sequences(modules[name], args.data, args.split, ids)
         frames: Dict[str, List[float]] = {}
         t0 = time.perf_counter()
 
-        def pred(i, item, predict=predict, frames=frames):
+        kept: Dict[str, torch.Tensor] = {}
+
+        def pred(i, item, predict=predict, frames=frames, kept=kept):
             p = predict(item)
             frames[item.seq_id] = per_frame(p, item)
+            if ensemble is not None and item.seq_id in ensemble["sequences"]:
+                kept[item.seq_id] = p.detach().cpu()
             return p
         results["methods"][name] = score(pred, test)
+        if ensemble is not None:
+            results["ensemble"]["methods"][name] = score_ensemble(
+                lambda i, item, kept=kept: kept[item.seq_id], test, ensemble)
         results["seconds"][name] = time.perf_counter() - t0
         results["per_frame"][name] = frames
         print(f"{name}: {len(test)} sequences in {results['seconds'][name]:.0f} s",
@@ -209,6 +223,9 @@ def run_score(args: argparse.Namespace) -> None:
                 return p
             results["methods"]["LBS only"] = score(lbs, test)
             results["per_frame"]["LBS only"] = lbs_frames
+            if ensemble is not None:
+                results["ensemble"]["methods"]["LBS only"] = score_ensemble(
+                    lambda i, item: item.skinned(), test, ensemble)
             lbs_done = True
     results["valid"] = {s["sequence"]: [bool(v) for v in test.valid(i)]
                         for i, s in enumerate(results["methods"]["LBS only"])} \
@@ -221,13 +238,37 @@ def run_score(args: argparse.Namespace) -> None:
         for key in ("methods", "per_frame", "seconds"):
             for name, v in other[key].items():
                 results[key].setdefault(name, v)
+    text = score_table(results)
+    if ensemble is not None:
+        by_method = results["ensemble"]["methods"]
+        results["ensemble"]["summary"] = ensemble_report.results(by_method)
+        png = ensemble_report.plot(by_method, out / "ensemble.png",
+                                   f"{len(by_method['LBS only'])} {args.split} sequences "
+                                   f"against the ensemble of dataset "
+                                   f"{str(results['content_sha256'])[:8]}")
+        text += "\n" + "\n".join(ensemble_report.markdown(
+            by_method, png.name if png else None, "##", ensemble["members"])) + "\n"
     (out / "score.json").write_text(json.dumps(results, indent=1))
-    (out / "score.md").write_text(score_table(results))
+    (out / "score.md").write_text(text)
     plot_per_frame(results, out / "per_frame.png")
-    print(score_table(results))
+    print(text)
 
 
-def one_step_and_rollout(module: SimulatorModule, test: Scored) -> Dict[str, float]:
+def read_ensemble(data: str, required: bool) -> Optional[Dict[str, Any]]:
+    """The ensemble ground truth of ``data`` (``None`` without one); one ``error:`` line
+    (exit status 2) where it is not this dataset's or not an ensemble, or where
+    ``required`` (``--on-ensemble``) and there is none."""
+    try:
+        ensemble = load_ensemble(data)
+    except (OSError, ValueError) as e:
+        sys.exit(f"error: --data {data}: {str(e).split(': ', 1)[-1]}")
+    if required and not (ensemble and ensemble["sequences"]):
+        sys.exit(f"error: --on-ensemble: {data} has no ensemble ground truth; make one with "
+                 f"`garmentgnn generate --ensemble {MEMBERS} --out {data}`")
+    return ensemble
+
+
+def one_step_and_rollout(module: RolloutModule, test: Scored) -> Dict[str, float]:
     """Mean over ``test``'s sequences of the one-step error (each frame predicted from the
     two simulated frames before it) and the rollout E_dist (from frames 0 and 1), cm, on
     the scored frames."""
@@ -393,6 +434,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    help="score: other checkpoints scored beside it")
     p.add_argument("--merge", nargs="*", default=[], metavar="SCORE.json",
                    help="score: add the methods of earlier scores of the same sequences")
+    p.add_argument("--on-ensemble", action="store_true",
+                   help="score: only the sequences of --data's ensemble ground truth")
     p.add_argument("--sequences", type=int, default=None,
                    help="score: only this many, drawn evenly from the held-out groups "
                         "(default: all); curves: per split (default there: 8)")
@@ -427,9 +470,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         args.sequences = 8
     # the checkpoints read and checked before the output folder is chosen
     if args.command == "score":
+        if args.on_ensemble and args.sequences:
+            p.error("--sequences: --on-ensemble scores the ensemble's sequences; drop one")
         for path in args.merge:
             read_score(path)
         score_methods(args)
+        args.ensemble = read_ensemble(args.data, args.on_ensemble)
     elif args.command == "stability":
         args.mgn_module = checkpoint_of(args.mgn, "--mgn", "mgn")
     args.out = output_path(args, RESULTS)

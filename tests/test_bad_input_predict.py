@@ -22,7 +22,7 @@ def test_predict_at_another_rate_than_the_mgn_model_learned_is_refused(files, tm
     one_error(capsys, cli_main(["predict", "--ckpt", str(MGN), "--garment",
                                 str(files / "skirt.obj"), "--motion", str(files / "walk.bvh"),
                                 "--scale", "0.01", "--fps", "60", "--out", str(out / "p")]),
-              "--fps", "60", "learned its accelerations at 30 fps", "give fps 30")
+              "--fps", "60", "learned its dynamics at 30 fps", "give fps 30")
     assert not out.exists()
 
 

@@ -62,3 +62,67 @@ def test_bad_input_is_named():
         ensemble_scores(one, two, one, torch.tensor([True]))
     with pytest.raises(ValueError, match="`early`"):
         ensemble_scores(one, two, one, early=-1)
+
+
+# ------------------------------------------------------------------ end to end
+@pytest.mark.slow
+def test_torch_engine_ensemble_scored_by_the_bench(tmp_path):
+    """The tiny preset's test split, 2 sequences x 3 members simulated by the torch engine
+    (about 1.5 min on one core), scored by ``garmentgnn bench`` (LBS only): the report's
+    row against a numpy computation from the member files."""
+    import json  # noqa: PLC0415
+
+    import numpy as np  # noqa: PLC0415
+
+    from garmentgnn.bench.methods import LBS  # noqa: PLC0415
+    from garmentgnn.cli import main as cli_main  # noqa: PLC0415
+    from garmentgnn.data import SequenceChunks, generate, preset  # noqa: PLC0415
+    from garmentgnn.data.ensemble import ENSEMBLE, member_id  # noqa: PLC0415
+    from test_data import fake_simulate  # noqa: PLC0415
+
+    data = tmp_path / "d"  # the dataset's own sequences: the test double (inputs, LBS)
+    assert generate(preset("tiny"), data, workers=0, simulate_fn=fake_simulate,
+                    progress=False).done == 8
+    assert cli_main(["generate", "--ensemble", "3", "--sequences", "2", "--out", str(data),
+                     "--workers", "0", "--no-estimate", "--no-progress"]) == 0
+    assert cli_main(["bench", "--preset", "tiny", "--learned-only", "--methods", LBS,
+                     "--data", str(data), "--out", str(tmp_path / "b"), "--no-progress"]) == 0
+    rec = next(r for r in json.loads((tmp_path / "b" / "results.json").read_text())["records"]
+               if r["kind"] == "learned")
+    ens = {r["sequence"]: r for r in rec["ensemble"]}
+    assert len(ens) == 2
+    test = SequenceChunks(data, "test", chunk=10 ** 6, ids=sorted(ens))
+    for i in range(len(test)):
+        item = test[i]
+        M = np.stack([np.load(data / ENSEMBLE / "sequences" /
+                              f"{member_id(item.seq_id, k)}.npz")["positions"]
+                      for k in (1, 2, 3)]).astype(np.float64)
+        mean = M.mean(0)
+        d = [np.linalg.norm(m - mean, axis=-1).mean(-1) * 100 for m in M]
+        assert 0 < np.mean(d) < 1  # the members differ, by less than 1 cm in 8 frames
+        lbs = np.linalg.norm(item.skinned().double().numpy() - mean, axis=-1).mean() * 100
+        got = ens[item.seq_id]["all"]
+        assert got["floor_mean"] == pytest.approx(np.mean(d), rel=1e-6)
+        assert got["E_mean"] == pytest.approx(lbs, rel=1e-6) and got["skill"] == 0
+    text = (tmp_path / "b" / "report.md").read_text()
+    assert "### Against the ensemble ground truth" in text
+    assert (tmp_path / "b" / "ensemble.png").is_file()
+
+
+def test_a_gap_is_chaos_where_its_sign_depends_on_the_member():
+    from garmentgnn.bench.ensemble_report import gap  # noqa: PLC0415
+
+    def rec(seq, e_mean, each, frames):
+        return {"sequence": seq, "all": {"E_mean": e_mean, "E_each": each, "frames": frames}}
+    a = [rec("s1", 2.0, [1.0, 3.0], 1), rec("s2", 4.0, [4.0, 4.0], 3)]
+    b = [rec("s1", 3.0, [2.0, 2.0], 1), rec("s2", 5.0, [5.5, 4.5], 3),
+         rec("s3", 1.0, [1.0, 1.0], 9)]  # s3: only b scored it
+    g = gap(a, b)
+    assert g["sequences"] == 2 and g["gap"] == pytest.approx((1 * -1 + 3 * -1) / 4)
+    # against member 1: (1 * (1 - 2) + 3 * (4 - 5.5)) / 4, member 2: (1 * 1 + 3 * -0.5) / 4
+    assert g["gap_each"] == pytest.approx([-5.5 / 4, -0.5 / 4])
+    assert not g["chaos"] and g["flipped"] == 1  # s1: a ahead on member 1, b on member 2
+    assert gap(b, a)["gap_each"] == pytest.approx([5.5 / 4, 0.5 / 4])
+    a[1]["all"]["E_each"] = [4.0, 5.0]  # member 2 now puts b ahead overall
+    g = gap(a, b)
+    assert g["chaos"] and g["gap_each"][1] == pytest.approx((1 + 3 * 0.5) / 4)

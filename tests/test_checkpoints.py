@@ -10,7 +10,7 @@ import torch
 from garmentgnn.models import GarTrans, MGNStyle
 from garmentgnn.models.baselines import DAStyle, HOODStyle, NCSStyle
 from garmentgnn.training import (BaselineModule, GarmentModule, GarTransModule,
-                                 SimulatorModule, load_checkpoint)
+                                 RolloutModule, load_checkpoint)
 from garmentgnn.training.checkpoints import module_class
 from garmentgnn.training.integrity import CheckpointError, stamp_checkpoint
 
@@ -40,7 +40,7 @@ def _methods():
         "da": (BaselineModule, lambda: BaselineModule(DAStyle(JOINTS, hidden=8))),
         "hood": (BaselineModule, lambda: BaselineModule(HOODStyle(hidden=8))),
         "ncs": (BaselineModule, lambda: BaselineModule(NCSStyle(VERTICES, JOINTS, hidden=8))),
-        "mgn": (SimulatorModule, lambda: SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1))),
+        "mgn": (RolloutModule, lambda: RolloutModule(MGNStyle(hidden=8, layers=1, heads=1))),
     }
 
 
@@ -85,3 +85,19 @@ def test_a_stored_class_path_that_is_no_module_is_refused():
 def test_a_missing_file_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         load_checkpoint(tmp_path / "none.ckpt")
+
+
+def test_a_checkpoint_of_a_renamed_module_loads_under_its_new_name(tmp_path):
+    """A checkpoint written while the MGN-style module had its former name (its
+    ``_class_path`` as ``garmentgnn train`` wrote it then) loads as today's module."""
+    L.seed_everything(0)
+    module = RolloutModule(MGNStyle(hidden=8, layers=1, heads=1))
+    path = tmp_path / "former.ckpt"
+    _save(module, path, "garmentgnn.training.SimulatorModule")
+    loaded = load_checkpoint(path)
+    assert type(loaded) is RolloutModule
+    for k, v in module.state_dict().items():
+        torch.testing.assert_close(loaded.state_dict()[k], v, msg=k)
+    _save(module, path, "garmentgnn.training.NoSuchModule")
+    with pytest.raises(CheckpointError, match="NoSuchModule"):
+        load_checkpoint(path)

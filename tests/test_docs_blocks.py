@@ -205,7 +205,10 @@ def test_bash_block_runs(doc, i, code, tmp_path, monkeypatch, capsys):
     commands = run_bash(code, tmp_path)
     assert commands, f"{doc} bash block {i + 1} ran no command"
     # commands run from the repository's root, beside the doc's files where it has some
+    # (on the Python path, as the doc's `export PYTHONPATH=$PWD` puts them)
     monkeypatch.chdir(tmp_path if doc in FILES else ROOT)
+    if doc in FILES:
+        monkeypatch.syspath_prepend(str(tmp_path))
     for cmd in commands:
         check_command(cmd, monkeypatch, capsys)
 

@@ -21,7 +21,7 @@ from garmentgnn.models import EncodeProcessDecode, MGNStyle
 from garmentgnn.models.baselines import DAStyle
 from garmentgnn.nn import LAYERS
 from garmentgnn.physics import MATERIALS, material_features
-from garmentgnn.training import BaselineModule, GarmentDataModule, SimulatorModule
+from garmentgnn.training import BaselineModule, GarmentDataModule, RolloutModule
 from garmentgnn.training.recipes import recipes_of_model
 from garmentgnn.training.integrity import CheckpointError
 
@@ -43,7 +43,7 @@ def windows(root, chunk=3):
 
 def trained_stats(model, batch):
     """``model`` with its normalisation statistics taken from ``batch``, in eval mode."""
-    module = SimulatorModule(model, stats_steps=1, rollout=1)
+    module = RolloutModule(model, stats_steps=1, rollout=1)
     module.train()
     with torch.no_grad():
         module.window_loss(batch)
@@ -188,7 +188,7 @@ def test_bf16_autocast_keeps_inputs_and_integration_in_float32(root):
     hooks = [getattr(model, n).register_forward_pre_hook(
         lambda mod, args, n=n: seen.setdefault(n, []).append(args[0]))
         for n in ("node_norm", "edge_norm", "body_norm")]
-    module = SimulatorModule(model, stats_steps=0, rollout=1)
+    module = RolloutModule(model, stats_steps=0, rollout=1)
 
     def run():
         with torch.no_grad():
@@ -223,7 +223,7 @@ def test_every_parameter_learns_with_every_layer(root, layer, body_blocks):
     batch = windows(root)[[0, 6]]
     model = MGNStyle(hidden=16, layers=2, heads=2, layer=layer, body_radius=0.2,
                      body_blocks=body_blocks)
-    module = SimulatorModule(model, stats_steps=0, noise=1e-3, rollout=1)
+    module = RolloutModule(model, stats_steps=0, noise=1e-3, rollout=1)
     loss, _ = module.window_loss(batch)
     loss.backward()
     dead = [n for n, p in model.named_parameters()
@@ -261,7 +261,7 @@ def test_the_target_keeps_its_share_of_the_noise(root):
     model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
     trained_stats(model, batch)  # then frozen: the oracle below sees the same statistics
     for gamma in (0.0, 0.1):
-        module = SimulatorModule(model, stats_steps=0, noise=0.01, noise_gamma=gamma,
+        module = RolloutModule(model, stats_steps=0, noise=0.01, noise_gamma=gamma,
                                  rollout=1)
         module.train()
         torch.manual_seed(3)
@@ -290,7 +290,7 @@ def test_one_batch_is_learnt(root):
     torch.manual_seed(0)
     batch = windows(root)[[0, 4, 8]]
     model = MGNStyle(hidden=32, layers=2, heads=2)
-    module = SimulatorModule(model, stats_steps=1, noise=0.0, rollout=1)
+    module = RolloutModule(model, stats_steps=1, noise=0.0, rollout=1)
     module.train()
     with torch.no_grad():
         module.window_loss(batch)
@@ -307,7 +307,7 @@ def test_one_batch_is_learnt(root):
 
 
 def test_the_learning_rate_decays_exponentially(root):
-    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), lr=1e-3, decay=0.1,
+    module = RolloutModule(MGNStyle(hidden=8, layers=1, heads=1), lr=1e-3, decay=0.1,
                              decay_steps=100, lr_min=2e-5)
     cfg = module.configure_optimizers()
     opt, sched = cfg["optimizer"], cfg["lr_scheduler"]["scheduler"]
@@ -322,6 +322,26 @@ def test_the_learning_rate_decays_exponentially(root):
     assert rates[250] == pytest.approx(2e-5)  # the floor
 
 
+def test_the_learning_rate_decays_over_the_runs_steps_unless_told(root):
+    """``decay_steps`` unset: the rate falls by ``decay`` over the trainer's max_steps;
+    without max_steps it stays (a TimeBudget anneals it), with a warning otherwise."""
+    import lightning as L  # noqa: PLC0415
+    from garmentgnn.training import TimeBudget  # noqa: PLC0415
+    for max_steps, callbacks, want in ((400, [], 1e-4), (-1, [TimeBudget(60.0)], 1e-3)):
+        module = RolloutModule(MGNStyle(hidden=8, layers=1, heads=1), lr=1e-3, decay=0.1)
+        module.trainer = L.Trainer(max_steps=max_steps, callbacks=callbacks, logger=False,
+                                   enable_checkpointing=False, enable_progress_bar=False)
+        cfg = module.configure_optimizers()
+        opt, sched = cfg["optimizer"], cfg["lr_scheduler"]["scheduler"]
+        for _ in range(400):
+            opt.step()
+            sched.step()
+        assert opt.param_groups[0]["lr"] == pytest.approx(want)
+    module.trainer = L.Trainer(max_steps=-1, logger=False, enable_checkpointing=False)
+    with pytest.warns(UserWarning, match="no --trainer.max_steps"):
+        module.configure_optimizers()
+
+
 def test_bad_arguments_and_inputs(root):
     for kw, name in (({"hidden": 10, "heads": 4}, "`heads`"), ({"layer": "nope"}, "`layer`"),
                      ({"body_radius": 0.0}, "`body_radius`"), ({"fps": -1.0}, "`fps`")):
@@ -332,12 +352,12 @@ def test_bad_arguments_and_inputs(root):
                      ({"start": "x"}, "`start`"), ({"noise_gamma": 2.0}, "`noise_gamma`"),
                      ({"stats_steps": 10 ** 6}, "`stats_steps`")):
         with pytest.raises(ValueError, match=name):
-            SimulatorModule(model, **kw)
+            RolloutModule(model, **kw)
     with pytest.raises(TypeError, match="`model`"):
-        SimulatorModule(torch.nn.Linear(2, 2))
+        RolloutModule(torch.nn.Linear(2, 2))
     item = windows(root)[0]
     short = item.select(torch.tensor([0, 1]))
-    module = SimulatorModule(model)
+    module = RolloutModule(model)
     with pytest.raises(ValueError, match="at least 3 frames"):
         module.rollout(short)
     bare = item.clone()
@@ -345,7 +365,7 @@ def test_bad_arguments_and_inputs(root):
     with pytest.raises(ValueError, match="`scene.material`"):
         model.scene_motion(bare)
     with pytest.raises(ValueError, match=r"2 \+ the longest rollout = 3 frames, got 4"):
-        SimulatorModule(model, rollout=1).window_loss(windows(root, chunk=4)[0])
+        RolloutModule(model, rollout=1).window_loss(windows(root, chunk=4)[0])
 
 
 def _trainer(tmp_path, steps):
@@ -358,12 +378,12 @@ def _trainer(tmp_path, steps):
 def test_set_up_refuses_other_windows_and_frame_rates(root, tmp_path):
     dm = GarmentDataModule(root, chunk=4, stride=1, drop_last=True, eval_chunk=100,
                            history=1, nystrom_dim=NY, num_landmarks=16)
-    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=0, rollout=1)
+    module = RolloutModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=0, rollout=1)
     with pytest.raises(ValueError, match="--data.chunk 3"):
         _trainer(tmp_path, 2).fit(module, dm)
     dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
                            history=1, nystrom_dim=NY, num_landmarks=16)
-    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1, fps=60.0), stats_steps=0,
+    module = RolloutModule(MGNStyle(hidden=8, layers=1, heads=1, fps=60.0), stats_steps=0,
                              rollout=1)
     with pytest.raises(ValueError, match="at 30 fps.*60 fps"):
         _trainer(tmp_path, 2).fit(module, dm)
@@ -373,12 +393,12 @@ def test_fit_checkpoint_and_rollout_scores(root, tmp_path):
     L.seed_everything(0)
     dm = GarmentDataModule(root, chunk=3, stride=1, drop_last=True, eval_chunk=100,
                            history=1, nystrom_dim=NY, num_landmarks=16, batch_size=4)
-    module = SimulatorModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=1, rollout=1)
+    module = RolloutModule(MGNStyle(hidden=8, layers=1, heads=1), stats_steps=1, rollout=1)
     trainer = _trainer(tmp_path, 2)  # optimizer steps: the statistics batch is not one
     trainer.fit(module, dm)
     path = tmp_path / "m.ckpt"
     trainer.save_checkpoint(path)
-    back = SimulatorModule.load_from_checkpoint(str(path)).eval()
+    back = RolloutModule.load_from_checkpoint(str(path)).eval()
     assert int(back.model.target_norm.updates) == 3  # the statistics travel with it
     assert torch.equal(back.model.node_norm.total, module.model.node_norm.total)
     val = dm.val_set[0]
@@ -394,7 +414,7 @@ def test_fit_checkpoint_and_rollout_scores(root, tmp_path):
 def test_pushforward_trains_from_its_own_state(root):
     batch = windows(root, chunk=4)[[0, 5]]
     model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
-    module = SimulatorModule(model, stats_steps=0, noise=0.0, rollout=2, rollout_start=0)
+    module = RolloutModule(model, stats_steps=0, noise=0.0, rollout=2, rollout_start=0)
     module.train()
     with torch.no_grad():
         module.window_loss(batch)  # the statistics, then frozen
@@ -407,7 +427,7 @@ def test_pushforward_trains_from_its_own_state(root):
         assert float(loss) == pytest.approx(float(((out - want) ** 2).sum(1)[free].mean()),
                                             rel=1e-5)
         # before `rollout_start`: one step on the window's last three frames
-        one = SimulatorModule(model, stats_steps=0, noise=0.0, rollout=2, rollout_start=10)
+        one = RolloutModule(model, stats_steps=0, noise=0.0, rollout=2, rollout_start=10)
         last3 = batch.select(torch.arange(1, 4))
         m3 = model.scene_motion(last3)
         out = model(last3, m3, 2, last3.gt[0], last3.gt[1])
@@ -493,18 +513,18 @@ def test_the_anchor_bounds_the_offset_and_the_target_inverts_it(root):
 
 def test_the_rollout_schedule_and_its_modes():
     model = MGNStyle(hidden=8, layers=1, heads=1)
-    m = SimulatorModule(model, rollout_schedule=[[0, 1], [10, 2], [20, 5]])
+    m = RolloutModule(model, rollout_schedule=[[0, 1], [10, 2], [20, 5]])
     assert m.window == 7
     assert [m.rollout_at(s) for s in (0, 9, 10, 19, 20, 10 ** 6)] == [1, 1, 2, 2, 5, 5]
     assert m.frames_to_train(25) == (4, 1)  # pushforward: four free frames, one trained
-    assert SimulatorModule(model, rollout=3, rollout_start=7).schedule == [(0, 1), (7, 3)]
-    r = SimulatorModule(model, rollout_schedule=[[0, 4]], rollout_mode="random")
+    assert RolloutModule(model, rollout=3, rollout_start=7).schedule == [(0, 1), (7, 3)]
+    r = RolloutModule(model, rollout_schedule=[[0, 4]], rollout_mode="random")
     torch.manual_seed(0)
     drawn = [r.frames_to_train(0) for _ in range(60)]
     assert {f for f, _ in drawn} == {0, 1, 2, 3} and all(n == 1 for _, n in drawn)
     torch.manual_seed(0)
     assert [r.frames_to_train(0) for _ in range(60)] == drawn  # the run's seed
-    per = SimulatorModule(model, rollout_schedule=[[0, 4]], rollout_mode="per_frame")
+    per = RolloutModule(model, rollout_schedule=[[0, 4]], rollout_mode="per_frame")
     assert per.frames_to_train(0) == (0, 4)
 
 
@@ -531,7 +551,7 @@ def test_each_rollout_mode_steps_the_optimizer_as_documented(root, mode, frames,
     clipped to ``clip``."""
     torch.manual_seed(0)
     model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1)
-    module = SimulatorModule(model, stats_steps=1, noise=1e-3, clip=1e-3, rollout_mode=mode,
+    module = RolloutModule(model, stats_steps=1, noise=1e-3, clip=1e-3, rollout_mode=mode,
                              rollout_schedule=[[0, frames]])
     dm = GarmentDataModule(root, chunk=2 + frames, stride=1, drop_last=True, history=1,
                            batch_size=2, nystrom_dim=NY, num_landmarks=16)
@@ -587,7 +607,7 @@ def test_the_preroll_start_settles_on_the_first_pose_then_follows_the_motion(roo
     item = SequenceChunks(root, "val", chunk=8, history=1, nystrom_dim=NY,
                           num_landmarks=16)[0]
     model = trained_stats(MGNStyle(hidden=8, layers=1, heads=1), windows(root)[[0, 6]])
-    module = SimulatorModule(model, preroll_frames=3).eval()
+    module = RolloutModule(model, preroll_frames=3).eval()
     bare = item.clone()
     del bare.gt
     with torch.no_grad():
@@ -599,7 +619,7 @@ def test_the_preroll_start_settles_on_the_first_pose_then_follows_the_motion(roo
         a = model.step(held, m0, 2, l0, l0)
         b = model.step(held, m0, 3, l0, a)
         torch.testing.assert_close(got[0], b)
-        zero = SimulatorModule(model, preroll_frames=0).eval()
+        zero = RolloutModule(model, preroll_frames=0).eval()
         m = model.scene_motion(item)
         torch.testing.assert_close(zero.rollout(bare, start="preroll"),
                                    model.rollout(item, m.lbs[0], m.lbs[0], m))

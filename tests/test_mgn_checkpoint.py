@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from garmentgnn.data import SequenceChunks, compact
-from garmentgnn.training import SimulatorModule
+from garmentgnn.training import RolloutModule
 from garmentgnn.training.lightning_cli import main as train_main
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -32,7 +32,7 @@ def sample(tmp_path_factory):
 def test_the_checkpoint_is_small_and_the_headline_run():
     assert CKPT.stat().st_size <= 8 * 10 ** 6
     record = json.loads(RECORD.read_text())
-    module = SimulatorModule.load_from_checkpoint(str(CKPT), map_location="cpu")
+    module = RolloutModule.load_from_checkpoint(str(CKPT), map_location="cpu")
     assert module.hparams.noise == record["run"]["noise"]
     assert int(torch.load(CKPT, weights_only=False)["global_step"]) == record["run"]["steps"]
 

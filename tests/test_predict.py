@@ -58,7 +58,7 @@ def test_predict_is_train_predict_on_the_same_inputs(files, tmp_path, capsys):  
                      "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "frames 0-4: " in printed and "set-up and any compilation included" in printed
-    assert "gartrans (frame-parallel): 5 frames" in printed and "one call" in printed
+    assert "GarTrans (sat), frame-parallel: 5 frames" in printed and "one call" in printed
     assert "nearest-face search eager" in printed  # 5 x 192 vertex-frames: not worth it
     got = read_pc2(out.with_suffix(".pc2"))
     assert got.shape == trained.shape == (5, 192, 3)
@@ -88,7 +88,7 @@ def test_mgn_style_rolls_out_from_the_skinned_garment(files):  # noqa: F811
                                   ckpt=MGN, **kw)
     lbs = predict_garment_motion(files / "skirt.obj", "regular", files / "walk.bvh",
                                  method="lbs", **kw)
-    assert pred.autoregressive and pred.method == "mgn"
+    assert pred.autoregressive and pred.method == "MGN-style"
     assert pred.positions.shape == lbs.positions.shape == (4, 192, 3)
     assert np.isfinite(pred.positions).all()
     assert np.abs(pred.positions[:2] - lbs.positions[:2]).max() <= 1e-6  # its two start frames

@@ -16,7 +16,7 @@ import yaml
 from garmentgnn.cli import main as cli_main
 from garmentgnn.metrics import evaluate_inputs
 from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModule,
-                                 SimulatorModule, load_recipe)
+                                 RolloutModule, load_recipe)
 from garmentgnn.training.recipes import available, named_module, recipe_path
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
@@ -31,7 +31,7 @@ from test_training_cli import fast_args
 
 CLASSES = {"garmentgnn.training.GarTransModule": GarTransModule,
            "garmentgnn.training.BaselineModule": BaselineModule,
-           "garmentgnn.training.SimulatorModule": SimulatorModule}
+           "garmentgnn.training.RolloutModule": RolloutModule}
 
 
 def _config_args(name):

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from garmentgnn.training import GarmentDataModule, SimulatorModule, load_recipe
+from garmentgnn.training import GarmentDataModule, RolloutModule, load_recipe
 from garmentgnn.training.integrity import load_checkpoint_file
 
 __all__ = ["STEP_SIZES", "run_branch", "run_steptime", "run_sweep"]
@@ -64,10 +64,10 @@ def run_sweep(args: argparse.Namespace) -> None:
 def run_branch(args: argparse.Namespace) -> None:
     src = load_checkpoint_file(args.source)
     step0 = int(src["global_step"])
-    hp = SimulatorModule.saved_hparams(src)
+    hp = RolloutModule.saved_hparams(src)
     # the rate at step0 of the run's decay, decaying on from there at the same pace
     lr = max(hp["lr_min"], hp["lr"] * hp["decay"] ** (step0 / hp["decay_steps"]))
-    module = SimulatorModule.load_from_checkpoint(
+    module = RolloutModule.load_from_checkpoint(
         args.source, map_location="cpu", rollout=args.rollout, rollout_start=0, lr=lr,
         stats_steps=0)
     # the run's data settings (another shuffle), windows of 2 + rollout frames, with the

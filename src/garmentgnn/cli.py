@@ -30,6 +30,8 @@ from garmentgnn.bench import cli as bench_cli
 from garmentgnn.bench import sweep_cli
 from garmentgnn.inference import cli as inference_cli
 from garmentgnn.data import SpecMismatch, generate, preset
+from garmentgnn.data.ensemble import ENSEMBLE_SEQUENCES, generate_ensemble
+from garmentgnn.data.perturb import PERTURB_M
 from garmentgnn.data.export import EXPORT_FORMATS, export_sequence
 from garmentgnn.data.presets import ENGINES, PRESETS
 from garmentgnn.data.spec_file import load_spec
@@ -96,6 +98,14 @@ def add_generate_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--estimate", action=argparse.BooleanOptionalAction, default=True,
                    help="time a 4-frame calibration run and print a duration estimate first")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.add_argument("--ensemble", type=int, default=None, metavar="K",
+                   help="instead of a dataset: K members of some of the dataset in --out's "
+                        "test sequences, each simulated again with its rest garment moved "
+                        f"by {PERTURB_M:g} m, into OUT/ensemble (an ensemble ground truth, "
+                        "docs/dataset.md; rerun to resume)")
+    g.add_argument("--sequences", type=int, default=None, metavar="N",
+                   help=f"with --ensemble: how many test sequences (default "
+                        f"{ENSEMBLE_SEQUENCES}, spread over held-out groups and garment kinds)")
     # test hook: module:function replacing garmentgnn.sim.simulate
     g.add_argument("--simulate-fn", default=None, help=argparse.SUPPRESS)
     return g
@@ -106,6 +116,8 @@ def generate_main(args: argparse.Namespace) -> int:
     out = args.out
     try:
         sim = _import_callable(args.simulate_fn) if args.simulate_fn else None
+        if args.ensemble is not None or args.sequences is not None:
+            return _ensemble_main(args, sim)
         if args.spec is not None:
             spec = load_spec(args.spec, engine=args.engine, seed=args.seed)
         else:
@@ -124,6 +136,26 @@ def generate_main(args: argparse.Namespace) -> int:
         return 2
     except KeyboardInterrupt:
         return _interrupted(out, args)
+    print(summary)
+    return 1 if summary.failed else 0
+
+
+def _ensemble_main(args: argparse.Namespace, sim) -> int:
+    """``generate --ensemble K``: the members of the dataset in ``--out``."""
+    if args.ensemble is None:
+        raise ValueError("--sequences: only with --ensemble K (the members per sequence)")
+    given = [f for f, v in (("--preset", args.preset), ("--spec", args.spec),
+                            ("--engine", args.engine), ("--seed", args.seed)) if v is not None]
+    if given or args.force:
+        raise ValueError(f"{(given or ['--force'])[0]}: --ensemble simulates the dataset in "
+                         f"--out again with its own spec, engine and seed; drop it")
+    if args.out is None:
+        raise ValueError("--ensemble: name the dataset folder with --out")
+    summary = generate_ensemble(
+        args.out, args.ensemble, args.sequences or ENSEMBLE_SEQUENCES, workers=args.workers,
+        limit=args.limit, simulate_fn=sim, retry_failed=args.retry_failed,
+        progress=not args.no_progress, estimate=args.estimate, backend=args.backend,
+        address=args.address)
     print(summary)
     return 1 if summary.failed else 0
 

@@ -7,11 +7,13 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
-from garmentgnn.data import generate, preset, store
+from garmentgnn.bench.methods import DATA
+from garmentgnn.data import SequenceChunks, generate, preset, store
+from garmentgnn.data.ensemble import load_ensemble
 
-__all__ = ["DatasetInfo", "prepare_dataset"]
+__all__ = ["DatasetInfo", "ensemble_sequences", "prepare_dataset"]
 
 
 @dataclass
@@ -68,3 +70,16 @@ def prepare_dataset(root, preset_name: Optional[str] = None, workers: int = 1,
         for r in ok)).encode())
     return DatasetInfo(root, str(man.get("name", root.name)), digest.hexdigest(), seqs, frames,
                        store.content_sha256(ok))
+
+
+def ensemble_sequences(root) -> Tuple[Optional[Dict[str, Any]], Optional[SequenceChunks]]:
+    """The ensemble ground truth of the dataset under ``root``
+    (:func:`garmentgnn.data.ensemble.load_ensemble`) and its sequences as the learned
+    methods read whole test sequences (:data:`garmentgnn.bench.methods.DATA`); ``(None,
+    None)`` without one."""
+    ensemble = load_ensemble(root)
+    if ensemble is None or not ensemble["sequences"]:
+        return None, None
+    kw = {k: DATA[k] for k in ("history", "nystrom_dim", "num_landmarks")}
+    return ensemble, SequenceChunks(root, "test", chunk=10 ** 9,
+                                    ids=sorted(ensemble["sequences"]), **kw)

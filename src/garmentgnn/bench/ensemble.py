@@ -9,28 +9,39 @@ prediction is scored as weather forecasts are (WeatherBench 2), per frame, in cm
 * ``E_mean``: its distance to the ensemble mean (a model trained on mean squared error
   tends toward that mean);
 * ``E_members``: its mean distance to the members;
-* the floor, what no deterministic model gets below: ``floor_mean``, the mean distance
-  of a member to the ensemble mean, and ``spread``, the mean distance between two
-  members;
+* the floor: ``floor_mean``, the mean distance of a member to the ensemble mean (what a
+  perfect simulator, one more member, scores as ``E_mean``; the ``E_members`` of the
+  mean itself), and ``spread``, the mean distance between two members;
 * ``skill = (E_LBS - E_mean) / (E_LBS - floor_mean)``, with ``E_LBS`` the LBS garment's
-  distance to the ensemble mean: 0 is LBS, 1 is the floor, below 0 worse than LBS.
+  distance to the ensemble mean: 0 is LBS, 1 is the floor, below 0 worse than LBS (above
+  1: closer to the mean than a simulation, smoother than the physics).
 
 :func:`ensemble_scores` gives one sequence's numbers over its scored frames, and the same
 over the first ``early`` of them and over the rest; :func:`pooled_skill` pools skill
 over sequences (sums of errors, so a long or chaotic sequence weighs by its error, not
-by one ratio each).  Generating the members and the bench's report rows are not part of
-this module yet.
+by one ratio each).  :func:`sequence_record` keeps one sequence's numbers with its
+per-frame curves (the spread-skill plot's), :func:`summary` pools a method's records
+(frame-weighted, the skill pooled).  The members come from ``garmentgnn generate
+--ensemble K`` (:mod:`garmentgnn.data.ensemble`); the bench's report and
+``benchmarks/mgn_learn.py score`` show these numbers
+(:mod:`garmentgnn.bench.ensemble_report`).
 """
 from __future__ import annotations
 
-from typing import Dict, Iterable, Mapping, Optional
+from typing import Any, Dict, Iterable, Mapping, Optional
 
 import torch
 from torch import Tensor
 
 from garmentgnn.metrics.garment_metrics import vertex_distance
 
-__all__ = ["ensemble_frames", "ensemble_scores", "pooled_skill"]
+__all__ = ["EARLY", "FRAME_KEYS", "ensemble_frames", "ensemble_scores", "pooled_skill",
+           "sequence_record", "summary"]
+
+#: the first scored frames reported apart from the rest
+EARLY = 10
+#: the per-frame numbers of :func:`ensemble_frames` (cm)
+FRAME_KEYS = ("E_mean", "E_members", "E_LBS", "floor_mean", "spread")
 
 
 def _check(pred: Tensor, members: Tensor, lbs: Tensor) -> None:
@@ -73,13 +84,16 @@ def _summary(frames: Mapping[str, Tensor], keep: Tensor) -> Dict[str, float]:
 
 
 def ensemble_scores(pred: Tensor, members: Tensor, lbs: Tensor,
-                    valid: Optional[Tensor] = None, early: int = 10) -> Dict[str, Dict]:
+                    valid: Optional[Tensor] = None, early: int = EARLY) -> Dict[str, Dict]:
     """One sequence's ensemble numbers (module doc), means over its scored frames
     (``valid [T]``, default all): ``{"all": ..., "early": the first early scored frames,
     "late": the rest}``, each with ``skill`` and ``frames`` (a part without frames is
     empty)."""
-    frames = ensemble_frames(pred, members, lbs)
-    T = members.shape[1]
+    return _parts(ensemble_frames(pred, members, lbs), members.shape[1], valid, early)
+
+
+def _parts(frames: Mapping[str, Tensor], T: int, valid: Optional[Tensor], early: int
+           ) -> Dict[str, Dict]:
     keep = torch.ones(T, dtype=torch.bool) if valid is None else valid.bool().cpu()
     if keep.shape != (T,):
         raise ValueError(f"`valid`: expected [{T}] flags, got {tuple(keep.shape)}")
@@ -103,3 +117,43 @@ def pooled_skill(records: Iterable[Mapping[str, float]]) -> float:
         num += n * (r["E_LBS"] - r["E_mean"])
         den += n * (r["E_LBS"] - r["floor_mean"])
     return num / den if den > 0 else float("nan")
+
+
+def sequence_record(pred: Tensor, members: Tensor, lbs: Tensor,
+                    valid: Optional[Tensor] = None, early: int = EARLY) -> Dict[str, Any]:
+    """:func:`ensemble_scores` with the per-frame numbers of :func:`ensemble_frames`
+    (``per_frame``: lists of ``T`` floats, ``None`` on the frames not scored), the
+    scored frames' count (``frames``), ``skill`` ``None`` where it is undefined, and, in
+    ``all``, ``E_each``: the error to each
+    member alone (cm, over the scored frames: the score if that member were the ground
+    truth)."""
+    frames = ensemble_frames(pred, members, lbs)
+    T = members.shape[1]
+    out: Dict[str, Any] = _parts(frames, T, valid, early)
+    keep = torch.ones(T, dtype=torch.bool) if valid is None else valid.bool().cpu()
+    out["frames"] = int(keep.sum())
+    for part in ("all", "early", "late"):  # JSON has no NaN: no skill where LBS is at the floor
+        if out[part] and out[part]["skill"] != out[part]["skill"]:
+            out[part]["skill"] = None
+    if out["all"]:
+        out["all"]["E_each"] = [float(vertex_distance(pred.double(), m.double())[keep].mean())
+                                for m in members]
+    out["per_frame"] = {k: [float(x) if ok else None for x, ok in zip(v.tolist(), keep)]
+                        for k, v in frames.items()}
+    return out
+
+
+def summary(records: Iterable[Mapping[str, Any]]) -> Dict[str, Dict[str, float]]:
+    """One method's records of :func:`sequence_record` pooled: per part (``all``, ``early``,
+    ``late``) the frame-weighted means of :data:`FRAME_KEYS` (cm), ``skill`` pooled
+    (:func:`pooled_skill`), ``frames`` and ``sequences``."""
+    records = list(records)
+    out: Dict[str, Dict[str, float]] = {}
+    for part in ("all", "early", "late"):
+        rs = [r[part] for r in records if r.get(part)]
+        n = sum(r["frames"] for r in rs)
+        if not n:
+            continue
+        out[part] = {k: sum(r[k] * r["frames"] for r in rs) / n for k in FRAME_KEYS}
+        out[part].update(skill=pooled_skill(rs), frames=n, sequences=len(rs))
+    return out

@@ -8,14 +8,16 @@ One bench run (:func:`garmentgnn.bench.runner.run`) with a preset that has a
    preset of the bench preset, generated -- resumably -- under ``OUT/data``, or an
    existing folder given by ``--data``);
 2. trains each method of the budget for each training seed for the budget's epochs or
-   wall-clock minutes (:class:`TimeBudget`): :class:`GarTransModule` (GarTrans, Table 1
-   variants), :class:`BaselineModule` (DA-, HOOD-, NCS-style) or :class:`SimulatorModule`
-   (MGN-style), each built from its recipe by :func:`~garmentgnn.training.load_recipe`
-   (:mod:`~garmentgnn.bench.methods`; any recipe is a method too), on its
+   wall-clock minutes (:class:`TimeBudget`): each built from its recipe by
+   :func:`~garmentgnn.training.load_recipe` (:mod:`~garmentgnn.bench.methods`; any recipe
+   is a method too) and trained, predicted and timed as its module's method protocol
+   says (:class:`~garmentgnn.training.GarmentModule`: the same calls for GarTrans, its
+   Table 1 variants, the DA-, HOOD-, NCS- and MGN-style methods and a new one), on its
    :class:`GarmentDataModule`, by one Lightning ``Trainer`` set-up (the recipe's trainer
    with the bench's limits, :meth:`LearnedRunner.fit`) that resumes from
-   ``OUT/models/<method>--s<seed>/``; NCS-style trains one model per (garment, body) of
-   the scored test sequences on their poses (never their simulated positions);
+   ``OUT/models/<method>--s<seed>/``; a per-garment method (NCS-style) trains one model
+   per (garment, body) of the scored test sequences on their poses (never their
+   simulated positions);
 3. scores it on the ``test`` split (all of it, or the budget's stratified subset:
    :mod:`garmentgnn.bench.scoring`), times it (:func:`~garmentgnn.bench.timing.batch_sweep`,
    :func:`~garmentgnn.bench.timing.peak_memory`) and returns one record of kind
@@ -42,11 +44,10 @@ from garmentgnn._files import atomic_write_bytes, atomic_write_json
 from garmentgnn.bench import stability as stab
 from garmentgnn.bench import scoring
 from garmentgnn.bench.curves import LearningCurve, TrainClock, quiet_lightning
-from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
-from garmentgnn.bench.methods import (DATA, LONG, LearnedBudget, is_method, kind,
-                                        recipe_of)
-from garmentgnn.bench.model_inputs import (BenchChunks, Predictor, baseline_batches,
-                                             lbs_predictor)
+from garmentgnn.bench.dataset import DatasetInfo, ensemble_sequences, prepare_dataset
+from garmentgnn.bench.methods import (DATA, LBS, LONG, LearnedBudget, is_method,
+                                        module_class, per_garment, recipe_of)
+from garmentgnn.bench.model_inputs import BenchChunks, Predictor, lbs_predictor
 from garmentgnn.bench.page import MEDIA
 from garmentgnn.bench.records import failure
 from garmentgnn.bench.tables import slug
@@ -55,8 +56,7 @@ from garmentgnn.data import SequenceChunks, store
 from garmentgnn.data.keys import body_key, garment_key
 from garmentgnn.geometry import push_outside
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training import ProgressiveSchedule, Recipe, TimeBudget, load_recipe
-from garmentgnn.training.recipes import model_of
+from garmentgnn.training import Recipe, TimeBudget, load_recipe
 
 KIND = "learned"
 #: the record kind of :meth:`LearnedRunner.stability_record`
@@ -100,6 +100,7 @@ class LearnedRunner:
             raise ValueError(f"--batch-size: {budget.batch_size} is more than the {chunks} "
                              f"training chunks of {data.root}; give at most {chunks}")
         self.test = self._whole("test", budget.test_sequences)  # the same for every method
+        self.ensemble, self.ensemble_test = ensemble_sequences(data.root)
         self.val: Optional[SequenceChunks] = None
         self.train_fit: Optional[SequenceChunks] = None  # the curves' training sequences
         if budget.curve_every is not None:
@@ -141,7 +142,8 @@ class LearnedRunner:
     def record(self, method: str, seed: int) -> Dict[str, Any]:
         """Train (or resume) ``method`` with ``seed``, evaluate and time it; exceptions
         (e.g. :class:`NonFiniteLossError`) give a failed record with their message."""
-        kind(method)  # a ValueError naming the choices where it is no method
+        if method != LBS:
+            module_class(method)  # a ValueError naming the choices where it is no method
         rec: Dict[str, Any] = {"kind": KIND, "method": method, "case": self.data.case,
                                "seed": seed, "dataset": self.data.to_json()}
         t0 = time.perf_counter()
@@ -151,8 +153,8 @@ class LearnedRunner:
             rec.update(self.evaluate(pred))
             if self.budget.equal_steps is not None and pred.module is not None:
                 rec["equal_steps"] = self.at_snapshot(pred)
-            if kind(method) in ("baseline", "ncs") and seed == 0:
-                self.save_prediction(method, pred)
+            if pred.module_family not in (None, "gartrans") and seed == 0:
+                self.save_prediction(method, pred)  # the page shows GarTrans's checkpoints
             rec["timing"] = self.timing(pred)
             rec.update(status="ok", message="ok")
         except Exception as err:
@@ -178,10 +180,8 @@ class LearnedRunner:
         key = (method, seed)
         if key not in self._trained:
             self._trained.clear()
-            how = "gartrans" if method == LONG else kind(method)
-            train = {"gartrans": self._gartrans, "ncs": self._ncs, "baseline": self._baseline,
-                     "simulator": self._mgn}.get(how)
-            self._trained[key] = lbs_predictor() if train is None else train(method, seed)
+            self._trained[key] = lbs_predictor() if method == LBS else \
+                self._method(method, seed)
         return self._trained[key]
 
     def stability_record(self, method: str, seed: int, case: str) -> Dict[str, Any]:
@@ -203,7 +203,7 @@ class LearnedRunner:
         else:
             def predict(seq) -> Tensor:
                 pred, _ = self.trained(method, seed)
-                ds = BenchChunks(seq, chunk=None if autoregressive(method) else STABILITY_CHUNK,
+                ds = BenchChunks(seq, chunk=None if pred.autoregressive else STABILITY_CHUNK,
                                  history=DATA["history"], nystrom_dim=DATA["nystrom_dim"],
                                  num_landmarks=DATA["num_landmarks"])
                 with torch.no_grad():
@@ -215,12 +215,17 @@ class LearnedRunner:
 
     def evaluate(self, pred: Predictor) -> Dict[str, Any]:
         """``metrics`` (frame-weighted means over the valid ground-truth frames of every test
-        sequence), ``groups`` (per held-out group), ``per_sequence`` and ``test_frames``
-        (:mod:`garmentgnn.bench.scoring`)."""
+        sequence), ``groups`` (per held-out group), ``per_sequence``, ``test_frames`` and,
+        with an ensemble ground truth, ``ensemble`` (:mod:`garmentgnn.bench.scoring`)."""
         per_seq = scoring.score(lambda i, item: pred.predict(self.test, i, item), self.test)
         agg = scoring.aggregate(per_seq)
-        return {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
-                "test_frames": sum(s["frames"] for s in per_seq)}
+        out = {"metrics": agg.pop("all"), "groups": agg, "per_sequence": per_seq,
+               "test_frames": sum(s["frames"] for s in per_seq)}
+        if self.ensemble is not None:
+            ens = self.ensemble_test
+            out["ensemble"] = scoring.score_ensemble(
+                lambda i, item: pred.predict(ens, i, item), ens, self.ensemble)
+        return out
 
     def at_snapshot(self, pred: Predictor) -> Dict[str, Any]:
         """:meth:`evaluate` of ``pred``'s weights after the budget's ``equal_steps``
@@ -373,83 +378,32 @@ class LearnedRunner:
         n = self.budget.epoch_chunks
         return None if n is None else -(-n // dm.hparams.batch_size)
 
-    # -- GarTrans ---------------------------------------------------------------------
-    def _gartrans(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        """A GarTrans recipe, on the budget's batches and schedule windows."""
-        w = self.budget.window
-        recipe, config = self.load(method, seed, ["--data.batch_size",
-                                                  str(self.budget.batch_size)],
-                                   {"model.init_args.schedule": lambda s: dict(
-                                       s if isinstance(s, dict) else {}, window=w, window2=w)})
-        folder = self._folder(method, seed, config)
-        module = recipe.module
-        info = self.fit(recipe, folder, self.budget.epochs, (), config["minutes"],
-                        predict=lambda m, item: m(item)["final"])
-        sched = ProgressiveSchedule.of(module.trainer)
-
-        def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-            it = item.cycled(b)
-            with torch.no_grad():
-                static = module.encode_static(it)
-            return lambda: module(it, static)["final"]
-
-        info.update(phase=sched.phase, config=config,
-                    transitions={str(k): e for k, e in sched.transitions.items()})
-        return Predictor(lambda ds, i, item: module(item)["final"], make_batch,
-                          "frame-parallel forward of `batch` frames, static branch "
-                          "(encode_static) computed once per garment outside the timed call",
-                          module, folder / "equal_steps.pt"), info
-
-    # -- baselines --------------------------------------------------------------------
-    def _baseline(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        recipe, config = self.load(method, seed, ["--data.batch_size",
-                                                  str(self.budget.batch_size)])
-        folder = self._folder(method, seed, config)
-        module = recipe.module
-        info = self.fit(recipe, folder, self.budget.epochs, minutes=self.budget.minutes,
-                        predict=lambda m, item: m(item))
-        note = ("one autoregressive step of `batch` independent sequences per call"
-                if autoregressive(method) else "one call predicting `batch` frames")
-        return Predictor(lambda ds, i, item: module(item), baseline_batches(module), note,
-                          module, folder / "equal_steps.pt"), dict(info, config=config)
-
-    # -- the MGN-style learned simulator ---------------------------------------------------
-    def _mgn(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
-        """Trained on its recipe's windows of frames (on shorter training sequences the
-        longest pushforward they hold: the rollout and window in the recorded config);
-        predicts by a rollout from the LBS garment of the first two frames (never the
-        ground truth)."""
+    # -- one method, as its module's protocol says ---------------------------------------
+    def _method(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
+        """``method`` trained on the budget's batches, with the recipe settings its module
+        asks of the budget (``bench_overrides``: GarTrans's schedule windows, the MGN-style
+        rollout a training sequence holds); a per-garment method is trained per test
+        garment (:meth:`_per_garment`).  It predicts from what a user has
+        (``predict_sequence``) and is timed by its ``timed_call``."""
+        if per_garment(method):
+            return self._per_garment(method, seed)
         shortest = min(int(r["num_frames"]) for r in store.read_manifest(self.data.root)[
             "items"] if r["split"] == "train" and r["status"] == "ok")
-        fitted: Dict[str, int] = {}
-
-        def rollout_fits(n: int) -> int:  # a window of 2 + rollout frames must fit
-            fitted["rollout"] = max(1, min(n, shortest - 2))
-            return fitted["rollout"]
-
+        overrides = module_class(method).bench_overrides(schedule_window=self.budget.window,
+                                                         shortest_sequence=shortest)
         recipe, config = self.load(method, seed, ["--data.batch_size",
-                                                  str(self.budget.batch_size)],
-                                   {"model.init_args.rollout": rollout_fits,
-                                    "data.chunk": lambda c: min(c, 2 + fitted["rollout"])})
-        folder = self._folder(method, seed, config)
+                                                  str(self.budget.batch_size)], overrides)
         module = recipe.module
+        folder = self._folder(method, seed, config)
+        minutes = config["minutes"]
+        info = self.fit(recipe, folder, self.budget.epochs, minutes=minutes,
+                        predict=lambda m, item: m.predict_sequence(item))
+        info.update(module.fit_info(), config=config)
+        return Predictor(lambda ds, i, item: module.predict_sequence(item), module.timed_call,
+                         module.timing_note, module, folder / "equal_steps.pt",
+                         module.autoregressive, module.family), info
 
-        def rollout(m: L.LightningModule, item: GarmentInputs) -> Tensor:
-            return m.rollout(item, start="lbs")
-
-        info = self.fit(recipe, folder, self.budget.epochs, minutes=self.budget.minutes,
-                        predict=rollout)
-
-        def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-            it = GarmentInputs.collate([item.select(torch.arange(3))] * b)  # b garments
-            m = module.model.scene_motion(it)  # prepared outside the timed call
-            return lambda: module.model.step(it, m, 2, m.lbs[0], m.lbs[1])
-
-        return Predictor(lambda ds, i, item: rollout(module, item), make_batch,
-                          "one autoregressive step of `batch` independent garments per call",
-                          module, folder / "equal_steps.pt"), dict(info, config=config)
-
-    def _ncs(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
+    def _per_garment(self, method: str, seed: int) -> Tuple[Predictor, Dict[str, Any]]:
         """One model per (garment, body) of the scored test sequences, trained on their
         poses (never their simulated positions), the budget shared evenly."""
         groups: Dict[Tuple[str, str], List[str]] = {}  # (garment, body) -> sequence ids
@@ -480,20 +434,12 @@ class LearnedRunner:
             r = ds.records[ds.index[i][0]]
             return modules[(garment_key(r["garment"]), body_key(r["body"]))]
 
-        def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-            return baseline_batches(module_of(self.test, 0))(item, b)
-
-        return Predictor(lambda ds, i, item: module_of(ds, i)(item), make_batch,
-                          "one call predicting `batch` frames (the first test garment's "
-                          "model)"), dict(total, config=config, models=len(groups))
-
-
-def autoregressive(method: str) -> bool:
-    """Whether ``method`` predicts a sequence by rolling out one frame a step (a learned
-    simulator, or a HOOD-style model) rather than frame-parallel."""
-    how = kind(method)
-    return how == "simulator" or (how in ("baseline", "ncs") and str(
-        model_of(recipe_of(method))["model"]).endswith("HOODStyle"))
+        first = module_of(self.test, 0)
+        return Predictor(lambda ds, i, item: module_of(ds, i).predict_sequence(item),
+                         first.timed_call, f"{first.timing_note} (the first test garment's "
+                         f"model)", autoregressive=first.autoregressive,
+                         module_family=first.family), dict(total, config=config,
+                                                            models=len(groups))
 
 
 __all__ = ["KIND", "SIMULATOR", "STABILITY_KIND", "DatasetInfo", "LearnedRunner",

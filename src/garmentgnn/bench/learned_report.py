@@ -1,21 +1,22 @@
 """The "Held-out test split" section of the bench report: the learned methods' records
 (:mod:`garmentgnn.bench.learned`) as a table shaped like the paper's Tables 1 and 3, and
-their error-against-run-time plot."""
+their error-against-run-time plot; on a dataset with an ensemble ground truth, their
+scores against it (:mod:`garmentgnn.bench.ensemble_report`)."""
 from __future__ import annotations
 
 import statistics
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
-from garmentgnn.bench import scoring
+from garmentgnn.bench import ensemble_report, scoring
 from garmentgnn.bench.learned import KIND
 from garmentgnn.bench.methods import (DA, FULL, GARTRANS, HOOD, LBS, LONG, METHOD_NAMES, MGN,
                                       NCS)
 from garmentgnn.bench.tables import (METRICS, UNITS, fmt, mean_std, plot_points, plot_summary,
                                      table)
 
-__all__ = ["comparison_markdown", "engine_points", "markdown", "per_sequence", "plot",
-           "plot_engines", "summary"]
+__all__ = ["comparison_markdown", "engine_points", "ensemble_markdown", "ensemble_methods",
+           "markdown", "per_sequence", "plot", "plot_engines", "plot_ensemble", "summary"]
 
 #: the record kind of :mod:`garmentgnn.bench.engines`
 ENGINE_KIND = "engine"
@@ -338,3 +339,24 @@ def plot_engines(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
                        xlabel="time per frame (ms, log): engines per simulated frame, "
                               "learned methods' latency at batch 1")
 
+
+
+# --------------------------------------------------------------------------- ensemble
+def ensemble_methods(records: Sequence[Dict[str, Any]]) -> Dict[str, List[Dict[str, Any]]]:
+    """Per method, its scores against the ensemble ground truth per sequence
+    (:func:`garmentgnn.bench.scoring.score_ensemble`), the mean over its ok seeds."""
+    rs = [r for r in records if r["kind"] == KIND and r["status"] == "ok" and r.get("ensemble")]
+    return {m: ensemble_report.seed_mean([r["ensemble"] for r in rs if r["method"] == m])
+            for m in _ordered(rs)}
+
+
+def ensemble_markdown(records: Sequence[Dict[str, Any]], png: Optional[str] = None
+                      ) -> List[str]:
+    """The section on the ensemble ground truth (empty without one)."""
+    return ensemble_report.markdown(ensemble_methods(records), png, "###")
+
+
+def plot_ensemble(records: Sequence[Dict[str, Any]], path) -> Optional[Path]:
+    """``ensemble.png``: the spread-skill figure (``None`` without an ensemble)."""
+    return ensemble_report.plot(ensemble_methods(records), path,
+                                "Held-out test split against the ensemble ground truth")

@@ -7,7 +7,8 @@ hyper-parameter.
   (:data:`GARTRANS`), the DA-, HOOD- and NCS-style baselines (:data:`BASELINES`) and the
   MGN-style learned simulator (:data:`MGN`), each its packaged recipe (:data:`RECIPES`);
 * any other recipe, named by its packaged name or its file's path (a new layer's
-  ablation, say): it trains the way its module does (:func:`kind`);
+  ablation, a new method): it trains and predicts the way its module says (the method
+  protocol of :class:`~garmentgnn.training.GarmentModule`; :func:`module_class`);
 * ``LBS only``: the rest garment skinned with the stored skinning weights, no learning.
 """
 from __future__ import annotations
@@ -17,11 +18,12 @@ from typing import Dict, Optional, Tuple
 
 from garmentgnn.bench import stability as stab
 from garmentgnn.models.inputs import CHUNK, HISTORY, NUM_LANDMARKS, NYSTROM_DIM
-from garmentgnn.training.recipes import model_of, recipe_path
+from garmentgnn.training.base import GarmentModule
+from garmentgnn.training.recipes import import_class, model_of, recipe_path
 
-__all__ = ["BASELINES", "DATA", "GARTRANS", "KINDS", "LBS", "LONG", "METHOD_NAMES", "MGN",
-           "NCS", "HOOD", "DA", "RECIPES", "SEED_FREE", "LearnedBudget", "is_method", "kind",
-           "recipe_of", "seed_plan"]
+__all__ = ["BASELINES", "DATA", "GARTRANS", "LBS", "LONG", "METHOD_NAMES", "MGN",
+           "NCS", "HOOD", "DA", "RECIPES", "SEED_FREE", "LearnedBudget", "is_method",
+           "module_class", "per_garment", "recipe_of", "seed_plan"]
 
 #: the data settings the frame-parallel methods train and every method is scored on:
 #: the data module's defaults (the sizes of :mod:`garmentgnn.models.inputs`), which the
@@ -50,14 +52,6 @@ RECIPES: Dict[str, str] = {**GARTRANS, **BASELINES, MGN: "mgn"}
 METHOD_NAMES: Tuple[str, ...] = tuple(RECIPES) + (LBS,)
 #: methods without training or randomness: run for the first seed only
 SEED_FREE: Tuple[str, ...] = (LBS,)
-#: how a recipe's method trains and predicts, by its module (and for a baseline, its
-#: model): frame-parallel GarTrans on chunks with its schedule; a frame-parallel or
-#: autoregressive baseline on chunks; NCS-style, one model per test garment on its
-#: poses; a learned simulator on windows of frames, rolled out
-KINDS = {"GarTransModule": "gartrans", "BaselineModule": "baseline",
-         "NCSStyle": "ncs", "SimulatorModule": "simulator"}
-
-
 def recipe_of(method: str) -> str:
     """The recipe that trains ``method``: a packaged method's (:data:`RECIPES`; full
     GarTrans's for :data:`LONG`), or
@@ -73,18 +67,28 @@ def recipe_of(method: str) -> str:
     return str(method)
 
 
-def kind(method: str) -> str:
-    """``"gartrans"``, ``"baseline"``, ``"ncs"``, ``"simulator"`` (:data:`KINDS`) or
-    ``"lbs"``: how ``method`` trains and predicts."""
-    if method == LBS:
-        return "lbs"
-    names = {k: str(v or "").rsplit(".", 1)[-1] for k, v in model_of(recipe_of(method)).items()}
-    found = KINDS.get(names["model"]) if names["module"] == "BaselineModule" else None
-    found = found or KINDS.get(names["module"])
-    if found is None:
-        raise ValueError(f"`methods`: the recipe {method!r} trains {names['module'] or 'no'} "
-                         f"module; the bench trains {', '.join(k for k in KINDS if 'Module' in k)}")
-    return found
+def module_class(method: str) -> type:
+    """The :class:`~garmentgnn.training.GarmentModule` class that trains ``method`` (its
+    recipe's ``model: class_path``), whose method protocol says how the bench trains,
+    predicts and times it; ``ValueError`` naming the choices where it is none."""
+    recipe = recipe_of(method)
+    path = model_of(recipe)["module"]
+    try:
+        cls = import_class(str(path)) if path else None
+    except ValueError:
+        cls = None
+    if not (isinstance(cls, type) and issubclass(cls, GarmentModule)):
+        raise ValueError(f"`methods`: the recipe {method!r} trains {path or 'no'} module, "
+                         f"which is not a garmentgnn method (a GarmentModule subclass "
+                         f"importable from its class_path)")
+    return cls
+
+
+def per_garment(method: str) -> bool:
+    """Whether ``method`` trains one model per (garment, body) (its module's
+    ``trains_per_garment`` of its recipe's model class)."""
+    model = model_of(recipe_of(method))["model"]
+    return bool(model) and module_class(method).trains_per_garment(import_class(str(model)))
 
 
 def is_method(method: str) -> bool:
@@ -92,7 +96,7 @@ def is_method(method: str) -> bool:
     if method in METHOD_NAMES:
         return True
     try:
-        kind(method)
+        module_class(method)
     except (ValueError, TypeError):
         return False
     return True
@@ -208,15 +212,16 @@ class LearnedBudget:
 def seed_plan(budget: LearnedBudget, seed0: Dict[str, float]) -> Dict[str, int]:
     """How many seeds each method of ``budget`` gets, given its methods' seed-0 test
     E_dist (``seed0``; methods missing there count as worst): ``budget.seeds`` for
-    the ``seed_methods``, the best GarTrans ablation and the best baseline, 1 for the
-    rest (every method gets ``budget.seeds`` when ``seed_methods`` is ``None``)."""
+    the ``seed_methods`` and the best method of each family (its module's ``family``: the
+    best GarTrans ablation, full GarTrans aside, and the best baseline), 1 for the rest
+    (every method gets ``budget.seeds`` when ``seed_methods`` is ``None``)."""
     n = budget.seeds
     if budget.seed_methods is None:
         return {m: (1 if m in SEED_FREE else n) for m in budget.methods}
     full = set(budget.seed_methods)
-    kinds = {m: kind(m) for m in budget.methods}
-    for pool in ([m for m in budget.methods if kinds[m] == "gartrans" and m != FULL],
-                 [m for m in budget.methods if kinds[m] in ("baseline", "ncs", "simulator")]):
+    family = {m: module_class(m).family for m in budget.methods if m not in SEED_FREE}
+    for name in sorted(set(family.values())):
+        pool = [m for m, f in family.items() if f == name and m != FULL]
         if pool:
             full.add(min(pool, key=lambda m: seed0.get(m, float("inf"))))
     return {m: (n if m in full and m not in SEED_FREE else 1) for m in budget.methods}

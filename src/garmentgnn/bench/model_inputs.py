@@ -41,6 +41,10 @@ class Predictor:
     #: the trained module and its weights at the budget's ``equal_steps`` (if reached)
     module: Optional[torch.nn.Module] = None
     snapshot: Optional[Path] = None
+    #: the method protocol's ``autoregressive`` and ``family`` (``None``: no learned
+    #: method)
+    autoregressive: bool = False
+    module_family: Optional[str] = None
 
 
 class BenchChunks(SequenceChunks):
@@ -114,20 +118,6 @@ def untrained_module(item: Dict[str, Any], seed: int = 0, **kwargs: Any) -> GarT
                                          num_body_vertices=item["body_joint_dists"].shape[0],
                                          nystrom_dim=item["nystrom"].shape[1], **kwargs))
     return module.eval()
-
-
-def baseline_batches(module) -> Callable[[GarmentInputs, int], Callable[[], Any]]:
-    """The timing sweep's ``make_batch`` of a :class:`~garmentgnn.training.BaselineModule`:
-    one call predicting ``b`` frames, or (HOOD-style) one autoregressive step of ``b``
-    frames, its inputs prepared outside the timed call."""
-    def make_batch(item: GarmentInputs, b: int) -> Callable[[], Any]:
-        it = item.cycled(b)
-        if module.method != "hood":
-            return lambda: module(it)
-        coarse, lbs = module.coarse_level(it), it.skinned()
-        prev, curr = it.history_slot(-3).skinned(), it.history_slot(-2).skinned()
-        return lambda: module.model.step(it, coarse, prev, curr, it.body_pos, lbs)
-    return make_batch
 
 
 def lbs_predictor() -> Tuple[Predictor, Dict[str, Any]]:

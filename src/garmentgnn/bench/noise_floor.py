@@ -3,16 +3,15 @@ moves by a rounding error.
 
 Cloth simulation is chaotic: moving the rest garment's vertices (or the body's root) by
 1e-7 m at random gives a visibly different sequence.  ``benchmarks/gt_noise.py``
-measures it per engine (:func:`perturbed_garment`, :func:`perturbed_motion`,
-:func:`divergence`) and writes ``docs/results/benchmarks/gt_noise.json``, whose ``floor``
-(:func:`summarize`) the bench report prints beside its method rows and draws as a band on
-its error-against-time plot (:func:`load_floor`, :func:`markdown`, :func:`bands`).  A
-difference between two methods' ``E_dist`` below the floor is one the simulation itself
-cannot decide.
+measures it per engine (:func:`~garmentgnn.data.perturb.perturbed_garment`,
+:func:`~garmentgnn.data.perturb.perturbed_motion`, :func:`divergence`) and writes
+``docs/results/benchmarks/gt_noise.json``, whose ``floor`` (:func:`summarize`) the bench
+report prints beside its method rows and draws as a band on its error-against-time plot
+(:func:`load_floor`, :func:`markdown`, :func:`bands`).  A difference between two methods'
+``E_dist`` below the floor is one the simulation itself cannot decide.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -22,48 +21,20 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from garmentgnn.data.perturb import (PERTURB_M, perturbed_garment, perturbed_motion,
+                                     random_offsets)
+
 #: the inputs a run perturbs: the rest garment's vertices, the body motion's root
 #: translation (every frame), or nothing (a plain rerun: must give 0)
 WHATS = ("garment", "body", "repeat")
-#: the perturbation the floor is quoted at (a float32 rounding error at metre scale)
-FLOOR_SCALE_M = 1e-7
+#: the perturbation the floor is quoted at (:data:`garmentgnn.data.perturb.PERTURB_M`)
+FLOOR_SCALE_M = PERTURB_M
 #: where ``benchmarks/gt_noise.py --commit`` puts the committed results
 _REPO = Path(__file__).resolve().parents[3]
 COMMITTED = _REPO / "docs" / "results" / "benchmarks" / "gt_noise.json"
 #: an environment variable naming another results file for the bench report
 ENV = "GARMENTGNN_NOISE_FLOOR"
 ENGINE_NAMES = {"blender": "Blender", "torch": "torch simulator"}
-
-
-def _check_scale(scale: float) -> float:
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or \
-            not math.isfinite(scale) or scale < 0:
-        raise ValueError(f"`scale`: expected a finite distance >= 0 in metres, got {scale!r}")
-    return float(scale)
-
-
-def random_offsets(n: int, scale: float, seed: int) -> Tensor:
-    """``[n, 3]`` float64 offsets of length ``scale`` (m) in uniformly random directions."""
-    scale = _check_scale(scale)
-    g = torch.Generator().manual_seed(int(seed))
-    d = torch.randn(n, 3, generator=g, dtype=torch.float64)
-    return scale * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-
-
-def perturbed_garment(garment, scale: float, seed: int = 0):
-    """A copy of ``garment`` whose rest vertices each moved ``scale`` metres in a random
-    direction (then rounded to the garment's float32; UVs, faces and pins unchanged)."""
-    v = garment.vertices
-    new = (v.double() + random_offsets(v.shape[0], scale, seed)).to(v.dtype)
-    return dataclasses.replace(garment, vertices=new)
-
-
-def perturbed_motion(motion, scale: float, seed: int = 0):
-    """A copy of ``motion`` whose root translation moved ``scale`` metres in a random
-    direction at every frame (the body and the vertices pinned to it follow)."""
-    t = motion.translation
-    new = (t.double() + random_offsets(t.shape[0], scale, seed)).to(t.dtype)
-    return dataclasses.replace(motion, translation=new)
 
 
 def divergence(a: Tensor, b: Tensor) -> Tuple[List[float], List[float]]:

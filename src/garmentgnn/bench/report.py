@@ -251,6 +251,8 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
     lines += noise_floor.markdown(floor)
     lines += learned_report.markdown(records, learned_png)
     lines += learned_report.comparison_markdown(records, engines_png)
+    lines += learned_report.ensemble_markdown(records, ENSEMBLE_PNG if any(
+        r.get("ensemble") for r in records) else None)
     lines += curves.markdown(records, CURVES_PNG)
     lines += scaling.markdown(records, scaling_png)
     lines += leaveout.markdown(records)
@@ -280,6 +282,9 @@ def render_markdown(records: Sequence[Dict[str, Any]], not_run: Sequence[str] = 
 # --------------------------------------------------------------------------- plots
 #: the learning curves' plot (:func:`garmentgnn.bench.curves.plot`), beside report.md
 CURVES_PNG = "learning_curves.png"
+#: the spread-skill figure of the ensemble ground truth
+#: (:func:`garmentgnn.bench.learned_report.plot_ensemble`), beside report.md
+ENSEMBLE_PNG = "ensemble.png"
 
 
 def plot_pareto(records: Sequence[Dict[str, Any]], path: Path,
@@ -321,6 +326,9 @@ def write_report(records: Sequence[Dict[str, Any]], out, not_run: Sequence[str] 
     engines_png = learned_report.plot_engines(clean, out / "pareto_engines.png")
     if engines_png is not None:
         paths["pareto_engines"] = engines_png
+    ensemble_png = learned_report.plot_ensemble(clean, out / ENSEMBLE_PNG)
+    if ensemble_png is not None:
+        paths["ensemble"] = ensemble_png
     curves_png = curves.plot(clean, out / CURVES_PNG)
     if curves_png is not None:
         paths["learning_curves"] = curves_png

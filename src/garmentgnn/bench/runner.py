@@ -55,6 +55,7 @@ from garmentgnn.bench.tables import slug
 from garmentgnn.bench.sequences import BenchSequence, make_sequence
 from garmentgnn.bench.timing import batch_sweep, num_threads, peak_memory
 from garmentgnn._files import atomic_write_bytes, atomic_write_json, remove_stale_temporaries
+from garmentgnn.data.ensemble import load_ensemble
 from garmentgnn.data.store import code_version
 from garmentgnn.metrics import evaluate
 from garmentgnn.models.baselines import LBSBaseline
@@ -359,6 +360,8 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
     if not learned and p.learned is not None and not tasks(p, list(range(n))):
         raise ValueError(f"`learned=False` (--no-learned): preset {p.name!r} runs learned "
                          f"methods only, so nothing would run; run it with them")
+    if data is not None:  # an ensemble ground truth of another dataset: before any file
+        load_ensemble(data)
     out = Path(out)
     for sub in ("records", "cache"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -391,8 +394,7 @@ def run(p: Preset, out, seeds: Optional[int] = None, progress: bool = True,
         """This shard's part of ``todo`` (every task without ``shard``)."""
         return list(todo) if shard is None else list(todo)[shard[0]::shard[1]]
 
-    def kept(kind, method, case, seed):
-        """The record on disk that this run keeps (``None``: the task is to run)."""
+    def kept(kind, method, case, seed):  # the record on disk this run keeps (None: run it)
         rec = load_record(record_path(out, kind, method, case, seed), kind, method, case, seed)
         return rec if rec is not None and (rec["status"] == "ok" or not retry_failed) else None
 

@@ -7,6 +7,9 @@ manifest's ``held_out``: its motion, body and/or garment are absent from the tra
 split).  :func:`aggregate` turns those into frame-weighted means over the whole split
 and over each held-out group (:data:`GROUPS`); :func:`wilcoxon` compares two methods
 sequence by sequence (a paired test over the same test sequences).
+:func:`score_ensemble` scores a method against a dataset's ensemble ground truth
+(:mod:`garmentgnn.bench.ensemble`, :mod:`garmentgnn.data.ensemble`) on the sequences it
+holds.
 """
 from __future__ import annotations
 
@@ -16,10 +19,11 @@ import torch
 from scipy.stats import wilcoxon as _wilcoxon
 from torch import Tensor
 
+from garmentgnn.bench.ensemble import EARLY, sequence_record
 from garmentgnn.metrics import evaluate_inputs, split_inputs
 
-__all__ = ["GROUPS", "SPLIT_METRICS", "aggregate", "group_of", "score", "stratified",
-           "wilcoxon"]
+__all__ = ["GROUPS", "SPLIT_METRICS", "aggregate", "group_of", "score", "score_ensemble",
+           "stratified", "wilcoxon"]
 
 #: held-out groups: a sequence is in ``unseen X`` when X is the only thing it holds out,
 #: in ``several unseen`` when it holds out more than one
@@ -90,6 +94,30 @@ def score(predict: Callable[[int, Any], Tensor], test) -> List[Dict[str, Any]]:
         out.append({"sequence": item.seq_id, "frames": int(keep.sum()),
                     "excluded_frames": T - int(keep.sum()),
                     "held_out": list(rec.get("held_out", [])), "metrics": m})
+    return out
+
+
+def score_ensemble(predict: Callable[[int, Any], Tensor], test, ensemble: Dict[str, Any],
+                   early: int = EARLY) -> List[Dict[str, Any]]:
+    """Per sequence of ``test`` that ``ensemble`` holds (the ``sequences`` of
+    :func:`garmentgnn.data.ensemble.load_ensemble`): ``predict(i, item)`` against its
+    members, with the LBS garment (``item.skinned()``) as the skill's reference, as
+    :func:`garmentgnn.bench.ensemble.sequence_record` (plus ``sequence`` and
+    ``held_out``), on the frames that are valid ground truth in the dataset's sequence
+    (``test.valid``) and in every member."""
+    out = []
+    for i in range(len(test)):
+        entry = ensemble["sequences"].get(test.records[test.index[i][0]]["id"])
+        if entry is None:
+            continue
+        item = test[i]
+        with torch.no_grad():
+            P = predict(i, item).detach().cpu()
+            lbs = item.skinned().detach().cpu()
+        keep = test.valid(i).cpu() & torch.as_tensor(entry["valid"])
+        rec = sequence_record(P, torch.as_tensor(entry["positions"]), lbs, keep, early)
+        held = test.records[test.index[i][0]].get("held_out", [])
+        out.append(dict(rec, sequence=item.seq_id, held_out=list(held)))
     return out
 
 

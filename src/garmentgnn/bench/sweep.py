@@ -36,7 +36,7 @@ from garmentgnn._files import atomic_write_bytes, atomic_write_json
 from garmentgnn._ray import cluster, import_tune
 from garmentgnn.bench.curves import quiet_lightning
 from garmentgnn.bench.dataset import DatasetInfo
-from garmentgnn.bench.methods import LearnedBudget, kind
+from garmentgnn.bench.methods import LearnedBudget, module_class
 from garmentgnn.bench.ray_backend import RayBackend, pack, task_runner
 from garmentgnn.bench.records import json_safe
 from garmentgnn.bench.timing import num_threads
@@ -111,7 +111,7 @@ def check_space(recipe: str, space: Dict[str, Tuple[str, List[Any]]], data) -> N
     """``ValueError`` naming the first swept key that is no setting of ``recipe`` (its
     configuration as ``garmentgnn train`` parses it on the dataset ``data``), or a
     recipe the bench cannot train."""
-    kind(recipe)  # names the modules the bench trains where it is none of them
+    module_class(recipe)  # a ValueError where the recipe trains no method of the bench
     fabric = logging.getLogger("lightning.fabric")  # its "Seed set to 0" line
     level = fabric.level
     fabric.setLevel(logging.ERROR)

@@ -32,6 +32,7 @@ import torch
 from garmentgnn.body.factory import body_model, build_body
 from garmentgnn.data.assets import garment_from_entry, motion_from_entry
 from garmentgnn.data.keys import body_key, garment_key, motion_key
+from garmentgnn.data.perturb import perturbed_garment
 from garmentgnn.garments import make_garment
 from garmentgnn.motion import make_motion
 from garmentgnn.physics.materials import MATERIALS
@@ -397,7 +398,8 @@ def _learn_long(seed: int) -> Spec:
 def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
     """``(garment, body, motion, material)`` of an item: templates and generators, or
     the mesh and BVH files its entries name (:mod:`garmentgnn.data.assets`, refused
-    when a file changed since the spec was read)."""
+    when a file changed since the spec was read); an ensemble member's ``member``
+    entry moves its rest garment (:func:`~garmentgnn.data.perturb.perturbed_garment`)."""
     body = build_body(item["body"])
     g = item["garment"]
     if "file" in g:
@@ -414,6 +416,9 @@ def build_inputs(item: Dict[str, Any], num_frames: Optional[int] = None):
         motion = make_motion(m["name"], model.skeleton, num_frames=num_frames or m["num_frames"],
                              fps=fps, speed=m["speed"], amplitude=m["amplitude"],
                              seed=item["seed"], rest_joints=body.joints.to(torch.float64))
+    member = item.get("member")
+    if member:  # an ensemble member: its rest garment moved (garmentgnn.data.ensemble)
+        garment = perturbed_garment(garment, member["garment_m"], member["seed"])
     material = MATERIALS[item["material"]]
     return garment, body, motion, material
 

@@ -119,7 +119,7 @@ def main(args: argparse.Namespace) -> int:
     steady, setup = pred.steady_frame_seconds, pred.setup_seconds
     split = (f": set-up and compilation {setup:.3f} s, then {1e3 * steady:.2f} ms/frame "
              f"(steady state)" if steady is not None else " (one call: set-up included)")
-    print(f"{pred.method} ({mode}): {len(pred.positions)} frames of "
+    print(f"{pred.method}, {mode}: {len(pred.positions)} frames of "
           f"{pred.positions.shape[1]} vertices in {pred.total_seconds:.3f} s{split} on "
           f"{args.device}; nearest-face search {'compiled' if pred.compiled else 'eager'}")
     for k in ("glb", "pc2", "obj"):

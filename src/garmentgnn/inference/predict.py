@@ -37,7 +37,6 @@ from garmentgnn.motion.sequence import Motion
 from garmentgnn.physics.materials import MATERIALS
 from garmentgnn.training.base import COMPILE_WORK
 from garmentgnn.training.base import compile_pays as work_pays
-from garmentgnn.training.simulator import SimulatorModule
 from garmentgnn.training.checkpoints import load_checkpoint
 from garmentgnn.viz.compare import data_settings
 
@@ -217,12 +216,13 @@ def check_method(module, item: GarmentInputs, where: str) -> None:
     """Refuse a checkpoint whose model cannot take this garment (NCS-style is specific
     to the garment it was trained on) or these data sizes (its module's
     ``check_data``)."""
-    if getattr(module, "method", None) == "ncs" and \
-            item.num_vertices != module.model.num_vertices:
-        raise ValueError(f"`ckpt`: {where} is an NCS-style model, specific to the garment "
-                         f"it was trained on ({module.model.num_vertices} vertices); this "
-                         f"garment has {item.num_vertices}; train NCS-style on this garment, "
-                         f"or use a GarTrans, DA-, HOOD- or MGN-style checkpoint")
+    trained = getattr(module.model, "init_args", {}).get("num_vertices")
+    if module.per_garment and item.num_vertices != trained:
+        raise ValueError(f"`ckpt`: {where} is a {module.table_name} model, specific to the "
+                         f"garment it was trained on ({trained} vertices); this garment has "
+                         f"{item.num_vertices}; train {module.table_name} on this garment, "
+                         f"or use a checkpoint of a method for every garment (GarTrans, "
+                         f"DA-, HOOD- or MGN-style)")
     dims = {"num_joints": item["rest_joints"].shape[0],
             "num_body_vertices": item["body_pos"].shape[1], "num_vertices": item.num_vertices}
     if hasattr(module, "check_data"):
@@ -234,13 +234,13 @@ def check_rate(module, fps: float, where: str) -> None:
     predicts accelerations in metres per frame squared (its model's ``fps``), so at
     another rate it would roll out a garment of another physics without a word
     (``garmentgnn train test`` refuses the same on a dataset)."""
-    learned = getattr(getattr(module, "model", None), "fps", None)
-    if not isinstance(module, SimulatorModule) or learned is None:
+    learned = None if module is None else module.learned_fps
+    if learned is None:
         return
     if abs(fps - float(learned)) > 1e-6 * float(learned):
-        raise ValueError(f"`fps`: {fps:g}, but {where} (MGN-style) learned its accelerations "
-                         f"at {float(learned):g} fps; give fps {float(learned):g} (a BVH is "
-                         f"resampled to it), or train a model at {fps:g} fps "
+        raise ValueError(f"`fps`: {fps:g}, but {where} ({module.table_name}) learned its "
+                         f"dynamics at {float(learned):g} fps; give fps {float(learned):g} "
+                         f"(a BVH is resampled to it), or train a model at {fps:g} fps "
                          f"(--model.model.fps)")
 
 
@@ -275,10 +275,10 @@ def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
     rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
     tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
     T = rot.shape[0]
-    autoregressive = isinstance(module, SimulatorModule)
-    if autoregressive and T < 3:
-        raise ValueError(f"`motion`: {T} frames; the MGN-style simulator rolls out from two "
-                         f"frames and needs 3 or more")
+    autoregressive = module is not None and module.autoregressive
+    if module is not None and T < module.min_frames:
+        raise ValueError(f"`motion`: {T} frames; {module.table_name} needs "
+                         f"{module.min_frames} or more")
     step = T if autoregressive else max(1, chunk)
     device = torch.device(device)
     model = getattr(module, "model", None)
@@ -308,10 +308,8 @@ def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
             t = time.perf_counter()
             if module is None:
                 pred = item.skinned()
-            elif autoregressive:
-                pred = module.rollout(item, start="lbs")
             else:
-                pred = module.predict_garment(item)
+                pred = module.predict_sequence(item)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             dt = time.perf_counter() - t
@@ -347,9 +345,7 @@ def load_method(ckpt: Optional[PathLike] = None, method: Optional[str] = None):
         raise ValueError(f"`ckpt`: {ckpt}: no such file; give a checkpoint written by "
                          f"`garmentgnn train fit`")
     module = load_checkpoint(ckpt)
-    name = getattr(module, "method", None) or (
-        "mgn" if isinstance(module, SimulatorModule) else "gartrans")
-    return module, str(name)
+    return module, module.table_name
 
 
 def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regular",

@@ -42,7 +42,7 @@ bf16-mixed``) the kinematics, the inputs, their statistics, the acceleration and
 integration stay float32 (:func:`~garmentgnn.geometry.full_precision`: bfloat16 rounds a
 position at 1 m to ~4 mm, the size of a mesh edge's change in a frame) and the encoders,
 processor and decoder run in the low precision.  The model never reads the ground truth
-itself: the training module (:class:`~garmentgnn.training.SimulatorModule`) hands it the
+itself: the training module (:class:`~garmentgnn.training.RolloutModule`) hands it the
 states and the target frame of :meth:`loss`.
 """
 from __future__ import annotations

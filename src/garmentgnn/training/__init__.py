@@ -12,7 +12,7 @@ from garmentgnn.training.budget import TimeBudget
 from garmentgnn.training.heap import KeepFreedMemory, keep_freed_memory
 from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
-from garmentgnn.training.simulator import SimulatorModule
+from garmentgnn.training.rollout import RolloutModule
 from garmentgnn.training.loader import Recipe, load_recipe
 from garmentgnn.training.checkpoints import load_checkpoint
 
@@ -27,7 +27,7 @@ __all__ = [
            "KeepFreedMemory",
            "ProgressiveSchedule",
            "Recipe",
-           "SimulatorModule",
+           "RolloutModule",
            "TimeBudget",
            "keep_freed_memory",
            "load_checkpoint",

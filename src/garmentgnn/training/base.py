@@ -8,6 +8,26 @@ ground-truth frames, ``valid``, as every metric that reads the data; ``test`` sc
 "LBS only" on the same frames beside the method, ``test_lbs/...``) and ``predict``.  A
 method only says how it predicts a chunk (:meth:`GarmentModule.predict_garment`) and how
 it trains (``training_step``, ``configure_optimizers``).
+
+The method protocol: what ``garmentgnn bench``, ``predict``, ``show`` and ``train`` ask of
+a method, so that none of them knows a method by its class (docs/model.md, "Adding a
+method").  Every attribute has a default that fits a frame-parallel method of one model
+for every garment:
+
+* :attr:`~GarmentModule.autoregressive` -- frame-parallel (any frames at once, in chunks)
+  or one frame after another over a whole sequence; :attr:`~GarmentModule.min_frames`;
+* :meth:`~GarmentModule.trains_per_garment` -- one model for every garment, or one per
+  (garment, body) trained on that garment's poses (the bench trains one per test garment;
+  ``predict`` refuses another garment);
+* :meth:`~GarmentModule.predict_sequence` -- the garment from what a user has (no
+  simulated frame); :meth:`~GarmentModule.predict_garment` -- the held-out evaluation
+  ``validate``/``test`` score (it may start from the simulated first frames);
+* :meth:`~GarmentModule.timed_call` and :attr:`~GarmentModule.timing_note` -- what the
+  bench times; :meth:`~GarmentModule.bench_overrides` -- the recipe settings the bench's
+  budget sets; :meth:`~GarmentModule.fit_info` -- what a bench record adds after fitting;
+  :meth:`~GarmentModule.training_loss` -- one step's loss (the learning diagnostics);
+* :attr:`~GarmentModule.family` (the bench's seed plan), :attr:`~GarmentModule.table_name`,
+  :attr:`~GarmentModule.learned_fps` (the frame rate its dynamics were learned at).
 """
 from __future__ import annotations
 
@@ -16,7 +36,7 @@ import contextvars
 import inspect
 import io
 import os
-from typing import Any, ClassVar, Dict, Optional, Tuple
+from typing import Any, Callable, ClassVar, Dict, Optional, Tuple
 
 import lightning as L
 import torch
@@ -32,11 +52,24 @@ from garmentgnn.training.recipes import import_class
 from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
                                            stamp_checkpoint, verify_checkpoint)
 
-__all__ = ["LBS_PREFIX", "GarmentModule", "build_model"]
+__all__ = ["LBS_PREFIX", "RENAMED_MODULES", "GarmentModule", "build_model", "stored_module"]
 
 #: set while :meth:`GarmentModule.load_from_checkpoint` loads a file it has verified
 _VERIFIED: contextvars.ContextVar[bool] = contextvars.ContextVar("checkpoint_verified",
                                                                 default=False)
+
+#: modules renamed since a checkpoint could name them (its ``_class_path``): the former
+#: class path -> today's, so that a checkpoint written before the rename loads and resumes
+RENAMED_MODULES = {
+    "garmentgnn.training.SimulatorModule": "garmentgnn.training.RolloutModule",
+    "garmentgnn.training.simulator.SimulatorModule": "garmentgnn.training.RolloutModule",
+}
+
+
+def stored_module(class_path: Any) -> str:
+    """A checkpoint's ``_class_path`` under today's name (:data:`RENAMED_MODULES`)."""
+    return RENAMED_MODULES.get(str(class_path), str(class_path))
+
 
 #: checkpoint key of the dataset a method was trained on (:func:`dataset_stamp`)
 DATASET_KEY = "garmentgnn_dataset"
@@ -123,9 +156,77 @@ class GarmentModule(L.LightningModule):
     in YAML, ``model: init_args: model: class_path: ...``) and says how it trains it.
     """
 
+    # -- the method protocol (the module docstring) ----------------------------------------
+    #: ``False``: frame-parallel, any frames of a sequence at once (in chunks); ``True``:
+    #: autoregressive, a whole sequence one frame after another from its first frames
+    autoregressive: bool = False
+    #: the fewest frames a sequence must have for :meth:`predict_sequence`
+    min_frames: int = 1
+    #: the bench's seed plan gives every seed to the best method of each family
+    #: (:func:`garmentgnn.bench.methods.seed_plan`): ``"gartrans"`` (the paper's model and
+    #: its variants) or ``"baseline"`` (every other method)
+    family: str = "baseline"
+    #: what :meth:`timed_call` times, in the bench's timing table
+    timing_note: str = "one call predicting `batch` frames"
+
+    @classmethod
+    def trains_per_garment(cls, model: type) -> bool:
+        """Whether this module with a model of class ``model`` trains one model per
+        (garment, body), on that garment's poses (the bench trains one per test garment;
+        ``predict`` refuses another garment), rather than one for every garment: known
+        from the recipe, before any data.  Default: ``False``."""
+        return False
+
+    @property
+    def per_garment(self) -> bool:
+        """:meth:`trains_per_garment` of this module's model."""
+        return self.trains_per_garment(type(self.model))
+
+    @property
+    def table_name(self) -> str:
+        """The method's row name in tables (``garmentgnn train test``)."""
+        return type(self).__name__
+
+    @property
+    def learned_fps(self) -> Optional[float]:
+        """The frame rate the method learned its dynamics at, which ``predict`` must give
+        it (``None``: any rate)."""
+        return None
+
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
-        """The garment ``[B, V, 3]`` of every frame of ``batch``."""
+        """The garment ``[B, V, 3]`` of every frame of ``batch``: the held-out evaluation
+        that ``validate``, ``test``, ``predict`` and ``show`` score."""
         raise NotImplementedError(f"{type(self).__name__}: define predict_garment")
+
+    def predict_sequence(self, batch: GarmentInputs) -> Tensor:
+        """The garment ``[T, V, 3]`` of ``batch``'s frames from what a user has (the body,
+        the rest garment, its skinning; never a simulated frame): what ``garmentgnn
+        predict`` and the bench's scores run.  Default: :meth:`predict_garment`."""
+        return self.predict_garment(batch)
+
+    def timed_call(self, item: GarmentInputs, batch: int) -> Callable[[], Any]:
+        """A function predicting ``batch`` frames of ``item`` per call, its inputs prepared
+        outside it (:attr:`timing_note` says what it does): the bench's timing sweep."""
+        cycled = item.cycled(batch)
+        return lambda: self.predict_garment(cycled)
+
+    @classmethod
+    def bench_overrides(cls, *, schedule_window: int,
+                        shortest_sequence: int) -> Dict[str, Callable[[Any], Any]]:
+        """The recipe settings the bench's budget changes (``{dotted key: old value ->
+        new value}``, :func:`~garmentgnn.training.load_recipe`'s ``set``), given the
+        budget's schedule window in epochs and the frames of the shortest training
+        sequence.  Default: none."""
+        return {}
+
+    def training_loss(self, batch: GarmentInputs) -> Tensor:
+        """The total loss of one training step on ``batch``, the weights unchanged (the
+        learning diagnostics' backward pass, :mod:`garmentgnn.training.diagnostics`)."""
+        raise NotImplementedError(f"{type(self).__name__}: define training_loss")
+
+    def fit_info(self) -> Dict[str, Any]:
+        """What a bench record adds about this fitted run (JSON-able).  Default: nothing."""
+        return {}
 
     def min_history(self) -> Tuple[int, str]:
         """The fewest previous poses per frame (the data module's ``history``) this
@@ -235,7 +336,7 @@ class GarmentModule(L.LightningModule):
         if isinstance(saved.get("model"), Configurable):  # written in by load_from_checkpoint
             saved["model"] = saved["model"].spec()
         saved.pop("_instantiator", None)
-        other = str(saved.pop("_class_path", "")).rsplit(".", 1)[-1]
+        other = stored_module(saved.pop("_class_path", "")).rsplit(".", 1)[-1]
         if other and other != cls.__name__:
             raise CheckpointError(f"{where}: a checkpoint of {other}, not of {cls.__name__}; "
                                   f"load it with {other}.load_from_checkpoint")

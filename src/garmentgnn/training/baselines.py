@@ -26,7 +26,7 @@ plus its losses plus a recipe (``garmentgnn/recipes/baselines/*.yaml``,
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -149,6 +149,44 @@ class BaselineModule(GarmentModule):
         # start_state "own": sequence id -> frame -> the state of the latest rollout (CPU)
         self._states: Dict[str, Dict[int, Tensor]] = {}
 
+    # -- the method protocol (:class:`GarmentModule`) -----------------------------------
+    #: each method's row name in tables
+    TABLE_NAMES = {"da": "DA-style", "hood": "HOOD-style", "ncs": "NCS-style"}
+
+    @property
+    def autoregressive(self) -> bool:
+        """HOOD-style rolls out one frame after another; DA- and NCS-style are
+        frame-parallel."""
+        return self.method == "hood"
+
+    @property
+    def min_frames(self) -> int:
+        return 2 if self.method == "hood" else 1
+
+    @classmethod
+    def trains_per_garment(cls, model: type) -> bool:
+        """NCS-style: one model per (garment, body), trained on its poses."""
+        return cls.METHODS.get(model) == "ncs"
+
+    @property
+    def table_name(self) -> str:
+        return self.TABLE_NAMES[self.method]
+
+    @property
+    def timing_note(self) -> str:
+        return ("one autoregressive step of `batch` independent sequences per call"
+                if self.autoregressive else "one call predicting `batch` frames")
+
+    def timed_call(self, item: GarmentInputs, batch: int) -> Callable[[], Any]:
+        """One call predicting ``batch`` frames, or (HOOD-style) one autoregressive step
+        of ``batch`` frames."""
+        it = item.cycled(batch)
+        if not self.autoregressive:
+            return lambda: self(it)
+        coarse, lbs = self.coarse_level(it), it.skinned()
+        prev, curr = it.history_slot(-3).skinned(), it.history_slot(-2).skinned()
+        return lambda: self.model.step(it, coarse, prev, curr, it.body_pos, lbs)
+
     def min_history(self) -> Tuple[int, str]:
         if self.method == "hood":
             return 2, ("HOOD-style starts each rollout from the LBS garment of the 2 frames "
@@ -203,6 +241,9 @@ class BaselineModule(GarmentModule):
         return self(batch)
 
     # -- training -------------------------------------------------------------------
+    def training_loss(self, batch: GarmentInputs) -> Tensor:
+        return self.compute_loss(batch)[0]
+
     def compute_loss(self, inp: GarmentInputs) -> Tuple[Tensor, Dict[str, Tensor]]:
         """The loss of one chunk, or the mean over the chunks of a ``Batch`` (``da``: one
         forward over the union graph; ``hood`` and ``ncs``, whose models take one garment

@@ -3,34 +3,58 @@
 :func:`load_checkpoint` picks the LightningModule class from what the checkpoint
 stores: the module's class path (``hyper_parameters["_class_path"]``, which
 ``garmentgnn train`` writes), or, in a checkpoint written without the command line (the
-bench, a script), the module that trains the class of its model
-(``hyper_parameters["model"]["class_path"]``).  ``garmentgnn show``, ``garmentgnn
-predict`` and the benchmark scripts load checkpoints through it.
+bench, a script), the module whose ``model`` argument takes the class of its model
+(``hyper_parameters["model"]["class_path"]``): no module is known here by name.
+``garmentgnn show``, ``garmentgnn predict`` and the benchmark scripts load checkpoints
+through it.
 """
 from __future__ import annotations
 
 import os
+import typing
 from pathlib import Path
-from typing import Any, Dict, Union
+from typing import Any, Dict, List, Union
 
-from garmentgnn.models import MGNStyle
-from garmentgnn.training.base import GarmentModule
-from garmentgnn.training.baselines import BaselineModule
+# the packaged modules, imported so that a checkpoint without a module's class path
+# finds the module of its model among them
+import garmentgnn.training.baselines  # noqa: F401
+import garmentgnn.training.module  # noqa: F401
+import garmentgnn.training.rollout  # noqa: F401
+from garmentgnn.training.base import GarmentModule, stored_module
 from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
-from garmentgnn.training.module import GarTransModule
 from garmentgnn.training.recipes import import_class
-from garmentgnn.training.simulator import SimulatorModule
 
 PathLike = Union[str, os.PathLike]
 
 
+def _subclasses(cls: type) -> List[type]:
+    out = []
+    for sub in cls.__subclasses__():
+        out += [sub, *_subclasses(sub)]
+    return out
+
+
+def trains(module: type, model: type) -> bool:
+    """Whether the :class:`GarmentModule` subclass ``module`` is handed a model of class
+    ``model``: its ``__init__``'s ``model`` argument is annotated with that class (or a
+    ``Union`` holding it)."""
+    try:
+        hint = typing.get_type_hints(module.__init__).get("model")
+    except Exception:  # an annotation that does not resolve here
+        return False
+    options = typing.get_args(hint) if typing.get_origin(hint) is typing.Union else (hint,)
+    return any(isinstance(o, type) and issubclass(model, o) for o in options)
+
+
 def module_class(hparams: Dict[str, Any]) -> type:
     """The :class:`GarmentModule` subclass that a checkpoint's ``hyper_parameters``
-    were written by: the class its ``_class_path`` names, else the module that trains
-    its model's class (:class:`SimulatorModule` for the MGN-style simulator,
-    :class:`BaselineModule` for a baseline's model, :class:`GarTransModule` otherwise)."""
+    were written by: the class its ``_class_path`` names, else (a checkpoint written
+    without the command line) the module whose ``model`` argument takes its model's class
+    (:func:`trains`; the most general such module), among the modules imported so
+    far."""
     stored = hparams.get("_class_path")
     if stored:
+        stored = stored_module(stored)
         try:
             cls = import_class(str(stored))
         except ValueError as err:
@@ -40,13 +64,20 @@ def module_class(hparams: Dict[str, Any]) -> type:
                                   f"(a GarmentModule)")
         return cls
     model = hparams.get("model")
-    model_cls = str(model.get("class_path", "")) if isinstance(model, dict) else ""
-    name = model_cls.rsplit(".", 1)[-1]
-    if name == MGNStyle.__name__:
-        return SimulatorModule
-    if hparams.get("method") is not None or name in {c.__name__ for c in BaselineModule.METHODS}:
-        return BaselineModule
-    return GarTransModule
+    path = str(model.get("class_path", "")) if isinstance(model, dict) else ""
+    try:
+        model_cls = import_class(path)
+    except ValueError:
+        raise CheckpointError(f"its model `{path or '(none)'}` cannot be imported; load it "
+                              f"with the module it was trained with") from None
+    found = [m for m in _subclasses(GarmentModule) if trains(m, model_cls)]
+    # the most general of them (a subclass of a module inherits the model it takes)
+    found = [m for m in found if not any(o is not m and issubclass(m, o) for o in found)]
+    if len(found) != 1:
+        raise CheckpointError(f"it names no module, and {len(found)} modules take a "
+                              f"{model_cls.__name__} ({', '.join(m.__name__ for m in found)}); "
+                              f"load it with its module's load_from_checkpoint")
+    return found[0]
 
 
 def load_checkpoint(path: PathLike) -> GarmentModule:

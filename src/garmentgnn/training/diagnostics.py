@@ -18,19 +18,14 @@ import lightning as L
 import torch
 from torch import nn
 
-from garmentgnn.training.module import GarTransModule
-
 __all__ = ["branch_gradients", "dead_branches", "training_loss"]
 
 
 def training_loss(module: L.LightningModule, batch: Any) -> torch.Tensor:
     """The total loss of one training step of ``module`` on ``batch`` (its
-    ``compute_loss``: GarTrans calls its forward first)."""
-    if isinstance(module, GarTransModule):
-        total, _ = module.compute_loss(batch, module(batch))
-    else:
-        total, _ = module.compute_loss(batch)
-    return total
+    ``training_loss``, the method protocol of
+    :class:`~garmentgnn.training.GarmentModule`)."""
+    return module.training_loss(batch)
 
 
 def _branches(model: nn.Module) -> Dict[str, List[nn.Parameter]]:

@@ -26,29 +26,37 @@ import torch
 from garmentgnn.models.inputs import HISTORY, NUM_LANDMARKS, NYSTROM_DIM
 from garmentgnn.metrics import METRIC_UNITS, evaluate_inputs
 from garmentgnn.models.inputs import GarmentInputs
-from garmentgnn.training.module import GarTransModule
 from garmentgnn.data import SequenceChunks
 
 MODES = ("gartrans", "gartrans_ar", "lbs")
 
 
 def predict(module, item: GarmentInputs, mode: str) -> torch.Tensor:
-    """``[B, V, 3]`` garment of every frame of ``item`` (a :class:`SequenceChunks` item)."""
+    """``[B, V, 3]`` garment of every frame of ``item`` (a :class:`SequenceChunks` item):
+    the module's held-out evaluation (``predict_garment``), its rollout on its own output
+    (``gartrans_ar``: ``predict_rollout``, a method that has one) or LBS."""
     if mode == "lbs":
         return item.skinned()
     if mode not in MODES:
         raise ValueError(f"`mode`: expected one of {MODES}, got {mode!r}")
-    if not isinstance(module, GarTransModule):  # a baseline predicts in its own way
-        return module.predict_garment(item)
-    return module(item, autoregressive=mode == "gartrans_ar")["final"]
+    if mode == "gartrans_ar":
+        rollout = getattr(module, "predict_rollout", None)
+        if rollout is None:
+            raise ValueError(f"`mode`: {type(module).__name__} has no rollout on its own "
+                             f"output ('gartrans_ar'); use 'gartrans'")
+        return rollout(item)
+    return module.predict_garment(item)
 
 
 @torch.no_grad()
-def evaluate_split(module, root, split: str = "test", modes: Sequence[str] = MODES,
+def evaluate_split(module, root, split: str = "test", modes: Optional[Sequence[str]] = None,
                    history: Optional[int] = None, nystrom_dim: Optional[int] = None,
                    num_landmarks: int = NUM_LANDMARKS) -> Dict[str, Dict[str, float]]:
     """``{mode: {metric: frame-weighted mean, ..., "frames": n, "ms_per_frame": t}}``
-    over every sequence of ``split`` under ``root``."""
+    over every sequence of ``split`` under ``root``; ``modes`` default: every mode the
+    module has."""
+    if modes is None:  # every mode the module has
+        modes = [m for m in MODES if m != "gartrans_ar" or hasattr(module, "predict_rollout")]
     for mode in modes:
         if mode not in MODES:
             raise ValueError(f"`modes`: unknown {mode!r}; choose from {MODES}")

@@ -1,7 +1,7 @@
 """``garmentgnn train``: Lightning's own CLI over every trained method -- any
 :class:`~garmentgnn.training.base.GarmentModule` (``subclass_mode_model``: GarTrans and
 its Table 1 variants, :class:`GarTransModule`; the DA-, HOOD- and NCS-style baselines,
-:class:`BaselineModule`; the MGN-style simulator, :class:`SimulatorModule`) -- and
+:class:`BaselineModule`; the MGN-style simulator, :class:`RolloutModule`) -- and
 :class:`GarmentDataModule`, configured by a recipe (:mod:`garmentgnn.training.recipes`:
 a packaged one named without folder or suffix, or a YAML file's path).  Each recipe names
 its module (``model: class_path: ...``, ``init_args: ...``).
@@ -57,7 +57,7 @@ from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
-from garmentgnn.training.base import LBS_PREFIX, GarmentModule
+from garmentgnn.training.base import LBS_PREFIX, GarmentModule, stored_module
 from garmentgnn.training.recipes import (import_class, named_module,
                                          recipes_of_model, resolve_config_args)
 from garmentgnn.training.datamodule import GarmentDataModule
@@ -148,13 +148,9 @@ def add_tensorboard(trainer: Trainer) -> Optional[TensorBoardLogger]:
 
 
 def method_name(model: LightningModule) -> str:
-    """The table row name of a trained module: ``"DA-style"``, ``"GarTrans (sat)"``..."""
-    method = getattr(model, "method", None)
-    if method is not None:
-        return {"da": "DA-style", "hood": "HOOD-style", "ncs": "NCS-style",
-                "mgn": "MGN-style"}.get(method, method)
-    layer = getattr(getattr(model, "model", None), "init_args", {}).get("dynamic_layer")
-    return f"GarTrans ({layer})" if layer else type(model).__name__
+    """The table row name of a trained module (its ``table_name``: ``"DA-style"``,
+    ``"GarTrans (sat)"``...)."""
+    return str(getattr(model, "table_name", type(model).__name__))
 
 
 def metrics_table(metrics: Dict[str, Any], name: str, prefix: str = "test") -> str:
@@ -296,6 +292,7 @@ class GarmentCLI(LightningCLI):
         model = _plain(self.config[sub].get("model"))
         cls_path = model.get("class_path") or DEFAULT_MODEL
         saved_cls = raw.pop("_class_path", None)
+        saved_cls = stored_module(saved_cls) if saved_cls else None
         module_cls = import_class(cls_path)
         spec, given = raw.get("model"), _plain(model.get("init_args"))
         saved_model = spec.get("class_path") if isinstance(spec, dict) else None

@@ -9,7 +9,7 @@ the supervised scale and whether the rest-pose branch is frozen are switched by
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Iterable, Iterator, List, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Tuple, Union
 
 import torch
 
@@ -102,6 +102,12 @@ class GarTransModule(GarmentModule):
     ``GarTransModule(GarTrans(**datamodule.model_sizes(GarTrans)))`` is the headline
     model: the packaged ``gartrans`` configuration states nothing these defaults do not.
     """
+
+    #: the method protocol (:class:`GarmentModule`): frame-parallel, one model for every
+    #: garment, the paper's family
+    family = "gartrans"
+    timing_note = ("frame-parallel forward of `batch` frames, static branch "
+                   "(encode_static) computed once per garment outside the timed call")
 
     def __init__(self, model: GarTrans, lr: float = 3e-3, t_max: Optional[int] = None,
                  eta_min: float = 0.0, optimizer: str = "adamax",
@@ -206,6 +212,42 @@ class GarTransModule(GarmentModule):
         """:meth:`forward`'s garment ``[B, V, 3]``: what ``validate``, ``test`` and
         ``predict`` score."""
         return self(batch)["final"]
+
+    def predict_rollout(self, batch: GarmentInputs) -> torch.Tensor:
+        """The garment ``[B, V, 3]`` rolled out on the model's own output
+        (:meth:`GarTrans.rollout`: the dynamic graph's velocity from its previous
+        prediction), evaluation mode ``gartrans_ar``."""
+        return self(batch, autoregressive=True)["final"]
+
+    @property
+    def table_name(self) -> str:
+        return f"GarTrans ({self.model.init_args.get('dynamic_layer')})"
+
+    def timed_call(self, item: GarmentInputs, batch: int) -> Callable[[], Any]:
+        it = item.cycled(batch)
+        with torch.no_grad():
+            static = self.encode_static(it)
+        return lambda: self(it, static)["final"]
+
+    @classmethod
+    def bench_overrides(cls, *, schedule_window: int,
+                        shortest_sequence: int) -> Dict[str, Callable[[Any], Any]]:
+        """The schedule's phase windows (both) set to the budget's."""
+        def windows(s: Any) -> Dict[str, Any]:
+            return dict(s if isinstance(s, dict) else {}, window=schedule_window,
+                        window2=schedule_window)
+        return {"model.init_args.schedule": windows}
+
+    def fit_info(self) -> Dict[str, Any]:
+        """The schedule's phase at the end and the epochs of its transitions."""
+        sched = ProgressiveSchedule.of(self.trainer)
+        if sched is None:  # trained without one (``schedule: false``)
+            return {}
+        return {"phase": sched.phase,
+                "transitions": {str(k): e for k, e in sched.transitions.items()}}
+
+    def training_loss(self, batch: GarmentInputs) -> torch.Tensor:
+        return self.compute_loss(batch, self(batch))[0]
 
     def compute_loss(self, batch: GarmentInputs, out: Dict[str, torch.Tensor]):
         """The mean over ``batch``'s chunks of each chunk's loss (NaN/inf raises

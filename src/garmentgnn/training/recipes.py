@@ -9,7 +9,7 @@ The packaged ones live in ``garmentgnn/recipes/``:
 * ``baselines/<name>.yaml``: the DA-, HOOD- and NCS-style baselines
   (:class:`~garmentgnn.training.BaselineModule`);
 * ``mgn.yaml``: the MGN-style learned simulator
-  (:class:`~garmentgnn.training.SimulatorModule`).
+  (:class:`~garmentgnn.training.RolloutModule`).
 
 A recipe's ``model:`` names the module (``class_path``) and the arguments where it
 differs from the module's defaults (``init_args``), the model it trains among them

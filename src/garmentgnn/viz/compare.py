@@ -91,7 +91,6 @@ def comparison(root: PathLike, models: Mapping[str, object], split: Optional[str
             max_frames, int) or max_frames < 1):  # -3 dropped the last 3 frames, silently
         raise ValueError(f"`max_frames`: expected an int >= 1 (or None: every frame), got "
                          f"{max_frames!r}")
-    # loaded with autograd on: building the model runs a backward pass
     loaded = {name: (load_checkpoint(m) if isinstance(m, (str, os.PathLike)) else m)
               for name, m in models.items()}
     where = {name: str(m) if isinstance(m, (str, os.PathLike)) else f"`models`[{name!r}]"

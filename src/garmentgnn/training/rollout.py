@@ -44,17 +44,19 @@ in ``recipes/mgn.yaml``) is what validation, test and the checkpoints see.
 from __future__ import annotations
 
 import copy
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
+from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from garmentgnn.data.store import read_manifest
 from garmentgnn.models.inputs import GarmentInputs
 from garmentgnn.models.mgn import MGNStyle, SceneMotion
 from garmentgnn.training.base import GarmentModule, NonFiniteLossError
+from garmentgnn.training.budget import TimeBudget
 
-__all__ = ["ROLLOUT_MODES", "SimulatorModule", "START_STATES"]
+__all__ = ["ROLLOUT_MODES", "RolloutModule", "START_STATES"]
 
 #: where an evaluation rollout starts (``start``)
 START_STATES = ("gt", "drape", "lbs", "preroll")
@@ -83,7 +85,7 @@ def check_schedule(schedule: Sequence[Sequence[int]]) -> List[Tuple[int, int]]:
     return pairs
 
 
-class SimulatorModule(GarmentModule):
+class RolloutModule(GarmentModule):
     """An :class:`~garmentgnn.models.MGNStyle` trained by MeshGraphNets' recipe (module
     doc); in YAML (``recipes/mgn.yaml``): ``model: init_args: model: class_path:
     garmentgnn.models.MGNStyle``.
@@ -91,7 +93,10 @@ class SimulatorModule(GarmentModule):
     Args:
         model: the learned simulator to train.
         lr: Adam's learning rate at step 0; ``decay``, ``decay_steps``, ``lr_min``: the
-            rate is ``max(lr_min, lr * decay ** (step / decay_steps))``.
+            rate is ``max(lr_min, lr * decay ** (step / decay_steps))``; ``decay_steps``
+            default: the run's ``--trainer.max_steps`` (the rate decays by ``decay`` over
+            the whole run); a run without one keeps ``lr`` (a
+            :class:`~garmentgnn.training.TimeBudget` anneals it instead).
         noise: standard deviation (m) of the noise on the input positions (MeshGraphNets:
             3 mm; 1 cm rolled out best of 1, 3 and 10 mm on `learn`, docs/experiments.md).
         noise_gamma: the share of the noise the target keeps (0: the model undoes all of
@@ -115,11 +120,24 @@ class SimulatorModule(GarmentModule):
         start: where validation, test and predict rollouts start (module doc).
     """
 
-    #: the method's name in tables (``garmentgnn train test``)
+    #: the method's short name (``garmentgnn predict``'s summary)
     method = "mgn"
+    #: the method protocol (:class:`GarmentModule`): a whole sequence rolled out from two
+    #: frames, one model for every garment
+    autoregressive = True
+    min_frames = 3
+    table_name = "MGN-style"
+    timing_note = "one autoregressive step of `batch` independent garments per call"
+
+    @property
+    def learned_fps(self) -> Optional[float]:
+        """The model's ``fps``: it predicts accelerations in metres per frame squared."""
+        fps = getattr(self.model, "fps", None)
+        return None if fps is None else float(fps)
 
     def __init__(self, model: MGNStyle, lr: float = 1e-3, decay: float = 0.1,
-                 decay_steps: int = 6250, lr_min: float = 1e-6, noise: float = 0.01,
+                 decay_steps: Optional[int] = None, lr_min: float = 1e-6,
+                 noise: float = 0.01,
                  noise_gamma: float = 0.1, rollout: int = 3, rollout_start: int = 3500,
                  stats_steps: int = 100, start: str = "gt",
                  rollout_schedule: Optional[List[Tuple[int, int]]] = None,
@@ -128,11 +146,12 @@ class SimulatorModule(GarmentModule):
         super().__init__()
         if not isinstance(model, MGNStyle):
             raise TypeError(f"`model`: expected an MGNStyle, got {type(model).__name__}; "
-                            f"SimulatorModule(MGNStyle())")
+                            f"RolloutModule(MGNStyle())")
         if not (lr > 0 and lr_min > 0 and 0 < decay <= 1):
             raise ValueError(f"`lr`, `lr_min`, `decay`: expected lr > 0, lr_min > 0 and "
                              f"0 < decay <= 1, got {lr!r}, {lr_min!r}, {decay!r}")
-        _positive_int("decay_steps", decay_steps)
+        if decay_steps is not None:
+            _positive_int("decay_steps", decay_steps)
         _positive_int("rollout", rollout)
         _positive_int("rollout_start", rollout_start, 0)
         _positive_int("stats_steps", stats_steps, 0)
@@ -273,6 +292,10 @@ class SimulatorModule(GarmentModule):
                                             "rollout": torch.tensor(float(trained
                                                                           + free_frames))}
 
+    def training_loss(self, batch: GarmentInputs) -> Tensor:
+        """The loss of a batch of windows at the schedule's current step."""
+        return self.window_loss(batch)[0]
+
     def collecting_statistics(self) -> bool:
         """Whether this batch only accumulates the normalisation statistics."""
         return self.training and int(self.model.target_norm.updates) < self.hparams.stats_steps
@@ -303,13 +326,28 @@ class SimulatorModule(GarmentModule):
         self.log_training_step(loss.detach(), {}, batch.num_chunks, extra)
         return loss.detach()
 
+    def run_steps(self) -> Optional[int]:
+        """The run's optimizer steps (the trainer's ``max_steps``); ``None`` without one,
+        with a warning unless a :class:`~garmentgnn.training.TimeBudget` sets the rate."""
+        try:
+            trainer = self.trainer
+        except RuntimeError:  # not attached to a Trainer
+            return None
+        if trainer.max_steps and trainer.max_steps > 0:
+            return int(trainer.max_steps)
+        if not any(isinstance(c, TimeBudget) for c in trainer.callbacks):
+            rank_zero_warn("RolloutModule: no --trainer.max_steps and no decay_steps: the "
+                           "learning rate stays at lr; give either to decay it")
+        return None
+
     def configure_optimizers(self):
         hp = self.hparams
         opt = torch.optim.Adam(self.parameters(), lr=hp.lr)
         floor = hp.lr_min / hp.lr
+        steps = hp.decay_steps or self.run_steps()
 
         def factor(step: int) -> float:
-            return max(floor, hp.decay ** (step / hp.decay_steps))
+            return 1.0 if steps is None else max(floor, hp.decay ** (step / steps))
 
         sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
@@ -351,6 +389,31 @@ class SimulatorModule(GarmentModule):
 
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         return self.rollout(batch)
+
+    def predict_sequence(self, batch: GarmentInputs) -> Tensor:
+        """The rollout from the LBS garment of the first two frames (no simulated
+        frame)."""
+        return self.rollout(batch, start="lbs")
+
+    def timed_call(self, item: GarmentInputs, batch: int) -> Callable[[], Any]:
+        """One step of ``batch`` garments (the item's first three frames, as ``batch``
+        independent garments), the scene's motion prepared outside the call."""
+        it = GarmentInputs.collate([item.select(torch.arange(3))] * batch)
+        m = self.model.scene_motion(it)
+        return lambda: self.model.step(it, m, 2, m.lbs[0], m.lbs[1])
+
+    @classmethod
+    def bench_overrides(cls, *, schedule_window: int,
+                        shortest_sequence: int) -> Dict[str, Callable[[Any], Any]]:
+        """The rollout and the window cut to what the shortest training sequence holds
+        (a window of ``2 + rollout`` frames)."""
+        fitted: Dict[str, int] = {}
+
+        def rollout(n: int) -> int:
+            fitted["rollout"] = max(1, min(n, shortest_sequence - 2))
+            return fitted["rollout"]
+        return {"model.init_args.rollout": rollout,
+                "data.chunk": lambda c: min(c, 2 + fitted["rollout"])}
 
     def _scored(self, batch: GarmentInputs) -> GarmentInputs:
         """``batch`` with the frames a rollout is given (from the ground truth) left out
