@@ -13,10 +13,9 @@ import shlex
 import sys
 from dataclasses import replace
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, finite_float, int_at_least,
-                                  nonempty_path)
+from garmentgnn._argparse import (Accumulate, HelpFormatter, nonempty_path)
 from garmentgnn._ray import check_address, import_ray
-from garmentgnn.bench.ray_backend import RayBackend
+from garmentgnn.bench.ray_backend import RayBackend, add_cluster_args
 from garmentgnn.bench.runner import run
 from garmentgnn.bench.methods import METHOD_NAMES
 from garmentgnn.bench.presets import PRESET_NAMES, Preset, preset
@@ -70,18 +69,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="local: every task in this process; ray: each learned (method, seed) "
                         "run a Ray task, its record and checkpoints sent back here "
                         "(docs/bench.md, 'On a cluster')")
-    b.add_argument("--address", default=None, metavar="HOST:PORT",
-                   help="with --backend ray: the cluster to join (a `ray start --head`); "
-                        "default: a local cluster of --workers CPUs")
-    b.add_argument("--workers", type=int_at_least(1), default=None, metavar="N",
-                   help="with --backend ray and no --address: the local cluster's CPUs "
-                        "(default: all of this machine's)")
-    b.add_argument("--gpus", type=finite_float, default=0.0, metavar="G",
-                   help="with --backend ray: GPUs each learned run asks for (a fraction "
-                        "shares one)")
-    b.add_argument("--ship-data", action=argparse.BooleanOptionalAction, default=None,
-                   help="with --backend ray: send the dataset's files with each run, for "
-                        "nodes without it at the same path (default: with --address)")
+    add_cluster_args(b, "each learned run", "with --backend ray: ")
     b.add_argument("--retry-failed", action="store_true", help="rerun records marked failed")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     return b

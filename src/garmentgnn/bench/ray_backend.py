@@ -18,6 +18,7 @@ before.  The cluster: :func:`garmentgnn._ray.cluster`.
 """
 from __future__ import annotations
 
+import argparse
 import copy
 import os
 import shutil
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, Optional, Sequence, Tuple
 
+from garmentgnn._argparse import finite_float, int_at_least
 from garmentgnn._files import atomic_write_bytes
 from garmentgnn._ray import cluster
 from garmentgnn.bench.dataset import DatasetInfo, prepare_dataset
@@ -34,7 +36,8 @@ from garmentgnn.bench.methods import LearnedBudget
 from garmentgnn.bench.tables import slug
 from garmentgnn.bench.timing import num_threads
 
-__all__ = ["RayBackend", "local_dataset", "pack", "task_runner", "unpack"]
+
+__all__ = ["RayBackend", "add_cluster_args", "local_dataset", "pack", "task_runner", "unpack"]
 
 #: a folder's files: relative path -> bytes, or ``{"link": target}`` for a symbolic link
 #: (Lightning's ``last.ckpt`` links to the latest checkpoint)
@@ -235,3 +238,21 @@ class RayBackend:
         rec = _rebase(result["record"], result["work"], str(out))
         rec["dataset"] = runner.data.to_json()
         return rec
+
+
+def add_cluster_args(parser, what: str, when: str = "") -> None:
+    """The Ray cluster flags of ``garmentgnn bench`` and ``sweep`` (``--address``,
+    ``--workers``, ``--gpus``, ``--ship-data``): ``what`` asks for GPUs and gets the
+    dataset (``"each learned run"``, ``"each trial"``); ``when`` prefixes each help text
+    (``"with --backend ray: "``)."""
+    parser.add_argument("--address", default=None, metavar="HOST:PORT",
+                        help=f"{when}the Ray cluster to join (a `ray start --head`); "
+                             f"default: a local cluster of --workers CPUs")
+    parser.add_argument("--workers", type=int_at_least(1), default=None, metavar="N",
+                        help=f"{when}without --address: the local cluster's CPUs (default: "
+                             f"all of this machine's)")
+    parser.add_argument("--gpus", type=finite_float, default=0.0, metavar="G",
+                        help=f"{when}GPUs {what} asks for (a fraction shares one)")
+    parser.add_argument("--ship-data", action=argparse.BooleanOptionalAction, default=None,
+                        help=f"{when}send the dataset's files to {what}, for nodes without "
+                             f"it at the same path (default: with --address)")

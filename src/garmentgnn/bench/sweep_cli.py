@@ -13,12 +13,12 @@ import argparse
 import sys
 from dataclasses import replace
 
-from garmentgnn._argparse import (Accumulate, HelpFormatter, finite_float, float_above,
+from garmentgnn._argparse import (Accumulate, HelpFormatter, float_above,
                                   int_at_least, nonempty_path)
 from garmentgnn._ray import check_address, import_tune
 from garmentgnn.bench.dataset import prepare_dataset
 from garmentgnn.bench.presets import PRESET_NAMES, preset
-from garmentgnn.bench.ray_backend import RayBackend
+from garmentgnn.bench.ray_backend import RayBackend, add_cluster_args
 from garmentgnn.bench.sweep import DISTRIBUTIONS, check_space, parse_space, sweep
 
 
@@ -63,17 +63,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     s.add_argument("--minutes", type=float_above(0), default=None,
                    help="training minutes of each trial (default: the preset's)")
     s.add_argument("--seed", type=int, default=0, help="the training seed of every trial")
-    s.add_argument("--address", default=None, metavar="HOST:PORT",
-                   help="the Ray cluster to join (a `ray start --head`); default: a local "
-                        "cluster of --workers CPUs")
-    s.add_argument("--workers", type=int_at_least(1), default=None, metavar="N",
-                   help="without --address: the local cluster's CPUs (default: all of this "
-                        "machine's)")
-    s.add_argument("--gpus", type=finite_float, default=0.0, metavar="G",
-                   help="GPUs each trial asks for (a fraction shares one)")
-    s.add_argument("--ship-data", action=argparse.BooleanOptionalAction, default=None,
-                   help="send the dataset's files to each trial, for nodes without it at "
-                        "the same path (default: with --address)")
+    add_cluster_args(s, "each trial")
     return s
 
 
