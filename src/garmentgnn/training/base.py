@@ -59,7 +59,10 @@ _VERIFIED: contextvars.ContextVar[bool] = contextvars.ContextVar("checkpoint_ver
                                                                 default=False)
 
 #: modules renamed since a checkpoint could name them (its ``_class_path``): the former
-#: class path -> today's, so that a checkpoint written before the rename loads and resumes
+#: class path -> today's, so that a checkpoint written before the rename loads
+#: (:func:`~garmentgnn.training.load_checkpoint`: ``show``, ``predict``, ``train test``).
+#: Resuming one with ``garmentgnn train fit --ckpt_path`` needs its ``_class_path``
+#: rewritten first: LightningCLI parses that class path itself, before this module runs
 RENAMED_MODULES = {
     "garmentgnn.training.SimulatorModule": "garmentgnn.training.RolloutModule",
     "garmentgnn.training.simulator.SimulatorModule": "garmentgnn.training.RolloutModule",
