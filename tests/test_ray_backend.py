@@ -1,10 +1,10 @@
 """``generate --backend ray`` on a real local Ray cluster gives the same dataset as the
 local process pool, with both real engines; it joins a running cluster by address."""
 import os
-import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +13,8 @@ import pytest
 from garmentgnn.data import store
 from garmentgnn.data import generate, preset
 from garmentgnn.sim.blender import blender_available
+
+from conftest import ray_head
 
 ray = pytest.importorskip("ray", reason="Ray is an optional extra (make install installs it)")
 
@@ -71,22 +73,14 @@ def test_ray_backend_resumes_and_rejects_bad_backends(tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(not blender_available(), reason="bpy not installed (make install)")
 def test_joins_a_running_cluster_by_address(tmp_path):
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    exe = Path(sys.executable).with_name("ray")
-    head = subprocess.Popen([str(exe), "start", "--head", f"--port={port}", "--num-cpus=2",
-                             "--include-dashboard=false", "--disable-usage-stats", "--block",
-                             "--node-ip-address=127.0.0.1"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
+    with contextmanager(ray_head)(cpus=2) as address:
         r = None
         for _ in range(60):  # the head takes a few seconds to come up
             time.sleep(1)
             try:
                 r = subprocess.run([sys.executable, "-m", "garmentgnn.cli", "generate",
                                     "--preset", "tiny", "--engine", "blender", "--backend",
-                                    "ray", "--address", f"127.0.0.1:{port}", "--limit", "2",
+                                    "ray", "--address", address, "--limit", "2",
                                     "--out", str(tmp_path / "d"), "--no-progress",
                                     "--no-estimate"], capture_output=True, text=True,
                                    timeout=300)
@@ -96,9 +90,3 @@ def test_joins_a_running_cluster_by_address(tmp_path):
                 break
         assert r is not None and r.returncode == 0, r.stderr[-2000:]
         assert "2 simulated" in r.stdout
-    finally:
-        head.terminate()
-        try:
-            head.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            head.kill()
