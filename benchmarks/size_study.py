@@ -2,12 +2,13 @@
 default and double its width and depth, trained for the same wall time by the bench and
 scored on the dataset's test split.
 
-    # the study on the Blender `learn` dataset (docs/bench.md, "Size study"): 9 runs of
-    # 20 min, about 3 h on 2 cores; resumable (rerun the same command)
+    # the study on the Blender `learn` dataset (docs/results/size_study): 9 runs of
+    # 20 min, two 1-thread runs at a time on a local Ray cluster, about 2 h on 2 cores;
+    # resumable (rerun the same command)
     python benchmarks/size_study.py --data ~/.cache/garmentgnn/datasets/learn-blender \\
-        --out size_study
-    # the same on a Ray cluster, one run per CPU (docs/bench.md, "On a cluster")
-    python benchmarks/size_study.py --data DATA --out size_study --backend ray --workers 2
+        --out size_study --backend ray --workers 2 --threads 1 --minutes 20
+    # one run after another here, each on the preset's threads (about 3 h on 2 cores)
+    python benchmarks/size_study.py --data DATA --out size_study
     # a smoke test: the tiny preset's dataset, 3 epochs of at most 15 s each, on a local
     # Ray cluster of 2 CPUs (about 2.5 min on 2 cores)
     garmentgnn generate --preset tiny --engine torch --out tiny_data
@@ -20,11 +21,11 @@ the recipe's values, or the model's defaults where the recipe sets none, times t
 factor (GarTrans: its ``width`` and ``depth`` arguments; DA-style: ``hidden`` and
 ``num_layers``; MGN-style: ``hidden`` and ``layers``).  The bench (the preset's learned
 budget with ``--minutes`` for every run, one seed, no learning curves) trains and scores
-them in ``OUT/bench/``.  Written: ``OUT/size_study.json``, ``.md`` (per run: parameters,
-training vertex-frames/s, inference ms/frame, test E_dist and the paired Wilcoxon test
-against the method's default size over the test sequences) and ``.png`` (test E_dist
-against training time per vertex-frame and against inference time, the Pareto front of
-each).
+them in ``OUT/bench/``, with LBS on the same test sequences.  Written:
+``OUT/size_study.json``, ``.md`` (per run: parameters, training vertex-frames/s,
+inference ms/frame, test E_dist, its ratio to LBS's and the paired Wilcoxon test against
+the method's default size over the test sequences) and ``.png`` (test E_dist against
+training time per vertex-frame and against inference time, the Pareto front of each).
 """
 from __future__ import annotations
 
@@ -61,6 +62,8 @@ STUDIED: Dict[str, tuple] = {
     methods.MGN: (methods.RECIPES[methods.MGN], "hidden", "layers"),
 }
 MODEL = "model.init_args.model.init_args"
+#: the plot's top: this times the lowest error (runs above it are drawn hollow there)
+OFF_SCALE = 1.6
 #: the committed results (``--commit``)
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "size_study"
 
@@ -99,11 +102,14 @@ def write_recipes(out: Path, data: Path, budget) -> Dict[str, Dict[str, Any]]:
 
 
 def study_preset(name: str, minutes: float, runs: Sequence[str],
-                 epochs: Optional[int] = None) -> presets.Preset:
+                 epochs: Optional[int] = None, threads: Optional[int] = None
+                 ) -> presets.Preset:
     """Preset ``name``'s learned part: ``runs`` for ``minutes`` each (at most ``epochs``;
-    ``None``: the preset's), one seed, nothing else (no learning curves, stability suite
-    or seed plan)."""
+    ``None``: the preset's) on ``threads`` threads each (``None``: the preset's), one seed,
+    nothing else (no learning curves, stability suite or seed plan)."""
     p = presets.preset(name).learned_only()
+    if threads is not None:
+        p = dataclasses.replace(p, threads=threads)
     return dataclasses.replace(p, learned=dataclasses.replace(
         p.learned, methods=tuple(runs), minutes=minutes, seeds=1, stability_cases=(),
         epochs=p.learned.epochs if epochs is None else epochs,
@@ -116,6 +122,17 @@ def parameters(recipe: str, data: Path) -> int:
     with quiet_lightning():
         module = load_recipe(recipe, data={"root": str(data), "val_split": None}).module
     return sum(p.numel() for p in module.model.parameters())
+
+
+def lbs_reference(records: List[Dict[str, Any]]) -> Optional[Dict[str, Any]]:
+    """LBS's test E_dist and inference time on the same test sequences (``None``: not
+    scored)."""
+    r = next((r for r in records if r["kind"] == "learned" and r["method"] == methods.LBS
+              and r["status"] == "ok"), None)
+    if r is None:
+        return None
+    return {"E_dist": r["metrics"]["E_dist"], "inference_ms_per_frame":
+            r["timing"]["latency_ms"], "test_sequences": len(r.get("per_sequence", []))}
 
 
 def rows(records: List[Dict[str, Any]], runs: Dict[str, Dict[str, Any]],
@@ -151,23 +168,33 @@ def rows(records: List[Dict[str, Any]], runs: Dict[str, Dict[str, Any]],
 
 
 def table(res: Dict[str, Any]) -> str:
+    scored = {r["test_sequences"] for r in res["rows"] if "E_dist" in r}
+    lbs = res.get("lbs")
     lines = ["# Model size study", "", f"`{res['command']}`", "",
-             f"Dataset {res['dataset']['name']} ({res['dataset']['sequences']['test']} test "
-             f"sequences); {res['minutes']} min of training per run; E_dist in cm on the test "
-             "split; p: paired Wilcoxon over the test sequences against the method's 1x "
+             f"Dataset {res['dataset']['name']}: {' / '.join(map(str, sorted(scored)))} of "
+             f"its {res['dataset']['sequences']['test']} test sequences (the preset's "
+             f"sample); {res['minutes']} min of training per run on {res['threads']} "
+             "thread(s); E_dist in cm on those sequences; x LBS: E_dist over LBS's on the "
+             "same sequences; p: paired Wilcoxon over the sequences against the method's 1x "
              "(median difference, negative: this size lower).", "",
              "| method | size | parameters | training vertex-frames/s | inference ms/frame | "
-             "test E_dist | vs 1x (p, median diff) |", "|---|---|---|---|---|---|---|"]
+             "test E_dist | x LBS | vs 1x (p, median diff) |",
+             "|---|---|---|---|---|---|---|---|"]
+    if lbs is not None:
+        lines.append(f"| {methods.LBS} | | 0 | | {lbs['inference_ms_per_frame']:.3g} | "
+                     f"{lbs['E_dist']:.4f} | 1 | |")
     for r in res["rows"]:
         if "E_dist" not in r:
-            lines.append(f"| {r['method']} | {r['size']} | | | | {r['status']} | |")
+            lines.append(f"| {r['method']} | {r['size']} | | | | {r['status']} | | |")
             continue
+        ratio = "" if lbs is None else f"{r['E_dist'] / lbs['E_dist']:.3f}"
         w = r.get("wilcoxon_vs_default")
         vs = "—" if w is None else f"p={w['p']:.3g}, {w['median_diff']:+.3f}"
         speed = r["train_vertex_frames_per_s"]
         lines.append(f"| {r['method']} | {r['size']} | {r['parameters']:,} | "
                      f"{'no step' if speed is None else f'{speed:.3g}'} | "
-                     f"{r['inference_ms_per_frame']:.3g} | {r['E_dist']:.4f} | {vs} |")
+                     f"{r['inference_ms_per_frame']:.3g} | {r['E_dist']:.4f} | {ratio} | "
+                     f"{vs} |")
     return "\n".join(lines) + "\n"
 
 
@@ -192,13 +219,25 @@ def plot(res: Dict[str, Any], path: Path) -> None:
           ("inference time per frame (ms)", lambda r: r["inference_ms_per_frame"]))
     colours = dict(zip(STUDIED, ("tab:blue", "tab:orange", "tab:green")))
     marker = {"0.5x": "v", "1x": "o", "2x": "^"}
+    # a run that diverged would squash the others: drawn hollow at the top, its value beside
+    cap = OFF_SCALE * min(r["E_dist"] for r in ok) if ok else float("inf")
     for ax, (label, x) in zip(axes, xs):
+        n_off = 0
         for r in (r for r in ok if x(r) is not None):
-            ax.scatter(x(r), r["E_dist"], c=colours[r["method"]], marker=marker[r["size"]],
-                       s=60, label=f"{r['method']} {r['size']}")
+            off = r["E_dist"] > cap
+            c = colours[r["method"]]
+            ax.scatter(x(r), min(r["E_dist"], cap), marker=marker[r["size"]], s=60,
+                       facecolors="none" if off else c, edgecolors=c,
+                       label=f"{r['method']} {r['size']}")
+            if off:
+                ax.annotate(f"{r['E_dist']:.0f} cm", (x(r), cap), xytext=(-6, -12 * n_off - 12),
+                            textcoords="offset points", fontsize=7, color=c, ha="right")
+                n_off += 1
         f = front([(x(r), r["E_dist"]) for r in ok if x(r) is not None])
         if f:
             ax.step(*zip(*f), where="post", c="0.4", lw=1, ls="--", label="Pareto front")
+        if res.get("lbs") is not None:
+            ax.axhline(res["lbs"]["E_dist"], c="k", lw=1, ls=":", label=methods.LBS)
         ax.set_xscale("log")
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(label)
@@ -209,7 +248,8 @@ def plot(res: Dict[str, Any], path: Path) -> None:
         legend.update(zip(*reversed(ax.get_legend_handles_labels())))
     fig.legend(list(legend.values()), list(legend), loc="center right", fontsize=7)
     fig.suptitle(f"Model size: {res['dataset']['name']}, {res['minutes']} min of training "
-                 "each")
+                 f"each on {res['threads']} thread(s); hollow: above the scale, its value "
+                 "beside it")
     fig.tight_layout(rect=(0, 0, 0.8, 0.95))
     buf = path.with_suffix(".tmp.png")
     fig.savefig(buf, dpi=120)
@@ -227,6 +267,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     help="training wall time of every run")
     ap.add_argument("--epochs", type=int_at_least(1), default=None,
                     help="the most epochs of every run (default: the preset's)")
+    ap.add_argument("--threads", type=int_at_least(1), default=None,
+                    help="torch threads (and Ray CPUs) of every run (default: the "
+                         "preset's)")
     ap.add_argument("--backend", choices=("local", "ray"), default="local",
                     help="the runs one after another here, or each a Ray task")
     ap.add_argument("--workers", type=int_at_least(1), default=None,
@@ -240,7 +283,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         budget = dataclasses.replace(budget, epochs=args.epochs)
     data = prepare_dataset(args.data)
     runs = write_recipes(out, data.root, budget)
-    p = study_preset(args.preset, args.minutes, list(runs), args.epochs)
+    p = study_preset(args.preset, args.minutes, [*runs, methods.LBS], args.epochs,
+                     args.threads)
     backend = RayBackend(args.workers, args.address) if args.backend == "ray" else None
     summary = runner.run(p, out / "bench",
                          seeds=1, data=data.root, progress=False, backend=backend,
@@ -251,9 +295,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
              if r["status"] == "ok" and r["split"] == "train"]
     res = {"command": command_line("benchmarks/size_study.py", argv),
            "dataset": data.to_json(), "minutes": args.minutes, "preset": args.preset,
+           "threads": p.threads,
            "sizes": SIZES, "mean_train_vertices": sum(r["num_vertices"] for r in train)
            / len(train)}
     res["rows"] = rows(records, runs, res["mean_train_vertices"], data.root)
+    res["lbs"] = lbs_reference(records)
     atomic_write_json(out / "size_study.json", res)
     atomic_write_bytes(out / "size_study.md", table(res).encode())
     plot(res, out / "size_study.png")

@@ -57,3 +57,18 @@ def test_study_preset_trains_the_runs_only():
     assert not p.cases and not p.learned.stability_cases
     with pytest.raises(ValueError, match="minutes"):
         size_study.study_preset("learn", -1.0, [methods.DA])
+
+
+def test_table_gives_each_size_against_lbs_on_the_same_sequences():
+    res = {"command": "size_study.py", "minutes": 20.0, "threads": 1,
+           "dataset": {"name": "learn", "sequences": {"test": 107}},
+           "lbs": {"E_dist": 8.0, "inference_ms_per_frame": 0.5, "test_sequences": 40},
+           "rows": [{"method": methods.DA, "size": "1x", "E_dist": 6.0, "parameters": 1000,
+                     "train_vertex_frames_per_s": 2.0e5, "inference_ms_per_frame": 3.0,
+                     "test_sequences": 40},
+                    {"method": methods.DA, "size": "2x", "status": "failed"}]}
+    lines = size_study.table(res).splitlines()
+    assert "40 of its 107 test sequences" in lines[4]
+    assert lines[8] == f"| {methods.LBS} | | 0 | | 0.5 | 8.0000 | 1 | |"
+    assert lines[9] == f"| {methods.DA} | 1x | 1,000 | 2e+05 | 3 | 6.0000 | 0.750 | — |"
+    assert lines[10] == f"| {methods.DA} | 2x | | | | failed | | |"
