@@ -25,7 +25,11 @@ from garmentgnn.data.keys import body_key, garment_key
 class EpochShuffleSampler(DistributedSampler):
     """A permutation seeded by ``(seed, epoch)``: the order of an epoch does not depend
     on what ran before it, so a run resumed from a checkpoint sees the same batches as
-    an uninterrupted one (Lightning calls :meth:`set_epoch` every epoch).
+    an uninterrupted one (Lightning calls :meth:`set_epoch` every epoch).  A fit resumed
+    in the middle of an epoch goes on from the batch it stopped at: :meth:`set_epoch`'s
+    ``skip`` leaves out the epoch's first batches once, from the next iteration only;
+    :meth:`__len__` stays the whole epoch's, as Lightning counts the batches a resumed
+    epoch already ran.
 
     With ``num_replicas > 1`` (DDP) replica ``rank`` takes every ``num_replicas``-th
     chunk of that one permutation (the tail padded with its first chunks, as
@@ -49,9 +53,14 @@ class EpochShuffleSampler(DistributedSampler):
         self.n, self.seed, self.order_shuffle = n, seed, shuffle
         self.batch_size = batch_size
         self.lengths = list(lengths) if lengths is not None else [0] * n
+        self.skip = 0
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
+    def set_epoch(self, epoch: int, skip: int = 0) -> None:
+        """The epoch whose order comes next; its first ``skip`` batches (chunks at
+        ``batch_size`` 1) are left out of the next iteration only."""
+        if skip < 0:
+            raise ValueError(f"`skip`: expected batches >= 0, got {skip}")
+        self.epoch, self.skip = int(epoch), int(skip)
 
     def order(self) -> List[int]:
         """The epoch's order of all ``n`` chunks (before sharding)."""
@@ -79,9 +88,9 @@ class EpochShuffleSampler(DistributedSampler):
 
     def __iter__(self) -> Iterator[Any]:
         """Chunk indices (``batch_size`` 1), else lists of them (:meth:`batches`)."""
-        if self.batch_size == 1:
-            return iter(self._shard())
-        return iter(self.batches())
+        items = self._shard() if self.batch_size == 1 else self.batches()
+        skip, self.skip = self.skip, 0
+        return iter(items[skip:])
 
     def __len__(self) -> int:
         return super().__len__() if self.batch_size == 1 else len(self.batches())
@@ -125,10 +134,12 @@ class GarmentDataModule(L.LightningDataModule):
     was seeded).  An explicit ``seed`` keeps one order whatever the run's seed
     (:meth:`order_seed`).
 
-    Resuming: the epoch to continue with and the order's seed are kept in the checkpoint
-    (:meth:`state_dict`) and the training sampler starts there, because Lightning
-    (2.6) builds a resumed fit's first data iterator *before* it calls the
-    sampler's ``set_epoch``, which would replay epoch 0's chunk order.
+    Resuming: the epoch to continue with, the batches of it that already ran and the
+    order's seed are kept in the checkpoint (:meth:`state_dict`) and the training
+    sampler starts there, because Lightning (2.6) builds a resumed fit's first data
+    iterator *before* it calls the sampler's ``set_epoch``, which would replay epoch 0's
+    chunk order, and replays a plain sampler's epoch from its first batch: a fit
+    stopped anywhere and resumed sees the batches of an uninterrupted one, in order.
     """
 
     def __init__(self, root: Union[str, Path], chunk: int = CHUNK, history: int = HISTORY,
@@ -164,6 +175,7 @@ class GarmentDataModule(L.LightningDataModule):
         self.test_set: Optional[SequenceChunks] = None
         self.predict_set: Optional[SequenceChunks] = None
         self.start_epoch = 0  # the epoch a resumed fit continues with
+        self.start_batch = 0  # and the batches of it that already ran
         self._resumed_seed: Optional[int] = None  # the order's seed of a resumed fit
 
     def order_seed(self) -> int:
@@ -181,12 +193,18 @@ class GarmentDataModule(L.LightningDataModule):
         if trainer is None:
             return {}
         # epochs whose training part ran to its end (a checkpoint written in
-        # on_train_epoch_end or after fit); a resumed fit starts with the next one
-        return {"next_epoch": int(trainer.fit_loop.epoch_progress.current.processed),
+        # on_train_epoch_end or after fit); a resumed fit starts with the next one, after
+        # the batches of it that ran (a checkpoint written in the middle of an epoch: on
+        # a batch's end, after a validation)
+        epochs = trainer.fit_loop.epoch_progress.current
+        batches = trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        return {"next_epoch": int(epochs.processed),
+                "epoch_batches": int(batches) if epochs.started > epochs.processed else 0,
                 "order_seed": self.order_seed()}
 
     def load_state_dict(self, state: Dict[str, int]) -> None:
         self.start_epoch = int(state.get("next_epoch", 0))
+        self.start_batch = int(state.get("epoch_batches", 0))
         # a resumed fit goes on in the order it started with (a checkpoint written
         # before the seed was kept: the run's seed, as then)
         if "order_seed" in state:
@@ -284,7 +302,10 @@ class GarmentDataModule(L.LightningDataModule):
         world, rank = (shard["num_replicas"], shard["rank"]) if shard else (1, 0)
         dl = self._loader(self._train(batches=True), self.hparams.shuffle, world, rank,
                           self.hparams.batch_size)
-        dl.sampler.set_epoch(self.start_epoch)
+        if self.start_batch >= len(dl.sampler):  # stopped after the epoch's last batch
+            dl.sampler.set_epoch(self.start_epoch + 1)
+        else:
+            dl.sampler.set_epoch(self.start_epoch, skip=self.start_batch)
         return dl
 
     def val_dataloader(self) -> Union[DataLoader, List[DataLoader]]:
