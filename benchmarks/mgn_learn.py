@@ -151,7 +151,7 @@ def score_methods(args: argparse.Namespace):
     modules: Dict[str, GarmentModule] = {}
     mgn = checkpoint_of(args.mgn, "--mgn", "mgn") if args.mgn else None
     for start in args.starts if mgn is not None else ():
-        name = f"MGN-style ({start})"
+        name = f"{args.mgn_name} ({start})"
         modules[name] = mgn
         methods[name] = (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
     if mgn is not None and args.project:  # the same model with the projection after each step
@@ -159,7 +159,7 @@ def score_methods(args: argparse.Namespace):
         projected = load_checkpoint(args.mgn)
         projected.model.strain_limit, projected.model.collision_projection = sweeps, margin
         for start in args.starts:
-            name = f"MGN-style ({start}, projected)"
+            name = f"{args.mgn_name} ({start}, projected)"
             modules[name] = projected
             methods[name] = (lambda s: (lambda item: projected.rollout(item, start=s)))(start)
     for spec in args.other:
@@ -424,6 +424,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    help="generated dataset folder")
     add_output_args(p, RESULTS, "folder for <command>.json, .md and .png")
     p.add_argument("--mgn", default=None, help="the MGN-style checkpoint (score, stability)")
+    p.add_argument("--mgn-name", default="MGN-style", help="score: the --mgn model's name in "
+                   "the tables (paired tests: each name starting MGN-style against the rest)")
     p.add_argument("--split", default="test", help="score: the split rolled out")
     p.add_argument("--starts", nargs="+", default=["gt", "drape"],
                    choices=list(START_STATES), help="score: where the rollouts start")
