@@ -2,7 +2,7 @@
 the budget their trend says a target needs.
 
     python benchmarks/mgn_budget.py --log RUN/metrics.csv --ckpt CKPT --data DATA \\
-        --out OUT [--last 3] [--targets 0.85 0.75 0.5]
+        [--out OUT | --commit] [--last 3] [--targets 0.85 0.75 0.5]
 
 ``--log`` is the run's Lightning CSV log: ``val/E_dist`` at every validation, ``step``
 counting batches (the module's ``stats_steps`` statistics batches included, which train
@@ -19,11 +19,11 @@ the last ``--last`` validations, and each target's budget is where that line cro
 bends is a local trend, not a law: the report gives the slope of every interval beside
 it.
 
-Outputs: ``OUT/budget.json``, ``budget.md`` and ``budget.png`` (log axis).
+Outputs: ``OUT/budget.json``, ``budget.md`` and ``budget.png`` (log axis); ``--commit``
+writes them beside the 10^6 garment-frame run's log, ``docs/results/mgn_learn/million``.
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import inspect
 import json
@@ -34,10 +34,14 @@ from typing import Any, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
+from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args,
+                                  output_path)
 from garmentgnn.training import GarmentDataModule
 from garmentgnn.training.checkpoints import load_checkpoint
 
 COLUMNS = ("E_dist", "E_len", "E_curv", "collision")
+#: the committed copy (``--commit``): beside the 10^6 garment-frame run's log
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results" / "mgn_learn" / "million"
 
 
 def read_validations(path: Path) -> List[Dict[str, float]]:
@@ -142,18 +146,20 @@ def report(points, fit, lbs, model, args) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     ap.add_argument("--log", type=Path, required=True, help="the run's metrics.csv")
     ap.add_argument("--ckpt", required=True, help="a checkpoint of the run")
     ap.add_argument("--data", required=True, help="the dataset the run trained on")
-    ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--val", type=int, default=16,
                     help="validation sequences the run's validation rolls out (its "
                          "limit_val_batches)")
     ap.add_argument("--last", type=int, default=3, help="validations the trend goes through")
-    ap.add_argument("--targets", type=float, nargs="+", default=[0.85, 0.75, 0.5])
+    ap.add_argument("--targets", type=float, nargs="+", default=[0.85, 0.75, 0.5],
+                    help="E_dist / LBS ratios whose budget the report gives")
+    add_output_args(ap, RESULTS, "the report's folder")
     args = ap.parse_args(argv)
     rows = read_validations(args.log)
+    args.out = output_path(args, RESULTS)
     module = load_checkpoint(args.ckpt)
     if module.hparams.get("rollout_mode") == "per_frame":
         raise SystemExit(f"error: --ckpt {args.ckpt}: a per_frame run takes several optimizer "
