@@ -158,9 +158,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     help="E_dist / LBS ratios whose budget the report gives")
     add_output_args(ap, RESULTS, "the report's folder")
     args = ap.parse_args(argv)
-    rows = read_validations(args.log)
+    if args.last < 2:
+        ap.error(f"--last: a trend needs two validations or more, got {args.last}")
+    try:
+        rows = read_validations(args.log)
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"error: {e}" if "--log" in str(e) else f"error: --log: {e}")
+    try:
+        module = load_checkpoint(args.ckpt)
+    except (OSError, ValueError, TypeError) as e:
+        raise SystemExit(f"error: --ckpt {args.ckpt}: {e}")
     args.out = output_path(args, RESULTS)
-    module = load_checkpoint(args.ckpt)
     if module.hparams.get("rollout_mode") == "per_frame":
         raise SystemExit(f"error: --ckpt {args.ckpt}: a per_frame run takes several optimizer "
                          f"steps a batch, which its log's batch count does not give; use a "

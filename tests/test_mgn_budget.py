@@ -54,3 +54,23 @@ def test_a_flat_or_rising_trend_never_reaches_a_target():
     assert mgn_budget.trend(rising, [0.75])["frames_to_target"] == {"0.75": None}
     with pytest.raises(ValueError, match="--last"):
         mgn_budget.trend(flat[:1], [0.75])
+
+
+def test_bad_input_is_one_error_line_naming_the_flag(tmp_path, capsys):
+    log = tmp_path / "metrics.csv"
+    log.write_text(HEADER + "0,24,,0.5,,,,\n")
+    base = ["--ckpt", str(tmp_path / "none.ckpt"), "--data", str(tmp_path),
+            "--out", str(tmp_path / "o")]
+    for argv, words in ((["--log", str(log)], ["error: --log", "no val/E_dist row"]),
+                        (["--log", str(tmp_path / "none.csv")], ["error: --log", "none.csv"])):
+        with pytest.raises(SystemExit) as e:
+            mgn_budget.main(argv + base)
+        assert all(w in str(e.value.code) for w in words), e.value.code
+    log.write_text(HEADER + "2,2499,,,0.05,6.5,6.7,0.006\n")
+    with pytest.raises(SystemExit) as e:
+        mgn_budget.main(["--log", str(log)] + base)
+    assert str(e.value.code).startswith(f"error: --ckpt {tmp_path / 'none.ckpt'}")
+    with pytest.raises(SystemExit):
+        mgn_budget.main(["--log", str(log), "--last", "1"] + base)
+    assert "--last: a trend needs two" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
