@@ -34,6 +34,7 @@ from typing import Any, Dict, List, Optional, Sequence
 import lightning as L
 import torch
 
+from garmentgnn._plotting import pyplot
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args,
                                   output_path)
 from garmentgnn.training import GarmentDataModule
@@ -95,10 +96,7 @@ def trend(points: Sequence[Dict[str, float]], targets: Sequence[float]) -> Dict[
 
 def plot(points: List[Dict[str, float]], fit: Dict[str, Any], targets: Sequence[float],
          path: Path) -> None:
-    import matplotlib  # noqa: PLC0415 (a plot-only dependency)
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     f = [p["frames"] for p in points]
     ax.plot(f, [p["ratio"] for p in points], "o-", color="C0", label="validation rollouts")
