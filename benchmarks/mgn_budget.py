@@ -25,7 +25,6 @@ writes them beside the 10^6 garment-frame run's log, ``docs/results/mgn_learn/mi
 from __future__ import annotations
 
 import csv
-import inspect
 import json
 import math
 from pathlib import Path
@@ -66,8 +65,7 @@ def read_validations(path: Path) -> List[Dict[str, float]]:
 def score_lbs(module, data: str, sequences: int) -> Dict[str, Dict[str, float]]:
     """LBS and the checkpoint's ``module`` on the first ``sequences`` validation
     sequences, on the frames its validation scores: ``{"lbs": {...}, "model": {...}}``."""
-    params = inspect.signature(GarmentDataModule.__init__).parameters
-    hp = {k: v for k, v in module.trained_data.items() if k in params}
+    hp = GarmentDataModule.settings(module.trained_data)
     dm = GarmentDataModule(**dict(hp, root=data, test_split=hp.get("val_split") or "val"))
     trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, enable_progress_bar=False,
                         enable_model_summary=False, limit_test_batches=sequences)

@@ -68,6 +68,16 @@ def test_a_resumed_fit_keeps_its_order(root, monkeypatch):
     assert "PL_GLOBAL_SEED" not in os.environ
 
 
+def test_a_checkpoints_data_settings_rebuild_its_data_module(root):
+    dm = GarmentDataModule(root, chunk=5, history=2, nystrom_dim=4, num_landmarks=16,
+                           val_split=None, seed=4)
+    saved = dict(dm.hparams, self=None, an_older_setting=1)  # as a checkpoint keeps them
+    settings = GarmentDataModule.settings(saved)
+    assert "an_older_setting" not in settings and "self" not in settings
+    assert dict(GarmentDataModule(**settings).hparams) == dict(dm.hparams)
+    assert GarmentDataModule.settings(None) == {}
+
+
 @pytest.mark.parametrize("seed", [1.5, "1", True])
 def test_a_data_seed_that_is_no_integer_is_refused(root, seed):
     with pytest.raises(ValueError, match="--data.seed"):

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import inspect
 import json
 import math
 import sys
@@ -72,9 +71,7 @@ def run_branch(args: argparse.Namespace) -> None:
         stats_steps=0)
     # the run's data settings (another shuffle), windows of 2 + rollout frames, with the
     # recipe's trainer (its log under --out, validation every --every steps)
-    params = inspect.signature(GarmentDataModule.__init__).parameters
-    dm_hp = {k: v for k, v in (src.get("datamodule_hyper_parameters") or {}).items()
-             if k in params}
+    dm_hp = GarmentDataModule.settings(src.get("datamodule_hyper_parameters"))
     # the run's order: its data.seed, else the run's seed its data module kept
     order = dm_hp.get("seed")
     if order is None:

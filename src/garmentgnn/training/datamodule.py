@@ -178,6 +178,14 @@ class GarmentDataModule(L.LightningDataModule):
         self.start_batch = 0  # and the batches of it that already ran
         self._resumed_seed: Optional[int] = None  # the order's seed of a resumed fit
 
+    @classmethod
+    def settings(cls, saved: Optional[Dict[str, Any]]) -> Dict[str, Any]:
+        """The arguments of this class among a checkpoint's saved data-module settings
+        (``datamodule_hyper_parameters``); entries of another version or another
+        class are left out."""
+        params = inspect.signature(cls.__init__).parameters
+        return {k: v for k, v in (saved or {}).items() if k in params and k != "self"}
+
     def order_seed(self) -> int:
         """The seed of the training chunks' order: ``seed`` when given; else the one a
         resumed fit's checkpoint kept; else the run's seed (``PL_GLOBAL_SEED``, which
