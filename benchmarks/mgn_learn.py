@@ -40,7 +40,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import torch
 
 from garmentgnn.data import SequenceChunks
-from garmentgnn.data.store import dataset_dir, read_json, read_manifest
+from garmentgnn.data.store import dataset_dir, read_manifest
 from garmentgnn._argparse import (ArgumentParser, HelpFormatter, add_output_args,
                                   int_at_least, output_path)
 from garmentgnn._plotting import pyplot
@@ -61,7 +61,8 @@ from garmentgnn.training.checkpoints import load_checkpoint
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.append(str(HERE))
-from mgn_parts.report import GIVEN, _by_seq, plot_per_frame, score_table  # noqa: E402
+from mgn_parts.report import (GIVEN, merge_scores, plot_per_frame, read_scores,  # noqa: E402
+                               score_table)
 from mgn_parts.runs import run_branch, run_steptime, run_sweep  # noqa: E402
 
 
@@ -96,23 +97,6 @@ def per_frame(pred: torch.Tensor, item) -> List[Optional[float]]:
     """E_dist (cm) of each frame (``None`` where the frame is not scored)."""
     d = (pred - item.gt).norm(dim=-1).mean(-1) * 100.0
     return [float(x) for x in d]
-
-
-def read_score(path: str) -> Dict[str, Any]:
-    """A ``score.json`` of an earlier ``score`` run (for ``--merge``); exits with one
-    ``error:`` line naming the file when it is missing or is not one."""
-    fix = "give a score.json written by `python benchmarks/mgn_learn.py score`"
-    try:
-        doc = read_json(path, fix)
-    except (OSError, ValueError) as e:
-        sys.exit(f"error: --merge: {e if isinstance(e, ValueError) else f'{path}: no such file'}")
-    lbs = (doc.get("methods") or {}).get("LBS only") if isinstance(doc.get("methods"), dict) \
-        else None
-    if not isinstance(lbs, list) or not all(isinstance(doc.get(k), dict)
-                                            for k in ("per_frame", "seconds")):
-        sys.exit(f"error: --merge: {path}: no 'methods' with 'LBS only', 'per_frame' and "
-                 f"'seconds'; {fix}")
-    return doc
 
 
 #: what a flag's checkpoint must hold: the method's name, and the test of its module
@@ -175,7 +159,7 @@ def score_methods(args: argparse.Namespace):
 
 
 def run_score(args: argparse.Namespace) -> None:
-    earlier = {path: read_score(path) for path in args.merge}  # checked before any work
+    earlier = read_scores(args.merge, args.merge_names)  # checked before any work
     methods, modules = score_methods(args)
     out = Path(args.out)  # made once every checkpoint has been read
     out.mkdir(parents=True, exist_ok=True)
@@ -230,14 +214,7 @@ def run_score(args: argparse.Namespace) -> None:
     results["valid"] = {s["sequence"]: [bool(v) for v in test.valid(i)]
                         for i, s in enumerate(results["methods"]["LBS only"])} \
         if len(results["methods"]["LBS only"]) == len(test) else {}
-    for path, other in earlier.items():  # methods scored earlier on the same sequences
-        if (other.get("content_sha256"), other.get("split")) != (
-                results["content_sha256"], results["split"]) or \
-                _by_seq(other["methods"]["LBS only"]) != _by_seq(results["methods"]["LBS only"]):
-            sys.exit(f"error: --merge: {path} scored other sequences or another dataset")
-        for key in ("methods", "per_frame", "seconds"):
-            for name, v in other[key].items():
-                results[key].setdefault(name, v)
+    merge_scores(results, earlier, args.merge_names)
     text = score_table(results)
     if ensemble is not None:
         by_method = results["ensemble"]["methods"]
@@ -436,6 +413,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    help="score: other checkpoints scored beside it")
     p.add_argument("--merge", nargs="*", default=[], metavar="SCORE.json",
                    help="score: add the methods of earlier scores of the same sequences")
+    p.add_argument("--merge-names", nargs="+", default=None, metavar="NAME",
+                   help="score: only these methods of the --merge files (default: all)")
     p.add_argument("--on-ensemble", action="store_true",
                    help="score: only the sequences of --data's ensemble ground truth")
     p.add_argument("--sequences", type=int, default=None,
@@ -474,8 +453,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.command == "score":
         if args.on_ensemble and args.sequences:
             p.error("--sequences: --on-ensemble scores the ensemble's sequences; drop one")
-        for path in args.merge:
-            read_score(path)
+        read_scores(args.merge, args.merge_names)
         score_methods(args)
         args.ensemble = read_ensemble(args.data, args.on_ensemble)
     elif args.command == "stability":

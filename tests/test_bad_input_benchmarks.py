@@ -146,8 +146,8 @@ def test_mgn_learn_merge_checks_its_files_before_scoring(capsys, tmp_path):
     other = RESULTS / "mgn_learn" / "curves.json"
     for path, words in ((other, [f"--merge: {other}", "no 'methods'"]),
                         (tmp_path / "none.json", ["--merge", "none.json: no such file"])):
-        args = argparse.Namespace(merge=[str(path)], out=str(tmp_path / "o"), mgn=None,
-                                  data=None, other=[], starts=[], split="test",
+        args = argparse.Namespace(merge=[str(path)], merge_names=None, out=str(tmp_path / "o"),
+                                  mgn=None, data=None, other=[], starts=[], split="test",
                                   sequences=None)
         with pytest.raises(SystemExit) as e:
             run_score(args)
@@ -284,6 +284,8 @@ MGN_CKPT = Path(__file__).resolve().parent / "data" / "mgn_learn.ckpt"
     (["score", "--data", "{data}", "--other", "m"], ["--other m", "expected NAME=CKPT"]),
     (["score", "--data", "{data}", "--mgn", "{tmp}/none.ckpt"], ["--mgn", "none.ckpt"]),
     (["score", "--data", "{data}"], ["--mgn", "give --mgn CKPT"]),
+    (["score", "--data", "{data}", "--mgn", str(MGN_CKPT), "--merge", "{tmp}/none.json",
+      "--merge-names", "A"], ["--merge", "none.json: no such file"]),
     (["score", "--data", "{tmp}", "--mgn", str(MGN_CKPT)], ["argument --data", "manifest"]),
     (["branch", "--data", "{data}", "--from", str(MGN_CKPT), "--steps", "5", "--rollout",
       "0"], ["argument --rollout", "expected an integer >= 1, got 0"]),

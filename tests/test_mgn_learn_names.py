@@ -1,8 +1,12 @@
 """``benchmarks/mgn_learn.py score``: the rows of the ``--mgn`` model take the name
-``--mgn-name`` gives, one a start (and a start with the projection)."""
+``--mgn-name`` gives, one a start (and a start with the projection); ``--merge`` adds
+the methods (``--merge-names``: only those) of earlier scores of the same sequences."""
 import argparse
+import json
 import runpy
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MGN_CKPT = ROOT / "tests" / "data" / "mgn_learn.ckpt"
@@ -16,3 +20,39 @@ def test_score_names_the_mgn_rows_as_given():
     assert list(methods) == [f"One-step to step 15,000 ({s})" for s in
                              ("gt", "drape", "gt, projected", "drape, projected")]
     assert list(modules) == list(methods)
+
+
+def _scores(**methods):
+    """A score of two sequences whose methods have these E_dist values."""
+    def rows(values):
+        return [{"sequence": s, "metrics": {"E_dist": v}} for s, v in zip("ab", values)]
+    return {"content_sha256": "d", "split": "test",
+            "methods": {name: rows(v) for name, v in methods.items()},
+            "per_frame": {name: {} for name in methods},
+            "seconds": {name: 1.0 for name in methods if name != "LBS only"}}
+
+
+def test_merge_adds_only_the_named_methods_and_keeps_the_scored_ones():
+    script = runpy.run_path(str(ROOT / "benchmarks" / "mgn_learn.py"), run_name="mgn_merge")
+    results = _scores(**{"LBS only": [5, 6], "New": [4, 4]})
+    earlier = {"old.json": _scores(**{"LBS only": [5, 6], "New": [9, 9], "A": [1, 2],
+                                      "B": [3, 3]})}
+    script["merge_scores"](results, earlier, ["A", "New"])
+    assert list(results["methods"]) == ["LBS only", "New", "A"]
+    assert [r["metrics"]["E_dist"] for r in results["methods"]["New"]] == [4, 4]
+    assert list(results["seconds"]) == ["New", "A"]
+    script["merge_scores"](results, earlier)  # every method
+    assert list(results["methods"]) == ["LBS only", "New", "A", "B"]
+
+
+def test_merge_refuses_a_score_of_other_sequences_or_a_name_it_lacks(tmp_path, capsys):
+    script = runpy.run_path(str(ROOT / "benchmarks" / "mgn_learn.py"), run_name="mgn_merge")
+    other = {"old.json": _scores(**{"LBS only": [5, 7], "A": [1, 2]})}
+    with pytest.raises(SystemExit, match="--merge: old.json scored other sequences"):
+        script["merge_scores"](_scores(**{"LBS only": [5, 6]}), other)
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(other["old.json"]))
+    with pytest.raises(SystemExit, match="--merge-names: 'B' is in no --merge file; give "
+                                         r"one of \['A', 'LBS only'\]"):
+        script["read_scores"]([str(path)], ["A", "B"])
+    assert script["read_scores"]([str(path)], ["A"]) == {str(path): other["old.json"]}

@@ -2,24 +2,72 @@
 and the error per frame (``benchmarks/mgn_learn.py score``)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
 
 from garmentgnn._plotting import pyplot
 from garmentgnn.bench.scoring import GROUPS, aggregate, wilcoxon
+from garmentgnn.data.store import read_json
 
 #: the frames a rollout is given (not scored, for any method)
 GIVEN = 2
 #: the columns of the score table
 METRICS = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
 
-__all__ = ["GIVEN", "METRICS", "plot_per_frame", "score_table"]
+__all__ = ["GIVEN", "METRICS", "merge_scores", "plot_per_frame", "read_scores", "score_table"]
 
 
 def _by_seq(records, metric="E_dist") -> Dict[str, float]:
     return {r["sequence"]: r["metrics"][metric] for r in records}
+
+
+def read_score(path: str) -> Dict[str, Any]:
+    """A ``score.json`` of an earlier ``score`` run (for ``--merge``); exits with one
+    ``error:`` line naming the file when it is missing or is not one."""
+    fix = "give a score.json written by `python benchmarks/mgn_learn.py score`"
+    try:
+        doc = read_json(path, fix)
+    except (OSError, ValueError) as e:
+        sys.exit(f"error: --merge: {e if isinstance(e, ValueError) else f'{path}: no such file'}")
+    lbs = (doc.get("methods") or {}).get("LBS only") if isinstance(doc.get("methods"), dict) \
+        else None
+    if not isinstance(lbs, list) or not all(isinstance(doc.get(k), dict)
+                                            for k in ("per_frame", "seconds")):
+        sys.exit(f"error: --merge: {path}: no 'methods' with 'LBS only', 'per_frame' and "
+                 f"'seconds'; {fix}")
+    return doc
+
+
+def read_scores(paths: Sequence[str], names: Optional[Sequence[str]] = None
+                ) -> Dict[str, Dict[str, Any]]:
+    """``{path: score}`` of the ``--merge`` files; one ``error:`` line where a file is
+    not a score or where one of ``names`` (``--merge-names``) is in none of them."""
+    docs = {path: read_score(path) for path in paths}
+    have = {name for doc in docs.values() for name in doc["methods"]}
+    missing = [n for n in names or () if n not in have]
+    if missing:
+        sys.exit(f"error: --merge-names: {missing[0]!r} is in no --merge file; give one of "
+                 f"{sorted(have)}")
+    return docs
+
+
+def merge_scores(results: Dict[str, Any], earlier: Dict[str, Dict[str, Any]],
+                 names: Optional[Sequence[str]] = None) -> None:
+    """Adds to ``results`` the methods (``names``; default all) of ``earlier``'s scores,
+    which must have scored the same sequences of the same dataset (one ``error:`` line
+    where one did not); a method ``results`` holds already keeps its own rows."""
+    for path, other in earlier.items():
+        if (other.get("content_sha256"), other.get("split")) != (
+                results["content_sha256"], results["split"]) or \
+                _by_seq(other["methods"]["LBS only"]) != _by_seq(results["methods"]["LBS only"]):
+            sys.exit(f"error: --merge: {path} scored other sequences or another dataset")
+        for key in ("methods", "per_frame", "seconds"):
+            for name, v in other[key].items():
+                if names is None or name in names:
+                    results[key].setdefault(name, v)
 
 
 def score_table(results: Dict[str, Any]) -> str:
