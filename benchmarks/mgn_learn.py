@@ -133,11 +133,24 @@ def score_methods(args: argparse.Namespace):
         sys.exit(2)
     methods: Dict[str, Callable[[Any], torch.Tensor]] = {}
     modules: Dict[str, GarmentModule] = {}
+    others = dict(spec.partition("=")[::2] for spec in args.other)
+    for start in args.starts:
+        if start not in START_STATES and start not in others:
+            print(f"error: --starts {start}: expected one of {', '.join(START_STATES)} or "
+                  f"the NAME of an --other NAME=CKPT", file=sys.stderr)
+            sys.exit(2)
+    # a start named after an --other method: that method's frames 0 and 1 of the sequence
+    # (scored before the rollouts that start from them)
+    args.start_frames = {s: {} for s in args.starts if s not in START_STATES}
     mgn = checkpoint_of(args.mgn, "--mgn", "mgn") if args.mgn else None
+
+    def from_other(s: str, m: RolloutModule) -> Callable[[Any], torch.Tensor]:
+        return lambda item: m.rollout(item, start=args.start_frames[s][item.seq_id])
     for start in args.starts if mgn is not None else ():
         name = f"{args.mgn_name} ({start})"
         modules[name] = mgn
-        methods[name] = (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
+        methods[name] = from_other(start, mgn) if start in args.start_frames else \
+            (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
     if mgn is not None and args.project:  # the same model with the projection after each step
         sweeps, margin = int(args.project[0]), float(args.project[1])
         projected = load_checkpoint(args.mgn)
@@ -145,7 +158,8 @@ def score_methods(args: argparse.Namespace):
         for start in args.starts:
             name = f"{args.mgn_name} ({start}, projected)"
             modules[name] = projected
-            methods[name] = (lambda s: (lambda item: projected.rollout(item, start=s)))(start)
+            methods[name] = from_other(start, projected) if start in args.start_frames \
+                else (lambda s: (lambda item: projected.rollout(item, start=s)))(start)
     for spec in args.other:
         name, eq, path = spec.partition("=")
         if not eq or not name or not path:
@@ -154,6 +168,9 @@ def score_methods(args: argparse.Namespace):
         m = checkpoint_of(path, "--other")
         modules[name] = m
         methods[name] = m.predict_sequence  # from what a user has, as the bench scores
+    # the methods a start is named after first
+    order = sorted(methods, key=lambda n: n not in args.start_frames)
+    methods = {n: methods[n] for n in order}
     args.scored = methods, modules
     return args.scored
 
@@ -184,9 +201,11 @@ def run_score(args: argparse.Namespace) -> None:
 
         kept: Dict[str, torch.Tensor] = {}
 
-        def pred(i, item, predict=predict, frames=frames, kept=kept):
+        def pred(i, item, predict=predict, frames=frames, kept=kept, name=name):
             p = predict(item)
             frames[item.seq_id] = per_frame(p, item)
+            if name in args.start_frames:  # a start of the MGN-style rollouts
+                args.start_frames[name][item.seq_id] = p[:2].detach().clone()
             if ensemble is not None and item.seq_id in ensemble["sequences"]:
                 kept[item.seq_id] = p.detach().cpu()
             return p
@@ -405,7 +424,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    "the tables (paired tests: each name starting MGN-style against the rest)")
     p.add_argument("--split", default="test", help="score: the split rolled out")
     p.add_argument("--starts", nargs="+", default=["gt", "drape"],
-                   choices=list(START_STATES), help="score: where the rollouts start")
+                   help=f"score: where the rollouts start: {', '.join(START_STATES)}, or "
+                        f"the NAME of an --other method (its prediction of frames 0 and 1)")
     p.add_argument("--project", nargs=2, default=None, metavar=("SWEEPS", "MARGIN_M"),
                    help="score: also the MGN-style model with the strain limit (SWEEPS) and "
                         "the collision projection (MARGIN_M metres) after each step")

@@ -623,3 +623,30 @@ def test_the_preroll_start_settles_on_the_first_pose_then_follows_the_motion(roo
         m = model.scene_motion(item)
         torch.testing.assert_close(zero.rollout(bare, start="preroll"),
                                    model.rollout(item, m.lbs[0], m.lbs[0], m))
+
+
+def test_a_rollout_starts_from_the_frames_it_is_given(root):
+    """``start`` as the garment ``[2, V, 3]`` of frames 0 and 1 (another method's
+    prediction): the rollout of the named start whose frames they are; a garment of
+    another size, or not finite, is refused naming ``start``."""
+    torch.manual_seed(0)
+    item = SequenceChunks(root, "val", chunk=6, history=1, nystrom_dim=NY,
+                          num_landmarks=16)[0]
+    model = trained_stats(MGNStyle(hidden=8, layers=1, heads=1), windows(root)[[0, 6]])
+    module = RolloutModule(model).eval()
+    bare = item.clone()
+    del bare.gt
+    with torch.no_grad():
+        lbs = model.scene_motion(item).lbs
+        torch.testing.assert_close(module.rollout(bare, start=item.gt[:2].clone()),
+                                   module.rollout(item, start="gt"), rtol=0, atol=0)
+        torch.testing.assert_close(module.rollout(bare, start=lbs[:3].double()),
+                                   module.rollout(bare, start="lbs"), rtol=0, atol=0)
+        assert not torch.equal(module.rollout(bare, start=lbs[:2]),
+                               module.rollout(item, start="gt"))
+        with pytest.raises(ValueError, match=r"`start`: .* must be \[2, \d+, 3\]"):
+            module.rollout(bare, start=lbs[:2, :-1])
+        bad = lbs[:2].clone()
+        bad[1, 0, 0] = float("nan")
+        with pytest.raises(ValueError, match="`start`: .* not finite"):
+            module.rollout(bare, start=bad)

@@ -36,15 +36,16 @@ the first simulated frame held still (a settled drape: what a user has), ``"lbs"
 LBS garment of the first two frames, ``"preroll"`` the LBS garment of the first frame
 held still, then ``preroll_frames`` steps of the model with the body held at its first
 pose before the motion starts (Blender's own pre-roll: the model settles the garment
-and takes up the body's motion; no ground truth).  Frames given to the model are not
-scored (the first two, for every start but ``"lbs"``).  An
-exponential moving average of the weights (Lightning's ``EMAWeightAveraging`` callback,
-in ``recipes/mgn.yaml``) is what validation, test and the checkpoints see.
+and takes up the body's motion; no ground truth); :meth:`RolloutModule.rollout` also
+starts from a garment of frames 0 and 1 given as a tensor (another method's prediction).
+Frames given to the model are not scored (the first two, for every start but ``"lbs"``).
+An exponential moving average of the weights (Lightning's ``EMAWeightAveraging``
+callback, in ``recipes/mgn.yaml``) is what validation, test and the checkpoints see.
 """
 from __future__ import annotations
 
 import copy
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
@@ -354,9 +355,19 @@ class RolloutModule(GarmentModule):
 
     # -- rollouts -------------------------------------------------------------------------
     def start_states(self, batch: GarmentInputs, motion: SceneMotion,
-                     start: Optional[str] = None) -> Tuple[Tensor, Tensor]:
+                     start: Union[str, Tensor, None] = None) -> Tuple[Tensor, Tensor]:
         """The garment ``[V, 3]`` at frames 0 and 1 that a rollout of ``batch`` starts
-        from (``start``, default the module's)."""
+        from: ``start`` (default the module's) names one of :data:`START_STATES`, or is
+        the garment ``[2, V, 3]`` of those frames from elsewhere (another method's
+        prediction, e.g. a frame-parallel one: no ground truth)."""
+        if isinstance(start, Tensor):
+            V = motion.lbs.shape[1]
+            if start.dim() != 3 or start.shape[0] < 2 or tuple(start.shape[1:]) != (V, 3):
+                raise ValueError(f"`start`: the garment of frames 0 and 1 must be [2, {V}, 3] "
+                                 f"(these inputs' {V} vertices), got {list(start.shape)}")
+            if not torch.isfinite(start[:2]).all():
+                raise ValueError("`start`: the garment of frames 0 and 1 is not finite")
+            return start[0].to(motion.lbs), start[1].to(motion.lbs)
         start = start or self.hparams.start
         gt = batch.get("gt")
         if start in ("gt", "drape") and gt is None:
@@ -370,13 +381,15 @@ class RolloutModule(GarmentModule):
             return motion.lbs[0], motion.lbs[0]
         return motion.lbs[0], motion.lbs[1]
 
-    def rollout(self, batch: GarmentInputs, start: Optional[str] = None) -> Tensor:
-        """The garment ``[T, V, 3]`` of ``batch``'s frames, rolled out from ``start``."""
+    def rollout(self, batch: GarmentInputs, start: Union[str, Tensor, None] = None) -> Tensor:
+        """The garment ``[T, V, 3]`` of ``batch``'s frames, rolled out from ``start``
+        (:meth:`start_states`)."""
         if batch.num_frames < 3:
             raise ValueError(f"`batch`: a rollout needs at least 3 frames (two to start "
                              f"from), got {batch.num_frames}")
-        start = start or self.hparams.start
-        if start == "preroll":  # the first frame held for the pre-roll, then the motion
+        start = self.hparams.start if start is None else start
+        if isinstance(start, str) and start == "preroll":
+            # the first frame held for the pre-roll, then the motion
             k = self.hparams.preroll_frames
             held = batch.select(torch.cat([torch.zeros(k, dtype=torch.long),
                                            torch.arange(batch.num_frames)]))
