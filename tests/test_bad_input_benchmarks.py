@@ -284,6 +284,8 @@ MGN_CKPT = Path(__file__).resolve().parent / "data" / "mgn_learn.ckpt"
     (["score", "--data", "{data}", "--other", "m"], ["--other m", "expected NAME=CKPT"]),
     (["score", "--data", "{data}", "--mgn", "{tmp}/none.ckpt"], ["--mgn", "none.ckpt"]),
     (["score", "--data", "{data}"], ["--mgn", "give --mgn CKPT"]),
+    (["score", "--data", "{data}", "--mgn", str(MGN_CKPT), "--starts", "gt", "DA"],
+     ["--starts DA", "expected one of gt, drape, lbs, preroll or the NAME of an --other"]),
     (["score", "--data", "{data}", "--mgn", str(MGN_CKPT), "--merge", "{tmp}/none.json",
       "--merge-names", "A"], ["--merge", "none.json: no such file"]),
     (["score", "--data", "{tmp}", "--mgn", str(MGN_CKPT)], ["argument --data", "manifest"]),

@@ -7,9 +7,11 @@ import runpy
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 MGN_CKPT = ROOT / "tests" / "data" / "mgn_learn.ckpt"
+GARTRANS_CKPT = ROOT / "tests" / "data" / "gartrans_learn.ckpt"
 
 
 def test_score_names_the_mgn_rows_as_given():
@@ -20,6 +22,24 @@ def test_score_names_the_mgn_rows_as_given():
     assert list(methods) == [f"One-step to step 15,000 ({s})" for s in
                              ("gt", "drape", "gt, projected", "drape, projected")]
     assert list(modules) == list(methods)
+
+
+def test_a_start_named_after_another_method_rolls_out_from_its_frames():
+    """``--starts NAME``: the rollout starts from the --other method's frames 0 and 1,
+    which is scored first (its frames kept by ``run_score``)."""
+    script = runpy.run_path(str(ROOT / "benchmarks" / "mgn_learn.py"), run_name="mgn_start")
+    args = argparse.Namespace(mgn=str(MGN_CKPT), starts=["gt", "G"], project=None,
+                              mgn_name="MGN-style", other=[f"G={GARTRANS_CKPT}"])
+    methods, modules = script["score_methods"](args)
+    assert list(methods) == ["G", "MGN-style (gt)", "MGN-style (G)"]
+    assert args.start_frames == {"G": {}}
+    mgn = modules["MGN-style (G)"]
+    given, seen = torch.full((2, 5, 3), 0.5), []
+    mgn.rollout = lambda item, start: seen.append(start) or start
+    args.start_frames["G"]["seq"] = given
+    assert methods["MGN-style (G)"](argparse.Namespace(seq_id="seq")) is given
+    assert methods["MGN-style (gt)"](argparse.Namespace(seq_id="seq")) == "gt"
+    assert seen[0] is given
 
 
 def _scores(**methods):
