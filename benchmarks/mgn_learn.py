@@ -144,13 +144,14 @@ def score_methods(args: argparse.Namespace):
     args.start_frames = {s: {} for s in args.starts if s not in START_STATES}
     mgn = checkpoint_of(args.mgn, "--mgn", "mgn") if args.mgn else None
 
-    def from_other(s: str, m: RolloutModule) -> Callable[[Any], torch.Tensor]:
-        return lambda item: m.rollout(item, start=args.start_frames[s][item.seq_id])
+    def rollout(m: RolloutModule, s: str) -> Callable[[Any], torch.Tensor]:
+        if s in args.start_frames:  # the other method's frames of this sequence
+            return lambda item: m.rollout(item, start=args.start_frames[s][item.seq_id])
+        return lambda item: m.rollout(item, start=s)
     for start in args.starts if mgn is not None else ():
         name = f"{args.mgn_name} ({start})"
         modules[name] = mgn
-        methods[name] = from_other(start, mgn) if start in args.start_frames else \
-            (lambda s: (lambda item: mgn.rollout(item, start=s)))(start)
+        methods[name] = rollout(mgn, start)
     if mgn is not None and args.project:  # the same model with the projection after each step
         sweeps, margin = int(args.project[0]), float(args.project[1])
         projected = load_checkpoint(args.mgn)
@@ -158,8 +159,7 @@ def score_methods(args: argparse.Namespace):
         for start in args.starts:
             name = f"{args.mgn_name} ({start}, projected)"
             modules[name] = projected
-            methods[name] = from_other(start, projected) if start in args.start_frames \
-                else (lambda s: (lambda item: projected.rollout(item, start=s)))(start)
+            methods[name] = rollout(projected, start)
     for spec in args.other:
         name, eq, path = spec.partition("=")
         if not eq or not name or not path:
