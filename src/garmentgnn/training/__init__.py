@@ -14,7 +14,7 @@ from garmentgnn.training.module import REST_BRANCH, GarTransModule, loss_inputs
 from garmentgnn.training.schedule import PHASE_TERMS, ProgressiveSchedule
 from garmentgnn.training.rollout import RolloutModule
 from garmentgnn.training.loader import Recipe, load_recipe
-from garmentgnn.training.checkpoints import load_checkpoint
+from garmentgnn.training.checkpoints import fork_checkpoint, load_checkpoint
 
 __all__ = [
            "PHASE_TERMS",
@@ -29,6 +29,7 @@ __all__ = [
            "Recipe",
            "RolloutModule",
            "TimeBudget",
+           "fork_checkpoint",
            "keep_freed_memory",
            "load_checkpoint",
            "load_recipe",

@@ -6,14 +6,17 @@ stores: the module's class path (``hyper_parameters["_class_path"]``, which
 bench, a script), the module whose ``model`` argument takes the class of its model
 (``hyper_parameters["model"]["class_path"]``): no module is known here by name.
 ``garmentgnn show``, ``garmentgnn predict`` and the benchmark scripts load checkpoints
-through it.
+through it.  :func:`fork_checkpoint` writes a resumable copy of one with some of its
+settings changed: a branch of a run that keeps everything else it had.
 """
 from __future__ import annotations
 
 import os
 import typing
 from pathlib import Path
-from typing import Any, Dict, List, Union
+from typing import Any, Dict, List, Mapping, Optional, Union
+
+import torch
 
 # the packaged modules, imported so that a checkpoint without a module's class path
 # finds the module of its model among them
@@ -21,7 +24,9 @@ import garmentgnn.training.baselines  # noqa: F401
 import garmentgnn.training.module  # noqa: F401
 import garmentgnn.training.rollout  # noqa: F401
 from garmentgnn.training.base import GarmentModule, stored_module
-from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
+from garmentgnn.training.datamodule import MODEL_INPUTS
+from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
+                                           stamp_checkpoint)
 from garmentgnn.training.recipes import import_class
 
 PathLike = Union[str, os.PathLike]
@@ -97,4 +102,55 @@ def load_checkpoint(path: PathLike) -> GarmentModule:
         raise
 
 
-__all__ = ["load_checkpoint", "module_class"]
+def _changed(ckpt: Dict[str, Any], entry: str, changes: Mapping[str, Any],
+             arg: str, fixed: tuple) -> None:
+    saved = ckpt.get(entry)
+    if changes and not isinstance(saved, dict):
+        raise ValueError(f"`{arg}`: the checkpoint has no {entry!r} to change; fork a "
+                         f"checkpoint written by `garmentgnn train fit`")
+    for k, v in changes.items():
+        if k not in saved or k in fixed:
+            names = ", ".join(sorted(n for n in saved if n not in fixed))
+            raise ValueError(f"`{arg}`: {k!r} is not a setting the checkpoint can change; "
+                             f"give some of: {names}")
+        saved[k] = v
+
+
+def fork_checkpoint(source: PathLike, dest: PathLike,
+                    model: Optional[Mapping[str, Any]] = None,
+                    data: Optional[Mapping[str, Any]] = None) -> Path:
+    """Write ``dest``: the checkpoint ``source`` with some of its module's settings
+    (``model``, e.g. ``{"rollout": 5}``) and its data module's (``data``, e.g.
+    ``{"chunk": 7}``) changed, and its integrity digest renewed.
+
+    ``garmentgnn train fit --ckpt_path DEST`` with the flags of the changed settings
+    then resumes a branch of the run that keeps everything else the run had: its
+    weights, their moving average, the optimizer's state, the step (so the learning
+    rate's schedule) and the data order's seed and place.  A resumed fit refuses flags
+    that differ from its checkpoint; this is how a run changes course on purpose.  The
+    module's architecture (``model``'s own ``model`` entry), the data's root and the
+    inputs the model reads (``MODEL_INPUTS``: ``history``, ``num_landmarks``,
+    ``nystrom_dim``) stay.
+    The forked checkpoint is loaded before it is kept: a value its module refuses is
+    that module's ``ValueError``, and nothing is written."""
+    dest = Path(dest)
+    if dest.resolve() == Path(source).resolve():
+        raise ValueError(f"`dest`: {dest} is the source checkpoint; give another path")
+    ckpt = load_checkpoint_file(source)
+    _changed(ckpt, "hyper_parameters", dict(model or {}), "model", ("model", "_class_path"))
+    _changed(ckpt, "datamodule_hyper_parameters", dict(data or {}), "data",
+             ("root", "_instantiator") + MODEL_INPUTS)
+    stamp_checkpoint(ckpt)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    part = dest.with_name(dest.name + ".part")
+    torch.save(ckpt, part)
+    try:
+        load_checkpoint(part)  # the module built from the changed settings
+    except BaseException:
+        part.unlink()
+        raise
+    os.replace(part, dest)
+    return dest
+
+
+__all__ = ["fork_checkpoint", "load_checkpoint", "module_class"]

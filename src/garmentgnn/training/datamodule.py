@@ -21,6 +21,10 @@ from garmentgnn.data import store
 from garmentgnn.data.chunks import CACHE_BYTES, CACHE_SIZE, SequenceChunks
 from garmentgnn.data.keys import body_key, garment_key
 
+#: the data settings a checkpoint's model learned from (the inputs it reads): a resumed
+#: or scored checkpoint is compared with them, and a fork cannot change them
+MODEL_INPUTS = ("history", "num_landmarks", "nystrom_dim")
+
 
 class EpochShuffleSampler(DistributedSampler):
     """A permutation seeded by ``(seed, epoch)``: the order of an epoch does not depend
@@ -334,4 +338,4 @@ class GarmentDataModule(L.LightningDataModule):
         return self._loader(self.predict_set, False)
 
 
-__all__ = ["EpochShuffleSampler", "GarmentDataModule"]
+__all__ = ["MODEL_INPUTS", "EpochShuffleSampler", "GarmentDataModule"]

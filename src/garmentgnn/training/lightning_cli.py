@@ -60,7 +60,7 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from garmentgnn.training.base import LBS_PREFIX, GarmentModule, stored_module
 from garmentgnn.training.recipes import (import_class, named_module,
                                          recipes_of_model, resolve_config_args)
-from garmentgnn.training.datamodule import GarmentDataModule
+from garmentgnn.training.datamodule import MODEL_INPUTS, GarmentDataModule
 from garmentgnn.training.evaluate import markdown_table
 from garmentgnn.training.heap import KeepFreedMemory
 from garmentgnn.training.integrity import CheckpointError, hparam_conflicts, load_checkpoint_file
@@ -112,10 +112,6 @@ TRAINER_DEFAULTS: Dict[str, Any] = {
 }
 #: every argument linked from the data module
 LINKED = LINKS["instantiate"] + LINKS["parse"]
-#: the data settings a checkpoint's model learned from (the inputs it reads): with
-#: ``--ckpt_path`` any other value (a flag, a recipe's or a default) would hand it other
-#: inputs without a word, so each is compared with the checkpoint's data module
-MODEL_INPUTS = ("history", "num_landmarks", "nystrom_dim")
 #: ``fit --ckpt_path`` resumes a run exactly: the training windows and batches too
 RESUMED_ORDER = ("chunk", "stride", "batch_size", "drop_last", "shuffle", "train_split",
                  "train_ids")
@@ -326,15 +322,17 @@ class GarmentCLI(LightningCLI):
             what = ", ".join(f"{k} {v!r} (checkpoint: {c!r})"
                              for k, (v, c) in sorted(bad.items()))
             raise CheckpointError(f"{ckpt_path}: {what}; the model is rebuilt from the "
-                                  f"checkpoint's hyper-parameters, so drop the flag(s), or "
-                                  f"start a new run without --ckpt_path")
+                                  f"checkpoint's hyper-parameters, so drop the flag(s), "
+                                  f"start a new run without --ckpt_path, or branch the run "
+                                  f"with garmentgnn.training.fork_checkpoint")
         self.check_checkpoint_data(sub, ckpt_path, ckpt)
         return cls_path
 
     def check_checkpoint_data(self, sub: str, ckpt_path: str, ckpt: Dict[str, Any]) -> None:
         """The data module is configured by the recipe and the flags, not rebuilt from
-        the checkpoint: a value of :data:`MODEL_INPUTS` other than the checkpoint's data
-        module's (``train predict --data.history 1`` on a model trained with 3) would give
+        the checkpoint: a value of
+        :data:`~garmentgnn.training.datamodule.MODEL_INPUTS` other than the checkpoint's
+        data module's (``train predict --data.history 1`` on a model trained with 3) would give
         the model other inputs than it learned from, and for ``fit`` one of
         :data:`RESUMED_ORDER` another run than the one resumed; a
         :class:`CheckpointError` naming each ``--data.*`` flag and both values."""
@@ -357,7 +355,8 @@ class GarmentCLI(LightningCLI):
         why = ("the model learned from inputs of the checkpoint's values" if sub != "fit"
                else "a resumed run goes on with the checkpoint's data settings")
         fix = ("give the checkpoint's values" if sub != "fit" else
-               "give the checkpoint's values, or start a new run without --ckpt_path")
+               "give the checkpoint's values, start a new run without --ckpt_path, or "
+               "branch the run with garmentgnn.training.fork_checkpoint")
         raise CheckpointError(f"{ckpt_path}: {what}; {why}; {fix}")
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
