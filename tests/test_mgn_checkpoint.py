@@ -1,6 +1,6 @@
 """The committed MGN-style learned simulator trained on `learn`
-(``tests/data/mgn_learn.ckpt``: the headline run of docs/results/mgn_learn continued with
-pushforward from its step 3,500) rolls out, through
+(``tests/data/mgn_learn.ckpt``: the averaged weights of docs/results/mgn_learn/million's
+10^6 garment-frame run at step 20,250, without its optimizer state) rolls out, through
 ``garmentgnn train test``, the error recorded for it on one `learn` test sequence
 (``tests/data/mgn_learn.json``), packed with its body in ``tests/data/mgn_learn_sample.zip``
 (:mod:`garmentgnn.data.compact`; the sequence of the GarTrans sample,
