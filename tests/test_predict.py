@@ -17,6 +17,9 @@ from garmentgnn.cli import main as cli_main
 from garmentgnn.data import generate
 from garmentgnn.data.spec_file import load_spec
 from garmentgnn.inference import predict_garment_motion
+from garmentgnn.data.chunks import static_inputs
+from garmentgnn.models.inputs import with_frames
+from garmentgnn.training.checkpoints import load_checkpoint
 from garmentgnn.models.baselines import NCSStyle
 from garmentgnn.motion.sequence import Motion
 from garmentgnn.training.baselines import BaselineModule
@@ -95,6 +98,47 @@ def test_mgn_style_rolls_out_from_the_skinned_garment(files):  # noqa: F811
     assert len(pred.frame_seconds) == 4
 
 
+def test_mgn_style_rolls_out_from_a_frame_parallel_methods_first_frames(files):  # noqa: F811
+    """With ``start_from``, frames 0 and 1 are what the frame-parallel checkpoint predicts
+    on its own, and the rest is the simulator's rollout from them (oracle: the module's
+    ``rollout`` from those frames on inputs built here, and the skinned-garment start,
+    which differs)."""
+    kw = dict(frames=5, scale=0.01)
+    pred = predict_garment_motion(files / "skirt.obj", "regular", files / "walk.bvh",
+                                  ckpt=MGN, start_from=GARTRANS, **kw)
+    alone = predict_garment_motion(files / "skirt.obj", "regular", files / "walk.bvh",
+                                   ckpt=GARTRANS, **kw)
+    skinned = predict_garment_motion(files / "skirt.obj", "regular", files / "walk.bvh",
+                                     ckpt=MGN, **kw)
+    assert pred.autoregressive and pred.method == "MGN-style from GarTrans (sat)"
+    assert pred.positions.shape == (5, 192, 3) and len(pred.frame_seconds) == 5
+    assert np.abs(pred.positions[:2] - alone.positions[:2]).max() <= 1e-6
+    module = load_checkpoint(MGN)
+    static, body = static_inputs(pred.seq, pred.seq["meta"], 16, 64)
+    item = with_frames(static, body, torch.as_tensor(pred.seq["motion_rotations"]).float(),
+                       torch.as_tensor(pred.seq["motion_translation"]).float(),
+                       torch.arange(5), 1)
+    with torch.no_grad():
+        want = module.rollout(item, start=torch.from_numpy(alone.positions[:2])).numpy()
+    assert np.abs(pred.positions - want).max() <= 1e-5
+    assert np.abs(pred.positions[2:] - skinned.positions[2:]).max() > 1e-3
+
+
+def test_start_from_is_refused_where_it_cannot_apply(files, tmp_path, capsys):  # noqa: F811
+    base = ["predict", "--garment", str(files / "skirt.obj"), "--motion", "walk",
+            "--frames", "4", "--out", str(tmp_path / "out" / "p")]
+    one_error(capsys, cli_main(base + ["--ckpt", str(GARTRANS), "--start-from", str(MGN)]),
+              "--start-from", "predicts every frame itself", "MGN-style")
+    one_error(capsys, cli_main(base + ["--method", "lbs", "--start-from", str(GARTRANS)]),
+              "--start-from", "lbs predicts every frame itself")
+    one_error(capsys, cli_main(base + ["--ckpt", str(MGN), "--start-from", str(MGN)]),
+              "--start-from", "MGN-style checkpoint", "frame-parallel")
+    one_error(capsys, cli_main(base + ["--ckpt", str(MGN), "--start-from",
+                                       str(tmp_path / "none.ckpt")]),
+              "--start-from", "no such file")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.fixture
 def ncs_ckpt(tmp_path):
     """An NCS-style checkpoint of a 50-vertex garment (untrained: only its size counts)."""
@@ -137,7 +181,8 @@ def test_predict_help_lists_its_inputs(capsys):
         cli_main(["predict", "--help"])
     text = capsys.readouterr().out
     assert all(f in text for f in ("--ckpt", "--method", "--garment", "--body", "--motion",
-                                   "--mapping", "--device", "--show"))
+                                   "--mapping", "--device", "--show",
+                                   "--start-from"))
 
 
 def test_show_renders_the_prediction_on_the_body(tmp_path, capsys):

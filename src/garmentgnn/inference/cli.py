@@ -38,6 +38,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
                             "MGN-style)")
     which.add_argument("--method", choices=("lbs",), default=None,
                        help="lbs: the rest garment skinned to the body, no checkpoint")
+    p.add_argument("--start-from", type=nonempty_path, default=None, metavar="CKPT",
+                   help="MGN-style --ckpt: roll out from the first two frames this "
+                        "frame-parallel checkpoint (DA-style, GarTrans, ...) predicts instead "
+                        "of the skinned garment (default: the skinned garment)")
     p.add_argument("--garment", required=True,
                    help="a mesh file (OBJ, PLY, glTF) or a template name (skirt, dress, ...)")
     p.add_argument("--body", default="regular",
@@ -108,7 +112,8 @@ def main(args: argparse.Namespace) -> int:
             frames=args.frames, fps=args.fps, material=args.material, device=args.device,
             scale=args.scale, up=args.up, mapping=args.mapping, start=args.start,
             resolution=args.resolution, on_frames=on_frames,
-            compile={"auto": None, "on": True, "off": False}[args.compile])
+            compile={"auto": None, "on": True, "off": False}[args.compile],
+            start_from=args.start_from)
     for w in caught:
         if issubclass(w.category, ResolutionWarning):
             print(f"warning: --garment {args.garment}: {w.message}", file=sys.stderr)

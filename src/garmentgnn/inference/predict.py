@@ -8,7 +8,8 @@ reads them (:func:`garmentgnn.data.chunks.static_inputs`,
 ``garmentgnn train predict`` predicts on a simulated sequence of the same garment, body
 and motion.  Frame-parallel methods (GarTrans, DA-, HOOD-, NCS-style) run in chunks of
 the frames they were evaluated with; the MGN-style simulator rolls out over the whole
-motion from the skinned garment; ``lbs`` is the rest garment skinned to the body.
+motion from the skinned garment, or from the first two frames a frame-parallel checkpoint
+predicts (``start_from``); ``lbs`` is the rest garment skinned to the body.
 """
 from __future__ import annotations
 
@@ -255,15 +256,46 @@ def compile_pays(module, frames: int, vertices: int,
     return work_pays(frames * vertices, device)
 
 
+def _motion_tensors(seq: Dict[str, Any]) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The sequence's joint rotations and root translations as float32 tensors."""
+    return (torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32)),
+            torch.from_numpy(np.asarray(seq["motion_translation"], np.float32)))
+
+
+@torch.no_grad()
+def start_frames(starter, seq: Dict[str, Any], where: str = "start_from",
+                 device: Union[str, torch.device] = "cpu") -> torch.Tensor:
+    """The garment ``[2, V, 3]`` of frames 0 and 1 that ``starter``, a frame-parallel
+    method, predicts on a sequence's arrays: its first chunk, as :func:`predict_sequence`
+    runs it (the start an autoregressive method rolls out from with ``start_from``)."""
+    history, landmarks, ny, chunk = _settings(starter, where)
+    static, body = static_inputs(seq, seq["meta"], ny, landmarks)
+    rot, tr = _motion_tensors(seq)
+    frames = torch.arange(min(max(2, chunk), rot.shape[0]))
+    item = with_frames(static, body, rot, tr, frames, history,
+                       seq_id=str(seq["meta"].get("id", "sequence")))
+    check_method(starter, item, where)
+    starter.to(device)
+    pred = starter.predict_sequence(item.to(device))[:2].detach().float()
+    if not torch.isfinite(pred).all():
+        raise ValueError(f"`start_from`: {where} predicted NaN/inf on frames 0 and 1")
+    return pred
+
+
 @torch.no_grad()
 def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
                      device: Union[str, torch.device] = "cpu",
                      on_frames: Optional[Callable[[int, int, float], None]] = None,
-                     compile: Optional[bool] = None, info: Optional[Dict[str, Any]] = None):
+                     compile: Optional[bool] = None, info: Optional[Dict[str, Any]] = None,
+                     start_from=None, start_where: str = "start_from"):
     """``(positions [T, V, 3] float32, frame_seconds [T], autoregressive)`` of ``module``
     (``None``: LBS) on a sequence's arrays (:func:`sequence_of`, or a sequence file
     loaded with :func:`garmentgnn.data.store.load_sequence`).  ``on_frames(first, count,
     seconds)`` is called after every chunk.
+
+    ``start_from``: a frame-parallel module (``start_where``: its checkpoint) whose frames
+    0 and 1 (:func:`start_frames`) an autoregressive ``module`` rolls out from instead of
+    the skinned garment; its time is the first call's.
 
     ``compile``: run a GarTrans checkpoint's nearest-face search compiled (``None``: where
     it pays back, :func:`compile_pays`); compiled, the last, shorter chunk is padded to
@@ -272,10 +304,13 @@ def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
     given, receives ``chunks`` (``(first frame, frames)`` per call) and ``compiled``."""
     history, landmarks, ny, chunk = _settings(module, where)
     static, body = static_inputs(seq, seq["meta"], ny, landmarks)
-    rot = torch.from_numpy(np.asarray(seq["motion_rotations"], np.float32))
-    tr = torch.from_numpy(np.asarray(seq["motion_translation"], np.float32))
+    rot, tr = _motion_tensors(seq)
     T = rot.shape[0]
     autoregressive = module is not None and module.autoregressive
+    if start_from is not None and not autoregressive:
+        raise ValueError(f"`start_from`: {where} predicts every frame itself; only an "
+                         f"autoregressive method (MGN-style) starts from another method's "
+                         f"frames")
     if module is not None and T < module.min_frames:
         raise ValueError(f"`motion`: {T} frames; {module.table_name} needs "
                          f"{module.min_frames} or more")
@@ -308,6 +343,9 @@ def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
             t = time.perf_counter()
             if module is None:
                 pred = item.skinned()
+            elif start_from is not None:
+                start = start_frames(start_from, seq, start_where, device)
+                pred = module.predict_sequence(item, start=start)
             else:
                 pred = module.predict_sequence(item)
             if device.type == "cuda":
@@ -348,6 +386,24 @@ def load_method(ckpt: Optional[PathLike] = None, method: Optional[str] = None):
     return module, module.table_name
 
 
+def load_starter(start_from: PathLike, module, name: str):
+    """The frame-parallel module of the checkpoint ``start_from`` that an
+    autoregressive ``module`` (named ``name``) starts from, or a ``ValueError``."""
+    if module is None or not module.autoregressive:
+        raise ValueError(f"`start_from`: {name} predicts every frame itself; only an "
+                         f"autoregressive method (MGN-style) starts from another method's "
+                         f"frames; drop start_from or give an MGN-style checkpoint")
+    if not Path(start_from).is_file():
+        raise ValueError(f"`start_from`: {start_from}: no such file; give a checkpoint of "
+                         f"a frame-parallel method (DA-style, GarTrans, ...)")
+    starter = load_checkpoint(start_from)
+    if starter.autoregressive:
+        raise ValueError(f"`start_from`: {start_from} is a {starter.table_name} checkpoint, "
+                         f"which needs frames to start from itself; give a frame-parallel "
+                         f"method's (DA-style, GarTrans, ...)")
+    return starter
+
+
 def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regular",
                            motion: Union[PathLike, Motion] = "walk", *,
                            ckpt: Optional[PathLike] = None, method: Optional[str] = None,
@@ -357,12 +413,19 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
                            mapping: Optional[Mapping[str, str]] = None, start: int = 0,
                            resolution: int = 300, seed: int = 0,
                            on_frames: Optional[Callable[[int, int, float], None]] = None,
-                           compile: Optional[bool] = None) -> Prediction:
+                           compile: Optional[bool] = None,
+                           start_from: Optional[PathLike] = None) -> Prediction:
     """The garment of a trained method (``ckpt``, or ``method="lbs"``) on ``garment``
     (a mesh file or a template name), ``body`` (:func:`body_entry`) and ``motion`` (a BVH
     file, with ``scale``, ``up``, ``mapping``, ``start`` as in a dataset spec, or a
     generator name), ``frames`` frames at ``fps``; ``compile``: see
-    :func:`predict_sequence` (default: where it pays back)."""
+    :func:`predict_sequence` (default: where it pays back).
+
+    ``start_from``: for an MGN-style ``ckpt``, a frame-parallel checkpoint (DA-style,
+    GarTrans, ...) whose frames 0 and 1 the rollout starts from instead of the skinned
+    garment; neither needs a simulated frame (on `learn`'s test rollouts DA-style's start
+    gave 0.770x LBS's error against the skinned garment's 0.821x,
+    docs/learned_simulator.md)."""
     if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not 0 < fps <= 1000:
         raise ValueError(f"`fps`: expected frames per second, e.g. 30, got {fps!r}")
     if frames is not None and (not isinstance(frames, int) or frames < 1):
@@ -375,6 +438,10 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
                         f"e.g. {{'hip_root': 'pelvis'}}, got {mapping!r}")
     module, name = load_method(ckpt, method)
     check_rate(module, float(fps), str(ckpt))
+    starter = None
+    if start_from is not None:
+        starter = load_starter(start_from, module, name)
+        name = f"{name} from {starter.table_name}"
     spec = body_entry(body)
     try:
         b = build_body(spec)
@@ -382,13 +449,16 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
         raise ValueError(f"`body`: {exc}") from None
     g = resolve_garment(garment, b, resolution)
     check_resolution(int(g.vertices.shape[0]), module, name)
+    if starter is not None:
+        check_resolution(int(g.vertices.shape[0]), starter, starter.table_name)
     m = resolve_motion(motion, b, float(fps), frames, scale, up, mapping, start, seed)
     seq = sequence_of(g, b, spec, m, material)
     if isinstance(garment, (str, Path)) and _is_path(garment):
         seq["meta"]["garment"] = {"kind": file_name({"file": str(garment)})}
     where = str(ckpt) if ckpt is not None else LBS
     info: Dict[str, Any] = {}
-    pos, secs, ar = predict_sequence(module, seq, where, device, on_frames, compile, info)
+    pos, secs, ar = predict_sequence(module, seq, where, device, on_frames, compile, info,
+                                     starter, str(start_from))
     seq["positions"] = pos
     return Prediction(pos, np.asarray(seq["garment_faces"]), float(m.fps), name, seq, secs, ar,
                       info["chunks"], info["compiled"])
@@ -396,6 +466,6 @@ def predict_garment_motion(garment: Union[PathLike, Garment], body: Any = "regul
 
 __all__ = ["COMPILE_WORK", "LBS", "Prediction", "ResolutionWarning", "body_entry", "check_rate",
            "compile_pays",
-           "check_resolution", "check_method", "load_method",
+           "check_resolution", "check_method", "load_method", "load_starter",
            "predict_garment_motion", "predict_sequence", "resolve_garment", "resolve_motion",
-           "sequence_of"]
+           "sequence_of", "start_frames"]

@@ -403,10 +403,12 @@ class RolloutModule(GarmentModule):
     def predict_garment(self, batch: GarmentInputs) -> Tensor:
         return self.rollout(batch)
 
-    def predict_sequence(self, batch: GarmentInputs) -> Tensor:
-        """The rollout from the LBS garment of the first two frames (no simulated
-        frame)."""
-        return self.rollout(batch, start="lbs")
+    def predict_sequence(self, batch: GarmentInputs, start: Optional[Tensor] = None
+                         ) -> Tensor:
+        """The rollout from the LBS garment of the first two frames, or from ``start``:
+        the garment ``[2, V, 3]`` of frames 0 and 1 that a frame-parallel method predicts
+        (no simulated frame either way; :meth:`start_states`)."""
+        return self.rollout(batch, start="lbs" if start is None else start)
 
     def timed_call(self, item: GarmentInputs, batch: int) -> Callable[[], Any]:
         """One step of ``batch`` garments (the item's first three frames, as ``batch``
