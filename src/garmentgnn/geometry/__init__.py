@@ -4,6 +4,7 @@ Positions are ``[V, 3]`` or ``[..., V, 3]``; faces one ``[F, 3]`` long tensor sh
 the batch.  Torch functions are differentiable in the positions; the geodesic /
 Nystroem functions are numpy/scipy pre-processing on a single rest mesh.
 """
+from garmentgnn.geometry.coarsen import coarse_levels, independent_set
 from garmentgnn.geometry.distance import (SignedDistance, WindingNumber,
                                           closest_point_on_triangle, push_outside,
                                           signed_distance,
@@ -34,6 +35,7 @@ from garmentgnn.geometry.uv import (DeformationGradient, UVFrame, deformation_gr
 
 __all__ = [
     # mesh connectivity
+    "coarse_levels", "independent_set",
     "edge_features", "faces_to_edge_index", "grid_mesh", "unique_edges", "face_adjacency",
     "boundary_vertex_mask", "EdgeTopology", "FaceAdjacency",
     # normals / measures

@@ -14,11 +14,16 @@ mesh-edge inputs ``[E, edge_in]`` to a node output ``[N, out_channels]``, with
   the contact edges are updated in every block as MeshGraphNets and HOOD do, ``c <- c +
   MLP([c, h_i])``, and summed into their node again (else they are read once, in the
   encoder);
+* **coarse levels** (``levels > 0``): further edge sets over the same nodes, such as a mesh
+  graph's coarse levels (:func:`garmentgnn.geometry.coarse_levels`, HOOD's hierarchy),
+  each with its own encoder and edge features carried from one of its blocks to the next;
+  counted from the last block, every second block runs on a coarse level (the levels in
+  turn) and the others on the mesh graph, so the last block is the mesh's;
 * **decode**: an MLP to ``out_channels``.
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -46,11 +51,13 @@ class EncodeProcessDecode(nn.Module):
         heads: attention heads of each layer (``hidden`` must be a multiple).
         contact_in: contact-edge input width (0: no contact edges).
         contact_blocks: update the contact edges in every block (module doc).
+        levels: coarse edge sets (module doc; inputs of width ``edge_in`` each); needs
+            ``layers >= 2 * levels``.
     """
 
     def __init__(self, node_in: int, edge_in: int, out_channels: int, hidden: int = 64,
                  layers: int = 8, layer: str = "sat", heads: int = 4, contact_in: int = 0,
-                 contact_blocks: bool = False) -> None:
+                 contact_blocks: bool = False, levels: int = 0) -> None:
         super().__init__()
         for name, v in (("node_in", node_in), ("edge_in", edge_in),
                         ("out_channels", out_channels), ("hidden", hidden),
@@ -59,6 +66,11 @@ class EncodeProcessDecode(nn.Module):
                 raise ValueError(f"`{name}`: expected a positive int, got {v!r}")
         if not isinstance(contact_in, int) or isinstance(contact_in, bool) or contact_in < 0:
             raise ValueError(f"`contact_in`: expected an int >= 0, got {contact_in!r}")
+        if not isinstance(levels, int) or isinstance(levels, bool) or levels < 0:
+            raise ValueError(f"`levels`: expected an int >= 0, got {levels!r}")
+        if 2 * levels > layers:
+            raise ValueError(f"`levels`: {levels} coarse levels need {2 * levels} blocks or "
+                             f"more (every second block a coarse one), got layers={layers}")
         if contact_blocks and not contact_in:
             raise ValueError("`contact_blocks`: updates contact edges, but `contact_in` is 0; "
                              "give their input width")
@@ -85,43 +97,61 @@ class EncodeProcessDecode(nn.Module):
                                 if contact_blocks else None)
         self.decoder = mlp([hidden, hidden, out_channels],
                            nn.ReLU(), last_act=False)
-        # the last block's edge output is never read
-        freeze_edge_output(self.convs[-1])
+        self.coarse_encs = nn.ModuleList(mlp_ln([edge_in, hidden, hidden])
+                                         for _ in range(levels))
+        #: the edge set of each block: 0 the mesh graph, l > 0 coarse level l
+        self.block_levels = [0 if j % 2 == 0 else 1 + (j // 2) % levels
+                             for j in reversed(range(layers))] if levels else [0] * layers
+        # the edge output of each edge set's last block is never read
+        for lvl in set(self.block_levels):
+            last = max(i for i, b in enumerate(self.block_levels) if b == lvl)
+            freeze_edge_output(self.convs[last])
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor,
                 contact_attr: Optional[Tensor] = None,
-                contact_index: Optional[Tensor] = None) -> Tensor:
+                contact_index: Optional[Tensor] = None,
+                coarse: Sequence[Tuple[Tensor, Tensor]] = ()) -> Tensor:
         """The node output ``[N, out_channels]`` of node inputs ``x [N, node_in]``, the mesh
-        graph ``edge_index [2, E]`` with ``edge_attr [E, edge_in]`` and, with
-        ``contact_in``, contact edges ``contact_attr [Ec, contact_in]`` pointing to the
-        nodes ``contact_index [Ec]``."""
+        graph ``edge_index [2, E]`` with ``edge_attr [E, edge_in]``, with ``contact_in``
+        contact edges ``contact_attr [Ec, contact_in]`` pointing to the nodes
+        ``contact_index [Ec]``, and with ``levels`` the coarse edge sets ``coarse``: one
+        ``(edge_index [2, E_l], edge_attr [E_l, edge_in])`` a level."""
         if (contact_attr is None) != (self.contact_enc is None) or \
                 (contact_attr is None) != (contact_index is None):
             raise ValueError(f"`contact_attr`, `contact_index`: this network reads "
                              f"{'contact edges' if self.contact_in else 'none'} "
                              f"(contact_in={self.contact_in}); give both or neither")
+        if len(coarse) != len(self.coarse_encs):
+            raise ValueError(f"`coarse`: this network reads {len(self.coarse_encs)} coarse "
+                             f"edge sets (levels), got {len(coarse)}")
         h = self.node_enc(x)
         c = None
         if contact_attr is not None:
             c = self.contact_enc(contact_attr)
             h = h.index_add(0, contact_index, c)
-        return self.decoder(self.process(h, edge_index, self.edge_enc(edge_attr), c,
-                                         contact_index))
+        graphs = [(edge_index, self.edge_enc(edge_attr))] + [
+            (ei, enc(attr)) for (ei, attr), enc in zip(coarse, self.coarse_encs)]
+        return self.decoder(self.process(h, graphs, c, contact_index))
 
-    def process(self, h: Tensor, edge_index: Tensor, e: Tensor, c: Optional[Tensor] = None,
-                contact_index: Optional[Tensor] = None) -> Tensor:
-        """The processor (module doc) on latent nodes ``h``, mesh edges ``e`` and contact
-        edges ``c``."""
-        last = len(self.convs) - 1
+    def process(self, h: Tensor, graphs: List[Tuple[Tensor, Tensor]],
+                c: Optional[Tensor] = None, contact_index: Optional[Tensor] = None) -> Tensor:
+        """The processor (module doc) on latent nodes ``h``, the edge sets ``graphs``
+        (``(edge_index, latent edges)``: the mesh graph's, then each coarse level's) and
+        contact edges ``c``."""
+        graphs = list(graphs)
+        lasts = {lvl: i for i, lvl in enumerate(self.block_levels)}
         for i, (conv, norm, update) in enumerate(zip(self.convs, self.conv_norms,
                                                      self.updates)):
             if self.contact_updates is not None:
                 c = c + self.contact_updates[i](torch.cat([c, h[contact_index]], 1))
                 h = h.index_add(0, contact_index, c)
-            if i < last:
-                h2, e = conv(h, edge_index, e, return_edge_attr=True)
+            lvl = self.block_levels[i]
+            ei, e = graphs[lvl]
+            if i < lasts[lvl]:
+                h2, e = conv(h, ei, e, return_edge_attr=True)
+                graphs[lvl] = (ei, e)
             else:
-                h2 = conv(h, edge_index, e)
+                h2 = conv(h, ei, e)
             h = norm(h2)
             h = h + update(h)
         return h
@@ -131,4 +161,5 @@ class EncodeProcessDecode(nn.Module):
         return (f"{type(self).__name__}(hidden={self.hidden}, layers={len(self.convs)}, "
                 f"layer={type(conv).__name__}, heads={getattr(conv, 'heads', None)}, "
                 f"contact_in={self.contact_in}, "
-                f"contact_blocks={self.contact_updates is not None})")
+                f"contact_blocks={self.contact_updates is not None}, "
+                f"levels={len(self.coarse_encs)})")

@@ -17,6 +17,11 @@ per frame squared, so the model is tied to the frame rate it learned at, ``fps``
   body at ``t`` in the local frame, its length and the body's motion ``b_t - b_{t-1}``.
   Body edges are encoded and summed into their garment vertex, once (the default) or
   updated in every block as HOOD and MeshGraphNets do (``body_blocks``).
+  With ``coarse_levels``, the mesh graph's coarse levels
+  (:func:`~garmentgnn.geometry.coarse_levels`: each a maximal independent set of the
+  level below, joined within three of its edges; built once per batch or sequence from
+  the rest mesh) carry edges with the mesh edges' inputs, so that a few blocks reach
+  across the garment, as HOOD's hierarchy does.
   All inputs are normalised by running statistics (:class:`RunningNormalizer`);
 * **process** and **decode**: MeshGraphNets' network,
   :class:`~garmentgnn.models.EncodeProcessDecode` (``network``), with ``layers`` blocks of
@@ -56,6 +61,7 @@ from torch import Tensor, nn
 
 from garmentgnn.body.lbs import forward_kinematics
 from garmentgnn.geometry import full_precision
+from garmentgnn.geometry.coarsen import coarse_levels as build_levels
 from garmentgnn.geometry.measures import edge_lengths
 from garmentgnn.geometry.mesh import unique_edges
 from garmentgnn.models.blocks import Configurable, RunningNormalizer
@@ -85,6 +91,7 @@ class SceneMotion:
         pinned: ``[V]`` bool.
         strain_edges, strain_lengths: the unique mesh edges ``[E, 2]`` and their rest
             lengths ``[E]`` (for the strain limit; ``None`` without it).
+        coarse_edges: the edges ``[2, E_l]`` of each coarse level (none without them).
     """
 
     lbs: Tensor
@@ -96,6 +103,7 @@ class SceneMotion:
     pinned: Tensor
     strain_edges: Optional[Tensor] = None
     strain_lengths: Optional[Tensor] = None
+    coarse_edges: Tuple[Tensor, ...] = ()
 
     @property
     def num_frames(self) -> int:
@@ -105,6 +113,15 @@ class SceneMotion:
 def _local(frame: Tensor, v: Tensor) -> Tensor:
     """``R^T v`` per row: ``frame [..., 3, 3]``, ``v [..., 3]``."""
     return (v.unsqueeze(-2) @ frame).squeeze(-2)
+
+
+def _edge_inputs(xl: Tensor, rest: Tensor, edge_index: Tensor) -> Tensor:
+    """Edge inputs ``[E, 8]``: the current relative position (``xl``: local frame) and its
+    length, the rest relative position and its length."""
+    src, dst = edge_index
+    d = xl[src] - xl[dst]
+    d0 = rest[src] - rest[dst]
+    return torch.cat([d, d.norm(dim=1, keepdim=True), d0, d0.norm(dim=1, keepdim=True)], 1)
 
 
 class MGNStyle(Configurable, PostSteps, nn.Module):
@@ -129,6 +146,8 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
             no clip).
         strain_limit: sweeps of the strain limit after each step (Provot's,
             :func:`~garmentgnn.geometry.project_edge_lengths` on stretched edges; 0: none).
+        coarse_levels: coarse levels of the mesh graph the processor also runs on
+            (module doc; every second block; 0: the mesh graph alone).
         collision_projection: after each step, vertices closer than this to the body (or
             inside it) are moved this far outside (:func:`~garmentgnn.geometry.push_outside`;
             ``None``: no projection).  Both on by default: on 24 `learn` test sequences
@@ -146,7 +165,8 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
                  norm_updates: int = 1000, body_blocks: bool = False,
                  anchor_decay: float = 0.0, anchor_clip: Optional[float] = None,
                  strain_limit: int = 10,
-                 collision_projection: Optional[float] = COLLISION_MARGIN) -> None:
+                 collision_projection: Optional[float] = COLLISION_MARGIN,
+                 coarse_levels: int = 0) -> None:
         super().__init__()
         if not isinstance(body_k, int) or isinstance(body_k, bool) or body_k < 1:
             raise ValueError(f"`body_k`: expected a positive int, got {body_k!r}")
@@ -183,7 +203,11 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
         self.target_norm = RunningNormalizer(3, norm_updates)
         self.network = EncodeProcessDecode(self.NODE_IN, self.EDGE_IN, 3, hidden=hidden,
                                            layers=layers, layer=layer, heads=heads,
-                                           contact_in=self.BODY_IN, contact_blocks=body_blocks)
+                                           contact_in=self.BODY_IN, contact_blocks=body_blocks,
+                                           levels=coarse_levels)
+        self.coarse_levels = coarse_levels
+        self.coarse_norms = nn.ModuleList(RunningNormalizer(self.EDGE_IN, norm_updates)
+                                          for _ in range(coarse_levels))
 
     # -- what a step reads ---------------------------------------------------------------
     def scene_motion(self, scene: GarmentInputs) -> SceneMotion:
@@ -213,9 +237,11 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
         if self.strain_limit:
             edges = unique_edges(scene.faces, scene.num_vertices).edges
             lengths = edge_lengths(scene.rest_pos, edges)
+        coarse = tuple(build_levels(scene.edge_index, scene.num_vertices, self.coarse_levels,
+                                    batch=chunk)) if self.coarse_levels else ()
         return SceneMotion(lbs=lbs, body=body, frame=frame, vertex_chunk=chunk, layout=layout,
                            material=material, pinned=scene.pinned_mask(),
-                           strain_edges=edges, strain_lengths=lengths)
+                           strain_edges=edges, strain_lengths=lengths, coarse_edges=coarse)
 
     def body_edges(self, motion: SceneMotion, x: Tensor, t: int) -> Tuple[Tensor, Tensor]:
         """``(garment vertex [Eb], body vertex [Eb] of its own garment's body at ``t``)``:
@@ -251,7 +277,10 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
         with full_precision(x_curr) as up:  # the inputs in float32 under autocast
             node, edge, bedge, bs = self.inputs(scene, motion, t, up(x_prev), up(x_curr))
             node, edge, bedge = self.node_norm(node), self.edge_norm(edge), self.body_norm(bedge)
-        return self.network(node, scene.edge_index, edge, bedge, bs)
+            xl = _local(motion.frame[t - 1], up(x_curr))
+            coarse = [(ei, norm(_edge_inputs(xl, scene.rest_pos, ei)))
+                      for ei, norm in zip(motion.coarse_edges, self.coarse_norms)]
+        return self.network(node, scene.edge_index, edge, bedge, bs, coarse)
 
     def inputs(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
                x_curr: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -264,12 +293,7 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
         node = torch.cat([_local(R, x_curr - x_prev), _local(R, lbs_next - lbs_prev),
                           _local(R, x_curr - lbs_prev),
                           motion.pinned.to(x_curr.dtype).unsqueeze(1), motion.material], 1)
-        # mesh edges: current (local frame) and rest relative positions and lengths
-        src, dst = scene.edge_index
-        xl = _local(R, x_curr)
-        d = xl[src] - xl[dst]
-        d0 = scene.rest_pos[src] - scene.rest_pos[dst]
-        edge = torch.cat([d, d.norm(dim=1, keepdim=True), d0, d0.norm(dim=1, keepdim=True)], 1)
+        edge = _edge_inputs(_local(R, x_curr), scene.rest_pos, scene.edge_index)
         # body edges: offset to the body at t, its length, the body's motion
         bs, bd = self.body_edges(motion, x_curr, t)
         body_t = motion.body[t].reshape(-1, 3)
