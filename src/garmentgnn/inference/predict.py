@@ -46,6 +46,9 @@ PathLike = Union[str, Path]
 LBS = "lbs"
 #: frames per frame-parallel chunk when a checkpoint does not say (the data module's)
 DEFAULT_CHUNK = CHUNK
+#: why ``start_from`` is refused for a method that is not autoregressive
+_OWN_FRAMES = ("predicts every frame itself; only an autoregressive method (MGN-style) "
+               "starts from another method's frames")
 
 
 @dataclass
@@ -308,9 +311,7 @@ def predict_sequence(module, seq: Dict[str, Any], where: str = "checkpoint",
     T = rot.shape[0]
     autoregressive = module is not None and module.autoregressive
     if start_from is not None and not autoregressive:
-        raise ValueError(f"`start_from`: {where} predicts every frame itself; only an "
-                         f"autoregressive method (MGN-style) starts from another method's "
-                         f"frames")
+        raise ValueError(f"`start_from`: {where} {_OWN_FRAMES}")
     if module is not None and T < module.min_frames:
         raise ValueError(f"`motion`: {T} frames; {module.table_name} needs "
                          f"{module.min_frames} or more")
@@ -390,9 +391,8 @@ def load_starter(start_from: PathLike, module, name: str):
     """The frame-parallel module of the checkpoint ``start_from`` that an
     autoregressive ``module`` (named ``name``) starts from, or a ``ValueError``."""
     if module is None or not module.autoregressive:
-        raise ValueError(f"`start_from`: {name} predicts every frame itself; only an "
-                         f"autoregressive method (MGN-style) starts from another method's "
-                         f"frames; drop start_from or give an MGN-style checkpoint")
+        raise ValueError(f"`start_from`: {name} {_OWN_FRAMES}; drop start_from or give an "
+                         f"MGN-style checkpoint")
     if not Path(start_from).is_file():
         raise ValueError(f"`start_from`: {start_from}: no such file; give a checkpoint of "
                          f"a frame-parallel method (DA-style, GarTrans, ...)")
