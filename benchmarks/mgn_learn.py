@@ -61,8 +61,8 @@ from garmentgnn.training.checkpoints import load_checkpoint
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.append(str(HERE))
-from mgn_parts.report import (GIVEN, merge_scores, plot_per_frame, read_scores,  # noqa: E402
-                               score_table)
+from mgn_parts.report import (GIVEN, combined, merge_scores, read_scores,  # noqa: E402
+                               write_score)
 from mgn_parts.runs import run_branch, run_steptime, run_sweep  # noqa: E402
 
 
@@ -127,9 +127,9 @@ def score_methods(args: argparse.Namespace):
     chooses its output folder)."""
     if getattr(args, "scored", None) is not None:
         return args.scored
-    if not args.mgn and not args.other:
+    if not args.mgn and not args.other and not args.merge:
         print("error: --mgn: score needs a model to roll out: give --mgn CKPT (and/or "
-              "--other NAME=CKPT)", file=sys.stderr)
+              "--other NAME=CKPT), or --merge SCORE.json ... alone", file=sys.stderr)
         sys.exit(2)
     methods: Dict[str, Callable[[Any], torch.Tensor]] = {}
     modules: Dict[str, GarmentModule] = {}
@@ -180,6 +180,9 @@ def run_score(args: argparse.Namespace) -> None:
     methods, modules = score_methods(args)
     out = Path(args.out)  # made once every checkpoint has been read
     out.mkdir(parents=True, exist_ok=True)
+    if not methods:  # --merge alone: the report of those scores, nothing rolled out
+        print(write_score(combined(earlier, args.merge_names), out))
+        return
     manifest = read_manifest(args.data)
     ensemble = args.ensemble
     ids = sorted(ensemble["sequences"]) if args.on_ensemble else None
@@ -234,7 +237,7 @@ def run_score(args: argparse.Namespace) -> None:
                         for i, s in enumerate(results["methods"]["LBS only"])} \
         if len(results["methods"]["LBS only"]) == len(test) else {}
     merge_scores(results, earlier, args.merge_names)
-    text = score_table(results)
+    extra = ""
     if ensemble is not None:
         by_method = results["ensemble"]["methods"]
         results["ensemble"]["summary"] = ensemble_report.results(by_method)
@@ -242,12 +245,9 @@ def run_score(args: argparse.Namespace) -> None:
                                    f"{len(by_method['LBS only'])} {args.split} sequences "
                                    f"against the ensemble of dataset "
                                    f"{str(results['content_sha256'])[:8]}")
-        text += "\n" + "\n".join(ensemble_report.markdown(
+        extra = "\n" + "\n".join(ensemble_report.markdown(
             by_method, png.name if png else None, "##", ensemble["members"])) + "\n"
-    (out / "score.json").write_text(json.dumps(results, indent=1))
-    (out / "score.md").write_text(text)
-    plot_per_frame(results, out / "per_frame.png")
-    print(text)
+    print(write_score(results, out, extra))
 
 
 def read_ensemble(data: str, required: bool) -> Optional[Dict[str, Any]]:
@@ -421,7 +421,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     add_output_args(p, RESULTS, "folder for <command>.json, .md and .png")
     p.add_argument("--mgn", default=None, help="the MGN-style checkpoint (score, stability)")
     p.add_argument("--mgn-name", default="MGN-style", help="score: the --mgn model's name in "
-                   "the tables (paired tests: each name starting MGN-style against the rest)")
+                   "the tables (paired tests: each name starting MGN-style against the rest, "
+                   "and against another such of its model or its start)")
     p.add_argument("--split", default="test", help="score: the split rolled out")
     p.add_argument("--starts", nargs="+", default=["gt", "drape"],
                    help=f"score: where the rollouts start: {', '.join(START_STATES)}, or "
@@ -432,7 +433,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--other", nargs="*", default=[], metavar="NAME=CKPT",
                    help="score: other checkpoints scored beside it")
     p.add_argument("--merge", nargs="*", default=[], metavar="SCORE.json",
-                   help="score: add the methods of earlier scores of the same sequences")
+                   help="score: add the methods of earlier scores of the same sequences "
+                        "(alone, without --mgn or --other: their report, nothing rolled out)")
     p.add_argument("--merge-names", nargs="+", default=None, metavar="NAME",
                    help="score: only these methods of the --merge files (default: all)")
     p.add_argument("--on-ensemble", action="store_true",

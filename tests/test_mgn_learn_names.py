@@ -1,6 +1,7 @@
 """``benchmarks/mgn_learn.py score``: the rows of the ``--mgn`` model take the name
 ``--mgn-name`` gives, one a start (and a start with the projection); ``--merge`` adds
-the methods (``--merge-names``: only those) of earlier scores of the same sequences."""
+the methods (``--merge-names``: only those) of earlier scores of the same sequences, and
+alone reports them."""
 import argparse
 import json
 import runpy
@@ -76,3 +77,52 @@ def test_merge_refuses_a_score_of_other_sequences_or_a_name_it_lacks(tmp_path, c
                                          r"one of \['A', 'LBS only'\]"):
         script["read_scores"]([str(path)], ["A", "B"])
     assert script["read_scores"]([str(path)], ["A"]) == {str(path): other["old.json"]}
+
+
+def _full(values):
+    """Per-sequence rows of every metric the table reads (E_dist as given, the rest
+    proportional), for sequences a, b, c, ..."""
+    return [{"sequence": s, "frames": 10, "held_out": ["motion"],
+             "metrics": {m: v for m in ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv",
+                                        "collision_rate")}}
+            for s, v in zip("abcdefgh", values)]
+
+
+def test_merge_alone_reports_the_earlier_scores_and_pairs_mgn_rows_of_a_model_or_start(
+        tmp_path):
+    """``score --merge A B`` alone: one report of both files, nothing rolled out; the
+    paired tests (scipy's Wilcoxon as the oracle) include MGN-style rows against each
+    other where they share the model or the start, never across both."""
+    from scipy.stats import wilcoxon as scipy_wilcoxon  # noqa: PLC0415
+    script = runpy.run_path(str(ROOT / "benchmarks" / "mgn_learn.py"), run_name="mgn_alone")
+    lbs = [5, 6, 7, 5, 6, 7, 5, 6]
+    x = [4, 5, 6, 4.5, 5.5, 6.5, 4.2, 5.1]
+    y = [4.1, 5.2, 5.7, 4.4, 5.9, 6.1, 4.3, 5.0]
+
+    def doc(methods):
+        return {"content_sha256": "d", "split": "test", "methods": methods,
+                "per_frame": {n: {"a": [1.0, 2.0]} for n in methods},
+                "seconds": {n: 1.0 for n in methods if n != "LBS only"}}
+    a = tmp_path / "a.json"
+    b = tmp_path / "b.json"
+    a.write_text(json.dumps(doc({"MGN-style, A (gt)": _full(x), "LBS only": _full(lbs),
+                                 "MGN-style, A (lbs)": _full(y)})))
+    b.write_text(json.dumps(doc({"MGN-style, B (gt)": _full(y), "LBS only": _full(lbs),
+                                 "MGN-style, B (lbs)": _full(x)})))
+    results = script["combined"](script["read_scores"]([str(a), str(b)]))
+    assert list(results["methods"]) == ["LBS only", "MGN-style, A (gt)",
+                                        "MGN-style, A (lbs)", "MGN-style, B (gt)",
+                                        "MGN-style, B (lbs)"]
+    text = script["write_score"](results, tmp_path)
+    assert (tmp_path / "score.md").read_text() == text and (tmp_path / "per_frame.png").is_file()
+    pairs = {line.split(" | ")[0][2:] for line in text.splitlines() if " vs " in line}
+    assert pairs == {"MGN-style, A (gt) vs LBS only", "MGN-style, A (lbs) vs LBS only",
+                     "MGN-style, B (gt) vs LBS only", "MGN-style, B (lbs) vs LBS only",
+                     "MGN-style, A (gt) vs MGN-style, A (lbs)",
+                     "MGN-style, A (gt) vs MGN-style, B (gt)",
+                     "MGN-style, A (lbs) vs MGN-style, B (lbs)",
+                     "MGN-style, B (gt) vs MGN-style, B (lbs)"}
+    row = next(line for line in text.splitlines()
+               if line.startswith("| MGN-style, A (gt) vs MGN-style, B (gt) | E_dist"))
+    assert float(row.split(" | ")[-1].rstrip(" |")) == pytest.approx(
+        scipy_wilcoxon(x, y).pvalue, rel=0.05)  # printed to 2 digits

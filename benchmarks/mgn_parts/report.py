@@ -2,6 +2,7 @@
 and the error per frame (``benchmarks/mgn_learn.py score``)."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Any, Dict, Optional, Sequence
@@ -17,7 +18,8 @@ GIVEN = 2
 #: the columns of the score table
 METRICS = ("E_dist", "E_vnorm", "E_fnorm", "E_len", "E_curv", "collision_rate")
 
-__all__ = ["GIVEN", "METRICS", "merge_scores", "plot_per_frame", "read_scores", "score_table"]
+__all__ = ["GIVEN", "METRICS", "combined", "merge_scores", "plot_per_frame", "read_scores",
+           "score_table", "write_score"]
 
 
 def _by_seq(records, metric="E_dist") -> Dict[str, float]:
@@ -70,6 +72,28 @@ def merge_scores(results: Dict[str, Any], earlier: Dict[str, Dict[str, Any]],
                     results[key].setdefault(name, v)
 
 
+def combined(earlier: Dict[str, Dict[str, Any]],
+             names: Optional[Sequence[str]] = None) -> Dict[str, Any]:
+    """One score of the ``--merge`` files alone, nothing rolled out: the first file's
+    methods (``names``; default all) with the others' added (:func:`merge_scores`)."""
+    (path, first), *_ = earlier.items()
+    results = {k: first[k] for k in ("data", "content_sha256", "split", "valid") if k in first}
+    results.update(methods={"LBS only": first["methods"]["LBS only"]},
+                   per_frame={"LBS only": first["per_frame"]["LBS only"]}, seconds={})
+    merge_scores(results, earlier, names)
+    return results
+
+
+def write_score(results: Dict[str, Any], out: Path, extra: str = "") -> str:
+    """``out/score.json``, ``score.md`` (:func:`score_table`, then ``extra``) and
+    ``per_frame.png`` of ``results``; returns the markdown."""
+    text = score_table(results) + extra
+    (out / "score.json").write_text(json.dumps(results, indent=1))
+    (out / "score.md").write_text(text)
+    plot_per_frame(results, out / "per_frame.png")
+    return text
+
+
 def score_table(results: Dict[str, Any]) -> str:
     meth = results["methods"]
     lbs = aggregate(meth["LBS only"])
@@ -100,9 +124,13 @@ def score_table(results: Dict[str, Any]) -> str:
               "in cm, negative: the first lower; wins: share of sequences where it is "
               "lower):", "", "| pair | metric | n | median diff | wins | p |",
               "|---|---|---:|---:|---:|---:|"]
-    for a in mgn:
-        for b in meth:
-            if b.startswith("MGN-style"):
+    def apart(a: str, b: str) -> bool:  # two MGN-style rows of other models and starts
+        (ma, _, sa), (mb, _, sb) = a.rpartition(" ("), b.rpartition(" (")
+        return ma != mb and sa != sb
+
+    for i, a in enumerate(mgn):
+        for b in meth:  # every other method; a later MGN-style row of its model or start
+            if b in mgn[:i + 1] or (b in mgn and apart(a, b)):
                 continue
             for metric in ("E_dist", "E_len", "E_curv", "collision_rate"):
                 try:
