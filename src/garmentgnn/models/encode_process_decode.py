@@ -102,10 +102,10 @@ class EncodeProcessDecode(nn.Module):
         #: the edge set of each block: 0 the mesh graph, l > 0 coarse level l
         self.block_levels = [0 if j % 2 == 0 else 1 + (j // 2) % levels
                              for j in reversed(range(layers))] if levels else [0] * layers
-        # the edge output of each edge set's last block is never read
-        for lvl in set(self.block_levels):
-            last = max(i for i, b in enumerate(self.block_levels) if b == lvl)
-            freeze_edge_output(self.convs[last])
+        #: the last block of each edge set: its edge output is never read (frozen)
+        self.last_blocks = {lvl: i for i, lvl in enumerate(self.block_levels)}
+        for i in self.last_blocks.values():
+            freeze_edge_output(self.convs[i])
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor,
                 contact_attr: Optional[Tensor] = None,
@@ -139,7 +139,6 @@ class EncodeProcessDecode(nn.Module):
         (``(edge_index, latent edges)``: the mesh graph's, then each coarse level's) and
         contact edges ``c``."""
         graphs = list(graphs)
-        lasts = {lvl: i for i, lvl in enumerate(self.block_levels)}
         for i, (conv, norm, update) in enumerate(zip(self.convs, self.conv_norms,
                                                      self.updates)):
             if self.contact_updates is not None:
@@ -147,7 +146,7 @@ class EncodeProcessDecode(nn.Module):
                 h = h.index_add(0, contact_index, c)
             lvl = self.block_levels[i]
             ei, e = graphs[lvl]
-            if i < lasts[lvl]:
+            if i < self.last_blocks[lvl]:
                 h2, e = conv(h, ei, e, return_edge_attr=True)
                 graphs[lvl] = (ei, e)
             else:

@@ -277,9 +277,11 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
         with full_precision(x_curr) as up:  # the inputs in float32 under autocast
             node, edge, bedge, bs = self.inputs(scene, motion, t, up(x_prev), up(x_curr))
             node, edge, bedge = self.node_norm(node), self.edge_norm(edge), self.body_norm(bedge)
-            xl = _local(motion.frame[t - 1], up(x_curr))
-            coarse = [(ei, norm(_edge_inputs(xl, scene.rest_pos, ei)))
-                      for ei, norm in zip(motion.coarse_edges, self.coarse_norms)]
+            coarse = []
+            if motion.coarse_edges:  # the coarse edges read the mesh edges' inputs
+                xl = _local(motion.frame[t - 1], up(x_curr))
+                coarse = [(ei, norm(_edge_inputs(xl, scene.rest_pos, ei)))
+                          for ei, norm in zip(motion.coarse_edges, self.coarse_norms)]
         return self.network(node, scene.edge_index, edge, bedge, bs, coarse)
 
     def inputs(self, scene: GarmentInputs, motion: SceneMotion, t: int, x_prev: Tensor,
