@@ -156,8 +156,10 @@ def score_methods(args: argparse.Namespace):
         sweeps, margin = int(args.project[0]), float(args.project[1])
         projected = load_checkpoint(args.mgn)
         projected.model.strain_limit, projected.model.collision_projection = sweeps, margin
+        projected.model.inextensible = args.inextensible
+        how = f"inextensible {args.inextensible}" if args.inextensible else "projected"
         for start in args.starts:
-            name = f"{args.mgn_name} ({start}, projected)"
+            name = f"{args.mgn_name} ({start}, {how})"
             modules[name] = projected
             methods[name] = rollout(projected, start)
     for spec in args.other:
@@ -430,6 +432,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--project", nargs=2, default=None, metavar=("SWEEPS", "MARGIN_M"),
                    help="score: also the MGN-style model with the strain limit (SWEEPS) and "
                         "the collision projection (MARGIN_M metres) after each step")
+    p.add_argument("--inextensible", type=int, default=0, metavar="SWEEPS",
+                   help="score: --project's model with this many inextensible sweeps "
+                        "(MGNStyle's `inextensible`; default 0: the strain limit alone)")
     p.add_argument("--other", nargs="*", default=[], metavar="NAME=CKPT",
                    help="score: other checkpoints scored beside it")
     p.add_argument("--merge", nargs="*", default=[], metavar="SCORE.json",

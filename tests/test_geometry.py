@@ -180,16 +180,19 @@ def test_project_edge_lengths_single_edge_exact_and_rigid_fixed_point(noisy_sphe
     torch.testing.assert_close(G.project_edge_lengths(moved, edges, rest, 20), moved)
 
 
-def _edge_sweeps_per_frame(pos, edges, rest, iterations, stretch_only):
+def _edge_sweeps_per_frame(pos, edges, rest, iterations, stretch_only, rho=None, warmup=5):
     """The Jacobi sweeps of ``project_edge_lengths`` written per frame, one loop over the
-    edges at a time (the oracle of its batched layout)."""
+    edges at a time (the oracle of its batched layout); ``rho``: each sweep after
+    ``warmup`` is Wang 2015's Chebyshev step, its weights from their closed-form
+    recurrence."""
     out = pos.clone()
     flat, flat_rest = out.reshape(-1, *pos.shape[-2:]), rest.expand(
         *pos.shape[:-2], rest.shape[-1]).reshape(-1, rest.shape[-1])
     deg = torch.bincount(edges.flatten(), minlength=pos.shape[-2]).clamp_min(1)
     for f in range(flat.shape[0]):
-        p = flat[f]
-        for _ in range(iterations):
+        p = before = flat[f]
+        omega = None
+        for sweep in range(iterations):
             move = torch.zeros_like(p)
             for k, (i, j) in enumerate(edges.tolist()):
                 d = p[j] - p[i]
@@ -199,25 +202,61 @@ def _edge_sweeps_per_frame(pos, edges, rest, iterations, stretch_only):
                 c = 0.5 * (1.0 - flat_rest[f, k] / length) * d
                 move[i] += c
                 move[j] -= c
-            p = p + move / deg.unsqueeze(-1)
+            jacobi = p + move / deg.unsqueeze(-1)
+            if rho is None or sweep < warmup:
+                before, p = p, jacobi
+                continue
+            omega = 2 / (2 - rho ** 2) if omega is None else 1 / (1 - rho ** 2 * omega / 4)
+            before, p = p, before + omega * (jacobi - before)
         flat[f] = p
     return out
 
 
-@pytest.mark.parametrize("stretch_only", [False, True])
-def test_project_edge_lengths_batched_matches_per_frame_loop(stretch_only):
+@pytest.mark.parametrize("stretch_only,rho,sweeps", [(False, None, 3), (True, None, 3),
+                                                     (False, 0.9, 8)])
+def test_project_edge_lengths_batched_matches_per_frame_loop(stretch_only, rho, sweeps):
     """Frames ``[2, 3, V, 3]`` with rest lengths per frame ``[3, E]`` (broadcast over the
-    first dimension) give the per-frame loop's positions, and gradients that agree with
-    finite differences."""
+    first dimension) give the per-frame loop's positions (plain sweeps, and Chebyshev's
+    after its warm-up), and gradients that agree with finite differences."""
     g = torch.Generator().manual_seed(0)
     pos = torch.rand(2, 3, 6, 3, generator=g, dtype=D)
     edges = torch.tensor([[0, 1], [1, 2], [2, 0], [2, 3], [3, 4], [4, 5], [5, 3], [1, 4]])
     rest = 0.3 + 0.4 * torch.rand(3, len(edges), generator=g, dtype=D)
-    out = G.project_edge_lengths(pos, edges, rest, 3, stretch_only=stretch_only)
-    torch.testing.assert_close(out, _edge_sweeps_per_frame(pos, edges, rest, 3, stretch_only))
+    out = G.project_edge_lengths(pos, edges, rest, sweeps, stretch_only=stretch_only,
+                                 chebyshev=rho)
+    torch.testing.assert_close(out, _edge_sweeps_per_frame(pos, edges, rest, sweeps,
+                                                           stretch_only, rho))
     x = pos[:1].clone().requires_grad_()
     assert torch.autograd.gradcheck(
-        lambda p: G.project_edge_lengths(p, edges, rest, 2, stretch_only=stretch_only), (x,))
+        lambda p: G.project_edge_lengths(p, edges, rest, sweeps - 1, stretch_only=stretch_only,
+                                         chebyshev=rho), (x,))
+
+
+def test_project_edge_lengths_chebyshev_converges_faster_and_keeps_rigid_motion(noisy_sphere):
+    """On a sphere (edges about 0.3) with 0.03 of noise on every vertex, 100 Chebyshev
+    sweeps leave less mean edge-length error than 300 plain ones; a rigidly moved mesh
+    stays a fixed point; bad ``chebyshev`` values and ``stretch_only`` with it are
+    refused."""
+    v, faces = _t(noisy_sphere.vertices), _f(noisy_sphere.faces)
+    edges = G.unique_edges(faces, len(v)).edges
+    rest = G.edge_lengths(v, edges)
+    g = torch.Generator().manual_seed(1)
+    noisy = v + 0.03 * torch.randn(v.shape, generator=g, dtype=D)
+
+    def err(p):
+        return float(((G.edge_lengths(p, edges) - rest).abs() / rest).mean())
+    fast = err(G.project_edge_lengths(noisy, edges, rest, 100, chebyshev=0.99))
+    plain = err(G.project_edge_lengths(noisy, edges, rest, 300))
+    assert fast < plain < err(noisy)
+    R = G.axis_angle_to_matrix(_t([0.3, -1.1, 0.7]))
+    moved = v @ R.T + _t([0.5, -2.0, 1.0])
+    torch.testing.assert_close(G.project_edge_lengths(moved, edges, rest, 20, chebyshev=0.99),
+                               moved)
+    for bad in (0.0, 1.0, -0.5, True, "0.9"):
+        with pytest.raises(ValueError, match="chebyshev"):
+            G.project_edge_lengths(noisy, edges, rest, 10, chebyshev=bad)
+    with pytest.raises(ValueError, match="stretch_only"):
+        G.project_edge_lengths(noisy, edges, rest, 10, stretch_only=True, chebyshev=0.9)
 
 
 def test_project_edge_lengths_converges_and_stretch_only(noisy_sphere):

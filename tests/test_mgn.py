@@ -18,6 +18,7 @@ from garmentgnn.geometry.measures import edge_lengths, project_edge_lengths
 from garmentgnn.geometry.mesh import unique_edges
 from garmentgnn.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from garmentgnn.models import EncodeProcessDecode, MGNStyle
+from garmentgnn.models.sequence import STRAIN_CHEBYSHEV
 from garmentgnn.models.baselines import DAStyle
 from garmentgnn.nn import LAYERS
 from garmentgnn.physics import MATERIALS, material_features
@@ -163,7 +164,7 @@ def test_a_step_integrates_the_acceleration_and_pins_to_lbs(root):
         projected = model.project(batch, m, 2, free)
     torch.testing.assert_close(nxt, projected)
     torch.testing.assert_close(nxt[:20], m.lbs[2, :20])
-    model.strain_limit, model.collision_projection = 0, None  # without the projection
+    model.strain_limit, model.inextensible, model.collision_projection = 0, 0, None  # none
     with torch.no_grad():
         nxt = model.step(batch, m, 2, xp, xc)
     torch.testing.assert_close(nxt[20:], (2 * xc - xp + a)[20:])
@@ -347,6 +348,9 @@ def test_bad_arguments_and_inputs(root):
                      ({"body_radius": 0.0}, "`body_radius`"), ({"fps": -1.0}, "`fps`")):
         with pytest.raises(ValueError, match=name):
             MGNStyle(**kw)
+    for bad in (-1, True, 2.0):
+        with pytest.raises(ValueError, match="`inextensible`"):
+            MGNStyle(inextensible=bad)
     model = MGNStyle(hidden=8, layers=1, heads=1)
     for kw, name in (({"rollout": 0}, "`rollout`"), ({"noise": -1.0}, "`noise`"),
                      ({"start": "x"}, "`start`"), ({"noise_gamma": 2.0}, "`noise_gamma`"),
@@ -566,21 +570,30 @@ def test_each_rollout_mode_steps_the_optimizer_as_documented(root, mode, frames,
     assert max(count.norms) <= 1e-3 * (1 + 1e-4)
 
 
-def test_the_projection_uses_the_strain_limit_and_the_collision_projection(root):
-    """A step's projection is the toolkit's strain limit, then its collision projection
-    against the garment's own body, pinned vertices back on LBS (against those functions
-    called directly: a batch of two garments projects each against its own body)."""
+@pytest.mark.parametrize("inextensible,training", [(0, False), (8, True), (8, False)])
+def test_the_projection_uses_the_strain_limit_and_the_collision_projection(root, inextensible,
+                                                                           training):
+    """A step's projection is the toolkit's strain limit (Provot's on stretched edges; in
+    eval mode with ``inextensible``, every edge toward rest with Chebyshev's
+    acceleration), then its collision projection against the garment's own body, pinned
+    vertices back on LBS (against those functions called directly: a batch of two
+    garments projects each against its own body)."""
     torch.manual_seed(0)
     batch = windows(root)[[0, 6]]
-    model = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=3, collision_projection=0.004)
+    both = bool(inextensible) and not training
+    sweeps = inextensible if both else 3
+    model = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=3, inextensible=inextensible,
+                     collision_projection=0.004).train(training)
     m = model.scene_motion(batch)
     x = batch.gt[2] + 0.01 * torch.randn_like(batch.gt[2])
     got = model.project(batch, m, 2, x)
-    plain = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=0, collision_projection=None)
+    plain = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=0, inextensible=0,
+                     collision_projection=None)
     assert plain.project(batch, plain.scene_motion(batch), 2, x) is x  # off: unchanged
     edges = unique_edges(batch.faces, batch.num_vertices).edges
-    want = project_edge_lengths(x, edges, edge_lengths(batch.rest_pos, edges), 3,
-                                stretch_only=True)
+    want = project_edge_lengths(x, edges, edge_lengths(batch.rest_pos, edges), sweeps,
+                                stretch_only=not both,
+                                chebyshev=STRAIN_CHEBYSHEV if both else None)
     for n in range(2):  # each garment against its own body
         rows = m.vertex_chunk == n
         body = batch.body_pos[2].view(2, -1, 3)[n]

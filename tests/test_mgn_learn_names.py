@@ -15,14 +15,23 @@ MGN_CKPT = ROOT / "tests" / "data" / "mgn_learn.ckpt"
 GARTRANS_CKPT = ROOT / "tests" / "data" / "gartrans_learn.ckpt"
 
 
-def test_score_names_the_mgn_rows_as_given():
+@pytest.mark.parametrize("inextensible,how", [(0, "projected"), (7, "inextensible 7")])
+def test_score_names_the_mgn_rows_as_given(inextensible, how):
+    """``--project SWEEPS MARGIN [--inextensible N]``: the second model's rows are named
+    after its projection, which it has (the checkpoint's own: the eval default)."""
     script = runpy.run_path(str(ROOT / "benchmarks" / "mgn_learn.py"), run_name="mgn_names")
     args = argparse.Namespace(mgn=str(MGN_CKPT), other=[], starts=["gt", "drape"],
-                              project=["2", "0.002"], mgn_name="One-step to step 15,000")
+                              project=["2", "0.002"], inextensible=inextensible,
+                              mgn_name="One-step to step 15,000")
     methods, modules = script["score_methods"](args)
     assert list(methods) == [f"One-step to step 15,000 ({s})" for s in
-                             ("gt", "drape", "gt, projected", "drape, projected")]
+                             ("gt", "drape", f"gt, {how}", f"drape, {how}")]
     assert list(modules) == list(methods)
+    own, projected = (modules[f"One-step to step 15,000 ({s})"].model
+                      for s in ("gt", f"gt, {how}"))
+    assert (own.strain_limit, own.inextensible, own.collision_projection) == (10, 100, 0.002)
+    assert (projected.strain_limit, projected.inextensible,
+            projected.collision_projection) == (2, inextensible, 0.002)
 
 
 def test_a_start_named_after_another_method_rolls_out_from_its_frames():

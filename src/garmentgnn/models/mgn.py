@@ -40,7 +40,9 @@ the model learns to predict, not what it can reach.
 **The projection.**  After each step (:meth:`step`, :meth:`project`) the toolkit's strain
 limit shortens stretched edges (``strain_limit`` sweeps) and its collision projection
 moves vertices inside each garment's own body ``collision_projection`` outside, as GarTrans's
-post-steps do; on by default (the measurement: the class's arguments).
+post-steps do; on by default (the measurement: the class's arguments).  In eval mode the
+strain limit gives way to an inextensible projection (``inextensible`` sweeps toward every
+edge's rest length), too costly for training batches.
 
 Pinned vertices follow the LBS garment.  Under ``torch.autocast`` (``--trainer.precision
 bf16-mixed``) the kinematics, the inputs, their statistics, the acceleration and the
@@ -146,6 +148,13 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
             no clip).
         strain_limit: sweeps of the strain limit after each step (Provot's,
             :func:`~garmentgnn.geometry.project_edge_lengths` on stretched edges; 0: none).
+        inextensible: in eval mode (validation, test, ``predict``), the strain limit is
+            replaced by this many sweeps that pull every edge toward its rest length,
+            compressed ones too, Chebyshev-accelerated
+            (:meth:`~garmentgnn.models.sequence.PostSteps.strain_sweeps`; 0: the strain
+            limit in every mode).  Training keeps the cheaper strain limit: 100 sweeps
+            over a batch of 16 garments a frame would cost more than the step.
+            INEXTENSIBLE_MEASURE
         coarse_levels: coarse levels of the mesh graph the processor also runs on
             (module doc; every second block; 0: the mesh graph alone).
         collision_projection: after each step, vertices closer than this to the body (or
@@ -164,7 +173,7 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
                  body_radius: float = 0.05, body_k: int = 4, fps: float = 30.0,
                  norm_updates: int = 1000, body_blocks: bool = False,
                  anchor_decay: float = 0.0, anchor_clip: Optional[float] = None,
-                 strain_limit: int = 10,
+                 strain_limit: int = 10, inextensible: int = 100,
                  collision_projection: Optional[float] = COLLISION_MARGIN,
                  coarse_levels: int = 0) -> None:
         super().__init__()
@@ -181,14 +190,14 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
                                             and anchor_clip > 0):
             raise ValueError(f"`anchor_clip`: expected metres > 0 or None, got "
                              f"{anchor_clip!r}")
-        if not isinstance(strain_limit, int) or isinstance(strain_limit, bool) \
-                or strain_limit < 0:
-            raise ValueError(f"`strain_limit`: expected sweeps >= 0, got {strain_limit!r}")
+        for name, sweeps in (("strain_limit", strain_limit), ("inextensible", inextensible)):
+            if not isinstance(sweeps, int) or isinstance(sweeps, bool) or sweeps < 0:
+                raise ValueError(f"`{name}`: expected sweeps >= 0, got {sweeps!r}")
         if collision_projection is not None and not (
                 isinstance(collision_projection, (int, float)) and collision_projection >= 0):
             raise ValueError(f"`collision_projection`: expected metres >= 0 or None, got "
                              f"{collision_projection!r}")
-        self.strain_limit = strain_limit
+        self.strain_limit, self.inextensible = strain_limit, inextensible
         self.collision_projection = (None if collision_projection is None
                                      else float(collision_projection))
         self.compile_search = False  # PostSteps: the face search eager (one frame a call)
@@ -234,7 +243,7 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
         body = scene.body_pos.view(T, N, -1, 3)
         material = scene.material.reshape(N, -1).to(lbs.dtype)[chunk]
         edges = lengths = None
-        if self.strain_limit:
+        if self.strain_limit or self.inextensible:
             edges = unique_edges(scene.faces, scene.num_vertices).edges
             lengths = edge_lengths(scene.rest_pos, edges)
         coarse = tuple(build_levels(scene.edge_index, scene.num_vertices, self.coarse_levels,
@@ -354,10 +363,11 @@ class MGNStyle(Configurable, PostSteps, nn.Module):
 
     def project(self, scene: GarmentInputs, motion: SceneMotion, t: int, x: Tensor) -> Tensor:
         """Frame ``t`` after the strain limit (``strain_limit`` sweeps over the stretched
-        edges) and the collision projection against each garment's own body
-        (``collision_projection``; :class:`~garmentgnn.models.sequence.PostSteps`, as
-        GarTrans's), pinned vertices back on LBS; ``x`` itself without them."""
-        if not self.strain_limit and self.collision_projection is None:
+        edges; in eval mode, ``inextensible`` sweeps over every edge) and the collision
+        projection against each garment's own body (``collision_projection``;
+        :class:`~garmentgnn.models.sequence.PostSteps`, as GarTrans's), pinned vertices
+        back on LBS; ``x`` itself without them."""
+        if not self.strain_sweeps()[0] and self.collision_projection is None:
             return x
         frame = copy.copy(scene)  # GarTrans's post-steps on frame t alone
         frame.body_pos = motion.body[t].reshape(1, -1, 3)

@@ -153,9 +153,29 @@ class ChunkLayout:
         return push_outside(x, inputs.body_pos, faces, margin, compiled=compiled, **pairs)
 
 
+#: the spectral radius estimate of the inextensible projection's Chebyshev acceleration
+#: (:func:`~garmentgnn.geometry.project_edge_lengths`), chosen on 24 `learn` val
+#: rollouts (docs/results/mgn_learn/inextensible)
+STRAIN_CHEBYSHEV = 0.99
+
+
 class PostSteps:
     """GarTrans's last steps after the dynamic stack (not in the paper): the strain limit
-    (``strain_limit`` sweeps) and the collision projection (``collision_projection``)."""
+    (``strain_limit`` sweeps) and the collision projection (``collision_projection``).
+    ``inextensible`` (sweeps; 0: none): in eval mode, the strain limit is replaced by as
+    many sweeps that pull every edge toward its rest length, compressed ones too, with
+    Chebyshev's acceleration (:data:`STRAIN_CHEBYSHEV`); in training mode, and without
+    it, only stretched edges are shortened (Provot's strain limit)."""
+
+    inextensible = 0
+
+    def strain_sweeps(self) -> Tuple[int, bool]:
+        """``(sweeps, inextensible)`` of the edge-length projection in the module's
+        current mode (``inextensible`` in eval mode where it is set; else
+        ``strain_limit``'s stretched edges)."""
+        if self.inextensible and not self.training:
+            return self.inextensible, True
+        return self.strain_limit, False
 
     def post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor,
                    layout: Optional[ChunkLayout] = None) -> Tensor:
@@ -167,12 +187,14 @@ class PostSteps:
 
     def _post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor,
                     layout: Optional[ChunkLayout] = None) -> Tensor:
-        if self.strain_limit:
+        sweeps, both = self.strain_sweeps()
+        if sweeps:
             edges, lengths = static.strain_edges, static.strain_lengths
             if edges is None:  # static features made by a model without the strain limit
                 edges = unique_edges(inputs.faces, inputs.num_vertices).edges
                 lengths = edge_lengths(inputs.rest_pos, edges)
-            x = project_edge_lengths(x, edges, lengths, self.strain_limit, stretch_only=True)
+            x = project_edge_lengths(x, edges, lengths, sweeps, stretch_only=not both,
+                                     chebyshev=STRAIN_CHEBYSHEV if both else None)
         body = inputs.get("body_pos")
         if self.collision_projection is None or body is None:
             return x
