@@ -274,3 +274,19 @@ def test_named_module_reads_flags_and_configs_in_order():
     assert named_module(["--model.class_path", "my.pkg.Module", "--config", hood]) == \
         "garmentgnn.training.BaselineModule"
     assert named_module(["--model", "cfg.yaml"]) is None  # a file of arguments
+
+
+def test_a_recipe_that_counts_steps_trains_to_them(root, tmp_path):  # noqa: F811
+    """``mgn`` ends at its ``max_steps``, not at the CLI's default epoch limit, which
+    would end a longer run of it early without an error (Lightning's own rule: with
+    the steps given, the epochs are unlimited)."""
+    cfg = yaml.safe_load(recipe_path("mgn").read_text())
+    args = _test_args(root, tmp_path)
+    i = args.index("--trainer.max_epochs")
+    del args[i:i + 2]
+    cli = train_main(_config_args("mgn") + args, run=False)
+    assert cli.trainer.max_steps == cfg["trainer"]["max_steps"] > 0
+    assert cli.trainer.max_epochs == -1
+    longer = train_main(_config_args("mgn") + args + ["--trainer.max_steps", "10000000"],
+                        run=False)
+    assert (longer.trainer.max_steps, longer.trainer.max_epochs) == (10 ** 7, -1)

@@ -17,8 +17,8 @@ longest rollout of the schedule), collated as one PyG ``Batch``:
   the window unused); ``"per_frame"`` trains every one of the ``r`` frames with an
   optimizer step after each and the state detached between them (HOOD, ContourCraft);
 * each trained frame's current positions get Gaussian noise of ``noise`` metres, and its
-  target is corrected by ``(1 - noise_gamma)`` of that noise (MeshGraphNets: 3 mm,
-  gamma 0.1), so the model learns to undo perturbations;
+  target position is shifted by ``(1 - noise_gamma)`` of that noise (MeshGraphNets: 3 mm,
+  gamma 0.1): the model learns to remove ``noise_gamma`` of a perturbation in one step;
 * the loss is :meth:`MGNStyle.loss <garmentgnn.models.MGNStyle.loss>` over the free
   vertices of windows whose frames are all valid ground truth; gradients are clipped to
   the norm ``clip`` before every optimizer step (the module optimises by hand:
@@ -100,8 +100,9 @@ class RolloutModule(GarmentModule):
             :class:`~garmentgnn.training.TimeBudget` anneals it instead).
         noise: standard deviation (m) of the noise on the input positions (MeshGraphNets:
             3 mm; 1 cm rolled out best of 1, 3 and 10 mm on `learn`, docs/experiments.md).
-        noise_gamma: the share of the noise the target keeps (0: the model undoes all of
-            it in one step; MeshGraphNets: 0.1).
+        noise_gamma: the share of the noise the model removes in one step: the target
+            position is the simulated one plus ``1 - noise_gamma`` times the noise (1:
+            all of it; 0: none, only the velocity is corrected; MeshGraphNets: 0.1).
         rollout: frames a training window rolls forward, the first ``rollout - 1``
             without a gradient (pushforward); the data's ``chunk`` must be
             ``2 + rollout``.  ``rollout_start``: the optimizer step from which it does;
