@@ -20,7 +20,7 @@ from garmentgnn.training import (BaselineModule, GarmentDataModule, GarTransModu
 from garmentgnn.training.recipes import available, named_module, recipe_path
 from garmentgnn.data import SequenceChunks
 from garmentgnn.training.evaluate import evaluate_split
-from garmentgnn.training.lightning_cli import main as train_main
+from garmentgnn.training.lightning_cli import DEFAULT_EPOCHS, main as train_main
 from garmentgnn.models import GarTrans
 from garmentgnn.models.baselines import NCSStyle
 from garmentgnn.training.integrity import stamp_checkpoint
@@ -276,17 +276,23 @@ def test_named_module_reads_flags_and_configs_in_order():
     assert named_module(["--model", "cfg.yaml"]) is None  # a file of arguments
 
 
-def test_a_recipe_that_counts_steps_trains_to_them(root, tmp_path):  # noqa: F811
-    """``mgn`` ends at its ``max_steps``, not at the CLI's default epoch limit, which
-    would end a longer run of it early without an error (Lightning's own rule: with
-    the steps given, the epochs are unlimited)."""
+def test_a_run_that_counts_steps_or_time_trains_to_them(root, tmp_path):  # noqa: F811
+    """A run without ``max_epochs`` ends at its ``max_steps`` or ``max_time``, not at the
+    CLI's default epoch limit, which ended a longer ``mgn`` run early without an error
+    (Lightning's own rule: with the steps or the time given, the epochs are unlimited);
+    without either it trains the default epochs, and an explicit limit stays."""
     cfg = yaml.safe_load(recipe_path("mgn").read_text())
     args = _test_args(root, tmp_path)
     i = args.index("--trainer.max_epochs")
     del args[i:i + 2]
-    cli = train_main(_config_args("mgn") + args, run=False)
-    assert cli.trainer.max_steps == cfg["trainer"]["max_steps"] > 0
-    assert cli.trainer.max_epochs == -1
-    longer = train_main(_config_args("mgn") + args + ["--trainer.max_steps", "10000000"],
-                        run=False)
-    assert (longer.trainer.max_steps, longer.trainer.max_epochs) == (10 ** 7, -1)
+
+    def limits(name, *flags):
+        t = train_main(_config_args(name) + args + list(flags), run=False).trainer
+        return t.max_epochs, t.max_steps
+
+    assert limits("mgn") == (-1, cfg["trainer"]["max_steps"])
+    assert limits("mgn", "--trainer.max_steps", "10000000") == (-1, 10 ** 7)
+    assert limits("gartrans") == (DEFAULT_EPOCHS, -1)
+    assert limits("gartrans", "--trainer.max_steps", "100000") == (-1, 100000)
+    assert limits("gartrans", "--trainer.max_time", "00:01:00:00")[0] == -1
+    assert limits("mgn", "--trainer.max_epochs", "3") == (3, cfg["trainer"]["max_steps"])

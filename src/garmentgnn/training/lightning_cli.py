@@ -93,14 +93,19 @@ LINKS = {"instantiate": ("num_joints", "num_body_vertices", "num_vertices"),
          "parse": ("nystrom_dim",)}
 #: where they go
 LINK_TARGET = "model.init_args.model.init_args"
+#: the epochs a run trains when neither it nor its recipe sets ``max_epochs``,
+#: ``max_steps`` or ``max_time``; a run that ends at its steps or its time has no epoch
+#: limit (Lightning's own rule for ``max_epochs=None``: :meth:`GarmentCLI.instantiate_trainer`)
+DEFAULT_EPOCHS = 30
 #: the trainer settings of every recipe that does not set its own: one GPU when present,
-#: else the CPU; 30 epochs; the checkpoint of the best validation E_dist and the latest
+#: else the CPU; :data:`DEFAULT_EPOCHS` epochs unless the steps or the time end the run
+#: (``max_epochs: None`` here); the checkpoint of the best validation E_dist and the latest
 #: one with ``last.ckpt`` (Lightning writes ``last.ckpt`` only along with a top-k
 #: checkpoint, so with the monitored one alone it stays at the best epoch); a CSV log
 #: under ``default_root_dir`` (no ``save_dir`` of its own: ``--trainer.default_root_dir
 #: DIR`` moves the log, checkpoints, TensorBoard events and curve plots together)
 TRAINER_DEFAULTS: Dict[str, Any] = {
-    "accelerator": "auto", "devices": 1, "max_epochs": 30, "log_every_n_steps": 10,
+    "accelerator": "auto", "devices": 1, "max_epochs": None, "log_every_n_steps": 10,
     "callbacks": [
         {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
          "init_args": {"save_top_k": 1, "monitor": "val/E_dist", "mode": "min",
@@ -363,9 +368,17 @@ class GarmentCLI(LightningCLI):
         """Lightning's trainer, with a TensorBoard logger beside the CSV one
         (:func:`add_tensorboard`).  ``enable_checkpointing`` false (a flag or an
         argument) leaves out the checkpoint callbacks of the defaults and the recipe,
-        which Lightning would otherwise refuse beside it."""
+        which Lightning would otherwise refuse beside it.  Without ``max_epochs``, a run
+        trains :data:`DEFAULT_EPOCHS` epochs, or without an epoch limit when
+        ``max_steps`` or ``max_time`` ends it (a step-counted recipe given more steps
+        than 30 epochs hold trains them all)."""
         cfg = self.config_init[self.subcommand] if self.subcommand else self.config_init
         trainer_cfg = cfg.get("trainer") or {}
+        given = {**trainer_cfg, **kwargs}
+        if given.get("max_epochs") is None:
+            ends = given.get("max_steps", -1) not in (None, -1) \
+                or given.get("max_time") is not None
+            kwargs["max_epochs"] = -1 if ends else DEFAULT_EPOCHS
         if kwargs.get("enable_checkpointing", trainer_cfg.get("enable_checkpointing")) is False \
                 and "callbacks" not in kwargs:
             kwargs["callbacks"] = [c for c in trainer_cfg.get("callbacks") or []
