@@ -145,7 +145,12 @@ def score_table(results: Dict[str, Any]) -> str:
 def plot_per_frame(results: Dict[str, Any], path: Path) -> None:
     plt = pyplot()
     valid = results.get("valid") or {}
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    # a colour each (tab10 repeats after ten lines); LBS black and dashed, the reference
+    names = [n for n in results["per_frame"] if n != "LBS only"]
+    cmap = plt.get_cmap("tab20" if len(names) > 10 else "tab10")
+    colours = {n: cmap(i % cmap.N) for i, n in enumerate(names)}
+    colours["LBS only"] = "k"
     for name, frames in results["per_frame"].items():
         T = max(len(v) for v in frames.values())
         sums, counts = np.zeros(T), np.zeros(T)
@@ -156,12 +161,13 @@ def plot_per_frame(results: Dict[str, Any], path: Path) -> None:
                     sums[t] += v
                     counts[t] += 1
         mean = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
-        ax.plot(np.arange(T), mean, label=name, lw=1.5 if "MGN" in name else 1.0)
+        ax.plot(np.arange(T), mean, label=name, color=colours[name],
+                ls="--" if name == "LBS only" else "-", lw=1.5 if "MGN" in name else 1.0)
     ax.set_xlabel("frame")
     ax.set_ylabel("E_dist (cm), mean over sequences")
     ax.set_title(f"error per frame, {results['split']} "
                  f"({str(results.get('content_sha256'))[:8]})")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the curves
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
