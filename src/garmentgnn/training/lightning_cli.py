@@ -371,7 +371,7 @@ class GarmentCLI(LightningCLI):
         which Lightning would otherwise refuse beside it.  Without ``max_epochs``, a run
         trains :data:`DEFAULT_EPOCHS` epochs, or without an epoch limit when
         ``max_steps`` or ``max_time`` ends it (a step-counted recipe given more steps
-        than 30 epochs hold trains them all)."""
+        than the default epochs hold trains them all)."""
         cfg = self.config_init[self.subcommand] if self.subcommand else self.config_init
         trainer_cfg = cfg.get("trainer") or {}
         given = {**trainer_cfg, **kwargs}
