@@ -7,8 +7,9 @@ import torch
 
 from conftest import skirt_dataset
 from garmentgnn.cli import main as cli_main
-from garmentgnn.training import fork_checkpoint
-from garmentgnn.training.integrity import CheckpointError, load_checkpoint_file
+from garmentgnn.training import fork_checkpoint, load_checkpoint
+from garmentgnn.training.integrity import (CheckpointError, load_checkpoint_file,
+                                           stamp_checkpoint)
 from garmentgnn.training.lightning_cli import main as train_main
 
 
@@ -68,6 +69,23 @@ def test_a_forked_checkpoint_resumes_the_run_with_the_changed_settings(run, caps
     assert cli.trainer.global_step == 4 and module.hparams.rollout == 2
     assert module.rollout_at(3) == 2 and cli.datamodule.hparams.chunk == 4
     assert _adam_steps(cli.trainer) == {4.0}  # Adam went on from the run's 2 steps
+
+
+def test_a_setting_newer_than_the_checkpoint_can_be_forked(run):
+    """A checkpoint written before the module had ``train_inextensible`` (the key removed
+    from its settings, its digest renewed) forks to the new setting and loads with it;
+    a name the module does not take is still refused."""
+    tmp, _, path = run
+    old = load_checkpoint_file(path)
+    del old["hyper_parameters"]["train_inextensible"]
+    stamp_checkpoint(old)
+    torch.save(old, tmp / "older.ckpt")
+    forked = fork_checkpoint(tmp / "older.ckpt", tmp / "newer.ckpt",
+                             model={"train_inextensible": 100})
+    assert load_checkpoint(forked).hparams.train_inextensible == 100
+    assert load_checkpoint(tmp / "older.ckpt").hparams.train_inextensible == 0
+    with pytest.raises(ValueError, match="'inextensible' is not a setting.*train_inext"):
+        fork_checkpoint(tmp / "older.ckpt", tmp / "bad.ckpt", model={"inextensible": 100})
 
 
 def test_what_a_fork_cannot_change_is_refused_and_nothing_is_written(run):

@@ -570,23 +570,28 @@ def test_each_rollout_mode_steps_the_optimizer_as_documented(root, mode, frames,
     assert max(count.norms) <= 1e-3 * (1 + 1e-4)
 
 
-@pytest.mark.parametrize("inextensible,training", [(0, False), (8, True), (8, False)])
-def test_the_projection_uses_the_strain_limit_and_the_collision_projection(root, inextensible,
-                                                                           training):
+@pytest.mark.parametrize("inextensible,training,within", [
+    (0, False, 0), (8, True, 0), (8, False, 0), (8, True, 5), (0, True, 5), (0, False, 5)])
+def test_the_projection_uses_the_strain_limit_and_the_collision_projection(
+        root, inextensible, training, within):
     """A step's projection is the toolkit's strain limit (Provot's on stretched edges; in
-    eval mode with ``inextensible``, every edge toward rest with Chebyshev's
-    acceleration), then its collision projection against the garment's own body, pinned
-    vertices back on LBS (against those functions called directly: a batch of two
-    garments projects each against its own body)."""
+    eval mode with ``inextensible`` sweeps, or in either mode with ``within`` sweeps of
+    ``inextensible_projection``, every edge toward rest with Chebyshev's acceleration),
+    then its collision projection against the garment's own body, pinned vertices back
+    on LBS (against those functions called directly: a batch of two garments projects
+    each against its own body)."""
     torch.manual_seed(0)
     batch = windows(root)[[0, 6]]
-    both = bool(inextensible) and not training
-    sweeps = inextensible if both else 3
+    both = bool(within) or (bool(inextensible) and not training)
+    sweeps = within or (inextensible if both else 3)
     model = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=3, inextensible=inextensible,
                      collision_projection=0.004).train(training)
     m = model.scene_motion(batch)
     x = batch.gt[2] + 0.01 * torch.randn_like(batch.gt[2])
-    got = model.project(batch, m, 2, x)
+    with model.inextensible_projection(within):
+        got = model.project(batch, m, 2, x)
+    assert model.strain_sweeps() == ((inextensible, True) if inextensible and not training
+                                     else (3, False))  # restored on leaving
     plain = MGNStyle(hidden=8, layers=1, heads=1, strain_limit=0, inextensible=0,
                      collision_projection=None)
     assert plain.project(batch, plain.scene_motion(batch), 2, x) is x  # off: unchanged
@@ -602,6 +607,42 @@ def test_the_projection_uses_the_strain_limit_and_the_collision_projection(root,
     want = torch.where(m.pinned.unsqueeze(1), m.lbs[2], want)
     torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
     assert not torch.equal(got, x)
+
+
+@pytest.mark.parametrize("sweeps", [0, 6])
+def test_a_training_rollout_projects_as_train_inextensible_says(root, sweeps):
+    """``train_inextensible``: the pushforward frames and the trained frame's state are
+    projected with the strain limit (0) or with that many inextensible sweeps, against
+    the same window rolled by hand with the model in training mode or in eval mode with
+    ``inextensible`` as many sweeps (its statistics frozen, so the two modes differ only
+    in the projection)."""
+    torch.manual_seed(0)
+    batch = windows(root, chunk=5)[[0, 6]]
+    model = MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1, strain_limit=2,
+                     inextensible=6)
+    trained_stats(model, windows(root)[[0, 6]])
+
+    def loss_with(n):
+        module = RolloutModule(model, stats_steps=1, noise=0.0, rollout=3, rollout_start=0,
+                               train_inextensible=n).train()
+        return module.window_loss(batch, free_frames=2, trained=1)
+
+    with torch.no_grad():
+        loss, extra = loss_with(sweeps)
+        m = model.scene_motion(batch)
+        model.train(not sweeps)
+        x0, x1 = batch.gt[0], batch.gt[1]
+        x2 = model.step(batch, m, 2, x0, x1)
+        x3 = model.step(batch, m, 3, x1, x2)
+        want, _, err = model.loss(batch, m, 4, x2, x3, batch.gt[4], ~m.pinned)
+        model.train()
+        other, _ = loss_with(6 - sweeps)
+    assert float(loss) == pytest.approx(float(want), rel=1e-5)
+    assert float(extra["one_step_m"]) == pytest.approx(float(err), rel=1e-5)
+    assert float(other) != pytest.approx(float(loss), rel=1e-3)
+    assert model.strain_sweeps() == (2, False)  # left as it was
+    with pytest.raises(ValueError, match="`train_inextensible`"):
+        RolloutModule(model, stats_steps=1, train_inextensible=-1)
 
 
 def items_body_faces(batch, n):

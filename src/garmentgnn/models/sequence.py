@@ -4,10 +4,11 @@ branch's output (:class:`StaticFeatures`), the layout of a batch of chunks
 prediction of a whole motion (:meth:`SequencePrediction.predict_sequence`)."""
 from __future__ import annotations
 
+import contextlib
 import itertools
 import weakref
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -165,17 +166,36 @@ class PostSteps:
     ``inextensible`` (sweeps; 0: none): in eval mode, the strain limit is replaced by as
     many sweeps that pull every edge toward its rest length, compressed ones too, with
     Chebyshev's acceleration (:data:`STRAIN_CHEBYSHEV`); in training mode, and without
-    it, only stretched edges are shortened (Provot's strain limit)."""
+    it, only stretched edges are shortened (Provot's strain limit).  Within
+    :meth:`inextensible_projection`, its sweeps in either mode."""
 
     inextensible = 0
+    _inextensible_now = 0
 
     def strain_sweeps(self) -> Tuple[int, bool]:
         """``(sweeps, inextensible)`` of the edge-length projection in the module's
-        current mode (``inextensible`` in eval mode where it is set; else
-        ``strain_limit``'s stretched edges)."""
+        current mode (within :meth:`inextensible_projection`, its sweeps; else
+        ``inextensible`` in eval mode where it is set; else ``strain_limit``'s
+        stretched edges)."""
+        if self._inextensible_now:
+            return self._inextensible_now, True
         if self.inextensible and not self.training:
             return self.inextensible, True
         return self.strain_limit, False
+
+    @contextlib.contextmanager
+    def inextensible_projection(self, sweeps: int) -> Iterator[None]:
+        """Within: ``sweeps`` of the inextensible projection (every edge toward rest, as
+        eval mode's ``inextensible``) in either mode, e.g. a training rollout projected
+        as validation and ``predict`` project theirs; ``sweeps=0``: no change."""
+        if not isinstance(sweeps, int) or isinstance(sweeps, bool) or sweeps < 0:
+            raise ValueError(f"`sweeps`: expected an int >= 0, got {sweeps!r}")
+        old = self._inextensible_now
+        self._inextensible_now = sweeps or old
+        try:
+            yield
+        finally:
+            self._inextensible_now = old
 
     def post_steps(self, inputs: GarmentInputs, static: StaticFeatures, x: Tensor,
                    layout: Optional[ChunkLayout] = None) -> Tensor:

@@ -11,6 +11,7 @@ settings changed: a branch of a run that keeps everything else it had.
 """
 from __future__ import annotations
 
+import inspect
 import os
 import typing
 from pathlib import Path
@@ -103,14 +104,15 @@ def load_checkpoint(path: PathLike) -> GarmentModule:
 
 
 def _changed(ckpt: Dict[str, Any], entry: str, changes: Mapping[str, Any],
-             arg: str, fixed: tuple) -> None:
+             arg: str, fixed: tuple, later: tuple = ()) -> None:
     saved = ckpt.get(entry)
     if changes and not isinstance(saved, dict):
         raise ValueError(f"`{arg}`: the checkpoint has no {entry!r} to change; fork a "
                          f"checkpoint written by `garmentgnn train fit`")
+    known = set(saved) | (set(later) - {"self", "args", "kwargs"})
     for k, v in changes.items():
-        if k not in saved or k in fixed:
-            names = ", ".join(sorted(n for n in saved if n not in fixed))
+        if k not in known or k in fixed:
+            names = ", ".join(sorted(n for n in known if n not in fixed))
             raise ValueError(f"`{arg}`: {k!r} is not a setting the checkpoint can change; "
                              f"give some of: {names}")
         saved[k] = v
@@ -130,14 +132,20 @@ def fork_checkpoint(source: PathLike, dest: PathLike,
     that differ from its checkpoint; this is how a run changes course on purpose.  The
     module's architecture (``model``'s own ``model`` entry), the data's root and the
     inputs the model reads (``MODEL_INPUTS``: ``history``, ``num_landmarks``,
-    ``nystrom_dim``) stay.
+    ``nystrom_dim``) stay.  A setting the module gained after the checkpoint was
+    written (its default until now) can be given too.
     The forked checkpoint is loaded before it is kept: a value its module refuses is
     that module's ``ValueError``, and nothing is written."""
     dest = Path(dest)
     if dest.resolve() == Path(source).resolve():
         raise ValueError(f"`dest`: {dest} is the source checkpoint; give another path")
     ckpt = load_checkpoint_file(source)
-    _changed(ckpt, "hyper_parameters", dict(model or {}), "model", ("model", "_class_path"))
+    hp = ckpt.get("hyper_parameters")
+    later = ()  # the module's settings added after the checkpoint was written
+    if model and isinstance(hp, dict):
+        later = tuple(inspect.signature(module_class(hp).__init__).parameters)
+    _changed(ckpt, "hyper_parameters", dict(model or {}), "model", ("model", "_class_path"),
+             later)
     _changed(ckpt, "datamodule_hyper_parameters", dict(data or {}), "data",
              ("root", "_instantiator") + MODEL_INPUTS)
     stamp_checkpoint(ckpt)

@@ -118,6 +118,12 @@ class RolloutModule(GarmentModule):
         rollout_mode: ``"pushforward"``, ``"random"`` or ``"per_frame"`` (module doc).
         clip: the largest gradient norm before an optimizer step (``None``: no clip;
             HOOD: 1).
+        train_inextensible: sweeps of the inextensible projection (every edge toward
+            its rest length, as the model's ``inextensible`` in eval mode) after each
+            step of a training window's rollout, its pushforward frames and its trained
+            frames' states
+            (:meth:`~garmentgnn.models.sequence.PostSteps.inextensible_projection`); 0:
+            the model's training-mode projection (its strain limit).
         preroll_frames: the steps of the ``"preroll"`` start.
         start: where validation, test and predict rollouts start (module doc).
     """
@@ -144,7 +150,7 @@ class RolloutModule(GarmentModule):
                  stats_steps: int = 100, start: str = "gt",
                  rollout_schedule: Optional[List[Tuple[int, int]]] = None,
                  rollout_mode: str = "pushforward", clip: Optional[float] = None,
-                 preroll_frames: int = 15) -> None:
+                 preroll_frames: int = 15, train_inextensible: int = 0) -> None:
         super().__init__()
         if not isinstance(model, MGNStyle):
             raise TypeError(f"`model`: expected an MGNStyle, got {type(model).__name__}; "
@@ -158,6 +164,7 @@ class RolloutModule(GarmentModule):
         _positive_int("rollout_start", rollout_start, 0)
         _positive_int("stats_steps", stats_steps, 0)
         _positive_int("preroll_frames", preroll_frames, 0)
+        _positive_int("train_inextensible", train_inextensible, 0)
         if not (isinstance(noise, (int, float)) and noise >= 0):
             raise ValueError(f"`noise`: expected metres >= 0, got {noise!r}")
         if not (isinstance(noise_gamma, (int, float)) and 0 <= noise_gamma <= 1):
@@ -265,8 +272,14 @@ class RolloutModule(GarmentModule):
         n_use = 2 + free_frames + trained
         if n_use < T:  # the window's last frames
             batch = batch.select(torch.arange(T - n_use, T))
-        gt, T = batch.gt, n_use
         model = self.model
+        with model.inextensible_projection(hp.train_inextensible):
+            return self._rolled_loss(batch, model, free_frames, on_frame)
+
+    def _rolled_loss(self, batch: GarmentInputs, model: MGNStyle, free_frames: int,
+                     on_frame) -> Tuple[Tensor, Dict[str, Tensor]]:
+        hp = self.hparams
+        gt, T = batch.gt, batch.gt.shape[0]
         motion = model.scene_motion(batch)
         x_prev, x_curr = gt[0], gt[1]
         with torch.no_grad():  # pushforward: the states its own rollout reaches
@@ -291,8 +304,7 @@ class RolloutModule(GarmentModule):
             errs.append(err)
             x_prev, x_curr = x_curr, x_next.detach()
         return torch.stack(losses).mean(), {"one_step_m": torch.stack(errs).mean(),
-                                            "rollout": torch.tensor(float(trained
-                                                                          + free_frames))}
+                                            "rollout": torch.tensor(float(T - 2))}
 
     def training_loss(self, batch: GarmentInputs) -> Tensor:
         """The loss of a batch of windows at the schedule's current step."""
