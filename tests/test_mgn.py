@@ -645,6 +645,48 @@ def test_a_training_rollout_projects_as_train_inextensible_says(root, sweeps):
         RolloutModule(model, stats_steps=1, train_inextensible=-1)
 
 
+def test_training_windows_start_from_the_lbs_garment_as_lbs_start_says(root):
+    """``lbs_start``: the share of training windows rolled out from the LBS garment of
+    their first two frames, drawn per window; against the same two windows rolled by hand
+    from each combination of starts."""
+    batch = windows(root, chunk=5)[[0, 6]]
+    model = trained_stats(MGNStyle(hidden=8, layers=1, heads=1, norm_updates=1),
+                          windows(root)[[0, 6]]).eval()
+    m = model.scene_motion(batch)
+    per_window = m.vertex_chunk.unsqueeze(1)
+
+    def by_hand(from_lbs):  # from_lbs[k]: window k starts from the LBS garment
+        pick = torch.tensor(from_lbs)[per_window]
+        x0 = torch.where(pick, m.lbs[0], batch.gt[0])
+        x1 = torch.where(pick, m.lbs[1], batch.gt[1])
+        x2 = model.step(batch, m, 2, x0, x1)
+        x3 = model.step(batch, m, 3, x1, x2)
+        return float(model.loss(batch, m, 4, x2, x3, batch.gt[4], ~m.pinned)[0])
+
+    def loss_with(share, seed=0):
+        torch.manual_seed(seed)
+        module = RolloutModule(model, stats_steps=1, noise=0.0, rollout=3, rollout_start=0,
+                               lbs_start=share)
+        return float(module.window_loss(batch, free_frames=2, trained=1)[0])
+
+    with torch.no_grad():
+        combos = {c: by_hand(c) for c in [(False, False), (True, False), (False, True),
+                                          (True, True)]}
+        assert loss_with(0.0) == pytest.approx(combos[False, False], rel=1e-5)
+        assert loss_with(1.0) == pytest.approx(combos[True, True], rel=1e-5)
+        assert combos[True, True] != pytest.approx(combos[False, False], rel=1e-3)
+        seen = set()
+        for seed in range(24):
+            got = loss_with(0.5, seed)
+            match = [c for c, v in combos.items() if got == pytest.approx(v, rel=1e-5)]
+            assert len(match) == 1
+            seen.add(match[0])
+    assert (True, False) in seen and (False, True) in seen  # drawn per window
+    for bad in (-0.1, 1.5, True, "half"):
+        with pytest.raises(ValueError, match="`lbs_start`"):
+            RolloutModule(model, stats_steps=1, lbs_start=bad)
+
+
 def items_body_faces(batch, n):
     """Garment ``n``'s body faces in its own body's vertex numbering."""
     faces = batch.body_faces

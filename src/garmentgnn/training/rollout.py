@@ -124,6 +124,10 @@ class RolloutModule(GarmentModule):
             frames' states
             (:meth:`~garmentgnn.models.sequence.PostSteps.inextensible_projection`); 0:
             the model's training-mode projection (its strain limit).
+        lbs_start: the share of training windows whose rollout starts from the LBS
+            garment of their first two frames (the start ``predict`` uses: no ground
+            truth) instead of the simulated one; drawn per window (torch's global
+            generator, which the run's seed sets); 0: every window from the simulation.
         preroll_frames: the steps of the ``"preroll"`` start.
         start: where validation, test and predict rollouts start (module doc).
     """
@@ -150,7 +154,8 @@ class RolloutModule(GarmentModule):
                  stats_steps: int = 100, start: str = "gt",
                  rollout_schedule: Optional[List[Tuple[int, int]]] = None,
                  rollout_mode: str = "pushforward", clip: Optional[float] = None,
-                 preroll_frames: int = 15, train_inextensible: int = 0) -> None:
+                 preroll_frames: int = 15, train_inextensible: int = 0,
+                 lbs_start: float = 0.0) -> None:
         super().__init__()
         if not isinstance(model, MGNStyle):
             raise TypeError(f"`model`: expected an MGNStyle, got {type(model).__name__}; "
@@ -167,6 +172,9 @@ class RolloutModule(GarmentModule):
         _positive_int("train_inextensible", train_inextensible, 0)
         if not (isinstance(noise, (int, float)) and noise >= 0):
             raise ValueError(f"`noise`: expected metres >= 0, got {noise!r}")
+        if not (isinstance(lbs_start, (int, float)) and not isinstance(lbs_start, bool)
+                and 0 <= lbs_start <= 1):
+            raise ValueError(f"`lbs_start`: expected a share in [0, 1], got {lbs_start!r}")
         if not (isinstance(noise_gamma, (int, float)) and 0 <= noise_gamma <= 1):
             raise ValueError(f"`noise_gamma`: expected a value in [0, 1], got {noise_gamma!r}")
         if rollout_schedule is not None:
@@ -282,6 +290,11 @@ class RolloutModule(GarmentModule):
         gt, T = batch.gt, batch.gt.shape[0]
         motion = model.scene_motion(batch)
         x_prev, x_curr = gt[0], gt[1]
+        if hp.lbs_start:  # some windows start from the LBS garment (no ground truth)
+            lbs = torch.rand(batch.num_chunks, device=gt.device) < hp.lbs_start
+            lbs = lbs[motion.vertex_chunk].unsqueeze(1)
+            x_prev = torch.where(lbs, motion.lbs[0], x_prev)
+            x_curr = torch.where(lbs, motion.lbs[1], x_curr)
         with torch.no_grad():  # pushforward: the states its own rollout reaches
             for t in range(2, 2 + free_frames):
                 x_prev, x_curr = x_curr, model.step(batch, motion, t, x_prev, x_curr)
