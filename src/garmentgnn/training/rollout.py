@@ -9,7 +9,8 @@ longest rollout of the schedule), collated as one PyG ``Batch``:
   list of ``[from_step, frames]`` (HOOD: ``1 + step // 5000``; e.g. ``[[0, 1], [2000, 2],
   [4000, 5]]``), or by default one frame before optimizer step ``rollout_start`` and
   ``rollout`` frames from it on; the step reads the window's last ``2 + r`` frames and
-  starts from the simulated garment at their first two;
+  starts from the simulated garment at their first two (a share ``lbs_start`` of the
+  windows from the LBS garment there: the start ``predict`` uses);
 * **how it rolls** (``rollout_mode``): ``"pushforward"`` rolls ``r - 1`` frames on its own
   predictions without a gradient and trains the last (Brandstetter et al.'s pushforward
   trick: trained on the states its rollouts reach, and asked to bring them back to the
