@@ -290,12 +290,13 @@ class RolloutModule(GarmentModule):
         hp = self.hparams
         gt, T = batch.gt, batch.gt.shape[0]
         motion = model.scene_motion(batch)
-        x_prev, x_curr = gt[0], gt[1]
+        x_prev, x_curr = self.start_states(batch, motion, "gt")
         if hp.lbs_start:  # some windows start from the LBS garment (no ground truth)
             lbs = torch.rand(batch.num_chunks, device=gt.device) < hp.lbs_start
             lbs = lbs[motion.vertex_chunk].unsqueeze(1)
-            x_prev = torch.where(lbs, motion.lbs[0], x_prev)
-            x_curr = torch.where(lbs, motion.lbs[1], x_curr)
+            l_prev, l_curr = self.start_states(batch, motion, "lbs")
+            x_prev = torch.where(lbs, l_prev, x_prev)
+            x_curr = torch.where(lbs, l_curr, x_curr)
         with torch.no_grad():  # pushforward: the states its own rollout reaches
             for t in range(2, 2 + free_frames):
                 x_prev, x_curr = x_curr, model.step(batch, motion, t, x_prev, x_curr)
